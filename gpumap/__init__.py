@@ -1,0 +1,24 @@
+"""gpumap: min-max occupancy mapping from imaging sonar, on GPU and CPU.
+
+The public API::
+
+    spec = gpumap.SonarSpec.uniform(hfov_deg=130, vfov_deg=20, n_beams=512, n_bins=400)
+    grid = gpumap.GridSpec((-2, -1.5, -0.5), (2, 1.5, 0.5), voxel_size_m=0.03)
+    mapper = gpumap.MinMaxMapper(spec, grid, backend="auto")
+    mapper.integrate(image, T_W_S)
+    mapper.values()  # (nx, ny, nz) float32, NaN = never observed
+"""
+
+from gpumap.errors import BackendUnavailableError
+from gpumap.spec import GridSpec, SonarSpec
+
+__all__ = ["BackendUnavailableError", "GridSpec", "MinMaxMapper", "SonarSpec", "available_backends"]
+__version__ = "0.1.0"
+
+
+def __getattr__(name: str):  # lazy: importing gpumap must not import warp or pyopencl
+    if name in ("MinMaxMapper", "available_backends"):
+        from gpumap import mapper
+
+        return getattr(mapper, name)
+    raise AttributeError(f"module 'gpumap' has no attribute {name!r}")

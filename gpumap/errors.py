@@ -1,0 +1,48 @@
+"""Input checks shared by the public API: each says what was expected and what came."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["BackendUnavailableError", "check_finite_scalar", "check_pose"]
+
+
+class BackendUnavailableError(RuntimeError):
+    """A backend asked for by name cannot run on this machine (the reason is in the message)."""
+
+
+def check_finite_scalar(value: object, name: str) -> float:
+    """Return ``value`` as a float, or raise if it is not a finite real number."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"Expected a real number for '{name}', but got {type(value).__name__}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"Expected a finite value for '{name}', but got {v}")
+    return v
+
+
+def check_pose(T: object, name: str = "T_W_S", atol: float = 1e-5) -> np.ndarray:
+    """Validate a 4x4 rigid transform and return it as a float64 array (a copy).
+
+    Raises if the shape is wrong, any entry is NaN/inf, the last row is not ``[0, 0, 0, 1]``,
+    or the rotation block is not orthonormal with determinant +1 (within ``atol``).
+    """
+    a = np.array(T, dtype=np.float64, copy=True)
+    if a.shape != (4, 4):
+        raise ValueError(f"Expected a (4, 4) transform for '{name}', but got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"Expected finite entries in '{name}', but got NaN or inf")
+    if not np.allclose(a[3], [0.0, 0.0, 0.0, 1.0], atol=atol):
+        raise ValueError(f"Expected the last row of '{name}' to be [0, 0, 0, 1], but got {a[3].tolist()}")
+    R = a[:3, :3]
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    if err > atol:
+        raise ValueError(
+            f"Expected an orthonormal rotation in '{name}' (|R^T R - I| <= {atol}), but got error {err:.3g}"
+        )
+    det = float(np.linalg.det(R))
+    if det < 0:
+        raise ValueError(f"Expected a right-handed rotation in '{name}' (det +1), but got det {det:.6f}")
+    return a
