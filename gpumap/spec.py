@@ -52,8 +52,7 @@ class SonarSpec:
         rmax = check_finite_scalar(self.range_max_m, "range_max_m")
         if rmin < 0 or rmax <= rmin:
             raise ValueError(
-                f"Expected 0 <= range_min_m < range_max_m, but got range_min_m={rmin}, "
-                f"range_max_m={rmax}"
+                f"Expected 0 <= range_min_m < range_max_m, but got range_min_m={rmin}, range_max_m={rmax}"
             )
         if isinstance(self.n_bins, bool) or not isinstance(self.n_bins, (int, np.integer)):
             raise TypeError(f"Expected an integer for 'n_bins', but got {type(self.n_bins).__name__}")
@@ -186,9 +185,7 @@ class SonarSpec:
         dirs = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
         step = max(self.hfov_rad / n_arc, self.vfov_rad / (len(el) - 1))
         grow = 1.0 / math.cos(0.5 * step)  # chords of the sphere -> circumscribed polygon
-        pts = np.concatenate(
-            [dirs * self.range_min_m, dirs * self.range_max_m * grow, np.zeros((1, 3))]
-        )
+        pts = np.concatenate([dirs * self.range_min_m, dirs * self.range_max_m * grow, np.zeros((1, 3))])
         return pts
 
     def __eq__(self, other: object) -> bool:
@@ -215,8 +212,9 @@ class SonarSpec:
 
     @classmethod
     def from_dict(cls, d: dict) -> SonarSpec:
-        return cls(d["range_min_m"], d["range_max_m"], int(d["n_bins"]),
-                   np.asarray(d["bearings_rad"]), d["vfov_rad"])
+        return cls(
+            d["range_min_m"], d["range_max_m"], int(d["n_bins"]), np.asarray(d["bearings_rad"]), d["vfov_rad"]
+        )
 
 
 # A grid larger than this many voxels is refused outright, whatever memory there is.

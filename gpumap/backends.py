@@ -1,0 +1,325 @@
+"""Compute backends: where grid values live and how a ping is applied to them.
+
+Each backend holds one float32 grid (``+inf`` = unknown) and applies
+``integrate(params, image, method)`` to it. ``numpy`` is the reference
+(:mod:`gpumap.reference`); ``warp-cpu``/``warp-cuda`` and ``opencl`` run the kernels in
+``gpumap.kernels`` (``minmax.py`` and its twin ``minmax.cl``). Everything a ping needs on
+the device is allocated once, in the constructor; programs are compiled once per process
+(Warp caches modules on disk, OpenCL programs are cached per context).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+from importlib import resources
+
+import numpy as np
+
+from gpumap.errors import BackendUnavailableError
+from gpumap.geometry import PING_DTYPE
+
+log = logging.getLogger("gpumap")
+
+BACKENDS = ("numpy", "warp-cpu", "warp-cuda", "opencl", "opencl-gpu", "opencl-cpu")
+AUTO_ORDER = ("warp-cuda", "opencl-gpu", "opencl-cpu", "warp-cpu", "numpy")
+
+
+class Backend:
+    """Owns the grid and the per-ping device buffers of one mapper."""
+
+    name: str
+    device: str
+
+    def __init__(
+        self, n_voxels: int, n_bins: int, n_beams: int, edges: np.ndarray, template_S: np.ndarray | None
+    ) -> None:
+        raise NotImplementedError
+
+    def integrate(self, params: np.ndarray, image: np.ndarray, method: str, n_threads: int) -> None:
+        """Apply one ping. ``image`` is (n_bins, n_beams) float32 in [0, 1]."""
+        raise NotImplementedError
+
+    def read(self) -> np.ndarray:
+        """(n_voxels,) float32 copy of the grid, +inf = unknown."""
+        raise NotImplementedError
+
+    def write(self, values: np.ndarray) -> None:
+        """Replace the grid with (n_voxels,) float32 ``values``."""
+        raise NotImplementedError
+
+
+class NumpyBackend(Backend):
+    name = "numpy"
+    device = "cpu (NumPy reference)"
+
+    def __init__(self, n_voxels, n_bins, n_beams, edges, template_S):
+        self.grid = np.full(n_voxels, np.inf, dtype=np.float32)
+        self.edges = edges.astype(np.float32)
+        self.template = template_S
+
+    def integrate(self, params, image, method, n_threads):
+        from gpumap import reference
+
+        if method == "gather":
+            reference.integrate_gather(params, image, self.edges, self.grid)
+        else:
+            reference.integrate_template(params, image, self.edges, self.template, self.grid)
+
+    def read(self):
+        return self.grid.copy()
+
+    def write(self, values):
+        self.grid[...] = values
+
+
+# ----------------------------------------------------------------------------- Warp
+@functools.cache
+def _warp():
+    try:
+        import warp as wp
+    except Exception as e:  # pragma: no cover - depends on the machine
+        raise BackendUnavailableError(f"warp-lang cannot be imported: {e!r}") from e
+    wp.config.log_level = wp.LOG_WARNING  # no banner on import
+    wp.config.enable_backward = False  # no adjoints: halves compile time
+    wp.init()
+    from gpumap.kernels import minmax
+
+    return wp, minmax
+
+
+def _warp_params(wp, minmax, p: np.ndarray):
+    s = minmax.PingParams()
+    s.A = wp.mat33(*p["A"].tolist())
+    s.b = wp.vec3(*p["b"].tolist())
+    s.R = wp.mat33(*p["R"].tolist())
+    s.t = wp.vec3(*p["t"].tolist())
+    s.origin = wp.vec3(*p["origin"].tolist())
+    s.voxel = float(p["voxel"])
+    s.rmin = float(p["rmin"])
+    s.rmax = float(p["rmax"])
+    s.inv_dr = float(p["inv_dr"])
+    s.tan_half_vfov = float(p["tan_half_vfov"])
+    s.edge_lo = float(p["edge_lo"])
+    s.edge_hi = float(p["edge_hi"])
+    s.rho = float(p["rho"])
+    s.dims = wp.vec3i(*p["dims"].tolist())
+    s.box_lo = wp.vec3i(*p["box_lo"].tolist())
+    s.box_n = wp.vec3i(*p["box_n"].tolist())
+    s.n_bins = int(p["n_bins"])
+    s.n_beams = int(p["n_beams"])
+    s.n_points = int(p["n_points"])
+    return s
+
+
+class WarpBackend(Backend):
+    def __init__(self, n_voxels, n_bins, n_beams, edges, template_S, device: str):
+        wp, minmax = _warp()
+        if device == "cuda" and not wp.is_cuda_available():
+            raise BackendUnavailableError("warp-cuda needs a CUDA device, and Warp finds none here")
+        self.wp, self.k = wp, minmax
+        self.dev = wp.get_device("cuda:0" if device == "cuda" else "cpu")
+        self.name = f"warp-{device}"
+        self.device = f"{self.dev.alias} ({self.dev.name})"
+        with wp.ScopedDevice(self.dev):
+            self.grid = wp.full(n_voxels, value=np.inf, dtype=float)
+            self.edges = wp.array(edges.astype(np.float32), dtype=float)
+            self.image = wp.empty((n_bins, n_beams), dtype=float)
+            self.template = wp.array(template_S, dtype=wp.vec3) if template_S is not None else None
+        # Two page-locked staging buffers so the upload is a real async DMA on CUDA; a
+        # buffer is refilled only after its previous copy has finished (event), so the
+        # host can prepare ping k+1 while the GPU still works on ping k.
+        self.staging = []
+        self.events = []
+        if self.dev.is_cuda:
+            self.staging = [
+                wp.empty((n_bins, n_beams), dtype=float, device="cpu", pinned=True) for _ in range(2)
+            ]
+            self.events = [None, None]
+        self.slot = 0
+        wp.load_module(minmax, device=self.dev)  # compile (or load from cache) now, not on ping 1
+
+    def integrate(self, params, image, method, n_threads):
+        wp = self.wp
+        if self.staging:
+            s = self.slot
+            if self.events[s] is not None:
+                wp.synchronize_event(self.events[s])
+            self.staging[s].numpy()[...] = image
+            wp.copy(self.image, self.staging[s])
+            self.events[s] = wp.record_event()
+            self.slot = 1 - s
+        else:
+            self.image.numpy()[...] = image
+        P = _warp_params(wp, self.k, params)
+        if method == "gather":
+            if n_threads:
+                wp.launch(
+                    self.k.integrate_gather,
+                    dim=n_threads,
+                    inputs=[P, self.image, self.edges, self.grid],
+                    device=self.dev,
+                )
+        else:
+            wp.launch(
+                self.k.integrate_template,
+                dim=self.template.shape[0],
+                inputs=[P, self.image, self.edges, self.template, self.grid],
+                device=self.dev,
+            )
+
+    def read(self):
+        return self.grid.numpy().copy()
+
+    def write(self, values):
+        self.grid.assign(self.wp.array(values, dtype=float, device=self.dev))
+
+    def synchronize(self) -> None:
+        self.wp.synchronize_device(self.dev)
+
+
+# ----------------------------------------------------------------------------- OpenCL
+@functools.cache
+def _opencl():
+    try:
+        import pyopencl as cl
+    except Exception as e:  # pragma: no cover
+        raise BackendUnavailableError(f"pyopencl cannot be imported: {e!r}") from e
+    return cl
+
+
+def opencl_devices(kind: str) -> list:
+    """OpenCL devices of ``kind`` ('gpu', 'cpu' or 'any'), GPUs first."""
+    cl = _opencl()
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error:
+        return []
+    out = []
+    for p in platforms:
+        try:
+            devs = p.get_devices()
+        except cl.Error:
+            continue
+        out.extend(devs)
+    gpus = [d for d in out if d.type & cl.device_type.GPU]
+    cpus = [d for d in out if not d.type & cl.device_type.GPU]
+    return {"gpu": gpus, "cpu": cpus, "any": gpus + cpus}[kind]
+
+
+@functools.cache
+def _opencl_program(ctx):
+    cl = _opencl()
+    src = resources.files("gpumap.kernels").joinpath("minmax.cl").read_text()
+    try:
+        prg = cl.Program(ctx, src).build(options=["-cl-fp32-correctly-rounded-divide-sqrt"])
+    except cl.Error:
+        prg = cl.Program(ctx, src).build()
+    return prg
+
+
+class OpenCLBackend(Backend):
+    def __init__(self, n_voxels, n_bins, n_beams, edges, template_S, kind: str):
+        cl = _opencl()
+        devs = opencl_devices(kind)
+        if not devs:
+            raise BackendUnavailableError(
+                f"opencl{'' if kind == 'any' else '-' + kind} needs an OpenCL "
+                f"{'device' if kind == 'any' else kind.upper() + ' device'}, and pyopencl finds none"
+            )
+        d = devs[0]
+        self.cl = cl
+        self.ctx = cl.Context([d])
+        self.queue = cl.CommandQueue(self.ctx)
+        self.name = "opencl"
+        self.device = f"{d.platform.name.strip()}: {d.name.strip()}"
+        self.is_gpu = bool(d.type & cl.device_type.GPU)
+        mf = cl.mem_flags
+        self.grid = cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * n_voxels)
+        cl.enqueue_fill_buffer(self.queue, self.grid, np.float32(np.inf), 0, 4 * n_voxels)
+        self.edges = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=edges.astype(np.float32))
+        self.image = cl.Buffer(self.ctx, mf.READ_ONLY, size=4 * n_bins * n_beams)
+        self.n_voxels = n_voxels
+        self.template = None
+        if template_S is not None:
+            self.template = cl.Buffer(
+                self.ctx,
+                mf.READ_ONLY | mf.COPY_HOST_PTR,
+                hostbuf=np.ascontiguousarray(template_S, np.float32),
+            )
+            self.n_points = template_S.shape[0]
+        prg = _opencl_program(self.ctx)
+        self.k_gather = prg.integrate_gather
+        self.k_template = prg.integrate_template
+        self.wg = 128
+        self.queue.finish()
+
+    def integrate(self, params, image, method, n_threads):
+        cl = self.cl
+        # blocking: the caller may reuse `image` as soon as this returns
+        cl.enqueue_copy(self.queue, self.image, image, is_blocking=True)
+        P = np.asarray(params, dtype=PING_DTYPE)
+        if method == "gather":
+            if not n_threads:
+                return
+            gs = -(-n_threads // self.wg) * self.wg
+            self.k_gather(self.queue, (gs,), (self.wg,), P, self.image, self.edges, self.grid)
+        else:
+            gs = -(-self.n_points // self.wg) * self.wg
+            self.k_template(
+                self.queue, (gs,), (self.wg,), P, self.image, self.edges, self.template, self.grid
+            )
+        self.queue.flush()
+
+    def read(self):
+        out = np.empty(self.n_voxels, dtype=np.float32)
+        self.cl.enqueue_copy(self.queue, out, self.grid, is_blocking=True)
+        return out
+
+    def write(self, values):
+        self.cl.enqueue_copy(
+            self.queue, self.grid, np.ascontiguousarray(values, np.float32), is_blocking=True
+        )
+
+    def synchronize(self) -> None:
+        self.queue.finish()
+
+
+def make_backend(
+    name: str, n_voxels: int, n_bins: int, n_beams: int, edges: np.ndarray, template_S: np.ndarray | None
+) -> Backend:
+    """Build the backend called ``name`` (never another one; raises if it cannot run)."""
+    args = (n_voxels, n_bins, n_beams, edges, template_S)
+    if name == "numpy":
+        return NumpyBackend(*args)
+    if name in ("warp-cpu", "warp-cuda"):
+        return WarpBackend(*args, device=name.split("-")[1])
+    if name in ("opencl", "opencl-gpu", "opencl-cpu"):
+        kind = {"opencl": "any", "opencl-gpu": "gpu", "opencl-cpu": "cpu"}[name]
+        return OpenCLBackend(*args, kind=kind)
+    raise ValueError(f"Expected backend to be 'auto' or one of {BACKENDS}, but got {name!r}")
+
+
+def available_backends() -> list[str]:
+    """Backends that can run on this machine, fastest first (the order ``auto`` tries)."""
+    out = []
+    for name in AUTO_ORDER:
+        try:
+            if name == "warp-cuda":
+                wp, _ = _warp()
+                ok = wp.is_cuda_available()
+            elif name.startswith("opencl"):
+                ok = bool(opencl_devices(name.split("-")[1]))
+            elif name == "warp-cpu":
+                _warp()
+                ok = True
+            else:
+                ok = True
+        except BackendUnavailableError:
+            ok = False
+        if ok:
+            out.append(name)
+    if os.environ.get("GPUMAP_DEBUG"):
+        log.debug("available backends: %s", out)
+    return out

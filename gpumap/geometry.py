@@ -1,0 +1,130 @@
+"""Host-side geometry shared by every backend: per-ping parameters and the voxel template.
+
+Everything a kernel needs for one ping is packed into :class:`PingParams` (a flat float32 /
+int32 record with one layout for NumPy, Warp and OpenCL), so the kernels take the same few
+arguments in the same order on every backend.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from gpumap.spec import GridSpec, SonarSpec
+
+__all__ = ["FOOTPRINT_PAD_M", "PING_DTYPE", "footprint_radius_m", "make_template_S", "ping_params"]
+
+# The footprint is the voxel's bounding sphere, padded to absorb float32 rounding of the
+# world->sonar transform (|p| <= ~5 m gives errors of a few 1e-7 m): the padding keeps the
+# footprint conservative on every backend and costs at most one extra cell, rarely.
+FOOTPRINT_PAD_M = 1e-5
+_HALF_DIAG = math.sqrt(3.0) / 2.0
+
+# One record per ping; all fields 4 bytes so C, Warp and NumPy agree on the layout.
+PING_DTYPE = np.dtype(
+    [
+        ("A", np.float32, (9,)),  # rotation of T_S_W, row-major
+        ("b", np.float32, (3,)),  # translation of T_S_W
+        ("R", np.float32, (9,)),  # rotation of T_W_S, row-major (template method)
+        ("t", np.float32, (3,)),  # translation of T_W_S
+        ("origin", np.float32, (3,)),  # grid min corner, m
+        ("voxel", np.float32),  # voxel edge, m
+        ("rmin", np.float32),
+        ("rmax", np.float32),
+        ("inv_dr", np.float32),  # 1 / bin size, 1/m
+        ("tan_half_vfov", np.float32),
+        ("edge_lo", np.float32),  # outer azimuth edges of the fan, rad
+        ("edge_hi", np.float32),
+        ("rho", np.float32),  # footprint (bounding-sphere) radius, m
+        ("dims", np.int32, (3,)),  # grid (nx, ny, nz)
+        ("box_lo", np.int32, (3,)),  # first voxel index of the gather box
+        ("box_n", np.int32, (3,)),  # gather box size per axis
+        ("n_bins", np.int32),
+        ("n_beams", np.int32),
+        ("n_points", np.int32),  # template points (template method)
+    ]
+)
+
+
+def footprint_radius_m(voxel_size_m: float) -> float:
+    """Radius of a voxel's footprint sphere: half the cube diagonal plus rounding pad."""
+    return _HALF_DIAG * voxel_size_m * (1.0 + 1e-5) + FOOTPRINT_PAD_M
+
+
+def static_params(spec: SonarSpec, grid: GridSpec) -> np.ndarray:
+    """A PING_DTYPE record with the fields that do not change between pings filled in."""
+    p = np.zeros((), dtype=PING_DTYPE)
+    p["origin"] = grid.min_corner_m
+    p["voxel"] = grid.voxel_size_m
+    p["rmin"] = spec.range_min_m
+    p["rmax"] = spec.range_max_m
+    p["inv_dr"] = 1.0 / spec.bin_size_m
+    p["tan_half_vfov"] = math.tan(0.5 * spec.vfov_rad)
+    p["edge_lo"] = spec.beam_edges_rad[0]
+    p["edge_hi"] = spec.beam_edges_rad[-1]
+    p["rho"] = footprint_radius_m(grid.voxel_size_m)
+    p["dims"] = grid.shape
+    p["n_bins"] = spec.n_bins
+    p["n_beams"] = spec.n_beams
+    return p
+
+
+def ping_params(params: np.ndarray, T_W_S: np.ndarray, fov_pts_S: np.ndarray, grid: GridSpec) -> int:
+    """Fill the per-ping fields of ``params`` in place; return the gather box's voxel count.
+
+    ``fov_pts_S`` is :meth:`SonarSpec.fov_corners_S`: points whose box, padded by one voxel,
+    contains every voxel centre the ping can see.
+    """
+    R = T_W_S[:3, :3]
+    t = T_W_S[:3, 3]
+    params["R"] = R.ravel()
+    params["t"] = t
+    params["A"] = R.T.ravel()
+    params["b"] = -(R.T @ t)
+    pts_W = fov_pts_S @ R.T + t
+    lo = np.asarray(grid.min_corner_m)
+    s = grid.voxel_size_m
+    dims = np.asarray(grid.shape)
+    i0 = np.floor((pts_W.min(axis=0) - lo) / s).astype(np.int64) - 1
+    i1 = np.floor((pts_W.max(axis=0) - lo) / s).astype(np.int64) + 1
+    i0 = np.clip(i0, 0, dims)
+    i1 = np.clip(i1, -1, dims - 1)
+    n = np.maximum(i1 - i0 + 1, 0)
+    params["box_lo"] = i0
+    params["box_n"] = n
+    return int(n.prod())
+
+
+def make_template_S(spec: SonarSpec, voxel_size_m: float) -> np.ndarray:
+    """The paper's voxel template: (m, 3) float32 sonar-frame points at voxel spacing in the FOV.
+
+    A meshgrid at ``voxel_size_m`` spacing over ``x in [0, r_max]``, ``y, z`` in the
+    symmetric box that holds the fan, with the origin on a grid point; only the points
+    inside the field of view are kept (the paper's constraints a-c, with the field of
+    view of :meth:`SonarSpec.in_fov`).
+    """
+    s = float(voxel_size_m)
+    rmax = spec.range_max_m
+    ymax = rmax * max(abs(math.sin(spec.beam_edges_rad[0])), abs(math.sin(spec.beam_edges_rad[-1])))
+    zmax = rmax * math.sin(0.5 * spec.vfov_rad)
+    xs = np.arange(0.0, rmax + s, s)
+    ys = np.arange(-math.ceil(ymax / s), math.ceil(ymax / s) + 1) * s
+    zs = np.arange(-math.ceil(zmax / s), math.ceil(zmax / s) + 1) * s
+    out = []
+    Y, Z = np.meshgrid(ys, zs, indexing="ij")
+    for x in xs:  # slab by slab keeps the memory to one (ny, nz) plane
+        P = np.stack([np.full_like(Y, x), Y, Z], -1).reshape(-1, 3)
+        out.append(P[spec.in_fov(P)])
+    return np.ascontiguousarray(np.concatenate(out), dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class Footprint:
+    """Inclusive cell rectangle ``[bin_lo, bin_hi] x [beam_lo, beam_hi]`` per voxel (NumPy)."""
+
+    bin_lo: np.ndarray
+    bin_hi: np.ndarray
+    beam_lo: np.ndarray
+    beam_hi: np.ndarray

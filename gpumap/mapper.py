@@ -1,0 +1,280 @@
+"""The min-max occupancy mapper: the public entry point of gpumap."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from gpumap.backends import AUTO_ORDER, BACKENDS, Backend, make_backend
+from gpumap.backends import available_backends as _available
+from gpumap.errors import BackendUnavailableError, check_pose
+from gpumap.geometry import make_template_S, ping_params, static_params
+from gpumap.spec import GridSpec, SonarSpec
+
+__all__ = ["MinMaxMapper", "available_backends"]
+
+log = logging.getLogger("gpumap")
+
+METHODS = ("gather", "template")
+FILE_FORMAT = "gpumap.MinMaxMapper"
+FILE_VERSION = 1
+
+
+def available_backends() -> list[str]:
+    """Backends that run on this machine, in the order ``backend="auto"`` tries them."""
+    return _available()
+
+
+def _free_memory_bytes(backend: Backend | None, name: str) -> int | None:
+    """Best guess of the memory a grid may take on the backend ``name`` (None if unknown)."""
+    try:
+        if name in ("numpy", "warp-cpu") or name.startswith("opencl"):
+            with open("/proc/meminfo") as f:
+                for line in f:
+                    if line.startswith("MemAvailable:"):
+                        return int(line.split()[1]) * 1024
+        if name == "warp-cuda":
+            import warp as wp
+
+            return int(wp.get_device("cuda:0").free_memory)
+    except Exception:  # the check is advisory; the allocation itself still fails loudly
+        return None
+    return None
+
+
+class MinMaxMapper:
+    """Min-max filtering occupancy map (Phung et al.), on a fixed world grid.
+
+    For each ping, every grid voxel whose centre the sonar sees gets the maximum image
+    intensity over its footprint (the cells its bounding sphere touches: conservative, so
+    a thin bright object is never lost to sampling); the grid keeps, per voxel, the
+    minimum of these values over all pings. Never-observed voxels stay unknown.
+
+    Parameters
+    ----------
+    spec : SonarSpec
+        The sonar's geometry.
+    grid : GridSpec
+        The world grid.
+    backend : str
+        ``"auto"`` (fastest that works, in the order warp-cuda, opencl on a GPU, opencl on
+        a CPU (PoCL), warp-cpu, numpy; the choice is logged and kept in :attr:`backend`),
+        or one of ``"numpy"``, ``"warp-cpu"``, ``"warp-cuda"``, ``"opencl"`` (GPU if there
+        is one, else CPU), ``"opencl-gpu"``, ``"opencl-cpu"``. A named backend that cannot
+        run raises :class:`gpumap.BackendUnavailableError`; it never falls back.
+    method : str
+        ``"gather"`` (every voxel of the field of view's bounding box, no holes) or
+        ``"template"`` (the paper's six steps on a voxel template: may leave holes).
+    """
+
+    def __init__(
+        self, spec: SonarSpec, grid: GridSpec, backend: str = "auto", method: str = "gather"
+    ) -> None:
+        if not isinstance(spec, SonarSpec):
+            raise TypeError(f"Expected a gpumap.SonarSpec for 'spec', but got {type(spec).__name__}")
+        if not isinstance(grid, GridSpec):
+            raise TypeError(f"Expected a gpumap.GridSpec for 'grid', but got {type(grid).__name__}")
+        if method not in METHODS:
+            raise ValueError(f"Expected method to be one of {METHODS}, but got {method!r}")
+        if backend != "auto" and backend not in BACKENDS:
+            raise ValueError(f"Expected backend to be 'auto' or one of {BACKENDS}, but got {backend!r}")
+        self.spec = spec
+        self.grid = grid
+        self.method = method
+        self.n_integrated = 0
+        self._params = static_params(spec, grid)
+        self._fov_pts_S = spec.fov_corners_S()
+        self._template = make_template_S(spec, grid.voxel_size_m) if method == "template" else None
+        if self._template is not None:
+            self._params["n_points"] = self._template.shape[0]
+        self._staging = np.empty(spec.image_shape, dtype=np.float32)
+        self._backend = self._make_backend(backend)
+        log.info("gpumap: backend %s on %s", self._backend.name, self._backend.device)
+
+    def _make_backend(self, backend: str) -> Backend:
+        names = AUTO_ORDER if backend == "auto" else (backend,)
+        errors = []
+        for name in names:
+            need = self.grid.nbytes
+            free = _free_memory_bytes(None, name)
+            if free is not None and need > free:
+                msg = (
+                    f"Expected a grid that fits in memory, but {self.grid.shape} voxels at "
+                    f"voxel_size_m={self.grid.voxel_size_m} need {need / 2**30:.2f} GiB and "
+                    f"{name} has {free / 2**30:.2f} GiB free"
+                )
+                if backend != "auto":
+                    raise ValueError(msg)
+                errors.append(f"{name}: {msg}")
+                continue
+            try:
+                return make_backend(
+                    name,
+                    self.grid.n_voxels,
+                    self.spec.n_bins,
+                    self.spec.n_beams,
+                    self.spec.beam_edges_rad,
+                    self._template,
+                )
+            except BackendUnavailableError as e:
+                if backend != "auto":
+                    raise
+                errors.append(f"{name}: {e}")
+        raise BackendUnavailableError("No backend could run: " + "; ".join(errors))
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def backend(self) -> str:
+        """The backend in use, e.g. ``"warp-cuda"``, ``"opencl"``, ``"numpy"``."""
+        return self._backend.name
+
+    @property
+    def device(self) -> str:
+        """The device the backend runs on, in words."""
+        return self._backend.device
+
+    # ------------------------------------------------------------------ update
+    def _check_image(self, image: object) -> np.ndarray:
+        """Validated image as float32 in [0, 1], written into the staging buffer."""
+        if not isinstance(image, np.ndarray):
+            raise TypeError(f"Expected a numpy array for 'image', but got {type(image).__name__}")
+        if image.shape != self.spec.image_shape:
+            raise ValueError(
+                f"Expected image of shape {self.spec.image_shape} (n_bins, n_beams) for 'image', "
+                f"but got {image.shape}"
+            )
+        out = self._staging
+        if image.dtype == np.uint8:
+            np.multiply(image, np.float32(1.0 / 255.0), out=out)
+            return out
+        if image.dtype not in (np.float32, np.float64):
+            raise TypeError(f"Expected image of dtype float32 or uint8 for 'image', but got {image.dtype}")
+        lo, hi = image.min(), image.max()  # NaN propagates: both comparisons below fail
+        if not (lo >= 0.0 and hi <= 1.0):
+            bad = ~np.isfinite(image)
+            if bad.any():
+                r, c = np.argwhere(bad)[0]
+                raise ValueError(
+                    f"Expected finite intensities in 'image', but got {image[r, c]} at (bin {r}, beam {c})"
+                    f" and {int(bad.sum()) - 1} more"
+                )
+            raise ValueError(f"Expected intensities in [0, 1] in 'image', but got range [{lo}, {hi}]")
+        out[...] = image
+        return out
+
+    def integrate(self, image: np.ndarray, T_W_S: np.ndarray) -> None:
+        """Fuse one ping into the map.
+
+        Parameters
+        ----------
+        image : (n_bins, n_beams) float32 in [0, 1], or uint8 (scaled by 1/255)
+            Polar image: row = range bin (ascending), column = beam (ascending azimuth).
+        T_W_S : (4, 4) float
+            Sonar pose: maps sonar-frame points to the world frame, metres.
+
+        Raises ``ValueError``/``TypeError`` on bad input, leaving the map untouched.
+        """
+        T = check_pose(T_W_S, "T_W_S")
+        img = self._check_image(image)
+        n = ping_params(self._params, T, self._fov_pts_S, self.grid)
+        self._backend.integrate(self._params, img, self.method, n)
+        self.n_integrated += 1
+
+    def synchronize(self) -> None:
+        """Wait until every ping handed to :meth:`integrate` is in the grid (GPU backends run async)."""
+        sync = getattr(self._backend, "synchronize", None)
+        if sync is not None:
+            sync()
+
+    # ------------------------------------------------------------------ results
+    def raw_values(self) -> np.ndarray:
+        """(nx, ny, nz) float32 copy of the grid with ``+inf`` for never observed."""
+        return self._backend.read().reshape(self.grid.shape)
+
+    def values(self) -> np.ndarray:
+        """(nx, ny, nz) float32 copy of the grid, ``NaN`` = never observed, else in [0, 1]."""
+        v = self.raw_values()
+        v[np.isinf(v)] = np.nan
+        return v
+
+    def observed(self) -> np.ndarray:
+        """(nx, ny, nz) bool: voxels seen by at least one ping."""
+        return np.isfinite(self.raw_values())
+
+    def occupied_points(self, threshold: float) -> np.ndarray:
+        """(N, 3) float64 world centres (metres) of observed voxels with value >= ``threshold``."""
+        v = self.raw_values()
+        idx = np.argwhere(np.isfinite(v) & (v >= np.float32(threshold)))
+        return self.grid.centers(idx)
+
+    def reset(self) -> None:
+        """Forget every ping: all voxels unknown again."""
+        self._backend.write(np.full(self.grid.n_voxels, np.inf, dtype=np.float32))
+        self.n_integrated = 0
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the map to ``path`` (.npz), atomically: a crash leaves the old file intact.
+
+        Lossless: the raw float32 grid (``+inf`` unknown), both specs, the method and the
+        ping count, under a format name and version checked by :meth:`load`.
+        """
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_suffix(path.suffix + ".npz") if path.suffix else path.with_suffix(".npz")
+        meta = {
+            "format": FILE_FORMAT,
+            "version": FILE_VERSION,
+            "spec": self.spec.to_dict(),
+            "grid": self.grid.to_dict(),
+            "method": self.method,
+            "n_integrated": self.n_integrated,
+            "backend": self.backend,
+        }
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez_compressed(f, values=self.raw_values(), meta=np.array(json.dumps(meta)))
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, backend: str = "auto") -> MinMaxMapper:
+        """Read a map written by :meth:`save` onto ``backend``."""
+        with np.load(path, allow_pickle=False) as z:
+            if "meta" not in z or "values" not in z:
+                raise ValueError(
+                    f"Expected a gpumap map file with 'meta' and 'values', but {path} has {z.files}"
+                )
+            meta = json.loads(str(z["meta"]))
+            values = z["values"]
+        if meta.get("format") != FILE_FORMAT:
+            raise ValueError(f"Expected format {FILE_FORMAT!r} in {path}, but got {meta.get('format')!r}")
+        if meta.get("version") != FILE_VERSION:
+            raise ValueError(
+                f"Expected file version {FILE_VERSION} in {path}, but got {meta.get('version')!r}"
+            )
+        m = cls(
+            SonarSpec.from_dict(meta["spec"]),
+            GridSpec.from_dict(meta["grid"]),
+            backend=backend,
+            method=meta["method"],
+        )
+        if values.shape != m.grid.shape or values.dtype != np.float32:
+            raise ValueError(
+                f"Expected values of shape {m.grid.shape} float32 in {path}, but got {values.shape} {values.dtype}"
+            )
+        m._backend.write(values.ravel())
+        m.n_integrated = int(meta["n_integrated"])
+        return m
