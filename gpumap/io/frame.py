@@ -1,0 +1,130 @@
+"""The record every reader yields (:class:`SonarFrame`), the recording handle and the format error.
+
+Readers convert vendor layouts at the I/O edge: what leaves ``gpumap.io`` is always a polar
+image ``(n_bins, n_beams)`` float32 in ``[0, 1]`` whose columns follow ``spec.bearings_rad``
+in ascending azimuth (sonar frame x forward, y left, z up; ``theta = atan2(y, x)``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from gpumap.spec import SonarSpec
+
+__all__ = ["FormatError", "Recording", "SonarFrame"]
+
+
+class FormatError(ValueError):
+    """A recording is truncated, corrupt or not in the layout it claims.
+
+    Parameters
+    ----------
+    message : str
+        What was expected and what came.
+    offset : int or None
+        Byte offset in the file (or in the decompressed item, as the message says) where
+        the problem was found; ``None`` where a byte offset does not apply.
+    path : str or None
+        The file concerned.
+    """
+
+    def __init__(self, message: str, offset: int | None = None, path: str | None = None):
+        where = []
+        if path is not None:
+            where.append(str(path))
+        if offset is not None:
+            where.append(f"byte {offset}")
+        prefix = (": ".join([", ".join(where), ""])) if where else ""
+        super().__init__(prefix + message)
+        self.offset = offset
+        self.path = path
+
+
+@dataclass(frozen=True, eq=False)
+class SonarFrame:
+    """One fully read and validated sonar ping.
+
+    Parameters
+    ----------
+    image : (n_bins, n_beams) float32
+        Echo intensity in ``[0, 1]``; row = range bin (ascending), column = beam in the
+        order of ``spec.bearings_rad`` (ascending azimuth).
+    spec : SonarSpec
+        Geometry of this ping (vendor sonars may change range between pings).
+    timestamp_s : float or None
+        Time of the ping, seconds (epoch where the format has one; see the reader).
+    T_W_S : (4, 4) float64 or None
+        Sonar pose (maps sonar-frame points to world), metres; ``None`` if unknown.
+    meta : dict
+        Format-specific extras (ping id, gain words, source offset, ...); never needed
+        for mapping.
+    """
+
+    image: np.ndarray
+    spec: SonarSpec
+    timestamp_s: float | None = None
+    T_W_S: np.ndarray | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        img = self.image
+        if not isinstance(img, np.ndarray) or img.dtype != np.float32:
+            raise TypeError(
+                f"Expected a float32 ndarray for 'image', but got "
+                f"{getattr(img, 'dtype', type(img).__name__)}"
+            )
+        if img.shape != self.spec.image_shape:
+            raise ValueError(
+                f"Expected image of shape {self.spec.image_shape} for 'image', but got {img.shape}"
+            )
+        if self.T_W_S is not None:
+            T = np.asarray(self.T_W_S, dtype=np.float64)
+            if T.shape != (4, 4):
+                raise ValueError(f"Expected a (4, 4) transform for 'T_W_S', but got {T.shape}")
+            object.__setattr__(self, "T_W_S", T)
+
+
+class Recording:
+    """A lazily streamed recording: iterate it to get :class:`SonarFrame` objects.
+
+    Parameters
+    ----------
+    path : str
+        Where the recording lives.
+    kind : str
+        Format name (``"oculus-raw"``, ``"oculus-log"``, ``"aris"``, ``"fan-folder"``, ``"rosbag"``).
+    frames : callable
+        Returns a fresh iterator of frames each time (so a recording can be read twice).
+    has_poses : bool
+        Whether frames carry ``T_W_S``.
+    count : callable or None
+        Cheap count of frames (headers only), for progress bars; ``None`` if unknown.
+    """
+
+    def __init__(
+        self,
+        path: str,
+        kind: str,
+        frames: Callable[[], Iterator[SonarFrame]],
+        has_poses: bool,
+        count: Callable[[], int] | None = None,
+    ) -> None:
+        self.path = str(path)
+        self.kind = kind
+        self.has_poses = bool(has_poses)
+        self._frames = frames
+        self._count = count
+
+    def __iter__(self) -> Iterator[SonarFrame]:
+        return self._frames()
+
+    def count(self) -> int | None:
+        """Number of frames, from headers only (``None`` if the format cannot say cheaply)."""
+        return None if self._count is None else int(self._count())
+
+    def __repr__(self) -> str:
+        return f"Recording(kind={self.kind!r}, path={self.path!r}, has_poses={self.has_poses})"
