@@ -1,0 +1,358 @@
+"""MinMaxMapper on every backend, against independent float64 references.
+
+The references here share no code with the kernels or with gpumap.reference: footprints
+come from brute-force supersampling of each voxel cube, or from the bounding sphere in
+float64, and scenes are rendered analytically.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from conftest import pose, rot_y, rot_z
+
+import gpumap
+from gpumap.backends import available_backends
+
+# A small sonar and grid keep brute force cheap but exercise every code path: uneven beams,
+# voxels larger than bins and beams, voxels near the apex that span every beam.
+RNG = np.random.default_rng(7)
+_steps = RNG.uniform(0.8, 1.2, 47)
+_b = np.concatenate([[0.0], np.cumsum(_steps)])
+BEARINGS = np.deg2rad(-60 + 120 * (_b - _b[0]) / (_b[-1] - _b[0]))
+SPEC = gpumap.SonarSpec(0.15, 1.5, 60, BEARINGS, np.deg2rad(20))
+GRID = gpumap.GridSpec((-0.3, -1.2, -0.6), (1.6, 1.2, 0.6), 0.07)
+T_A = pose(rot_z(0.1) @ rot_y(0.15), (0.02, 0.03, 0.05))
+T_B = pose(rot_z(-0.05) @ rot_y(-0.2), (0.1, -0.04, -0.02))
+
+
+def sphere_footprint(spec: gpumap.SonarSpec, p_S: np.ndarray, rho: float):
+    """float64 cell rectangle touched by spheres of radius rho at p_S: (b0, b1, j0, j1), inclusive."""
+    r = np.linalg.norm(p_S, axis=-1)
+    h = np.hypot(p_S[..., 0], p_S[..., 1])
+    az = np.arctan2(p_S[..., 1], p_S[..., 0])
+    dr = spec.bin_size_m
+    b0 = np.clip(np.floor((r - rho - spec.range_min_m) / dr), 0, spec.n_bins - 1).astype(int)
+    b1 = np.clip(np.floor((r + rho - spec.range_min_m) / dr), 0, spec.n_bins - 1).astype(int)
+    wide = h <= rho
+    dth = np.arcsin(np.clip(rho / np.maximum(h, 1e-12), 0, 1))
+    edges = spec.beam_edges_rad
+    j0 = np.clip(np.searchsorted(edges, az - dth, side="right") - 1, 0, spec.n_beams - 1)
+    j1 = np.clip(np.searchsorted(edges, az + dth, side="right") - 1, 0, spec.n_beams - 1)
+    j0 = np.where(wide, 0, j0)
+    j1 = np.where(wide, spec.n_beams - 1, j1)
+    return b0, b1, j0, j1
+
+
+def centres_S(T_W_S: np.ndarray) -> np.ndarray:
+    c = GRID.all_centers().reshape(-1, 3)
+    return (c - T_W_S[:3, 3]) @ T_W_S[:3, :3]
+
+
+def integrate(backend, pings, method="gather", spec=SPEC, grid=GRID):
+    m = gpumap.MinMaxMapper(spec, grid, backend=backend, method=method)
+    for img, T in pings:
+        m.integrate(img, T)
+    return m
+
+
+def test_auto_picks_first_available_backend():
+    m = gpumap.MinMaxMapper(SPEC, GRID)
+    assert m.backend == available_backends()[0].replace("opencl-gpu", "opencl").replace(
+        "opencl-cpu", "opencl"
+    )
+
+
+def test_observed_set_is_the_field_of_view(backend):
+    """A voxel is observed iff its centre is in the FOV (float64 check, boundary slack 1e-5 m)."""
+    img = np.zeros(SPEC.image_shape, np.float32)
+    m = integrate(backend, [(img, T_A)])
+    obs = m.observed().ravel()
+    p = centres_S(T_A)
+    inside = SPEC.in_fov(p)
+    # voxels within 1e-5 m of the FOV boundary may go either way in float32
+    shrink = p * (1 + 1e-5 / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-9))
+    grow = p * (1 - 1e-5 / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-9))
+    unsure = SPEC.in_fov(shrink) != SPEC.in_fov(grow)
+    assert inside.sum() > 1000
+    assert np.array_equal(obs[~unsure], inside[~unsure])
+    np.testing.assert_array_equal(m.values().ravel()[obs], 0.0)
+
+
+def test_conservative_and_tight_against_supersampled_cubes(backend):
+    """Ping value >= max over every cell hit by the cube inside the FOV, and <= sphere footprint + 1 cell."""
+    img = (RNG.random(SPEC.image_shape) ** 12).astype(np.float32)  # spiky: footprints matter
+    m = integrate(backend, [(img, T_A)])
+    v = m.values().reshape(-1)
+    obs = np.flatnonzero(np.isfinite(v))
+    p = centres_S(T_A)[obs]
+    s = GRID.voxel_size_m
+    # brute force: 7^3 lattice over the cube (faces, edges and corners included) + 64 random points
+    u = np.linspace(-0.5, 0.5, 7)
+    lattice = np.stack(np.meshgrid(u, u, u, indexing="ij"), -1).reshape(-1, 3)
+    offs = np.concatenate([lattice, RNG.uniform(-0.5, 0.5, (64, 3))]) * s
+    R_SW = T_A[:3, :3].T  # cube axes are world axes
+    brute = np.zeros(obs.size)
+    for o in offs:
+        q = p + o @ R_SW.T
+        ok = SPEC.in_fov(q)
+        pol = SPEC.to_polar(q)
+        bi = SPEC.bin_index(pol[:, 0])
+        bj = SPEC.beam_index(pol[:, 1])
+        val = np.where(ok & (bi >= 0) & (bj >= 0), img[np.maximum(bi, 0), np.maximum(bj, 0)], 0.0)
+        brute = np.maximum(brute, val)
+    assert np.all(v[obs] >= brute.astype(np.float32)), "footprint misses cells the cube touches"
+    assert (v[obs] > brute).mean() < 0.5  # and the footprint is not trivially everything
+    b0, b1, j0, j1 = sphere_footprint(SPEC, p, math.sqrt(3) / 2 * s)
+    b0, j0 = np.maximum(b0 - 1, 0), np.maximum(j0 - 1, 0)
+    b1, j1 = np.minimum(b1 + 1, SPEC.n_bins - 1), np.minimum(j1 + 1, SPEC.n_beams - 1)
+    upper = np.array([img[a : b + 1, c : d + 1].max() for a, b, c, d in zip(b0, b1, j0, j1, strict=True)])
+    assert np.all(v[obs] <= upper), "footprint reaches beyond the bounding sphere plus one cell"
+
+
+@pytest.mark.parametrize("cell", [(5, 3), (30, 24), (59, 47), (12, 40)])
+def test_single_bright_cell_lights_exactly_the_touching_voxels(backend, cell):
+    img = np.zeros(SPEC.image_shape, np.float32)
+    img[cell] = 1.0
+    m = integrate(backend, [(img, T_B)])
+    v = m.values().reshape(-1)
+    obs = np.isfinite(v)
+    p = centres_S(T_B)
+    rho = math.sqrt(3) / 2 * GRID.voxel_size_m
+
+    def touching(r):
+        b0, b1, j0, j1 = sphere_footprint(SPEC, p, r)
+        return (b0 <= cell[0]) & (cell[0] <= b1) & (j0 <= cell[1]) & (cell[1] <= j1)
+
+    lit = obs & (v == 1.0)
+    must = obs & touching(rho)
+    may = obs & touching(rho + 1e-4)  # float32 rounding slack
+    assert must.sum() > 0
+    assert np.all(lit[must]), "a voxel whose footprint touches the bright cell was not lit"
+    assert not np.any(lit & ~may), "a voxel was lit whose footprint does not touch the bright cell"
+    assert np.all(v[obs & ~lit] == 0.0)
+
+
+def test_backends_agree_with_numpy_reference(backend):
+    imgs = [(RNG.random(SPEC.image_shape) ** 4).astype(np.float32) for _ in range(3)]
+    poses = [T_A, T_B, pose(rot_z(0.3) @ rot_y(0.05), (-0.05, 0.1, 0.0))]
+    for method in ("gather", "template"):
+        ref = integrate("numpy", zip(imgs, poses, strict=True), method).raw_values()
+        got = integrate(backend, zip(imgs, poses, strict=True), method).raw_values()
+        same_obs = np.isfinite(ref) == np.isfinite(got)
+        assert same_obs.mean() > 1 - 1e-4
+        both = np.isfinite(ref) & np.isfinite(got)
+        # identical arithmetic; a transcendental's last bit may move a footprint edge, rarely
+        assert (np.abs(ref[both] - got[both]) > 1e-6).mean() < 1e-4
+
+
+def test_template_method_matches_gather_where_it_lands_and_report_holes(backend):
+    img = (RNG.random(SPEC.image_shape) ** 4).astype(np.float32)
+    g = integrate(backend, [(img, T_A)], "gather").raw_values()
+    t = integrate(backend, [(img, T_A)], "template").raw_values()
+    tg, tt = np.isfinite(g), np.isfinite(t)
+    assert not np.any(tt & ~tg), "the template observed a voxel whose centre is outside the FOV"
+    np.testing.assert_array_equal(t[tt], g[tt])
+    holes = 1 - tt.sum() / tg.sum()
+    print(f"template hole fraction ({backend}, {GRID.voxel_size_m} m voxels): {holes:.3%}")
+    assert 0 <= holes < 0.35
+
+
+def _render_plane(spec, T_W_S, x_plane, n_sub=24):
+    """Analytic image of the world plane x = x_plane: 1 in every cell a ray within the FOV hits."""
+    img = np.zeros(spec.image_shape, np.float32)
+    edges = spec.beam_edges_rad
+    for j in range(spec.n_beams):
+        th = (
+            np.linspace(edges[j], edges[j + 1], n_sub, endpoint=False)
+            + 0.5 * (edges[j + 1] - edges[j]) / n_sub
+        )
+        ph = np.linspace(-spec.vfov_rad / 2, spec.vfov_rad / 2, 8 * n_sub)
+        TH, PH = np.meshgrid(th, ph)
+        d_S = np.stack([np.cos(PH) * np.cos(TH), np.cos(PH) * np.sin(TH), np.sin(PH)], -1).reshape(-1, 3)
+        d_W = d_S @ T_W_S[:3, :3].T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = (x_plane - T_W_S[0, 3]) / d_W[:, 0]
+        bi = spec.bin_index(np.where(r > 0, r, -1))
+        img[bi[bi >= 0], j] = 1.0
+    return img
+
+
+def test_plane_of_returns_is_kept_and_space_in_front_is_carved_over_two_views(backend):
+    D = 1.0
+    views = [pose(rot_y(0.0), (0, 0, 0)), pose(rot_y(0.25), (0.0, 0.0, 0.15))]
+    pings = [(_render_plane(SPEC, T, D), T) for T in views]
+    m = integrate(backend, pings)
+    v = m.values()
+    c = GRID.all_centers()
+    s = GRID.voxel_size_m
+    obs = np.isfinite(v)
+    on_plane = obs & (np.abs(c[..., 0] - D) <= s / 2)
+    assert on_plane.sum() > 50
+    assert np.all(v[on_plane] == 1.0), "a voxel on the plane was called free (false negative)"
+    # In front of the plane by more than the footprint plus a bin, after both views: free.
+    both = np.ones_like(obs)
+    for T in views:
+        one = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")
+        one.integrate(np.zeros(SPEC.image_shape, np.float32), T)
+        both &= one.observed()
+    front = both & (c[..., 0] < D - (math.sqrt(3) / 2 * s + SPEC.bin_size_m)) & (c[..., 0] > 0.3)
+    assert front.sum() > 100
+    single = integrate(backend, pings[:1]).values()
+    carved_one = (single[front] == 0).mean()
+    carved_two = (v[front] == 0).mean()
+    print(f"carved in front of the plane: {carved_one:.1%} after one view, {carved_two:.1%} after two")
+    assert carved_two > 0.98
+    assert carved_two > carved_one  # the second view removes elevation "stretch"
+
+
+def test_uint8_image_is_scaled(backend):
+    img8 = RNG.integers(0, 256, SPEC.image_shape, dtype=np.uint8)
+    a = integrate(backend, [(img8, T_A)]).raw_values()
+    b = integrate(backend, [(img8.astype(np.float32) * np.float32(1 / 255), T_A)]).raw_values()
+    np.testing.assert_array_equal(a, b)
+
+
+def test_min_over_pings_is_order_independent(backend):
+    imgs = [(RNG.random(SPEC.image_shape) ** 3).astype(np.float32) for _ in range(3)]
+    poses = [T_A, T_B, T_A]
+    a = integrate(backend, zip(imgs, poses, strict=True)).raw_values()
+    b = integrate(backend, zip(imgs[::-1], poses[::-1], strict=True)).raw_values()
+    np.testing.assert_array_equal(a, b)
+    singles = [integrate(backend, [(i, T)]).raw_values() for i, T in zip(imgs, poses, strict=True)]
+    np.testing.assert_array_equal(a, np.minimum.reduce(singles))
+
+
+# ------------------------------------------------------------------ bad input
+def _bad_images():
+    nan = np.zeros(SPEC.image_shape, np.float32)
+    nan[3, 4] = np.nan
+    inf = np.zeros(SPEC.image_shape, np.float32)
+    inf[0, 0] = np.inf
+    return [
+        (np.zeros(SPEC.image_shape[::-1], np.float32), ValueError, "shape"),
+        (np.zeros(SPEC.image_shape, np.int32), TypeError, "dtype"),
+        (nan, ValueError, "finite"),
+        (inf, ValueError, "finite"),
+        (np.full(SPEC.image_shape, 1.5, np.float32), ValueError, r"\[0, 1\]"),
+        ([[0.0]], TypeError, "numpy array"),
+    ]
+
+
+def _bad_poses():
+    nan = T_A.copy()
+    nan[0, 3] = np.nan
+    skew = T_A.copy()
+    skew[:3, :3] *= 1.01
+    left = T_A.copy()
+    left[:3, 0] *= -1
+    row = T_A.copy()
+    row[3, 0] = 0.5
+    return [
+        (nan, "finite"),
+        (skew, "orthonormal"),
+        (left, "right-handed"),
+        (row, "last row"),
+        (np.eye(3), r"\(4, 4\)"),
+    ]
+
+
+def test_bad_input_raises_and_leaves_map_untouched(backend):
+    m = integrate(backend, [((RNG.random(SPEC.image_shape) ** 2).astype(np.float32), T_A)])
+    before = m.raw_values()
+    good = np.zeros(SPEC.image_shape, np.float32)
+    for img, err, msg in _bad_images():
+        with pytest.raises(err, match=msg):
+            m.integrate(img, T_B)
+    for T, msg in _bad_poses():
+        with pytest.raises(ValueError, match=msg):
+            m.integrate(good, T)
+    np.testing.assert_array_equal(m.raw_values(), before)
+    assert m.n_integrated == 1
+
+
+def test_bad_specs_are_refused_with_the_reason():
+    with pytest.raises(ValueError, match="strictly ascending"):
+        gpumap.SonarSpec(0.1, 2.0, 10, np.array([0.1, 0.0, 0.2]), 0.3)
+    with pytest.raises(ValueError, match="strictly ascending"):
+        gpumap.SonarSpec(0.1, 2.0, 10, np.array([0.0, 0.1, 0.1]), 0.3)
+    with pytest.raises(ValueError, match="range_min_m < range_max_m"):
+        gpumap.SonarSpec(2.0, 1.0, 10, np.array([0.0, 0.1]), 0.3)
+    with pytest.raises(ValueError, match="non-empty box"):
+        gpumap.GridSpec((0, 0, 0), (1, 0, 1), 0.1)
+    with pytest.raises(ValueError, match="non-empty box"):
+        gpumap.GridSpec((1, 0, 0), (0, 1, 1), 0.1)
+    with pytest.raises(ValueError, match="voxel_size_m > 0"):
+        gpumap.GridSpec((0, 0, 0), (1, 1, 1), 0.0)
+    with pytest.raises(ValueError, match=r"GiB"):
+        gpumap.GridSpec((0, 0, 0), (100, 100, 100), 0.01)  # 1e9... too many voxels
+    with pytest.raises(ValueError, match="backend"):
+        gpumap.MinMaxMapper(SPEC, GRID, backend="cuda")
+    with pytest.raises(ValueError, match="method"):
+        gpumap.MinMaxMapper(SPEC, GRID, method="fast")
+
+
+def test_grid_too_big_for_memory_says_how_much_it_needs():
+    # 2e9 voxels pass the index limit only just; 8 GB would not fit beside the test's 24 GB? use 1.9e9
+    grid = gpumap.GridSpec((0, 0, 0), (1239, 1239, 1239), 1.0)  # 1.90e9 voxels = 7.1 GiB
+    from gpumap.mapper import _free_memory_bytes
+
+    free = _free_memory_bytes(None, "numpy")
+    if free is None or free > grid.nbytes:
+        pytest.skip("this machine has room for a 7 GiB grid")
+    with pytest.raises(ValueError, match=r"need 7\.\d+ GiB"):
+        gpumap.MinMaxMapper(SPEC, grid, backend="numpy")
+
+
+def test_named_backend_never_falls_back():
+    have = available_backends()
+    for name in ("warp-cuda", "opencl-gpu"):
+        if name in have:
+            continue
+        with pytest.raises(gpumap.BackendUnavailableError):
+            gpumap.MinMaxMapper(SPEC, GRID, backend=name)
+
+
+# ------------------------------------------------------------------ persistence
+def test_save_load_roundtrip_is_lossless(backend, tmp_path):
+    m = integrate(backend, [((RNG.random(SPEC.image_shape) ** 2).astype(np.float32), T_A)], "template")
+    path = m.save(tmp_path / "map.npz")
+    m2 = gpumap.MinMaxMapper.load(path, backend=backend)
+    np.testing.assert_array_equal(m2.raw_values(), m.raw_values())
+    assert m2.spec == SPEC and m2.grid == GRID and m2.method == "template" and m2.n_integrated == 1
+    assert np.isnan(m2.values()).any()
+
+
+def test_save_is_atomic(tmp_path, monkeypatch):
+    m = integrate("numpy", [(np.zeros(SPEC.image_shape, np.float32), T_A)])
+    path = m.save(tmp_path / "map.npz")
+    before = path.read_bytes()
+    m.integrate(np.ones(SPEC.image_shape, np.float32), T_B)
+
+    def boom(*a, **k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez_compressed", boom)
+    with pytest.raises(OSError, match="disk full"):
+        m.save(path)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["map.npz"]
+
+
+def test_load_refuses_other_versions(tmp_path):
+    import json
+
+    path = tmp_path / "m.npz"
+    meta = {"format": "gpumap.MinMaxMapper", "version": 99}
+    np.savez(path, values=np.zeros(3, np.float32), meta=np.array(json.dumps(meta)))
+    with pytest.raises(ValueError, match="version 1"):
+        gpumap.MinMaxMapper.load(path)
+
+
+def test_occupied_points_are_world_centres():
+    m = integrate("numpy", [(np.ones(SPEC.image_shape, np.float32), T_A)])
+    pts = m.occupied_points(0.5)
+    assert pts.shape == (int(m.observed().sum()), 3)
+    assert np.all(SPEC.in_fov((pts - T_A[:3, 3]) @ T_A[:3, :3]))
