@@ -1,0 +1,452 @@
+"""Simulated scenes: meshes with materials, analytic insides, features and a trajectory.
+
+A :class:`Scene` is data: a list of :class:`SceneObject` (a triangle mesh, a material name
+and an analytic ``contains`` for ground truth), a material table, point features with
+integer ids (for the EKF), the grid to map into, the sonar and DVL mounts and the poses
+along the trajectory. Scenes are built by small seeded functions registered in
+:data:`SCENES`; the same seed gives the same scene, to the bit.
+
+World frame of the ``tank`` scene: origin at the arm's base, x forward (away from the
+base, toward the objects), y left, z up. The grid is the paper's 4 x 3 x 1 m workspace,
+``GridSpec((-2, -1.5, -0.5), (2, 1.5, 0.5), s)``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+import gpumap
+
+__all__ = [
+    "Material",
+    "SceneObject",
+    "Scene",
+    "SCENES",
+    "make_scene",
+    "tank_scene",
+    "pose_from_xyz_ypr",
+    "box_scene",
+]
+
+
+@dataclass(frozen=True)
+class Material:
+    """Acoustic surface properties.
+
+    Parameters
+    ----------
+    reflectivity : float
+        Backscatter strength at normal incidence, in (0, 1] (1 = bare metal).
+    cos_exponent : float
+        ``k`` of the incidence law ``cos(theta_inc)**k``: 1 is Lambertian (rough sand),
+        larger is more specular (smooth metal returns mostly near normal incidence).
+    """
+
+    reflectivity: float
+    cos_exponent: float
+
+
+# Relative values, chosen so that the objects stand out over sand as in the paper's Fig. 2.
+MATERIALS: dict[str, Material] = {
+    "sand": Material(0.35, 1.0),
+    "wall": Material(0.55, 1.5),
+    "rock": Material(0.75, 1.2),
+    "plastic": Material(0.65, 2.0),  # tool basket (coated lattice)
+    "metal": Material(1.0, 2.5),  # chain, pipe
+    "target": Material(1.0, 1.0),  # analytic test targets
+}
+
+
+@dataclass
+class SceneObject:
+    """One object: its mesh (world frame), material and analytic inside test.
+
+    Parameters
+    ----------
+    name : str
+        Unique name; metrics report per object under it.
+    mesh : trimesh.Trimesh
+        Surface in the world frame, metres.
+    material : str
+        Key into the scene's material table.
+    contains : callable or None
+        ``contains(p_W: (n, 3) float) -> (n,) bool``, the solid's interior (analytic), or
+        ``None`` for objects treated as surfaces only.
+    """
+
+    name: str
+    mesh: trimesh.Trimesh
+    material: str
+    contains: Callable[[np.ndarray], np.ndarray] | None = None
+
+
+@dataclass
+class Scene:
+    """A scene with everything the simulator, the mapper and the metrics need.
+
+    Attributes
+    ----------
+    objects : list of SceneObject
+    materials : dict of str -> Material
+    grid : gpumap.GridSpec
+    sonar_spec : gpumap.SonarSpec
+    T_W_S : (n, 4, 4) float64
+        Sonar poses along the trajectory.
+    T_W_D : (n, 4, 4) float64
+        DVL poses along the trajectory (DVL frame: x along its axis).
+    feature_ids : (m,) int64
+    features_W : (m, 3) float64
+        Point features (on surfaces) with their ids, world frame, metres.
+    """
+
+    name: str
+    objects: list[SceneObject]
+    grid: gpumap.GridSpec
+    sonar_spec: gpumap.SonarSpec
+    T_W_S: np.ndarray
+    T_W_D: np.ndarray
+    feature_ids: np.ndarray
+    features_W: np.ndarray
+    materials: dict[str, Material] = field(default_factory=lambda: dict(MATERIALS))
+    seed: int = 0
+
+    @property
+    def object_names(self) -> list[str]:
+        return [o.name for o in self.objects]
+
+    def object(self, name: str) -> SceneObject:
+        for o in self.objects:
+            if o.name == name:
+                return o
+        raise KeyError(f"Expected an object named one of {self.object_names}, but got {name!r}")
+
+
+# ------------------------------------------------------------------------------ geometry helpers
+def _rot_z(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def _rot_y(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
+
+
+def _rot_x(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def pose_from_xyz_ypr(xyz: np.ndarray, yaw: float, pitch_down: float, roll: float = 0.0) -> np.ndarray:
+    """(4, 4) pose with ``R = Rz(yaw) Ry(pitch_down) Rx(roll)``; positive pitch tilts x down."""
+    T = np.eye(4)
+    T[:3, :3] = _rot_z(yaw) @ _rot_y(pitch_down) @ _rot_x(roll)
+    T[:3, 3] = xyz
+    return T
+
+
+def _box(center: np.ndarray, size: np.ndarray, R: np.ndarray | None = None) -> tuple[trimesh.Trimesh, Callable]:
+    T = np.eye(4)
+    T[:3, 3] = center
+    if R is not None:
+        T[:3, :3] = R
+    mesh = trimesh.creation.box(extents=size, transform=T)
+    return mesh, _box_contains(np.asarray(center, float), np.asarray(size, float), T[:3, :3])
+
+
+def _box_contains(c: np.ndarray, size: np.ndarray, R: np.ndarray) -> Callable:
+    half = 0.5 * size
+
+    def contains(p: np.ndarray) -> np.ndarray:
+        q = (np.asarray(p) - c) @ R
+        return np.all(np.abs(q) <= half, axis=-1)
+
+    return contains
+
+
+def _union(fns: list[Callable]) -> Callable:
+    def contains(p: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(p), bool)
+        for f in fns:
+            out |= f(p)
+        return out
+
+    return contains
+
+
+def _cylinder(p0: np.ndarray, p1: np.ndarray, radius: float, sections: int = 24):
+    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+    mesh = trimesh.creation.cylinder(radius=radius, segment=np.stack([p0, p1]), sections=sections)
+    axis = p1 - p0
+    L = float(np.linalg.norm(axis))
+    u = axis / L
+
+    def contains(p: np.ndarray) -> np.ndarray:
+        d = np.asarray(p) - p0
+        t = d @ u
+        radial = np.linalg.norm(d - t[:, None] * u, axis=1)
+        return (t >= 0) & (t <= L) & (radial <= radius)
+
+    return mesh, contains
+
+
+def _torus(center: np.ndarray, R_major: float, r_minor: float, Rot: np.ndarray):
+    T = np.eye(4)
+    T[:3, :3] = Rot
+    T[:3, 3] = center
+    mesh = trimesh.creation.torus(R_major, r_minor, major_sections=20, minor_sections=8, transform=T)
+
+    def contains(p: np.ndarray) -> np.ndarray:
+        q = (np.asarray(p) - center) @ Rot  # torus axis is local z
+        rho = np.hypot(q[:, 0], q[:, 1])
+        return (rho - R_major) ** 2 + q[:, 2] ** 2 <= r_minor**2
+
+    return mesh, contains
+
+
+# ------------------------------------------------------------------------------ the tank
+def _sand_height_fn(rng: np.random.Generator, z0: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """Seeded smooth sand surface: ripples of a few mm plus low bumps of about 1 cm."""
+    k = rng.uniform(6.0, 14.0, size=(4, 2)) * rng.choice([-1, 1], size=(4, 2))
+    ph = rng.uniform(0, 2 * np.pi, 4)
+    amp = np.array([0.004, 0.003, 0.006, 0.005])
+
+    def h(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        z = np.full(np.broadcast(x, y).shape, z0)
+        for i in range(4):
+            z = z + amp[i] * np.sin(k[i, 0] * x + k[i, 1] * y + ph[i])
+        return z
+
+    return h
+
+
+TANK = {
+    "floor_z_m": -0.42,  # mean sand surface
+    "rim_z_m": 0.18,  # 0.6 m deep tank
+    "x_back_m": -0.9,
+    "x_front_m": 1.75,  # inner faces of the walls
+    "y_half_m": 1.3,
+    "wall_m": 0.08,  # wall thickness
+}
+
+
+def tank_scene(seed: int = 0, voxel_size_m: float = 0.03, n_pitch: int = 16, n_move: int = 24) -> Scene:
+    """The paper's test tank (Sections III-IV) inside the 4 x 3 x 1 m workspace.
+
+    A 0.6 m deep tank (sand floor at z = -0.42 m, rim at +0.18 m, inner walls at
+    x = -0.9 / 1.75 m and y = +-1.3 m) holding a chain of 14 torus links, a rock (a seeded,
+    star-shaped blob of about 28 x 22 x 18 cm), a tool basket (open lattice box of
+    40 x 30 x 20 cm of 1 cm bars) and a thin metal pipe (2.5 cm across, 0.8 m long) lying on
+    the sand. The arm's base is at the origin; the sonar sits on the wrist pitched 12.8 deg
+    down and the DVL 60 deg down (paper, Fig. 1). The trajectory first pitches the sonar in
+    place (``n_pitch`` pings from 12.8 to 52.8 deg down), then moves the wrist along an arc
+    across the tank while pitching and yawing toward the objects (``n_move`` pings).
+    """
+    rng = np.random.default_rng(seed)
+    t = TANK
+    z_rim, z_floor = t["rim_z_m"], t["floor_z_m"]
+    x0, x1, yh, w = t["x_back_m"], t["x_front_m"], t["y_half_m"], t["wall_m"]
+    grid = gpumap.GridSpec((-2.0, -1.5, -0.5), (2.0, 1.5, 0.5), voxel_size_m)
+    zb = grid.min_corner_m[2]
+    objects: list[SceneObject] = []
+
+    # Sand floor: a height field over the tank's inside; solid below the surface.
+    h = _sand_height_fn(rng, z_floor)
+    xs = np.arange(x0, x1 + 1e-9, 0.025)
+    ys = np.arange(-yh, yh + 1e-9, 0.025)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    V = np.stack([X, Y, h(X, Y)], -1).reshape(-1, 3)
+    nx_, ny_ = X.shape
+    ii, jj = np.meshgrid(np.arange(nx_ - 1), np.arange(ny_ - 1), indexing="ij")
+    a = (ii * ny_ + jj).ravel()
+    b, c, d = a + ny_, a + ny_ + 1, a + 1
+    F = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    sand = trimesh.Trimesh(V, F, process=False)
+
+    def sand_contains(p: np.ndarray) -> np.ndarray:
+        p = np.asarray(p)
+        inside = (p[:, 0] >= x0) & (p[:, 0] <= x1) & (np.abs(p[:, 1]) <= yh)
+        return inside & (p[:, 2] <= h(p[:, 0], p[:, 1])) & (p[:, 2] >= zb - 1.0)
+
+    objects.append(SceneObject("sand", sand, "sand", sand_contains))
+
+    # Walls from below the grid up to the rim.
+    zc, zh = 0.5 * (z_rim + zb - 0.1), z_rim - (zb - 0.1)
+    walls = [
+        ((x1 + w / 2, 0, zc), (w, 2 * yh + 2 * w, zh)),
+        ((x0 - w / 2, 0, zc), (w, 2 * yh + 2 * w, zh)),
+        ((0.5 * (x0 + x1), yh + w / 2, zc), (x1 - x0, w, zh)),
+        ((0.5 * (x0 + x1), -yh - w / 2, zc), (x1 - x0, w, zh)),
+    ]
+    parts = [_box(np.array(cc), np.array(sz)) for cc, sz in walls]
+    objects.append(
+        SceneObject("walls", trimesh.util.concatenate([m for m, _ in parts]), "wall", _union([f for _, f in parts]))
+    )
+
+    # Chain: links alternate flat / upright along a gentle S-curve on the sand.
+    R_link, r_link, n_links = 0.025, 0.006, 14
+    pitch_link = 2 * (R_link - r_link)
+    s = np.arange(n_links) * pitch_link
+    path = np.stack([0.75 + 0.85 * s, -0.55 + 0.25 * s + 0.05 * np.sin(6 * s)], 1)
+    tang = np.gradient(path, axis=0)
+    parts = []
+    for i in range(n_links):
+        yaw = math.atan2(tang[i, 1], tang[i, 0])
+        if i % 2 == 0:  # flat: torus axis z, stretched along the path by the yaw
+            Rot = _rot_z(yaw)
+            zc_ = float(h(path[i, 0], path[i, 1])) + r_link
+        else:  # upright: torus axis horizontal, perpendicular to the path
+            Rot = _rot_z(yaw) @ _rot_x(math.pi / 2)
+            zc_ = float(h(path[i, 0], path[i, 1])) + R_link + r_link - 0.004
+        parts.append(_torus(np.array([path[i, 0], path[i, 1], zc_]), R_link, r_link, Rot))
+    objects.append(
+        SceneObject("chain", trimesh.util.concatenate([m for m, _ in parts]), "metal", _union([f for _, f in parts]))
+    )
+
+    # Rock: star-shaped blob, radius modulated by a few seeded smooth harmonics.
+    rc = np.array([1.05, 0.32, z_floor + 0.06])
+    radii = np.array([0.14, 0.11, 0.09])
+    kdir = rng.normal(size=(5, 3))
+    kph = rng.uniform(0, 2 * np.pi, 5)
+    kamp = rng.uniform(0.03, 0.08, 5)
+    Rrock = _rot_z(rng.uniform(0, np.pi))
+
+    def bump(u: np.ndarray) -> np.ndarray:
+        return 1.0 + np.sin(u @ kdir.T * 2.0 + kph) @ kamp
+
+    ico = trimesh.creation.icosphere(subdivisions=3)
+    u = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
+    rock_V = rc + ((u * bump(u)[:, None]) * radii) @ Rrock.T
+    rock = trimesh.Trimesh(rock_V, ico.faces, process=False)
+
+    def rock_contains(p: np.ndarray) -> np.ndarray:
+        q = ((np.asarray(p) - rc) @ Rrock) / radii
+        n = np.linalg.norm(q, axis=1)
+        uq = q / np.maximum(n, 1e-12)[:, None]
+        return n <= bump(uq)
+
+    objects.append(SceneObject("rock", rock, "rock", rock_contains))
+
+    # Tool basket: open-top lattice box of 1 cm bars.
+    bc = np.array([0.62, 0.55, float(h(0.62, 0.55))])
+    L, W, H, bar = 0.40, 0.30, 0.20, 0.01
+    Rb = _rot_z(math.radians(15))
+    bars = []
+    for x in np.linspace(-L / 2, L / 2, 5):  # posts and ribs on the long sides
+        for y in (-W / 2, W / 2):
+            bars.append(((x, y, H / 2), (bar, bar, H)))
+    for y in np.linspace(-W / 2, W / 2, 4)[1:-1]:  # ribs on the short sides
+        for x in (-L / 2, L / 2):
+            bars.append(((x, y, H / 2), (bar, bar, H)))
+    for z in (bar / 2, H / 2, H - bar / 2):  # horizontal rims
+        for y in (-W / 2, W / 2):
+            bars.append(((0, y, z), (L + bar, bar, bar)))
+        for x in (-L / 2, L / 2):
+            bars.append(((x, 0, z), (bar, W + bar, bar)))
+    for y in np.linspace(-W / 2, W / 2, 4)[1:-1]:  # bottom mesh
+        bars.append(((0, y, bar / 2), (L, bar, bar)))
+    parts = [_box(bc + Rb @ np.array(cc), np.array(sz), Rb) for cc, sz in bars]
+    objects.append(
+        SceneObject("basket", trimesh.util.concatenate([m for m, _ in parts]), "plastic", _union([f for _, f in parts]))
+    )
+
+    # Thin metal pipe lying on the sand: the hard case for false negatives.
+    r_pipe = 0.0125
+    pa, pb = np.array([1.30, -0.30]), np.array([1.42, 0.48])
+    za = float(h(*pa)) + r_pipe
+    zb_ = float(h(*pb)) + r_pipe
+    p0, p1 = np.array([*pa, za]), np.array([*pb, zb_])
+    pipe, pipe_contains = _cylinder(p0, p1, r_pipe)
+    objects.append(SceneObject("pipe", pipe, "metal", pipe_contains))
+
+    # Features (on surfaces): basket corners, pipe ends, rock extremes, upright chain link
+    # tops, the front wall's rim and its foot.
+    feats = []
+    for x in (-L / 2 - bar / 2, L / 2 + bar / 2):
+        for y in (-W / 2 - bar / 2, W / 2 + bar / 2):
+            for z in (0.0, H):
+                feats.append(bc + Rb @ np.array([x, y, z]))
+    feats += [p0 + [0, 0, r_pipe], p1 + [0, 0, r_pipe], 0.5 * (p0 + p1) + [0, 0, r_pipe]]
+    for dirv in ([0, 0, 1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]):
+        feats.append(rock_V[int(np.argmax(rock_V @ np.array(dirv, float)))])
+    for i in range(1, n_links, 2):
+        feats.append(np.array([path[i, 0], path[i, 1], float(h(*path[i])) + 2 * R_link + r_link - 0.004]))
+    for y in (-0.9, -0.45, 0.0, 0.45, 0.9):
+        feats.append(np.array([x1, y, z_rim]))
+        feats.append(np.array([x1, y, float(h(x1, y))]))
+    features_W = np.array(feats, dtype=np.float64)
+    feature_ids = np.arange(len(features_W), dtype=np.int64) + 100
+
+    T_W_S, T_W_D = _tank_trajectory(n_pitch, n_move)
+    spec = gpumap.SonarSpec.uniform(hfov_deg=130, vfov_deg=20, n_beams=512, n_bins=400,
+                                    range_min_m=0.1, range_max_m=2.0)
+    return Scene("tank", objects, grid, spec, T_W_S, T_W_D, feature_ids, features_W, seed=seed)
+
+
+SONAR_MOUNT_PITCH_DEG = 12.8  # paper, Fig. 1
+DVL_MOUNT_PITCH_DEG = 60.0
+
+
+def mounts() -> tuple[np.ndarray, np.ndarray]:
+    """``(T_wrist_S, T_wrist_D)``: sonar and DVL on the wrist (wrist x forward, level)."""
+    T_wrist_S = pose_from_xyz_ypr(np.array([0.06, 0.0, 0.0]), 0.0, math.radians(SONAR_MOUNT_PITCH_DEG))
+    T_wrist_D = pose_from_xyz_ypr(np.array([0.02, 0.0, -0.06]), 0.0, math.radians(DVL_MOUNT_PITCH_DEG))
+    return T_wrist_S, T_wrist_D
+
+
+def _tank_trajectory(n_pitch: int, n_move: int) -> tuple[np.ndarray, np.ndarray]:
+    T_wrist_S, T_wrist_D = mounts()
+    wrists = []
+    home = np.array([0.15, 0.0, 0.05])
+    for a in np.linspace(0.0, 40.0, n_pitch):  # pitch in place
+        wrists.append(pose_from_xyz_ypr(home, 0.0, math.radians(a)))
+    target = np.array([1.05, 0.0])
+    for s in np.linspace(0.0, 1.0, n_move):  # arc across the tank, lower, looking at the objects
+        y = -0.55 + 1.1 * s
+        x = 0.25 + 0.15 * math.sin(math.pi * s)
+        z = 0.05 - 0.15 * math.sin(math.pi * s)
+        yaw = math.atan2(target[1] - y, target[0] - x)
+        pitch = math.radians(12.0 + 14.0 * (0.5 + 0.5 * math.cos(3 * math.pi * s)))
+        wrists.append(pose_from_xyz_ypr(np.array([x, y, z]), yaw, pitch))
+    W = np.array(wrists)
+    return W @ T_wrist_S, W @ T_wrist_D
+
+
+# ------------------------------------------------------------------------------ analytic test scene
+def box_scene(
+    boxes: list[tuple[tuple[float, float, float], tuple[float, float, float]]],
+    T_W_S: np.ndarray | None = None,
+    material: str = "target",
+    spec: gpumap.SonarSpec | None = None,
+    voxel_size_m: float = 0.03,
+) -> Scene:
+    """A scene of axis-aligned boxes ``(center, size)`` for analytic tests."""
+    objs = []
+    for i, (cc, sz) in enumerate(boxes):
+        m, f = _box(np.array(cc, float), np.array(sz, float))
+        objs.append(SceneObject(f"box{i}", m, material, f))
+    T = np.eye(4)[None] if T_W_S is None else np.asarray(T_W_S, float).reshape(-1, 4, 4)
+    grid = gpumap.GridSpec((-2.0, -1.5, -0.5), (2.0, 1.5, 0.5), voxel_size_m)
+    spec = spec or gpumap.SonarSpec.uniform()
+    return Scene("boxes", objs, grid, spec, T, T, np.zeros(0, np.int64), np.zeros((0, 3)))
+
+
+def _prism(**kw) -> Scene:
+    from .prism import prism_scene  # owned elsewhere; imported on first use
+
+    return prism_scene(**kw)
+
+
+SCENES: dict[str, Callable[..., Scene]] = {"tank": tank_scene, "prism": _prism}
+
+
+def make_scene(name: str, **kw) -> Scene:
+    """Build a registered scene by name (``tank``, ``prism``)."""
+    if name not in SCENES:
+        raise ValueError(f"Expected a scene name in {sorted(SCENES)}, but got {name!r}")
+    return SCENES[name](**kw)

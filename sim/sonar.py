@@ -1,0 +1,351 @@
+"""Synthetic imaging sonar: polar images rendered from meshes with pyrender.
+
+How a ping is made (:meth:`SonarSimulator.ping`)
+------------------------------------------------
+1. **Sampling the field of view.** ``n_cameras`` pinhole cameras share the sonar's origin
+   and split the horizontal aperture into equal azimuth sectors (130 deg -> 3 x 43.3 deg).
+   Their pixels are spaced ``azimuth_step_rad`` across (default: half the narrowest beam
+   cell) and ``elevation_step_rad`` up (default 0.1 deg), so each pixel is one ray. Every
+   pixel's azimuth, elevation, beam, solid angle and beam-pattern weight are fixed in the
+   sonar frame and computed once; a ping only renders depth and reads ranges off it.
+2. **Visibility.** The depth buffer gives the first surface along each ray: occlusion and
+   acoustic shadows are real. Pixels whose range falls outside ``[range_min, range_max)``
+   (blanking inside ``range_min``) or whose elevation is outside ``+-vfov/2`` are dropped.
+3. **Surface properties.** The scene is drawn flat-shaded with each face coloured by its
+   world normal (R, G = ``(n_x + 1) / 2``, ``(n_y + 1) / 2`` with the normal flipped to
+   ``n_z >= 0``; only ``|n . ray|`` matters) and its material (B = reflectivity byte).
+4. **Backscatter per ray** (``e`` in :meth:`ping`)::
+
+       e = Omega_px * rho * |cos(theta_inc)|**k * B(phi) * L(r)
+
+   ``Omega_px`` the pixel's solid angle (sr), ``rho`` and ``k`` the material's
+   reflectivity and incidence exponent (:class:`~.scenes.Material`; Lambertian-like
+   ``cos**k``), ``B(phi) = 0.5 ** ((phi / (vfov / 2)) ** 2)`` the two-way vertical beam
+   pattern (-3 dB at the aperture's edge), ``L(r) = (r_ref / r) ** spreading_exponent *
+   10 ** (-2 * absorption_db_per_m * (r - r_ref) / 10)`` the loss left after the sonar's
+   time-varied gain (which undoes most of the two-way spherical spreading; one power of
+   ``r`` remains) and two-way absorption, normalised to 1 at ``r_ref = 1 m``.
+5. **Image formation.** ``E[bin, beam] = sum(e) / beam_width``: energy per radian of
+   azimuth summed over elevation, which is where the elevation ambiguity comes from. Then
+   multiplicative speckle ``E *= Gamma(looks, 1 / looks)`` (mean 1), a soft-saturating
+   display ``I = 1 - exp(-gain * E)``, an additive Rayleigh noise floor of scale
+   ``noise_floor`` and clipping to [0, 1]. Noise is seeded by ``(seed, ping index)``, so
+   a ping is reproducible whatever the order pings are made in.
+
+Intensity scale (what "occupied" means): with the defaults, sand at 1 m and 30-40 deg
+grazing images at about 0.2-0.4, metal and rock facing the sonar at 0.6-1, walls near
+normal incidence saturate, and empty water (speckle-free noise floor) has mean ~0.02 and
+99.9th percentile ~0.06. :data:`OCCUPIED_THRESHOLD` = 0.1 sits between the two.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+import gpumap
+from gpumap.errors import check_pose
+
+from .scenes import Scene
+
+__all__ = ["SonarSimulator", "Ping", "OCCUPIED_THRESHOLD"]
+
+#: Intensity from which a voxel is called occupied (see the module docstring).
+OCCUPIED_THRESHOLD = 0.1
+
+
+@dataclass
+class Ping:
+    """One simulated ping and its ground truth.
+
+    Attributes
+    ----------
+    image : (n_bins, n_beams) float32
+        Polar image in [0, 1].
+    T_W_S : (4, 4) float64
+        True sonar pose.
+    points_W : (n, 3) float32
+        Visible surface points (one per unoccluded ray in the field of view), world frame.
+    feature_ids : (m,) int64
+        Ids of the scene features visible in this ping (in the field of view, unoccluded).
+    feature_ranges_m, feature_bearings_rad : (m,) float64
+        Their true range and azimuth.
+    """
+
+    image: np.ndarray
+    T_W_S: np.ndarray
+    points_W: np.ndarray
+    feature_ids: np.ndarray
+    feature_ranges_m: np.ndarray
+    feature_bearings_rad: np.ndarray
+
+
+class SonarSimulator:
+    """Renders polar sonar images of a :class:`~.scenes.Scene` from sonar poses.
+
+    One instance owns one offscreen GL context (created here, freed by :meth:`close`).
+
+    Parameters
+    ----------
+    scene : Scene
+        Meshes, materials and features (``scene.sonar_spec`` unless ``spec`` is given).
+    spec : gpumap.SonarSpec, optional
+    seed : int
+        Seed of the speckle and noise.
+    n_cameras : int
+        Pinhole cameras splitting the horizontal aperture (each must stay < 120 deg).
+    azimuth_step_rad, elevation_step_rad : float, optional
+        Ray spacing at the image centre; defaults: half the narrowest beam cell, 0.1 deg.
+    gain : float
+        Display gain on the elevation-integrated backscatter (sr per radian of azimuth).
+    looks : float
+        Speckle looks (shape of the Gamma speckle; larger is smoother).
+    noise_floor : float
+        Rayleigh scale of the additive noise, intensity units.
+    spreading_exponent, absorption_db_per_m : float
+        Range loss left after time-varied gain (see the module docstring). 0.3 dB/m is
+        sea water at 1.2 MHz; fresh tank water is nearer 0.04 dB/m.
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        spec: gpumap.SonarSpec | None = None,
+        seed: int = 0,
+        n_cameras: int = 3,
+        azimuth_step_rad: float | None = None,
+        elevation_step_rad: float | None = None,
+        gain: float = 300.0,
+        looks: float = 4.0,
+        noise_floor: float = 0.015,
+        spreading_exponent: float = 1.0,
+        absorption_db_per_m: float = 0.3,
+    ) -> None:
+        self.scene = scene
+        self.spec = spec or scene.sonar_spec
+        self.seed = int(seed)
+        self.gain = float(gain)
+        self.looks = float(looks)
+        self.noise_floor = float(noise_floor)
+        self.spreading_exponent = float(spreading_exponent)
+        self.absorption_db_per_m = float(absorption_db_per_m)
+        sp = self.spec
+        if n_cameras < 1 or sp.hfov_rad / n_cameras >= math.radians(120):
+            raise ValueError(
+                f"Expected n_cameras so that each covers < 120 deg of the {math.degrees(sp.hfov_rad):.1f} "
+                f"deg aperture, but got n_cameras={n_cameras}"
+            )
+        beam_w = np.diff(sp.beam_edges_rad)
+        self._beam_width = beam_w
+        d_az = float(azimuth_step_rad or 0.5 * beam_w.min())
+        d_el = float(elevation_step_rad or math.radians(0.1))
+        self._setup_cameras(n_cameras, d_az, d_el)
+        self._renderer = None
+        self._build_gl_scene()
+
+    # ------------------------------------------------------------------ set-up
+    def _setup_cameras(self, n: int, d_az: float, d_el: float) -> None:
+        sp = self.spec
+        lo, hi = sp.beam_edges_rad[0], sp.beam_edges_rad[-1]
+        edges = np.linspace(lo, hi, n + 1)
+        half_w = 0.5 * (hi - lo) / n + 2 * d_az
+        half_el = 0.5 * sp.vfov_rad + 2 * d_el
+        tan_w = math.tan(half_w)
+        tan_h = math.tan(half_el) / math.cos(half_w)  # elevation is lowest off-axis
+        fx, fy = 1.0 / d_az, 1.0 / d_el
+        W = int(math.ceil(2 * tan_w * fx))
+        H = int(math.ceil(2 * tan_h * fy))
+        self._W, self._H, self._fx, self._fy = W, H, fx, fy
+        self._cx, self._cy = 0.5 * W, 0.5 * H
+        u = (np.arange(W) + 0.5 - self._cx) / fx  # right
+        v = -(np.arange(H) + 0.5 - self._cy) / fy  # up (row 0 is the top)
+        U, V = np.meshgrid(u, v)  # (H, W)
+        self._T_S_C = []
+        self._pix = []  # per camera: flat pixel indices kept
+        dirs, beams, weights, scale = [], [], [], []
+        for k in range(n):
+            yaw = 0.5 * (edges[k] + edges[k + 1])
+            fwd = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+            up = np.array([0.0, 0.0, 1.0])
+            right = np.cross(fwd, up)
+            T = np.eye(4)
+            T[:3, 0], T[:3, 1], T[:3, 2] = right, up, -fwd  # OpenGL camera: x right, y up, -z fwd
+            self._T_S_C.append(T)
+            d = U[..., None] * right + V[..., None] * up + fwd  # depth-1 point, sonar frame
+            d = d.reshape(-1, 3)
+            norm = np.linalg.norm(d, axis=1)
+            az = np.arctan2(d[:, 1], d[:, 0])
+            el = np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1]))
+            last = k == n - 1
+            keep = (az >= edges[k]) & ((az < edges[k + 1]) | (last & (az <= edges[k + 1])))
+            keep &= np.abs(el) <= 0.5 * sp.vfov_rad
+            idx = np.flatnonzero(keep)
+            self._pix.append(idx)
+            dirs.append(d[idx] / norm[idx, None])
+            beams.append(sp.beam_index(az[idx]))
+            omega = 1.0 / (fx * fy * norm[idx] ** 3)  # pixel solid angle, sr
+            pattern = 0.5 ** ((el[idx] / (0.5 * sp.vfov_rad)) ** 2)
+            weights.append(omega * pattern / self._beam_width[beams[-1]])
+            scale.append(norm[idx])
+        self._dir_S = np.concatenate(dirs)  # (P, 3) unit rays
+        self._beam = np.concatenate(beams).astype(np.int64)
+        self._w = np.concatenate(weights)  # Omega * B(phi) / beam width
+        self._range_per_depth = np.concatenate(scale)
+        self._n_rays = len(self._beam)
+
+    def _build_gl_scene(self) -> None:
+        os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+        import pyrender
+
+        self._pyrender = pyrender
+        mats = self.scene.materials
+        used = sorted({o.material for o in self.scene.objects})
+        byte_of: dict[str, int] = {}
+        taken: set[int] = set()
+        for name in used:
+            b = int(round(255 * mats[name].reflectivity))
+            while b in taken:
+                b -= 1
+            taken.add(b)
+            byte_of[name] = b
+        # Byte -> (reflectivity, k): blended edge pixels take the nearest material's k.
+        keys = np.array([byte_of[n] for n in used])
+        ks = np.array([mats[n].cos_exponent for n in used])
+        allb = np.arange(256)
+        self._refl_lut = (allb / 255.0).astype(np.float32)
+        self._k_lut = ks[np.argmin(np.abs(allb[:, None] - keys[None, :]), axis=1)].astype(np.float32)
+
+        positions, normals, colors = [], [], []
+        for o in self.scene.objects:
+            m = o.mesh
+            n = np.array(m.face_normals, dtype=np.float64)
+            n[n[:, 2] < 0] *= -1.0
+            col = np.empty((len(m.faces), 4), np.float32)
+            col[:, 0] = np.round((n[:, 0] + 1) * 127.5) / 255.0
+            col[:, 1] = np.round((n[:, 1] + 1) * 127.5) / 255.0
+            col[:, 2] = byte_of[o.material] / 255.0
+            col[:, 3] = 1.0
+            positions.append(np.asarray(m.vertices)[m.faces].reshape(-1, 3))
+            colors.append(np.repeat(col, 3, axis=0))
+            normals.append(np.repeat(np.asarray(m.face_normals), 3, axis=0))
+        # pyrender's default material (opaque, white); giving one explicitly garbles FLAT colours.
+        prim = pyrender.Primitive(
+            positions=np.concatenate(positions).astype(np.float32),
+            normals=np.concatenate(normals).astype(np.float32),
+            color_0=np.concatenate(colors),
+            mode=pyrender.constants.GLTF.TRIANGLES,
+        )
+        self._gl_scene = pyrender.Scene(bg_color=[0.5, 0.5, 0.0, 1.0], ambient_light=[1, 1, 1])
+        self._gl_scene.add(pyrender.Mesh([prim]))
+        cam = pyrender.IntrinsicsCamera(
+            self._fx, self._fy, self._cx, self._cy, znear=0.02, zfar=self.spec.range_max_m * 1.5
+        )
+        self._cam_node = self._gl_scene.add(cam, pose=np.eye(4))
+
+    @property
+    def renderer(self):
+        if self._renderer is None:
+            self._renderer = self._pyrender.OffscreenRenderer(self._W, self._H)
+        return self._renderer
+
+    @property
+    def rays_per_ping(self) -> int:
+        return self._n_rays
+
+    def close(self) -> None:
+        """Free the GL context."""
+        if self._renderer is not None:
+            self._renderer.delete()
+            self._renderer = None
+
+    def __enter__(self) -> SonarSimulator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ rendering
+    def _render(self, T_W_S: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        flags = self._pyrender.RenderFlags.FLAT
+        colors, depths = [], []
+        for T_S_C in self._T_S_C:
+            self._gl_scene.set_pose(self._cam_node, T_W_S @ T_S_C)
+            c, d = self.renderer.render(self._gl_scene, flags=flags)
+            colors.append(c)
+            depths.append(d)
+        return colors, depths
+
+    def ping(self, T_W_S: np.ndarray, index: int = 0) -> Ping:
+        """Simulate one ping from sonar pose ``T_W_S`` ((4, 4) float).
+
+        ``index`` seeds the noise together with the simulator's seed.
+        """
+        T = check_pose(T_W_S, "T_W_S")
+        sp = self.spec
+        colors, depths = self._render(T)
+        col = np.concatenate([c.reshape(-1, 3)[p] for c, p in zip(colors, self._pix, strict=True)])
+        dep = np.concatenate([d.reshape(-1)[p] for d, p in zip(depths, self._pix, strict=True)])
+        r = dep.astype(np.float64) * self._range_per_depth
+        hit = (dep > 0) & (r >= sp.range_min_m) & (r < sp.range_max_m)
+        bins = sp.bin_index(r[hit])
+        ok = bins >= 0
+        hi = np.flatnonzero(hit)[ok]
+        r, bins, col = r[hi], bins[ok], col[hi]
+        d_S = self._dir_S[hi]
+        R = T[:3, :3]
+        nx = col[:, 0].astype(np.float32) / 127.5 - 1.0
+        ny = col[:, 1].astype(np.float32) / 127.5 - 1.0
+        nz = np.sqrt(np.maximum(0.0, 1.0 - nx * nx - ny * ny))
+        n_S = np.stack([nx, ny, nz], 1) @ R.astype(np.float32)  # world normal into sonar frame
+        cos_inc = np.abs(np.einsum("ij,ij->i", n_S, d_S.astype(np.float32)))
+        rho = self._refl_lut[col[:, 2]]
+        k = self._k_lut[col[:, 2]]
+        r_ref = 1.0
+        loss = (r_ref / r) ** self.spreading_exponent * 10.0 ** (
+            -2.0 * self.absorption_db_per_m * (r - r_ref) / 10.0
+        )
+        e = self._w[hi] * rho * cos_inc**k * loss
+        E = np.bincount(bins * sp.n_beams + self._beam[hi], weights=e, minlength=sp.n_bins * sp.n_beams)
+        E = E.reshape(sp.n_bins, sp.n_beams)
+
+        rng = np.random.default_rng([self.seed, int(index)])
+        speckle = rng.gamma(self.looks, 1.0 / self.looks, size=E.shape)
+        img = 1.0 - np.exp(-self.gain * E * speckle)
+        img += rng.rayleigh(self.noise_floor, size=E.shape)
+        img = np.clip(img, 0.0, 1.0).astype(np.float32)
+
+        points_W = (T[:3, 3] + (d_S * r[:, None]) @ R.T).astype(np.float32)
+        fid, fr, fb = self._visible_features(T, depths)
+        return Ping(img, T, points_W, fid, fr, fb)
+
+    def _visible_features(
+        self, T_W_S: np.ndarray, depths: list[np.ndarray], tol_m: float = 0.02
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        sc = self.scene
+        if len(sc.features_W) == 0:
+            return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+        p_S = (sc.features_W - T_W_S[:3, 3]) @ T_W_S[:3, :3]
+        pol = self.spec.to_polar(p_S)
+        vis = self.spec.in_fov(p_S)
+        n = len(self._T_S_C)
+        lo, hi = self.spec.beam_edges_rad[0], self.spec.beam_edges_rad[-1]
+        cam = np.clip(np.floor((pol[:, 1] - lo) / (hi - lo) * n).astype(int), 0, n - 1)
+        for i in np.flatnonzero(vis):
+            T_S_C = self._T_S_C[cam[i]]
+            q = T_S_C[:3, :3].T @ (p_S[i] - T_S_C[:3, 3])
+            z = -q[2]
+            u = int(np.floor(self._fx * q[0] / z + self._cx))
+            v = int(np.floor(self._cy - self._fy * q[1] / z))
+            D = depths[cam[i]]
+            win = D[max(v - 1, 0) : v + 2, max(u - 1, 0) : u + 2]
+            if win.size == 0:
+                vis[i] = False
+                continue
+            # Depth of anything in front along the neighbouring rays; 0 means no surface.
+            front = np.where(win > 0, win, np.inf).max()
+            vis[i] = front >= z - tol_m
+        idx = np.flatnonzero(vis)
+        return sc.feature_ids[idx], pol[idx, 0], pol[idx, 1]
