@@ -150,7 +150,9 @@ def pose_from_xyz_ypr(xyz: np.ndarray, yaw: float, pitch_down: float, roll: floa
     return T
 
 
-def _box(center: np.ndarray, size: np.ndarray, R: np.ndarray | None = None) -> tuple[trimesh.Trimesh, Callable]:
+def _box(
+    center: np.ndarray, size: np.ndarray, R: np.ndarray | None = None
+) -> tuple[trimesh.Trimesh, Callable]:
     T = np.eye(4)
     T[:3, 3] = center
     if R is not None:
@@ -167,6 +169,11 @@ def _box_contains(c: np.ndarray, size: np.ndarray, R: np.ndarray) -> Callable:
         return np.all(np.abs(q) <= half, axis=-1)
 
     return contains
+
+
+def _merged(name: str, parts: list[tuple[trimesh.Trimesh, Callable]], material: str) -> SceneObject:
+    mesh = trimesh.util.concatenate([m for m, _ in parts])
+    return SceneObject(name, mesh, material, _union([f for _, f in parts]))
 
 
 def _union(fns: list[Callable]) -> Callable:
@@ -284,9 +291,7 @@ def tank_scene(seed: int = 0, voxel_size_m: float = 0.03, n_pitch: int = 16, n_m
         ((0.5 * (x0 + x1), -yh - w / 2, zc), (x1 - x0, w, zh)),
     ]
     parts = [_box(np.array(cc), np.array(sz)) for cc, sz in walls]
-    objects.append(
-        SceneObject("walls", trimesh.util.concatenate([m for m, _ in parts]), "wall", _union([f for _, f in parts]))
-    )
+    objects.append(_merged("walls", parts, "wall"))
 
     # Chain: links alternate flat / upright along a gentle S-curve on the sand.
     R_link, r_link, n_links = 0.025, 0.006, 14
@@ -304,9 +309,7 @@ def tank_scene(seed: int = 0, voxel_size_m: float = 0.03, n_pitch: int = 16, n_m
             Rot = _rot_z(yaw) @ _rot_x(math.pi / 2)
             zc_ = float(h(path[i, 0], path[i, 1])) + R_link + r_link - 0.004
         parts.append(_torus(np.array([path[i, 0], path[i, 1], zc_]), R_link, r_link, Rot))
-    objects.append(
-        SceneObject("chain", trimesh.util.concatenate([m for m, _ in parts]), "metal", _union([f for _, f in parts]))
-    )
+    objects.append(_merged("chain", parts, "metal"))
 
     # Rock: star-shaped blob, radius modulated by a few seeded smooth harmonics.
     rc = np.array([1.05, 0.32, z_floor + 0.06])
@@ -351,9 +354,7 @@ def tank_scene(seed: int = 0, voxel_size_m: float = 0.03, n_pitch: int = 16, n_m
     for y in np.linspace(-W / 2, W / 2, 4)[1:-1]:  # bottom mesh
         bars.append(((0, y, bar / 2), (L, bar, bar)))
     parts = [_box(bc + Rb @ np.array(cc), np.array(sz), Rb) for cc, sz in bars]
-    objects.append(
-        SceneObject("basket", trimesh.util.concatenate([m for m, _ in parts]), "plastic", _union([f for _, f in parts]))
-    )
+    objects.append(_merged("basket", parts, "plastic"))
 
     # Thin metal pipe lying on the sand: the hard case for false negatives.
     r_pipe = 0.0125
