@@ -1,0 +1,732 @@
+"""EKF for the imaging-sonar pose and point features (range/azimuth only), after Mai et al.
+
+The filter keeps the sonar pose ``T_W_S`` and the world positions of point features in one
+joint Gaussian, as in Mai et al., "3-D Reconstruction of Underwater Object Based on Extended
+Kalman Filter by Using Acoustic Camera Images" (Section 3), with these changes:
+
+- **Attitude** is a rotation matrix; its error is a rotation vector (error-state EKF on
+  SE(3)), so there is no gimbal lock. Roll/pitch/yaw exist only as output
+  (:attr:`SonarEKF.rpy_rad`).
+- **New features** start along the elevation arc of their first (range, azimuth) return:
+  elevation mean 0 with the variance of a uniform law over the vertical aperture,
+  ``vfov^2 / 12``, pushed through the inverse-measurement Jacobian together with the pose
+  uncertainty, which also gives the pose-feature cross-covariance. (The paper sets the
+  elevation to 0 and says nothing of its uncertainty; a small variance there makes the
+  first updates overconfident, a huge one makes them wrong through linearisation.)
+- **Gating**: each return's innovation is tested on its own ``2x2`` innovation covariance
+  against a chi-square (2 dof) quantile; returns that fail are reported, not used.
+- **Numerics**: gains by Cholesky solve of the innovation covariance (never its inverse),
+  Joseph-form covariance update, symmetrised; azimuth residuals wrapped to ``(-pi, pi]``;
+  after each update the pose-error covariance is moved to the new linearisation point
+  (first-order reset ``I - ad(dx)/2``).
+
+Conventions
+-----------
+State order: pose error ``(rho (m), phi (rad))`` then landmarks ``(x, y, z)`` in world
+metres, in the order of :attr:`SonarEKF.landmark_ids`. The pose error is a right
+perturbation on SE(3): ``T_W_S = T_hat @ Exp(delta)``, ``delta = (rho, phi)``
+(:mod:`gpumap.lie`); ``pose_cov0``, ``motion_cov`` and :attr:`SonarEKF.pose_cov` all use it.
+
+Measurement of feature ``l_W`` from pose ``T_W_S``: ``p = T_W_S^-1 l_W`` in the sonar frame
+(x forward, y left, z up); ``r = |p|``, ``azimuth = atan2(p_y, p_x)``.
+
+Features out of view are kept, with their covariance and correlations, for as long as the
+caller wants; :meth:`SonarEKF.forget` marginalises one out (exact for a Gaussian: its rows
+and columns are dropped). There is no automatic ageing: the caller knows best when a
+feature will not come back.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+
+from gpumap.errors import check_finite_scalar, check_pose
+from gpumap.lie import (
+    orthonormalize,
+    rpy_from_rotation,
+    se3_ad,
+    se3_adjoint,
+    se3_exp,
+    se3_inverse,
+)
+
+__all__ = [
+    "SonarEKF",
+    "UpdateResult",
+    "anchor_jacobian",
+    "motion_jacobian",
+    "observation_model",
+    "spherical_point",
+    "wrap_angle",
+]
+
+#: Returns whose horizontal distance from the sonar axis is below this are not used: their
+#: azimuth is undefined and its Jacobian unbounded.
+MIN_HORIZONTAL_M = 1e-9
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray:
+    """Wrap angles to ``(-pi, pi]``.
+
+    Parameters
+    ----------
+    a : float or (...,) float
+        Angles, radians.
+
+    Returns
+    -------
+    (...,) float64
+    """
+    a = np.asarray(a, dtype=np.float64)
+    w = np.remainder(a + np.pi, 2.0 * np.pi) - np.pi
+    return np.where(w == -np.pi, np.pi, w)
+
+
+def _observe_batch(
+    R: np.ndarray, t: np.ndarray, L: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Predicted ``(r, azimuth)`` and Jacobians for ``k`` world points at once.
+
+    Returns ``z (k, 2)``, ``H_pose (k, 2, 6)``, ``H_l (k, 2, 3)`` and the horizontal
+    distance ``(k,)`` (for the degenerate-geometry test).
+    """
+    P = (L - t) @ R  # (k, 3): rows are R^T (l - t)
+    x, y = P[:, 0], P[:, 1]
+    r = np.linalg.norm(P, axis=1)
+    rho2 = x * x + y * y
+    rh = np.sqrt(rho2)
+    rs = np.where(r > 0, r, 1.0)
+    hs = np.where(rho2 > 0, rho2, 1.0)
+    dz_dp = np.zeros((P.shape[0], 2, 3))
+    dz_dp[:, 0, :] = P / rs[:, None]
+    dz_dp[:, 1, 0] = -y / hs
+    dz_dp[:, 1, 1] = x / hs
+    # dp/d(rho) = -I, dp/d(phi) = hat(p), dp/dl = R^T
+    dp_dphi = np.zeros((P.shape[0], 3, 3))
+    dp_dphi[:, 0, 1], dp_dphi[:, 0, 2] = -P[:, 2], P[:, 1]
+    dp_dphi[:, 1, 0], dp_dphi[:, 1, 2] = P[:, 2], -P[:, 0]
+    dp_dphi[:, 2, 0], dp_dphi[:, 2, 1] = -P[:, 1], P[:, 0]
+    Hp = np.empty((P.shape[0], 2, 6))
+    Hp[:, :, :3] = -dz_dp
+    Hp[:, :, 3:] = dz_dp @ dp_dphi
+    Hl = dz_dp @ R.T
+    z = np.stack([r, np.arctan2(y, x)], axis=1)
+    return z, Hp, Hl, rh
+
+
+def observation_model(
+    T_W_S: np.ndarray, l_W: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Predicted measurement of one feature and its Jacobians.
+
+    Parameters
+    ----------
+    T_W_S : (4, 4) float
+        Sonar pose.
+    l_W : (3,) float
+        Feature position in the world, metres.
+
+    Returns
+    -------
+    z : (2,) float64
+        ``[range_m, azimuth_rad]``.
+    H_pose : (2, 6) float64
+        Jacobian with respect to the right pose perturbation ``(rho, phi)``.
+    H_l : (2, 3) float64
+        Jacobian with respect to ``l_W``.
+    """
+    T = np.asarray(T_W_S, dtype=np.float64)
+    z, Hp, Hl, _ = _observe_batch(T[:3, :3], T[:3, 3], np.asarray(l_W, dtype=np.float64)[None])
+    return z[0], Hp[0], Hl[0]
+
+
+def spherical_point(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cartesian point of spherical sonar coordinates, and its Jacobian.
+
+    Parameters
+    ----------
+    s : (3,) or (k, 3) float
+        ``(range m, azimuth rad, elevation rad)``.
+
+    Returns
+    -------
+    p : (3,) or (k, 3) float64
+        ``r [cos(el) cos(az), cos(el) sin(az), sin(el)]``.
+    dp_ds : (3, 3) or (k, 3, 3) float64
+        Columns ``dp/dr, dp/daz, dp/del`` (mutually orthogonal, norms ``1, r cos(el), r``).
+    """
+    s = np.asarray(s, dtype=np.float64)
+    one = s.ndim == 1
+    s = np.atleast_2d(s)
+    r, az, el = s[:, 0], s[:, 1], s[:, 2]
+    ca, sa, ce, se = np.cos(az), np.sin(az), np.cos(el), np.sin(el)
+    u = np.stack([ce * ca, ce * sa, se], axis=1)
+    D = np.empty((s.shape[0], 3, 3))
+    D[:, :, 0] = u
+    D[:, :, 1] = r[:, None] * np.stack([-ce * sa, ce * ca, np.zeros_like(ca)], axis=1)
+    D[:, :, 2] = r[:, None] * np.stack([-se * ca, -se * sa, ce], axis=1)
+    p = r[:, None] * u
+    return (p[0], D[0]) if one else (p, D)
+
+
+def anchor_jacobian(s: np.ndarray) -> np.ndarray:
+    """Jacobian of a feature's anchored coordinates with respect to the anchor pose error.
+
+    A feature is stored as spherical coordinates ``s`` in an anchor frame ``A`` (the pose
+    estimate when it was first seen). If the true anchor pose is ``T_hat @ Exp(delta)``,
+    the true coordinates are ``sph(Exp(delta) @ p(s))``; this returns their derivative in
+    ``delta = (rho, phi)`` at ``delta = 0``: ``(dp/ds)^-1 [I, -hat(p)]``.
+
+    Parameters
+    ----------
+    s : (3,) float
+        ``(range m, azimuth rad, elevation rad)``, with ``r > 0`` and ``|el| < pi/2``.
+
+    Returns
+    -------
+    (3, 6) float64
+    """
+    p, D = spherical_point(s)
+    # dp/ds has orthogonal columns: its inverse is diag(1/|col|^2) D^T (no matrix inverse).
+    r, ce = float(s[0]), math.cos(float(s[2]))
+    Dinv = np.diag([1.0, 1.0 / (r * ce) ** 2, 1.0 / (r * r)]) @ D.T
+    J = np.empty((3, 6))
+    J[:, :3] = Dinv
+    J[:, 3:] = -Dinv @ np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
+    return J
+
+
+def motion_jacobian(T_Sprev_Snext: np.ndarray) -> np.ndarray:
+    """Jacobian of the pose error through a relative motion: ``Ad(T_Sprev_Snext^-1)``.
+
+    With ``T_next = T_prev @ U`` and right perturbations, ``delta_next = Ad(U^-1) delta_prev + w``
+    where ``w`` is the motion noise (right perturbation of ``U``).
+
+    Returns
+    -------
+    (6, 6) float64
+    """
+    return se3_adjoint(se3_inverse(np.asarray(T_Sprev_Snext, dtype=np.float64)))
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    """What :meth:`SonarEKF.update` did with each return.
+
+    Attributes
+    ----------
+    accepted_ids : tuple of int
+        Known features whose returns passed the gate and were fused.
+    rejected : dict of int to float
+        Known features whose returns failed the chi-square gate, with their NIS (2 dof).
+    initialized_ids : tuple of int
+        Features seen for the first time, added to the state (their return is spent on the
+        initialisation and not fused as an update).
+    degenerate_ids : tuple of int
+        Known features predicted on the sonar's z axis (azimuth undefined); not used.
+    nis : float or None
+        Joint normalised innovation squared of the accepted returns, ``dof = 2 * len(accepted_ids)``;
+        None when nothing was fused.
+    """
+
+    accepted_ids: tuple[int, ...] = ()
+    rejected: dict[int, float] = field(default_factory=dict)
+    initialized_ids: tuple[int, ...] = ()
+    degenerate_ids: tuple[int, ...] = ()
+    nis: float | None = None
+
+    @property
+    def nis_dof(self) -> int:
+        """Degrees of freedom of :attr:`nis`."""
+        return 2 * len(self.accepted_ids)
+
+
+def _check_cov(C: object, n: int, name: str) -> np.ndarray:
+    a = np.array(C, dtype=np.float64, copy=True)
+    if a.shape != (n, n):
+        raise ValueError(f"Expected a ({n}, {n}) covariance for '{name}', but got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"Expected finite entries in '{name}', but got NaN or inf")
+    scale = max(float(np.abs(a).max()), 1e-300)
+    if float(np.abs(a - a.T).max()) > 1e-9 * scale:
+        raise ValueError(f"Expected a symmetric matrix for '{name}', but got asymmetry "
+                         f"{float(np.abs(a - a.T).max()):.3g}")
+    a = 0.5 * (a + a.T)
+    lam = float(np.linalg.eigvalsh(a).min())
+    if lam < -1e-12 * scale:
+        raise ValueError(f"Expected a positive semi-definite matrix for '{name}', but got "
+                         f"smallest eigenvalue {lam:.3g}")
+    return a
+
+
+def _check_vector(v: object, m: int | None, name: str) -> np.ndarray:
+    a = np.asarray(v)
+    if a.dtype == object or not (np.issubdtype(a.dtype, np.number)) or np.issubdtype(
+        a.dtype, np.complexfloating
+    ):
+        raise TypeError(f"Expected real numbers in '{name}', but got dtype {a.dtype}")
+    a = np.array(a, dtype=np.float64, copy=True)
+    if a.ndim != 1 or (m is not None and a.shape[0] != m):
+        want = f"({m},)" if m is not None else "(m,)"
+        raise ValueError(f"Expected shape {want} for '{name}', but got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"Expected finite values in '{name}', but got NaN or inf")
+    return a
+
+
+def _check_ids(ids: object) -> list[int]:
+    a = np.asarray(ids)
+    if a.ndim != 1:
+        raise ValueError(f"Expected a 1-D sequence of integer ids for 'ids', but got shape {a.shape}")
+    if a.size and not np.issubdtype(a.dtype, np.integer):
+        raise TypeError(f"Expected integer ids for 'ids', but got dtype {a.dtype}")
+    out = [int(i) for i in a]
+    if len(set(out)) != len(out):
+        dup = sorted({i for i in out if out.count(i) > 1})
+        raise ValueError(f"Expected each id at most once per update in 'ids', but got repeats {dup}")
+    return out
+
+
+def _chi2_2dof(prob: float) -> float:
+    # Chi-square with 2 dof is exponential: P(X <= x) = 1 - exp(-x/2).
+    return -2.0 * math.log1p(-prob)
+
+
+class SonarEKF:
+    """Joint EKF over the sonar pose and point features seen as (range, azimuth).
+
+    Features are stored as anchored spherical coordinates ``s = (r, az, el)`` in the sonar
+    frame where they were first seen (the anchor, a fixed transform equal to the pose
+    estimate at that moment), so the elevation arc of a first return is a straight line in
+    the state and its uniform prior is represented without the chord error of a Cartesian
+    Gaussian. The anchor's pose uncertainty is carried by the feature's covariance and its
+    cross-covariance with the pose (:func:`anchor_jacobian`). Everything the class returns
+    (:attr:`landmarks`, :meth:`landmark_cov`, :attr:`covariance`) is in world Cartesian
+    coordinates; :attr:`native_covariance` is the filter's own.
+
+    Parameters
+    ----------
+    T_W_S0 : (4, 4) float
+        Initial sonar pose (world from sonar).
+    pose_cov0 : (6, 6) float
+        Initial pose covariance over ``(translation m, rotation vector rad)``, right perturbation.
+    range_sigma_m : float
+        Standard deviation of a range measurement, metres (> 0).
+    bearing_sigma_rad : float
+        Standard deviation of an azimuth measurement, radians (> 0).
+    vfov_rad : float
+        Full vertical aperture, radians, in ``(0, pi)``. A new feature's elevation is taken
+        uniform over ``[-vfov/2, vfov/2]``: mean 0, variance ``vfov^2 / 12``.
+    gate_prob : float or None, default 0.999
+        Chi-square (2 dof) gate probability for each return; None disables gating.
+
+    Examples
+    --------
+    >>> ekf = SonarEKF(np.eye(4), np.zeros((6, 6)), range_sigma_m=0.01,
+    ...                bearing_sigma_rad=0.005, vfov_rad=np.deg2rad(14))
+    >>> ekf.predict(T_Sprev_Snext, motion_cov)          # doctest: +SKIP
+    >>> res = ekf.update(ids, ranges_m, bearings_rad)    # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        T_W_S0: np.ndarray,
+        pose_cov0: np.ndarray,
+        *,
+        range_sigma_m: float,
+        bearing_sigma_rad: float,
+        vfov_rad: float,
+        gate_prob: float | None = 0.999,
+    ) -> None:
+        T = check_pose(T_W_S0, "T_W_S0")
+        P0 = _check_cov(pose_cov0, 6, "pose_cov0")
+        sr = check_finite_scalar(range_sigma_m, "range_sigma_m")
+        sb = check_finite_scalar(bearing_sigma_rad, "bearing_sigma_rad")
+        vf = check_finite_scalar(vfov_rad, "vfov_rad")
+        if sr <= 0 or sb <= 0:
+            raise ValueError(
+                f"Expected range_sigma_m > 0 and bearing_sigma_rad > 0, but got {sr} and {sb}"
+            )
+        if not 0 < vf < math.pi:
+            raise ValueError(f"Expected 0 < vfov_rad < pi, but got {vf}")
+        if gate_prob is not None:
+            gp = check_finite_scalar(gate_prob, "gate_prob")
+            if not 0 < gp < 1:
+                raise ValueError(f"Expected 0 < gate_prob < 1 (or None), but got {gp}")
+            self._gate = _chi2_2dof(gp)
+        else:
+            self._gate = math.inf
+        self.range_sigma_m = sr
+        self.bearing_sigma_rad = sb
+        self.vfov_rad = vf
+        self.elevation_var_rad2 = vf * vf / 12.0
+        T[:3, :3] = orthonormalize(T[:3, :3])
+        self._T = T
+        self._P = P0
+        self._S = np.zeros((0, 3))  # anchored spherical coordinates (r, az, el)
+        self._Ra = np.zeros((0, 3, 3))  # anchor rotations R_W_A
+        self._ta = np.zeros((0, 3))  # anchor positions t_W_A
+        self._ids: list[int] = []
+        self._index: dict[int, int] = {}
+        self._nis: float | None = None
+        self._nis_dof = 0
+
+    # ------------------------------------------------------------------ read-only views
+    @property
+    def pose(self) -> np.ndarray:
+        """(4, 4) float64 copy of the estimated ``T_W_S``."""
+        return self._T.copy()
+
+    @property
+    def pose_cov(self) -> np.ndarray:
+        """(6, 6) float64 pose covariance, ``(translation m, rotation vector rad)``, right perturbation."""
+        return self._P[:6, :6].copy()
+
+    @property
+    def rpy_rad(self) -> np.ndarray:
+        """(3,) ``[roll, pitch, yaw]`` of the estimate, ``R = Rz(yaw) Ry(pitch) Rx(roll)``; output only."""
+        return rpy_from_rotation(self._T[:3, :3])
+
+    @property
+    def landmarks(self) -> dict[int, np.ndarray]:
+        """Feature id -> (3,) float64 world position."""
+        L, _ = self._world_points()
+        return {i: L[k].copy() for i, k in self._index.items()}
+
+    @property
+    def landmark_ids(self) -> tuple[int, ...]:
+        """Feature ids in state order (the order of :attr:`covariance` after the pose)."""
+        return tuple(self._ids)
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """(6 + 3n, 6 + 3n) float64 covariance of pose and world feature positions.
+
+        Pose block as :attr:`pose_cov`; feature blocks are world Cartesian, first-order
+        (``J P J^T`` with ``J = R_W_A dp/ds`` per feature).
+        """
+        _, J = self._world_points()
+        n = len(self._ids)
+        B = np.zeros_like(self._P)
+        B[:6, :6] = np.eye(6)
+        for k in range(n):
+            s = 6 + 3 * k
+            B[s : s + 3, s : s + 3] = J[k]
+        C = B @ self._P @ B.T
+        return 0.5 * (C + C.T)
+
+    @property
+    def native_covariance(self) -> np.ndarray:
+        """(6 + 3n, 6 + 3n) float64 covariance of the filter's own state.
+
+        Pose error ``(rho, phi)``, then each feature's anchored ``(r m, az rad, el rad)``.
+        """
+        return self._P.copy()
+
+    @property
+    def landmark_anchors(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """Feature id -> ``(T_W_A (4, 4), s (3,))``: anchor pose and anchored ``(r, az, el)``."""
+        out = {}
+        for i, k in self._index.items():
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = self._Ra[k], self._ta[k]
+            out[i] = (T, self._S[k].copy())
+        return out
+
+    @property
+    def nis(self) -> float | None:
+        """Joint NIS of the last update's fused returns (``dof = nis_dof``); None if none fused."""
+        return self._nis
+
+    @property
+    def nis_dof(self) -> int:
+        """Degrees of freedom of :attr:`nis` (2 per fused return)."""
+        return self._nis_dof
+
+    def landmark_cov(self, landmark_id: int) -> np.ndarray:
+        """(3, 3) float64 covariance of one feature's world position (first order).
+
+        Raises
+        ------
+        KeyError
+            If the feature is not in the state.
+        """
+        k = self._slot(landmark_id)
+        s = 6 + 3 * k
+        _, D = spherical_point(self._S[k])
+        J = self._Ra[k] @ D
+        C = J @ self._P[s : s + 3, s : s + 3] @ J.T
+        return 0.5 * (C + C.T)
+
+    def _slot(self, landmark_id: int) -> int:
+        try:
+            return self._index[int(landmark_id)]
+        except (KeyError, TypeError, ValueError):
+            raise KeyError(f"Expected a feature id in the state {sorted(self._index)}, but got "
+                           f"{landmark_id!r}") from None
+
+    def _world_points(
+        self, S: np.ndarray | None = None, Ra: np.ndarray | None = None, ta: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """World points ``(n, 3)`` and ``d l / d s`` ``(n, 3, 3)`` of anchored features."""
+        S = self._S if S is None else S
+        Ra = self._Ra if Ra is None else Ra
+        ta = self._ta if ta is None else ta
+        if S.shape[0] == 0:
+            return np.zeros((0, 3)), np.zeros((0, 3, 3))
+        p, D = spherical_point(S)
+        return ta + np.einsum("kij,kj->ki", Ra, p), Ra @ D
+
+    # ------------------------------------------------------------------ filter steps
+    def predict(self, T_Sprev_Snext: np.ndarray, motion_cov: np.ndarray) -> None:
+        """Move the pose by a relative motion measured in the previous sonar frame.
+
+        Parameters
+        ----------
+        T_Sprev_Snext : (4, 4) float
+            Odometry increment ``U``: ``T_W_Snext = T_W_Sprev @ U``.
+        motion_cov : (6, 6) float
+            Covariance of ``w`` in ``U_true = U @ Exp(w)``, ``(translation m, rotation vector rad)``.
+        """
+        U = check_pose(T_Sprev_Snext, "T_Sprev_Snext")
+        Q = _check_cov(motion_cov, 6, "motion_cov")
+        U[:3, :3] = orthonormalize(U[:3, :3])
+        F = motion_jacobian(U)
+        P = self._P.copy()
+        P[:6, :] = F @ P[:6, :]
+        P[:, :6] = P[:, :6] @ F.T
+        P[:6, :6] += Q
+        P = 0.5 * (P + P.T)
+        T = self._T @ U
+        T[:3, :3] = orthonormalize(T[:3, :3])
+        if not (np.all(np.isfinite(P)) and np.all(np.isfinite(T))):
+            raise FloatingPointError("predict produced non-finite values; the filter is unchanged")
+        self._T, self._P = T, P
+
+    def update(
+        self, ids: Iterable[int] | np.ndarray, ranges_m: np.ndarray, bearings_rad: np.ndarray
+    ) -> UpdateResult:
+        """Fuse one ping's feature returns; add features seen for the first time.
+
+        Known features are gated one by one (chi-square, 2 dof, on each return's own
+        innovation covariance), then the accepted ones are fused jointly. New features are
+        then initialised from the updated pose. On any error the filter is left unchanged.
+
+        Parameters
+        ----------
+        ids : (m,) int
+            Feature ids (known correspondences), each at most once.
+        ranges_m : (m,) float
+            Measured ranges, metres, > 0.
+        bearings_rad : (m,) float
+            Measured azimuths ``atan2(y, x)`` in the sonar frame, radians (any branch).
+
+        Returns
+        -------
+        UpdateResult
+        """
+        id_list = _check_ids(ids)
+        m = len(id_list)
+        rng_m = _check_vector(ranges_m, m, "ranges_m")
+        brg = _check_vector(bearings_rad, m, "bearings_rad")
+        if np.any(rng_m <= 0):
+            raise ValueError(f"Expected ranges_m > 0, but got minimum {float(rng_m.min())}")
+
+        known = [k for k in range(m) if id_list[k] in self._index]
+        new = [k for k in range(m) if id_list[k] not in self._index]
+        T, P, S = self._T, self._P, self._S
+        accepted: list[int] = []
+        rejected: dict[int, float] = {}
+        degenerate: list[int] = []
+        nis: float | None = None
+
+        if known:
+            slots = np.array([self._index[id_list[k]] for k in known])
+            Lw, J = self._world_points(S[slots], self._Ra[slots], self._ta[slots])
+            z, Hp, Hl, rh = _observe_batch(T[:3, :3], T[:3, 3], Lw)
+            Hs = Hl @ J
+            ok = (rh > MIN_HORIZONTAL_M * np.maximum(1.0, z[:, 0])) & (S[slots, 0] > 0) & (
+                np.cos(S[slots, 2]) > 1e-6
+            )
+            degenerate = [id_list[known[j]] for j in np.flatnonzero(~ok)]
+            sel = np.flatnonzero(ok)
+            meas = np.stack([rng_m[known], brg[known]], axis=1)[sel]
+            nu = meas - z[sel]
+            nu[:, 1] = wrap_angle(nu[:, 1])
+            Hp, Hs, slots = Hp[sel], Hs[sel], slots[sel]
+            r_var = np.array([self.range_sigma_m**2, self.bearing_sigma_rad**2])
+            # Per-return gate on the 2x2 marginal innovation covariance.
+            HP = _hp(P, Hp, Hs, slots)  # (k, 2, N)
+            d2 = _nis_2x2(_s_blocks(HP, Hp, Hs, slots) + np.diag(r_var), nu)
+            keep = [j for j in range(len(sel)) if d2[j] <= self._gate]
+            for j in range(len(sel)):
+                if not d2[j] <= self._gate:
+                    rejected[id_list[known[sel[j]]]] = float(d2[j])
+            if keep:
+                kk = np.array(keep)
+                T, P, dS, nis = _fuse(T, P, nu[kk], Hp[kk], Hs[kk], slots[kk], HP[kk], r_var)
+                S = S + dS
+                S[:, 1] = wrap_angle(S[:, 1])
+                accepted = [id_list[known[sel[j]]] for j in keep]
+
+        new_ids: list[int] = []
+        index = dict(self._index)
+        ids_order = list(self._ids)
+        Ra, ta = self._Ra, self._ta
+        if new:
+            Nn = P.shape[0]
+            n_new = len(new)
+            Pn = np.zeros((Nn + 3 * n_new, Nn + 3 * n_new))
+            Pn[:Nn, :Nn] = P
+            Nz = np.diag([self.range_sigma_m**2, self.bearing_sigma_rad**2, self.elevation_var_rad2])
+            s_new = np.zeros((n_new, 3))
+            for q, k in enumerate(new):
+                s_new[q] = (rng_m[k], float(wrap_angle(brg[k])), 0.0)
+                A = anchor_jacobian(s_new[q])
+                c = Nn + 3 * q
+                cross = A @ Pn[:6, :c]  # (3, c): correlated through the anchor pose only
+                Pn[c : c + 3, :c] = cross
+                Pn[:c, c : c + 3] = cross.T
+                Pn[c : c + 3, c : c + 3] = A @ Pn[:6, :6] @ A.T + Nz
+                index[id_list[k]] = len(ids_order)
+                ids_order.append(id_list[k])
+                new_ids.append(id_list[k])
+            S = np.concatenate([S, s_new], axis=0)
+            Ra = np.concatenate([Ra, np.broadcast_to(T[:3, :3], (n_new, 3, 3))], axis=0)
+            ta = np.concatenate([ta, np.broadcast_to(T[:3, 3], (n_new, 3))], axis=0)
+            P = 0.5 * (Pn + Pn.T)
+
+        if not (np.all(np.isfinite(P)) and np.all(np.isfinite(T)) and np.all(np.isfinite(S))):
+            raise FloatingPointError("update produced non-finite values; the filter is unchanged")
+        self._T, self._P, self._S, self._Ra, self._ta = T, P, S, Ra, ta
+        self._index, self._ids = index, ids_order
+        if accepted:
+            self._nis, self._nis_dof = nis, 2 * len(accepted)
+        return UpdateResult(
+            accepted_ids=tuple(accepted),
+            rejected=rejected,
+            initialized_ids=tuple(new_ids),
+            degenerate_ids=tuple(degenerate),
+            nis=nis if accepted else None,
+        )
+
+    def forget(self, landmark_id: int) -> None:
+        """Marginalise one feature out of the state (drop its rows and columns).
+
+        Raises
+        ------
+        KeyError
+            If the feature is not in the state.
+        """
+        k = self._slot(landmark_id)
+        s = 6 + 3 * k
+        keep = np.r_[0:s, s + 3 : self._P.shape[0]]
+        self._P = self._P[np.ix_(keep, keep)].copy()
+        self._S = np.delete(self._S, k, axis=0)
+        self._Ra = np.delete(self._Ra, k, axis=0)
+        self._ta = np.delete(self._ta, k, axis=0)
+        del self._ids[k]
+        self._index = {i: j for j, i in enumerate(self._ids)}
+
+
+def _hp(P: np.ndarray, Hp: np.ndarray, Hs: np.ndarray, slots: np.ndarray) -> np.ndarray:
+    """``H @ P`` for block-sparse ``H`` (pose block + one feature block per return), ``(k, 2, N)``."""
+    rows = 6 + 3 * slots[:, None] + np.arange(3)[None]  # (k, 3)
+    return np.einsum("kij,jn->kin", Hp, P[:6]) + np.einsum("kij,kjn->kin", Hs, P[rows])
+
+
+def _s_blocks(HP: np.ndarray, Hp: np.ndarray, Hs: np.ndarray, slots: np.ndarray) -> np.ndarray:
+    """Diagonal ``2x2`` blocks of ``H P H^T``, ``(k, 2, 2)``."""
+    k = HP.shape[0]
+    cols = 6 + 3 * slots[:, None] + np.arange(3)[None]
+    own = HP[np.arange(k)[:, None, None], np.arange(2)[None, :, None], cols[:, None, :]]
+    return np.einsum("kin,kjn->kij", HP[:, :, :6], Hp) + np.einsum("kin,kjn->kij", own, Hs)
+
+
+def _fuse(
+    T: np.ndarray,
+    P: np.ndarray,
+    nu: np.ndarray,
+    Hp: np.ndarray,
+    Hs: np.ndarray,
+    slots: np.ndarray,
+    HP: np.ndarray,
+    r_var: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Joint Kalman update of ``a`` accepted returns; returns ``T, P, dS (n, 3), nis``."""
+    a = nu.shape[0]
+    N = P.shape[0]
+    HPf = HP.reshape(2 * a, N)
+    Hpf = Hp.reshape(2 * a, 6)
+    cols = (6 + 3 * slots[:, None] + np.arange(3)[None]).reshape(-1)  # (3a,)
+    # S = H P H^T + R, with H block-sparse: pose columns plus each return's own feature.
+    S = HPf[:, :6] @ Hpf.T
+    S += np.einsum("mkj,kij->mki", HPf[:, cols].reshape(2 * a, a, 3), Hs).reshape(2 * a, 2 * a)
+    Rd = np.tile(r_var, a)
+    S[np.diag_indices(2 * a)] += Rd
+    S = 0.5 * (S + S.T)
+    cho = _robust_cholesky(S)
+    KT = scipy.linalg.cho_solve(cho, HPf, check_finite=False)  # (2a, N) = K^T, no inverse
+    nu_f = nu.reshape(-1)
+    nis = float(nu_f @ scipy.linalg.cho_solve(cho, nu_f, check_finite=False))
+    dx = KT.T @ nu_f
+    # Joseph form (I - K H) P (I - K H)^T + K R K^T, evaluated with the sparse H.
+    AP = P - KT.T @ HPf
+    APHt = AP[:, :6] @ Hpf.T + np.einsum(
+        "nkj,kij->nki", AP[:, cols].reshape(N, a, 3), Hs
+    ).reshape(N, 2 * a)
+    Pn = AP - APHt @ KT + (KT.T * Rd) @ KT
+    # Inject the error state; move the pose covariance to the new linearisation point
+    # (T_true = T Exp(e), T_new = T Exp(d)  =>  e_new ~= J_r(d) (e - d), J_r ~= I - ad(d)/2).
+    dpose = dx[:6]
+    Tn = T @ se3_exp(dpose)
+    Tn[:3, :3] = orthonormalize(Tn[:3, :3])
+    G = np.eye(6) - 0.5 * se3_ad(dpose)
+    Pn[:6, :] = G @ Pn[:6, :]
+    Pn[:, :6] = Pn[:, :6] @ G.T
+    Pn = 0.5 * (Pn + Pn.T)
+    return Tn, Pn, dx[6:].reshape(-1, 3), nis
+
+
+def _nis_2x2(S: np.ndarray, nu: np.ndarray) -> np.ndarray:
+    """``nu_k^T S_k^-1 nu_k`` for ``k`` symmetric 2x2 blocks, by the 2x2 Cholesky factor.
+
+    A block that is not positive definite gives ``inf`` (the return is then gated out).
+    """
+    a = S[:, 0, 0]
+    b = 0.5 * (S[:, 0, 1] + S[:, 1, 0])
+    c = S[:, 1, 1]
+    ok = a > 0
+    l11 = np.sqrt(np.where(ok, a, 1.0))
+    l21 = b / l11
+    d = c - l21 * l21
+    ok &= d > 0
+    l22 = np.sqrt(np.where(ok, d, 1.0))
+    y1 = nu[:, 0] / l11
+    y2 = (nu[:, 1] - l21 * y1) / l22
+    return np.where(ok, y1 * y1 + y2 * y2, np.inf)
+
+
+def _robust_cholesky(S: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Cholesky factor of a symmetric ``S``; adds growing jitter only if round-off broke PD."""
+    try:
+        return scipy.linalg.cho_factor(S, lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        pass
+    d = np.abs(np.diag(S)).max()
+    for k in range(-14, -5):
+        try:
+            return scipy.linalg.cho_factor(
+                S + (d * 10.0**k) * np.eye(S.shape[0]), lower=True, check_finite=False
+            )
+        except np.linalg.LinAlgError:
+            continue
+    raise FloatingPointError(
+        "Expected a positive definite innovation covariance, but Cholesky failed even with "
+        "jitter; the filter is unchanged"
+    )
