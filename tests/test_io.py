@@ -317,14 +317,16 @@ def test_fan_round_trip_bound() -> None:
     back = fan_to_polar(polar_to_fan(smooth, spec, geom), spec, geom)
     inner = (slice(2, -2), slice(2, -2))  # away from the fan's outer edges
     err = np.abs(back - smooth)[inner]
-    # bilinear twice on a field with |grad| <= 1.6 per metre and pixel 5 mm: < 1e-2
-    assert err.max() < 1e-2, err.max()
+    # measured: 1.5e-4 (bilinear twice, 5 mm pixels, 19 mm bins, 1 deg beams); bound 1e-3.
+    # The outermost cells (half a cell from the fan's edge) mix in the black outside: up to
+    # 0.24 there, which is why they are excluded.
+    assert err.max() < 1e-3, err.max()
     # a single bright cell (worst case, a point target) keeps its place and most of its energy
     spot = np.zeros(spec.image_shape, np.float32)
     spot[60, 70] = 1.0
     b2 = fan_to_polar(polar_to_fan(spot, spec, geom), spec, geom)
     assert np.unravel_index(np.argmax(b2), b2.shape) == (60, 70)
-    assert b2.max() >= 0.5 and b2.sum() == pytest.approx(1.0, abs=0.6)
+    assert b2.max() >= 0.75 and b2.sum() == pytest.approx(1.0, abs=0.05)  # 0.83, 0.98
 
 
 def test_fan_flip_options() -> None:

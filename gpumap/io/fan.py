@@ -72,19 +72,40 @@ OASIS_SPEC = SonarSpec.uniform(hfov_deg=130.0, vfov_deg=20.0, n_beams=512, n_bin
 """The OASIS tank sonar (Oculus M3000d at 1.2 MHz) as its dataset config describes it."""
 
 
+class _Bilinear:
+    """Bilinear sampling of an ``(h, w)`` picture at fixed fractional ``(row, col)``, precomputed."""
+
+    def __init__(self, shape: tuple[int, int], row: np.ndarray, col: np.ndarray) -> None:
+        h, w = shape
+        self.shape = (h, w)
+        self.inside = (row >= -0.5) & (row <= h - 0.5) & (col >= -0.5) & (col <= w - 0.5)
+        r = np.clip(row, 0.0, h - 1.0)
+        c = np.clip(col, 0.0, w - 1.0)
+        r0 = np.minimum(np.floor(r).astype(np.int64), h - 2)
+        c0 = np.minimum(np.floor(c).astype(np.int64), w - 2)
+        self.i00 = r0 * w + c0
+        self.fr = (r - r0).astype(np.float32)
+        self.fc = (c - c0).astype(np.float32)
+        self.w = w
+
+    def __call__(self, img: np.ndarray) -> np.ndarray:
+        f = np.ascontiguousarray(img, dtype=np.float32).reshape(-1)
+        i, w, fr, fc = self.i00, self.w, self.fr, self.fc
+        a = f[i] * (1 - fc) + f[i + 1] * fc
+        b = f[i + w] * (1 - fc) + f[i + w + 1] * fc
+        out = a * (1 - fr) + b * fr
+        return np.where(self.inside, out, np.float32(0.0)).astype(np.float32)
+
+
 def _bilinear(img: np.ndarray, row: np.ndarray, col: np.ndarray) -> np.ndarray:
-    h, w = img.shape
-    inside = (row >= -0.5) & (row <= h - 0.5) & (col >= -0.5) & (col <= w - 0.5)
-    r = np.clip(row, 0.0, h - 1.0)
-    c = np.clip(col, 0.0, w - 1.0)
-    r0 = np.minimum(np.floor(r).astype(np.int64), h - 2)
-    c0 = np.minimum(np.floor(c).astype(np.int64), w - 2)
-    fr = (r - r0).astype(np.float32)
-    fc = (c - c0).astype(np.float32)
-    a = img[r0, c0] * (1 - fc) + img[r0, c0 + 1] * fc
-    b = img[r0 + 1, c0] * (1 - fc) + img[r0 + 1, c0 + 1] * fc
-    out = a * (1 - fr) + b * fr
-    return np.where(inside, out, np.float32(0.0)).astype(np.float32)
+    return _Bilinear(img.shape, row, col)(img)
+
+
+def _fan_sampler(spec: SonarSpec, geom: FanGeometry) -> _Bilinear:
+    r = spec.bin_centers_m[:, None]
+    th = spec.bearings_rad[None, :]
+    row, col = geom.pixel_of(r * np.cos(th), r * np.sin(th))
+    return _Bilinear((geom.n_rows, geom.n_cols), row, col)
 
 
 def fan_to_polar(fan: np.ndarray, spec: SonarSpec, geom: FanGeometry) -> np.ndarray:
@@ -107,10 +128,7 @@ def fan_to_polar(fan: np.ndarray, spec: SonarSpec, geom: FanGeometry) -> np.ndar
     f = np.asarray(fan, dtype=np.float32)
     if f.shape != (geom.n_rows, geom.n_cols):
         raise ValueError(f"Expected a fan of shape {(geom.n_rows, geom.n_cols)}, but got {f.shape}")
-    r = spec.bin_centers_m[:, None]
-    th = spec.bearings_rad[None, :]
-    row, col = geom.pixel_of(r * np.cos(th), r * np.sin(th))
-    return _bilinear(f, row, col)
+    return _fan_sampler(spec, geom)(f)
 
 
 def polar_to_fan(polar: np.ndarray, spec: SonarSpec, geom: FanGeometry) -> np.ndarray:
@@ -220,6 +238,7 @@ def open_fan_folder(
     pose_path = Path(poses) if poses is not None else root / "sonar_poses.csv"
     T = read_poses_csv(pose_path) if pose_path.is_file() else {}
     has_poses = bool(T) and all(k in T for k, _ in files)
+    sampler = _fan_sampler(spec, geom)
 
     def frames() -> Iterator[SonarFrame]:
         for k, f in files:
@@ -234,10 +253,11 @@ def open_fan_folder(
             if fan.shape != (geom.n_rows, geom.n_cols):
                 raise FormatError(f"expected a {geom.n_rows} x {geom.n_cols} picture, but got "
                                   f"{fan.shape}", path=str(f))
-            img = fan_to_polar(fan, spec, geom)
+            img = sampler(fan)
             yield SonarFrame(image=img, spec=spec, timestamp_s=None, T_W_S=T.get(k),
                              meta={"format": "fan", "frame": k, "file": str(f)})
 
-    return Recording(str(root), "fan-folder", frames, has_poses=has_poses, count=lambda: len(files))
+    return Recording(str(root), "fan-folder", frames, has_poses=has_poses,
+                     count=lambda: len(files), poses=lambda: [T.get(k) for k, _ in files])
 
 

@@ -103,6 +103,9 @@ class Recording:
         Whether frames carry ``T_W_S``.
     count : callable or None
         Cheap count of frames (headers only), for progress bars; ``None`` if unknown.
+    poses : callable or None
+        Cheap list of every frame's ``T_W_S`` (or ``None``) without decoding images, for
+        sizing a grid before the pass that maps; ``None`` if the format cannot say cheaply.
     """
 
     def __init__(
@@ -112,12 +115,14 @@ class Recording:
         frames: Callable[[], Iterator[SonarFrame]],
         has_poses: bool,
         count: Callable[[], int] | None = None,
+        poses: Callable[[], list[np.ndarray | None]] | None = None,
     ) -> None:
         self.path = str(path)
         self.kind = kind
         self.has_poses = bool(has_poses)
         self._frames = frames
         self._count = count
+        self._poses = poses
 
     def __iter__(self) -> Iterator[SonarFrame]:
         return self._frames()
@@ -125,6 +130,10 @@ class Recording:
     def count(self) -> int | None:
         """Number of frames, from headers only (``None`` if the format cannot say cheaply)."""
         return None if self._count is None else int(self._count())
+
+    def poses(self) -> list[np.ndarray | None] | None:
+        """Every frame's ``T_W_S`` in order, without reading images (``None`` if unknown)."""
+        return None if self._poses is None else self._poses()
 
     def __repr__(self) -> str:
         return f"Recording(kind={self.kind!r}, path={self.path!r}, has_poses={self.has_poses})"

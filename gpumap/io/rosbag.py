@@ -17,7 +17,8 @@ Poses: a ``geometry_msgs/PoseStamped`` topic (the pose of the sonar, or of a bod
 ``T_B_S`` given) or TF (``tf2_msgs/TFMessage`` on ``/tf`` and ``/tf_static``) holding the
 direct transform ``world_frame -> sonar_frame`` (no chaining). Each image gets the pose
 interpolated at its header stamp (linear in position, slerp in rotation); images
-outside the pose time span by more than ``max_pose_gap_s`` get ``T_W_S = None``.
+bracketed by poses more than ``max_pose_gap_s`` apart, or that far outside the pose time
+span, get ``T_W_S = None`` (replay skips and counts them).
 
 The vertical aperture is not in either message: ``vfov_deg`` (default 20) is a parameter.
 For bags that do not store message definitions (ROS 2 sqlite3), the definitions below
@@ -80,6 +81,9 @@ def make_typestore(ros1: bool = False):
     types: dict = {}
     for name, text in MSG_DEFINITIONS.items():
         types.update(get_types_from_msg(text, name))
+    if "tf2_msgs/msg/TFMessage" not in ts.types:  # the Noetic store lacks it
+        types.update(get_types_from_msg("geometry_msgs/TransformStamped[] transforms\n",
+                                        "tf2_msgs/msg/TFMessage"))
     ts.register(types)
     return ts
 
@@ -121,7 +125,7 @@ class _PoseTrack:
             return self.T[-1].copy()
         k = int(np.searchsorted(self.t, t, side="right"))
         t0, t1 = self.t[k - 1], self.t[k]
-        if t1 - t0 > 0 and min(t - t0, t1 - t) > self.gap and (t1 - t0) > 2 * self.gap:
+        if t1 - t0 > self.gap:
             return None  # inside a hole in the pose stream
         a = 0.0 if t1 == t0 else (t - t0) / (t1 - t0)
         out = np.eye(4)
@@ -191,7 +195,7 @@ def open_rosbag(
     sonar_frame: str | None = None,
     T_B_S: np.ndarray | None = None,
     vfov_deg: float = 20.0,
-    max_pose_gap_s: float = 0.2,
+    max_pose_gap_s: float = 1.0,
 ) -> Recording:
     """Open a ROS 1 ``.bag`` or ROS 2 bag (directory / ``.mcap``) holding sonar images.
 
@@ -209,8 +213,8 @@ def open_rosbag(
     vfov_deg : float
         Vertical aperture, degrees.
     max_pose_gap_s : float
-        How far outside (or inside a hole of) the pose stream an image may be and still
-        get an interpolated pose.
+        Largest gap between the two poses bracketing an image (and largest distance
+        before the first or after the last pose) for which a pose is interpolated.
     """
     from rosbags.highlevel import AnyReader
 
