@@ -3,7 +3,7 @@
 Usage::
 
     gpumap replay PATH [--voxel-size 0.05] [--backend auto] [--method gather] [--out DIR]
-                       [--grid auto|xmin,ymin,zmin,xmax,ymax,zmax] [--threshold auto|T]
+                       [--grid auto|xmin,ymin,zmin,xmax,ymax,zmax] [--threshold 0.4|auto]
                        [--static] [--stride N] [--max-frames N] [--vfov-deg D]
                        [--flip-lr] [--flip-ud] [--no-pictures]
 
@@ -289,8 +289,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--method", default="gather", choices=["gather", "template"])
     ap.add_argument("--out", default="replay_out", help="output folder (default replay_out)")
     ap.add_argument("--grid", default="auto", help="auto or xmin,ymin,zmin,xmax,ymax,zmax (m)")
-    ap.add_argument("--threshold", default="auto",
-                    help="occupied if value >= this; 'auto' = Otsu over observed voxels")
+    ap.add_argument("--threshold", default="0.4",
+                    help="occupied if value >= this (default 0.4; on the OASIS tank views agree "
+                         "above it); 'auto' = Otsu over observed voxels")
     ap.add_argument("--static", action="store_true",
                     help="map every ping at one fixed (identity) pose: for pose-less recordings")
     ap.add_argument("--stride", type=int, default=1, help="use every N-th frame")
