@@ -10,7 +10,9 @@ How a ping is made (:meth:`SonarSimulator.ping`)
    sonar frame and computed once; a ping only renders depth and reads ranges off it.
 2. **Visibility.** The depth buffer gives the first surface along each ray: occlusion and
    acoustic shadows are real. Pixels whose range falls outside ``[range_min, range_max)``
-   (blanking inside ``range_min``) or whose elevation is outside ``+-vfov/2`` are dropped.
+   (blanking inside ``range_min``) or whose elevation is outside ``+-vertical_extent *
+   vfov/2`` are dropped (the nominal aperture is the -3 dB width; the beam pattern goes on
+   falling beyond it).
 3. **Surface properties.** The scene is drawn flat-shaded with each face coloured by its
    world normal (R, G = ``(n_x + 1) / 2``, ``(n_y + 1) / 2`` with the normal flipped to
    ``n_z >= 0``; only ``|n . ray|`` matters) and its material (B = reflectivity byte).
@@ -23,8 +25,10 @@ How a ping is made (:meth:`SonarSimulator.ping`)
    ``cos**k``), ``B(phi) = 0.5 ** ((phi / (vfov / 2)) ** 2)`` the two-way vertical beam
    pattern (-3 dB at the aperture's edge), ``L(r) = (r_ref / r) ** spreading_exponent *
    10 ** (-2 * absorption_db_per_m * (r - r_ref) / 10)`` the loss left after the sonar's
-   time-varied gain (which undoes most of the two-way spherical spreading; one power of
-   ``r`` remains) and two-way absorption, normalised to 1 at ``r_ref = 1 m``.
+   time-varied gain (TVG undoes most of the two-way spreading; by default ``r**-0.5`` is
+   left, on top of the ``1/r`` that the elevation sum of a surface already carries) and
+   two-way absorption (0.04 dB/m: fresh tank water at 1.2 MHz), normalised to 1 at
+   ``r_ref = 1 m``.
 5. **Image formation.** ``E[bin, beam] = sum(e) / beam_width``: energy per radian of
    azimuth summed over elevation, which is where the elevation ambiguity comes from. Then
    multiplicative speckle ``E *= Gamma(looks, 1 / looks)`` (mean 1), a soft-saturating
@@ -106,8 +110,12 @@ class SonarSimulator:
     noise_floor : float
         Rayleigh scale of the additive noise, intensity units.
     spreading_exponent, absorption_db_per_m : float
-        Range loss left after time-varied gain (see the module docstring). 0.3 dB/m is
-        sea water at 1.2 MHz; fresh tank water is nearer 0.04 dB/m.
+        Range loss left after time-varied gain (see the module docstring). 0.04 dB/m is
+        fresh water at 1.2 MHz; sea water is nearer 0.3 dB/m.
+    vertical_extent : float
+        Rays are cast out to ``vertical_extent * vfov / 2`` in elevation: the nominal
+        aperture is the beam's -3 dB width, and a real beam still hears (weaker) echoes
+        beyond it (1.5: down to -6.8 dB two-way at the last ray).
     """
 
     def __init__(
@@ -118,11 +126,12 @@ class SonarSimulator:
         n_cameras: int = 3,
         azimuth_step_rad: float | None = None,
         elevation_step_rad: float | None = None,
-        gain: float = 300.0,
+        gain: float = 400.0,
         looks: float = 4.0,
         noise_floor: float = 0.015,
-        spreading_exponent: float = 1.0,
-        absorption_db_per_m: float = 0.3,
+        spreading_exponent: float = 0.5,
+        absorption_db_per_m: float = 0.04,
+        vertical_extent: float = 1.5,
     ) -> None:
         self.scene = scene
         self.spec = spec or scene.sonar_spec
@@ -132,6 +141,7 @@ class SonarSimulator:
         self.noise_floor = float(noise_floor)
         self.spreading_exponent = float(spreading_exponent)
         self.absorption_db_per_m = float(absorption_db_per_m)
+        self.vertical_extent = float(vertical_extent)
         sp = self.spec
         if n_cameras < 1 or sp.hfov_rad / n_cameras >= math.radians(120):
             raise ValueError(
@@ -152,7 +162,8 @@ class SonarSimulator:
         lo, hi = sp.beam_edges_rad[0], sp.beam_edges_rad[-1]
         edges = np.linspace(lo, hi, n + 1)
         half_w = 0.5 * (hi - lo) / n + 2 * d_az
-        half_el = 0.5 * sp.vfov_rad + 2 * d_el
+        el_max = 0.5 * sp.vfov_rad * self.vertical_extent
+        half_el = el_max + 2 * d_el
         tan_w = math.tan(half_w)
         tan_h = math.tan(half_el) / math.cos(half_w)  # elevation is lowest off-axis
         fx, fy = 1.0 / d_az, 1.0 / d_el
@@ -181,7 +192,7 @@ class SonarSimulator:
             el = np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1]))
             last = k == n - 1
             keep = (az >= edges[k]) & ((az < edges[k + 1]) | (last & (az <= edges[k + 1])))
-            keep &= np.abs(el) <= 0.5 * sp.vfov_rad
+            keep &= np.abs(el) <= el_max
             idx = np.flatnonzero(keep)
             self._pix.append(idx)
             dirs.append(d[idx] / norm[idx, None])
