@@ -18,12 +18,20 @@ from importlib import resources
 import numpy as np
 
 from gpumap.errors import BackendUnavailableError
-from gpumap.geometry import PING_DTYPE
+from gpumap.geometry import PING_DTYPE, beam_lut
+from gpumap.spec import SonarSpec
 
 log = logging.getLogger("gpumap")
 
 BACKENDS = ("numpy", "warp-cpu", "warp-cuda", "opencl", "opencl-gpu", "opencl-cpu")
 AUTO_ORDER = ("warp-cuda", "opencl-gpu", "opencl-cpu", "warp-cpu", "numpy")
+
+
+def table_size(spec: SonarSpec) -> int:
+    """Floats in a per-ping max table: its levels plus two scratch planes."""
+    from gpumap.geometry import MAX_TABLE_LEVELS
+
+    return (min(spec.n_beams.bit_length(), MAX_TABLE_LEVELS) + 2) * spec.n_bins * spec.n_beams
 
 
 class Backend:
@@ -32,9 +40,7 @@ class Backend:
     name: str
     device: str
 
-    def __init__(
-        self, n_voxels: int, n_bins: int, n_beams: int, edges: np.ndarray, template_S: np.ndarray | None
-    ) -> None:
+    def __init__(self, spec: SonarSpec, n_voxels: int, template_S: np.ndarray | None) -> None:
         raise NotImplementedError
 
     def integrate(self, params: np.ndarray, image: np.ndarray, method: str, n_threads: int) -> None:
@@ -54,9 +60,9 @@ class NumpyBackend(Backend):
     name = "numpy"
     device = "cpu (NumPy reference)"
 
-    def __init__(self, n_voxels, n_bins, n_beams, edges, template_S):
+    def __init__(self, spec, n_voxels, template_S, use_table=None):
         self.grid = np.full(n_voxels, np.inf, dtype=np.float32)
-        self.edges = edges.astype(np.float32)
+        self.edges = spec.beam_edges_rad.astype(np.float32)
         self.template = template_S
 
     def integrate(self, params, image, method, n_threads):
@@ -110,11 +116,16 @@ def _warp_params(wp, minmax, p: np.ndarray):
     s.n_bins = int(p["n_bins"])
     s.n_beams = int(p["n_beams"])
     s.n_points = int(p["n_points"])
+    s.win = int(p["win"])
+    s.n_levels = int(p["n_levels"])
+    s.lut_scale = float(p["lut_scale"])
+    s.lut_n = int(p["lut_n"])
     return s
 
 
 class WarpBackend(Backend):
-    def __init__(self, n_voxels, n_bins, n_beams, edges, template_S, device: str):
+    def __init__(self, spec, n_voxels, template_S, use_table=None, device="cpu"):
+        n_bins, n_beams = spec.image_shape
         wp, minmax = _warp()
         if device == "cuda" and not wp.is_cuda_available():
             raise BackendUnavailableError("warp-cuda needs a CUDA device, and Warp finds none here")
@@ -124,9 +135,15 @@ class WarpBackend(Backend):
         self.device = f"{self.dev.alias} ({self.dev.name})"
         with wp.ScopedDevice(self.dev):
             self.grid = wp.full(n_voxels, value=np.inf, dtype=float)
-            self.edges = wp.array(edges.astype(np.float32), dtype=float)
+            self.edges = wp.array(spec.beam_edges_rad.astype(np.float32), dtype=float)
+            self.lut = wp.array(beam_lut(spec), dtype=int)
             self.image = wp.empty((n_bins, n_beams), dtype=float)
             self.template = wp.array(template_S, dtype=wp.vec3) if template_S is not None else None
+            # The per-ping max table pays on CPUs (two reads per voxel instead of a loop);
+            # on GPUs the loop is cheaper than building it. Same answers either way.
+            self.use_table = (not self.dev.is_cuda) if use_table is None else bool(use_table)
+            n_table = table_size(spec) if self.use_table else 0
+            self.table = wp.empty(n_table, dtype=float)
         # Two page-locked staging buffers so the upload is a real async DMA on CUDA; a
         # buffer is refilled only after its previous copy has finished (event), so the
         # host can prepare ping k+1 while the GPU still works on ping k.
@@ -153,19 +170,30 @@ class WarpBackend(Backend):
         else:
             self.image.numpy()[...] = image
         P = _warp_params(wp, self.k, params)
+        if method == "gather" and not n_threads:
+            return
+        if self.use_table:
+            wp.launch(
+                self.k.build_bin_window,
+                dim=int(params["n_beams"]),
+                inputs=[P, self.image, self.table],
+                device=self.dev,
+            )
+            wp.launch(
+                self.k.build_beam_levels, dim=int(params["n_bins"]), inputs=[P, self.table], device=self.dev
+            )
         if method == "gather":
-            if n_threads:
-                wp.launch(
-                    self.k.integrate_gather,
-                    dim=n_threads,
-                    inputs=[P, self.image, self.edges, self.grid],
-                    device=self.dev,
-                )
+            wp.launch(
+                self.k.integrate_gather,
+                dim=n_threads,
+                inputs=[P, self.image, self.edges, self.lut, self.table, self.grid],
+                device=self.dev,
+            )
         else:
             wp.launch(
                 self.k.integrate_template,
                 dim=self.template.shape[0],
-                inputs=[P, self.image, self.edges, self.template, self.grid],
+                inputs=[P, self.image, self.edges, self.lut, self.table, self.template, self.grid],
                 device=self.dev,
             )
 
@@ -220,7 +248,8 @@ def _opencl_program(ctx):
 
 
 class OpenCLBackend(Backend):
-    def __init__(self, n_voxels, n_bins, n_beams, edges, template_S, kind: str):
+    def __init__(self, spec, n_voxels, template_S, use_table=None, kind="any"):
+        n_bins, n_beams = spec.image_shape
         cl = _opencl()
         devs = opencl_devices(kind)
         if not devs:
@@ -238,9 +267,16 @@ class OpenCLBackend(Backend):
         mf = cl.mem_flags
         self.grid = cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * n_voxels)
         cl.enqueue_fill_buffer(self.queue, self.grid, np.float32(np.inf), 0, 4 * n_voxels)
-        self.edges = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=edges.astype(np.float32))
+        self.edges = cl.Buffer(
+            self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=spec.beam_edges_rad.astype(np.float32)
+        )
+        self.lut = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=beam_lut(spec))
         self.image = cl.Buffer(self.ctx, mf.READ_ONLY, size=4 * n_bins * n_beams)
         self.n_voxels = n_voxels
+        self.n_bins = n_bins
+        # max table on CPUs (two reads per voxel), cell loop on GPUs; same answers
+        self.use_table = (not self.is_gpu) if use_table is None else bool(use_table)
+        self.table = cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * max(1, table_size(spec) * self.use_table))
         self.template = None
         if template_S is not None:
             self.template = cl.Buffer(
@@ -252,6 +288,9 @@ class OpenCLBackend(Backend):
         prg = _opencl_program(self.ctx)
         self.k_gather = prg.integrate_gather
         self.k_template = prg.integrate_template
+        self.k_window = prg.build_bin_window
+        self.k_levels = prg.build_beam_levels
+        self.n_beams = n_beams
         self.wg = 128
         self.queue.finish()
 
@@ -260,15 +299,42 @@ class OpenCLBackend(Backend):
         # blocking: the caller may reuse `image` as soon as this returns
         cl.enqueue_copy(self.queue, self.image, image, is_blocking=True)
         P = np.asarray(params, dtype=PING_DTYPE)
+        if method == "gather" and not n_threads:
+            return
+        flag = np.int32(self.use_table)
+        if self.use_table:
+            gs = -(-self.n_beams // 16) * 16
+            self.k_window(self.queue, (gs,), (16,), P, self.image, self.table)
+            gs = -(-self.n_bins // 16) * 16
+            self.k_levels(self.queue, (gs,), (16,), P, self.table)
         if method == "gather":
-            if not n_threads:
-                return
             gs = -(-n_threads // self.wg) * self.wg
-            self.k_gather(self.queue, (gs,), (self.wg,), P, self.image, self.edges, self.grid)
+            self.k_gather(
+                self.queue,
+                (gs,),
+                (self.wg,),
+                P,
+                self.image,
+                self.edges,
+                self.lut,
+                self.table,
+                flag,
+                self.grid,
+            )
         else:
             gs = -(-self.n_points // self.wg) * self.wg
             self.k_template(
-                self.queue, (gs,), (self.wg,), P, self.image, self.edges, self.template, self.grid
+                self.queue,
+                (gs,),
+                (self.wg,),
+                P,
+                self.image,
+                self.edges,
+                self.lut,
+                self.table,
+                flag,
+                self.template,
+                self.grid,
             )
         self.queue.flush()
 
@@ -287,10 +353,18 @@ class OpenCLBackend(Backend):
 
 
 def make_backend(
-    name: str, n_voxels: int, n_bins: int, n_beams: int, edges: np.ndarray, template_S: np.ndarray | None
+    name: str,
+    spec: SonarSpec,
+    n_voxels: int,
+    template_S: np.ndarray | None,
+    use_table: bool | None = None,
 ) -> Backend:
-    """Build the backend called ``name`` (never another one; raises if it cannot run)."""
-    args = (n_voxels, n_bins, n_beams, edges, template_S)
+    """Build the backend called ``name`` (never another one; raises if it cannot run).
+
+    ``use_table`` picks how kernels take the max over a footprint: a per-ping max table
+    (True), a loop over cells (False), or the faster for the device (None: table on CPUs).
+    """
+    args = (spec, n_voxels, template_S, use_table)
     if name == "numpy":
         return NumpyBackend(*args)
     if name in ("warp-cpu", "warp-cuda"):

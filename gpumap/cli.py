@@ -22,10 +22,11 @@ def info(argv: list[str] | None = None) -> int:
     import gpumap
     from gpumap.backends import make_backend
 
+    spec = gpumap.SonarSpec.uniform(n_beams=4, n_bins=4)
     print(f"gpumap {gpumap.__version__}")
     names = gpumap.available_backends()
     for name in names:
-        b = make_backend(name, 1, 2, 2, __import__("numpy").array([-0.1, 0.0, 0.1]), None)
+        b = make_backend(name, spec, 1, None)
         print(f"  {name:<11} {b.device}")
     print(f"auto picks: {names[0]}")
     return 0
@@ -53,7 +54,10 @@ def main(argv: list[str] | None = None) -> int:
         mod = importlib.import_module(COMMANDS[cmd][0])
     except ModuleNotFoundError as e:
         if cmd == "bench":
-            print("gpumap bench runs from a source checkout: cd to it and run `python -m bench`", file=sys.stderr)
+            print(
+                "gpumap bench runs from a source checkout: cd to it and run `python -m bench`",
+                file=sys.stderr,
+            )
             return 2
         raise e
     return int(mod.main(rest) or 0)

@@ -8,8 +8,6 @@ arguments in the same order on every backend.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import numpy as np
 
 from gpumap.spec import GridSpec, SonarSpec
@@ -44,6 +42,10 @@ PING_DTYPE = np.dtype(
         ("n_bins", np.int32),
         ("n_beams", np.int32),
         ("n_points", np.int32),  # template points (template method)
+        ("win", np.int32),  # footprint height in bins, floor(2 rho / dr) + 2 (<= n_bins)
+        ("n_levels", np.int32),  # beam levels of the max table
+        ("lut_scale", np.float32),  # beam look-up table entries per radian
+        ("lut_n", np.int32),  # beam look-up table entries
     ]
 )
 
@@ -68,7 +70,32 @@ def static_params(spec: SonarSpec, grid: GridSpec) -> np.ndarray:
     p["dims"] = grid.shape
     p["n_bins"] = spec.n_bins
     p["n_beams"] = spec.n_beams
+    # The sphere's bins [floor(a), floor(a + 2 rho/dr)] number at most floor(2 rho/dr) + 2:
+    # a fixed window of that height from the first bin always holds them, one bin extra at most.
+    p["win"] = min(int(math.floor(2.0 * float(p["rho"]) * float(p["inv_dr"]))) + 2, spec.n_bins)
+    p["n_levels"] = min(spec.n_beams.bit_length(), MAX_TABLE_LEVELS)
+    p["lut_n"] = LUT_PER_BEAM * spec.n_beams
+    p["lut_scale"] = p["lut_n"] / (p["edge_hi"] - p["edge_lo"])
     return p
+
+
+LUT_PER_BEAM = 4
+# Beam levels of the per-ping max table: spans of up to 31 beams take two reads; wider ones
+# (voxels near the apex) a few more. More levels cost more to build than they save.
+MAX_TABLE_LEVELS = 5
+
+
+def beam_lut(spec: SonarSpec) -> np.ndarray:
+    """(4 n_beams,) int32: the beam holding the start of each uniform azimuth bucket.
+
+    Kernels start from this guess and settle the exact beam with at most a few comparisons
+    against the edges, instead of a binary search's unpredictable branches.
+    """
+    edges = spec.beam_edges_rad.astype(np.float32)
+    n = LUT_PER_BEAM * spec.n_beams
+    az = edges[0] + (edges[-1] - edges[0]) * np.arange(n) / n
+    j = np.searchsorted(edges[:-1], az, side="right") - 1
+    return np.clip(j, 0, spec.n_beams - 1).astype(np.int32)
 
 
 def ping_params(params: np.ndarray, T_W_S: np.ndarray, fov_pts_S: np.ndarray, grid: GridSpec) -> int:
@@ -118,13 +145,3 @@ def make_template_S(spec: SonarSpec, voxel_size_m: float) -> np.ndarray:
         P = np.stack([np.full_like(Y, x), Y, Z], -1).reshape(-1, 3)
         out.append(P[spec.in_fov(P)])
     return np.ascontiguousarray(np.concatenate(out), dtype=np.float32)
-
-
-@dataclass(frozen=True)
-class Footprint:
-    """Inclusive cell rectangle ``[bin_lo, bin_hi] x [beam_lo, beam_hi]`` per voxel (NumPy)."""
-
-    bin_lo: np.ndarray
-    bin_hi: np.ndarray
-    beam_lo: np.ndarray
-    beam_hi: np.ndarray

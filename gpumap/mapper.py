@@ -70,10 +70,20 @@ class MinMaxMapper:
     method : str
         ``"gather"`` (every voxel of the field of view's bounding box, no holes) or
         ``"template"`` (the paper's six steps on a voxel template: may leave holes).
+    footprint_max : str
+        How kernels take the max over a footprint, a speed knob with identical results:
+        ``"auto"`` (a per-ping max table on CPUs, a loop over cells on GPUs), ``"table"``
+        or ``"loop"``.
     """
 
     def __init__(
-        self, spec: SonarSpec, grid: GridSpec, backend: str = "auto", method: str = "gather"
+        self,
+        spec: SonarSpec,
+        grid: GridSpec,
+        backend: str = "auto",
+        method: str = "gather",
+        *,
+        footprint_max: str = "auto",
     ) -> None:
         if not isinstance(spec, SonarSpec):
             raise TypeError(f"Expected a gpumap.SonarSpec for 'spec', but got {type(spec).__name__}")
@@ -83,6 +93,11 @@ class MinMaxMapper:
             raise ValueError(f"Expected method to be one of {METHODS}, but got {method!r}")
         if backend != "auto" and backend not in BACKENDS:
             raise ValueError(f"Expected backend to be 'auto' or one of {BACKENDS}, but got {backend!r}")
+        if footprint_max not in ("auto", "table", "loop"):
+            raise ValueError(
+                f"Expected footprint_max to be 'auto', 'table' or 'loop', but got {footprint_max!r}"
+            )
+        self._use_table = None if footprint_max == "auto" else footprint_max == "table"
         self.spec = spec
         self.grid = grid
         self.method = method
@@ -115,11 +130,10 @@ class MinMaxMapper:
             try:
                 return make_backend(
                     name,
+                    self.spec,
                     self.grid.n_voxels,
-                    self.spec.n_bins,
-                    self.spec.n_beams,
-                    self.spec.beam_edges_rad,
                     self._template,
+                    self._use_table,
                 )
             except BackendUnavailableError as e:
                 if backend != "auto":

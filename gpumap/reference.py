@@ -11,7 +11,9 @@ Per voxel centre ``c`` (world frame) and ping ``(image, T_W_S)``:
 2. Observed when ``r_min <= r < r_max``, ``|p_z| <= tan(vfov/2) h`` and the azimuth
    ``atan2(p_y, p_x)`` lies within the fan's outer beam edges. Otherwise the voxel is
    left as it is.
-3. Footprint: bins ``floor((r -+ rho - r_min) / dr)`` and beams holding azimuths
+3. Footprint: bins ``b0 = floor((r - rho - r_min) / dr)`` to ``b0 + win - 1`` (``win =
+   floor(2 rho / dr) + 2``, the fixed height that always holds the sphere's bins; so at
+   most one bin more than the sphere's), clipped to the image, and beams holding azimuths
    ``theta -+ asin(rho / h)`` (every beam when ``h <= rho``), clamped to the image, where
    ``rho`` is the voxel's bounding-sphere radius (:func:`gpumap.geometry.footprint_radius_m`).
 4. Ping value = max of the image over the footprint; grid value = min(grid, ping value).
@@ -115,14 +117,14 @@ def voxel_ping_values(
     inv_dr = params["inv_dr"]
     n_bins = int(params["n_bins"])
     n_beams = int(params["n_beams"])
-    b0 = np.clip(np.floor((r - rho - rmin) * inv_dr).astype(np.int64), 0, n_bins - 1)
-    b1 = np.clip(np.floor((r + rho - rmin) * inv_dr).astype(np.int64), 0, n_bins - 1)
+    first = np.floor((r - rho - rmin) * inv_dr).astype(np.int64)  # < 0 near the blanking range
+    b0 = np.maximum(first, 0)
+    b1 = np.minimum(first + int(params["win"]) - 1, n_bins - 1)
     wide = h <= rho
     dth = np.arcsin(np.where(wide, _F(0), rho / np.where(wide, _F(1), h))).astype(_F)
     j0 = np.where(wide, 0, beam_index_lo(az - dth, edges))
     j1 = np.where(wide, n_beams - 1, beam_index_lo(az + dth, edges))
-    span = int(np.ceil(2 * float(rho) * float(inv_dr))) + 2
-    out[seen] = _RangeMax(image, span).query(b0, b1, j0, j1)
+    out[seen] = _RangeMax(image, int(params["win"])).query(b0, b1, j0, j1)
     return out
 
 

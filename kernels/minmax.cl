@@ -1,6 +1,7 @@
 // Min-max occupancy kernels in OpenCL C 1.2 (device code only; twin: minmax.py).
 // Same arguments in the same order as the Warp kernels: ping parameters, image, beam edges,
-// [template,] grid. PingParams matches gpumap.geometry.PING_DTYPE field for field.
+// beam look-up table, max table, [template,] grid. (Warp tells "no table" by an empty array; OpenCL, which has
+// no empty buffers, by the extra use_table flag after the table.) PingParams matches gpumap.geometry.PING_DTYPE field for field.
 
 typedef struct {
     float A[9];      // rotation of T_S_W, row-major
@@ -22,22 +23,29 @@ typedef struct {
     int n_bins;
     int n_beams;
     int n_points;
+    int win;         // footprint height in bins: floor(2 rho / dr) + 2, at most n_bins
+    int n_levels;    // beam levels of the max table (spans up to 2^n_levels - 1 in two reads)
+    float lut_scale; // beam look-up table entries per radian
+    int lut_n;       // beam look-up table entries
 } PingParams;
 
-// Largest beam j in [0, n_beams - 1] with edges[j] <= az (0 when none).
-inline int beam_index_lo(float az, __global const float *edges, int n_beams)
+// Largest beam j in [0, n_beams - 1] with edges[j] <= az (0 when none). A uniform look-up
+// table over the fan guesses within a step or two; exact comparisons with the edges settle it.
+inline int beam_index_lo(float az, __global const float *edges, __global const int *lut, int lut_n,
+                         const PingParams *P)
 {
-    int lo = 0, hi = n_beams - 1;
-    while (lo < hi) {
-        int mid = (lo + hi + 1) / 2;
-        if (edges[mid] <= az) lo = mid; else hi = mid - 1;
-    }
-    return lo;
+    int j = lut[clamp((int)floor((az - P->edge_lo) * P->lut_scale), 0, lut_n - 1)];
+    while (j < P->n_beams - 1 && edges[j + 1] <= az) ++j;
+    while (j > 0 && edges[j] > az) --j;
+    return j;
 }
 
 // Max image value over the footprint of the voxel centred at c (world); -1 if unobserved.
+// Footprint: bins [b0, b0 + win - 1] x beams [j0, j1]. With a max table (use_table) the
+// max is two reads; without, a loop over the cells (faster on GPUs: no table to build).
 inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
-                              __global const float *image, __global const float *edges)
+                              __global const float *image, __global const float *edges,
+                              __global const int *lut, __global const float *table, int use_table)
 {
     float x = P->A[0] * cx + P->A[1] * cy + P->A[2] * cz + P->b[0];
     float y = P->A[3] * cx + P->A[4] * cy + P->A[5] * cz + P->b[1];
@@ -49,13 +57,23 @@ inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
     if (fabs(z) > P->tan_half_vfov * h) return -1.0f;
     float az = atan2(y, x);
     if (az < P->edge_lo || az > P->edge_hi) return -1.0f;
-    int b0 = clamp((int)floor((r - P->rho - P->rmin) * P->inv_dr), 0, P->n_bins - 1);
-    int b1 = clamp((int)floor((r + P->rho - P->rmin) * P->inv_dr), 0, P->n_bins - 1);
+    int first = (int)floor((r - P->rho - P->rmin) * P->inv_dr);  // < 0 near the blanking range
+    int b0 = max(first, 0);
+    int b1 = min(first + P->win - 1, P->n_bins - 1);
     int j0 = 0, j1 = P->n_beams - 1;
     if (h > P->rho) {
         float dth = asin(P->rho / h);
-        j0 = beam_index_lo(az - dth, edges, P->n_beams);
-        j1 = beam_index_lo(az + dth, edges, P->n_beams);
+        j0 = beam_index_lo(az - dth, edges, lut, P->lut_n, P);
+        j1 = beam_index_lo(az + dth, edges, lut, P->lut_n, P);
+    }
+    if (use_table && first >= 0) {  // two reads (more near the apex)
+        int k = 0;
+        while ((2 << k) <= j1 - j0 + 1 && k + 1 < P->n_levels) ++k;
+        int w = 1 << k;
+        __global const float *t = table + ((size_t)k * P->n_bins + b0) * P->n_beams;
+        float m = t[j1 - w + 1];
+        for (int jj = j0; jj <= j1 - w + 1; jj += w) m = fmax(m, t[jj]);
+        return m;
     }
     float v = 0.0f;
     for (int i = b0; i <= b1; ++i) {
@@ -65,9 +83,55 @@ inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
     return v;
 }
 
+// One work-item per beam j: level 0 of the max table, table[0, i, j] = max of image over bins
+// [i, i + win - 1] (clipped), by van Herk / Gil-Werman: prefix and suffix maxima in blocks of
+// win bins (kept in the two scratch levels after the table), 3 ops per cell.
+__kernel void build_bin_window(const PingParams P, __global const float *image,
+                               __global float *table)
+{
+    int j = get_global_id(0);
+    if (j >= P.n_beams) return;
+    int nb = P.n_beams;
+    size_t plane = (size_t)P.n_bins * nb;
+    __global float *pre = table + P.n_levels * plane;
+    __global float *suf = pre + plane;
+    for (int i = 0; i < P.n_bins; ++i) {
+        float v = image[(size_t)i * nb + j];
+        if (i % P.win != 0) v = fmax(v, pre[(size_t)(i - 1) * nb + j]);
+        pre[(size_t)i * nb + j] = v;
+    }
+    for (int i = P.n_bins - 1; i >= 0; --i) {
+        float v = image[(size_t)i * nb + j];
+        if ((i + 1) % P.win != 0 && i + 1 < P.n_bins) v = fmax(v, suf[(size_t)(i + 1) * nb + j]);
+        suf[(size_t)i * nb + j] = v;
+    }
+    for (int i = 0; i < P.n_bins; ++i) {
+        int e = min(i + P.win - 1, P.n_bins - 1);
+        float v = suf[(size_t)i * nb + j];
+        if (e / P.win != i / P.win) v = fmax(v, pre[(size_t)e * nb + j]);  // reaches the next block
+        table[(size_t)i * nb + j] = v;
+    }
+}
+
+// One work-item per bin row i: table[k, i, j] = max of level 0 over beams [j, j + 2^k - 1]
+// (clipped), for 0 < k < n_levels.
+__kernel void build_beam_levels(const PingParams P, __global float *table)
+{
+    int i = get_global_id(0);
+    if (i >= P.n_bins) return;
+    int step = 1;
+    for (int k = 1; k < P.n_levels; ++k, step *= 2) {
+        __global float *cur = table + ((size_t)k * P.n_bins + i) * P.n_beams;
+        __global const float *prev = cur - (size_t)P.n_bins * P.n_beams;
+        for (int j = 0; j < P.n_beams; ++j) cur[j] = fmax(prev[j], prev[min(j + step, P.n_beams - 1)]);
+    }
+}
+
 // One work-item per voxel of the ping's index box (flattened, k fastest).
 __kernel void integrate_gather(const PingParams P, __global const float *image,
-                               __global const float *edges, __global float *grid)
+                               __global const float *edges, __global const int *lut,
+                               __global const float *table,
+                               int use_table, __global float *grid)
 {
     int tid = get_global_id(0);
     int nyz = P.box_n[1] * P.box_n[2];
@@ -79,7 +143,7 @@ __kernel void integrate_gather(const PingParams P, __global const float *image,
     float cx = P.origin[0] + ((float)i + 0.5f) * P.voxel;
     float cy = P.origin[1] + ((float)j + 0.5f) * P.voxel;
     float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
-    float v = voxel_ping_value(&P, cx, cy, cz, image, edges);
+    float v = voxel_ping_value(&P, cx, cy, cz, image, edges, lut, table, use_table);
     if (v >= 0.0f) {
         size_t idx = ((size_t)i * P.dims[1] + j) * P.dims[2] + k;
         grid[idx] = fmin(grid[idx], v);
@@ -88,7 +152,9 @@ __kernel void integrate_gather(const PingParams P, __global const float *image,
 
 // One work-item per template point: the paper's steps 1-6.
 __kernel void integrate_template(const PingParams P, __global const float *image,
-                                 __global const float *edges, __global const float *template_S,
+                                 __global const float *edges, __global const int *lut,
+                               __global const float *table,
+                                 int use_table, __global const float *template_S,
                                  __global float *grid)
 {
     int tid = get_global_id(0);
@@ -104,7 +170,7 @@ __kernel void integrate_template(const PingParams P, __global const float *image
     float cx = P.origin[0] + ((float)i + 0.5f) * P.voxel;  // step 3
     float cy = P.origin[1] + ((float)j + 0.5f) * P.voxel;
     float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
-    float v = voxel_ping_value(&P, cx, cy, cz, image, edges);  // steps 4-5
+    float v = voxel_ping_value(&P, cx, cy, cz, image, edges, lut, table, use_table);  // steps 4-5
     if (v >= 0.0f) {
         // step 6; grid values are >= 0 (or +inf), whose IEEE bits order like ints
         size_t idx = ((size_t)i * P.dims[1] + j) * P.dims[2] + k;

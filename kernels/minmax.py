@@ -3,7 +3,8 @@
 One thread per voxel (``integrate_gather``) or per template point (``integrate_template``).
 Each computes the voxel's centre in the sonar frame, tests it against the field of view,
 takes the image maximum over the voxel's footprint and min-updates the grid. Arguments,
-in order: the ping parameters, the image, the beam edges, [the template,] the grid.
+in order: the ping parameters, the image, the beam edges, the beam look-up table, the max table (empty: none),
+[the template,] the grid.
 The host module (``gpumap/_warp.py``) owns arrays, devices and launches.
 """
 
@@ -31,27 +32,44 @@ class PingParams:
     n_bins: int
     n_beams: int
     n_points: int
+    win: int  # footprint height in bins: floor(2 rho / dr) + 2, at most n_bins
+    n_levels: int  # beam levels of the max table (spans up to 2^n_levels - 1 in two reads)
+    lut_scale: float  # beam look-up table entries per radian
+    lut_n: int  # beam look-up table entries
 
 
 @wp.func
-def beam_index_lo(az: float, edges: wp.array(dtype=float), n_beams: int) -> int:
-    """Largest beam j in [0, n_beams - 1] with edges[j] <= az (0 when none)."""
-    lo = int(0)
-    hi = n_beams - 1
-    while lo < hi:
-        mid = (lo + hi + 1) // 2
-        if edges[mid] <= az:
-            lo = mid
-        else:
-            hi = mid - 1
-    return lo
+def beam_index_lo(az: float, edges: wp.array(dtype=float), lut: wp.array(dtype=int), P: PingParams) -> int:
+    """Largest beam j in [0, n_beams - 1] with edges[j] <= az (0 when none).
+
+    A uniform look-up table over the fan gives a guess within a step or two; exact
+    comparisons with the edges then settle it, so the answer is the binary search's.
+    """
+    m = wp.clamp(int(wp.floor((az - P.edge_lo) * P.lut_scale)), 0, lut.shape[0] - 1)
+    j = lut[m]
+    while j < P.n_beams - 1 and edges[j + 1] <= az:
+        j += 1
+    while j > 0 and edges[j] > az:
+        j -= 1
+    return j
 
 
 @wp.func
 def voxel_ping_value(
-    P: PingParams, c: wp.vec3, image: wp.array2d(dtype=float), edges: wp.array(dtype=float)
+    P: PingParams,
+    c: wp.vec3,
+    image: wp.array2d(dtype=float),
+    edges: wp.array(dtype=float),
+    lut: wp.array(dtype=int),
+    table: wp.array(dtype=float),
 ) -> float:
-    """Max image value over the footprint of the voxel centred at c (world); -1 if unobserved."""
+    """Max image value over the footprint of the voxel centred at c (world); -1 if unobserved.
+
+    The footprint is bins [b0, b0 + win - 1] x beams [j0, j1]: the smallest fixed-height
+    window that always holds the bins of the voxel's bounding sphere (one extra bin at
+    most), by the beams the sphere spans. With a max table (non-empty ``table``) the max
+    is two reads; without, a loop over the cells (faster on GPUs: no table to build).
+    """
     x = P.A[0, 0] * c[0] + P.A[0, 1] * c[1] + P.A[0, 2] * c[2] + P.b[0]
     y = P.A[1, 0] * c[0] + P.A[1, 1] * c[1] + P.A[1, 2] * c[2] + P.b[1]
     z = P.A[2, 0] * c[0] + P.A[2, 1] * c[1] + P.A[2, 2] * c[2] + P.b[2]
@@ -65,19 +83,75 @@ def voxel_ping_value(
     az = wp.atan2(y, x)
     if az < P.edge_lo or az > P.edge_hi:
         return -1.0
-    b0 = wp.clamp(int(wp.floor((r - P.rho - P.rmin) * P.inv_dr)), 0, P.n_bins - 1)
-    b1 = wp.clamp(int(wp.floor((r + P.rho - P.rmin) * P.inv_dr)), 0, P.n_bins - 1)
+    first = int(wp.floor((r - P.rho - P.rmin) * P.inv_dr))  # may be < 0 near the blanking range
+    b0 = wp.max(first, 0)
+    b1 = wp.min(first + P.win - 1, P.n_bins - 1)
     j0 = int(0)
     j1 = P.n_beams - 1
     if h > P.rho:
         dth = wp.asin(P.rho / h)
-        j0 = beam_index_lo(az - dth, edges, P.n_beams)
-        j1 = beam_index_lo(az + dth, edges, P.n_beams)
+        j0 = beam_index_lo(az - dth, edges, lut, P)
+        j1 = beam_index_lo(az + dth, edges, lut, P)
+    if table.shape[0] > 0 and first >= 0:  # the max table: two reads (more near the apex)
+        k = int(0)
+        while (2 << k) <= j1 - j0 + 1 and k + 1 < P.n_levels:
+            k += 1
+        w = 1 << k
+        base = (k * P.n_bins + b0) * P.n_beams
+        m = table[base + j1 - w + 1]
+        jj = j0
+        while jj <= j1 - w + 1:
+            m = wp.max(m, table[base + jj])
+            jj += w
+        return m
     v = float(0.0)
     for i in range(b0, b1 + 1):
         for j in range(j0, j1 + 1):
             v = wp.max(v, image[i, j])
     return v
+
+
+@wp.kernel
+def build_bin_window(P: PingParams, image: wp.array2d(dtype=float), table: wp.array(dtype=float)):
+    """One thread per beam j: level 0 of the max table, table[0, i, j] = max of image over
+    bins [i, i + win - 1] (clipped), by van Herk / Gil-Werman: a prefix and a suffix max in
+    blocks of win bins (kept in the two scratch levels after the table), 3 ops per cell."""
+    j = wp.tid()
+    nb = P.n_beams
+    plane = P.n_bins * nb
+    pre = P.n_levels * plane
+    suf = pre + plane
+    for i in range(P.n_bins):
+        v = image[i, j]
+        if i % P.win != 0:
+            v = wp.max(v, table[pre + (i - 1) * nb + j])
+        table[pre + i * nb + j] = v
+    for ii in range(P.n_bins):
+        i = P.n_bins - 1 - ii
+        v = image[i, j]
+        if (i + 1) % P.win != 0 and i + 1 < P.n_bins:
+            v = wp.max(v, table[suf + (i + 1) * nb + j])
+        table[suf + i * nb + j] = v
+    for i in range(P.n_bins):
+        e = wp.min(i + P.win - 1, P.n_bins - 1)
+        v = table[suf + i * nb + j]
+        if e // P.win != i // P.win:  # the window reaches into the next block
+            v = wp.max(v, table[pre + e * nb + j])
+        table[i * nb + j] = v
+
+
+@wp.kernel
+def build_beam_levels(P: PingParams, table: wp.array(dtype=float)):
+    """One thread per bin row i: table[k, i, j] = max of level 0 over beams [j, j + 2^k - 1]
+    (clipped), for 0 < k < n_levels."""
+    i = wp.tid()
+    step = int(1)
+    for k in range(1, P.n_levels):
+        cur = (k * P.n_bins + i) * P.n_beams
+        prev = cur - P.n_bins * P.n_beams
+        for j in range(P.n_beams):
+            table[cur + j] = wp.max(table[prev + j], table[prev + wp.min(j + step, P.n_beams - 1)])
+        step = step * 2
 
 
 @wp.func
@@ -94,6 +168,8 @@ def integrate_gather(
     P: PingParams,
     image: wp.array2d(dtype=float),
     edges: wp.array(dtype=float),
+    lut: wp.array(dtype=int),
+    table: wp.array(dtype=float),
     grid: wp.array(dtype=float),
 ):
     """One thread per voxel of the ping's index box (flattened, k fastest)."""
@@ -103,7 +179,7 @@ def integrate_gather(
     rem = tid - (tid // nyz) * nyz
     j = P.box_lo[1] + rem // P.box_n[2]
     k = P.box_lo[2] + rem - (rem // P.box_n[2]) * P.box_n[2]
-    v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, edges)
+    v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, edges, lut, table)
     if v >= 0.0:
         idx = (i * P.dims[1] + j) * P.dims[2] + k
         grid[idx] = wp.min(grid[idx], v)
@@ -114,6 +190,8 @@ def integrate_template(
     P: PingParams,
     image: wp.array2d(dtype=float),
     edges: wp.array(dtype=float),
+    lut: wp.array(dtype=int),
+    table: wp.array(dtype=float),
     template_S: wp.array(dtype=wp.vec3),
     grid: wp.array(dtype=float),
 ):
@@ -125,7 +203,7 @@ def integrate_template(
     k = int(wp.floor((q[2] - P.origin[2]) / P.voxel))
     if i < 0 or j < 0 or k < 0 or i >= P.dims[0] or j >= P.dims[1] or k >= P.dims[2]:
         return
-    v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, edges)  # steps 3-5
+    v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, edges, lut, table)  # steps 3-5
     if v >= 0.0:
         # step 6; several template points may land in one voxel: all carry the same value
         wp.atomic_min(grid, (i * P.dims[1] + j) * P.dims[2] + k, v)
