@@ -8,6 +8,7 @@ arguments in the same order on every backend.
 from __future__ import annotations
 
 import math
+
 import numpy as np
 
 from gpumap.spec import GridSpec, SonarSpec
