@@ -41,6 +41,7 @@ __all__ = [
     "run_odometry",
     "pose_error",
     "nees",
+    "nees_world",
 ]
 
 
@@ -298,20 +299,41 @@ def _nees(e: np.ndarray, P: np.ndarray) -> float:
     return float(y @ y)
 
 
-def nees(ekf: SonarEKF, T_W_S_true: np.ndarray, points_W: np.ndarray) -> tuple[float, float, float, int]:
-    """NEES of a filter against the truth: ``(pose, landmarks, full, full_dof)``.
+def _spherical(p: np.ndarray) -> np.ndarray:
+    return np.array([np.linalg.norm(p), np.arctan2(p[1], p[0]), np.arctan2(p[2], np.hypot(p[0], p[1]))])
 
-    ``points_W[i]`` is the true position of feature id ``i``.
+
+def nees(ekf: SonarEKF, T_W_S_true: np.ndarray, points_W: np.ndarray) -> tuple[float, float, float, int]:
+    """NEES of a filter against the truth, on its own state: ``(pose, landmarks, full, full_dof)``.
+
+    Feature errors are taken where the filter's Gaussian lives: the true point's anchored
+    ``(r, az, el)`` minus the estimate's, in each feature's anchor frame
+    (:attr:`SonarEKF.landmark_anchors`). ``points_W[i]`` is the true position of feature ``i``.
     """
     e_pose = pose_error(ekf.pose, T_W_S_true)
-    lm = ekf.landmarks
+    anchors = ekf.landmark_anchors
     ids = ekf.landmark_ids
-    e_l = np.concatenate([points_W[i] - lm[i] for i in ids]) if ids else np.zeros(0)
-    P = ekf.covariance
+    e_l = []
+    for i in ids:
+        T_a, s_hat = anchors[i]
+        s_true = _spherical(se3_inverse(T_a)[:3, :3] @ points_W[i] + se3_inverse(T_a)[:3, 3])
+        d = s_true - s_hat
+        d[1] = float(wrap_angle(d[1]))
+        e_l.append(d)
+    e_l = np.concatenate(e_l) if ids else np.zeros(0)
+    P = ekf.native_covariance
     pn = _nees(e_pose, P[:6, :6])
     ln = _nees(e_l, P[6:, 6:]) if ids else float("nan")
     fn = _nees(np.concatenate([e_pose, e_l]), P)
     return pn, ln, fn, P.shape[0]
+
+
+def nees_world(ekf: SonarEKF, points_W: np.ndarray) -> float:
+    """NEES of all features jointly in world Cartesian coordinates (first-order covariance)."""
+    lm = ekf.landmarks
+    ids = ekf.landmark_ids
+    e = np.concatenate([points_W[i] - lm[i] for i in ids])
+    return _nees(e, ekf.covariance[6:, 6:])
 
 
 def run_filter(

@@ -1,0 +1,613 @@
+"""Tests of the sonar EKF against independent references: finite differences, Monte Carlo,
+a dense textbook EKF step, chi-square bounds, and invariances."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import numpy as np
+import pytest
+import scipy.linalg
+from gpumap.sim.prism import (
+    PrismConfig,
+    measure,
+    nees,
+    pose_error,
+    prism_vertices,
+    run_filter,
+    run_odometry,
+    simulate,
+)
+from scipy.stats import chi2
+
+from gpumap.ekf import (
+    SonarEKF,
+    anchor_jacobian,
+    motion_jacobian,
+    observation_model,
+    spherical_point,
+    wrap_angle,
+)
+from gpumap.lie import (
+    hat,
+    rotation_from_rpy,
+    rpy_from_rotation,
+    se3_adjoint,
+    se3_exp,
+    se3_inverse,
+    se3_log,
+    so3_exp,
+    so3_log,
+)
+
+VFOV = np.deg2rad(14.0)
+
+
+def _sph(p: np.ndarray) -> np.ndarray:
+    return np.array([np.linalg.norm(p), np.arctan2(p[1], p[0]), np.arctan2(p[2], np.hypot(p[0], p[1]))])
+
+
+def _assert_healthy(ekf: SonarEKF) -> None:
+    P = ekf.native_covariance
+    assert np.all(np.isfinite(P))
+    assert np.all(np.isfinite(ekf.pose))
+    assert all(np.all(np.isfinite(v)) for v in ekf.landmarks.values())
+    np.testing.assert_array_equal(P, P.T)
+    lam = np.linalg.eigvalsh(P)
+    assert lam.min() >= -1e-10 * max(lam.max(), 1e-300), (lam.min(), lam.max())
+    R = ekf.pose[:3, :3]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+
+
+def _snapshot(ekf: SonarEKF) -> dict:
+    return copy.deepcopy(ekf.__dict__)
+
+
+def _assert_same_state(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        if isinstance(a[k], np.ndarray):
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        else:
+            assert a[k] == b[k], k
+
+
+# --------------------------------------------------------------------------- Lie helpers
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-4, 0.3, 2.0, np.pi - 1e-6, np.pi])
+def test_se3_exp_matches_matrix_exponential_and_log_inverts(angle: float) -> None:
+    rng = np.random.default_rng(1)
+    xi = rng.normal(size=6)
+    ax = xi[3:] / np.linalg.norm(xi[3:])
+    xi[3:] = angle * ax
+    M = np.zeros((4, 4))
+    M[:3, :3] = hat(xi[3:])
+    M[:3, 3] = xi[:3]
+    T = se3_exp(xi)
+    np.testing.assert_allclose(T, scipy.linalg.expm(M), atol=1e-12)
+    # Log(Exp(x)) == x (at pi the axis sign is ambiguous: compare transforms).
+    np.testing.assert_allclose(se3_exp(se3_log(T)), T, atol=1e-9)
+    if angle < np.pi - 1e-3:
+        np.testing.assert_allclose(se3_log(T), xi, atol=1e-9)
+    np.testing.assert_allclose(so3_exp(so3_log(T[:3, :3])), T[:3, :3], atol=1e-9)
+
+
+def test_adjoint_moves_twists_through_transforms() -> None:
+    rng = np.random.default_rng(2)
+    T = se3_exp(rng.normal(size=6))
+    x = 0.4 * rng.normal(size=6)
+    np.testing.assert_allclose(T @ se3_exp(x) @ se3_inverse(T), se3_exp(se3_adjoint(T) @ x), atol=1e-12)
+
+
+@pytest.mark.parametrize("pitch", [np.pi / 2, -np.pi / 2, np.pi / 2 - 1e-7, 0.3])
+def test_rpy_output_is_finite_and_reproduces_the_rotation(pitch: float) -> None:
+    R = rotation_from_rpy(0.2, pitch, -0.7)
+    rpy = rpy_from_rotation(R)
+    assert np.all(np.isfinite(rpy))
+    np.testing.assert_allclose(rotation_from_rpy(*rpy), R, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- Jacobians
+def _num_jac(f, x0: np.ndarray, eps: float = 1e-6) -> np.ndarray:
+    cols = []
+    for i in range(x0.size):
+        d = np.zeros_like(x0)
+        d[i] = eps
+        cols.append((f(x0 + d) - f(x0 - d)) / (2 * eps))
+    return np.stack(cols, axis=-1)
+
+
+POINTS_S = [
+    np.array([2.5, 0.1, -0.2]),  # ordinary
+    np.array([0.05, 0.04, 0.002]),  # very short range, azimuth ~ 39 deg
+    np.array([1.0, 1.6, 0.1]),  # azimuth ~ 58 deg (edge of a 130 deg fan)
+    np.array([-2.0, 1e-3, 0.3]),  # azimuth near pi (wrap)
+]
+
+
+@pytest.mark.parametrize("p_S", POINTS_S)
+def test_observation_jacobians_match_finite_differences(p_S: np.ndarray) -> None:
+    rng = np.random.default_rng(3)
+    T = se3_exp(rng.normal(size=6))
+    l_W = T[:3, :3] @ p_S + T[:3, 3]
+    z, Hp, Hl = observation_model(T, l_W)
+    np.testing.assert_allclose(z, [np.linalg.norm(p_S), np.arctan2(p_S[1], p_S[0])], atol=1e-12)
+
+    def h_pose(d):
+        zz = observation_model(T @ se3_exp(d), l_W)[0]
+        return np.array([zz[0], float(wrap_angle(zz[1] - z[1]))])
+
+    def h_l(x):
+        zz = observation_model(T, x)[0]
+        return np.array([zz[0], float(wrap_angle(zz[1] - z[1]))])
+
+    scale = np.linalg.norm(p_S)
+    np.testing.assert_allclose(Hp, _num_jac(h_pose, np.zeros(6), 1e-7 * scale), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(Hl, _num_jac(h_l, l_W, 1e-7 * scale), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "s", [np.array([2.5, 0.1, 0.05]), np.array([0.05, -1.0, -0.12]), np.array([3.0, 3.1, 0.0])]
+)
+def test_spherical_and_anchor_jacobians_match_finite_differences(s: np.ndarray) -> None:
+    p, D = spherical_point(s)
+    np.testing.assert_allclose(_sph(p), [s[0], s[1], s[2]], atol=1e-12)
+    np.testing.assert_allclose(D, _num_jac(lambda x: spherical_point(x)[0], s), rtol=1e-6, atol=1e-8)
+
+    def s_of_delta(d):
+        out = _sph(se3_exp(d)[:3, :3] @ p + se3_exp(d)[:3, 3])
+        out[1] = s[1] + float(wrap_angle(out[1] - s[1]))
+        return out
+
+    np.testing.assert_allclose(
+        anchor_jacobian(s), _num_jac(s_of_delta, np.zeros(6), 1e-7), rtol=1e-5, atol=1e-6
+    )
+
+
+def test_motion_jacobian_matches_finite_differences() -> None:
+    rng = np.random.default_rng(4)
+    T, U = se3_exp(rng.normal(size=6)), se3_exp(rng.normal(size=6))
+    Tn = T @ U
+    F = _num_jac(lambda d: se3_log(se3_inverse(Tn) @ T @ se3_exp(d) @ U), np.zeros(6))
+    np.testing.assert_allclose(motion_jacobian(U), F, atol=1e-7)
+
+
+# --------------------------------------------------------------------------- one step vs references
+def _filter_with_features(seed: int = 5, pose_sigma: float = 0.05) -> tuple[SonarEKF, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    pts = prism_vertices()
+    ekf = SonarEKF(np.eye(4), np.diag([pose_sigma**2] * 3 + [(pose_sigma / 3) ** 2] * 3),
+                   range_sigma_m=0.01, bearing_sigma_rad=0.005, vfov_rad=VFOV)
+    ids, r, b = measure(np.eye(4), pts, rng, 0.01, 0.005)
+    ekf.update(ids, r, b)
+    U = se3_exp(np.array([0.05, 0.2, 0.1, 0.3, 0.02, -0.05]))
+    ekf.predict(U, np.diag([1e-4] * 3 + [1e-4] * 3))
+    return ekf, pts
+
+
+def test_update_matches_a_dense_textbook_ekf_with_numerical_jacobians() -> None:
+    ekf, pts = _filter_with_features()
+    T0 = ekf.pose
+    P0 = ekf.native_covariance
+    anchors = ekf.landmark_anchors
+    order = ekf.landmark_ids
+    rng = np.random.default_rng(6)
+    ids, r, b = measure(T0 @ se3_exp(np.array([0.01, 0, 0, 0, 0.01, 0])), pts, rng, 0.01, 0.005)
+
+    def h(x):  # full measurement vector of the error state x = (delta, ds_1..ds_n)
+        T = T0 @ se3_exp(x[:6])
+        out = []
+        for i in ids:
+            Ta, s = anchors[i]
+            k = order.index(i)
+            p = spherical_point(s + x[6 + 3 * k : 9 + 3 * k])[0]
+            q = se3_inverse(T) @ (Ta @ np.r_[p, 1.0])
+            out += [np.linalg.norm(q[:3]), np.arctan2(q[1], q[0])]
+        return np.array(out)
+
+    x0 = np.zeros(P0.shape[0])
+    H = _num_jac(h, x0, 1e-7)
+    z = np.ravel(np.column_stack([r, b]))
+    nu = z - h(x0)
+    nu[1::2] = wrap_angle(nu[1::2])
+    Rm = np.diag(np.tile([0.01**2, 0.005**2], len(ids)))
+    S = H @ P0 @ H.T + Rm
+    K = np.linalg.solve(S, H @ P0).T
+    dx = K @ nu
+    P_ref = (np.eye(x0.size) - K @ H) @ P0
+    G = np.eye(x0.size)
+    ad = np.zeros((6, 6))
+    ad[:3, :3] = ad[3:, 3:] = hat(dx[3:6])
+    ad[:3, 3:] = hat(dx[:3])
+    G[:6, :6] -= 0.5 * ad
+    P_ref = G @ P_ref @ G.T
+
+    res = ekf.update(ids, r, b)
+    assert res.accepted_ids == tuple(int(i) for i in ids) and not res.rejected
+    np.testing.assert_allclose(ekf.pose, T0 @ se3_exp(dx[:6]), atol=1e-8)
+    np.testing.assert_allclose(ekf.native_covariance, 0.5 * (P_ref + P_ref.T), atol=1e-9, rtol=1e-5)
+    np.testing.assert_allclose(res.nis, nu @ np.linalg.solve(S, nu), rtol=1e-5)
+    _assert_healthy(ekf)
+
+
+def test_new_feature_covariance_matches_monte_carlo_of_the_arc() -> None:
+    """Pose uncertainty + range/azimuth noise + uniform elevation, propagated by sampling."""
+    P0 = np.diag([0.02**2, 0.03**2, 0.01**2, 0.01**2, 0.02**2, 0.015**2])
+    T_hat = se3_exp(np.array([0.3, -0.2, 0.1, 0.1, -0.2, 0.4]))
+    sr, sb = 0.01, 0.004
+    ekf = SonarEKF(T_hat, P0, range_sigma_m=sr, bearing_sigma_rad=sb, vfov_rad=VFOV)
+    r_m, az_m = 2.5, 0.2
+    ekf.update([7], [r_m], [az_m])
+    C = ekf.native_covariance
+
+    rng = np.random.default_rng(7)
+    n = 200_000
+    delta = rng.multivariate_normal(np.zeros(6), P0, size=n)
+    s_true = np.column_stack([
+        r_m - sr * rng.standard_normal(n),
+        az_m - sb * rng.standard_normal(n),
+        rng.uniform(-VFOV / 2, VFOV / 2, n),
+    ])
+    p_true = spherical_point(s_true)[0]
+    # The true point in the anchor (= estimated) frame is Exp(delta) p_true.
+    pairs = zip(delta[:20000], p_true[:20000], strict=True)
+    q = np.stack([se3_exp(d)[:3, :3] @ p + se3_exp(d)[:3, 3] for d, p in pairs])
+    e_s = np.stack([_sph(x) for x in q]) - np.array([r_m, az_m, 0.0])
+    E = np.column_stack([delta[:20000], e_s])
+    C_mc = np.cov(E.T)
+    sd = np.sqrt(np.diag(C))
+    # Compare correlation-normalised entries (sampling error ~ 1/sqrt(2e4) ~ 0.007).
+    np.testing.assert_allclose(C_mc / np.outer(sd, sd), C / np.outer(sd, sd), atol=0.03)
+    np.testing.assert_allclose(np.sqrt(np.diag(C_mc)), sd, rtol=0.03)
+
+
+# --------------------------------------------------------------------------- prism scene
+N_SEEDS = 16
+
+
+@pytest.fixture(scope="module")
+def prism_runs():
+    out = []
+    for seed in range(N_SEEDS):
+        run = simulate(seed)
+        out.append((run, run_filter(run)))
+    return out
+
+
+def test_nees_over_seeds_is_inside_the_chi_square_band(prism_runs) -> None:
+    n_views = prism_runs[0][0].T_W_S.shape[0]
+    pose = np.array([tr.pose_nees[1:] for _, tr in prism_runs])  # view 0: pose exact (NaN)
+    lm = np.array([tr.landmark_nees[-1] for _, tr in prism_runs])
+    # NEES at successive views of one run are correlated; the per-run time averages are
+    # independent across seeds, each with mean 6 and variance at most that of one view
+    # (2 * 6), so the chi2(6 N) / N band of their mean is the conservative one (99 %, two-sided).
+    lo, hi = chi2.ppf([0.005, 0.995], 6 * N_SEEDS) / N_SEEDS
+    assert lo <= pose.mean() <= hi, (pose.mean(), lo, hi)
+    # And at the last view, where views don't enter, directly.
+    assert lo <= pose[:, -1].mean() <= hi, (pose[:, -1].mean(), lo, hi)
+    lo, hi = chi2.ppf([0.005, 0.995], 24 * N_SEEDS) / N_SEEDS
+    assert lo <= lm.mean() <= hi, (lm.mean(), lo, hi)
+    assert n_views == 21
+
+
+def test_ekf_beats_odometry_and_reconstructs_the_prism(prism_runs) -> None:
+    feat, pos_ekf, pos_odo = [], [], []
+    for run, tr in prism_runs:
+        feat.append(np.linalg.norm(tr.landmarks[-1] - run.points_W, axis=1).mean())
+        pos_ekf.append(np.linalg.norm(tr.T_W_S[:, :3, 3] - run.T_W_S[:, :3, 3], axis=1).mean())
+        To = run_odometry(run)
+        pos_odo.append(np.linalg.norm(To[:, :3, 3] - run.T_W_S[:, :3, 3], axis=1).mean())
+        # Features started 0.1-0.2 m off (elevation unknown) and every one got closer.
+        first = np.linalg.norm(tr.landmarks[0] - run.points_W, axis=1)
+        assert np.all(np.linalg.norm(tr.landmarks[-1] - run.points_W, axis=1) < np.maximum(first, 0.02))
+    assert np.mean(pos_ekf) < np.mean(pos_odo)
+    assert np.mean(feat) < 0.015
+
+
+def test_pitch_at_90_degrees_gives_the_same_answer_as_level_flight() -> None:
+    """Rotating the whole world so the sonar starts pitched +-90 deg changes nothing relative."""
+    run = simulate(3)
+    ref = run_filter(run)
+    for pitch in (np.pi / 2, -np.pi / 2, np.pi / 2 - 1e-9):
+        W = np.eye(4)
+        W[:3, :3] = rotation_from_rpy(0.4, pitch, 0.0)
+        W[:3, 3] = [1.0, -2.0, 3.0]
+        r2 = dataclasses.replace(run, T_W_S=W @ run.T_W_S, points_W=run.points_W @ W[:3, :3].T + W[:3, 3])
+        tr = run_filter(r2)
+        np.testing.assert_allclose(tr.landmarks[-1], ref.landmarks[-1] @ W[:3, :3].T + W[:3, 3], atol=1e-8)
+        np.testing.assert_allclose(tr.pose_nees[1:], ref.pose_nees[1:], rtol=1e-6)
+        assert np.all(np.isfinite(tr.final.rpy_rad))
+        assert abs(abs(tr.final.rpy_rad[1]) - np.pi / 2) < 0.3
+        _assert_healthy(tr.final)
+
+
+def _along_the_beam_run() -> tuple[SonarEKF, np.ndarray]:
+    """Straight along the boresight with no rotation: a feature's elevation stays unobservable."""
+    rng = np.random.default_rng(8)
+    sr, sb = 0.003, np.deg2rad(0.1)
+    pts = np.array([[3.0, 0.05, 0.25], [3.0, -0.1, -0.2], [3.2, 0.15, 0.0]])
+    ekf = SonarEKF(np.eye(4), np.zeros((6, 6)), range_sigma_m=sr, bearing_sigma_rad=sb, vfov_rad=VFOV)
+    T = np.eye(4)
+    step = se3_exp(np.array([0.05, 0, 0, 0, 0, 0]))
+    Q = np.diag([1e-8] * 3 + [1e-10] * 3)
+    for k in range(30):
+        if k:
+            T = T @ step
+            ekf.predict(step, Q)
+        ids, r, b = measure(T, pts, rng, sr, sb)
+        ekf.update(ids, r, b)
+        _assert_healthy(ekf)
+    return ekf, pts
+
+
+def test_motion_along_the_beam_keeps_elevation_uncertain() -> None:
+    ekf, pts = _along_the_beam_run()
+    P = ekf.native_covariance
+    for k in range(len(pts)):
+        assert np.sqrt(P[8 + 3 * k, 8 + 3 * k]) > 0.5 * VFOV / np.sqrt(12)  # elevation sd
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "Known limitation: linearised at elevation 0, range has no first-order sensitivity to "
+    "elevation, so the chord effect r*(1 - cos el) of a feature off the horizontal plane is "
+    "absorbed as a range bias (~4 sigma after 1.5 m along the beam). Needs a second-order "
+    "(or iterated) update in the elevation direction."))
+def test_motion_along_the_beam_stays_consistent() -> None:
+    ekf, pts = _along_the_beam_run()
+    # Judge it where its Gaussian lives: anchored (r, az, el) of each feature.
+    P = ekf.native_covariance
+    for k, (i, (T_a, s_hat)) in enumerate(ekf.landmark_anchors.items()):
+        q = se3_inverse(T_a) @ np.r_[pts[i], 1.0]
+        e = _sph(q[:3]) - s_hat
+        C = P[6 + 3 * k : 9 + 3 * k, 6 + 3 * k : 9 + 3 * k]
+        assert np.sqrt(C[2, 2]) > 0.5 * VFOV / np.sqrt(12)  # not falsely confident in elevation
+        assert e @ np.linalg.solve(C, e) < chi2.ppf(0.999, 3)  # and the error is inside it
+
+
+def test_short_range_edge_azimuth_and_wrap_around() -> None:
+    rng = np.random.default_rng(9)
+    pts = np.array([[0.004, 0.003, 0.0002], [-2.0, 1e-4, 0.05], [1.0, 1.9, 0.0]])
+    ekf = SonarEKF(np.eye(4), np.diag([1e-6] * 6), range_sigma_m=1e-4, bearing_sigma_rad=1e-3, vfov_rad=VFOV)
+    T = np.eye(4)
+    for k in range(50):
+        if k:
+            U = se3_exp(1e-4 * rng.normal(size=6))
+            T = T @ U
+            ekf.predict(U, np.diag([1e-8] * 6))
+        ids, r, b = measure(T, pts, rng, 1e-4, 1e-3, hfov_rad=2 * np.pi)
+        res = ekf.update(ids, r, b)
+        _assert_healthy(ekf)
+        if k:
+            assert res.accepted_ids == (0, 1, 2), res
+    # The feature behind is seen at azimuths on both sides of +-pi: residuals must be wrapped.
+    assert np.linalg.norm(ekf.landmarks[1] - pts[1]) < 0.05
+    assert np.linalg.norm(ekf.landmarks[0] - pts[0]) < 1e-3
+
+
+def test_a_feature_on_the_sonar_axis_is_reported_degenerate_not_used() -> None:
+    ekf = SonarEKF(np.eye(4), np.zeros((6, 6)), range_sigma_m=0.01, bearing_sigma_rad=0.01, vfov_rad=VFOV)
+    ekf.update([1, 2], [2.0, 2.0], [0.0, 0.1])
+    # Rotate so that feature 1's anchored point lies on the new z axis.
+    U = np.eye(4)
+    U[:3, :3] = rotation_from_rpy(0.0, -np.pi / 2, 0.0)
+    ekf.predict(U, np.zeros((6, 6)))
+    before = ekf.landmarks[1]
+    res = ekf.update([1, 2], [2.0, 2.0], [0.0, 0.0])
+    assert res.degenerate_ids == (1,)
+    np.testing.assert_allclose(ekf.landmarks[1], before, atol=1e-12)
+    _assert_healthy(ekf)
+
+
+def test_huge_initial_uncertainty_stays_finite_and_learns_relative_geometry() -> None:
+    run = simulate(11)
+    ref = run_filter(run)
+    tr = run_filter(run, pose_cov0=np.diag([1e4] * 3 + [0.3**2] * 3))
+    ekf = tr.final
+    _assert_healthy(ekf)
+    # The world pose can't be learned without an absolute reference, but features relative
+    # to the sonar can, nearly as well as when the start is known exactly.
+    Tt = se3_inverse(run.T_W_S[-1])
+
+    def rel_err(f):
+        Ti = se3_inverse(f.pose)
+        return max(
+            np.linalg.norm((Ti[:3, :3] @ lw + Ti[:3, 3]) - (Tt[:3, :3] @ run.points_W[i] + Tt[:3, 3]))
+            for i, lw in f.landmarks.items()
+        )
+
+    assert rel_err(ekf) < 2.0 * rel_err(ref.final) + 0.01
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "Known limitation: feature anchors are fixed transforms, so a 100 m anchor uncertainty "
+    "must be carried by (r, az, el) through a linearisation that cannot hold; the absolute "
+    "pose covariance then collapses although nothing observes it. Needs the anchor poses in "
+    "the state (one 6-dof anchor per initialising ping)."))
+def test_huge_initial_uncertainty_keeps_the_absolute_pose_uncertain() -> None:
+    tr = run_filter(simulate(11), pose_cov0=np.diag([1e4] * 3 + [0.3**2] * 3))
+    assert np.sqrt(tr.final.pose_cov[0, 0]) > 10.0
+
+
+@pytest.mark.parametrize("gate_prob", [0.999, None])
+def test_tiny_measurement_noise(gate_prob) -> None:
+    """sigma = 0.1 um / 10 nrad: far below the linearisation error of the elevation arc.
+
+    Gated, the EKF refuses the first re-observations (their NIS is huge: the arc's
+    curvature, not noise) and says so; ungated it converges. Either way nothing breaks.
+    """
+    cfg = PrismConfig(range_sigma_m=1e-7, bearing_sigma_rad=1e-8, k_t=1e-6, k_r=1e-6,
+                      k_rt_rad_per_m=1e-7, floor_t_m=1e-9, floor_r_rad=1e-9)
+    run = simulate(12, cfg)
+    tr = run_filter(run, gate_prob=gate_prob)
+    _assert_healthy(tr.final)
+    if gate_prob is None:
+        assert np.abs(tr.landmarks[-1] - run.points_W).max() < 1e-3
+    else:
+        assert tr.rejected > 0
+
+
+def test_ten_thousand_cycles_stay_healthy_and_consistent() -> None:
+    cfg = PrismConfig()
+    rng = np.random.default_rng(13)
+    pts = prism_vertices()
+    ekf = SonarEKF(np.eye(4), np.zeros((6, 6)), range_sigma_m=cfg.range_sigma_m,
+                   bearing_sigma_rad=cfg.bearing_sigma_rad, vfov_rad=cfg.vfov_rad)
+    T = np.eye(4)
+    nees_pose = []
+    Q = np.diag([1e-6] * 3 + [1e-6] * 3)
+    for k in range(10_000):
+        if k:
+            # Wander around the start, rolling back and forth, keeping the prism in view.
+            target = np.array([0.0, 0.2 * np.sin(k / 50), 0.1 * np.sin(k / 70), np.sin(k / 40), 0.0, 0.0])
+            T_next = se3_exp(target)
+            U_true = se3_inverse(T) @ T_next
+            w = rng.multivariate_normal(np.zeros(6), Q)
+            T = T_next
+            ekf.predict(U_true @ se3_exp(-w), Q)
+        ids, r, b = measure(T, pts, rng, cfg.range_sigma_m, cfg.bearing_sigma_rad)
+        ekf.update(ids, r, b)
+        if k % 100 == 0:
+            e = pose_error(ekf.pose, T)
+            nees_pose.append(e @ np.linalg.solve(ekf.pose_cov, e) if k else 6.0)
+    _assert_healthy(ekf)
+    assert np.abs(np.stack([ekf.landmarks[i] for i in range(8)]) - pts).max() < 0.01
+    m = len(nees_pose)
+    lo, hi = chi2.ppf([0.0005, 0.9995], 6 * m) / m
+    assert lo <= np.mean(nees_pose) <= hi, (np.mean(nees_pose), lo, hi)
+
+
+def test_repeated_identical_measurements() -> None:
+    ekf = SonarEKF(np.eye(4), np.diag([1e-4] * 6), range_sigma_m=0.01, bearing_sigma_rad=0.005, vfov_rad=VFOV)
+    ids, r, b = measure(np.eye(4), prism_vertices())
+    ekf.update(ids, r, b)
+    traces = []
+    for _ in range(1000):
+        res = ekf.update(ids, r, b)
+        assert len(res.accepted_ids) == 8
+        traces.append(np.trace(ekf.native_covariance))
+    _assert_healthy(ekf)
+    assert np.all(np.diff(traces) <= 1e-15)  # information only ever adds
+    z = np.array([observation_model(ekf.pose, ekf.landmarks[i])[0] for i in ids])
+    np.testing.assert_allclose(z[:, 0], r, atol=1e-6)
+    np.testing.assert_allclose(z[:, 1], b, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- gating and forgetting
+def test_outlier_is_gated_reported_and_ignored() -> None:
+    ekf, pts = _filter_with_features()
+    twin = copy.deepcopy(ekf)
+    rng = np.random.default_rng(14)
+    ids, r, b = measure(ekf.pose, pts, rng, 0.01, 0.005)
+    r_bad = r.copy()
+    r_bad[3] += 0.5
+    res = ekf.update(ids, r_bad, b)
+    assert set(res.rejected) == {int(ids[3])}
+    assert res.rejected[int(ids[3])] > chi2.ppf(0.999, 2)
+    keep = np.arange(len(ids)) != 3
+    res2 = twin.update(ids[keep], r[keep], b[keep])
+    assert res.accepted_ids == res2.accepted_ids
+    np.testing.assert_allclose(ekf.pose, twin.pose, atol=1e-14)
+    np.testing.assert_allclose(ekf.native_covariance, twin.native_covariance, atol=1e-14)
+    assert res.nis == pytest.approx(res2.nis) and ekf.nis_dof == 2 * (len(ids) - 1)
+
+
+def test_forget_marginalises_and_a_forgotten_feature_comes_back_fresh() -> None:
+    ekf, pts = _filter_with_features()
+    ids = ekf.landmark_ids
+    P = ekf.native_covariance
+    ekf.forget(ids[2])
+    keep = np.r_[0:12, 15 : P.shape[0]]
+    np.testing.assert_array_equal(ekf.native_covariance, P[np.ix_(keep, keep)])
+    assert ids[2] not in ekf.landmarks
+    with pytest.raises(KeyError):
+        ekf.landmark_cov(ids[2])
+    z, _, _ = observation_model(ekf.pose, pts[ids[2]])
+    res = ekf.update([ids[2]], [z[0]], [z[1]])
+    assert res.initialized_ids == (ids[2],)
+
+
+# --------------------------------------------------------------------------- bad input
+def _bad_updates():
+    ok_ids, ok_r, ok_b = [0, 1], [2.0, 2.1], [0.0, 0.1]
+    return [
+        ((ok_ids, [np.nan, 2.1], ok_b), ValueError),
+        ((ok_ids, [2.0, -1.0], ok_b), ValueError),
+        ((ok_ids, [2.0, 0.0], ok_b), ValueError),
+        ((ok_ids, ok_r, [0.0, np.inf]), ValueError),
+        ((ok_ids, [2.0], ok_b), ValueError),
+        (([[0, 1]], ok_r, ok_b), ValueError),
+        (([0.0, 1.0], ok_r, ok_b), TypeError),
+        (([0, 0], ok_r, ok_b), ValueError),
+        ((ok_ids, ["a", "b"], ok_b), TypeError),
+        ((ok_ids, [[2.0, 2.1]], ok_b), ValueError),
+    ]
+
+
+@pytest.mark.parametrize("args,exc", _bad_updates())
+def test_bad_update_input_raises_and_leaves_state_untouched(args, exc) -> None:
+    ekf, _ = _filter_with_features()
+    before = _snapshot(ekf)
+    with pytest.raises(exc, match="Expected"):
+        ekf.update(*args)
+    _assert_same_state(before, _snapshot(ekf))
+
+
+def _bad_predicts():
+    Q = np.eye(6) * 1e-4
+    U = se3_exp(np.full(6, 0.1))
+    skew = U.copy()
+    skew[0, 1] += 0.1
+    asym = Q.copy()
+    asym[0, 1] = 1e-3
+    neg = Q.copy()
+    neg[0, 0] = -1.0
+    nanq = Q.copy()
+    nanq[2, 2] = np.nan
+    return [
+        ((skew, Q), ValueError),
+        ((U[:3], Q), ValueError),
+        ((np.where(np.eye(4) > 0, np.nan, U), Q), ValueError),
+        ((U, asym), ValueError),
+        ((U, neg), ValueError),
+        ((U, nanq), ValueError),
+        ((U, np.eye(3)), ValueError),
+    ]
+
+
+@pytest.mark.parametrize("args,exc", _bad_predicts())
+def test_bad_predict_input_raises_and_leaves_state_untouched(args, exc) -> None:
+    ekf, _ = _filter_with_features()
+    before = _snapshot(ekf)
+    with pytest.raises(exc, match="Expected"):
+        ekf.predict(*args)
+    _assert_same_state(before, _snapshot(ekf))
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(range_sigma_m=0.0),
+        dict(bearing_sigma_rad=-1.0),
+        dict(vfov_rad=0.0),
+        dict(vfov_rad=4.0),
+        dict(range_sigma_m=np.nan),
+        dict(gate_prob=1.0),
+        dict(pose_cov0=-np.eye(6)),
+        dict(T_W_S0=np.zeros((4, 4))),
+    ],
+)
+def test_bad_constructor_arguments_raise(kwargs) -> None:
+    args = dict(T_W_S0=np.eye(4), pose_cov0=np.zeros((6, 6)), range_sigma_m=0.01,
+                bearing_sigma_rad=0.01, vfov_rad=VFOV)
+    args.update(kwargs)
+    with pytest.raises(ValueError, match="Expected"):
+        SonarEKF(**args)
+
+
+def test_nees_helper_agrees_with_a_direct_computation() -> None:
+    run = simulate(15)
+    tr = run_filter(run)
+    ekf = tr.final
+    e = pose_error(ekf.pose, run.T_W_S[-1])
+    direct = e @ np.linalg.solve(ekf.pose_cov, e)
+    assert nees(ekf, run.T_W_S[-1], run.points_W)[0] == pytest.approx(direct, rel=1e-9)
