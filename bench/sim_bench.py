@@ -1,0 +1,78 @@
+"""Simulator throughput: sonar images per second (and DVL pings per second) on this machine.
+
+Usage::
+
+    python bench/sim_bench.py --out sim_bench.json [--pings 40] [--cameras 3]
+
+The GL renderer in use (Mesa llvmpipe on a CPU-only machine, the GPU's driver otherwise)
+is recorded with the numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+
+import numpy as np
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", default=None, help="JSON file to write")
+    p.add_argument("--pings", type=int, default=40)
+    p.add_argument("--cameras", type=int, default=3)
+    p.add_argument("--scene", default="tank")
+    a = p.parse_args(argv)
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+    from gpumap.sim.dvl import DVLSimulator
+    from gpumap.sim.scenes import make_scene
+    from gpumap.sim.sonar import SonarSimulator
+
+    scene = make_scene(a.scene)
+    poses = scene.T_W_S[np.arange(a.pings) % len(scene.T_W_S)]
+    t0 = time.perf_counter()
+    with SonarSimulator(scene, n_cameras=a.cameras) as sim:
+        sim.ping(poses[0], 0)  # GL context, shader compile, upload
+        init_s = time.perf_counter() - t0
+        from OpenGL.GL import GL_RENDERER, glGetString
+
+        gl = glGetString(GL_RENDERER)
+        gl = gl.decode() if isinstance(gl, bytes) else str(gl)
+        t0 = time.perf_counter()
+        for i, T in enumerate(poses):
+            sim.ping(T, i)
+        sonar_s = time.perf_counter() - t0
+        rays = sim.rays_per_ping
+    dvl = DVLSimulator(scene)
+    dposes = scene.T_W_D[np.arange(a.pings) % len(scene.T_W_D)]
+    t0 = time.perf_counter()
+    for T in dposes:
+        dvl.ranges(T)
+    dvl_s = time.perf_counter() - t0
+    res = {
+        "scene": a.scene,
+        "gl_renderer": gl,
+        "machine": platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "cameras": a.cameras,
+        "rays_per_ping": int(rays),
+        "image_shape": list(scene.sonar_spec.image_shape),
+        "pings": a.pings,
+        "init_s": init_s,
+        "sonar_images_per_s": a.pings / sonar_s,
+        "sonar_ms_per_image": 1e3 * sonar_s / a.pings,
+        "dvl_pings_per_s": a.pings / dvl_s,
+    }
+    print(json.dumps(res, indent=1))
+    if a.out:
+        with open(a.out, "w") as f:
+            json.dump(res, f, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
