@@ -155,6 +155,7 @@ class WarpBackend(Backend):
             ]
             self.events = [None, None]
         self.slot = 0
+        self._P = None
         wp.load_module(minmax, device=self.dev)  # compile (or load from cache) now, not on ping 1
 
     def integrate(self, params, image, method, n_threads):
@@ -169,7 +170,7 @@ class WarpBackend(Backend):
             self.slot = 1 - s
         else:
             self.image.numpy()[...] = image
-        P = _warp_params(wp, self.k, params)
+        P = self._struct(params)
         if method == "gather" and not n_threads:
             return
         if self.use_table:
@@ -196,6 +197,21 @@ class WarpBackend(Backend):
                 inputs=[P, self.image, self.edges, self.lut, self.table, self.template, self.grid],
                 device=self.dev,
             )
+
+    def _struct(self, params):
+        """The kernels' PingParams: built once, then only the per-ping fields are set."""
+        wp = self.wp
+        if self._P is None:
+            self._P = _warp_params(wp, self.k, params)
+            return self._P
+        P = self._P
+        P.A = wp.mat33(*params["A"].tolist())
+        P.b = wp.vec3(*params["b"].tolist())
+        P.R = wp.mat33(*params["R"].tolist())
+        P.t = wp.vec3(*params["t"].tolist())
+        P.box_lo = wp.vec3i(*params["box_lo"].tolist())
+        P.box_n = wp.vec3i(*params["box_n"].tolist())
+        return P
 
     def read(self):
         return self.grid.numpy().copy()
@@ -271,7 +287,12 @@ class OpenCLBackend(Backend):
             self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=spec.beam_edges_rad.astype(np.float32)
         )
         self.lut = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=beam_lut(spec))
-        self.image = cl.Buffer(self.ctx, mf.READ_ONLY, size=4 * n_bins * n_beams)
+        # Two image slots: the upload of ping k+1 overlaps the kernels of ping k; a host
+        # staging slot is refilled only once its previous upload has finished (event).
+        self.images = [cl.Buffer(self.ctx, mf.READ_ONLY, size=4 * n_bins * n_beams) for _ in range(2)]
+        self.host = [np.empty((n_bins, n_beams), np.float32) for _ in range(2)]
+        self.uploads = [None, None]
+        self.slot = 0
         self.n_voxels = n_voxels
         self.n_bins = n_bins
         # max table on CPUs (two reads per voxel), cell loop on GPUs; same answers
@@ -297,14 +318,20 @@ class OpenCLBackend(Backend):
     def integrate(self, params, image, method, n_threads):
         cl = self.cl
         # blocking: the caller may reuse `image` as soon as this returns
-        cl.enqueue_copy(self.queue, self.image, image, is_blocking=True)
+        s = self.slot
+        self.slot = 1 - s
+        if self.uploads[s] is not None:
+            self.uploads[s].wait()
+        np.copyto(self.host[s], image)
+        self.uploads[s] = cl.enqueue_copy(self.queue, self.images[s], self.host[s], is_blocking=False)
+        image_buf = self.images[s]
         P = np.asarray(params, dtype=PING_DTYPE)
         if method == "gather" and not n_threads:
             return
         flag = np.int32(self.use_table)
         if self.use_table:
             gs = -(-self.n_beams // 16) * 16
-            self.k_window(self.queue, (gs,), (16,), P, self.image, self.table)
+            self.k_window(self.queue, (gs,), (16,), P, image_buf, self.table)
             gs = -(-self.n_bins // 16) * 16
             self.k_levels(self.queue, (gs,), (16,), P, self.table)
         if method == "gather":
@@ -314,7 +341,7 @@ class OpenCLBackend(Backend):
                 (gs,),
                 (self.wg,),
                 P,
-                self.image,
+                image_buf,
                 self.edges,
                 self.lut,
                 self.table,
@@ -328,7 +355,7 @@ class OpenCLBackend(Backend):
                 (gs,),
                 (self.wg,),
                 P,
-                self.image,
+                image_buf,
                 self.edges,
                 self.lut,
                 self.table,

@@ -32,17 +32,28 @@ def check_pose(T: object, name: str = "T_W_S", atol: float = 1e-5) -> np.ndarray
     a = np.array(T, dtype=np.float64, copy=True)
     if a.shape != (4, 4):
         raise ValueError(f"Expected a (4, 4) transform for '{name}', but got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise ValueError(f"Expected finite entries in '{name}', but got NaN or inf")
-    if not np.allclose(a[3], [0.0, 0.0, 0.0, 1.0], atol=atol):
-        raise ValueError(f"Expected the last row of '{name}' to be [0, 0, 0, 1], but got {a[3].tolist()}")
+    r3 = a[3]
+    if abs(r3[0]) > atol or abs(r3[1]) > atol or abs(r3[2]) > atol or abs(r3[3] - 1.0) > atol:
+        raise ValueError(f"Expected the last row of '{name}' to be [0, 0, 0, 1], but got {r3.tolist()}")
     R = a[:3, :3]
-    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    G = R.T @ R
+    G[0, 0] -= 1.0
+    G[1, 1] -= 1.0
+    G[2, 2] -= 1.0
+    err = float(np.abs(G).max())
     if err > atol:
         raise ValueError(
             f"Expected an orthonormal rotation in '{name}' (|R^T R - I| <= {atol}), but got error {err:.3g}"
         )
-    det = float(np.linalg.det(R))
+    # orthonormal columns: det = +1 exactly when the third column is the cross of the first two
+    c0, c1, c2 = R[:, 0], R[:, 1], R[:, 2]
+    det = (
+        (c0[1] * c1[2] - c0[2] * c1[1]) * c2[0]
+        + (c0[2] * c1[0] - c0[0] * c1[2]) * c2[1]
+        + (c0[0] * c1[1] - c0[1] * c1[0]) * c2[2]
+    )
     if det < 0:
         raise ValueError(f"Expected a right-handed rotation in '{name}' (det +1), but got det {det:.6f}")
     return a

@@ -103,26 +103,29 @@ def ping_params(params: np.ndarray, T_W_S: np.ndarray, fov_pts_S: np.ndarray, gr
     """Fill the per-ping fields of ``params`` in place; return the gather box's voxel count.
 
     ``fov_pts_S`` is :meth:`SonarSpec.fov_corners_S`: points whose box, padded by one voxel,
-    contains every voxel centre the ping can see.
+    contains every voxel centre the ping can see. (On the hot path: a few small array ops.)
     """
     R = T_W_S[:3, :3]
     t = T_W_S[:3, 3]
+    Rt = R.T
     params["R"] = R.ravel()
     params["t"] = t
-    params["A"] = R.T.ravel()
-    params["b"] = -(R.T @ t)
-    pts_W = fov_pts_S @ R.T + t
-    lo = np.asarray(grid.min_corner_m)
+    params["A"] = Rt.ravel()
+    params["b"] = -(Rt @ t)
+    pts_W = fov_pts_S @ Rt
     s = grid.voxel_size_m
-    dims = np.asarray(grid.shape)
-    i0 = np.floor((pts_W.min(axis=0) - lo) / s).astype(np.int64) - 1
-    i1 = np.floor((pts_W.max(axis=0) - lo) / s).astype(np.int64) + 1
-    i0 = np.clip(i0, 0, dims)
-    i1 = np.clip(i1, -1, dims - 1)
-    n = np.maximum(i1 - i0 + 1, 0)
-    params["box_lo"] = i0
-    params["box_n"] = n
-    return int(n.prod())
+    q0 = (pts_W.min(axis=0) + t - grid.min_corner_m) / s
+    q1 = (pts_W.max(axis=0) + t - grid.min_corner_m) / s
+    lo = params["box_lo"]
+    n = params["box_n"]
+    total = 1
+    for ax, dim in enumerate(grid.shape):
+        i0 = min(max(math.floor(q0[ax]) - 1, 0), dim)
+        i1 = min(max(math.floor(q1[ax]) + 1, -1), dim - 1)
+        lo[ax] = i0
+        n[ax] = max(i1 - i0 + 1, 0)
+        total *= int(n[ax])
+    return total
 
 
 def make_template_S(spec: SonarSpec, voxel_size_m: float) -> np.ndarray:

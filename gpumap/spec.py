@@ -170,23 +170,23 @@ class SonarSpec:
         j = np.where(a == self.beam_edges_rad[-1], self.n_beams - 1, j)
         return np.where((j >= 0) & (j < self.n_beams), j, -1)
 
-    def fov_corners_S(self, n_arc: int = 16) -> np.ndarray:
-        """(m, 3) points on the field of view's boundary whose hull bounds it (sonar frame).
+    def fov_corners_S(self, n_arc: int = 8) -> np.ndarray:
+        """(m, 3) sonar-frame points whose axis-aligned box (in any frame) holds the field of view.
 
-        The imaged volume is bounded by spheres of radius range_min/max, the azimuth
-        planes at the outer beam edges and the elevation cones; its axis-aligned box in
-        any frame is the box of these points plus the sphere's bulge, which ``n_arc``
-        samples per edge keep below ``range_max * (1 - cos(aperture / (2 n_arc)))``; the
-        points are pushed out by that bound so the box is conservative.
+        Every imaged point lies on a segment from the origin to the outer sphere patch
+        (range ``range_max``, the fan's azimuths and elevations), so the box of the origin
+        and that patch holds the imaged volume. The patch is sampled on an ``n_arc`` grid and
+        pushed out by ``1 / cos(step / 2)``, which turns the samples' chords into a polygon
+        circumscribing the patch: the box is conservative by construction.
         """
         az = np.linspace(self.beam_edges_rad[0], self.beam_edges_rad[-1], n_arc + 1)
-        el = np.linspace(-0.5 * self.vfov_rad, 0.5 * self.vfov_rad, max(2, n_arc // 4) + 1)
+        n_el = max(2, n_arc // 4)
+        el = np.linspace(-0.5 * self.vfov_rad, 0.5 * self.vfov_rad, n_el + 1)
         A, E = np.meshgrid(az, el, indexing="ij")
         dirs = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
-        step = max(self.hfov_rad / n_arc, self.vfov_rad / (len(el) - 1))
-        grow = 1.0 / math.cos(0.5 * step)  # chords of the sphere -> circumscribed polygon
-        pts = np.concatenate([dirs * self.range_min_m, dirs * self.range_max_m * grow, np.zeros((1, 3))])
-        return pts
+        step = max(self.hfov_rad / n_arc, self.vfov_rad / n_el)
+        grow = 1.0 / math.cos(0.5 * step)
+        return np.concatenate([dirs * self.range_max_m * grow, np.zeros((1, 3))])
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, SonarSpec):
