@@ -1,0 +1,160 @@
+"""Shared helpers of the benchmark: machine description, peak memory, published numbers, JSON rounding."""
+
+from __future__ import annotations
+
+import os
+import platform
+import re
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "OASIS_PUBLISHED_MS",
+    "PAPER_TABLE_I",
+    "SONAR_RATE_HZ",
+    "TARGETS",
+    "PeakRSS",
+    "compact",
+    "machine_info",
+    "slug",
+]
+
+#: The paper's Table I (Phung et al.): voxel size (m) -> published seconds per image.
+PAPER_TABLE_I: dict[float, float] = {0.06: 0.07, 0.05: 0.12, 0.04: 0.25, 0.03: 0.52, 0.02: 1.6, 0.01: 12.0}
+#: Public OASIS code, ms per image on this project's 2-core CPU, as published in issue 6.
+OASIS_PUBLISHED_MS: dict[float, float] = {0.05: 82.0, 0.03: 329.0, 0.01: 7200.0}
+#: The Oculus M1200d's maximum ping rate (paper, Table I footnote).
+SONAR_RATE_HZ = 10.0
+#: Speed targets (issue 6): (device class, voxel size m, images/s).
+TARGETS: list[tuple[str, float, float]] = [
+    ("cpu", 0.03, 100.0),
+    ("cpu", 0.01, 10.0),
+    ("gpu", 0.01, 5000.0),
+    ("gpu", 0.005, 1000.0),
+]
+
+
+def slug(text: str) -> str:
+    """Lower-case file-name-safe form of ``text``."""
+    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")[:40] or "unknown"
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def _version(mod: str) -> str | None:
+    try:
+        from importlib.metadata import version
+
+        return version(mod)
+    except Exception:
+        return None
+
+
+def machine_info() -> dict[str, Any]:
+    """CPU model and cores, memory, GPU names, load average and package versions."""
+    import gpumap
+
+    info: dict[str, Any] = {
+        "cpu_model": _cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "affinity_cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "load_avg_start": [round(x, 2) for x in os.getloadavg()],
+        "versions": {
+            "gpumap": gpumap.__version__,
+            "numpy": np.__version__,
+            "warp-lang": _version("warp-lang"),
+            "pyopencl": _version("pyopencl"),
+            "pocl-binary-distribution": _version("pocl-binary-distribution"),
+            "pyoctomap": _version("pyoctomap"),
+            "scipy": _version("scipy"),
+        },
+        "backends": gpumap.available_backends(),
+    }
+    try:
+        with open("/proc/meminfo") as f:
+            info["mem_total_gb"] = round(int(f.readline().split()[1]) / 2**20, 1)
+    except OSError:
+        pass
+    gpus = []
+    try:
+        import warp as wp
+
+        for d in wp.get_cuda_devices():
+            gpus.append(f"{d.name} ({d.total_memory / 2**30:.0f} GiB)")
+    except Exception:
+        pass
+    info["gpus"] = gpus
+    return info
+
+
+class PeakRSS:
+    """Context manager sampling this process's resident set size; ``.delta_mb`` is the peak rise.
+
+    A background thread reads ``/proc/self/statm`` every ``interval_s``; the peak over the
+    block minus the RSS at entry is what the block allocated at most (host memory).
+    """
+
+    def __init__(self, interval_s: float = 0.002) -> None:
+        self.interval_s = interval_s
+        self._page = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
+        self.start_b = 0
+        self.peak_b = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _rss(self) -> int:
+        try:
+            with open("/proc/self/statm") as f:
+                return int(f.read().split()[1]) * self._page
+        except OSError:
+            return 0
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.peak_b = max(self.peak_b, self._rss())
+            time.sleep(self.interval_s)
+
+    def __enter__(self) -> PeakRSS:
+        self.start_b = self.peak_b = self._rss()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        self.peak_b = max(self.peak_b, self._rss())
+
+    @property
+    def delta_mb(self) -> float:
+        return (self.peak_b - self.start_b) / 2**20
+
+
+def compact(obj: Any, digits: int = 4) -> Any:
+    """``obj`` with floats rounded to ``digits`` significant digits and NumPy scalars made plain."""
+    if isinstance(obj, dict):
+        return {str(k): compact(v, digits) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [compact(v, digits) for v in obj]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float):
+        if not np.isfinite(obj):
+            return None
+        return float(f"{obj:.{digits}g}")
+    return obj
