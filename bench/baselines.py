@@ -68,8 +68,9 @@ def paper_template_S(spec: gpumap.SonarSpec, voxel_size_m: float) -> np.ndarray:
     return np.ascontiguousarray(P[keep], dtype=_F)
 
 
-def rect_max(image: np.ndarray, b0: np.ndarray, b1: np.ndarray, j0: np.ndarray, j1: np.ndarray,
-             budget: int = 1 << 22) -> np.ndarray:
+def rect_max(
+    image: np.ndarray, b0: np.ndarray, b1: np.ndarray, j0: np.ndarray, j1: np.ndarray, budget: int = 1 << 22
+) -> np.ndarray:
     """Max of ``image`` over each inclusive rectangle ``[b0, b1] x [j0, j1]`` (plain NumPy).
 
     Rectangles are sorted by area and processed in chunks, each chunk looping over the
@@ -145,8 +146,12 @@ class PaperSixSteps:
         wrap = (a_hi - a_lo) > math.pi  # voxel around the sonar's origin: every beam
         a_lo = np.where(wrap, self._edges[0], a_lo)
         a_hi = np.where(wrap, self._edges[-1], a_hi)
-        imaged = (r_hi >= sp.range_min_m) & (r_lo < sp.range_max_m) & (a_hi >= self._edges[0]) & (
-            a_lo <= self._edges[-1])
+        imaged = (
+            (r_hi >= sp.range_min_m)
+            & (r_lo < sp.range_max_m)
+            & (a_hi >= self._edges[0])
+            & (a_lo <= self._edges[-1])
+        )
         q, r_lo, r_hi, a_lo, a_hi = q[imaged], r_lo[imaged], r_hi[imaged], a_lo[imaged], a_hi[imaged]
         b0 = np.clip(np.floor((r_lo - sp.range_min_m) / sp.bin_size_m).astype(np.int64), 0, sp.n_bins - 1)
         b1 = np.clip(np.floor((r_hi - sp.range_min_m) / sp.bin_size_m).astype(np.int64), 0, sp.n_bins - 1)
@@ -190,8 +195,15 @@ class OasisRule:
     hit).
     """
 
-    def __init__(self, spec: gpumap.SonarSpec, grid: gpumap.GridSpec, threshold: float = 0.1,
-                 fnr: float = 0.5, backend: str = "auto", method: str = "gather") -> None:
+    def __init__(
+        self,
+        spec: gpumap.SonarSpec,
+        grid: gpumap.GridSpec,
+        threshold: float = 0.1,
+        fnr: float = 0.5,
+        backend: str = "auto",
+        method: str = "gather",
+    ) -> None:
         self.threshold = float(threshold)
         self.fnr = float(fnr)
         self.grid = grid
@@ -231,8 +243,14 @@ class OctoMapBaseline:
         OctoMap's sensor model (its defaults, 0.7 / 0.4, when not given).
     """
 
-    def __init__(self, spec: gpumap.SonarSpec, grid: gpumap.GridSpec, threshold: float = 0.1,
-                 prob_hit: float | None = None, prob_miss: float | None = None) -> None:
+    def __init__(
+        self,
+        spec: gpumap.SonarSpec,
+        grid: gpumap.GridSpec,
+        threshold: float = 0.1,
+        prob_hit: float | None = None,
+        prob_miss: float | None = None,
+    ) -> None:
         import pyoctomap  # optional dependency: fails here, at first use, with the original error
 
         self.spec = spec
@@ -261,9 +279,11 @@ class OctoMapBaseline:
         """Insert one ping's beam points with rays from the sonar origin."""
         pts = self.beam_points_W(image, T_W_S)
         if len(pts):
-            self.tree.insertPointCloud(np.ascontiguousarray(pts + self._shift),
-                                       np.asarray(T_W_S[:3, 3] + self._shift, dtype=np.float64),
-                                       max_range=float(self.spec.range_max_m))
+            self.tree.insertPointCloud(
+                np.ascontiguousarray(pts + self._shift),
+                np.asarray(T_W_S[:3, 3] + self._shift, dtype=np.float64),
+                max_range=float(self.spec.range_max_m),
+            )
 
     def values(self) -> np.ndarray:
         """(nx, ny, nz) float32 on the benchmark grid: 1 occupied, 0 free, NaN unknown."""
@@ -280,5 +300,5 @@ class OctoMapBaseline:
             if np.any(hi <= lo):
                 continue
             occ = tree.isNodeOccupied(leaf.current_node)
-            out[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = 1.0 if occ else 0.0
+            out[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] = 1.0 if occ else 0.0
         return out

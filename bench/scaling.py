@@ -26,8 +26,12 @@ def linear_fit(x: np.ndarray, y: np.ndarray) -> dict[str, float]:
     ss_tot = float(np.sum((y - y.mean()) ** 2))
     ok = (x > 0) & (y > 0)
     slope = float(np.polyfit(np.log(x[ok]), np.log(y[ok]), 1)[0]) if ok.sum() >= 2 else float("nan")
-    return {"intercept": float(a), "slope": float(b), "r2": 1.0 - ss_res / ss_tot if ss_tot > 0 else 1.0,
-            "loglog_slope": slope}
+    return {
+        "intercept": float(a),
+        "slope": float(b),
+        "r2": 1.0 - ss_res / ss_tot if ss_tot > 0 else 1.0,
+        "loglog_slope": slope,
+    }
 
 
 def voxels_fit(rows: list[dict]) -> list[dict[str, Any]]:
@@ -43,10 +47,21 @@ def voxels_fit(rows: list[dict]) -> list[dict[str, Any]]:
         x = np.array([r["voxels_in_view"] for r in rs])
         y = np.array([r["ms_median"] for r in rs])
         f = linear_fit(x, y)
-        out.append({"backend": b, "device": dev, "method": m, "voxels_in_view": x.tolist(),
-                    "ms_median": y.tolist(),
-                    "voxel_size_m": [r["voxel_size_m"] for r in rs], "ms_fixed": f["intercept"],
-                    "ns_per_voxel": 1e6 * f["slope"], "r2": f["r2"], "loglog_slope": f["loglog_slope"]})
+        out.append(
+            {
+                "backend": b,
+                "device": dev,
+                "on_gpu": b in ("warp-cuda", "opencl-gpu"),
+                "method": m,
+                "voxels_in_view": x.tolist(),
+                "ms_median": y.tolist(),
+                "voxel_size_m": [r["voxel_size_m"] for r in rs],
+                "ms_fixed": f["intercept"],
+                "ns_per_voxel": 1e6 * f["slope"],
+                "r2": f["r2"],
+                "loglog_slope": f["loglog_slope"],
+            }
+        )
     return out
 
 
@@ -57,8 +72,13 @@ def _pose(k: int, n: int) -> np.ndarray:
     return trajectory(n)[k]
 
 
-def image_size_sweep(backends: list[str], voxel_size_m: float = 0.03, pings: int = 20,
-                     method: str = "gather", progress: bool = True) -> list[dict[str, Any]]:
+def image_size_sweep(
+    backends: list[str],
+    voxel_size_m: float = 0.03,
+    pings: int = 20,
+    method: str = "gather",
+    progress: bool = True,
+) -> list[dict[str, Any]]:
     """Median ms per image against image size (bins x beams) at one voxel size, synthetic speckle."""
     from .mapper_speed import tank_grid, trajectory
 
@@ -67,11 +87,13 @@ def image_size_sweep(backends: list[str], voxel_size_m: float = 0.03, pings: int
     out = []
     jobs = [(b, s) for b in backends for s in IMAGE_SIZES]
     for b, (nb, nbeam) in tqdm(jobs, desc="image sizes", unit="row", disable=not progress):
-        spec = gpumap.SonarSpec.uniform(hfov_deg=130, vfov_deg=20, n_beams=nbeam, n_bins=nb,
-                                        range_min_m=0.1, range_max_m=2.0)
+        spec = gpumap.SonarSpec.uniform(
+            hfov_deg=130, vfov_deg=20, n_beams=nbeam, n_bins=nb, range_min_m=0.1, range_max_m=2.0
+        )
         rng = np.random.default_rng(0)
-        imgs = [(rng.random(spec.image_shape, dtype=np.float32) ** 6 * 255).astype(np.uint8)
-                for _ in range(8)]
+        imgs = [
+            (rng.random(spec.image_shape, dtype=np.float32) ** 6 * 255).astype(np.uint8) for _ in range(8)
+        ]
         n = pings if b != "numpy" else min(pings, 6)
         try:
             m = gpumap.MinMaxMapper(spec, grid, backend=b, method=method)
@@ -84,10 +106,21 @@ def image_size_sweep(backends: list[str], voxel_size_m: float = 0.03, pings: int
                 m.integrate(imgs[k % len(imgs)], poses[k])
                 m.synchronize()
                 lat.append(1e3 * (time.perf_counter() - t))
-            out.append({"backend": m.backend, "device": m.device, "method": method,
-                        "voxel_size_m": voxel_size_m,
-                        "n_bins": nb, "n_beams": nbeam, "pixels": nb * nbeam, "pings": n,
-                        "ms_median": float(np.median(lat)), "ms_p95": float(np.percentile(lat, 95))})
+            out.append(
+                {
+                    "backend": b,
+                    "device": m.device,
+                    "on_gpu": b in ("warp-cuda", "opencl-gpu"),
+                    "method": method,
+                    "voxel_size_m": voxel_size_m,
+                    "n_bins": nb,
+                    "n_beams": nbeam,
+                    "pixels": nb * nbeam,
+                    "pings": n,
+                    "ms_median": float(np.median(lat)),
+                    "ms_p95": float(np.percentile(lat, 95)),
+                }
+            )
         except Exception as e:
             out.append({"backend": b, "n_bins": nb, "n_beams": nbeam, "error": repr(e)})
     return out

@@ -59,8 +59,13 @@ class TankPings:
         """Write the pings to ``path`` (.npz, compressed)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(path, images=self.images, poses=self.poses, seen_cells=self.seen_cells,
-                            meta=np.array(json.dumps(self.meta)))
+        np.savez_compressed(
+            path,
+            images=self.images,
+            poses=self.poses,
+            seen_cells=self.seen_cells,
+            meta=np.array(json.dumps(self.meta)),
+        )
         return path
 
 
@@ -72,8 +77,9 @@ def load_pings(path: str | os.PathLike) -> TankPings:
             raise ValueError(f"Expected a bench ping file with {sorted(missing)}, but {path} has {z.files}")
         out = TankPings(z["images"], z["poses"], z["seen_cells"], json.loads(str(z["meta"])))
     if out.images.dtype != np.uint8 or out.images.ndim != 3:
-        raise ValueError(f"Expected (n, bins, beams) uint8 images in {path}, but got "
-                         f"{out.images.shape} {out.images.dtype}")
+        raise ValueError(
+            f"Expected (n, bins, beams) uint8 images in {path}, but got {out.images.shape} {out.images.dtype}"
+        )
     out.meta["loaded_from"] = str(path)
     return out
 

@@ -1,0 +1,535 @@
+"""``python -m bench.report``: every ``bench/results/*.json`` -> ``BENCHMARKS.md`` and its PNG plots.
+
+Results of several machines (the CPU run here, ``gpu_*.json`` from a GPU box) are merged:
+each keeps its own section, labelled with the machine and device recorded in its JSON;
+the plots and the targets table draw on all of them.
+
+    python -m bench.report [--results bench/results] [--out BENCHMARKS.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+from .common import OASIS_PUBLISHED_MS, PAPER_TABLE_I, SONAR_RATE_HZ, TARGETS
+
+BASELINE_LABELS = {
+    "paper-numpy": "paper's six steps, plain NumPy (ours)",
+    "oasis-rule": "OASIS rule (fnr 0.5) on gpumap footprints",
+    "octomap": "OctoMap (pyoctomap), beam maxima at elevation 0",
+}
+
+
+def load_results(folder: Path) -> list[dict[str, Any]]:
+    """Every bench JSON in ``folder`` (sorted: CPU runs first, then GPU runs)."""
+    out = []
+    for p in sorted(folder.glob("*.json")):
+        try:
+            d = json.loads(p.read_text())
+        except (OSError, json.JSONDecodeError):
+            continue
+        if d.get("schema", "").startswith("gpumap-bench/"):
+            d["_file"] = p.name
+            out.append(d)
+    return sorted(out, key=lambda d: (d["run"].get("gpu_only", False), d["_file"]))
+
+
+def _f(x: Any, fmt: str = ".3g", none: str = "–") -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return none
+    if isinstance(x, bool):
+        return "yes" if x else "no"
+    return format(x, fmt)
+
+
+def _pct(x: Any) -> str:
+    return _f(None if x is None else 100.0 * x, ".1f") + ("" if x is None else " %")
+
+
+def _device_label(res: dict, row: dict) -> str:
+    dev = row.get("device", "")
+    if _is_gpu(row):
+        gp = res["machine"].get("gpus") or [dev]
+        return gp[0].split(" (")[0]
+    return f"{res['machine']['cpu_model']} ({res['machine']['cpu_count']} cores)"
+
+
+def _is_gpu(row: dict) -> bool:
+    return bool(row.get("on_gpu")) or row.get("backend", "") in ("warp-cuda", "opencl-gpu")
+
+
+def _series(res: dict, row: dict) -> str:
+    if row.get("kind") == "gpumap":
+        s = f"gpumap {row['backend']} {row['method']}"
+        if _is_gpu(row):
+            s += f" [{_device_label(res, row)}]"
+        return s
+    return BASELINE_LABELS.get(row["kind"], row["kind"])
+
+
+# ------------------------------------------------------------------------------ tables
+def _machine_block(res: dict) -> list[str]:
+    m, r = res["machine"], res["run"]
+    v = m.get("versions", {})
+    lines = [
+        f"- **Machine**: {m['cpu_model']}, {m['cpu_count']} cores, {m.get('mem_total_gb', '?')} GB"
+        + (f"; GPU: {', '.join(m['gpus'])}" if m.get("gpus") else "; no GPU"),
+        f"- **Load average** (1/5/15 min) at start {m.get('load_avg_start')}, at end {m.get('load_avg_end')}"
+        " (the CPU is shared; a load above the core count means other work competed with the bench)",
+        f"- **Versions**: gpumap {v.get('gpumap')}, numpy {v.get('numpy')}, warp-lang {v.get('warp-lang')}, "
+        f"pyopencl {v.get('pyopencl')}, PoCL {v.get('pocl-binary-distribution')}, "
+        f"pyoctomap {v.get('pyoctomap')}; {m.get('platform')}",
+        f"- **Pings**: {r['pings']} pings of the tank trajectory (seed {r['seed']}, {r['ping_source']}), "
+        f"{r['image_shape'][0]} bins x {r['image_shape'][1]} beams, {r['image_dtype']}; "
+        f"occupied threshold {r['threshold']}",
+        f"- **Warm-up**: {r['warmup_note']}",
+        f"- **Timing**: {r['timing_note']}",
+        f"- **Run**: `{' '.join(['python -m bench', *res.get('argv', [])])}`, {res['created']}, "
+        f"{r['duration_s']:.0f} s; file `bench/results/{res['_file']}`",
+    ]
+    return lines
+
+
+def _gpumap_table(res: dict) -> list[str]:
+    rows = [r for r in res["rows"] if r.get("kind") == "gpumap"]
+    out = [
+        "| voxel | backend | method | images/s | median ms | p95 ms | FN | miss (seen) | FP | height err "
+        "| holes (1 ping) | peak RSS MB | device MB | voxels in view |",
+        "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in sorted(rows, key=lambda r: (-r["voxel_size_m"], r["backend"], r["method"])):
+        if "error" in r:
+            out.append(
+                f"| {r['voxel_size_m'] * 100:g} cm | {r['backend']} | {r['method']} | error: "
+                f"`{r['error'][:80]}` |||||||||||"
+            )
+            continue
+        note = (
+            ""
+            if "quality_from" not in r
+            else f" (timed {r['pings_timed']} pings; quality = {r['quality_from']})"
+        )
+        out.append(
+            f"| {r['voxel_size_m'] * 100:g} cm | {r['backend']}{note} | {r['method']} "
+            f"| {_f(r['images_per_s'], '.1f')} | {_f(r['ms_median'], '.2f')} | {_f(r['ms_p95'], '.2f')} "
+            f"| {_pct(r.get('false_negative_rate'))} "
+            f"| {_pct(r.get('miss_rate_seen'))} | {_pct(r.get('false_positive_rate'))} "
+            f"| {_f(r.get('height_error_mean_m') and 100 * r['height_error_mean_m'], '.1f')} cm "
+            f"| {_pct(r.get('hole_fraction_single_ping'))} | {_f(r.get('peak_host_rss_mb'), '.0f')} "
+            f"| {_f(r.get('device_mem_mb'), '.0f')} | {_f(r.get('voxels_in_view'), '.3g')} |"
+        )
+    return out
+
+
+def _baseline_table(res: dict) -> list[str]:
+    rows = [r for r in res["rows"] if r.get("kind") != "gpumap"]
+    if not rows:
+        return []
+    best = {}
+    for r in res["rows"]:
+        if r.get("kind") == "gpumap" and "images_per_s" in r and "false_negative_rate" in r:
+            k = r["voxel_size_m"]
+            if k not in best or r["images_per_s"] > best[k]["images_per_s"]:
+                best[k] = r
+    out = [
+        "| voxel | mapper | images/s | median ms | FN | miss (seen) | FP | height err | observed "
+        "| published: paper Table I | published: OASIS code |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for v in sorted({r["voxel_size_m"] for r in rows}, reverse=True):
+        group = [best[v]] if v in best else []
+        group += sorted((r for r in rows if r["voxel_size_m"] == v), key=lambda r: r["kind"])
+        for r in group:
+            name = (
+                _series(res, r)
+                if r.get("kind") != "gpumap"
+                else f"**gpumap {r['backend']} {r['method']}** (fastest)"
+            )
+            if "error" in r:
+                out.append(f"| {v * 100:g} cm | {name} | error: `{r['error'][:80]}` ||||||||")
+                continue
+            pub = PAPER_TABLE_I.get(v)
+            oas = OASIS_PUBLISHED_MS.get(v)
+            first = r is group[0]
+            out.append(
+                f"| {v * 100:g} cm | {name} | {_f(r['images_per_s'], '.1f')} | {_f(r['ms_median'], '.1f')} "
+                f"| {_pct(r.get('false_negative_rate'))} | {_pct(r.get('miss_rate_seen'))} "
+                f"| {_pct(r.get('false_positive_rate'))} "
+                f"| {_f(r.get('height_error_mean_m') and 100 * r['height_error_mean_m'], '.1f')} cm "
+                f"| {_pct(r.get('observed_fraction'))} "
+                f"| {(f'{pub * 1e3:g} ms ({1 / pub:.2g} Hz)' if pub and first else '')} "
+                f"| {(f'{oas:g} ms ({1e3 / oas:.2g} Hz)' if oas and first else '')} |"
+            )
+    return out
+
+
+def _targets(results: list[dict]) -> list[str]:
+    out = ["| target | best measured (configuration, machine) | images/s | met? |", "|---|---|---:|---|"]
+    for dev, v, hz in TARGETS:
+        cands = []
+        for res in results:
+            for r in res["rows"]:
+                if r.get("kind") != "gpumap" or "images_per_s" not in r:
+                    continue
+                if abs(r["voxel_size_m"] - v) > 1e-9 or _is_gpu(r) != (dev == "gpu"):
+                    continue
+                cands.append((r["images_per_s"], r, res))
+        label = f"{'CPU (this 2-core box)' if dev == 'cpu' else 'H100'}: {v * 100:g} cm at >= {hz:g} images/s"
+        if not cands:
+            out.append(f"| {label} | not measured here (needs the GPU run) | – | not yet measured |")
+            continue
+        ips, r, res = max(cands, key=lambda c: c[0])
+        ok = ips >= hz
+        out.append(
+            f"| {label} | {r['backend']} {r['method']} on {_device_label(res, r)} | {ips:.1f} "
+            f"| {'**met**' if ok else f'**not met** ({100 * ips / hz:.0f} % of target)'} |"
+        )
+    return out
+
+
+def _why(results: list[dict]) -> list[str]:
+    """Data-driven reasons: per-voxel cost (from the linear fit) times voxels in view."""
+    out = []
+    for res in results:
+        fits = res.get("scaling", {}).get("voxels_in_view_fit", [])
+        for f in fits:
+            if f["method"] != "gather":
+                continue
+            rows = {round(v, 4): n for v, n in zip(f["voxel_size_m"], f["voxels_in_view"], strict=True)}
+            parts = []
+            for dev, v, hz in TARGETS:
+                n = rows.get(round(v, 4))
+                if n is None or (dev == "gpu") != _is_gpu(f):
+                    continue
+                ms = f["ms_fixed"] + f["ns_per_voxel"] * 1e-6 * n
+                parts.append(
+                    f"{v * 100:g} cm: {n:.3g} voxels in view x {f['ns_per_voxel']:.3g} ns + "
+                    f"{f['ms_fixed']:.2f} ms = {ms:.2f} ms -> {1e3 / ms:.0f} images/s (target {hz:g})"
+                )
+            if parts:
+                out.append(f"- {f['backend']} ({f['device']}): " + "; ".join(parts))
+    return out
+
+
+def _scaling(res: dict) -> list[str]:
+    s = res.get("scaling", {})
+    out = []
+    fits = s.get("voxels_in_view_fit", [])
+    if fits:
+        out += [
+            "",
+            "Time per image against voxels in view (a ping's observed voxels, mean of 4 pings), "
+            "least squares `ms = a + b * voxels` over the voxel sizes:",
+            "",
+            "| backend | method | a (ms) | b (ns/voxel) | R² | log-log slope |",
+            "|---|---|---:|---:|---:|---:|",
+        ]
+        for f in fits:
+            out.append(
+                f"| {f['backend']} | {f['method']} | {f['ms_fixed']:.3g} | {f['ns_per_voxel']:.3g} "
+                f"| {f['r2']:.3f} | {f['loglog_slope']:.2f} |"
+            )
+    im = [r for r in s.get("image_size", []) if "error" not in r]
+    if im:
+        sizes = sorted({(r["n_bins"], r["n_beams"]) for r in im}, key=lambda x: x[0] * x[1])
+        backs = sorted({r["backend"] for r in im})
+        out += [
+            "",
+            f"Median ms per image against image size (bins x beams), {im[0]['voxel_size_m'] * 100:g} cm, "
+            f"{im[0]['method']}, synthetic speckle:",
+            "",
+            "| backend | " + " | ".join(f"{a}x{b}" for a, b in sizes) + " |",
+            "|---|" + "---:|" * len(sizes),
+        ]
+        for b in backs:
+            cells = []
+            for sz in sizes:
+                r = next((r for r in im if r["backend"] == b and (r["n_bins"], r["n_beams"]) == sz), None)
+                cells.append(_f(r and r["ms_median"], ".2f"))
+            out.append(f"| {b} | " + " | ".join(cells) + " |")
+    ekf = s.get("ekf", [])
+    if ekf:
+        out += [
+            "",
+            "EKF (`gpumap.ekf.SonarEKF`) cost against features in the state (every feature re-observed "
+            "each update; `bench.ekf_bench._time_updates`):",
+            "",
+            "| features | state dim | predict µs | update µs |",
+            "|---:|---:|---:|---:|",
+        ]
+        for r in ekf:
+            out.append(
+                f"| {r['n_features']} | {r['state_dim']} | {r['predict_us_median']:.0f} "
+                f"| {r['update_us_median']:.0f} |"
+            )
+        out.append(
+            f"\nlog-log slope of update cost vs state dimension: {ekf[0]['loglog_slope_vs_state_dim']:.2f} "
+            "(dense covariance: 2-3 expected as the state grows)."
+        )
+    sim = s.get("simulator")
+    if sim:
+        out += [
+            "",
+            f"Simulator (`gpumap.sim` pyrender sonar, {sim['rays_per_ping']} rays per ping, GL renderer "
+            f"`{sim['gl_renderer']}`): **{sim['images_per_s']:.1f} images/s** "
+            f"(median {sim['ms_median']:.0f} ms per image; first ping, {sim['init_s']:.1f} s, excluded).",
+        ]
+    return out
+
+
+# ------------------------------------------------------------------------------ plots
+def _plots(results: list[dict], out_dir: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = []
+    markers = {0.06: "o", 0.05: "s", 0.04: "^", 0.03: "D", 0.02: "v", 0.01: "P", 0.005: "*"}
+    # 1. speed vs false negatives
+    fig, ax = plt.subplots(figsize=(9, 5.5))
+    series: dict[str, list] = {}
+    for res in results:
+        for r in res["rows"]:
+            if "images_per_s" in r and r.get("false_negative_rate") is not None and "quality_from" not in r:
+                series.setdefault(_series(res, r), []).append(r)
+    cmap = plt.get_cmap("tab20")
+    for i, (name, rs) in enumerate(sorted(series.items())):
+        rs = sorted(rs, key=lambda r: r["voxel_size_m"])
+        c = cmap(i % 20)
+        ax.plot(
+            [r["images_per_s"] for r in rs],
+            [100 * r["false_negative_rate"] for r in rs],
+            "-",
+            color=c,
+            lw=0.8,
+            alpha=0.6,
+        )
+        for r in rs:
+            ax.plot(
+                r["images_per_s"],
+                100 * r["false_negative_rate"],
+                markers.get(r["voxel_size_m"], "x"),
+                color=c,
+                ms=6,
+            )
+        ax.plot([], [], "-", color=c, label=name)
+    for v, mk in markers.items():
+        ax.plot([], [], mk, color="gray", label=f"{v * 100:g} cm")
+    ax.axvline(SONAR_RATE_HZ, color="k", ls="--", lw=0.8)
+    ax.set(
+        xscale="log",
+        xlabel="images per second (log)",
+        ylabel="false-negative rate (%)",
+        title="Speed against false negatives, same tank pings",
+    )
+    ax.legend(fontsize=6.5, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout()
+    fig.savefig(out_dir / "speed_vs_fn.png", dpi=75)
+    plt.close(fig)
+    names.append("speed_vs_fn.png")
+
+    # 2. Hz vs voxel size against Table I
+    fig, ax = plt.subplots(figsize=(9, 5.5))
+    for i, (name, rs) in enumerate(sorted(series.items())):
+        rs = sorted(rs, key=lambda r: r["voxel_size_m"])
+        ax.plot(
+            [100 * r["voxel_size_m"] for r in rs],
+            [r["images_per_s"] for r in rs],
+            "o-",
+            color=cmap(i % 20),
+            ms=4,
+            lw=1,
+            label=name,
+        )
+    for res in results:  # capped numpy rows still have speeds
+        for r in res["rows"]:
+            if "quality_from" in r:
+                ax.plot(100 * r["voxel_size_m"], r["images_per_s"], "x", color="gray", ms=5)
+    tv = sorted(PAPER_TABLE_I)
+    ax.plot(
+        [100 * v for v in tv],
+        [1 / PAPER_TABLE_I[v] for v in tv],
+        "k-s",
+        lw=2,
+        ms=5,
+        label="paper Table I (published)",
+    )
+    ov = sorted(OASIS_PUBLISHED_MS)
+    ax.plot(
+        [100 * v for v in ov],
+        [1e3 / OASIS_PUBLISHED_MS[v] for v in ov],
+        "k:^",
+        lw=1.5,
+        ms=5,
+        label="OASIS code (published, issue 6)",
+    )
+    ax.axhline(SONAR_RATE_HZ, color="r", ls="--", lw=1, label="10 Hz sonar rate")
+    for dev, v, hz in TARGETS:
+        ax.plot(
+            100 * v,
+            hz,
+            "*",
+            color="gold" if dev == "cpu" else "lime",
+            ms=14,
+            mec="k",
+            label=f"target {dev.upper()}" if (dev, v) in (("cpu", 0.03), ("gpu", 0.01)) else None,
+        )
+    ax.set(
+        xscale="log",
+        yscale="log",
+        xlabel="voxel size (cm, log)",
+        ylabel="images per second (log)",
+        title="Update rate against voxel size",
+    )
+    ax.invert_xaxis()
+    ax.legend(fontsize=6.5, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout()
+    fig.savefig(out_dir / "hz_vs_voxel.png", dpi=75)
+    plt.close(fig)
+    names.append("hz_vs_voxel.png")
+
+    # 3. scaling
+    fits = [(res, f) for res in results for f in res.get("scaling", {}).get("voxels_in_view_fit", [])]
+    ims = [
+        (res, r) for res in results for r in res.get("scaling", {}).get("image_size", []) if "error" not in r
+    ]
+    ekf = [r for res in results for r in res.get("scaling", {}).get("ekf", [])]
+    if fits or ims or ekf:
+        fig, axs = plt.subplots(1, 3, figsize=(13, 4))
+        import numpy as np
+
+        for i, (_, f) in enumerate(fits):
+            x = np.array(f["voxels_in_view"])
+            c = cmap(i % 20)
+            axs[0].plot(x, f["ms_median"], "o", color=c, ms=4, label=f"{f['backend']} {f['method']}")
+            xx = np.linspace(x.min(), x.max(), 50)
+            axs[0].plot(xx, f["ms_fixed"] + f["ns_per_voxel"] * 1e-6 * xx, "-", color=c, lw=0.8)
+        axs[0].set(
+            xscale="log",
+            yscale="log",
+            xlabel="voxels in view per ping",
+            ylabel="median ms per image",
+            title="cost vs voxels in view (lines: linear fit)",
+        )
+        axs[0].legend(fontsize=6)
+        groups: dict[str, list] = {}
+        for _, r in ims:
+            groups.setdefault(f"{r['backend']}" + (" [GPU]" if _is_gpu(r) else ""), []).append(r)
+        for name, rs in sorted(groups.items()):
+            rs = sorted(rs, key=lambda r: r["pixels"])
+            axs[1].plot([r["pixels"] for r in rs], [r["ms_median"] for r in rs], "o-", ms=4, label=name)
+        axs[1].set(
+            xscale="log",
+            yscale="log",
+            xlabel="pixels per image (bins x beams)",
+            ylabel="median ms",
+            title="cost vs image size (3 cm, gather)",
+        )
+        axs[1].legend(fontsize=6)
+        if ekf:
+            axs[2].plot(
+                [r["n_features"] for r in ekf], [r["update_us_median"] for r in ekf], "o-", label="update"
+            )
+            axs[2].plot(
+                [r["n_features"] for r in ekf], [r["predict_us_median"] for r in ekf], "s-", label="predict"
+            )
+            axs[2].set(
+                xscale="log",
+                yscale="log",
+                xlabel="features in the state",
+                ylabel="µs",
+                title="EKF cost vs features",
+            )
+            axs[2].legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out_dir / "scaling.png", dpi=70)
+        plt.close(fig)
+        names.append("scaling.png")
+    return names
+
+
+# ------------------------------------------------------------------------------ the document
+def render(results: list[dict], plots: list[str], plot_prefix: str) -> str:
+    L = [
+        "# Benchmarks: speed against error",
+        "",
+        "Generated by `python -m bench.report` from `bench/results/*.json` (do not edit by hand; rerun "
+        "`python -m bench` and then the report). Every row maps **the same simulated tank pings** "
+        "(`gpumap.sim`, the paper's 4 x 3 x 1 m workspace, 0.6 m tank with chain, rock, basket, thin pipe) "
+        "and is scored against ground truth with `gpumap.sim.metrics.evaluate`.",
+        "",
+        "Columns: **FN** = seen obstacle voxels the map observed but called free (the safety number); "
+        "**miss (seen)** = seen obstacle voxels not called occupied whether observed or not (fair to maps "
+        "that observe little, like OctoMap); **FP** = free voxels called occupied; **height err** = mean "
+        "over objects of (map top - truth top), the elevation stretch; **holes (1 ping)** = voxels the "
+        "gather method observes in one ping that the template method misses; **peak RSS** = rise of the "
+        "process's "
+        "resident memory during the row; **device MB** = GPU memory the backend reported in use.",
+        "",
+        "## Targets",
+        "",
+        *_targets(results),
+        "",
+    ]
+    why = _why(results)
+    if why:
+        L += [
+            "Why, from the linear cost model (fixed cost + per-voxel cost x voxels in view, fitted below):",
+            "",
+            *why,
+            "",
+        ]
+    L += [
+        "Published figures, labelled as such and not re-measured: the paper's Table I (its own machine: "
+        + ", ".join(f"{v * 100:g} cm {s:g} s" for v, s in sorted(PAPER_TABLE_I.items(), reverse=True))
+        + " per image) and the public OASIS code on this project's CPU as published in issue 6 ("
+        + ", ".join(f"{v * 100:g} cm {ms:g} ms" for v, ms in sorted(OASIS_PUBLISHED_MS.items(), reverse=True))
+        + ").",
+        "",
+    ]
+    for p in plots:
+        L += [f"![{p}]({plot_prefix}{p})", ""]
+    for res in results:
+        L += [f"## {res['tag']}", "", *_machine_block(res), "", "### gpumap", "", *_gpumap_table(res), ""]
+        bt = _baseline_table(res)
+        if bt:
+            L += [
+                "### Baselines on the same pings",
+                "",
+                "The fastest gpumap row of each voxel size first; the paper's Table I and the OASIS code's "
+                "published times on the first line of each voxel size.",
+                "",
+                *bt,
+                "",
+            ]
+            notes = sorted({(r["kind"], r.get("note", "")) for r in res["rows"] if r.get("kind") != "gpumap"})
+            L += [f"- `{k}`: {n}" for k, n in notes] + [""]
+        sc = _scaling(res)
+        if sc:
+            L += ["### Scaling", *sc, ""]
+    return "\n".join(L).rstrip() + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--results", type=Path, default=Path("bench/results"))
+    ap.add_argument("--out", type=Path, default=Path("BENCHMARKS.md"))
+    a = ap.parse_args(argv)
+    results = load_results(a.results)
+    if not results:
+        raise SystemExit(f"no bench results in {a.results}; run `python -m bench` first")
+    plots = _plots(results, a.results)
+    prefix = os.path.relpath(a.results, a.out.parent or ".") + "/"
+    a.out.write_text(render(results, plots, prefix))
+    print(f"wrote {a.out} and {', '.join(str(a.results / p) for p in plots)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
