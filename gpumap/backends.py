@@ -121,6 +121,8 @@ def _warp_params(wp, minmax, p: np.ndarray):
     s.n_levels = int(p["n_levels"])
     s.lut_scale = float(p["lut_scale"])
     s.lut_n = int(p["lut_n"])
+    s.wedge = wp.vec4(*p["wedge"].tolist())
+    s.slab = float(p["slab"])
     return s
 
 

@@ -47,6 +47,8 @@ PING_DTYPE = np.dtype(
         ("n_levels", np.int32),  # beam levels of the max table
         ("lut_scale", np.float32),  # beam look-up table entries per radian
         ("lut_n", np.int32),  # beam look-up table entries
+        ("wedge", np.float32, (4,)),  # (-sin lo, cos lo, sin hi, -cos hi): azimuth half-planes
+        ("slab", np.float32),  # r_max sin(vfov / 2), bound on |z| in the sonar frame
     ]
 )
 
@@ -77,6 +79,10 @@ def static_params(spec: SonarSpec, grid: GridSpec) -> np.ndarray:
     p["n_levels"] = min(spec.n_beams.bit_length(), MAX_TABLE_LEVELS)
     p["lut_n"] = LUT_PER_BEAM * spec.n_beams
     p["lut_scale"] = p["lut_n"] / (p["edge_hi"] - p["edge_lo"])
+    lo, hi = float(spec.beam_edges_rad[0]), float(spec.beam_edges_rad[-1])
+    p["wedge"] = (-math.sin(lo), math.cos(lo), math.sin(hi), -math.cos(hi))
+    # a hair wider than the aperture: the slab only bounds the column walk
+    p["slab"] = spec.range_max_m * math.sin(0.5 * spec.vfov_rad) * (1 + 1e-4) + 1e-5
     return p
 
 
@@ -100,7 +106,7 @@ def beam_lut(spec: SonarSpec) -> np.ndarray:
 
 
 def ping_params(params: np.ndarray, T_W_S: np.ndarray, fov_pts_S: np.ndarray, grid: GridSpec) -> int:
-    """Fill the per-ping fields of ``params`` in place; return the gather box's voxel count.
+    """Fill the per-ping fields of ``params`` in place; return the gather box's (i, j) column count.
 
     ``fov_pts_S`` is :meth:`SonarSpec.fov_corners_S`: points whose box, padded by one voxel,
     contains every voxel centre the ping can see. (On the hot path: a few small array ops.)
@@ -118,14 +124,12 @@ def ping_params(params: np.ndarray, T_W_S: np.ndarray, fov_pts_S: np.ndarray, gr
     q1 = (pts_W.max(axis=0) + t - grid.min_corner_m) / s
     lo = params["box_lo"]
     n = params["box_n"]
-    total = 1
     for ax, dim in enumerate(grid.shape):
         i0 = min(max(math.floor(q0[ax]) - 1, 0), dim)
         i1 = min(max(math.floor(q1[ax]) + 1, -1), dim - 1)
         lo[ax] = i0
         n[ax] = max(i1 - i0 + 1, 0)
-        total *= int(n[ax])
-    return total
+    return int(n[0]) * int(n[1]) if n[2] > 0 else 0
 
 
 def make_template_S(spec: SonarSpec, voxel_size_m: float) -> np.ndarray:

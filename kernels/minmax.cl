@@ -27,6 +27,8 @@ typedef struct {
     int n_levels;    // beam levels of the max table (spans up to 2^n_levels - 1 in two reads)
     float lut_scale; // beam look-up table entries per radian
     int lut_n;       // beam look-up table entries
+    float wedge[4];  // (-sin lo, cos lo, sin hi, -cos hi): the fan's azimuth half-planes, n . (x, y) >= 0
+    float slab;      // r_max sin(vfov / 2): |z| of any imaged point in the sonar frame is below it
 } PingParams;
 
 // Largest beam j in [0, n_beams - 1] with edges[j] <= az (0 when none). A uniform look-up
@@ -127,26 +129,62 @@ __kernel void build_beam_levels(const PingParams P, __global float *table)
     }
 }
 
-// One work-item per voxel of the ping's index box (flattened, k fastest).
+// Intersect the interval [*lo, *hi] with {z : alpha + beta z >= 0}.
+inline void clip_linear(float *lo, float *hi, float alpha, float beta)
+{
+    if (fabs(beta) < 1.0e-12f) {
+        if (alpha < 0.0f) { *lo = 1.0f; *hi = -1.0f; }
+        return;
+    }
+    float zc = -alpha / beta;
+    if (beta > 0.0f) *lo = fmax(*lo, zc); else *hi = fmin(*hi, zc);
+}
+
+// World z-interval of the column (cx, cy) that can hold imaged points: the column cut by the
+// range sphere, the azimuth half-planes and the elevation slab, all of which contain the field
+// of view. A relaxation, so conservative; the per-voxel test stays exact.
+inline void column_range(const PingParams *P, float cx, float cy, float *lo, float *hi)
+{
+    float dx = cx - P->t[0], dy = cy - P->t[1];
+    float q = P->rmax * P->rmax - dx * dx - dy * dy;
+    if (q <= 0.0f) { *lo = 1.0f; *hi = -1.0f; return; }
+    float w = sqrt(q);
+    *lo = P->t[2] - w;
+    *hi = P->t[2] + w;
+    float p0x = P->A[0] * cx + P->A[1] * cy + P->b[0];
+    float p0y = P->A[3] * cx + P->A[4] * cy + P->b[1];
+    float p0z = P->A[6] * cx + P->A[7] * cy + P->b[2];
+    float ax = P->A[2], ay = P->A[5], az = P->A[8];
+    clip_linear(lo, hi, P->wedge[0] * p0x + P->wedge[1] * p0y, P->wedge[0] * ax + P->wedge[1] * ay);
+    clip_linear(lo, hi, P->wedge[2] * p0x + P->wedge[3] * p0y, P->wedge[2] * ax + P->wedge[3] * ay);
+    clip_linear(lo, hi, P->slab - p0z, -az);
+    clip_linear(lo, hi, P->slab + p0z, az);
+}
+
+// One work-item per (i, j) column of the ping's index box; it walks the column's voxels that
+// can be in view (contiguous in memory), one voxel at a time.
 __kernel void integrate_gather(const PingParams P, __global const float *image,
                                __global const float *edges, __global const int *lut,
                                __global const float *table,
                                int use_table, __global float *grid)
 {
     int tid = get_global_id(0);
-    int nyz = P.box_n[1] * P.box_n[2];
-    if (tid >= P.box_n[0] * nyz) return;
-    int i = P.box_lo[0] + tid / nyz;
-    int rem = tid % nyz;
-    int j = P.box_lo[1] + rem / P.box_n[2];
-    int k = P.box_lo[2] + rem % P.box_n[2];
+    if (tid >= P.box_n[0] * P.box_n[1]) return;
+    int i = P.box_lo[0] + tid / P.box_n[1];
+    int j = P.box_lo[1] + tid % P.box_n[1];
     float cx = P.origin[0] + ((float)i + 0.5f) * P.voxel;
     float cy = P.origin[1] + ((float)j + 0.5f) * P.voxel;
-    float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
-    float v = voxel_ping_value(&P, cx, cy, cz, image, edges, lut, table, use_table);
-    if (v >= 0.0f) {
-        size_t idx = ((size_t)i * P.dims[1] + j) * P.dims[2] + k;
-        grid[idx] = fmin(grid[idx], v);
+    float z0, z1;
+    column_range(&P, cx, cy, &z0, &z1);
+    if (z0 > z1) return;
+    // voxel centres inside [z0, z1], padded by one voxel against rounding
+    int k0 = max(P.box_lo[2], (int)ceil((z0 - P.origin[2]) / P.voxel - 0.5f) - 1);
+    int k1 = min(P.box_lo[2] + P.box_n[2] - 1, (int)floor((z1 - P.origin[2]) / P.voxel - 0.5f) + 1);
+    __global float *col = grid + ((size_t)i * P.dims[1] + j) * P.dims[2];
+    for (int k = k0; k <= k1; ++k) {
+        float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
+        float v = voxel_ping_value(&P, cx, cy, cz, image, edges, lut, table, use_table);
+        if (v >= 0.0f) col[k] = fmin(col[k], v);
     }
 }
 

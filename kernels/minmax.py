@@ -36,6 +36,8 @@ class PingParams:
     n_levels: int  # beam levels of the max table (spans up to 2^n_levels - 1 in two reads)
     lut_scale: float  # beam look-up table entries per radian
     lut_n: int  # beam look-up table entries
+    wedge: wp.vec4  # (-sin lo, cos lo, sin hi, -cos hi): the fan's azimuth half-planes, n . (x, y) >= 0
+    slab: float  # r_max sin(vfov / 2): |z| of any imaged point in the sonar frame is below it
 
 
 @wp.func
@@ -163,6 +165,45 @@ def voxel_centre(P: PingParams, i: int, j: int, k: int) -> wp.vec3:
     )
 
 
+@wp.func
+def clip_linear(z: wp.vec2, alpha: float, beta: float) -> wp.vec2:
+    """Intersect the interval z with {z : alpha + beta z >= 0}."""
+    if wp.abs(beta) < 1.0e-12:
+        if alpha < 0.0:
+            return wp.vec2(1.0, -1.0)  # empty
+        return z
+    zc = -alpha / beta
+    if beta > 0.0:
+        return wp.vec2(wp.max(z[0], zc), z[1])
+    return wp.vec2(z[0], wp.min(z[1], zc))
+
+
+@wp.func
+def column_range(P: PingParams, cx: float, cy: float) -> wp.vec2:
+    """World z-interval of the column (cx, cy) that can hold imaged points: the column cut by
+    the range sphere, the azimuth half-planes and the elevation slab, all of which contain
+    the field of view. A relaxation, so conservative; the per-voxel test stays exact."""
+    dx = cx - P.t[0]
+    dy = cy - P.t[1]
+    q = P.rmax * P.rmax - dx * dx - dy * dy
+    if q <= 0.0:
+        return wp.vec2(1.0, -1.0)
+    w = wp.sqrt(q)
+    z = wp.vec2(P.t[2] - w, P.t[2] + w)
+    # sonar-frame point at world height zw: p0 + zw * a
+    p0x = P.A[0, 0] * cx + P.A[0, 1] * cy + P.b[0]
+    p0y = P.A[1, 0] * cx + P.A[1, 1] * cy + P.b[1]
+    p0z = P.A[2, 0] * cx + P.A[2, 1] * cy + P.b[2]
+    ax = P.A[0, 2]
+    ay = P.A[1, 2]
+    az = P.A[2, 2]
+    z = clip_linear(z, P.wedge[0] * p0x + P.wedge[1] * p0y, P.wedge[0] * ax + P.wedge[1] * ay)
+    z = clip_linear(z, P.wedge[2] * p0x + P.wedge[3] * p0y, P.wedge[2] * ax + P.wedge[3] * ay)
+    z = clip_linear(z, P.slab - p0z, -az)
+    z = clip_linear(z, P.slab + p0z, az)
+    return z
+
+
 @wp.kernel
 def integrate_gather(
     P: PingParams,
@@ -172,17 +213,24 @@ def integrate_gather(
     table: wp.array(dtype=float),
     grid: wp.array(dtype=float),
 ):
-    """One thread per voxel of the ping's index box (flattened, k fastest)."""
+    """One thread per (i, j) column of the ping's index box; it walks the column's voxels
+    that can be in view (contiguous in memory), one voxel at a time."""
     tid = wp.tid()
-    nyz = P.box_n[1] * P.box_n[2]
-    i = P.box_lo[0] + tid // nyz
-    rem = tid - (tid // nyz) * nyz
-    j = P.box_lo[1] + rem // P.box_n[2]
-    k = P.box_lo[2] + rem - (rem // P.box_n[2]) * P.box_n[2]
-    v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, edges, lut, table)
-    if v >= 0.0:
-        idx = (i * P.dims[1] + j) * P.dims[2] + k
-        grid[idx] = wp.min(grid[idx], v)
+    i = P.box_lo[0] + tid // P.box_n[1]
+    j = P.box_lo[1] + tid - (tid // P.box_n[1]) * P.box_n[1]
+    cx = P.origin[0] + (float(i) + 0.5) * P.voxel
+    cy = P.origin[1] + (float(j) + 0.5) * P.voxel
+    z = column_range(P, cx, cy)
+    if z[0] > z[1]:
+        return
+    # voxel centres inside [z0, z1], padded by one voxel against rounding
+    k0 = wp.max(P.box_lo[2], int(wp.ceil((z[0] - P.origin[2]) / P.voxel - 0.5)) - 1)
+    k1 = wp.min(P.box_lo[2] + P.box_n[2] - 1, int(wp.floor((z[1] - P.origin[2]) / P.voxel - 0.5)) + 1)
+    base = (i * P.dims[1] + j) * P.dims[2]
+    for k in range(k0, k1 + 1):
+        v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, edges, lut, table)
+        if v >= 0.0:
+            grid[base + k] = wp.min(grid[base + k], v)
 
 
 @wp.kernel
