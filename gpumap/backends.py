@@ -19,7 +19,7 @@ from importlib import resources
 import numpy as np
 
 from gpumap.errors import BackendUnavailableError
-from gpumap.geometry import PING_DTYPE, beam_lut
+from gpumap.geometry import PING_DTYPE, beam_lut, beam_tan_edges
 from gpumap.spec import SonarSpec
 
 log = logging.getLogger("gpumap")
@@ -63,7 +63,7 @@ class NumpyBackend(Backend):
 
     def __init__(self, spec, n_voxels, template_S, use_table=None):
         self.grid = np.full(n_voxels, np.inf, dtype=np.float32)
-        self.edges = spec.beam_edges_rad.astype(np.float32)
+        self.edges = beam_tan_edges(spec)
         self.template = template_S
 
     def integrate(self, params, image, method, n_threads):
@@ -107,9 +107,9 @@ def _warp_params(wp, minmax, p: np.ndarray):
     s.rmin = float(p["rmin"])
     s.rmax = float(p["rmax"])
     s.inv_dr = float(p["inv_dr"])
-    s.tan_half_vfov = float(p["tan_half_vfov"])
-    s.edge_lo = float(p["edge_lo"])
-    s.edge_hi = float(p["edge_hi"])
+    s.tan2_half_vfov = float(p["tan2_half_vfov"])
+    s.tan_lo = float(p["tan_lo"])
+    s.tan_hi = float(p["tan_hi"])
     s.rho = float(p["rho"])
     s.dims = wp.vec3i(*p["dims"].tolist())
     s.box_lo = wp.vec3i(*p["box_lo"].tolist())
@@ -138,7 +138,7 @@ class WarpBackend(Backend):
         self.device = f"{self.dev.alias} ({self.dev.name})"
         with wp.ScopedDevice(self.dev):
             self.grid = wp.full(n_voxels, value=np.inf, dtype=float)
-            self.edges = wp.array(spec.beam_edges_rad.astype(np.float32), dtype=float)
+            self.edges = wp.array(beam_tan_edges(spec), dtype=float)
             self.lut = wp.array(beam_lut(spec), dtype=int)
             self.image = wp.empty((n_bins, n_beams), dtype=float)
             self.template = wp.array(template_S, dtype=wp.vec3) if template_S is not None else None
@@ -302,9 +302,7 @@ class OpenCLBackend(Backend):
         mf = cl.mem_flags
         self.grid = cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * n_voxels)
         cl.enqueue_fill_buffer(self.queue, self.grid, np.float32(np.inf), 0, 4 * n_voxels)
-        self.edges = cl.Buffer(
-            self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=spec.beam_edges_rad.astype(np.float32)
-        )
+        self.edges = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=beam_tan_edges(spec))
         self.lut = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=beam_lut(spec))
         # Two image slots: the upload of ping k+1 overlaps the kernels of ping k; a host
         # staging slot is refilled only once its previous upload has finished (event).

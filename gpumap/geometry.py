@@ -33,9 +33,9 @@ PING_DTYPE = np.dtype(
         ("rmin", np.float32),
         ("rmax", np.float32),
         ("inv_dr", np.float32),  # 1 / bin size, 1/m
-        ("tan_half_vfov", np.float32),
-        ("edge_lo", np.float32),  # outer azimuth edges of the fan, rad
-        ("edge_hi", np.float32),
+        ("tan2_half_vfov", np.float32),  # tan(vfov / 2)^2
+        ("tan_lo", np.float32),  # tangents of the fan's outer azimuth edges
+        ("tan_hi", np.float32),
         ("rho", np.float32),  # footprint (bounding-sphere) radius, m
         ("dims", np.int32, (3,)),  # grid (nx, ny, nz)
         ("box_lo", np.int32, (3,)),  # first voxel index of the gather box
@@ -66,9 +66,10 @@ def static_params(spec: SonarSpec, grid: GridSpec) -> np.ndarray:
     p["rmin"] = spec.range_min_m
     p["rmax"] = spec.range_max_m
     p["inv_dr"] = 1.0 / spec.bin_size_m
-    p["tan_half_vfov"] = math.tan(0.5 * spec.vfov_rad)
-    p["edge_lo"] = spec.beam_edges_rad[0]
-    p["edge_hi"] = spec.beam_edges_rad[-1]
+    p["tan2_half_vfov"] = math.tan(0.5 * spec.vfov_rad) ** 2
+    tan_edges = beam_tan_edges(spec)
+    p["tan_lo"] = tan_edges[0]
+    p["tan_hi"] = tan_edges[-1]
     p["rho"] = footprint_radius_m(grid.voxel_size_m)
     p["dims"] = grid.shape
     p["n_bins"] = spec.n_bins
@@ -77,8 +78,8 @@ def static_params(spec: SonarSpec, grid: GridSpec) -> np.ndarray:
     # a fixed window of that height from the first bin always holds them, one bin extra at most.
     p["win"] = min(int(math.floor(2.0 * float(p["rho"]) * float(p["inv_dr"]))) + 2, spec.n_bins)
     p["n_levels"] = min(spec.n_beams.bit_length(), MAX_TABLE_LEVELS)
-    p["lut_n"] = LUT_PER_BEAM * spec.n_beams
-    p["lut_scale"] = p["lut_n"] / (p["edge_hi"] - p["edge_lo"])
+    p["lut_n"] = _lut_size(spec)
+    p["lut_scale"] = p["lut_n"] / (p["tan_hi"] - p["tan_lo"])
     lo, hi = float(spec.beam_edges_rad[0]), float(spec.beam_edges_rad[-1])
     p["wedge"] = (-math.sin(lo), math.cos(lo), math.sin(hi), -math.cos(hi))
     # a hair wider than the aperture: the slab only bounds the column walk
@@ -86,22 +87,35 @@ def static_params(spec: SonarSpec, grid: GridSpec) -> np.ndarray:
     return p
 
 
+def beam_tan_edges(spec: SonarSpec) -> np.ndarray:
+    """(n_beams + 1,) float32 tangents of the beam-cell edges: kernels compare ``y / x`` with
+    them instead of taking ``atan2`` (the fan lies within +-90 deg, where tan is monotonic)."""
+    return np.tan(spec.beam_edges_rad).astype(np.float32)
+
+
+# Look-up entries per beam: the table is uniform in tan(azimuth), where beams near the fan's
+# edges are wider (sec^2), so it is sized for the narrowest, at boresight.
 LUT_PER_BEAM = 4
 # Beam levels of the per-ping max table: spans of up to 31 beams take two reads; wider ones
 # (voxels near the apex) a few more. More levels cost more to build than they save.
 MAX_TABLE_LEVELS = 5
 
 
+def _lut_size(spec: SonarSpec) -> int:
+    te = np.tan(spec.beam_edges_rad)
+    return int(LUT_PER_BEAM * spec.n_beams * max(1.0, (te[-1] - te[0]) / spec.hfov_rad))
+
+
 def beam_lut(spec: SonarSpec) -> np.ndarray:
-    """(4 n_beams,) int32: the beam holding the start of each uniform azimuth bucket.
+    """(lut_n,) int32: the beam holding the start of each uniform bucket of tan(azimuth).
 
     Kernels start from this guess and settle the exact beam with at most a few comparisons
     against the edges, instead of a binary search's unpredictable branches.
     """
-    edges = spec.beam_edges_rad.astype(np.float32)
-    n = LUT_PER_BEAM * spec.n_beams
-    az = edges[0] + (edges[-1] - edges[0]) * np.arange(n) / n
-    j = np.searchsorted(edges[:-1], az, side="right") - 1
+    te = beam_tan_edges(spec)
+    n = _lut_size(spec)
+    t = te[0] + (te[-1] - te[0]) * np.arange(n) / n
+    j = np.searchsorted(te[:-1], t, side="right") - 1
     return np.clip(j, 0, spec.n_beams - 1).astype(np.int32)
 
 

@@ -7,15 +7,18 @@ copying them. It is also the ``numpy`` backend.
 
 Per voxel centre ``c`` (world frame) and ping ``(image, T_W_S)``:
 
-1. ``p = T_S_W c``; ``r = |p|``, ``h = hypot(p_x, p_y)``.
-2. Observed when ``r_min <= r < r_max``, ``|p_z| <= tan(vfov/2) h`` and the azimuth
-   ``atan2(p_y, p_x)`` lies within the fan's outer beam edges. Otherwise the voxel is
+1. ``p = T_S_W c``; ``r = |p|``, ``h^2 = p_x^2 + p_y^2``, ``t = p_y / p_x`` (the tangent of
+   the azimuth: the fan lies within +-90 deg, so comparing tangents replaces ``atan2``).
+2. Observed when ``p_x > 0``, ``r_min <= r < r_max``, ``p_z^2 <= tan^2(vfov/2) h^2`` and
+   ``t`` lies within the tangents of the fan's outer beam edges. Otherwise the voxel is
    left as it is.
 3. Footprint: bins ``b0 = floor((r - rho - r_min) / dr)`` to ``b0 + win - 1`` (``win =
    floor(2 rho / dr) + 2``, the fixed height that always holds the sphere's bins; so at
-   most one bin more than the sphere's), clipped to the image, and beams holding azimuths
-   ``theta -+ asin(rho / h)`` (every beam when ``h <= rho``), clamped to the image, where
-   ``rho`` is the voxel's bounding-sphere radius (:func:`gpumap.geometry.footprint_radius_m`).
+   most one bin more than the sphere's), clipped to the image, and the beams holding
+   azimuths ``theta -+ asin(rho / h)``, as tangents ``(t -+ u) / (1 +- t u)`` with
+   ``u = rho / sqrt(h^2 - rho^2)`` (every beam when ``h <= rho``; the first or last beam
+   when the sum passes +-90 deg), where ``rho`` is the voxel's bounding-sphere radius
+   (:func:`gpumap.geometry.footprint_radius_m`).
 4. Ping value = max of the image over the footprint; grid value = min(grid, ping value).
 """
 
@@ -28,10 +31,10 @@ __all__ = ["beam_index_lo", "integrate_gather", "integrate_template", "voxel_pin
 _F = np.float32
 
 
-def beam_index_lo(az: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """Largest beam ``j`` in ``[0, n_beams - 1]`` with ``edges[j] <= az`` (0 when none)."""
+def beam_index_lo(t: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Largest beam ``j`` in ``[0, n_beams - 1]`` with ``edges[j] <= t`` (0 when none)."""
     n_beams = edges.shape[0] - 1
-    j = np.searchsorted(edges[:n_beams], az, side="right") - 1
+    j = np.searchsorted(edges[:n_beams], t, side="right") - 1
     return np.clip(j, 0, n_beams - 1)
 
 
@@ -84,7 +87,7 @@ def voxel_ping_values(
     ----------
     params : PING_DTYPE record (see :mod:`gpumap.geometry`), per-ping fields filled.
     image : (n_bins, n_beams) float32 in [0, 1].
-    edges : (n_beams + 1,) float32 beam-cell edges, radians.
+    edges : (n_beams + 1,) float32 tangents of the beam-cell edges (:func:`gpumap.geometry.beam_tan_edges`).
     centres_W : (m, 3) float32 voxel centres, world frame, metres.
 
     Returns
@@ -99,19 +102,20 @@ def voxel_ping_values(
     z = A[2, 0] * c[:, 0] + A[2, 1] * c[:, 1] + A[2, 2] * c[:, 2] + b[2]
     h2 = x * x + y * y
     r = np.sqrt(h2 + z * z)
-    h = np.sqrt(h2)
-    az = np.arctan2(y, x)
+    pos = x > 0
+    t = y / np.where(pos, x, _F(1))
     seen = (
-        (r >= params["rmin"])
+        pos
+        & (r >= params["rmin"])
         & (r < params["rmax"])
-        & (np.abs(z) <= params["tan_half_vfov"] * h)
-        & (az >= params["edge_lo"])
-        & (az <= params["edge_hi"])
+        & (z * z <= params["tan2_half_vfov"] * h2)
+        & (t >= params["tan_lo"])
+        & (t <= params["tan_hi"])
     )
     out = np.full(c.shape[0], -1.0, dtype=_F)
     if not seen.any():
         return out
-    r, h, az = r[seen], h[seen], az[seen]
+    r, h2, t = r[seen], h2[seen], t[seen]
     rho = params["rho"]
     rmin = params["rmin"]
     inv_dr = params["inv_dr"]
@@ -120,10 +124,16 @@ def voxel_ping_values(
     first = np.floor((r - rho - rmin) * inv_dr).astype(np.int64)  # < 0 near the blanking range
     b0 = np.maximum(first, 0)
     b1 = np.minimum(first + int(params["win"]) - 1, n_bins - 1)
-    wide = h <= rho
-    dth = np.arcsin(np.where(wide, _F(0), rho / np.where(wide, _F(1), h))).astype(_F)
-    j0 = np.where(wide, 0, beam_index_lo(az - dth, edges))
-    j1 = np.where(wide, n_beams - 1, beam_index_lo(az + dth, edges))
+    # the sphere spans azimuths theta -+ asin(rho / h); in tangents, u = tan(asin(rho / h))
+    q = h2 - rho * rho
+    narrow = q > 0
+    u = rho / np.sqrt(np.where(narrow, q, _F(1)))
+    d0 = _F(1) + t * u
+    d1 = _F(1) - t * u
+    ok0 = narrow & (d0 > 0)
+    ok1 = narrow & (d1 > 0)
+    j0 = np.where(ok0, beam_index_lo((t - u) / np.where(ok0, d0, _F(1)), edges), 0)
+    j1 = np.where(ok1, beam_index_lo((t + u) / np.where(ok1, d1, _F(1)), edges), n_beams - 1)
     out[seen] = _RangeMax(image, int(params["win"])).query(b0, b1, j0, j1)
     return out
 

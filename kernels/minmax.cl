@@ -1,5 +1,5 @@
 // Min-max occupancy kernels in OpenCL C 1.2 (device code only; twin: minmax.py).
-// Same arguments in the same order as the Warp kernels: ping parameters, image, beam edges,
+// Same arguments in the same order as the Warp kernels: ping parameters, image, tangents of the beam edges,
 // beam look-up table, max table, [template,] grid. (Warp tells "no table" by an empty array; OpenCL, which has
 // no empty buffers, by the extra use_table flag after the table.) PingParams matches gpumap.geometry.PING_DTYPE field for field.
 
@@ -13,9 +13,9 @@ typedef struct {
     float rmin;
     float rmax;
     float inv_dr;
-    float tan_half_vfov;
-    float edge_lo;
-    float edge_hi;
+    float tan2_half_vfov; // tan(vfov / 2)^2
+    float tan_lo;    // tangents of the fan's outer azimuth edges
+    float tan_hi;
     float rho;       // footprint radius, m
     int dims[3];
     int box_lo[3];
@@ -31,14 +31,15 @@ typedef struct {
     float slab;      // r_max sin(vfov / 2): |z| of any imaged point in the sonar frame is below it
 } PingParams;
 
-// Largest beam j in [0, n_beams - 1] with edges[j] <= az (0 when none). A uniform look-up
-// table over the fan guesses within a step or two; exact comparisons with the edges settle it.
-inline int beam_index_lo(float az, __global const float *edges, __global const int *lut, int lut_n,
+// Largest beam j in [0, n_beams - 1] with tan_edges[j] <= t (0 when none), t = tan(azimuth). A
+// uniform look-up table over the fan's tangents guesses within a step or two; exact comparisons
+// with the edges settle it.
+inline int beam_index_lo(float t, __global const float *tan_edges, __global const int *lut, int lut_n,
                          const PingParams *P)
 {
-    int j = lut[clamp((int)floor((az - P->edge_lo) * P->lut_scale), 0, lut_n - 1)];
-    while (j < P->n_beams - 1 && edges[j + 1] <= az) ++j;
-    while (j > 0 && edges[j] > az) --j;
+    int j = lut[clamp((int)floor((t - P->tan_lo) * P->lut_scale), 0, lut_n - 1)];
+    while (j < P->n_beams - 1 && tan_edges[j + 1] <= t) ++j;
+    while (j > 0 && tan_edges[j] > t) --j;
     return j;
 }
 
@@ -46,27 +47,29 @@ inline int beam_index_lo(float az, __global const float *edges, __global const i
 // Footprint: bins [b0, b0 + win - 1] x beams [j0, j1]. With a max table (use_table) the
 // max is two reads; without, a loop over the cells (faster on GPUs: no table to build).
 inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
-                              __global const float *image, __global const float *edges,
+                              __global const float *image, __global const float *tan_edges,
                               __global const int *lut, __global const float *table, int use_table)
 {
     float x = P->A[0] * cx + P->A[1] * cy + P->A[2] * cz + P->b[0];
     float y = P->A[3] * cx + P->A[4] * cy + P->A[5] * cz + P->b[1];
     float z = P->A[6] * cx + P->A[7] * cy + P->A[8] * cz + P->b[2];
+    if (x <= 0.0f) return -1.0f;  // the fan lies within +-90 deg of boresight
     float h2 = x * x + y * y;
     float r = sqrt(h2 + z * z);
     if (r < P->rmin || r >= P->rmax) return -1.0f;
-    float h = sqrt(h2);
-    if (fabs(z) > P->tan_half_vfov * h) return -1.0f;
-    float az = atan2(y, x);
-    if (az < P->edge_lo || az > P->edge_hi) return -1.0f;
+    if (z * z > P->tan2_half_vfov * h2) return -1.0f;
+    float t = y / x;  // tan(azimuth): monotonic over the fan, so no atan2 is needed
+    if (t < P->tan_lo || t > P->tan_hi) return -1.0f;
     int first = (int)floor((r - P->rho - P->rmin) * P->inv_dr);  // < 0 near the blanking range
     int b0 = max(first, 0);
     int b1 = min(first + P->win - 1, P->n_bins - 1);
     int j0 = 0, j1 = P->n_beams - 1;
-    if (h > P->rho) {
-        float dth = asin(P->rho / h);
-        j0 = beam_index_lo(az - dth, edges, lut, P->lut_n, P);
-        j1 = beam_index_lo(az + dth, edges, lut, P->lut_n, P);
+    float q = h2 - P->rho * P->rho;
+    if (q > 0.0f) {  // the sphere spans azimuths theta -+ asin(rho / h); in tangents:
+        float u = P->rho / sqrt(q);  // tan(asin(rho / h))
+        float d0 = 1.0f + t * u, d1 = 1.0f - t * u;
+        if (d0 > 0.0f) j0 = beam_index_lo((t - u) / d0, tan_edges, lut, P->lut_n, P);
+        if (d1 > 0.0f) j1 = beam_index_lo((t + u) / d1, tan_edges, lut, P->lut_n, P);
     }
     if (use_table && first >= 0) {  // two reads (more near the apex)
         int k = 0;
@@ -164,7 +167,7 @@ inline void column_range(const PingParams *P, float cx, float cy, float *lo, flo
 // One work-item per (i, j) column of the ping's index box; it walks the column's voxels that
 // can be in view (contiguous in memory), one voxel at a time.
 __kernel void integrate_gather(const PingParams P, __global const float *image,
-                               __global const float *edges, __global const int *lut,
+                               __global const float *tan_edges, __global const int *lut,
                                __global const float *table,
                                int use_table, __global float *grid)
 {
@@ -183,14 +186,14 @@ __kernel void integrate_gather(const PingParams P, __global const float *image,
     __global float *col = grid + ((size_t)i * P.dims[1] + j) * P.dims[2];
     for (int k = k0; k <= k1; ++k) {
         float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
-        float v = voxel_ping_value(&P, cx, cy, cz, image, edges, lut, table, use_table);
+        float v = voxel_ping_value(&P, cx, cy, cz, image, tan_edges, lut, table, use_table);
         if (v >= 0.0f) col[k] = fmin(col[k], v);
     }
 }
 
 // One work-item per template point: the paper's steps 1-6.
 __kernel void integrate_template(const PingParams P, __global const float *image,
-                                 __global const float *edges, __global const int *lut,
+                                 __global const float *tan_edges, __global const int *lut,
                                __global const float *table,
                                  int use_table, __global const float *template_S,
                                  __global float *grid)
@@ -208,7 +211,7 @@ __kernel void integrate_template(const PingParams P, __global const float *image
     float cx = P.origin[0] + ((float)i + 0.5f) * P.voxel;  // step 3
     float cy = P.origin[1] + ((float)j + 0.5f) * P.voxel;
     float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
-    float v = voxel_ping_value(&P, cx, cy, cz, image, edges, lut, table, use_table);  // steps 4-5
+    float v = voxel_ping_value(&P, cx, cy, cz, image, tan_edges, lut, table, use_table);  // steps 4-5
     if (v >= 0.0f) {
         // step 6; grid values are >= 0 (or +inf), whose IEEE bits order like ints
         size_t idx = ((size_t)i * P.dims[1] + j) * P.dims[2] + k;

@@ -3,7 +3,7 @@
 One thread per voxel (``integrate_gather``) or per template point (``integrate_template``).
 Each computes the voxel's centre in the sonar frame, tests it against the field of view,
 takes the image maximum over the voxel's footprint and min-updates the grid. Arguments,
-in order: the ping parameters, the image, the beam edges, the beam look-up table, the max table (empty: none),
+in order: the ping parameters, the image, the tangents of the beam edges, the beam look-up table, the max table (empty: none),
 [the template,] the grid.
 The host module (``gpumap/_warp.py``) owns arrays, devices and launches.
 """
@@ -22,9 +22,9 @@ class PingParams:
     rmin: float
     rmax: float
     inv_dr: float
-    tan_half_vfov: float
-    edge_lo: float
-    edge_hi: float
+    tan2_half_vfov: float  # tan(vfov / 2)^2
+    tan_lo: float  # tangents of the fan's outer azimuth edges
+    tan_hi: float
     rho: float  # footprint radius, m
     dims: wp.vec3i  # grid (nx, ny, nz)
     box_lo: wp.vec3i  # gather box first index
@@ -41,17 +41,17 @@ class PingParams:
 
 
 @wp.func
-def beam_index_lo(az: float, edges: wp.array(dtype=float), lut: wp.array(dtype=int), P: PingParams) -> int:
-    """Largest beam j in [0, n_beams - 1] with edges[j] <= az (0 when none).
+def beam_index_lo(t: float, tan_edges: wp.array(dtype=float), lut: wp.array(dtype=int), P: PingParams) -> int:
+    """Largest beam j in [0, n_beams - 1] with tan_edges[j] <= t (0 when none), t = tan(azimuth).
 
-    A uniform look-up table over the fan gives a guess within a step or two; exact
-    comparisons with the edges then settle it, so the answer is the binary search's.
+    A uniform look-up table over the fan's tangents gives a guess within a step or two;
+    exact comparisons with the edges then settle it, so the answer is a binary search's.
     """
-    m = wp.clamp(int(wp.floor((az - P.edge_lo) * P.lut_scale)), 0, lut.shape[0] - 1)
+    m = wp.clamp(int(wp.floor((t - P.tan_lo) * P.lut_scale)), 0, lut.shape[0] - 1)
     j = lut[m]
-    while j < P.n_beams - 1 and edges[j + 1] <= az:
+    while j < P.n_beams - 1 and tan_edges[j + 1] <= t:
         j += 1
-    while j > 0 and edges[j] > az:
+    while j > 0 and tan_edges[j] > t:
         j -= 1
     return j
 
@@ -61,7 +61,7 @@ def voxel_ping_value(
     P: PingParams,
     c: wp.vec3,
     image: wp.array2d(dtype=float),
-    edges: wp.array(dtype=float),
+    tan_edges: wp.array(dtype=float),
     lut: wp.array(dtype=int),
     table: wp.array(dtype=float),
 ) -> float:
@@ -75,25 +75,31 @@ def voxel_ping_value(
     x = P.A[0, 0] * c[0] + P.A[0, 1] * c[1] + P.A[0, 2] * c[2] + P.b[0]
     y = P.A[1, 0] * c[0] + P.A[1, 1] * c[1] + P.A[1, 2] * c[2] + P.b[1]
     z = P.A[2, 0] * c[0] + P.A[2, 1] * c[1] + P.A[2, 2] * c[2] + P.b[2]
+    if x <= 0.0:  # the fan lies within +-90 deg of boresight
+        return -1.0
     h2 = x * x + y * y
     r = wp.sqrt(h2 + z * z)
     if r < P.rmin or r >= P.rmax:
         return -1.0
-    h = wp.sqrt(h2)
-    if wp.abs(z) > P.tan_half_vfov * h:
+    if z * z > P.tan2_half_vfov * h2:
         return -1.0
-    az = wp.atan2(y, x)
-    if az < P.edge_lo or az > P.edge_hi:
+    t = y / x  # tan(azimuth): monotonic over the fan, so no atan2 is needed
+    if t < P.tan_lo or t > P.tan_hi:
         return -1.0
     first = int(wp.floor((r - P.rho - P.rmin) * P.inv_dr))  # may be < 0 near the blanking range
     b0 = wp.max(first, 0)
     b1 = wp.min(first + P.win - 1, P.n_bins - 1)
     j0 = int(0)
     j1 = P.n_beams - 1
-    if h > P.rho:
-        dth = wp.asin(P.rho / h)
-        j0 = beam_index_lo(az - dth, edges, lut, P)
-        j1 = beam_index_lo(az + dth, edges, lut, P)
+    q = h2 - P.rho * P.rho
+    if q > 0.0:  # the sphere spans azimuths theta -+ asin(rho / h); in tangents:
+        u = P.rho / wp.sqrt(q)  # tan(asin(rho / h))
+        d0 = 1.0 + t * u
+        d1 = 1.0 - t * u
+        if d0 > 0.0:  # else theta - dtheta is past -90 deg: from the first beam
+            j0 = beam_index_lo((t - u) / d0, tan_edges, lut, P)
+        if d1 > 0.0:
+            j1 = beam_index_lo((t + u) / d1, tan_edges, lut, P)
     if table.shape[0] > 0 and first >= 0:  # the max table: two reads (more near the apex)
         k = int(0)
         while (2 << k) <= j1 - j0 + 1 and k + 1 < P.n_levels:
@@ -208,7 +214,7 @@ def column_range(P: PingParams, cx: float, cy: float) -> wp.vec2:
 def integrate_gather(
     P: PingParams,
     image: wp.array2d(dtype=float),
-    edges: wp.array(dtype=float),
+    tan_edges: wp.array(dtype=float),
     lut: wp.array(dtype=int),
     table: wp.array(dtype=float),
     grid: wp.array(dtype=float),
@@ -228,7 +234,7 @@ def integrate_gather(
     k1 = wp.min(P.box_lo[2] + P.box_n[2] - 1, int(wp.floor((z[1] - P.origin[2]) / P.voxel - 0.5)) + 1)
     base = (i * P.dims[1] + j) * P.dims[2]
     for k in range(k0, k1 + 1):
-        v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, edges, lut, table)
+        v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table)
         if v >= 0.0:
             grid[base + k] = wp.min(grid[base + k], v)
 
@@ -237,7 +243,7 @@ def integrate_gather(
 def integrate_template(
     P: PingParams,
     image: wp.array2d(dtype=float),
-    edges: wp.array(dtype=float),
+    tan_edges: wp.array(dtype=float),
     lut: wp.array(dtype=int),
     table: wp.array(dtype=float),
     template_S: wp.array(dtype=wp.vec3),
@@ -251,7 +257,7 @@ def integrate_template(
     k = int(wp.floor((q[2] - P.origin[2]) / P.voxel))
     if i < 0 or j < 0 or k < 0 or i >= P.dims[0] or j >= P.dims[1] or k >= P.dims[2]:
         return
-    v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, edges, lut, table)  # steps 3-5
+    v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table)  # steps 3-5
     if v >= 0.0:
         # step 6; several template points may land in one voxel: all carry the same value
         wp.atomic_min(grid, (i * P.dims[1] + j) * P.dims[2] + k, v)
