@@ -192,14 +192,28 @@ def _targets(results: list[dict]) -> list[str]:
     return out
 
 
+def _image_fit(res: dict, backend: str) -> dict | None:
+    """``ms = a + b * pixels`` over the image-size sweep of ``backend`` (None without data)."""
+    from .scaling import linear_fit
+
+    rs = [
+        r
+        for r in res.get("scaling", {}).get("image_size", [])
+        if r.get("backend") == backend and "error" not in r
+    ]
+    if len(rs) < 2:
+        return None
+    f = linear_fit([r["pixels"] for r in rs], [r["ms_median"] for r in rs])
+    return {"ms_fixed": f["intercept"], "ns_per_pixel": 1e6 * f["slope"], "r2": f["r2"]}
+
+
 def _why(results: list[dict]) -> list[str]:
-    """Data-driven reasons: per-voxel cost (from the linear fit) times voxels in view."""
+    """Data-driven reasons: fixed cost + per-voxel cost x voxels in view (linear fit); the image's share."""
     out = []
     for res in results:
-        fits = res.get("scaling", {}).get("voxels_in_view_fit", [])
-        for f in fits:
-            if f["method"] != "gather":
-                continue
+        shape = res["run"]["image_shape"]
+        pixels = shape[0] * shape[1]
+        for f in res.get("scaling", {}).get("voxels_in_view_fit", []):
             rows = {round(v, 4): n for v, n in zip(f["voxel_size_m"], f["voxels_in_view"], strict=True)}
             parts = []
             for dev, v, hz in TARGETS:
@@ -208,11 +222,20 @@ def _why(results: list[dict]) -> list[str]:
                     continue
                 ms = f["ms_fixed"] + f["ns_per_voxel"] * 1e-6 * n
                 parts.append(
-                    f"{v * 100:g} cm: {n:.3g} voxels in view x {f['ns_per_voxel']:.3g} ns + "
-                    f"{f['ms_fixed']:.2f} ms = {ms:.2f} ms -> {1e3 / ms:.0f} images/s (target {hz:g})"
+                    f"{v * 100:g} cm: {f['ms_fixed']:.2f} ms + {n:.3g} voxels x {f['ns_per_voxel']:.3g} ns "
+                    f"= {ms:.2f} ms -> {1e3 / ms:.0f} images/s (target {hz:g})"
                 )
-            if parts:
-                out.append(f"- {f['backend']} ({f['device']}): " + "; ".join(parts))
+            if not parts:
+                continue
+            line = f"- {f['backend']} {f['method']}: " + "; ".join(parts)
+            im = _image_fit(res, f["backend"]) if f["method"] == "gather" else None
+            if im is not None:
+                line += (
+                    f". Of the fixed part, the image costs {im['ns_per_pixel']:.3g} ns/pixel x {pixels} "
+                    f"pixels = {im['ns_per_pixel'] * 1e-6 * pixels:.2f} ms per ping "
+                    f"(image-size sweep, R² {im['r2']:.2f})"
+                )
+            out.append(line)
     return out
 
 
@@ -288,6 +311,7 @@ def _plots(results: list[dict], out_dir: Path) -> list[str]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     names = []
     markers = {0.06: "o", 0.05: "s", 0.04: "^", 0.03: "D", 0.02: "v", 0.01: "P", 0.005: "*"}
@@ -388,6 +412,9 @@ def _plots(results: list[dict], out_dir: Path) -> list[str]:
         title="Update rate against voxel size",
     )
     ax.invert_xaxis()
+    ticks = [6, 5, 4, 3, 2, 1, 0.5]
+    ax.set_xticks(ticks, [f"{t:g}" for t in ticks])
+    ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
     ax.legend(fontsize=6.5, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
     fig.savefig(out_dir / "hz_vs_voxel.png", dpi=75)
