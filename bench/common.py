@@ -98,7 +98,32 @@ def machine_info() -> dict[str, Any]:
     except Exception:
         pass
     info["gpus"] = gpus
+    info["git"] = _git_state()
     return info
+
+
+def _git_state() -> dict[str, Any]:
+    """Commit of the checkout and the source files that differ from it (the code actually timed)."""
+    import subprocess
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "gpumap", "kernels", "bench", "sim"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return {}
+    return {
+        "commit": head.stdout.strip() or None,
+        "modified": [line[3:] for line in dirty.stdout.splitlines() if line.strip()],
+    }
 
 
 class PeakRSS:

@@ -89,6 +89,12 @@ def _machine_block(res: dict) -> list[str]:
         f"occupied threshold {r['threshold']}",
         f"- **Warm-up**: {r['warmup_note']}",
         f"- **Timing**: {r['timing_note']}",
+        f"- **Code**: commit `{(m.get('git') or {}).get('commit') or '?'}`"
+        + (
+            f", with uncommitted changes to {', '.join(m['git']['modified'])}"
+            if (m.get("git") or {}).get("modified")
+            else ", clean"
+        ),
         f"- **Run**: `{' '.join(['python -m bench', *res.get('argv', [])])}`, {res['created']}, "
         f"{r['duration_s']:.0f} s; file `bench/results/{res['_file']}`",
     ]
