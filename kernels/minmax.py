@@ -1,11 +1,13 @@
 """Min-max occupancy kernels in NVIDIA Warp (device code only; twin: ``minmax.cl``).
 
-One thread per voxel (``integrate_gather``) or per template point (``integrate_template``).
-Each computes the voxel's centre in the sonar frame, tests it against the field of view,
-takes the image maximum over the voxel's footprint and min-updates the grid. Arguments,
-in order: the ping parameters, the image, the tangents of the beam edges, the beam look-up table, the max table (empty: none),
-[the template,] the grid.
-The host module (``gpumap/_warp.py``) owns arrays, devices and launches.
+``integrate_gather`` runs one thread per (i, j) column of the ping's voxel box and
+``integrate_template`` one per template point; each voxel's centre goes to the sonar frame,
+is tested against the field of view, and takes the image maximum over its footprint, which
+min-updates the grid. ``build_bin_window`` and ``build_beam_levels`` build the per-ping max
+table that CPUs read instead of looping over cells. Arguments, in order: the ping
+parameters, the image, the tangents of the beam edges, the beam look-up table, the max table
+(empty: none), [the template,] the grid. The host (``gpumap/backends.py``) owns arrays,
+devices and launches.
 """
 
 import warp as wp
