@@ -546,7 +546,8 @@ def _findings(results: list[dict]) -> list[str]:
                 rel = f"gpumap {ratio:.2g}x faster" if ratio >= 1 else f"{1 / ratio:.2g}x faster than gpumap"
                 parts.append(
                     f"{r['kind']} {r['images_per_s']:.3g} images/s ({rel}), "
-                    f"FN {_pct(r['false_negative_rate'])}, miss {_pct(r['miss_rate_seen'])}, FP {_pct(r['false_positive_rate'])}"
+                    f"FN {_pct(r['false_negative_rate'])}, miss {_pct(r['miss_rate_seen'])}, "
+                    f"FP {_pct(r['false_positive_rate'])}"
                 )
             if v in PAPER_TABLE_I:
                 parts.append(f"paper Table I (published) {1 / PAPER_TABLE_I[v]:.2g} images/s")
