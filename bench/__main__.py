@@ -455,6 +455,7 @@ def run(args: argparse.Namespace) -> dict:
         )
         if not args.gpu_only:
             scaling["ekf"] = ekf_cost()
+            scaling["ekf_one_blas_thread"] = ekf_cost(blas_threads=1)
     if "sim" in pings.meta and not args.pings_from:
         scaling["simulator"] = pings.meta["sim"]
 

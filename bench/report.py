@@ -282,23 +282,28 @@ def _scaling(res: dict) -> list[str]:
                 cells.append(_f(r and r["ms_median"], ".2f"))
             out.append(f"| {b} | " + " | ".join(cells) + " |")
     ekf = s.get("ekf", [])
+    one = {r["n_features"]: r for r in s.get("ekf_one_blas_thread", [])}
     if ekf:
         out += [
             "",
             "EKF (`gpumap.ekf.SonarEKF`) cost against features in the state (every feature re-observed "
-            "each update; `bench.ekf_bench._time_updates`):",
+            "each update; `bench.ekf_bench._time_updates`), with NumPy's default BLAS threads and with one "
+            "(`OPENBLAS_NUM_THREADS=1`, in a subprocess):",
             "",
-            "| features | state dim | predict µs | update µs |",
-            "|---:|---:|---:|---:|",
+            "| features | state dim | predict µs | update µs | predict µs, 1 thread | update µs, 1 thread |",
+            "|---:|---:|---:|---:|---:|---:|",
         ]
         for r in ekf:
+            o = one.get(r["n_features"], {})
             out.append(
                 f"| {r['n_features']} | {r['state_dim']} | {r['predict_us_median']:.0f} "
-                f"| {r['update_us_median']:.0f} |"
+                f"| {r['update_us_median']:.0f} | {_f(o.get('predict_us_median'), '.0f')} "
+                f"| {_f(o.get('update_us_median'), '.0f')} |"
             )
         out.append(
             f"\nlog-log slope of update cost vs state dimension: {ekf[0]['loglog_slope_vs_state_dim']:.2f} "
-            "(dense covariance: 2-3 expected as the state grows)."
+            "(dense covariance: 2-3 expected once the state is large; on a loaded 2-core box OpenBLAS's "
+            "threads can cost more than they save, compare the two columns)."
         )
     sim = s.get("simulator")
     if sim:
@@ -472,6 +477,14 @@ def _plots(results: list[dict], out_dir: Path) -> list[str]:
             axs[2].plot(
                 [r["n_features"] for r in ekf], [r["predict_us_median"] for r in ekf], "s-", label="predict"
             )
+            one = [r for res in results for r in res.get("scaling", {}).get("ekf_one_blas_thread", [])]
+            if one:
+                axs[2].plot(
+                    [r["n_features"] for r in one],
+                    [r["update_us_median"] for r in one],
+                    "o--",
+                    label="update, 1 BLAS thread",
+                )
             axs[2].set(
                 xscale="log",
                 yscale="log",

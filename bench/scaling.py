@@ -126,12 +126,41 @@ def image_size_sweep(
     return out
 
 
-def ekf_cost(counts: tuple[int, ...] = (4, 8, 16, 32, 64, 128, 200), reps: int = 50) -> list[dict[str, Any]]:
-    """Median predict / update cost of :class:`gpumap.ekf.SonarEKF` against features in the state."""
+def ekf_cost(
+    counts: tuple[int, ...] = (4, 8, 16, 32, 64, 128, 200), reps: int = 50, blas_threads: int | None = None
+) -> list[dict[str, Any]]:
+    """Median predict / update cost of :class:`gpumap.ekf.SonarEKF` against features in the state.
+
+    ``blas_threads`` runs the timing in a subprocess with ``OPENBLAS_NUM_THREADS`` (and the
+    OpenMP / MKL equivalents) set, since BLAS threads cannot be changed once NumPy has loaded.
+    """
+    if blas_threads is not None:
+        import json
+        import os
+        import subprocess
+        import sys
+        from pathlib import Path
+
+        env = dict(os.environ)
+        for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            env[k] = str(blas_threads)
+        code = (
+            "import json, sys; from bench.scaling import ekf_cost; "
+            f"print(json.dumps(ekf_cost({tuple(counts)!r}, {reps})))"
+        )
+        root = Path(__file__).resolve().parents[1]
+        p = subprocess.run(
+            [sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True, check=True
+        )
+        rows = json.loads(p.stdout.strip().splitlines()[-1])
+        for r in rows:
+            r["blas_threads"] = blas_threads
+        return rows
     from .ekf_bench import _time_updates
 
     rows = [_time_updates(n, reps) for n in counts]
     f = linear_fit(np.array([r["state_dim"] for r in rows]), np.array([r["update_us_median"] for r in rows]))
     for r in rows:
         r["loglog_slope_vs_state_dim"] = f["loglog_slope"]
+        r["blas_threads"] = "default"
     return rows
