@@ -142,9 +142,9 @@ class WarpBackend(Backend):
             self.lut = wp.array(beam_lut(spec), dtype=int)
             self.image = wp.empty((n_bins, n_beams), dtype=float)
             self.template = wp.array(template_S, dtype=wp.vec3) if template_S is not None else None
-            # The per-ping max table pays on CPUs (two reads per voxel instead of a loop);
-            # on GPUs the loop is cheaper than building it. Same answers either way.
-            self.use_table = (not self.dev.is_cuda) if use_table is None else bool(use_table)
+            # The per-ping max table: two reads per voxel instead of a loop over cells.
+            # Same answers either way; footprint_max="loop" turns it off.
+            self.use_table = True if use_table is None else bool(use_table)
             n_table = table_size(spec) if self.use_table else 0
             self.table = wp.empty(n_table, dtype=float)
         # Two page-locked staging buffers so the upload is a real async DMA on CUDA; a
@@ -208,12 +208,18 @@ class WarpBackend(Backend):
         rec = {"device": self.dev, "record_cmd": True}
         table = []
         if self.use_table:
-            table = [
-                wp.launch(
-                    k.build_bin_window, dim=int(params["n_beams"]), inputs=[P, self.image, self.table], **rec
-                ),
-                wp.launch(k.build_beam_levels, dim=int(params["n_bins"]), inputs=[P, self.table], **rec),
-            ]
+            if self.dev.is_cuda:  # one thread per cell
+                cells = (int(params["n_bins"]), int(params["n_beams"]))
+                table = [
+                    wp.launch(k.build_bin_window_cells, dim=cells, inputs=[P, self.image, self.table], **rec),
+                    wp.launch(k.build_beam_levels_cells, dim=cells, inputs=[P, self.table], **rec),
+                ]
+            else:  # one thread per beam, then per row: fewest operations
+                nb, nr = int(params["n_beams"]), int(params["n_bins"])
+                table = [
+                    wp.launch(k.build_bin_window, dim=nb, inputs=[P, self.image, self.table], **rec),
+                    wp.launch(k.build_beam_levels, dim=nr, inputs=[P, self.table], **rec),
+                ]
         self._cmds = {
             "table": table,
             "gather": wp.launch(
@@ -312,8 +318,8 @@ class OpenCLBackend(Backend):
         self.slot = 0
         self.n_voxels = n_voxels
         self.n_bins = n_bins
-        # max table on CPUs (two reads per voxel), cell loop on GPUs; same answers
-        self.use_table = (not self.is_gpu) if use_table is None else bool(use_table)
+        # per-ping max table: two reads per voxel instead of a loop; same answers either way
+        self.use_table = True if use_table is None else bool(use_table)
         self.table = cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * max(1, table_size(spec) * self.use_table))
         self.template = None
         if template_S is not None:
@@ -326,8 +332,10 @@ class OpenCLBackend(Backend):
         prg = _opencl_program(self.ctx)
         self.k_gather = prg.integrate_gather
         self.k_template = prg.integrate_template
-        self.k_window = prg.build_bin_window
-        self.k_levels = prg.build_beam_levels
+        if self.is_gpu:  # one work-item per cell
+            self.k_window, self.k_levels = prg.build_bin_window_cells, prg.build_beam_levels_cells
+        else:  # one per beam, then per row: fewest operations
+            self.k_window, self.k_levels = prg.build_bin_window, prg.build_beam_levels
         self.n_beams = n_beams
         self.wg = 128
         self.queue.finish()
@@ -347,10 +355,15 @@ class OpenCLBackend(Backend):
             return
         flag = np.int32(self.use_table)
         if self.use_table:
-            gs = -(-self.n_beams // 16) * 16
-            self.k_window(self.queue, (gs,), (16,), P, image_buf, self.table)
-            gs = -(-self.n_bins // 16) * 16
-            self.k_levels(self.queue, (gs,), (16,), P, self.table)
+            if self.is_gpu:
+                gs = -(-(self.n_bins * self.n_beams) // self.wg) * self.wg
+                self.k_window(self.queue, (gs,), (self.wg,), P, image_buf, self.table)
+                self.k_levels(self.queue, (gs,), (self.wg,), P, self.table)
+            else:
+                gs = -(-self.n_beams // 16) * 16
+                self.k_window(self.queue, (gs,), (16,), P, image_buf, self.table)
+                gs = -(-self.n_bins // 16) * 16
+                self.k_levels(self.queue, (gs,), (16,), P, self.table)
         if method == "gather":
             gs = -(-n_threads // self.wg) * self.wg
             self.k_gather(

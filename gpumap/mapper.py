@@ -73,8 +73,8 @@ class MinMaxMapper:
         ``"template"`` (the paper's six steps on a voxel template: may leave holes).
     footprint_max : str
         How kernels take the max over a footprint, a speed knob with identical results:
-        ``"auto"`` (a per-ping max table on CPUs, a loop over cells on GPUs), ``"table"``
-        or ``"loop"``.
+        ``"auto"``/``"table"`` (a per-ping max table, built in the way that suits the
+        device, then two reads per voxel) or ``"loop"`` (a loop over the footprint's cells).
     """
 
     def __init__(

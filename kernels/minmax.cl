@@ -132,6 +132,33 @@ __kernel void build_beam_levels(const PingParams P, __global float *table)
     }
 }
 
+// GPU twin of build_bin_window: one work-item per cell (i, j), win reads each.
+__kernel void build_bin_window_cells(const PingParams P, __global const float *image,
+                                     __global float *table)
+{
+    int c = get_global_id(0);
+    if (c >= P.n_bins * P.n_beams) return;
+    int i = c / P.n_beams, j = c % P.n_beams;
+    float v = 0.0f;
+    for (int b = i; b < min(i + P.win, P.n_bins); ++b) v = fmax(v, image[(size_t)b * P.n_beams + j]);
+    table[c] = v;
+}
+
+// GPU twin of build_beam_levels: one work-item per cell (i, j), reading level 0 only
+// (2^(n_levels - 1) reads), so every level comes from one launch.
+__kernel void build_beam_levels_cells(const PingParams P, __global float *table)
+{
+    int c = get_global_id(0);
+    if (c >= P.n_bins * P.n_beams) return;
+    int i = c / P.n_beams, j = c % P.n_beams;
+    __global const float *row = table + (size_t)i * P.n_beams;
+    float v = row[j];
+    for (int k = 1, w = 1; k < P.n_levels; ++k, w *= 2) {
+        for (int jj = w; jj < 2 * w; ++jj) v = fmax(v, row[min(j + jj, P.n_beams - 1)]);
+        table[((size_t)k * P.n_bins + i) * P.n_beams + j] = v;
+    }
+}
+
 // Intersect the interval [*lo, *hi] with {z : alpha + beta z >= 0}.
 inline void clip_linear(float *lo, float *hi, float alpha, float beta)
 {

@@ -164,6 +164,31 @@ def build_beam_levels(P: PingParams, table: wp.array(dtype=float)):
         step = step * 2
 
 
+@wp.kernel
+def build_bin_window_cells(P: PingParams, image: wp.array2d(dtype=float), table: wp.array(dtype=float)):
+    """GPU twin of build_bin_window: one thread per cell (i, j), win reads each."""
+    i, j = wp.tid()
+    v = float(0.0)
+    for b in range(i, wp.min(i + P.win, P.n_bins)):
+        v = wp.max(v, image[b, j])
+    table[i * P.n_beams + j] = v
+
+
+@wp.kernel
+def build_beam_levels_cells(P: PingParams, table: wp.array(dtype=float)):
+    """GPU twin of build_beam_levels: one thread per cell (i, j), reading level 0 only
+    (2^(n_levels - 1) reads), so every level comes from one launch."""
+    i, j = wp.tid()
+    row = i * P.n_beams
+    v = table[row + j]
+    w = int(1)
+    for k in range(1, P.n_levels):
+        for jj in range(w, 2 * w):
+            v = wp.max(v, table[row + wp.min(j + jj, P.n_beams - 1)])
+        table[(k * P.n_bins + i) * P.n_beams + j] = v
+        w = 2 * w
+
+
 @wp.func
 def voxel_centre(P: PingParams, i: int, j: int, k: int) -> wp.vec3:
     return wp.vec3(

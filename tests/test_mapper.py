@@ -366,3 +366,63 @@ def test_occupied_points_are_world_centres():
     pts = m.occupied_points(0.5)
     assert pts.shape == (int(m.observed().sum()), 3)
     assert np.all(SPEC.in_fov((pts - T_A[:3, 3]) @ T_A[:3, :3]))
+
+
+def test_gpu_table_builders_match_cpu_ones():
+    """The per-cell (GPU) and per-row (CPU) max-table builders build the same table, on the CPU."""
+    from gpumap.backends import table_size
+
+    img = (RNG.random(SPEC.image_shape) ** 3).astype(np.float32)
+    have = available_backends()
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")
+    params = m._params
+    n_levels = int(params["n_levels"])
+    plane = SPEC.n_bins * SPEC.n_beams
+    tables = {}
+    if "warp-cpu" in have:
+        import warp as wp
+
+        from gpumap.backends import _warp, _warp_params
+
+        _, k = _warp()
+        P = _warp_params(wp, k, params)
+        im = wp.array(img, dtype=float, device="cpu")
+        for name, (win, lev, dims) in {
+            "rows": (k.build_bin_window, k.build_beam_levels, (SPEC.n_beams, SPEC.n_bins)),
+            "cells": (
+                k.build_bin_window_cells,
+                k.build_beam_levels_cells,
+                (SPEC.image_shape, SPEC.image_shape),
+            ),
+        }.items():
+            t = wp.zeros(table_size(SPEC), dtype=float, device="cpu")
+            wp.launch(win, dim=dims[0], inputs=[P, im, t], device="cpu")
+            wp.launch(lev, dim=dims[1], inputs=[P, t], device="cpu")
+            tables[f"warp-{name}"] = t.numpy()[: n_levels * plane]
+    if "opencl-cpu" in have:
+        from gpumap.backends import OpenCLBackend
+
+        for gpu_style in (False, True):
+            be = OpenCLBackend(SPEC, GRID.n_voxels, None, use_table=True, kind="cpu")
+            be.is_gpu = gpu_style  # pick the builder, not the device
+            prg = be.k_gather.program
+            be.k_window, be.k_levels = (
+                (prg.build_bin_window_cells, prg.build_beam_levels_cells)
+                if gpu_style
+                else (prg.build_bin_window, prg.build_beam_levels)
+            )
+            be.integrate(params, img, "gather", 1)
+            out = np.empty(table_size(SPEC), np.float32)
+            be.cl.enqueue_copy(be.queue, out, be.table, is_blocking=True)
+            tables[f"opencl-{'cells' if gpu_style else 'rows'}"] = out[: n_levels * plane]
+    if not tables:
+        pytest.skip("no Warp or OpenCL CPU backend here")
+    # independent reference: max over bins [i, i + win - 1] and beams [j, j + 2^k - 1], clipped
+    win = int(params["win"])
+    ref = np.empty((n_levels, *SPEC.image_shape), np.float32)
+    for i in range(SPEC.n_bins):
+        for j in range(SPEC.n_beams):
+            for lv in range(n_levels):
+                ref[lv, i, j] = img[i : i + win, j : j + (1 << lv)].max()
+    for name, t in tables.items():
+        np.testing.assert_array_equal(t.reshape(ref.shape), ref, err_msg=name)
