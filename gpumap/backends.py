@@ -145,6 +145,8 @@ class WarpBackend(Backend):
             # The per-ping max table: two reads per voxel instead of a loop over cells.
             # Same answers either way; footprint_max="loop" turns it off.
             self.use_table = True if use_table is None else bool(use_table)
+            # GPUs want a thread per voxel (enough in flight); CPUs a thread per column
+            self.per_voxel = self.dev.is_cuda
             n_table = table_size(spec) if self.use_table else 0
             self.table = wp.empty(n_table, dtype=float)
         # Two page-locked staging buffers so the upload is a real async DMA on CUDA; a
@@ -184,7 +186,7 @@ class WarpBackend(Backend):
             cmd.launch()
         cmd = self._cmds[method]
         if method == "gather":
-            cmd.set_dim(n_threads)
+            cmd.set_dim(n_threads * int(params["box_n"][2]) if self.per_voxel else n_threads)
         cmd.launch()
 
     def _record(self, params):
@@ -223,7 +225,7 @@ class WarpBackend(Backend):
         self._cmds = {
             "table": table,
             "gather": wp.launch(
-                k.integrate_gather,
+                k.integrate_gather_voxels if self.per_voxel else k.integrate_gather,
                 dim=1,
                 inputs=[P, self.image, self.edges, self.lut, self.table, self.grid],
                 **rec,
@@ -330,7 +332,9 @@ class OpenCLBackend(Backend):
             )
             self.n_points = template_S.shape[0]
         prg = _opencl_program(self.ctx)
-        self.k_gather = prg.integrate_gather
+        # GPUs want a work-item per voxel (enough in flight); CPUs one per column
+        self.per_voxel = self.is_gpu
+        self.k_gather = prg.integrate_gather_voxels if self.per_voxel else prg.integrate_gather
         self.k_template = prg.integrate_template
         if self.is_gpu:  # one work-item per cell
             self.k_window, self.k_levels = prg.build_bin_window_cells, prg.build_beam_levels_cells
@@ -365,6 +369,8 @@ class OpenCLBackend(Backend):
                 gs = -(-self.n_bins // 16) * 16
                 self.k_levels(self.queue, (gs,), (16,), P, self.table)
         if method == "gather":
+            if self.per_voxel:
+                n_threads *= int(params["box_n"][2])
             gs = -(-n_threads // self.wg) * self.wg
             self.k_gather(
                 self.queue,

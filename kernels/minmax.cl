@@ -218,6 +218,35 @@ __kernel void integrate_gather(const PingParams P, __global const float *image,
     }
 }
 
+// GPU twin of integrate_gather: one work-item per voxel of the box (column-major in k), so a
+// GPU has enough work-items in flight; each still skips voxels outside its column's range
+// before the per-voxel test. Same voxels, same values.
+__kernel void integrate_gather_voxels(const PingParams P, __global const float *image,
+                                      __global const float *tan_edges, __global const int *lut,
+                                      __global const float *table,
+                                      int use_table, __global float *grid)
+{
+    int tid = get_global_id(0);
+    if (tid >= P.box_n[0] * P.box_n[1] * P.box_n[2]) return;
+    int col = tid / P.box_n[2];
+    int k = P.box_lo[2] + tid % P.box_n[2];
+    int i = P.box_lo[0] + col / P.box_n[1];
+    int j = P.box_lo[1] + col % P.box_n[1];
+    float cx = P.origin[0] + ((float)i + 0.5f) * P.voxel;
+    float cy = P.origin[1] + ((float)j + 0.5f) * P.voxel;
+    float z0, z1;
+    column_range(&P, cx, cy, &z0, &z1);
+    if (z0 > z1) return;
+    if (k < (int)ceil((z0 - P.origin[2]) / P.voxel - 0.5f) - 1) return;
+    if (k > (int)floor((z1 - P.origin[2]) / P.voxel - 0.5f) + 1) return;
+    float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
+    float v = voxel_ping_value(&P, cx, cy, cz, image, tan_edges, lut, table, use_table);
+    if (v >= 0.0f) {
+        size_t idx = ((size_t)i * P.dims[1] + j) * P.dims[2] + k;
+        grid[idx] = fmin(grid[idx], v);
+    }
+}
+
 // One work-item per template point: the paper's steps 1-6.
 __kernel void integrate_template(const PingParams P, __global const float *image,
                                  __global const float *tan_edges, __global const int *lut,

@@ -267,6 +267,38 @@ def integrate_gather(
 
 
 @wp.kernel
+def integrate_gather_voxels(
+    P: PingParams,
+    image: wp.array2d(dtype=float),
+    tan_edges: wp.array(dtype=float),
+    lut: wp.array(dtype=int),
+    table: wp.array(dtype=float),
+    grid: wp.array(dtype=float),
+):
+    """GPU twin of integrate_gather: one thread per voxel of the box (column-major in k), so
+    a GPU has enough threads in flight; each thread still skips voxels outside its column's
+    range before the per-voxel test. Same voxels, same values."""
+    tid = wp.tid()
+    col = tid // P.box_n[2]
+    k = P.box_lo[2] + tid - col * P.box_n[2]
+    i = P.box_lo[0] + col // P.box_n[1]
+    j = P.box_lo[1] + col - (col // P.box_n[1]) * P.box_n[1]
+    cx = P.origin[0] + (float(i) + 0.5) * P.voxel
+    cy = P.origin[1] + (float(j) + 0.5) * P.voxel
+    z = column_range(P, cx, cy)
+    if z[0] > z[1]:
+        return
+    if k < int(wp.ceil((z[0] - P.origin[2]) / P.voxel - 0.5)) - 1:
+        return
+    if k > int(wp.floor((z[1] - P.origin[2]) / P.voxel - 0.5)) + 1:
+        return
+    v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table)
+    if v >= 0.0:
+        idx = (i * P.dims[1] + j) * P.dims[2] + k
+        grid[idx] = wp.min(grid[idx], v)
+
+
+@wp.kernel
 def integrate_template(
     P: PingParams,
     image: wp.array2d(dtype=float),
