@@ -35,6 +35,10 @@ def table_size(spec: SonarSpec) -> int:
     return (min(spec.n_beams.bit_length(), MAX_TABLE_LEVELS) + 2) * spec.n_bins * spec.n_beams
 
 
+GPU_CHUNK = 16  # voxels of a column per gather thread on GPUs
+CPU_CHUNK = 1 << 30  # on CPUs, the whole column
+
+
 class Backend:
     """Owns the grid and the per-ping device buffers of one mapper."""
 
@@ -145,8 +149,9 @@ class WarpBackend(Backend):
             # The per-ping max table: two reads per voxel instead of a loop over cells.
             # Same answers either way; footprint_max="loop" turns it off.
             self.use_table = True if use_table is None else bool(use_table)
-            # GPUs want a thread per voxel (enough in flight); CPUs a thread per column
-            self.per_voxel = self.dev.is_cuda
+            # GPUs want short chunks of a column per thread (enough threads in flight);
+            # CPUs a whole column per thread (fewest threads).
+            self.chunk = GPU_CHUNK if self.dev.is_cuda else CPU_CHUNK
             n_table = table_size(spec) if self.use_table else 0
             self.table = wp.empty(n_table, dtype=float)
         # Two page-locked staging buffers so the upload is a real async DMA on CUDA; a
@@ -178,6 +183,7 @@ class WarpBackend(Backend):
             self.image.numpy()[...] = image
         if method == "gather" and not n_threads:
             return
+        params["chunk"] = self.chunk
         if self._cmds is None:
             self._record(params)
         # The recorded launches hold the struct's ctypes memory: refresh it in one copy.
@@ -186,7 +192,7 @@ class WarpBackend(Backend):
             cmd.launch()
         cmd = self._cmds[method]
         if method == "gather":
-            cmd.set_dim(n_threads * int(params["box_n"][2]) if self.per_voxel else n_threads)
+            cmd.set_dim(n_threads * -(-int(params["box_n"][2]) // self.chunk))
         cmd.launch()
 
     def _record(self, params):
@@ -225,7 +231,7 @@ class WarpBackend(Backend):
         self._cmds = {
             "table": table,
             "gather": wp.launch(
-                k.integrate_gather_voxels if self.per_voxel else k.integrate_gather,
+                k.integrate_gather,
                 dim=1,
                 inputs=[P, self.image, self.edges, self.lut, self.table, self.grid],
                 **rec,
@@ -332,9 +338,9 @@ class OpenCLBackend(Backend):
             )
             self.n_points = template_S.shape[0]
         prg = _opencl_program(self.ctx)
-        # GPUs want a work-item per voxel (enough in flight); CPUs one per column
-        self.per_voxel = self.is_gpu
-        self.k_gather = prg.integrate_gather_voxels if self.per_voxel else prg.integrate_gather
+        # GPUs want short chunks of a column per work-item (enough in flight); CPUs whole columns
+        self.chunk = GPU_CHUNK if self.is_gpu else CPU_CHUNK
+        self.k_gather = prg.integrate_gather
         self.k_template = prg.integrate_template
         if self.is_gpu:  # one work-item per cell
             self.k_window, self.k_levels = prg.build_bin_window_cells, prg.build_beam_levels_cells
@@ -354,6 +360,7 @@ class OpenCLBackend(Backend):
         np.copyto(self.host[s], image)
         self.uploads[s] = cl.enqueue_copy(self.queue, self.images[s], self.host[s], is_blocking=False)
         image_buf = self.images[s]
+        params["chunk"] = self.chunk
         P = np.asarray(params, dtype=PING_DTYPE)
         if method == "gather" and not n_threads:
             return
@@ -369,8 +376,7 @@ class OpenCLBackend(Backend):
                 gs = -(-self.n_bins // 16) * 16
                 self.k_levels(self.queue, (gs,), (16,), P, self.table)
         if method == "gather":
-            if self.per_voxel:
-                n_threads *= int(params["box_n"][2])
+            n_threads *= -(-int(params["box_n"][2]) // self.chunk)
             gs = -(-n_threads // self.wg) * self.wg
             self.k_gather(
                 self.queue,

@@ -49,6 +49,7 @@ PING_DTYPE = np.dtype(
         ("lut_n", np.int32),  # beam look-up table entries
         ("wedge", np.float32, (4,)),  # (-sin lo, cos lo, sin hi, -cos hi): azimuth half-planes
         ("slab", np.float32),  # r_max sin(vfov / 2), bound on |z| in the sonar frame
+        ("chunk", np.int32),  # voxels of a column per gather thread (set by the backend)
     ]
 )
 
@@ -83,6 +84,7 @@ def static_params(spec: SonarSpec, grid: GridSpec) -> np.ndarray:
     lo, hi = float(spec.beam_edges_rad[0]), float(spec.beam_edges_rad[-1])
     p["wedge"] = (-math.sin(lo), math.cos(lo), math.sin(hi), -math.cos(hi))
     # a hair wider than the aperture: the slab only bounds the column walk
+    p["chunk"] = 1 << 30
     p["slab"] = spec.range_max_m * math.sin(0.5 * spec.vfov_rad) * (1 + 1e-4) + 1e-5
     return p
 

@@ -29,6 +29,7 @@ typedef struct {
     int lut_n;       // beam look-up table entries
     float wedge[4];  // (-sin lo, cos lo, sin hi, -cos hi): the fan's azimuth half-planes, n . (x, y) >= 0
     float slab;      // r_max sin(vfov / 2): |z| of any imaged point in the sonar frame is below it
+    int chunk;       // voxels of a column per gather work-item (GPUs: a few; CPUs: all)
 } PingParams;
 
 // Largest beam j in [0, n_beams - 1] with tan_edges[j] <= t (0 when none), t = tan(azimuth). A
@@ -191,45 +192,18 @@ inline void column_range(const PingParams *P, float cx, float cy, float *lo, flo
     clip_linear(lo, hi, P->slab + p0z, az);
 }
 
-// One work-item per (i, j) column of the ping's index box; it walks the column's voxels that
-// can be in view (contiguous in memory), one voxel at a time.
+// One work-item per chunk of an (i, j) column of the ping's index box: it walks the chunk's
+// voxels that the column's range can hold (contiguous in memory).
 __kernel void integrate_gather(const PingParams P, __global const float *image,
                                __global const float *tan_edges, __global const int *lut,
                                __global const float *table,
                                int use_table, __global float *grid)
 {
     int tid = get_global_id(0);
-    if (tid >= P.box_n[0] * P.box_n[1]) return;
-    int i = P.box_lo[0] + tid / P.box_n[1];
-    int j = P.box_lo[1] + tid % P.box_n[1];
-    float cx = P.origin[0] + ((float)i + 0.5f) * P.voxel;
-    float cy = P.origin[1] + ((float)j + 0.5f) * P.voxel;
-    float z0, z1;
-    column_range(&P, cx, cy, &z0, &z1);
-    if (z0 > z1) return;
-    // voxel centres inside [z0, z1], padded by one voxel against rounding
-    int k0 = max(P.box_lo[2], (int)ceil((z0 - P.origin[2]) / P.voxel - 0.5f) - 1);
-    int k1 = min(P.box_lo[2] + P.box_n[2] - 1, (int)floor((z1 - P.origin[2]) / P.voxel - 0.5f) + 1);
-    __global float *col = grid + ((size_t)i * P.dims[1] + j) * P.dims[2];
-    for (int k = k0; k <= k1; ++k) {
-        float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
-        float v = voxel_ping_value(&P, cx, cy, cz, image, tan_edges, lut, table, use_table);
-        if (v >= 0.0f) col[k] = fmin(col[k], v);
-    }
-}
-
-// GPU twin of integrate_gather: one work-item per voxel of the box (column-major in k), so a
-// GPU has enough work-items in flight; each still skips voxels outside its column's range
-// before the per-voxel test. Same voxels, same values.
-__kernel void integrate_gather_voxels(const PingParams P, __global const float *image,
-                                      __global const float *tan_edges, __global const int *lut,
-                                      __global const float *table,
-                                      int use_table, __global float *grid)
-{
-    int tid = get_global_id(0);
-    if (tid >= P.box_n[0] * P.box_n[1] * P.box_n[2]) return;
-    int col = tid / P.box_n[2];
-    int k = P.box_lo[2] + tid % P.box_n[2];
+    int n_chunks = (P.box_n[2] + P.chunk - 1) / P.chunk;
+    if (tid >= P.box_n[0] * P.box_n[1] * n_chunks) return;
+    int col = tid / n_chunks;
+    int c0 = P.box_lo[2] + (tid % n_chunks) * P.chunk;
     int i = P.box_lo[0] + col / P.box_n[1];
     int j = P.box_lo[1] + col % P.box_n[1];
     float cx = P.origin[0] + ((float)i + 0.5f) * P.voxel;
@@ -237,13 +211,15 @@ __kernel void integrate_gather_voxels(const PingParams P, __global const float *
     float z0, z1;
     column_range(&P, cx, cy, &z0, &z1);
     if (z0 > z1) return;
-    if (k < (int)ceil((z0 - P.origin[2]) / P.voxel - 0.5f) - 1) return;
-    if (k > (int)floor((z1 - P.origin[2]) / P.voxel - 0.5f) + 1) return;
-    float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
-    float v = voxel_ping_value(&P, cx, cy, cz, image, tan_edges, lut, table, use_table);
-    if (v >= 0.0f) {
-        size_t idx = ((size_t)i * P.dims[1] + j) * P.dims[2] + k;
-        grid[idx] = fmin(grid[idx], v);
+    // voxel centres inside [z0, z1], padded by one voxel against rounding
+    int k0 = max(c0, (int)ceil((z0 - P.origin[2]) / P.voxel - 0.5f) - 1);
+    int k1 = min(min(c0 + P.chunk, P.box_lo[2] + P.box_n[2]) - 1,
+                 (int)floor((z1 - P.origin[2]) / P.voxel - 0.5f) + 1);
+    __global float *column = grid + ((size_t)i * P.dims[1] + j) * P.dims[2];
+    for (int k = k0; k <= k1; ++k) {
+        float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
+        float v = voxel_ping_value(&P, cx, cy, cz, image, tan_edges, lut, table, use_table);
+        if (v >= 0.0f) column[k] = fmin(column[k], v);
     }
 }
 

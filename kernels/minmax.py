@@ -40,6 +40,7 @@ class PingParams:
     lut_n: int  # beam look-up table entries
     wedge: wp.vec4  # (-sin lo, cos lo, sin hi, -cos hi): the fan's azimuth half-planes, n . (x, y) >= 0
     slab: float  # r_max sin(vfov / 2): |z| of any imaged point in the sonar frame is below it
+    chunk: int  # voxels of a column per gather thread (GPUs: a few, for threads in flight; CPUs: all)
 
 
 @wp.func
@@ -246,41 +247,12 @@ def integrate_gather(
     table: wp.array(dtype=float),
     grid: wp.array(dtype=float),
 ):
-    """One thread per (i, j) column of the ping's index box; it walks the column's voxels
-    that can be in view (contiguous in memory), one voxel at a time."""
+    """One thread per chunk of an (i, j) column of the ping's index box: it walks the chunk's
+    voxels that the column's range can hold (contiguous in memory)."""
     tid = wp.tid()
-    i = P.box_lo[0] + tid // P.box_n[1]
-    j = P.box_lo[1] + tid - (tid // P.box_n[1]) * P.box_n[1]
-    cx = P.origin[0] + (float(i) + 0.5) * P.voxel
-    cy = P.origin[1] + (float(j) + 0.5) * P.voxel
-    z = column_range(P, cx, cy)
-    if z[0] > z[1]:
-        return
-    # voxel centres inside [z0, z1], padded by one voxel against rounding
-    k0 = wp.max(P.box_lo[2], int(wp.ceil((z[0] - P.origin[2]) / P.voxel - 0.5)) - 1)
-    k1 = wp.min(P.box_lo[2] + P.box_n[2] - 1, int(wp.floor((z[1] - P.origin[2]) / P.voxel - 0.5)) + 1)
-    base = (i * P.dims[1] + j) * P.dims[2]
-    for k in range(k0, k1 + 1):
-        v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table)
-        if v >= 0.0:
-            grid[base + k] = wp.min(grid[base + k], v)
-
-
-@wp.kernel
-def integrate_gather_voxels(
-    P: PingParams,
-    image: wp.array2d(dtype=float),
-    tan_edges: wp.array(dtype=float),
-    lut: wp.array(dtype=int),
-    table: wp.array(dtype=float),
-    grid: wp.array(dtype=float),
-):
-    """GPU twin of integrate_gather: one thread per voxel of the box (column-major in k), so
-    a GPU has enough threads in flight; each thread still skips voxels outside its column's
-    range before the per-voxel test. Same voxels, same values."""
-    tid = wp.tid()
-    col = tid // P.box_n[2]
-    k = P.box_lo[2] + tid - col * P.box_n[2]
+    n_chunks = (P.box_n[2] + P.chunk - 1) // P.chunk
+    col = tid // n_chunks
+    c0 = P.box_lo[2] + (tid - col * n_chunks) * P.chunk
     i = P.box_lo[0] + col // P.box_n[1]
     j = P.box_lo[1] + col - (col // P.box_n[1]) * P.box_n[1]
     cx = P.origin[0] + (float(i) + 0.5) * P.voxel
@@ -288,14 +260,17 @@ def integrate_gather_voxels(
     z = column_range(P, cx, cy)
     if z[0] > z[1]:
         return
-    if k < int(wp.ceil((z[0] - P.origin[2]) / P.voxel - 0.5)) - 1:
-        return
-    if k > int(wp.floor((z[1] - P.origin[2]) / P.voxel - 0.5)) + 1:
-        return
-    v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table)
-    if v >= 0.0:
-        idx = (i * P.dims[1] + j) * P.dims[2] + k
-        grid[idx] = wp.min(grid[idx], v)
+    # voxel centres inside [z0, z1], padded by one voxel against rounding
+    k0 = wp.max(c0, int(wp.ceil((z[0] - P.origin[2]) / P.voxel - 0.5)) - 1)
+    k1 = wp.min(
+        wp.min(c0 + P.chunk, P.box_lo[2] + P.box_n[2]) - 1,
+        int(wp.floor((z[1] - P.origin[2]) / P.voxel - 0.5)) + 1,
+    )
+    base = (i * P.dims[1] + j) * P.dims[2]
+    for k in range(k0, k1 + 1):
+        v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table)
+        if v >= 0.0:
+            grid[base + k] = wp.min(grid[base + k], v)
 
 
 @wp.kernel

@@ -429,17 +429,15 @@ def test_gpu_table_builders_match_cpu_ones():
 
 
 @pytest.mark.parametrize("name", ["warp-cpu", "opencl-cpu"])
-def test_gpu_gather_kernel_matches_reference_on_the_cpu(name):
-    """The per-voxel gather kernel that GPUs run gives the reference's grid (run here on a CPU)."""
+@pytest.mark.parametrize("chunk", [1, 3, 16])
+def test_gather_in_short_column_chunks_matches_reference(name, chunk):
+    """GPUs split columns into short chunks (one per thread); run that split here on a CPU."""
     if name not in available_backends():
         pytest.skip(f"{name} is not available here")
     imgs = [(RNG.random(SPEC.image_shape) ** 4).astype(np.float32) for _ in range(2)]
     ref = integrate("numpy", zip(imgs, [T_A, T_B], strict=True)).raw_values()
     m = gpumap.MinMaxMapper(SPEC, GRID, backend=name)
-    be = m._backend
-    be.per_voxel = True
-    if name == "opencl-cpu":
-        be.k_gather = be.k_gather.program.integrate_gather_voxels
+    m._backend.chunk = chunk
     for img, T in zip(imgs, [T_A, T_B], strict=True):
         m.integrate(img, T)
     np.testing.assert_array_equal(m.raw_values(), ref)
