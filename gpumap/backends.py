@@ -377,6 +377,8 @@ class OpenCLBackend(Backend):
                 self.k_levels(self.queue, (gs,), (16,), P, self.table)
         if method == "gather":
             n_threads *= -(-int(params["box_n"][2]) // self.chunk)
+            if not n_threads:
+                return
             gs = -(-n_threads // self.wg) * self.wg
             self.k_gather(
                 self.queue,

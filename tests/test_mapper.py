@@ -15,6 +15,7 @@ from conftest import pose, rot_y, rot_z
 
 import gpumap
 from gpumap.backends import available_backends
+from gpumap.geometry import ping_params
 
 # A small sonar and grid keep brute force cheap but exercise every code path: uneven beams,
 # voxels larger than bins and beams, voxels near the apex that span every beam.
@@ -376,6 +377,7 @@ def test_gpu_table_builders_match_cpu_ones():
     have = available_backends()
     m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")
     params = m._params
+    n_cols = ping_params(params, T_A, m._fov_pts_S, GRID)
     n_levels = int(params["n_levels"])
     plane = SPEC.n_bins * SPEC.n_beams
     tables = {}
@@ -411,7 +413,7 @@ def test_gpu_table_builders_match_cpu_ones():
                 if gpu_style
                 else (prg.build_bin_window, prg.build_beam_levels)
             )
-            be.integrate(params, img, "gather", 1)
+            be.integrate(params, img, "gather", n_cols)
             out = np.empty(table_size(SPEC), np.float32)
             be.cl.enqueue_copy(be.queue, out, be.table, is_blocking=True)
             tables[f"opencl-{'cells' if gpu_style else 'rows'}"] = out[: n_levels * plane]
