@@ -311,7 +311,8 @@ def _scaling(res: dict) -> list[str]:
             "",
             f"Simulator (`gpumap.sim` pyrender sonar, {sim['rays_per_ping']} rays per ping, GL renderer "
             f"`{sim['gl_renderer']}`): **{sim['images_per_s']:.1f} images/s** "
-            f"(median {sim['ms_median']:.0f} ms per image; first ping, {sim['init_s']:.1f} s, excluded).",
+            f"(median {sim['ms_per_image_median']:.0f} ms per image; first ping, {sim['init_s']:.1f} s, "
+            "excluded).",
         ]
     return out
 
