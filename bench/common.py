@@ -16,6 +16,7 @@ __all__ = [
     "PAPER_TABLE_I",
     "SONAR_RATE_HZ",
     "TARGETS",
+    "CpuShare",
     "PeakRSS",
     "compact",
     "machine_info",
@@ -168,6 +169,53 @@ class PeakRSS:
     @property
     def delta_mb(self) -> float:
         return (self.peak_b - self.start_b) / 2**20
+
+
+class CpuShare:
+    """Context manager: how many cores *other* processes (and the hypervisor) took during the block.
+
+    From ``/proc/stat`` (busy and steal time of the whole machine) minus this process's own
+    CPU time (``resource.getrusage``, all threads): ``others_cores`` is the average number
+    of cores other processes kept busy, ``steal_cores`` the average the hypervisor withheld.
+    """
+
+    def __init__(self) -> None:
+        self.others_cores: float | None = None
+        self.steal_cores: float | None = None
+        self.own_cores: float | None = None
+
+    @staticmethod
+    def _stat() -> tuple[float, float] | None:
+        try:
+            with open("/proc/stat") as f:
+                v = [int(x) for x in f.readline().split()[1:]]
+        except (OSError, ValueError):
+            return None
+        hz = os.sysconf("SC_CLK_TCK")
+        busy = v[0] + v[1] + v[2] + v[5] + v[6]  # user nice system irq softirq (guest is inside user)
+        steal = v[7] if len(v) > 7 else 0
+        return busy / hz, steal / hz
+
+    @staticmethod
+    def _own() -> float:
+        import resource
+
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        c = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return r.ru_utime + r.ru_stime + c.ru_utime + c.ru_stime
+
+    def __enter__(self) -> CpuShare:
+        self._t0, self._s0, self._o0 = time.perf_counter(), self._stat(), self._own()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        wall = time.perf_counter() - self._t0
+        s1, own = self._stat(), self._own() - self._o0
+        if self._s0 is None or s1 is None or wall <= 0:
+            return
+        self.own_cores = own / wall
+        self.others_cores = max(0.0, (s1[0] - self._s0[0]) - own) / wall
+        self.steal_cores = (s1[1] - self._s0[1]) / wall
 
 
 def compact(obj: Any, digits: int = 4) -> Any:

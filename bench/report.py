@@ -80,7 +80,14 @@ def _machine_block(res: dict) -> list[str]:
         f"- **Machine**: {m['cpu_model']}, {m['cpu_count']} cores, {m.get('mem_total_gb', '?')} GB"
         + (f"; GPU: {', '.join(m['gpus'])}" if m.get("gpus") else "; no GPU"),
         f"- **Load average** (1/5/15 min) at start {m.get('load_avg_start')}, at end {m.get('load_avg_end')}"
-        " (the CPU is shared; a load above the core count means other work competed with the bench)",
+        " (it counts the bench's own threads too)"
+        + (
+            f"; during the run other processes kept {m['cpu_share_during_run']['others_cores']:.2f} cores "
+            f"busy on average and the hypervisor withheld {m['cpu_share_during_run']['steal_cores']:.2f} "
+            f"(steal), the bench used {m['cpu_share_during_run']['bench_cores']:.2f}"
+            if (m.get("cpu_share_during_run") or {}).get("others_cores") is not None
+            else ""
+        ),
         f"- **Versions**: gpumap {v.get('gpumap')}, numpy {v.get('numpy')}, warp-lang {v.get('warp-lang')}, "
         f"pyopencl {v.get('pyopencl')}, PoCL {v.get('pocl-binary-distribution')}, "
         f"pyoctomap {v.get('pyoctomap')}; {m.get('platform')}",
@@ -105,8 +112,8 @@ def _gpumap_table(res: dict) -> list[str]:
     rows = [r for r in res["rows"] if r.get("kind") == "gpumap"]
     out = [
         "| voxel | backend | method | images/s | median ms | p95 ms | FN | miss (seen) | FP | height err "
-        "| holes (1 ping) | peak RSS MB | device MB | voxels in view |",
-        "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| holes (1 ping) | peak RSS MB | device MB | voxels in view | others' cores |",
+        "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in sorted(rows, key=lambda r: (-r["voxel_size_m"], r["backend"], r["method"])):
         if "error" in r:
@@ -127,7 +134,8 @@ def _gpumap_table(res: dict) -> list[str]:
             f"| {_pct(r.get('miss_rate_seen'))} | {_pct(r.get('false_positive_rate'))} "
             f"| {_f(r.get('height_error_mean_m') and 100 * r['height_error_mean_m'], '.1f')} cm "
             f"| {_pct(r.get('hole_fraction_single_ping'))} | {_f(r.get('peak_host_rss_mb'), '.0f')} "
-            f"| {_f(r.get('device_mem_mb'), '.0f')} | {_f(r.get('voxels_in_view'), '.3g')} |"
+            f"| {_f(r.get('device_mem_mb'), '.0f')} | {_f(r.get('voxels_in_view'), '.3g')} "
+            f"| {_f(r.get('others_cores'), '.2f')} |"
         )
     return out
 
