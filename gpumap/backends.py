@@ -35,6 +35,8 @@ def table_size(spec: SonarSpec) -> int:
     return (min(spec.n_beams.bit_length(), MAX_TABLE_LEVELS) + 2) * spec.n_bins * spec.n_beams
 
 
+# Image upload slots: the host may prepare this many pings ahead of the device.
+N_SLOTS = 4
 GPU_CHUNK = 16  # voxels of a column per gather thread on GPUs
 CPU_CHUNK = 1 << 30  # on CPUs, the whole column
 
@@ -154,16 +156,16 @@ class WarpBackend(Backend):
             self.chunk = GPU_CHUNK if self.dev.is_cuda else CPU_CHUNK
             n_table = table_size(spec) if self.use_table else 0
             self.table = wp.empty(n_table, dtype=float)
-        # Two page-locked staging buffers so the upload is a real async DMA on CUDA; a
+        # N_SLOTS page-locked staging buffers so the upload is a real async DMA on CUDA; a
         # buffer is refilled only after its previous copy has finished (event), so the
         # host can prepare ping k+1 while the GPU still works on ping k.
         self.staging = []
         self.events = []
         if self.dev.is_cuda:
             self.staging = [
-                wp.empty((n_bins, n_beams), dtype=float, device="cpu", pinned=True) for _ in range(2)
+                wp.empty((n_bins, n_beams), dtype=float, device="cpu", pinned=True) for _ in range(N_SLOTS)
             ]
-            self.events = [None, None]
+            self.events = [None] * N_SLOTS
             self.staging_np = [a.numpy() for a in self.staging]
         self.slot = 0
         self._cmds = None
@@ -178,7 +180,7 @@ class WarpBackend(Backend):
             np.copyto(self.staging_np[s], image)
             wp.copy(self.image, self.staging[s])
             self.events[s] = wp.record_event()
-            self.slot = 1 - s
+            self.slot = (s + 1) % N_SLOTS
         else:
             self.image.numpy()[...] = image
         if method == "gather" and not n_threads:
@@ -318,11 +320,11 @@ class OpenCLBackend(Backend):
         cl.enqueue_fill_buffer(self.queue, self.grid, np.float32(np.inf), 0, 4 * n_voxels)
         self.edges = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=beam_tan_edges(spec))
         self.lut = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=beam_lut(spec))
-        # Two image slots: the upload of ping k+1 overlaps the kernels of ping k; a host
+        # N_SLOTS image slots: the upload of ping k+1 overlaps the kernels of ping k; a host
         # staging slot is refilled only once its previous upload has finished (event).
-        self.images = [cl.Buffer(self.ctx, mf.READ_ONLY, size=4 * n_bins * n_beams) for _ in range(2)]
-        self.host = [np.empty((n_bins, n_beams), np.float32) for _ in range(2)]
-        self.uploads = [None, None]
+        self.images = [cl.Buffer(self.ctx, mf.READ_ONLY, size=4 * n_bins * n_beams) for _ in range(N_SLOTS)]
+        self.host = [np.empty((n_bins, n_beams), np.float32) for _ in range(N_SLOTS)]
+        self.uploads = [None] * N_SLOTS
         self.slot = 0
         self.n_voxels = n_voxels
         self.n_bins = n_bins
@@ -354,7 +356,7 @@ class OpenCLBackend(Backend):
         cl = self.cl
         # blocking: the caller may reuse `image` as soon as this returns
         s = self.slot
-        self.slot = 1 - s
+        self.slot = (s + 1) % N_SLOTS
         if self.uploads[s] is not None:
             self.uploads[s].wait()
         np.copyto(self.host[s], image)
