@@ -102,33 +102,19 @@ def _warp():
     return wp, minmax
 
 
-def _warp_params(wp, minmax, p: np.ndarray):
+def _warp_params(minmax, p: np.ndarray):
+    """A Warp ``PingParams`` holding the PING_DTYPE record ``p``.
+
+    Every field of both is 4 bytes, in the same order, so the struct's ctypes image is the
+    record byte for byte: one copy fills it (the sizes are checked; a drift raises).
+    """
     s = minmax.PingParams()
-    s.A = wp.mat33(*p["A"].tolist())
-    s.b = wp.vec3(*p["b"].tolist())
-    s.R = wp.mat33(*p["R"].tolist())
-    s.t = wp.vec3(*p["t"].tolist())
-    s.origin = wp.vec3(*p["origin"].tolist())
-    s.voxel = float(p["voxel"])
-    s.rmin = float(p["rmin"])
-    s.rmax = float(p["rmax"])
-    s.inv_dr = float(p["inv_dr"])
-    s.tan2_half_vfov = float(p["tan2_half_vfov"])
-    s.tan_lo = float(p["tan_lo"])
-    s.tan_hi = float(p["tan_hi"])
-    s.rho = float(p["rho"])
-    s.dims = wp.vec3i(*p["dims"].tolist())
-    s.box_lo = wp.vec3i(*p["box_lo"].tolist())
-    s.box_n = wp.vec3i(*p["box_n"].tolist())
-    s.n_bins = int(p["n_bins"])
-    s.n_beams = int(p["n_beams"])
-    s.n_points = int(p["n_points"])
-    s.win = int(p["win"])
-    s.n_levels = int(p["n_levels"])
-    s.lut_scale = float(p["lut_scale"])
-    s.lut_n = int(p["lut_n"])
-    s.wedge = wp.vec4(*p["wedge"].tolist())
-    s.slab = float(p["slab"])
+    if ctypes.sizeof(s._ctype) != PING_DTYPE.itemsize:
+        raise RuntimeError(
+            f"PingParams is {ctypes.sizeof(s._ctype)} bytes in Warp but {PING_DTYPE.itemsize} in "
+            "PING_DTYPE: the two layouts have drifted apart"
+        )
+    ctypes.memmove(ctypes.addressof(s._ctype), p.ctypes.data, PING_DTYPE.itemsize)
     return s
 
 
@@ -204,17 +190,11 @@ class WarpBackend(Backend):
         byte for byte a PING_DTYPE record (checked here, once).
         """
         wp, k = self.wp, self.k
-        P = _warp_params(wp, k, params)
-        if ctypes.sizeof(P._ctype) != PING_DTYPE.itemsize:
-            raise RuntimeError(
-                f"PingParams is {ctypes.sizeof(P._ctype)} bytes in Warp but {PING_DTYPE.itemsize} in "
-                "PING_DTYPE: the two layouts have drifted apart"
-            )
+        P = _warp_params(k, params)
+        if not (P._ctype.voxel == float(params["voxel"]) and P._ctype.chunk == int(params["chunk"])):
+            raise RuntimeError("PingParams and PING_DTYPE disagree on the field layout")
         self._P = P
         self._P_addr = ctypes.addressof(P._ctype)
-        ctypes.memmove(self._P_addr, params.ctypes.data, PING_DTYPE.itemsize)
-        if not (P.voxel == float(params["voxel"]) and P.lut_n == int(params["lut_n"])):
-            raise RuntimeError("PingParams and PING_DTYPE disagree on the field layout")
         rec = {"device": self.dev, "record_cmd": True}
         table = []
         if self.use_table:

@@ -387,7 +387,7 @@ def test_gpu_table_builders_match_cpu_ones():
         from gpumap.backends import _warp, _warp_params
 
         _, k = _warp()
-        P = _warp_params(wp, k, params)
+        P = _warp_params(k, params)
         im = wp.array(img, dtype=float, device="cpu")
         for name, (win, lev, dims) in {
             "rows": (k.build_bin_window, k.build_beam_levels, (SPEC.n_beams, SPEC.n_bins)),
