@@ -443,3 +443,17 @@ def test_gather_in_short_column_chunks_matches_reference(name, chunk):
     for img, T in zip(imgs, [T_A, T_B], strict=True):
         m.integrate(img, T)
     np.testing.assert_array_equal(m.raw_values(), ref)
+
+
+def test_float64_and_negative_zero_images_are_accepted_as_float32():
+    img = (RNG.random(SPEC.image_shape) ** 3).astype(np.float32)
+    a = integrate("numpy", [(img, T_A)]).raw_values()
+    b = integrate("numpy", [(img.astype(np.float64), T_A)]).raw_values()
+    neg0 = img.copy()
+    neg0[img == img.min()] = -0.0
+    c = integrate("numpy", [(neg0, T_A)]).raw_values()
+    np.testing.assert_array_equal(a, b)
+    assert not np.signbit(c[np.isfinite(c)]).any()
+    strided = np.zeros((SPEC.n_bins, 2 * SPEC.n_beams), np.float32)[:, ::2]
+    strided[...] = img
+    np.testing.assert_array_equal(integrate("numpy", [(strided, T_A)]).raw_values(), a)
