@@ -294,7 +294,8 @@ class MinMaxMapper:
         )
         if values.shape != m.grid.shape or values.dtype != np.float32:
             raise ValueError(
-                f"Expected values of shape {m.grid.shape} float32 in {path}, but got {values.shape} {values.dtype}"
+                f"Expected values of shape {m.grid.shape} float32 in {path}, "
+                f"but got {values.shape} {values.dtype}"
             )
         m._backend.write(values.ravel())
         m.n_integrated = int(meta["n_integrated"])
