@@ -6,6 +6,7 @@ import json
 import logging
 import os
 import tempfile
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -273,13 +274,18 @@ class MinMaxMapper:
     @classmethod
     def load(cls, path: str | os.PathLike, backend: str = "auto") -> MinMaxMapper:
         """Read a map written by :meth:`save` onto ``backend``."""
-        with np.load(path, allow_pickle=False) as z:
-            if "meta" not in z or "values" not in z:
-                raise ValueError(
-                    f"Expected a gpumap map file with 'meta' and 'values', but {path} has {z.files}"
-                )
-            meta = json.loads(str(z["meta"]))
-            values = z["values"]
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                if "meta" not in z or "values" not in z:
+                    raise ValueError(
+                        f"Expected a gpumap map file with 'meta' and 'values', but {path} has {z.files}"
+                    )
+                meta = json.loads(str(z["meta"]))
+                values = z["values"]
+        except (OSError, EOFError, zipfile.BadZipFile, json.JSONDecodeError) as e:
+            raise ValueError(
+                f"Expected a gpumap map file (.npz) at {path}, but it cannot be read: {e}"
+            ) from e
         if meta.get("format") != FILE_FORMAT:
             raise ValueError(f"Expected format {FILE_FORMAT!r} in {path}, but got {meta.get('format')!r}")
         if meta.get("version") != FILE_VERSION:

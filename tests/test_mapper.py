@@ -457,3 +457,13 @@ def test_float64_and_negative_zero_images_are_accepted_as_float32():
     strided = np.zeros((SPEC.n_bins, 2 * SPEC.n_beams), np.float32)[:, ::2]
     strided[...] = img
     np.testing.assert_array_equal(integrate("numpy", [(strided, T_A)]).raw_values(), a)
+
+
+def test_load_refuses_a_truncated_file(tmp_path):
+    m = integrate("numpy", [(np.zeros(SPEC.image_shape, np.float32), T_A)])
+    path = m.save(tmp_path / "map.npz")
+    data = path.read_bytes()
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match="cannot be read"):
+        gpumap.MinMaxMapper.load(cut)
