@@ -156,8 +156,9 @@ class MinMaxMapper:
 
     # ------------------------------------------------------------------ update
     def _check_image(self, image: object) -> np.ndarray:
-        """The image as C-contiguous float32 in [0, 1]: ``image`` itself when it already is,
-        else a conversion in the mapper's staging buffer. Raises on anything else."""
+        """The image as C-contiguous uint8 (backends scale it by 1/255, GPUs after the upload)
+        or float32 in [0, 1]: ``image`` itself when it already is, else a conversion in the
+        mapper's staging buffer. Raises on anything else."""
         if not isinstance(image, np.ndarray):
             raise TypeError(f"Expected a numpy array for 'image', but got {type(image).__name__}")
         if image.shape != self.spec.image_shape:
@@ -166,9 +167,8 @@ class MinMaxMapper:
                 f"but got {image.shape}"
             )
         out = self._staging
-        if image.dtype == np.uint8:
-            np.multiply(image, np.float32(1.0 / 255.0), out=out)
-            return out
+        if image.dtype == np.uint8:  # every byte is a valid intensity; backends widen it
+            return np.ascontiguousarray(image)
         if image.dtype == np.float32 and image.flags.c_contiguous:
             # One pass: as unsigned bits, every float in [+0, 1] is <= 0x3F800000, while
             # negatives (sign bit), NaN and inf are all above it.

@@ -89,6 +89,13 @@ inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
     return v;
 }
 
+// One work-item per pixel: an 8-bit image to float32 intensities, dst = src * scale (1/255).
+__kernel void convert_u8(__global const uchar *src, const float scale, __global float *dst, const int n)
+{
+    int c = get_global_id(0);
+    if (c < n) dst[c] = (float)src[c] * scale;
+}
+
 // One work-item per beam j: level 0 of the max table, table[0, i, j] = max of image over bins
 // [i, i + win - 1] (clipped), by van Herk / Gil-Werman: prefix and suffix maxima in blocks of
 // win bins (kept in the two scratch levels after the table), 3 ops per cell.

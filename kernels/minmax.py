@@ -123,6 +123,13 @@ def voxel_ping_value(
 
 
 @wp.kernel
+def convert_u8(src: wp.array2d(dtype=wp.uint8), scale: float, dst: wp.array2d(dtype=float)):
+    """One thread per pixel: an 8-bit image to float32 intensities, dst = src * scale (1/255)."""
+    i, j = wp.tid()
+    dst[i, j] = float(src[i, j]) * scale
+
+
+@wp.kernel
 def build_bin_window(P: PingParams, image: wp.array2d(dtype=float), table: wp.array(dtype=float)):
     """One thread per beam j: level 0 of the max table, table[0, i, j] = max of image over
     bins [i, i + win - 1] (clipped), by van Herk / Gil-Werman: a prefix and a suffix max in
