@@ -142,10 +142,20 @@ def _device_mem_probe(backend: str):
 
         dev = wp.get_device("cuda:0")
         if backend == "warp-cuda" and wp.is_mempool_enabled(dev):
-            return lambda: int(wp.get_mempool_used_mem_current(dev))
-        return lambda: int(dev.total_memory - dev.free_memory)
-    except Exception:
+            probe = lambda: int(wp.get_mempool_used_mem_current(dev))  # noqa: E731
+        else:
+            probe = lambda: int(dev.total_memory - dev.free_memory)  # noqa: E731
+        probe()
+    except Exception:  # informative only: no device memory figure
         return None
+
+    def safe() -> int | None:
+        try:
+            return probe()
+        except Exception:
+            return None
+
+    return safe
 
 
 # ------------------------------------------------------------------------------ gpumap rows

@@ -134,7 +134,7 @@ class PeakRSS:
     block minus the RSS at entry is what the block allocated at most (host memory).
     """
 
-    def __init__(self, interval_s: float = 0.002) -> None:
+    def __init__(self, interval_s: float = 0.01) -> None:
         self.interval_s = interval_s
         self._page = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
         self.start_b = 0

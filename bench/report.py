@@ -511,8 +511,11 @@ def _plots(results: list[dict], out_dir: Path) -> list[str]:
 
 # ------------------------------------------------------------------------------ the document
 CAVEATS = [
-    "- The CPU is a shared 2-core VM: the load average at the start and end of each run is recorded; a "
-    "load above 2 means other work took cycles from the bench and its CPU figures are pessimistic.",
+    "- The CPU is a shared 2-core VM. Each run records the load average and, for the run and for every row, "
+    "the cores other processes kept busy (*others' cores*: /proc/stat busy time minus the bench's own CPU "
+    "time); a row with others' cores near 1 lost about half the machine and its speed is pessimistic.",
+    "- The timed code is the commit recorded in each machine section; gpumap's kernels change often, so "
+    "compare rows of one run, not rows of runs at different commits.",
     "- Pings are quantized to uint8 (what the Oculus delivers) and handed to `integrate()` as uint8; every "
     "configuration and machine gets the same bytes (`--save-pings` / `--pings-from`).",
     "- The **OASIS rule** row is our implementation of the published rule on gpumap's footprints (so only "
