@@ -535,6 +535,22 @@ CAVEATS = [
 ]
 
 
+REPRODUCE = [
+    "```",
+    "python -m bench --save-pings bench/results/tmp/tank_pings.npz   # CPU sweep, ~5 min on 2 cores",
+    "python -m bench --quick                                           # 5 and 3 cm, 16 pings, no scaling",
+    "python -m bench.report                                            # this file and the plots",
+    "# a GPU box without a renderer: the same pings (bench/results/tmp/ is git-ignored; carry the file)",
+    "python -m bench --gpu-only --pings-from bench/results/tmp/tank_pings.npz --out DIR",
+    "```",
+    "",
+    "The ping file (about 6 MB: 40 uint8 pings, their poses, the 5 mm cells the pings saw) is rebuilt "
+    "bit for bit by the first command (seeded simulator). Ground truth is recomputed from the seeded scene "
+    "on every machine (trimesh only). `--gpu-only` runs warp-cuda and opencl-gpu at 3, 1 and 0.5 cm, "
+    "writes `gpu_<device>.json`; drop it in `bench/results/` and rerun the report.",
+]
+
+
 def _findings(results: list[dict]) -> list[str]:
     """One line per voxel size of the CPU run: gpumap's fastest row against each baseline."""
     out = []
@@ -626,6 +642,7 @@ def render(results: list[dict], plots: list[str], plot_prefix: str) -> str:
     for p in plots:
         L += [f"![{p}]({plot_prefix}{p})", ""]
     L += ["## Caveats", "", *CAVEATS, ""]
+    L += ["## Reproduce", "", *REPRODUCE, ""]
     for res in results:
         L += [f"## {res['tag']}", "", *_machine_block(res), "", "### gpumap", "", *_gpumap_table(res), ""]
         bt = _baseline_table(res)
