@@ -50,6 +50,7 @@ PING_DTYPE = np.dtype(
         ("wedge", np.float32, (4,)),  # (-sin lo, cos lo, sin hi, -cos hi): azimuth half-planes
         ("slab", np.float32),  # r_max sin(vfov / 2), bound on |z| in the sonar frame
         ("chunk", np.int32),  # voxels of a column per gather thread (set by the backend)
+        ("near", np.float32),  # rho + shadow_m: how far the footprint reaches towards the sonar
     ]
 )
 
@@ -59,8 +60,11 @@ def footprint_radius_m(voxel_size_m: float) -> float:
     return _HALF_DIAG * voxel_size_m * (1.0 + 1e-5) + FOOTPRINT_PAD_M
 
 
-def static_params(spec: SonarSpec, grid: GridSpec) -> np.ndarray:
-    """A PING_DTYPE record with the fields that do not change between pings filled in."""
+def static_params(spec: SonarSpec, grid: GridSpec, shadow_m: float = 0.0) -> np.ndarray:
+    """A PING_DTYPE record with the fields that do not change between pings filled in.
+
+    ``shadow_m`` extends every footprint that far towards the sonar (see MinMaxMapper).
+    """
     p = np.zeros((), dtype=PING_DTYPE)
     p["origin"] = grid.min_corner_m
     p["voxel"] = grid.voxel_size_m
@@ -77,7 +81,10 @@ def static_params(spec: SonarSpec, grid: GridSpec) -> np.ndarray:
     p["n_beams"] = spec.n_beams
     # The sphere's bins [floor(a), floor(a + 2 rho/dr)] number at most floor(2 rho/dr) + 2:
     # a fixed window of that height from the first bin always holds them, one bin extra at most.
-    p["win"] = min(int(math.floor(2.0 * float(p["rho"]) * float(p["inv_dr"]))) + 2, spec.n_bins)
+    p["near"] = float(p["rho"]) + shadow_m
+    p["win"] = min(
+        int(math.floor((float(p["rho"]) + float(p["near"])) * float(p["inv_dr"]))) + 2, spec.n_bins
+    )
     p["n_levels"] = min(spec.n_beams.bit_length(), MAX_TABLE_LEVELS)
     p["lut_n"] = _lut_size(spec)
     p["lut_scale"] = p["lut_n"] / (p["tan_hi"] - p["tan_lo"])

@@ -13,7 +13,7 @@ import numpy as np
 
 from gpumap.backends import AUTO_ORDER, BACKENDS, Backend, make_backend
 from gpumap.backends import available_backends as _available
-from gpumap.errors import BackendUnavailableError, check_pose
+from gpumap.errors import BackendUnavailableError, check_finite_scalar, check_pose
 from gpumap.geometry import make_template_S, ping_params, static_params
 from gpumap.spec import GridSpec, SonarSpec
 
@@ -72,6 +72,12 @@ class MinMaxMapper:
     method : str
         ``"gather"`` (every voxel of the field of view's bounding box, no holes) or
         ``"template"`` (the paper's six steps on a voxel template: may leave holes).
+    shadow_m : float
+        Acoustic-shadow allowance, metres (default 0: the paper's min-max). A strong return
+        also counts for the voxels up to ``shadow_m`` behind it in its beams, so a ping does
+        not carve the far side of a thin object it cannot see through (each footprint reaches
+        ``shadow_m`` further towards the sonar). Trades false positives behind returns for
+        fewer false negatives; think of it as the thinnest object the map must keep whole.
     footprint_max : str
         How kernels take the max over a footprint, a speed knob with identical results:
         ``"auto"``/``"table"`` (a per-ping max table, built in the way that suits the
@@ -85,6 +91,7 @@ class MinMaxMapper:
         backend: str = "auto",
         method: str = "gather",
         *,
+        shadow_m: float = 0.0,
         footprint_max: str = "auto",
     ) -> None:
         if not isinstance(spec, SonarSpec):
@@ -104,7 +111,11 @@ class MinMaxMapper:
         self.grid = grid
         self.method = method
         self.n_integrated = 0
-        self._params = static_params(spec, grid)
+        shadow = check_finite_scalar(shadow_m, "shadow_m")
+        if shadow < 0:
+            raise ValueError(f"Expected shadow_m >= 0, but got {shadow}")
+        self.shadow_m = shadow
+        self._params = static_params(spec, grid, shadow)
         self._fov_pts_S = spec.fov_corners_S()
         self._template = make_template_S(spec, grid.voxel_size_m) if method == "template" else None
         if self._template is not None:
@@ -255,6 +266,7 @@ class MinMaxMapper:
             "spec": self.spec.to_dict(),
             "grid": self.grid.to_dict(),
             "method": self.method,
+            "shadow_m": self.shadow_m,
             "n_integrated": self.n_integrated,
             "backend": self.backend,
         }
@@ -297,6 +309,7 @@ class MinMaxMapper:
             GridSpec.from_dict(meta["grid"]),
             backend=backend,
             method=meta["method"],
+            shadow_m=meta.get("shadow_m", 0.0),
         )
         if values.shape != m.grid.shape or values.dtype != np.float32:
             raise ValueError(

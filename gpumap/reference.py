@@ -12,9 +12,10 @@ Per voxel centre ``c`` (world frame) and ping ``(image, T_W_S)``:
 2. Observed when ``p_x > 0``, ``r_min <= r < r_max``, ``p_z^2 <= tan^2(vfov/2) h^2`` and
    ``t`` lies within the tangents of the fan's outer beam edges. Otherwise the voxel is
    left as it is.
-3. Footprint: bins ``b0 = floor((r - rho - r_min) / dr)`` to ``b0 + win - 1`` (``win =
-   floor(2 rho / dr) + 2``, the fixed height that always holds the sphere's bins; so at
-   most one bin more than the sphere's), clipped to the image, and the beams holding
+3. Footprint: bins ``b0 = floor((r - near - r_min) / dr)`` to ``b0 + win - 1`` (``near =
+   rho + shadow_m``; ``win = floor((rho + near) / dr) + 2``, the fixed height that always
+   holds those bins; with ``shadow_m = 0`` at most one bin more than the sphere's),
+   clipped to the image, and the beams holding
    azimuths ``theta -+ asin(rho / h)``, as tangents ``(t -+ u) / (1 +- t u)`` with
    ``u = rho / sqrt(h^2 - rho^2)`` (every beam when ``h <= rho``; the first or last beam
    when the sum passes +-90 deg), where ``rho`` is the voxel's bounding-sphere radius
@@ -121,7 +122,7 @@ def voxel_ping_values(
     inv_dr = params["inv_dr"]
     n_bins = int(params["n_bins"])
     n_beams = int(params["n_beams"])
-    first = np.floor((r - rho - rmin) * inv_dr).astype(np.int64)  # < 0 near the blanking range
+    first = np.floor((r - params["near"] - rmin) * inv_dr).astype(np.int64)  # < 0 near blanking
     b0 = np.maximum(first, 0)
     b1 = np.minimum(first + int(params["win"]) - 1, n_bins - 1)
     # the sphere spans azimuths theta -+ asin(rho / h); in tangents, u = tan(asin(rho / h))

@@ -30,6 +30,7 @@ typedef struct {
     float wedge[4];  // (-sin lo, cos lo, sin hi, -cos hi): the fan's azimuth half-planes, n . (x, y) >= 0
     float slab;      // r_max sin(vfov / 2): |z| of any imaged point in the sonar frame is below it
     int chunk;       // voxels of a column per gather work-item (GPUs: a few; CPUs: all)
+    float near;      // rho + shadow_m: the footprint reaches this far towards the sonar, m
 } PingParams;
 
 // Largest beam j in [0, n_beams - 1] with tan_edges[j] <= t (0 when none), t = tan(azimuth). A
@@ -45,7 +46,8 @@ inline int beam_index_lo(float t, __global const float *tan_edges, __global cons
 }
 
 // Max image value over the footprint of the voxel centred at c (world); -1 if unobserved.
-// Footprint: bins [b0, b0 + win - 1] x beams [j0, j1]. With a max table (use_table) the
+// Footprint: bins [b0, b0 + win - 1] x beams [j0, j1], reaching near = rho + shadow_m towards
+// the sonar. With a max table (use_table) the
 // max is two reads; without, a loop over the cells (faster on GPUs: no table to build).
 inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
                               __global const float *image, __global const float *tan_edges,
@@ -61,7 +63,7 @@ inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
     if (z * z > P->tan2_half_vfov * h2) return -1.0f;
     float t = y / x;  // tan(azimuth): monotonic over the fan, so no atan2 is needed
     if (t < P->tan_lo || t > P->tan_hi) return -1.0f;
-    int first = (int)floor((r - P->rho - P->rmin) * P->inv_dr);  // < 0 near the blanking range
+    int first = (int)floor((r - P->near - P->rmin) * P->inv_dr);  // < 0 near the blanking range
     int b0 = max(first, 0);
     int b1 = min(first + P->win - 1, P->n_bins - 1);
     int j0 = 0, j1 = P->n_beams - 1;

@@ -41,6 +41,7 @@ class PingParams:
     wedge: wp.vec4  # (-sin lo, cos lo, sin hi, -cos hi): the fan's azimuth half-planes, n . (x, y) >= 0
     slab: float  # r_max sin(vfov / 2): |z| of any imaged point in the sonar frame is below it
     chunk: int  # voxels of a column per gather thread (GPUs: a few, for threads in flight; CPUs: all)
+    near: float  # rho + shadow_m: the footprint reaches this far towards the sonar, m
 
 
 @wp.func
@@ -72,7 +73,8 @@ def voxel_ping_value(
 
     The footprint is bins [b0, b0 + win - 1] x beams [j0, j1]: the smallest fixed-height
     window that always holds the bins of the voxel's bounding sphere (one extra bin at
-    most), by the beams the sphere spans. With a max table (non-empty ``table``) the max
+    most), extended ``shadow_m`` towards the sonar (``near = rho + shadow_m``), by the
+    beams the sphere spans. With a max table (non-empty ``table``) the max
     is two reads; without, a loop over the cells (faster on GPUs: no table to build).
     """
     x = P.A[0, 0] * c[0] + P.A[0, 1] * c[1] + P.A[0, 2] * c[2] + P.b[0]
@@ -89,7 +91,7 @@ def voxel_ping_value(
     t = y / x  # tan(azimuth): monotonic over the fan, so no atan2 is needed
     if t < P.tan_lo or t > P.tan_hi:
         return -1.0
-    first = int(wp.floor((r - P.rho - P.rmin) * P.inv_dr))  # may be < 0 near the blanking range
+    first = int(wp.floor((r - P.near - P.rmin) * P.inv_dr))  # may be < 0 near the blanking range
     b0 = wp.max(first, 0)
     b1 = wp.min(first + P.win - 1, P.n_bins - 1)
     j0 = int(0)

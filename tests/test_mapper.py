@@ -114,21 +114,24 @@ def test_conservative_and_tight_against_supersampled_cubes(backend, seed):
     assert np.all(v[obs] <= upper), "footprint reaches beyond the bounding sphere plus one cell"
 
 
+@pytest.mark.parametrize("shadow_m", [0.0, 0.1])
 @pytest.mark.parametrize("cell", [(5, 3), (30, 24), (59, 47), (12, 40)])
-def test_single_bright_cell_lights_exactly_the_touching_voxels(backend, cell):
+def test_single_bright_cell_lights_exactly_the_touching_voxels(backend, cell, shadow_m):
     img = np.zeros(SPEC.image_shape, np.float32)
     img[cell] = 1.0
-    m = integrate(backend, [(img, T_B)])
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, shadow_m=shadow_m)
+    m.integrate(img, T_B)
     v = m.values().reshape(-1)
     obs = np.isfinite(v)
     p = centres_S(T_B)
     rho = math.sqrt(3) / 2 * GRID.voxel_size_m
-    # the footprint's height is fixed: floor(2 rho / dr) + 2 bins from the sphere's first bin
-    win = math.floor(2 * rho / SPEC.bin_size_m) + 2
+    # the footprint's height is fixed: floor((2 rho + shadow) / dr) + 2 bins from its first bin,
+    # which lies rho + shadow in front of the centre
+    win = math.floor((2 * rho + shadow_m) / SPEC.bin_size_m) + 2
 
     def touching(r_first_bin, r_beams):
         dr = SPEC.bin_size_m
-        b0 = np.floor((np.linalg.norm(p, axis=1) - r_first_bin - SPEC.range_min_m) / dr)
+        b0 = np.floor((np.linalg.norm(p, axis=1) - r_first_bin - shadow_m - SPEC.range_min_m) / dr)
         _, _, j0, j1 = sphere_footprint(SPEC, p, r_beams)
         return (b0 <= cell[0]) & (cell[0] <= b0 + win - 1) & (j0 <= cell[1]) & (cell[1] <= j1)
 
@@ -149,6 +152,14 @@ def test_backends_agree_with_numpy_reference(backend, footprint_max):
     for method in ("gather", "template"):
         ref = integrate("numpy", zip(imgs, poses, strict=True), method).raw_values()
         m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, method=method, footprint_max=footprint_max)
+        m_ref = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", method=method, shadow_m=0.05)
+        m_sh = gpumap.MinMaxMapper(
+            SPEC, GRID, backend=backend, method=method, footprint_max=footprint_max, shadow_m=0.05
+        )
+        for img, T in zip(imgs, poses, strict=True):
+            m_ref.integrate(img, T)
+            m_sh.integrate(img, T)
+        np.testing.assert_array_equal(m_sh.raw_values(), m_ref.raw_values())
         for img, T in zip(imgs, poses, strict=True):
             m.integrate(img, T)
         got = m.raw_values()
@@ -217,6 +228,29 @@ def test_plane_of_returns_is_kept_and_space_in_front_is_carved_over_two_views(ba
     print(f"carved in front of the plane: {carved_one:.1%} after one view, {carved_two:.1%} after two")
     assert carved_two > 0.98
     assert carved_two > carved_one  # the second view removes elevation "stretch"
+
+
+def test_shadow_keeps_the_far_side_of_a_thin_return(backend):
+    """A bright cell at range r keeps voxels up to shadow_m behind it occupied; none in front."""
+    img = np.zeros(SPEC.image_shape, np.float32)
+    img[20, :] = 1.0  # a shell of returns at bin 20 in every beam
+    r_ret = SPEC.range_min_m + 20.5 * SPEC.bin_size_m
+    p = centres_S(T_A)
+    r = np.linalg.norm(p, axis=1)
+    rho = math.sqrt(3) / 2 * GRID.voxel_size_m
+    dr = SPEC.bin_size_m
+    for shadow in (0.0, 0.2):
+        m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, shadow_m=shadow)
+        m.integrate(img, T_A)
+        v = m.values().ravel()
+        obs = np.isfinite(v)
+        # margins: the return's bin is dr deep, and the window may hold one bin more
+        behind = obs & (r > r_ret + rho + dr) & (r < r_ret + shadow - dr)
+        ahead = obs & (r < r_ret - rho - 2 * dr)
+        far = obs & (r > r_ret + shadow + rho + 2 * dr)
+        assert np.all(v[ahead] == 0) and np.all(v[far] == 0)
+        if shadow:
+            assert behind.sum() > 100 and np.all(v[behind] == 1.0)
 
 
 def test_uint8_image_is_scaled(backend):
