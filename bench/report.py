@@ -93,7 +93,8 @@ def _machine_block(res: dict) -> list[str]:
         f"pyoctomap {v.get('pyoctomap')}; {m.get('platform')}",
         f"- **Pings**: {r['pings']} pings of the tank trajectory (seed {r['seed']}, {r['ping_source']}), "
         f"{r['image_shape'][0]} bins x {r['image_shape'][1]} beams, {r['image_dtype']}; "
-        f"occupied threshold {r['threshold']}",
+        f"occupied threshold {r['threshold']}; gpumap shadow_m {r.get('shadow_m', 0.0):g} m "
+        "(0 = the paper's rule)",
         f"- **Warm-up**: {r['warmup_note']}",
         f"- **Timing**: {r['timing_note']}",
         f"- **Code**: commit `{(m.get('git') or {}).get('commit') or '?'}`"
@@ -584,7 +585,12 @@ def _findings(results: list[dict]) -> list[str]:
                 key=lambda r: r["kind"],
             ):
                 ratio = best["images_per_s"] / r["images_per_s"]
-                rel = f"gpumap {ratio:.2g}x faster" if ratio >= 1 else f"{1 / ratio:.2g}x faster than gpumap"
+                if abs(ratio - 1) < 0.1:
+                    rel = "about gpumap's speed"
+                else:
+                    rel = (
+                        f"gpumap {ratio:.2g}x faster" if ratio > 1 else f"{1 / ratio:.2g}x faster than gpumap"
+                    )
                 parts.append(
                     f"{r['kind']} {r['images_per_s']:.3g} images/s ({rel}), "
                     f"FN {_pct(r['false_negative_rate'])}, miss {_pct(r['miss_rate_seen'])}, "
