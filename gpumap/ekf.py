@@ -70,6 +70,8 @@ __all__ = [
     "motion_jacobian",
     "observation_model",
     "spherical_point",
+    "triangulate",
+    "Triangulation",
     "wrap_angle",
 ]
 
@@ -247,6 +249,8 @@ class UpdateResult:
     initialized_ids: tuple[int, ...] = ()
     degenerate_ids: tuple[int, ...] = ()
     nis: float | None = None
+    deferred_ids: tuple[int, ...] = ()
+    released_ids: tuple[int, ...] = ()
 
     @property
     def nis_dof(self) -> int:
@@ -298,6 +302,52 @@ def _check_ids(ids: object) -> list[int]:
         dup = sorted({i for i in out if out.count(i) > 1})
         raise ValueError(f"Expected each id at most once per update in 'ids', but got repeats {dup}")
     return out
+
+
+@dataclass(frozen=True)
+class _Held:
+    """Returns of one held feature, for :func:`triangulate` in its anchor frame ``A``.
+
+    ``C`` is the covariance of the right perturbation of ``T_A^-1 T_now`` (odometry since the
+    anchor, grown by each predict). ``X (k, 4, 4)`` are the views' frames from the anchor frame
+    (``T_V^-1 T_A``, estimates when taken), ``z (k, 2)`` the returns and ``Ce (k, 6, 6)`` the
+    covariance of each ``X``'s right perturbation. The anchor's own return is last.
+    """
+
+    C: np.ndarray
+    X: np.ndarray
+    z: np.ndarray
+    Ce: np.ndarray
+
+    @staticmethod
+    def start(z0: np.ndarray) -> _Held:
+        return _Held(np.zeros((6, 6)), np.eye(4)[None], np.asarray(z0, float)[None], np.zeros((1, 6, 6)))
+
+    def moved(self, F: np.ndarray, Q: np.ndarray) -> _Held:
+        return _Held(F @ self.C @ F.T + Q, self.X, self.z, self.Ce)
+
+    def add(self, X: np.ndarray, r: float, a: float, max_views: int) -> _Held:
+        # X = T_V^-1 T_A = Y^-1 with Y = T_A^-1 T_V, Y_true = Y Exp(eps), cov(eps) = C
+        # => X_true = X Exp(-Ad(Y) eps).
+        Ad = se3_adjoint(se3_inverse(X))
+        Xs = np.concatenate([self.X[:-1], X[None], self.X[-1:]])
+        zs = np.concatenate([self.z[:-1], [[r, a]], self.z[-1:]])
+        Cs = np.concatenate([self.Ce[:-1], (Ad @ self.C @ Ad.T)[None], self.Ce[-1:]])
+        if Xs.shape[0] > max_views:  # keep the anchor (last) and the newest
+            Xs, zs, Cs = Xs[1:], zs[1:], Cs[1:]
+        return _Held(self.C, Xs, zs, Cs)
+
+    def drop_oldest(self) -> _Held:
+        if self.X.shape[0] <= 2:
+            return _Held(self.C, self.X[-1:], self.z[-1:], self.Ce[-1:])
+        return _Held(self.C, self.X[1:], self.z[1:], self.Ce[1:])
+
+
+def _chi2_quantile(prob: float, dof: int) -> float:
+    """Chi-square quantile (``dof >= 1``)."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(prob, dof))
 
 
 def _chi2_2dof(prob: float) -> float:
@@ -358,6 +408,9 @@ class SonarEKF:
         gate_prob: float | None = 0.999,
         iterations: int = 1,
         mature_elevation_sigma_rad: float | None = None,
+        init: str = "arc",
+        init_elevation_sigma_rad: float | None = None,
+        init_max_views: int = 12,
     ) -> None:
         T = check_pose(T_W_S0, "T_W_S0")
         P0 = _check_cov(pose_cov0, 6, "pose_cov0")
@@ -386,6 +439,19 @@ class SonarEKF:
                 raise ValueError(f"Expected mature_elevation_sigma_rad > 0 (or None), but got {me}")
             mature_elevation_sigma_rad = me
         self.mature_elevation_sigma_rad = mature_elevation_sigma_rad
+        if init not in ("arc", "triangulate"):
+            raise ValueError(f"Expected init 'arc' or 'triangulate', but got {init!r}")
+        self.init = init
+        if init_elevation_sigma_rad is None:
+            init_elevation_sigma_rad = 0.5 * vf / math.sqrt(12.0)
+        ie = check_finite_scalar(init_elevation_sigma_rad, "init_elevation_sigma_rad")
+        if ie <= 0:
+            raise ValueError(f"Expected init_elevation_sigma_rad > 0, but got {ie}")
+        self.init_elevation_sigma_rad = ie
+        if (isinstance(init_max_views, bool) or not isinstance(init_max_views, (int, np.integer))
+                or init_max_views < 2):
+            raise ValueError(f"Expected an integer init_max_views >= 2, but got {init_max_views!r}")
+        self.init_max_views = int(init_max_views)
         self.range_sigma_m = sr
         self.bearing_sigma_rad = sb
         self.vfov_rad = vf
@@ -400,6 +466,9 @@ class SonarEKF:
         self._index: dict[int, int] = {}
         self._nis: float | None = None
         self._nis_dof = 0
+        # init="triangulate": features whose returns are held back until their elevation is
+        # triangulated: id -> (covariance of the pose since the anchor, held returns).
+        self._held: dict[int, _Held] = {}
 
     # ------------------------------------------------------------------ read-only views
     @property
@@ -528,7 +597,8 @@ class SonarEKF:
         T[:3, :3] = orthonormalize(T[:3, :3])
         if not (np.all(np.isfinite(P)) and np.all(np.isfinite(T))):
             raise FloatingPointError("predict produced non-finite values; the filter is unchanged")
-        self._T, self._P = T, P
+        held = {i: h.moved(F, Q) for i, h in self._held.items()}
+        self._T, self._P, self._held = T, P, held
 
     def update(
         self, ids: Iterable[int] | np.ndarray, ranges_m: np.ndarray, bearings_rad: np.ndarray
@@ -559,7 +629,8 @@ class SonarEKF:
         if np.any(rng_m <= 0):
             raise ValueError(f"Expected ranges_m > 0, but got minimum {float(rng_m.min())}")
 
-        known = [k for k in range(m) if id_list[k] in self._index]
+        known = [k for k in range(m) if id_list[k] in self._index and id_list[k] not in self._held]
+        held_k = [k for k in range(m) if id_list[k] in self._held]
         new = [k for k in range(m) if id_list[k] not in self._index]
         T, P, S = self._T, self._P, self._S
         accepted: list[int] = []
@@ -608,21 +679,30 @@ class SonarEKF:
         index = dict(self._index)
         ids_order = list(self._ids)
         Ra, ta = self._Ra, self._ta
-        if new:
+        held, deferred, released = self._held, [], []
+        if held_k:
+            S, P, held, deferred, released = self._release(
+                T, S, P, [(id_list[k], rng_m[k], brg[k]) for k in held_k])
+        Nz = np.diag([self.range_sigma_m**2, self.bearing_sigma_rad**2, self.elevation_var_rad2])
+        inits = [(k, np.array([rng_m[k], float(wrap_angle(brg[k])), 0.0]), Nz) for k in new]
+        if inits and self.init == "triangulate":
+            held = dict(held)
+            for k, s_k, _ in inits:
+                held[id_list[k]] = _Held.start(s_k[:2])
+        if inits:
             Nn = P.shape[0]
-            n_new = len(new)
+            n_new = len(inits)
             Pn = np.zeros((Nn + 3 * n_new, Nn + 3 * n_new))
             Pn[:Nn, :Nn] = P
-            Nz = np.diag([self.range_sigma_m**2, self.bearing_sigma_rad**2, self.elevation_var_rad2])
             s_new = np.zeros((n_new, 3))
-            for q, k in enumerate(new):
-                s_new[q] = (rng_m[k], float(wrap_angle(brg[k])), 0.0)
+            for q, (k, s_k, N_k) in enumerate(inits):
+                s_new[q] = s_k
                 A = anchor_jacobian(s_new[q])
                 c = Nn + 3 * q
                 cross = A @ Pn[:6, :c]  # (3, c): correlated through the anchor pose only
                 Pn[c : c + 3, :c] = cross
                 Pn[:c, c : c + 3] = cross.T
-                Pn[c : c + 3, c : c + 3] = A @ Pn[:6, :6] @ A.T + Nz
+                Pn[c : c + 3, c : c + 3] = A @ Pn[:6, :6] @ A.T + N_k
                 index[id_list[k]] = len(ids_order)
                 ids_order.append(id_list[k])
                 new_ids.append(id_list[k])
@@ -635,6 +715,7 @@ class SonarEKF:
             raise FloatingPointError("update produced non-finite values; the filter is unchanged")
         self._T, self._P, self._S, self._Ra, self._ta = T, P, S, Ra, ta
         self._index, self._ids = index, ids_order
+        self._held = held
         if accepted:
             self._nis, self._nis_dof = nis, 2 * len(accepted)
         return UpdateResult(
@@ -643,7 +724,62 @@ class SonarEKF:
             initialized_ids=tuple(new_ids),
             degenerate_ids=tuple(degenerate),
             nis=nis if accepted else None,
+            deferred_ids=tuple(deferred),
+            released_ids=tuple(released),
         )
+
+    @property
+    def held_ids(self) -> tuple[int, ...]:
+        """Features in the state whose returns are held back until their elevation is triangulated."""
+        return tuple(self._held)
+
+    def _release(
+        self, T: np.ndarray, S: np.ndarray, P: np.ndarray, returns: list[tuple[int, float, float]]
+    ) -> tuple[np.ndarray, np.ndarray, dict, list[int], list[int]]:
+        """Store held features' returns; triangulate each and release those that are ready.
+
+        ``returns`` are ``(id, range, azimuth)`` at the current pose estimate ``T``. A feature
+        is released when its elevation in the anchor frame is triangulated to
+        ``init_elevation_sigma_rad`` with a residual that passes a chi-square test (0.999);
+        a failing residual drops the oldest non-anchor return (an outlier, or a view whose
+        relative pose drifted more than its covariance says). Releasing replaces the
+        independent elevation term of the arc prior, ``U(-vfov/2, vfov/2)`` (mean 0, variance
+        ``vfov^2 / 12``), by the triangulated ``N(el, sigma^2)``: this is exact bookkeeping
+        because none of the feature's returns was fused, so that term is still independent of
+        the rest of the state, untouched by every update since. The returns used for the
+        triangulation are spent (not fused again). Nothing here mutates ``self``.
+
+        Returns
+        -------
+        S, P : new anchored coordinates and covariance
+        held : dict, the new held table
+        deferred, released : lists of ids
+        """
+        held = dict(self._held)
+        S, P = S.copy(), P.copy()
+        r_var = np.array([self.range_sigma_m**2, self.bearing_sigma_rad**2])
+        deferred, released = [], []
+        for i, r, a in returns:
+            k = self._index[i]
+            T_W_A = np.eye(4)
+            T_W_A[:3, :3], T_W_A[:3, 3] = self._Ra[k], self._ta[k]
+            h = held[i].add(se3_inverse(T) @ T_W_A, float(r), float(wrap_angle(a)), self.init_max_views)
+            tri = triangulate(h.X, h.z, h.Ce, r_var, self.vfov_rad) if h.z.shape[0] >= 2 else None
+            if tri is not None and tri.cost > _chi2_quantile(0.999, tri.dof):
+                h = h.drop_oldest()
+                tri = None
+            ready = (tri is not None and tri.elevation_sigma_rad <= self.init_elevation_sigma_rad
+                     and abs(tri.s[2]) <= 0.5 * self.vfov_rad + 3.0 * tri.elevation_sigma_rad)
+            if ready:
+                e = 6 + 3 * k + 2
+                S[k, 2] += tri.s[2]
+                P[e, e] += tri.cov[2, 2] - self.elevation_var_rad2
+                del held[i]
+                released.append(i)
+            else:
+                held[i] = h
+                deferred.append(i)
+        return S, 0.5 * (P + P.T), held, deferred, released
 
     def forget(self, landmark_id: int) -> None:
         """Marginalise one feature out of the state (drop its rows and columns).
@@ -654,6 +790,7 @@ class SonarEKF:
             If the feature is not in the state.
         """
         k = self._slot(landmark_id)
+        self._held.pop(int(landmark_id), None)
         s = 6 + 3 * k
         keep = np.r_[0:s, s + 3 : self._P.shape[0]]
         self._P = self._P[np.ix_(keep, keep)].copy()
@@ -899,3 +1036,154 @@ def _robust_cholesky(S: np.ndarray) -> tuple[np.ndarray, bool]:
         "Expected a positive definite innovation covariance, but Cholesky failed even with "
         "jitter; the filter is unchanged"
     )
+
+
+# --------------------------------------------------------------------------- delayed initialisation
+def _range_azimuth(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(r, azimuth)`` of sonar-frame points ``q (k, 3)`` and ``dz/dq (k, 2, 3)``."""
+    x, y = q[:, 0], q[:, 1]
+    r = np.linalg.norm(q, axis=1)
+    h2 = x * x + y * y
+    rs = np.where(r > 0, r, 1.0)
+    hs = np.where(h2 > 0, h2, 1.0)
+    J = np.zeros((q.shape[0], 2, 3))
+    J[:, 0, :] = q / rs[:, None]
+    J[:, 1, 0] = -y / hs
+    J[:, 1, 1] = x / hs
+    return np.stack([r, np.arctan2(y, x)], axis=1), J
+
+
+def _hat_batch(p: np.ndarray) -> np.ndarray:
+    H = np.zeros((p.shape[0], 3, 3))
+    H[:, 0, 1], H[:, 0, 2] = -p[:, 2], p[:, 1]
+    H[:, 1, 0], H[:, 1, 2] = p[:, 2], -p[:, 0]
+    H[:, 2, 0], H[:, 2, 1] = -p[:, 1], p[:, 0]
+    return H
+
+
+@dataclass(frozen=True)
+class Triangulation:
+    """Result of :func:`triangulate`.
+
+    Attributes
+    ----------
+    s : (3,) float64
+        ``(range m, azimuth rad, elevation rad)`` of the point in the reference frame.
+    cov : (3, 3) float64
+        Its covariance: the inverse Gauss-Newton Hessian, with each view's residual weighted
+        by ``R + J_e C_rel J_e^T`` (measurement noise inflated by that view's relative-pose
+        uncertainty), pushed into spherical coordinates.
+    cost : float
+        Weighted squared residual at the solution (chi-square with ``dof`` degrees of freedom
+        when the model holds).
+    dof : int
+        ``2 k - 3`` for ``k`` views.
+    """
+
+    s: np.ndarray
+    cov: np.ndarray
+    cost: float
+    dof: int
+
+    @property
+    def elevation_sigma_rad(self) -> float:
+        """Standard deviation of the triangulated elevation."""
+        return math.sqrt(max(float(self.cov[2, 2]), 0.0))
+
+
+def triangulate(
+    T_V_S: np.ndarray,
+    z: np.ndarray,
+    rel_cov: np.ndarray,
+    r_var: np.ndarray,
+    vfov_rad: float,
+    n_scan: int = 15,
+    max_iter: int = 8,
+) -> Triangulation | None:
+    """Locate a point from ``k`` (range, azimuth) returns taken at known relative poses.
+
+    The reference frame ``S`` is the sonar frame of the last return (``T_V_S[-1]`` is normally
+    the identity). The point is first found on the last return's elevation arc by a scan of
+    ``n_scan`` elevations over the aperture (the cost is multimodal along the arc when the
+    parallax is small), then refined in Cartesian coordinates by Gauss-Newton over all returns.
+
+    Parameters
+    ----------
+    T_V_S : (k, 4, 4) float
+        Each view's frame from the reference frame: ``q_k = T_V_S[k] @ p``.
+    z : (k, 2) float
+        ``(range m, azimuth rad)`` of each return.
+    rel_cov : (k, 6, 6) float
+        Covariance of the right perturbation ``e_k`` in ``T_V_S[k]_true = T_V_S[k] Exp(e_k)``.
+    r_var : (2,) float
+        Range and azimuth noise variances.
+    vfov_rad : float
+        Vertical aperture (the scan's span).
+
+    Returns
+    -------
+    Triangulation or None
+        None when the geometry is degenerate (singular Hessian, point behind every view).
+    """
+    R, t = T_V_S[:, :3, :3], T_V_S[:, :3, 3]
+    k = z.shape[0]
+    r0, az0 = float(z[-1, 0]), float(z[-1, 1])
+    # Coarse scan along the last return's arc (range/azimuth fixed), vectorised.
+    els = np.linspace(-0.5 * vfov_rad, 0.5 * vfov_rad, n_scan)
+    cand = spherical_point(np.column_stack([np.full(n_scan, r0), np.full(n_scan, az0), els]))[0]
+    q = np.einsum("kij,cj->cki", R, cand) + t[None]  # (c, k, 3)
+    zz, _ = _range_azimuth(q.reshape(-1, 3))
+    res = z[None] - zz.reshape(n_scan, k, 2)
+    res[..., 1] = wrap_angle(res[..., 1])
+    p = cand[int(np.argmin(np.sum(res * res / r_var, axis=(1, 2))))].copy()
+
+    def normal_equations(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        qk = np.einsum("kij,j->ki", R, p) + t
+        zk, Jq = _range_azimuth(qk)
+        nu = z - zk
+        nu[:, 1] = wrap_angle(nu[:, 1])
+        Jp = Jq @ R  # (k, 2, 3)
+        Je = np.concatenate([Jp, -Jp @ _hat_batch(np.broadcast_to(p, (k, 3)))], axis=2)  # (k, 2, 6)
+        Sk = np.einsum("kij,kjl,kml->kim", Je, rel_cov, Je)
+        Sk[:, 0, 0] += r_var[0]
+        Sk[:, 1, 1] += r_var[1]
+        det = Sk[:, 0, 0] * Sk[:, 1, 1] - Sk[:, 0, 1] * Sk[:, 1, 0]
+        W = np.stack([np.stack([Sk[:, 1, 1], -Sk[:, 0, 1]], 1), np.stack([-Sk[:, 1, 0], Sk[:, 0, 0]], 1)],
+                     1) / det[:, None, None]
+        W = 0.5 * (W + np.swapaxes(W, 1, 2))
+        JtW = np.swapaxes(Jp, 1, 2) @ W  # (k, 3, 2)
+        H = np.einsum("kij,kjl->il", JtW, Jp)
+        g = np.einsum("kij,kj->i", JtW, nu)
+        cost = float(np.einsum("ki,kij,kj->", nu, W, nu))
+        return H, g, cost
+
+    H, g, cost = normal_equations(p)
+    lam = 1e-6
+    for _ in range(max_iter):
+        d = np.diag(H)
+        try:
+            step = np.linalg.solve(H + lam * np.diag(np.maximum(d, 1e-300)), g)
+        except np.linalg.LinAlgError:
+            return None
+        Hn, gn, cn = normal_equations(p + step)
+        if cn <= cost:
+            p, H, g, cost_prev, cost = p + step, Hn, gn, cost, cn
+            lam = max(lam * 0.1, 1e-9)
+            if cost_prev - cost <= 1e-10 * (1.0 + cost):
+                break
+        else:
+            lam *= 100.0
+    if not (np.all(np.isfinite(H)) and np.all(np.isfinite(p))):
+        return None
+    lam_h, V = np.linalg.eigh(0.5 * (H + H.T))
+    if lam_h.min() <= 1e-12 * max(lam_h.max(), 1e-300):
+        return None
+    Cp = (V / lam_h) @ V.T
+    s = np.array([np.linalg.norm(p), math.atan2(p[1], p[0]), math.atan2(p[2], math.hypot(p[0], p[1]))])
+    if s[0] <= 0 or math.cos(s[2]) <= 1e-6:
+        return None
+    _, D = spherical_point(s)
+    ce = math.cos(float(s[2]))
+    Dinv = np.diag([1.0, 1.0 / (s[0] * ce) ** 2, 1.0 / (s[0] * s[0])]) @ D.T
+    Cs = Dinv @ Cp @ Dinv.T
+    return Triangulation(s, 0.5 * (Cs + Cs.T), cost, 2 * k - 3)

@@ -27,6 +27,7 @@ from gpumap.ekf import (
     motion_jacobian,
     observation_model,
     spherical_point,
+    triangulate,
     wrap_angle,
 )
 from gpumap.lie import (
@@ -656,3 +657,116 @@ def test_nees_helper_agrees_with_a_direct_computation() -> None:
     e = pose_error(ekf.pose, run.T_W_S[-1])
     direct = e @ np.linalg.solve(ekf.pose_cov, e)
     assert nees(ekf, run.T_W_S[-1], run.points_W)[0] == pytest.approx(direct, rel=1e-9)
+
+
+# --------------------------------------------------------------------------- triangulated initialisation
+def _views_around(p_S: np.ndarray, n: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """Views of a point rolled and raised around the reference frame; returns ``T_V_S`` and ``z``."""
+    X, z = [], []
+    for j in range(n):
+        a = (j - (n - 1)) / max(n - 1, 1)  # the reference view (identity) comes last
+        T_S_V = se3_exp(np.array([0.1 * a, 0.05 * a, 0.15 * a, 0.6 * a, 0.05 * a, -0.03 * a]))
+        Xj = se3_inverse(T_S_V)
+        q = Xj[:3, :3] @ p_S + Xj[:3, 3]
+        X.append(Xj)
+        z.append([np.linalg.norm(q), np.arctan2(q[1], q[0])])
+    return np.stack(X), np.array(z)
+
+
+def test_triangulation_is_exact_on_noiseless_views_and_its_sigma_is_honest() -> None:
+    p_S = spherical_point(np.array([2.3, 0.15, np.deg2rad(5.0)]))[0]
+    X, z = _views_around(p_S)
+    r_var = np.array([0.003**2, np.deg2rad(0.1) ** 2])
+    C = np.zeros((len(X), 6, 6))
+    tri = triangulate(X, z, C, r_var, VFOV)
+    np.testing.assert_allclose(tri.s, _sph(p_S), atol=1e-9)
+    assert tri.cost < 1e-12 and tri.dof == 2 * len(X) - 3
+    # With noise on the returns and on the relative poses, the stated covariance is right:
+    # the normalised squared errors average 3 (chi-square, 3 dof) over many trials.
+    rng = np.random.default_rng(21)
+    Ce = np.diag([1e-4**2] * 3 + [2e-4**2] * 3)
+    d2 = []
+    for _ in range(300):
+        Xn = np.stack([x @ se3_exp(rng.multivariate_normal(np.zeros(6), Ce)) for x in X[:-1]] + [X[-1]])
+        zn = z + rng.standard_normal(z.shape) * np.sqrt(r_var)
+        t = triangulate(Xn, zn, np.concatenate([np.broadcast_to(Ce, (len(X) - 1, 6, 6)), C[:1]]),
+                        r_var, VFOV)
+        e = _sph(p_S) - t.s
+        d2.append(e @ np.linalg.solve(t.cov, e))
+    lo, hi = chi2.ppf([0.0005, 0.9995], 3 * 300) / 300
+    assert lo <= np.mean(d2) <= hi, (np.mean(d2), lo, hi)
+
+
+def test_triangulation_without_parallax_leaves_elevation_unknown() -> None:
+    p_S = spherical_point(np.array([2.0, 0.1, 0.05]))[0]
+    q = p_S
+    z = np.array([[np.linalg.norm(q), np.arctan2(q[1], q[0])]] * 4)
+    tri = triangulate(np.broadcast_to(np.eye(4), (4, 4, 4)).copy(), z, np.zeros((4, 6, 6)),
+                      np.array([1e-4, 1e-6]), VFOV)
+    assert tri is None or tri.elevation_sigma_rad > VFOV
+
+
+def _run_triangulate(run, **kw) -> SonarEKF:
+    cfg = run.config
+    ekf = SonarEKF(run.T_W_S[0], np.zeros((6, 6)), range_sigma_m=cfg.range_sigma_m,
+                   bearing_sigma_rad=cfg.bearing_sigma_rad, vfov_rad=cfg.vfov_rad, init="triangulate", **kw)
+    for k in range(run.T_W_S.shape[0]):
+        if k:
+            ekf.predict(run.U_odo[k - 1], run.Q[k - 1])
+        res = ekf.update(run.ids[k], run.ranges_m[k], run.bearings_rad[k])
+        assert not set(res.accepted_ids) & set(res.deferred_ids)
+    return ekf
+
+
+def test_triangulated_init_on_the_prism_is_consistent_and_releases_every_feature() -> None:
+    n = 12
+    pose, feat = [], []
+    for seed in range(n):
+        run = simulate(100 + seed)
+        ekf = _run_triangulate(run)
+        _assert_healthy(ekf)
+        assert ekf.held_ids == ()
+        pn, _, _, _ = nees(ekf, run.T_W_S[-1], run.points_W)
+        pose.append(pn)
+        feat.append(np.mean([np.linalg.norm(ekf.landmarks[i] - run.points_W[i]) for i in range(8)]))
+    lo, hi = chi2.ppf([0.005, 0.995], 6 * n) / n
+    assert lo <= np.mean(pose) <= hi, (np.mean(pose), lo, hi)
+    assert np.mean(feat) < 0.02
+
+
+def test_held_features_are_not_fused_without_parallax_and_state_stays_healthy() -> None:
+    ekf = SonarEKF(np.eye(4), np.diag([1e-4] * 6), range_sigma_m=0.01, bearing_sigma_rad=0.005,
+                   vfov_rad=VFOV, init="triangulate")
+    ids, r, b = measure(np.eye(4), prism_vertices())
+    first = ekf.update(ids, r, b)
+    assert first.initialized_ids == tuple(int(i) for i in ids)
+    P0 = ekf.native_covariance
+    for _ in range(50):
+        res = ekf.update(ids, r, b)
+        assert res.accepted_ids == () and res.deferred_ids == tuple(int(i) for i in ids)
+    np.testing.assert_array_equal(ekf.native_covariance, P0)
+    assert set(ekf.held_ids) == {int(i) for i in ids}
+    _assert_healthy(ekf)
+    ekf.forget(int(ids[0]))
+    assert int(ids[0]) not in ekf.held_ids
+
+
+def test_triangulate_mode_bad_input_leaves_held_returns_untouched() -> None:
+    run = simulate(3)
+    cfg = run.config
+    ekf = SonarEKF(run.T_W_S[0], np.zeros((6, 6)), range_sigma_m=cfg.range_sigma_m,
+                   bearing_sigma_rad=cfg.bearing_sigma_rad, vfov_rad=cfg.vfov_rad, init="triangulate")
+    ekf.update(run.ids[0], run.ranges_m[0], run.bearings_rad[0])
+    ekf.predict(run.U_odo[0], run.Q[0])
+    held = copy.deepcopy(ekf._held)
+    P = ekf.native_covariance
+    for args, exc in _bad_updates():
+        with pytest.raises(exc):
+            ekf.update(*args)
+    with pytest.raises(ValueError):
+        ekf.predict(np.eye(4), np.full((6, 6), np.nan))
+    np.testing.assert_array_equal(ekf.native_covariance, P)
+    assert held.keys() == ekf._held.keys()
+    for i in held:
+        for f in ("C", "X", "z", "Ce"):
+            np.testing.assert_array_equal(getattr(held[i], f), getattr(ekf._held[i], f))
