@@ -123,7 +123,7 @@ def _git_state() -> dict[str, Any]:
         return {}
     return {
         "commit": head.stdout.strip() or None,
-        "modified": [line[3:] for line in dirty.stdout.splitlines() if line.strip()],
+        "modified": [line[3:] for line in dirty.stdout.splitlines() if line.strip().endswith((".py", ".cl"))],
     }
 
 
