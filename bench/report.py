@@ -503,6 +503,9 @@ def _plots(results: list[dict], out_dir: Path) -> list[str]:
                 title="EKF cost vs features",
             )
             axs[2].legend(fontsize=7)
+        for a in axs:
+            a.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            a.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         fig.tight_layout()
         fig.savefig(out_dir / "scaling.png", dpi=70)
         plt.close(fig)
