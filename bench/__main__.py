@@ -23,7 +23,6 @@ import argparse
 import gc
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -41,6 +40,7 @@ from .common import (
     CpuShare,
     PeakRSS,
     compact,
+    load_average,
     machine_info,
     slug,
 )
@@ -495,7 +495,7 @@ def run(args: argparse.Namespace) -> dict:
     if "sim" in pings.meta and not args.pings_from:
         scaling["simulator"] = pings.meta["sim"]
 
-    info["load_avg_end"] = [round(x, 2) for x in os.getloadavg()]
+    info["load_avg_end"] = load_average()
     share.__exit__(None, None, None)
     info["cpu_share_during_run"] = {
         "others_cores": share.others_cores,

@@ -19,6 +19,7 @@ __all__ = [
     "CpuShare",
     "PeakRSS",
     "compact",
+    "load_average",
     "machine_info",
     "slug",
 ]
@@ -63,6 +64,14 @@ def _version(mod: str) -> str | None:
         return None
 
 
+def load_average() -> list[float] | None:
+    """1, 5 and 15 minute load averages (None where the system does not tell, e.g. some sandboxes)."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return None
+
+
 def machine_info() -> dict[str, Any]:
     """CPU model and cores, memory, GPU names, load average and package versions."""
     import gpumap
@@ -73,7 +82,7 @@ def machine_info() -> dict[str, Any]:
         "affinity_cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
         "platform": platform.platform(),
         "python": platform.python_version(),
-        "load_avg_start": [round(x, 2) for x in os.getloadavg()],
+        "load_avg_start": load_average(),
         "versions": {
             "gpumap": gpumap.__version__,
             "numpy": np.__version__,
