@@ -196,7 +196,8 @@ def _targets(results: list[dict]) -> list[str]:
                 cands.append((r["images_per_s"], r, res))
         label = f"{'CPU (this 2-core box)' if dev == 'cpu' else 'H100'}: {v * 100:g} cm at >= {hz:g} images/s"
         if not cands:
-            out.append(f"| {label} | not measured here (needs the GPU run) | – | not yet measured |")
+            how = "`python -m bench`" if dev == "cpu" else "`python -m bench --gpu-only` on the GPU box"
+            out.append(f"| {label} | not measured yet (run {how}) | – | not yet measured |")
             continue
         ips, r, res = max(cands, key=lambda c: c[0])
         ok = ips >= hz
@@ -465,7 +466,8 @@ def _plots(results: list[dict], out_dir: Path) -> list[str]:
             ylabel="median ms per image",
             title="cost vs voxels in view (lines: linear fit)",
         )
-        axs[0].legend(fontsize=6)
+        if fits:
+            axs[0].legend(fontsize=6)
         groups: dict[str, list] = {}
         for _, r in ims:
             groups.setdefault(f"{r['backend']}" + (" [GPU]" if _is_gpu(r) else ""), []).append(r)
