@@ -33,7 +33,7 @@ from gpumap.ekf import SonarEKF
 from gpumap.lie import se3_exp
 
 
-def _prism_stats(cfg: PrismConfig, seeds: int, desc: str, bar: bool = True) -> dict:
+def _prism_stats(cfg: PrismConfig, seeds: int, desc: str, bar: bool = True, init: str = "arc") -> dict:
     n = cfg.n_views
     pos_ekf = np.zeros((seeds, n))
     pos_odo = np.zeros((seeds, n))
@@ -48,7 +48,7 @@ def _prism_stats(cfg: PrismConfig, seeds: int, desc: str, bar: bool = True) -> d
     last = None
     for s in tqdm(range(seeds), desc=desc, disable=not bar, leave=False):
         run = simulate(s, cfg)
-        tr = run_filter(run)
+        tr = run_filter(run, init=init)
         To = run_odometry(run)
         for k in range(n):
             e = pose_error(tr.T_W_S[k], run.T_W_S[k])
@@ -73,7 +73,7 @@ def _prism_stats(cfg: PrismConfig, seeds: int, desc: str, bar: bool = True) -> d
     )
 
 
-def _time_updates(n_features: int, reps: int) -> dict:
+def _time_updates(n_features: int, reps: int, init: str = "arc") -> dict:
     """Median time of one predict and one update with all ``n_features`` re-observed."""
     rng = np.random.default_rng(0)
     pts = np.column_stack([
@@ -82,7 +82,7 @@ def _time_updates(n_features: int, reps: int) -> dict:
         rng.uniform(-0.2, 0.2, n_features),
     ])
     ekf = SonarEKF(np.eye(4), np.zeros((6, 6)), range_sigma_m=0.003, bearing_sigma_rad=np.deg2rad(0.1),
-                   vfov_rad=np.deg2rad(14.0), gate_prob=None)
+                   vfov_rad=np.deg2rad(14.0), gate_prob=None, init=init)
     ids, r, b = measure(np.eye(4), pts, rng, 0.003, np.deg2rad(0.1))
     ekf.update(ids, r, b)
     U = se3_exp(np.array([0.001, 0.0, 0.0, 0.001, 0.0, 0.0]))
@@ -115,11 +115,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=50)
     ap.add_argument("--sweep-seeds", type=int, default=20)
     ap.add_argument("--reps", type=int, default=200, help="timed updates per feature count")
+    ap.add_argument("--init", default="arc", choices=["arc", "triangulate"],
+                    help="feature initialisation of SonarEKF (init=)")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
 
     cfg = PrismConfig()
-    st = _prism_stats(cfg, args.seeds, "prism seeds")
+    st = _prism_stats(cfg, args.seeds, "prism seeds", init=args.init)
     S = args.seeds
     lo6, hi6 = _band(6, S)
     lo24, hi24 = _band(24, S)
@@ -132,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     for scale in tqdm([0.25, 0.5, 1.0, 2.0, 5.0, 10.0], desc="odometry sweep", leave=False):
         c = dataclasses.replace(cfg, k_t=cfg.k_t * scale, k_r=cfg.k_r * scale,
                                 k_rt_rad_per_m=cfg.k_rt_rad_per_m * scale)
-        s2 = _prism_stats(c, args.sweep_seeds, f"x{scale}", bar=False)
+        s2 = _prism_stats(c, args.sweep_seeds, f"x{scale}", bar=False, init=args.init)
         sweep.append(dict(odometry_noise_scale=scale, k_t=c.k_t, k_r=c.k_r,
                           final_feature_error_m_mean=float(s2["final"].mean()),
                           final_feature_error_m_std=float(s2["final"].std()),
@@ -140,11 +142,12 @@ def main(argv: list[str] | None = None) -> int:
                           final_position_error_m_odometry=float(s2["pos_odo"][:, -1].mean())))
 
     counts = [8, 16, 32, 64, 100, 150, 200]
-    timing = [_time_updates(n, args.reps) for n in tqdm(counts, desc="timing", leave=False)]
+    timing = [_time_updates(n, args.reps, args.init) for n in tqdm(counts, desc="timing", leave=False)]
 
     summary = dict(
         config=dataclasses.asdict(cfg),
         seeds=S,
+        init=args.init,
         final_feature_error_m=dict(mean=float(final.mean()), std=float(final.std()),
                                    median=float(np.median(final)), max=float(final.max())),
         final_feature_error_m_per_vertex=st["feat"][:, -1].mean(axis=0).tolist(),

@@ -341,11 +341,13 @@ def run_filter(
     pose_cov0: np.ndarray | None = None,
     vfov_rad: float | None = None,
     gate_prob: float | None = 0.999,
+    init: str = "arc",
 ) -> FilterTrace:
     """Drive a :class:`SonarEKF` through a run: update at view 0, then predict + update.
 
     The filter starts at the true first pose with ``pose_cov0`` (default zero: the world is
-    the first sonar frame, as in the paper).
+    the first sonar frame, as in the paper). ``init`` selects the feature initialisation
+    (:class:`SonarEKF`'s ``init``: ``"arc"`` or ``"triangulate"``).
     """
     cfg = run.config
     n = run.T_W_S.shape[0]
@@ -357,6 +359,7 @@ def run_filter(
         bearing_sigma_rad=cfg.bearing_sigma_rad,
         vfov_rad=cfg.vfov_rad if vfov_rad is None else vfov_rad,
         gate_prob=gate_prob,
+        init=init,
     )
     Ts = np.empty((n, 4, 4))
     lms = np.full((n, npts, 3), np.nan)
