@@ -50,6 +50,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if cmd == "info":
         return info(rest)
+    if cmd == "bench" and "" not in sys.path and "." not in sys.path:
+        sys.path.insert(0, "")  # bench/ lives in the source checkout, next to pyproject.toml
     try:
         mod = importlib.import_module(COMMANDS[cmd][0])
     except ModuleNotFoundError as e:
