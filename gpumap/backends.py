@@ -395,38 +395,16 @@ class OpenCLBackend(Backend):
                 self.k_window(self.queue, (gs,), (16,), P, image_buf, self.table)
                 gs = -(-self.n_bins // 16) * 16
                 self.k_levels(self.queue, (gs,), (16,), P, self.table)
+        args = (P, image_buf, self.edges, self.lut, self.table, flag)
         if method == "gather":
             n_threads *= -(-int(params["box_n"][2]) // self.chunk)
             if not n_threads:
                 return
             gs = -(-n_threads // self.wg) * self.wg
-            self.k_gather(
-                self.queue,
-                (gs,),
-                (self.wg,),
-                P,
-                image_buf,
-                self.edges,
-                self.lut,
-                self.table,
-                flag,
-                self.grid,
-            )
+            self.k_gather(self.queue, (gs,), (self.wg,), *args, self.grid)
         else:
             gs = -(-self.n_points // self.wg) * self.wg
-            self.k_template(
-                self.queue,
-                (gs,),
-                (self.wg,),
-                P,
-                image_buf,
-                self.edges,
-                self.lut,
-                self.table,
-                flag,
-                self.template,
-                self.grid,
-            )
+            self.k_template(self.queue, (gs,), (self.wg,), *args, self.template, self.grid)
         self.queue.flush()
 
     def read(self):

@@ -2,10 +2,27 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 import gpumap
+
+
+def _find_data() -> Path | None:
+    """The real recordings, ``shared/data`` beside the checkout (CI has it there)."""
+    for up in Path(__file__).resolve().parents:
+        for cand in (up / "shared" / "data", up.parent / "shared" / "data"):
+            if (cand / "README.md").is_file():
+                return cand
+    return None
+
+
+DATA = _find_data()
+needs_data = pytest.mark.skipif(
+    DATA is None, reason="shared/data (real recordings) not found beside the checkout (../shared/data)"
+)
 
 ALL_BACKENDS = ("numpy", "warp-cpu", "warp-cuda", "opencl-cpu", "opencl-gpu")
 _AVAILABLE = gpumap.available_backends()

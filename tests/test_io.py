@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import DATA, needs_data  # noqa: E402
 
 from gpumap.io import (
     FanGeometry,
@@ -28,19 +29,6 @@ from gpumap.io import (
 )
 from gpumap.spec import SonarSpec
 
-
-def _find_data() -> Path | None:
-    here = Path(__file__).resolve()
-    for up in here.parents:
-        for cand in (up / "shared" / "data", up.parent / "shared" / "data"):
-            if (cand / "README.md").is_file():
-                return cand
-    return None
-
-
-DATA = _find_data()
-needs_data = pytest.mark.skipif(DATA is None, reason="shared/data (real recordings) not found "
-                                "beside the checkout (../shared/data)")
 OCU1 = DATA / "oculus" / "one_ping_8bit.raw" if DATA else None
 OCU3 = DATA / "oculus" / "three_pings_8bit.raw" if DATA else None
 ARIS = DATA / "aris" / "sample.aris" if DATA else None

@@ -9,24 +9,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import DATA, needs_data  # noqa: E402
 
 from gpumap.io import open_recording, read_ply
 from gpumap.io.fan import FanGeometry, open_fan_folder
 from gpumap.io.oculus import encode_simple_ping
 from gpumap.replay import auto_grid, main, otsu_threshold, run_replay
-
-
-def _find_data() -> Path | None:
-    for up in Path(__file__).resolve().parents:
-        for cand in (up / "shared" / "data", up.parent / "shared" / "data"):
-            if (cand / "README.md").is_file():
-                return cand
-    return None
-
-
-DATA = _find_data()
-needs_data = pytest.mark.skipif(DATA is None, reason="shared/data (real recordings) not found "
-                                "beside the checkout (../shared/data)")
 
 
 # ------------------------------------------------------------------ replay on real data
