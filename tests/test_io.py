@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import DATA, needs_data  # noqa: E402
+from conftest import DATA, needs_data
 
 from gpumap.io import (
     FanGeometry,

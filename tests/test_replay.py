@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import DATA, needs_data  # noqa: E402
+from conftest import DATA, needs_data
 
 from gpumap.io import open_recording, read_ply
 from gpumap.io.fan import FanGeometry, open_fan_folder
