@@ -554,6 +554,13 @@ REPRODUCE = [
     "bit for bit by the first command (seeded simulator). Ground truth is recomputed from the seeded scene "
     "on every machine (trimesh only). `--gpu-only` runs warp-cuda and opencl-gpu at 3, 1 and 0.5 cm, "
     "writes `gpu_<device>.json`; drop it in `bench/results/` and rerun the report.",
+    "",
+    "The H100 rows here came from the project's GPU machine (no package index there; see "
+    "`../shared/device/README.md` for carrying warp-lang and pyopencl): install gpumap with "
+    "`pip install --no-deps --no-build-isolation --target /tmp/gm .` (its setuptools is too old for an "
+    "editable install that maps `kernels/` and `sim/` under `gpumap`), carry a trimesh wheel the same way, "
+    "put `/tmp/gm` first on `PYTHONPATH` and the checkout after it, and run the `--gpu-only` command "
+    "from outside the checkout, in two calls (`--voxel 0.03 0.01`, then `--voxel 0.005 --tag gpu_h100_5mm`).",
 ]
 
 
