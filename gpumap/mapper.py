@@ -32,7 +32,7 @@ def available_backends() -> list[str]:
     return _available()
 
 
-def _free_memory_bytes(backend: Backend | None, name: str) -> int | None:
+def _free_memory_bytes(name: str) -> int | None:
     """Best guess of the memory a grid may take on the backend ``name`` (None if unknown)."""
     try:
         if name in ("numpy", "warp-cpu") or name.startswith("opencl"):
@@ -129,7 +129,7 @@ class MinMaxMapper:
         errors = []
         for name in names:
             need = self.grid.nbytes
-            free = _free_memory_bytes(None, name)
+            free = _free_memory_bytes(name)
             if free is not None and need > free:
                 msg = (
                     f"Expected a grid that fits in memory, but {self.grid.shape} voxels at "
