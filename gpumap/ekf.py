@@ -38,6 +38,11 @@ Kalman Filter by Using Acoustic Camera Images" (Section 3), with these changes:
   features whose elevation given the pose is still looser than this update only their own
   feature (Schmidt-Kalman consider update; Joseph form keeps the covariance right). This
   restores consistency (pose NEES ~6) but, in the tank demo, almost no feature matures.
+- **Ranges to a known plane** (:meth:`SonarEKF.update_plane_ranges`): slant ranges along
+  rays fixed to the sonar (a DVL's beams through its mount) to a known world plane (the
+  floor). They observe what range/azimuth features hardly do: height above the plane and
+  tilt relative to it (pitch, roll); never position along it or heading. Gated per ray
+  (chi-square, 1 dof); NaN ranges (no return) and rays parallel to the plane are skipped.
 - **Gating**: each return's innovation is tested on its own ``2x2`` innovation covariance
   against a chi-square (2 dof) quantile; returns that fail are reported, not used.
 - **Numerics**: gains by Cholesky solve of the innovation covariance (never its inverse),
@@ -81,11 +86,13 @@ from gpumap.lie import (
 )
 
 __all__ = [
+    "PlaneUpdateResult",
     "SonarEKF",
     "UpdateResult",
     "anchor_jacobian",
     "motion_jacobian",
     "observation_model",
+    "plane_range_model",
     "spherical_point",
     "triangulate",
     "Triangulation",
@@ -241,6 +248,90 @@ def motion_jacobian(T_Sprev_Snext: np.ndarray) -> np.ndarray:
     return se3_adjoint(se3_inverse(np.asarray(T_Sprev_Snext, dtype=np.float64)))
 
 
+def plane_range_model(
+    T_W_S: np.ndarray,
+    origins_S: np.ndarray,
+    directions_S: np.ndarray,
+    plane_n_W: np.ndarray,
+    plane_d_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Predicted ranges along rays fixed in the sonar frame to a world plane, and their Jacobian.
+
+    Ray ``i`` starts at ``T_W_S @ o_i`` and runs along ``R_W_S @ u_i``; it meets the plane
+    ``n . p = d`` at ``r_i = (d - n . o_W) / (n . u_W)``. With the right perturbation
+    ``T_W_S = T_hat @ Exp(delta)``, ``dr/d(rho) = -n_S / (n . u_W)`` and
+    ``dr/d(phi) = (n_S x p_S) / (n . u_W)``, where ``n_S = R^T n`` and ``p_S = o + r u`` is the
+    hit point in the sonar frame.
+
+    Parameters
+    ----------
+    T_W_S : (4, 4) float
+        Sonar pose.
+    origins_S : (m, 3) float
+        Ray origins in the sonar frame, metres.
+    directions_S : (m, 3) float
+        Unit ray directions in the sonar frame.
+    plane_n_W : (3,) float
+        Unit plane normal in the world.
+    plane_d_m : float
+        Plane offset: points ``p`` with ``n . p = d``.
+
+    Returns
+    -------
+    r : (m,) float64
+        Predicted ranges, metres (negative: the plane is behind the ray; ``inf``/``nan`` when
+        the ray is parallel to it).
+    H_pose : (m, 6) float64
+        Jacobian with respect to ``(rho, phi)``.
+    cos_incidence : (m,) float64
+        ``n . u_W``: how squarely each ray meets the plane (0 = parallel).
+    """
+    T = np.asarray(T_W_S, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    o = np.asarray(origins_S, dtype=np.float64)
+    u = np.asarray(directions_S, dtype=np.float64)
+    n_S = R.T @ np.asarray(plane_n_W, dtype=np.float64)
+    den = u @ n_S
+    num = float(plane_d_m) - (o @ n_S + float(n_S @ (R.T @ t)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = num / den
+        p = o + r[:, None] * u
+        H = np.empty((o.shape[0], 6))
+        H[:, :3] = -n_S[None, :] / den[:, None]
+        H[:, 3:] = np.cross(n_S[None, :], p) / den[:, None]
+    return r, H, den
+
+
+#: Rays meeting the plane more obliquely than this (``|n . u| <`` it, about 89.4 deg from the
+#: normal) are not used: their range is unbounded and its Jacobian blows up.
+MIN_PLANE_COS = 1e-2
+
+
+@dataclass(frozen=True)
+class PlaneUpdateResult:
+    """What :meth:`SonarEKF.update_plane_ranges` did with each ray (indices into its input).
+
+    Attributes
+    ----------
+    accepted : tuple of int
+        Rays that passed the gate and were fused.
+    rejected : dict of int to float
+        Rays that failed the chi-square (1 dof) gate, with their NIS.
+    skipped : tuple of int
+        Rays with a NaN range (no return).
+    degenerate : tuple of int
+        Rays (nearly) parallel to the plane or whose predicted hit lies behind the origin.
+    nis : float or None
+        Joint NIS of the accepted rays (``dof = len(accepted)``); None if none was fused.
+    """
+
+    accepted: tuple[int, ...] = ()
+    rejected: dict[int, float] = field(default_factory=dict)
+    skipped: tuple[int, ...] = ()
+    degenerate: tuple[int, ...] = ()
+    nis: float | None = None
+
+
 @dataclass(frozen=True)
 class UpdateResult:
     """What :meth:`SonarEKF.update` did with each return.
@@ -306,6 +397,21 @@ def _check_vector(v: object, m: int | None, name: str) -> np.ndarray:
     a = np.array(a, dtype=np.float64, copy=True)
     if a.ndim != 1 or (m is not None and a.shape[0] != m):
         want = f"({m},)" if m is not None else "(m,)"
+        raise ValueError(f"Expected shape {want} for '{name}', but got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"Expected finite values in '{name}', but got NaN or inf")
+    return a
+
+
+def _check_matrix3(v: object, m: int | None, name: str) -> np.ndarray:
+    a = np.asarray(v)
+    if a.dtype == object or not (np.issubdtype(a.dtype, np.number)) or np.issubdtype(
+        a.dtype, np.complexfloating
+    ):
+        raise TypeError(f"Expected real numbers in '{name}', but got dtype {a.dtype}")
+    a = np.array(a, dtype=np.float64, copy=True)
+    if a.ndim != 2 or a.shape[1] != 3 or (m is not None and a.shape[0] != m):
+        want = f"({m}, 3)" if m is not None else "(m, 3)"
         raise ValueError(f"Expected shape {want} for '{name}', but got {a.shape}")
     if not np.all(np.isfinite(a)):
         raise ValueError(f"Expected finite values in '{name}', but got NaN or inf")
@@ -458,8 +564,9 @@ class SonarEKF:
             if not 0 < gp < 1:
                 raise ValueError(f"Expected 0 < gate_prob < 1 (or None), but got {gp}")
             self._gate = _chi2_2dof(gp)
+            self._gate1 = _chi2_quantile(gp, 1)
         else:
-            self._gate = math.inf
+            self._gate = self._gate1 = math.inf
         if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
             raise ValueError(f"Expected an integer iterations >= 1, but got {iterations!r}")
         self.iterations = int(iterations)
@@ -758,6 +865,125 @@ class SonarEKF:
             released_ids=tuple(released),
         )
 
+    def update_plane_ranges(
+        self,
+        origins_S: np.ndarray,
+        directions_S: np.ndarray,
+        ranges_m: np.ndarray,
+        plane_n_W: np.ndarray,
+        plane_d_m: float,
+        range_sigma_m: float,
+    ) -> PlaneUpdateResult:
+        """Fuse ranges measured along known rays to a known world plane (e.g. DVL beams to the floor).
+
+        Ray ``i`` starts at ``T_W_S @ origins_S[i]`` and runs along ``R_W_S @ directions_S[i]``;
+        its range is where it meets the plane ``n . p = d`` (:func:`plane_range_model`). For a
+        DVL on the same rigid body, pass its beams through the fixed mount: origins
+        ``T_S_D[:3, 3]`` and directions ``T_S_D[:3, :3] @ beam_D``. Such ranges observe the
+        sonar's height above the plane and its tilt relative to it (pitch and roll for a level
+        floor), never the position along the plane or the rotation about its normal.
+
+        NaN ranges are skipped; rays (nearly) parallel to the plane, or hitting it behind their
+        origin, are reported degenerate; each other ray is gated on its own innovation
+        variance (chi-square, 1 dof, at the filter's ``gate_prob``), then the accepted rays are
+        fused jointly (one linearisation, Cholesky gain, Joseph form). The features move with
+        the pose through their correlations. On any error the filter is left unchanged.
+
+        Parameters
+        ----------
+        origins_S : (m, 3) float
+            Ray origins in the sonar frame, metres.
+        directions_S : (m, 3) float
+            Unit ray directions in the sonar frame.
+        ranges_m : (m,) float
+            Measured ranges along each ray, metres, > 0; NaN = no return (skipped).
+        plane_n_W : (3,) float
+            Plane normal in the world (normalised here; ``plane_d_m`` is scaled with it).
+        plane_d_m : float
+            Plane offset, ``n . p = d``; for a floor at height ``z0``: ``n = (0, 0, 1)``, ``d = z0``.
+        range_sigma_m : float
+            Standard deviation of each range, metres (> 0): sensor noise plus the plane's
+            roughness seen along the ray.
+
+        Returns
+        -------
+        PlaneUpdateResult
+        """
+        o = _check_matrix3(origins_S, None, "origins_S")
+        m = o.shape[0]
+        u = _check_matrix3(directions_S, m, "directions_S")
+        un = np.linalg.norm(u, axis=1)
+        if m and float(np.abs(un - 1.0).max()) > 1e-6:
+            raise ValueError(f"Expected unit vectors in 'directions_S', but got norms from "
+                             f"{float(un.min()):.6g} to {float(un.max()):.6g}")
+        a = np.asarray(ranges_m)
+        if a.dtype == object or not np.issubdtype(a.dtype, np.number) or np.issubdtype(
+            a.dtype, np.complexfloating
+        ):
+            raise TypeError(f"Expected real numbers in 'ranges_m', but got dtype {a.dtype}")
+        rng_m = np.array(a, dtype=np.float64, copy=True)
+        if rng_m.shape != (m,):
+            raise ValueError(f"Expected shape ({m},) for 'ranges_m', but got {rng_m.shape}")
+        if np.any(np.isinf(rng_m)):
+            raise ValueError("Expected finite values or NaN (no return) in 'ranges_m', but got inf")
+        valid = ~np.isnan(rng_m)
+        if np.any(rng_m[valid] <= 0):
+            raise ValueError(f"Expected ranges_m > 0, but got minimum {float(rng_m[valid].min())}")
+        n_W = _check_vector(plane_n_W, 3, "plane_n_W")
+        nn = float(np.linalg.norm(n_W))
+        if not nn > 0:
+            raise ValueError("Expected a non-zero 'plane_n_W', but got the zero vector")
+        d = check_finite_scalar(plane_d_m, "plane_d_m") / nn
+        n_W = n_W / nn
+        sr = check_finite_scalar(range_sigma_m, "range_sigma_m")
+        if not sr > 0:
+            raise ValueError(f"Expected range_sigma_m > 0, but got {sr}")
+
+        skipped = tuple(int(i) for i in np.flatnonzero(~valid))
+        r_hat, H, cos_inc = plane_range_model(self._T, o, u, n_W, d)
+        ok = valid & (np.abs(cos_inc) >= MIN_PLANE_COS) & np.isfinite(r_hat) & (r_hat > 0)
+        degenerate = tuple(int(i) for i in np.flatnonzero(valid & ~ok))
+        idx = np.flatnonzero(ok)
+        if idx.size == 0:
+            return PlaneUpdateResult(skipped=skipped, degenerate=degenerate)
+        P = self._P
+        nu = rng_m[idx] - r_hat[idx]
+        Hp = H[idx]  # (a, 6); the features' columns of H are zero
+        var = sr * sr
+        HPp = Hp @ P[:6, :6]
+        s_ii = np.einsum("ij,ij->i", HPp, Hp) + var
+        d2 = nu * nu / s_ii
+        rejected = {int(idx[j]): float(d2[j]) for j in np.flatnonzero(~(d2 <= self._gate1))}
+        keep = np.flatnonzero(d2 <= self._gate1)
+        if keep.size == 0:
+            return PlaneUpdateResult(rejected=rejected, skipped=skipped, degenerate=degenerate)
+        Hp, nu = Hp[keep], nu[keep]
+        HP = Hp @ P[:6]  # (a, N)
+        S = HP[:, :6] @ Hp.T
+        S[np.diag_indices(keep.size)] += var
+        S = 0.5 * (S + S.T)
+        cho = _robust_cholesky(S)
+        KT = scipy.linalg.cho_solve(cho, HP, check_finite=False)  # (a, N) = K^T, no inverse
+        nis = float(nu @ scipy.linalg.cho_solve(cho, nu, check_finite=False))
+        dx = KT.T @ nu
+        # Joseph form (I - K H) P (I - K H)^T + K R K^T with H = [Hp, 0].
+        AP = P - KT.T @ HP
+        Pn = AP - (AP[:, :6] @ Hp.T) @ KT + var * (KT.T @ KT)
+        T, Pn = _inject(self._T, Pn, dx[:6])
+        S_f = self._S + dx[6:].reshape(-1, 3)
+        S_f[:, 1] = wrap_angle(S_f[:, 1])
+        if not (np.all(np.isfinite(Pn)) and np.all(np.isfinite(T)) and np.all(np.isfinite(S_f))):
+            raise FloatingPointError(
+                "update_plane_ranges produced non-finite values; the filter is unchanged")
+        self._T, self._P, self._S = T, Pn, S_f
+        return PlaneUpdateResult(
+            accepted=tuple(int(i) for i in idx[keep]),
+            rejected=rejected,
+            skipped=skipped,
+            degenerate=degenerate,
+            nis=nis,
+        )
+
     @property
     def held_ids(self) -> tuple[int, ...]:
         """Features in the state whose returns are held back until their elevation is triangulated."""
@@ -1003,9 +1229,15 @@ def _apply(T: np.ndarray, P: np.ndarray, dx: np.ndarray, g: _Gain) -> tuple[np.n
         "nkj,kij->nki", AP[:, g.cols].reshape(N, a, 3), g.Hs
     ).reshape(N, 2 * a)
     Pn = AP - APHt @ g.KT + (g.KT.T * g.Rd) @ g.KT
-    # Inject the error state; move the pose covariance to the new linearisation point
-    # (T_true = T Exp(e), T_new = T Exp(d)  =>  e_new ~= J_r(d) (e - d), J_r ~= I - ad(d)/2).
-    dpose = dx[:6]
+    return _inject(T, Pn, dx[:6])
+
+
+def _inject(T: np.ndarray, Pn: np.ndarray, dpose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Apply the pose correction ``dpose`` (6,) to ``T``; move ``Pn``'s pose rows/columns with it.
+
+    ``T_true = T Exp(e)``, ``T_new = T Exp(d)``  =>  ``e_new ~= J_r(d) (e - d)``,
+    ``J_r ~= I - ad(d)/2``. Returns the new pose and the symmetrised covariance.
+    """
     Tn = T @ se3_exp(dpose)
     Tn[:3, :3] = orthonormalize(Tn[:3, :3])
     G = np.eye(6) - 0.5 * se3_ad(dpose)

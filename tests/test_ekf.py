@@ -26,6 +26,7 @@ from gpumap.ekf import (
     anchor_jacobian,
     motion_jacobian,
     observation_model,
+    plane_range_model,
     spherical_point,
     triangulate,
     wrap_angle,
@@ -770,3 +771,171 @@ def test_triangulate_mode_bad_input_leaves_held_returns_untouched() -> None:
     for i in held:
         for f in ("C", "X", "z", "Ce"):
             np.testing.assert_array_equal(getattr(held[i], f), getattr(ekf._held[i], f))
+
+
+# --------------------------------------------------------------------------- ranges to a known plane
+FLOOR_N = np.array([0.0, 0.0, 1.0])
+FLOOR_D = -0.42
+
+
+def _dvl_rays_S() -> tuple[np.ndarray, np.ndarray]:
+    """Four beams tilted 22.5 deg in an X around the sonar's -z, from an offset origin."""
+    from gpumap.sim.dvl import dvl_beam_directions
+
+    R_S_D = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # DVL x -> sonar -z
+    u = dvl_beam_directions(22.5) @ R_S_D.T
+    return np.tile([0.05, 0.02, -0.06], (4, 1)), u
+
+
+def _plane_ranges(T_W_S: np.ndarray, o: np.ndarray, u: np.ndarray) -> np.ndarray:
+    R, t = T_W_S[:3, :3], T_W_S[:3, 3]
+    return (FLOOR_D - (o @ R.T + t) @ FLOOR_N) / ((u @ R.T) @ FLOOR_N)
+
+
+def _level_pose(z: float = 0.05, yaw: float = 0.4) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = rotation_from_rpy(0.0, 0.0, yaw)
+    T[:3, 3] = [0.3, -0.2, z]
+    return T
+
+
+def _plane_filter(T_hat: np.ndarray, sig_t: float = 0.03, sig_r: float = 0.03) -> SonarEKF:
+    P0 = np.diag([sig_t**2] * 3 + [sig_r**2] * 3)
+    return SonarEKF(T_hat, P0, range_sigma_m=0.01, bearing_sigma_rad=0.005, vfov_rad=VFOV)
+
+
+@pytest.mark.parametrize("tilt", [0.0, 0.3, 1.2])
+def test_plane_range_jacobian_matches_finite_differences(tilt: float) -> None:
+    rng = np.random.default_rng(3)
+    o, u = _dvl_rays_S()
+    T = _level_pose() @ se3_exp(np.r_[0.0, 0.0, 0.0, tilt, -0.5 * tilt, 0.1])
+    n = np.array([0.1, -0.05, 1.0])
+    n /= np.linalg.norm(n)
+    u = u @ so3_exp(rng.normal(0, 0.1, 3)).T  # not the X pattern any more
+    r, H, cos_inc = plane_range_model(T, o, u, n, FLOOR_D)
+    ok = np.abs(cos_inc) > 0.05  # the model holds behind the origin too (r < 0)
+    assert ok.sum() >= 2
+    Hn = _num_jac(lambda d: plane_range_model(T @ se3_exp(d), o, u, n, FLOOR_D)[0], np.zeros(6))
+    np.testing.assert_allclose(H[ok], Hn[ok], rtol=1e-6, atol=1e-8)
+    hit = T[:3, :3] @ (o + r[:, None] * u).T + T[:3, 3:4]
+    np.testing.assert_allclose((n @ hit)[ok], FLOOR_D, atol=1e-12)
+
+
+def test_plane_ranges_observe_height_roll_pitch_only() -> None:
+    o, u = _dvl_rays_S()
+    T = _level_pose()
+    ekf = _plane_filter(T)
+    P0 = ekf.pose_cov
+    res = ekf.update_plane_ranges(o, u, _plane_ranges(T, o, u), FLOOR_N, FLOOR_D, 0.005)
+    assert res.accepted == (0, 1, 2, 3) and not res.rejected and res.nis == pytest.approx(0.0, abs=1e-20)
+    P = ekf.pose_cov
+    unobs = [0, 1, 5]  # x, y (level sonar: body = world horizontal) and yaw
+    np.testing.assert_allclose(P[np.ix_(unobs, unobs)], P0[np.ix_(unobs, unobs)], rtol=1e-12, atol=1e-18)
+    for i in (2, 3, 4):  # height, roll, pitch
+        assert P[i, i] < 0.5 * P0[i, i], (i, P[i, i], P0[i, i])
+    np.testing.assert_allclose(ekf.pose, T, atol=1e-15)
+    _assert_healthy(ekf)
+
+
+def test_plane_ranges_converge_to_the_true_tilt_and_height() -> None:
+    o, u = _dvl_rays_S()
+    T_true = _level_pose() @ se3_exp(np.r_[0.0, 0.0, 0.0, 0.15, -0.2, 0.0])
+    e0 = np.array([0.02, -0.03, 0.04, 0.05, -0.04, 0.03])
+    ekf = _plane_filter(T_true @ se3_exp(-e0), 0.05, 0.05)
+    r = _plane_ranges(T_true, o, u)
+    yaw0 = ekf.rpy_rad[2]
+    for _ in range(15):  # a hovering vehicle: no motion, some process noise, the same ranges
+        ekf.predict(np.eye(4), np.eye(6) * 1e-4)
+        ekf.update_plane_ranges(o, u, r, FLOOR_N, FLOOR_D, 1e-3)
+    T = ekf.pose
+    assert T[2, 3] == pytest.approx(T_true[2, 3], abs=1e-9)
+    np.testing.assert_allclose(T[:3, :3].T @ FLOOR_N, T_true[:3, :3].T @ FLOOR_N, atol=1e-9)  # tilt
+    np.testing.assert_allclose(_plane_ranges(T, o, u), r, atol=1e-9)
+    # Position along the floor and heading are not observed: they stay where the prior put them.
+    assert abs(np.linalg.norm(T[:2, 3] - T_true[:2, 3]) - np.linalg.norm(e0[:2])) < 0.02
+    assert abs(ekf.rpy_rad[2] - yaw0) < 0.02
+    _assert_healthy(ekf)
+
+
+def test_plane_ranges_nees_over_seeds_is_inside_the_chi_square_band() -> None:
+    o, u = _dvl_rays_S()
+    P0 = np.diag([0.02**2] * 3 + [0.02**2] * 3)
+    Q = np.diag([0.004**2] * 3 + [0.004**2] * 3)
+    n_seeds, total = 60, 0.0
+    for seed in range(n_seeds):
+        rng = np.random.default_rng(1000 + seed)
+        T_true = _level_pose(yaw=rng.uniform(-3, 3)) @ se3_exp(np.r_[0, 0, 0, rng.normal(0, 0.2, 2), 0])
+        T_hat = T_true @ se3_exp(-rng.multivariate_normal(np.zeros(6), P0))
+        ekf = SonarEKF(T_hat, P0, range_sigma_m=0.01, bearing_sigma_rad=0.005, vfov_rad=VFOV)
+        for _ in range(8):
+            U_true = se3_exp(np.r_[rng.normal(0, 0.05, 2), 0.0, rng.normal(0, 0.02, 2), rng.normal(0, 0.1)])
+            T_true = T_true @ U_true
+            ekf.predict(U_true @ se3_exp(-rng.multivariate_normal(np.zeros(6), Q)), Q)
+            r = _plane_ranges(T_true, o, u) + rng.normal(0, 0.01, 4)
+            res = ekf.update_plane_ranges(o, u, r, FLOOR_N, FLOOR_D, 0.01)
+            assert len(res.accepted) + len(res.rejected) == 4
+        e = se3_log(se3_inverse(ekf.pose) @ T_true)
+        total += float(e @ np.linalg.solve(ekf.pose_cov, e))
+    lo, hi = chi2.ppf([0.005, 0.995], 6 * n_seeds) / n_seeds
+    assert lo < total / n_seeds < hi, (total / n_seeds, lo, hi)
+
+
+def test_plane_rays_parallel_behind_or_without_return_are_skipped_cleanly() -> None:
+    o, u = _dvl_rays_S()
+    T = _level_pose()
+    r = _plane_ranges(T, o, u)
+    o6 = np.vstack([o, o[:2]])
+    u6 = np.vstack([u, [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]])  # parallel to the floor; pointing up
+    r6 = np.r_[r[0], np.nan, r[2] + 0.5, r[3], 1.0, 1.0]  # no return; outlier
+    ekf = _plane_filter(T)
+    res = ekf.update_plane_ranges(o6, u6, r6, FLOOR_N, FLOOR_D, 0.005)
+    assert res.accepted == (0, 3) and res.skipped == (1,) and res.degenerate == (4, 5)
+    assert set(res.rejected) == {2} and res.rejected[2] > chi2.ppf(0.999, 1)
+    _assert_healthy(ekf)
+    twin = _plane_filter(T)
+    twin.update_plane_ranges(o[[0, 3]], u[[0, 3]], r[[0, 3]], FLOOR_N, FLOOR_D, 0.005)
+    np.testing.assert_allclose(ekf.native_covariance, twin.native_covariance, atol=1e-15)
+    # Nothing usable: nothing changes.
+    before = _snapshot(ekf)
+    res = ekf.update_plane_ranges(o6[4:], u6[4:], r6[4:], FLOOR_N, FLOOR_D, 0.005)
+    assert res.accepted == () and res.degenerate == (0, 1) and res.nis is None
+    _assert_same_state(before, _snapshot(ekf))
+
+
+def test_plane_ranges_move_correlated_features() -> None:
+    ekf, _ = _filter_with_features()
+    o, u = _dvl_rays_S()
+    L0 = ekf.landmarks
+    r = _plane_ranges(ekf.pose, o, u) + 0.02
+    res = ekf.update_plane_ranges(o, u, r, FLOOR_N, FLOOR_D, 0.01)
+    assert len(res.accepted) == 4
+    assert max(np.abs(ekf.landmarks[i] - L0[i]).max() for i in L0) > 1e-6
+    _assert_healthy(ekf)
+
+
+def _bad_plane_updates():
+    o, u = _dvl_rays_S()
+    r = np.full(4, 0.5)
+    return [
+        ((o[:3], u, r, FLOOR_N, FLOOR_D, 0.01), ValueError),
+        ((o, 2.0 * u, r, FLOOR_N, FLOOR_D, 0.01), ValueError),
+        ((o, np.where(u > 0, np.nan, u), r, FLOOR_N, FLOOR_D, 0.01), ValueError),
+        ((o, u, r[:3], FLOOR_N, FLOOR_D, 0.01), ValueError),
+        ((o, u, np.r_[r[:3], np.inf], FLOOR_N, FLOOR_D, 0.01), ValueError),
+        ((o, u, np.r_[r[:3], -1.0], FLOOR_N, FLOOR_D, 0.01), ValueError),
+        ((o, u, ["a"] * 4, FLOOR_N, FLOOR_D, 0.01), TypeError),
+        ((o, u, r, np.zeros(3), FLOOR_D, 0.01), ValueError),
+        ((o, u, r, FLOOR_N[:2], FLOOR_D, 0.01), ValueError),
+        ((o, u, r, FLOOR_N, np.nan, 0.01), ValueError),
+        ((o, u, r, FLOOR_N, FLOOR_D, 0.0), ValueError),
+        ((o.ravel(), u, r, FLOOR_N, FLOOR_D, 0.01), ValueError),
+    ]
+
+
+@pytest.mark.parametrize("args,exc", _bad_plane_updates())
+def test_bad_plane_update_input_raises_and_leaves_state_untouched(args, exc) -> None:
+    ekf, _ = _filter_with_features()
+    before = _snapshot(ekf)
+    with pytest.raises(exc, match="Expected"):
+        ekf.update_plane_ranges(*args)
+    _assert_same_state(before, _snapshot(ekf))
