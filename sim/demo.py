@@ -10,7 +10,7 @@ voxels coloured by intensity next to the truth) and ``error_by_views.png``.
 dead-reckoned poses whose every step carries Gaussian noise of SIGMA metres on each
 translation axis and SIGMA radians on each rotation axis (drift), and (c) at the poses of
 :class:`gpumap.ekf.SonarEKF` fed that odometry and the simulated (range, azimuth) features
-with noise (1 cm, 0.3 deg) and, in the tank, the DVL's four slant ranges to the floor (1 cm).
+with noise (1 cm, 0.3 deg).
 """
 
 from __future__ import annotations
