@@ -9,8 +9,9 @@ voxels coloured by intensity next to the truth) and ``error_by_views.png``.
 ``--pose-noise SIGMA`` maps the same pings three times: (a) at the true poses, (b) at
 dead-reckoned poses whose every step carries Gaussian noise of SIGMA metres on each
 translation axis and SIGMA radians on each rotation axis (drift), and (c) at the poses of
-:class:`gpumap.ekf.SonarEKF` fed that odometry and the simulated (range, azimuth) features
-with noise (1 cm, 0.3 deg).
+:class:`gpumap.ekf.SonarEKF` fed that odometry, the simulated (range, azimuth) features
+with noise (1 cm, 0.3 deg), and the wrist DVL's four slant ranges to the tank floor (the
+vertical information that features alone do not carry; see ``_ekf_poses``).
 """
 
 from __future__ import annotations
