@@ -42,6 +42,10 @@ GPU_CHUNK = 16  # voxels of a column per gather thread on GPUs
 CPU_CHUNK = 1 << 30  # on CPUs, the whole column
 
 
+class GridTooLargeError(ValueError):
+    """The grid does not fit in the memory a backend can allocate (the message says how much)."""
+
+
 class Backend:
     """Owns the grid and the per-ping device buffers of one mapper."""
 
@@ -315,6 +319,12 @@ class OpenCLBackend(Backend):
                 f"{'device' if kind == 'any' else kind.upper() + ' device'}, and pyopencl finds none"
             )
         d = devs[0]
+        need = 4 * n_voxels
+        if need > d.max_mem_alloc_size:
+            raise GridTooLargeError(
+                f"Expected a grid that fits in one OpenCL buffer, but {n_voxels} voxels need "
+                f"{need / 2**30:.2f} GiB and {d.name.strip()} allows {d.max_mem_alloc_size / 2**30:.2f} GiB"
+            )
         self.cl = cl
         self.ctx = cl.Context([d])
         self.queue = cl.CommandQueue(self.ctx)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpumap.backends import AUTO_ORDER, BACKENDS, Backend, make_backend
+from gpumap.backends import AUTO_ORDER, BACKENDS, Backend, GridTooLargeError, make_backend
 from gpumap.backends import available_backends as _available
 from gpumap.errors import BackendUnavailableError, check_finite_scalar, check_pose
 from gpumap.geometry import make_template_S, ping_params, static_params
@@ -148,7 +148,7 @@ class MinMaxMapper:
                     self._template,
                     self._use_table,
                 )
-            except BackendUnavailableError as e:
+            except (BackendUnavailableError, GridTooLargeError) as e:
                 if backend != "auto":
                     raise
                 errors.append(f"{name}: {e}")

@@ -351,6 +351,18 @@ def test_grid_too_big_for_memory_says_how_much_it_needs(monkeypatch):
         gpumap.MinMaxMapper(SPEC, grid, backend="auto")  # auto tries each, then says why none ran
 
 
+def test_opencl_refuses_a_grid_beyond_its_largest_buffer():
+    if "opencl-cpu" not in available_backends():
+        pytest.skip("no OpenCL CPU device here")
+    from gpumap.backends import opencl_devices
+
+    limit = opencl_devices("cpu")[0].max_mem_alloc_size
+    n = limit // 4 + 1  # one voxel more than the largest buffer holds
+    grid = gpumap.GridSpec((0, 0, 0), (n, 1, 1), 1.0)
+    with pytest.raises(ValueError, match=r"fits in one OpenCL buffer, but .* GiB"):
+        gpumap.MinMaxMapper(SPEC, grid, backend="opencl-cpu")
+
+
 def test_named_backend_never_falls_back():
     have = available_backends()
     for name in ("warp-cuda", "opencl-gpu"):
