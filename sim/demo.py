@@ -288,30 +288,32 @@ def _figures(out: Path, scene: Scene, truth: Truth, mapper, sample: Ping, histor
     fig.savefig(out / "sonar_image.png", dpi=90)
     plt.close(fig)
 
-    # Map vs truth (voxels above the sand's lowest level, inside the tank's footprint).
+    # Map vs truth, both over the voxels the pings observed (the truth elsewhere was never seen).
     v = mapper.values()
     g = scene.grid
-    occ = np.isfinite(v) & (np.nan_to_num(v, nan=-1) >= threshold)
+    seen = np.isfinite(v)
+    occ = seen & (np.nan_to_num(v, nan=-1) >= threshold)
     idx_m = np.argwhere(occ)
-    idx_t = np.argwhere(truth.surface)
+    idx_t = np.argwhere(truth.surface & seen)
+    lab = truth.label[tuple(idx_t.T)]
     rs = np.random.default_rng(0)
     fig = plt.figure(figsize=(14, 6))
-    for j, (idx, col, title) in enumerate(
-        [(idx_m, v[tuple(idx_m.T)] if len(idx_m) else None,
-          f"map (value >= {threshold}), colour = intensity"),
-         (idx_t, None, "truth (surface voxels)")]
-    ):
+    panels = [
+        (idx_m, v[tuple(idx_m.T)], "inferno", f"map: value >= {threshold} (colour = intensity)"),
+        (idx_t, lab, "tab10", "truth: surface voxels the pings observed (colour = object)"),
+    ]
+    for j, (idx, col, cmap, title) in enumerate(panels):
         a = fig.add_subplot(1, 2, j + 1, projection="3d")
         if len(idx) > 60000:
             keep = rs.choice(len(idx), 60000, replace=False)
-            idx = idx[keep]
-            col = col[keep] if col is not None else None
+            idx, col = idx[keep], col[keep]
         p = g.centers(idx)
-        a.scatter(p[:, 0], p[:, 1], p[:, 2], c=col if col is not None else p[:, 2], s=1,
-                  cmap="inferno" if col is not None else "viridis", vmin=0 if col is not None else None,
-                  vmax=1 if col is not None else None)
+        vmin, vmax = (0, 1) if j == 0 else (-1, 9)
+        a.scatter(p[:, 0], p[:, 1], p[:, 2], c=col, s=1, cmap=cmap, vmin=vmin, vmax=vmax)
         a.set(xlim=(-1, 1.9), ylim=(-1.4, 1.4), zlim=(-0.5, 0.3), title=title, xlabel="x", ylabel="y")
         a.view_init(elev=35, azim=-140)
+    names = ", ".join(f"{i}: {n}" for i, n in enumerate(truth.names))
+    fig.text(0.75, 0.02, f"objects (tab10 order): {names}", ha="center", fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "map_vs_truth.png", dpi=90)
     plt.close(fig)
