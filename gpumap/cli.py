@@ -62,7 +62,13 @@ def main(argv: list[str] | None = None) -> int:
             )
             return 2
         raise e
-    return int(mod.main(rest) or 0)
+    from gpumap.errors import BackendUnavailableError
+
+    try:
+        return int(mod.main(rest) or 0)
+    except (BackendUnavailableError, ValueError) as e:  # bad input or machine: say it, no traceback
+        print(f"gpumap {cmd}: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":
