@@ -192,6 +192,9 @@ def run_demo(args: argparse.Namespace) -> dict:
     if args.pings is not None:
         sel = np.unique(np.linspace(0, n - 1, args.pings).round().astype(int))
     T_true = scene.T_W_S[sel]
+    # fail before minutes of simulation if the backend cannot run here (it also compiles the kernels)
+    gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=args.backend, method=args.method,
+                        shadow_m=args.shadow_m)
     truth = occupancy(scene, seed=args.seed)
 
     t0 = time.perf_counter()
