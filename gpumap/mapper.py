@@ -41,8 +41,9 @@ def _free_memory_bytes(name: str) -> int | None:
                     if line.startswith("MemAvailable:"):
                         return int(line.split()[1]) * 1024
         if name == "warp-cuda":
-            import warp as wp
+            from gpumap.backends import _warp
 
+            wp, _ = _warp()  # initialised quietly, as the backend does
             return int(wp.get_device("cuda:0").free_memory)
     except Exception:  # the check is advisory; the allocation itself still fails loudly
         return None
