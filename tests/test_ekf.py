@@ -939,3 +939,27 @@ def test_bad_plane_update_input_raises_and_leaves_state_untouched(args, exc) -> 
     with pytest.raises(exc, match="Expected"):
         ekf.update_plane_ranges(*args)
     _assert_same_state(before, _snapshot(ekf))
+
+
+def test_blas_threads_are_pinned_inside_a_step_and_restored_after():
+    from threadpoolctl import ThreadpoolController
+
+    from gpumap.ekf import _blas_limited
+
+    ctl = ThreadpoolController()
+    before = [lib.num_threads for lib in ctl.select(user_api="blas").lib_controllers]
+
+    class Step:
+        _blas_threads = 1
+
+        @_blas_limited
+        def run(self):
+            return [lib.num_threads for lib in ThreadpoolController().select(user_api="blas").lib_controllers]
+
+    inside = Step().run()
+    after = [lib.num_threads for lib in ThreadpoolController().select(user_api="blas").lib_controllers]
+    assert inside and all(n == 1 for n in inside)
+    assert after == before
+    with pytest.raises(ValueError, match="blas_threads"):
+        SonarEKF(np.eye(4), np.eye(6) * 1e-4, range_sigma_m=0.01, bearing_sigma_rad=0.01,
+                 vfov_rad=0.3, blas_threads=0)
