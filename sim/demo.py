@@ -65,9 +65,11 @@ def _progress(it, disable: bool, **kw):
 def _map_pings(
     scene: Scene, truth: Truth, pings: list[Ping], seen_each: list[np.ndarray], poses: np.ndarray,
     backend: str, method: str, threshold: float, quiet: bool, label: str, curve: bool, shadow_m: float = 0.0,
+    mapper: gpumap.MinMaxMapper | None = None,
 ) -> tuple[gpumap.MinMaxMapper, list[float], list[dict]]:
-    mapper = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, method=method,
-                                 shadow_m=shadow_m)
+    if mapper is None:
+        mapper = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, method=method,
+                                     shadow_m=shadow_m)
     times, history = [], []
     seen = np.zeros(scene.grid.n_voxels, bool)
     for k in _progress(range(len(pings)), quiet, desc=f"map ({label})", unit="ping"):
@@ -193,8 +195,8 @@ def run_demo(args: argparse.Namespace) -> dict:
         sel = np.unique(np.linspace(0, n - 1, args.pings).round().astype(int))
     T_true = scene.T_W_S[sel]
     # fail before minutes of simulation if the backend cannot run here (it also compiles the kernels)
-    gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=args.backend, method=args.method,
-                        shadow_m=args.shadow_m)
+    first = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=args.backend, method=args.method,
+                                shadow_m=args.shadow_m)
     truth = occupancy(scene, seed=args.seed)
 
     t0 = time.perf_counter()
@@ -210,7 +212,7 @@ def run_demo(args: argparse.Namespace) -> dict:
 
     mapper, times, history = _map_pings(scene, truth, pings, seen_each, T_true, args.backend, args.method,
                                         args.threshold, quiet, "true poses", curve=True,
-                                        shadow_m=args.shadow_m)
+                                        shadow_m=args.shadow_m, mapper=first)
     final = history[-1]
     metrics = {
         "scene": scene.name,
