@@ -97,6 +97,20 @@ def _parser() -> argparse.ArgumentParser:
 
 
 # ------------------------------------------------------------------------------ scoring
+# what score() keeps of gpumap.sim.metrics.evaluate, and what it adds
+EVALUATION_KEYS = (
+    "observed_fraction",
+    "false_negative_rate",
+    "false_negative_rate_objects",
+    "false_positive_rate",
+    "false_positive_rate_far",
+    "free_carved_fraction",
+    "height_error_m",
+    "pipe_found",
+)
+SCORE_EXTRA_KEYS = ("miss_rate_seen", "height_error_mean_m")
+
+
 def score(values: np.ndarray, vt: VoxelTruth, threshold: float) -> dict[str, Any]:
     """Errors of a map against the truth, plus the miss rate over every seen surface voxel."""
     from gpumap.sim.metrics import evaluate
@@ -105,17 +119,7 @@ def score(values: np.ndarray, vt: VoxelTruth, threshold: float) -> dict[str, Any
     occ = np.nan_to_num(values, nan=-np.inf) >= threshold
     target = vt.truth.occupied & vt.seen
     n = int(target.sum())
-    keep = (
-        "observed_fraction",
-        "false_negative_rate",
-        "false_negative_rate_objects",
-        "false_positive_rate",
-        "false_positive_rate_far",
-        "free_carved_fraction",
-        "height_error_m",
-        "pipe_found",
-    )
-    out = {k: ev[k] for k in keep}
+    out = {k: ev[k] for k in EVALUATION_KEYS}
     # A seen obstacle voxel the map does not call occupied, observed or not (OctoMap observes little).
     out["miss_rate_seen"] = float((target & ~occ).sum() / n) if n else float("nan")
     he = [x for x in ev["height_error_m"].values() if x is not None and np.isfinite(x)]
@@ -446,19 +450,7 @@ def run(args: argparse.Namespace) -> dict:
                     None,
                 )
                 if src is not None:
-                    for k in (
-                        "observed_fraction",
-                        "false_negative_rate",
-                        "false_negative_rate_objects",
-                        "false_positive_rate",
-                        "false_positive_rate_far",
-                        "free_carved_fraction",
-                        "height_error_m",
-                        "height_error_mean_m",
-                        "pipe_found",
-                        "miss_rate_seen",
-                        "hole_fraction_all_pings",
-                    ):
+                    for k in (*EVALUATION_KEYS, *SCORE_EXTRA_KEYS, "hole_fraction_all_pings"):
                         if k in src:
                             row[k] = src[k]
                     row["quality_from"] = src["backend"]
