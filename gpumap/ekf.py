@@ -410,13 +410,18 @@ def _check_cov(C: object, n: int, name: str) -> np.ndarray:
     return a
 
 
-def _check_vector(v: object, m: int | None, name: str) -> np.ndarray:
+def _real_array(v: object, name: str) -> np.ndarray:
+    """``v`` as a float64 copy, or TypeError if it does not hold real numbers."""
     a = np.asarray(v)
-    if a.dtype == object or not (np.issubdtype(a.dtype, np.number)) or np.issubdtype(
+    if a.dtype == object or not np.issubdtype(a.dtype, np.number) or np.issubdtype(
         a.dtype, np.complexfloating
     ):
         raise TypeError(f"Expected real numbers in '{name}', but got dtype {a.dtype}")
-    a = np.array(a, dtype=np.float64, copy=True)
+    return np.array(a, dtype=np.float64, copy=True)
+
+
+def _check_vector(v: object, m: int | None, name: str) -> np.ndarray:
+    a = _real_array(v, name)
     if a.ndim != 1 or (m is not None and a.shape[0] != m):
         want = f"({m},)" if m is not None else "(m,)"
         raise ValueError(f"Expected shape {want} for '{name}', but got {a.shape}")
@@ -426,12 +431,7 @@ def _check_vector(v: object, m: int | None, name: str) -> np.ndarray:
 
 
 def _check_matrix3(v: object, m: int | None, name: str) -> np.ndarray:
-    a = np.asarray(v)
-    if a.dtype == object or not (np.issubdtype(a.dtype, np.number)) or np.issubdtype(
-        a.dtype, np.complexfloating
-    ):
-        raise TypeError(f"Expected real numbers in '{name}', but got dtype {a.dtype}")
-    a = np.array(a, dtype=np.float64, copy=True)
+    a = _real_array(v, name)
     if a.ndim != 2 or a.shape[1] != 3 or (m is not None and a.shape[0] != m):
         want = f"({m}, 3)" if m is not None else "(m, 3)"
         raise ValueError(f"Expected shape {want} for '{name}', but got {a.shape}")
@@ -950,12 +950,7 @@ class SonarEKF:
         if m and float(np.abs(un - 1.0).max()) > 1e-6:
             raise ValueError(f"Expected unit vectors in 'directions_S', but got norms from "
                              f"{float(un.min()):.6g} to {float(un.max()):.6g}")
-        a = np.asarray(ranges_m)
-        if a.dtype == object or not np.issubdtype(a.dtype, np.number) or np.issubdtype(
-            a.dtype, np.complexfloating
-        ):
-            raise TypeError(f"Expected real numbers in 'ranges_m', but got dtype {a.dtype}")
-        rng_m = np.array(a, dtype=np.float64, copy=True)
+        rng_m = _real_array(ranges_m, "ranges_m")
         if rng_m.shape != (m,):
             raise ValueError(f"Expected shape ({m},) for 'ranges_m', but got {rng_m.shape}")
         if np.any(np.isinf(rng_m)):
