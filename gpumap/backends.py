@@ -47,12 +47,15 @@ class GridTooLargeError(ValueError):
 
 
 class Backend:
-    """Owns the grid and the per-ping device buffers of one mapper."""
+    """Owns the grid (and, for the visible rule, its evidence) and the per-ping device buffers
+    of one mapper."""
 
     name: str
     device: str
 
-    def __init__(self, spec: SonarSpec, n_voxels: int, template_S: np.ndarray | None) -> None:
+    def __init__(
+        self, spec: SonarSpec, n_voxels: int, template_S: np.ndarray | None, use_table=None, *, visible=False
+    ) -> None:
         raise NotImplementedError
 
     def integrate(self, params: np.ndarray, image: np.ndarray, method: str, n_threads: int) -> None:
@@ -67,14 +70,28 @@ class Backend:
         """Replace the grid with (n_voxels,) float32 ``values``."""
         raise NotImplementedError
 
+    def read_evidence(self) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the visible rule's ``bright`` ((n_voxels,) float32, +inf none) and
+        ``count`` ((n_voxels,) uint8)."""
+        raise NotImplementedError
+
+    def write_evidence(self, bright: np.ndarray, count: np.ndarray) -> None:
+        """Replace the visible rule's evidence."""
+        raise NotImplementedError
+
+
+def _evidence_init(n: int) -> tuple[np.ndarray, np.ndarray]:
+    return np.full(n, np.inf, dtype=np.float32), np.zeros(n, dtype=np.uint8)
+
 
 class NumpyBackend(Backend):
     name = "numpy"
     device = "cpu (NumPy reference)"
 
-    def __init__(self, spec, n_voxels, template_S, use_table=None):
+    def __init__(self, spec, n_voxels, template_S, use_table=None, *, visible=False):
         self.buf = np.empty(spec.image_shape, np.float32)
         self.grid = np.full(n_voxels, np.inf, dtype=np.float32)
+        self.state = _evidence_init(n_voxels) if visible else None
         self.edges = beam_tan_edges(spec)
         self.template = template_S
 
@@ -84,7 +101,7 @@ class NumpyBackend(Backend):
         if image.dtype == np.uint8:
             image = np.multiply(image, U8_SCALE, out=self.buf)
         if method == "gather":
-            reference.integrate_gather(params, image, self.edges, self.grid)
+            reference.integrate_gather(params, image, self.edges, self.grid, self.state)
         else:
             reference.integrate_template(params, image, self.edges, self.template, self.grid)
 
@@ -93,6 +110,13 @@ class NumpyBackend(Backend):
 
     def write(self, values):
         self.grid[...] = values
+
+    def read_evidence(self):
+        return self.state[0].copy(), self.state[1].copy()
+
+    def write_evidence(self, bright, count):
+        self.state[0][...] = bright
+        self.state[1][...] = count
 
 
 # ----------------------------------------------------------------------------- Warp
@@ -127,7 +151,7 @@ def _warp_params(minmax, p: np.ndarray):
 
 
 class WarpBackend(Backend):
-    def __init__(self, spec, n_voxels, template_S, use_table=None, device="cpu"):
+    def __init__(self, spec, n_voxels, template_S, use_table=None, device="cpu", *, visible=False):
         n_bins, n_beams = spec.image_shape
         wp, minmax = _warp()
         if device == "cuda" and not wp.is_cuda_available():
@@ -138,6 +162,11 @@ class WarpBackend(Backend):
         self.device = f"{self.dev.alias} ({self.dev.name})"
         with wp.ScopedDevice(self.dev):
             self.grid = wp.full(n_voxels, value=np.inf, dtype=float)
+            # the visible rule's evidence (empty for the plain rule: its kernels never touch it)
+            n_ev = n_voxels if visible else 0
+            self.bright = wp.full(n_ev, value=np.inf, dtype=float)
+            self.count = wp.zeros(n_ev, dtype=wp.uint8)
+            self.first_bright = wp.zeros(n_beams, dtype=int)
             self.edges = wp.array(beam_tan_edges(spec), dtype=float)
             self.lut = wp.array(beam_lut(spec), dtype=int)
             self.image = wp.empty((n_bins, n_beams), dtype=float)
@@ -227,16 +256,25 @@ class WarpBackend(Backend):
         self._P_addr = ctypes.addressof(P._ctype)
         rec = {"device": self.dev, "record_cmd": True}
         table = []
+        if int(params["rule"]) == 1:
+            table.append(
+                wp.launch(
+                    k.find_first_bright,
+                    dim=int(params["n_beams"]),
+                    inputs=[P, self.image, self.first_bright],
+                    **rec,
+                )
+            )
         if self.use_table:
             if self.dev.is_cuda:  # one thread per cell
                 cells = (int(params["n_bins"]), int(params["n_beams"]))
-                table = [
+                table += [
                     wp.launch(k.build_bin_window_cells, dim=cells, inputs=[P, self.image, self.table], **rec),
                     wp.launch(k.build_beam_levels_cells, dim=cells, inputs=[P, self.table], **rec),
                 ]
             else:  # one thread per beam, then per row: fewest operations
                 nb, nr = int(params["n_beams"]), int(params["n_bins"])
-                table = [
+                table += [
                     wp.launch(k.build_bin_window, dim=nb, inputs=[P, self.image, self.table], **rec),
                     wp.launch(k.build_beam_levels, dim=nr, inputs=[P, self.table], **rec),
                 ]
@@ -245,7 +283,10 @@ class WarpBackend(Backend):
             "gather": wp.launch(
                 k.integrate_gather,
                 dim=1,
-                inputs=[P, self.image, self.edges, self.lut, self.table, self.grid],
+                inputs=[
+                    P, self.image, self.edges, self.lut, self.table, self.first_bright,
+                    self.grid, self.bright, self.count,
+                ],
                 **rec,
             ),
             "template": None
@@ -253,7 +294,10 @@ class WarpBackend(Backend):
             else wp.launch(
                 k.integrate_template,
                 dim=self.template.shape[0],
-                inputs=[P, self.image, self.edges, self.lut, self.table, self.template, self.grid],
+                inputs=[
+                    P, self.image, self.edges, self.lut, self.table, self.first_bright,
+                    self.template, self.grid,
+                ],
                 **rec,
             ),
         }
@@ -263,6 +307,13 @@ class WarpBackend(Backend):
 
     def write(self, values):
         self.grid.assign(self.wp.array(values, dtype=float, device=self.dev))
+
+    def read_evidence(self):
+        return self.bright.numpy().copy(), self.count.numpy().copy()
+
+    def write_evidence(self, bright, count):
+        self.bright.assign(self.wp.array(bright, dtype=float, device=self.dev))
+        self.count.assign(self.wp.array(count, dtype=self.wp.uint8, device=self.dev))
 
     def synchronize(self) -> None:
         self.wp.synchronize_device(self.dev)
@@ -309,7 +360,7 @@ def _opencl_program(ctx):
 
 
 class OpenCLBackend(Backend):
-    def __init__(self, spec, n_voxels, template_S, use_table=None, kind="any"):
+    def __init__(self, spec, n_voxels, template_S, use_table=None, kind="any", *, visible=False):
         n_bins, n_beams = spec.image_shape
         cl = _opencl()
         devs = opencl_devices(kind)
@@ -334,6 +385,14 @@ class OpenCLBackend(Backend):
         mf = cl.mem_flags
         self.grid = cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * n_voxels)
         cl.enqueue_fill_buffer(self.queue, self.grid, np.float32(np.inf), 0, 4 * n_voxels)
+        # the visible rule's evidence (one-element stand-ins for the plain rule: OpenCL has no
+        # empty buffers, and its kernels never touch them)
+        n_ev = n_voxels if visible else 1
+        self.bright = cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * n_ev)
+        cl.enqueue_fill_buffer(self.queue, self.bright, np.float32(np.inf), 0, 4 * n_ev)
+        self.count = cl.Buffer(self.ctx, mf.READ_WRITE, size=max(4, n_ev))
+        cl.enqueue_fill_buffer(self.queue, self.count, np.uint8(0), 0, max(4, n_ev))
+        self.first_bright = cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * n_beams)
         self.edges = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=beam_tan_edges(spec))
         self.lut = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=beam_lut(spec))
         # N_SLOTS image slots: the upload of ping k+1 overlaps the kernels of ping k; a host
@@ -363,6 +422,7 @@ class OpenCLBackend(Backend):
         self.k_gather = prg.integrate_gather
         self.k_u8 = prg.convert_u8
         self.k_template = prg.integrate_template
+        self.k_first = prg.find_first_bright
         if self.is_gpu:  # one work-item per cell
             self.k_window, self.k_levels = prg.build_bin_window_cells, prg.build_beam_levels_cells
         else:  # one per beam, then per row: fewest operations
@@ -395,6 +455,9 @@ class OpenCLBackend(Backend):
         if method == "gather" and not n_threads:
             return
         flag = np.int32(self.use_table)
+        if int(params["rule"]) == 1:
+            gs = -(-self.n_beams // 16) * 16
+            self.k_first(self.queue, (gs,), (16,), P, image_buf, self.first_bright)
         if self.use_table:
             if self.is_gpu:
                 gs = -(-(self.n_bins * self.n_beams) // self.wg) * self.wg
@@ -405,13 +468,13 @@ class OpenCLBackend(Backend):
                 self.k_window(self.queue, (gs,), (16,), P, image_buf, self.table)
                 gs = -(-self.n_bins // 16) * 16
                 self.k_levels(self.queue, (gs,), (16,), P, self.table)
-        args = (P, image_buf, self.edges, self.lut, self.table, flag)
+        args = (P, image_buf, self.edges, self.lut, self.table, flag, self.first_bright)
         if method == "gather":
             n_threads *= -(-int(params["box_n"][2]) // self.chunk)
             if not n_threads:
                 return
             gs = -(-n_threads // self.wg) * self.wg
-            self.k_gather(self.queue, (gs,), (self.wg,), *args, self.grid)
+            self.k_gather(self.queue, (gs,), (self.wg,), *args, self.grid, self.bright, self.count)
         else:
             gs = -(-self.n_points // self.wg) * self.wg
             self.k_template(self.queue, (gs,), (self.wg,), *args, self.template, self.grid)
@@ -427,6 +490,18 @@ class OpenCLBackend(Backend):
             self.queue, self.grid, np.ascontiguousarray(values, np.float32), is_blocking=True
         )
 
+    def read_evidence(self):
+        bright = np.empty(self.n_voxels, dtype=np.float32)
+        count = np.empty(self.n_voxels, dtype=np.uint8)
+        self.cl.enqueue_copy(self.queue, bright, self.bright, is_blocking=True)
+        self.cl.enqueue_copy(self.queue, count, self.count, is_blocking=True)
+        return bright, count
+
+    def write_evidence(self, bright, count):
+        q = self.queue
+        self.cl.enqueue_copy(q, self.bright, np.ascontiguousarray(bright, np.float32), is_blocking=True)
+        self.cl.enqueue_copy(q, self.count, np.ascontiguousarray(count, np.uint8), is_blocking=True)
+
     def synchronize(self) -> None:
         self.queue.finish()
 
@@ -437,20 +512,22 @@ def make_backend(
     n_voxels: int,
     template_S: np.ndarray | None,
     use_table: bool | None = None,
+    visible: bool = False,
 ) -> Backend:
     """Build the backend called ``name`` (never another one; raises if it cannot run).
 
     ``use_table`` picks how kernels take the max over a footprint: a per-ping max table
     (True), a loop over cells (False), or the faster for the device (None: table on CPUs).
+    ``visible`` allocates the visible rule's per-voxel evidence (5 more bytes per voxel).
     """
     args = (spec, n_voxels, template_S, use_table)
     if name == "numpy":
-        return NumpyBackend(*args)
+        return NumpyBackend(*args, visible=visible)
     if name in ("warp-cpu", "warp-cuda"):
-        return WarpBackend(*args, device=name.split("-")[1])
+        return WarpBackend(*args, device=name.split("-")[1], visible=visible)
     if name in ("opencl", "opencl-gpu", "opencl-cpu"):
         kind = {"opencl": "any", "opencl-gpu": "gpu", "opencl-cpu": "cpu"}[name]
-        return OpenCLBackend(*args, kind=kind)
+        return OpenCLBackend(*args, kind=kind, visible=visible)
     raise ValueError(f"Expected backend to be 'auto' or one of {BACKENDS}, but got {name!r}")
 
 

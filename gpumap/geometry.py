@@ -13,7 +13,15 @@ import numpy as np
 
 from gpumap.spec import GridSpec, SonarSpec
 
-__all__ = ["FOOTPRINT_PAD_M", "PING_DTYPE", "footprint_radius_m", "make_template_S", "ping_params"]
+__all__ = [
+    "CARVE_VIEWS",
+    "FOOTPRINT_PAD_M",
+    "PING_DTYPE",
+    "RULES",
+    "footprint_radius_m",
+    "make_template_S",
+    "ping_params",
+]
 
 # The footprint is the voxel's bounding sphere, padded to absorb float32 rounding of the
 # world->sonar transform (|p| <= ~5 m gives errors of a few 1e-7 m): the padding keeps the
@@ -51,6 +59,9 @@ PING_DTYPE = np.dtype(
         ("slab", np.float32),  # r_max sin(vfov / 2), bound on |z| in the sonar frame
         ("chunk", np.int32),  # voxels of a column per gather thread (set by the backend)
         ("near", np.float32),  # rho + shadow_m: how far the footprint reaches towards the sonar
+        ("thr", np.float32),  # occupied intensity: a footprint max >= thr is a bright view
+        ("thr_dark", np.float32),  # a clear view below this counts twice towards carving (thr / 2)
+        ("rule", np.int32),  # 0: the paper's plain min; 1: visibility-aware (see gpumap.mapper)
     ]
 )
 
@@ -60,10 +71,13 @@ def footprint_radius_m(voxel_size_m: float) -> float:
     return _HALF_DIAG * voxel_size_m * (1.0 + 1e-5) + FOOTPRINT_PAD_M
 
 
-def static_params(spec: SonarSpec, grid: GridSpec, shadow_m: float = 0.0) -> np.ndarray:
+def static_params(
+    spec: SonarSpec, grid: GridSpec, shadow_m: float = 0.0, rule: str = "plain", threshold: float = 0.1
+) -> np.ndarray:
     """A PING_DTYPE record with the fields that do not change between pings filled in.
 
-    ``shadow_m`` extends every footprint that far towards the sonar (see MinMaxMapper).
+    ``shadow_m`` extends every footprint that far towards the sonar; ``rule`` and
+    ``threshold`` select the update (see MinMaxMapper).
     """
     p = np.zeros((), dtype=PING_DTYPE)
     p["origin"] = grid.min_corner_m
@@ -93,7 +107,16 @@ def static_params(spec: SonarSpec, grid: GridSpec, shadow_m: float = 0.0) -> np.
     # a hair wider than the aperture: the slab only bounds the column walk
     p["chunk"] = 1 << 30
     p["slab"] = spec.range_max_m * math.sin(0.5 * spec.vfov_rad) * (1 + 1e-4) + 1e-5
+    p["thr"] = threshold
+    p["thr_dark"] = np.float32(threshold) * np.float32(0.5)
+    p["rule"] = RULES.index(rule)
     return p
+
+
+#: Update rules, in the order of PING_DTYPE's ``rule`` codes.
+RULES = ("plain", "visible")
+#: Clear dark views that carve a voxel once seen bright (a view darker than thr_dark counts twice).
+CARVE_VIEWS = 2
 
 
 def beam_tan_edges(spec: SonarSpec) -> np.ndarray:

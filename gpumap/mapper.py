@@ -14,7 +14,7 @@ import numpy as np
 from gpumap.backends import AUTO_ORDER, BACKENDS, Backend, GridTooLargeError, make_backend
 from gpumap.backends import available_backends as _available
 from gpumap.errors import BackendUnavailableError, check_finite_scalar, check_pose
-from gpumap.geometry import make_template_S, ping_params, static_params
+from gpumap.geometry import RULES, make_template_S, ping_params, static_params
 from gpumap.spec import GridSpec, SonarSpec
 
 __all__ = ["MinMaxMapper", "available_backends"]
@@ -24,7 +24,7 @@ log = logging.getLogger("gpumap")
 METHODS = ("gather", "template")
 _ONE_BITS = np.uint32(0x3F800000)  # the bits of float32 1.0
 FILE_FORMAT = "gpumap.MinMaxMapper"
-FILE_VERSION = 1
+FILE_VERSION = 2  # 2: the visible rule's evidence (bright, count) and the rule; 1 still loads
 
 
 def available_backends() -> list[str]:
@@ -50,13 +50,32 @@ def _free_memory_bytes(name: str) -> int | None:
     return None
 
 
+def _evidence_empty(n: int) -> tuple[np.ndarray, np.ndarray]:
+    return np.full(n, np.inf, dtype=np.float32), np.zeros(n, dtype=np.uint8)
+
+
 class MinMaxMapper:
     """Min-max filtering occupancy map (Phung et al.), on a fixed world grid.
 
     For each ping, every grid voxel whose centre the sonar sees gets the maximum image
     intensity over its footprint (the cells its bounding sphere touches: conservative, so
-    a thin bright object is never lost to sampling); the grid keeps, per voxel, the
-    minimum of these values over all pings. Never-observed voxels stay unknown.
+    a thin bright object is never lost to sampling). Never-observed voxels stay unknown.
+
+    How views combine (``rule``):
+
+    - ``"visible"`` (default with ``method="gather"``): a dark view lowers a voxel only where it proves the voxel
+      empty. A view is *clear* when no image cell ``>= threshold`` lies nearer than the
+      voxel's footprint in the footprint's beams: nothing stood between the sonar and the
+      voxel, at any elevation. A dark view behind a return proves nothing (the voxel may sit
+      in that return's acoustic shadow, or be a surface seen at grazing incidence behind
+      nearer parts of itself). A voxel ever seen bright (``>= threshold``) keeps the dimmest
+      of its bright values until clear dark views carve it: two of them, or one darker than
+      ``threshold / 2`` (speckle rarely darkens a seen surface that far). A voxel never seen
+      bright takes the minimum over its views, as in the plain rule. Every update is a min, a
+      max or a count, so the map does not depend on the order of the pings. Costs 5 bytes
+      per voxel more (a float32 and a uint8) and a per-beam scan of each ping.
+    - ``"plain"``: the paper's rule: the minimum over all views. A ping carves voxels in its
+      acoustic shadow, so surfaces seen from one side are erased by views from the other.
 
     Parameters
     ----------
@@ -83,6 +102,14 @@ class MinMaxMapper:
         How kernels take the max over a footprint, a speed knob with identical results:
         ``"auto"``/``"table"`` (a per-ping max table, built in the way that suits the
         device, then two reads per voxel) or ``"loop"`` (a loop over the footprint's cells).
+    rule : str or None
+        ``"visible"`` or ``"plain"``, see above; None (default) picks ``"visible"`` for the
+        gather method and ``"plain"`` for the template method (the paper's six steps with the
+        paper's rule; ``"visible"`` needs ``method="gather"``).
+    threshold : float
+        Intensity in (0, 1] from which a view counts as bright (the visible rule's returns and
+        shadows). Set it to the threshold you read the map at; lower is more conservative
+        (more views count as bright, fewer carve). Default 0.1.
     """
 
     def __init__(
@@ -94,6 +121,8 @@ class MinMaxMapper:
         *,
         shadow_m: float = 0.0,
         footprint_max: str = "auto",
+        rule: str | None = None,
+        threshold: float = 0.1,
     ) -> None:
         if not isinstance(spec, SonarSpec):
             raise TypeError(f"Expected a gpumap.SonarSpec for 'spec', but got {type(spec).__name__}")
@@ -107,6 +136,20 @@ class MinMaxMapper:
             raise ValueError(
                 f"Expected footprint_max to be 'auto', 'table' or 'loop', but got {footprint_max!r}"
             )
+        if rule is None:
+            rule = "visible" if method == "gather" else "plain"
+        if rule not in RULES:
+            raise ValueError(f"Expected rule to be one of {RULES} (or None), but got {rule!r}")
+        if rule == "visible" and method != "gather":
+            raise ValueError(
+                f"Expected method='gather' with rule='visible' (the template method's duplicate "
+                f"points cannot count views once), but got method={method!r}; use rule='plain' with it"
+            )
+        thr = check_finite_scalar(threshold, "threshold")
+        if not 0.0 < thr <= 1.0:
+            raise ValueError(f"Expected threshold in (0, 1], but got {thr}")
+        self.rule = rule
+        self.threshold = thr
         self._use_table = None if footprint_max == "auto" else footprint_max == "table"
         self.spec = spec
         self.grid = grid
@@ -116,7 +159,7 @@ class MinMaxMapper:
         if shadow < 0:
             raise ValueError(f"Expected shadow_m >= 0, but got {shadow}")
         self.shadow_m = shadow
-        self._params = static_params(spec, grid, shadow)
+        self._params = static_params(spec, grid, shadow, rule, thr)
         self._fov_pts_S = spec.fov_corners_S()
         self._template = make_template_S(spec, grid.voxel_size_m) if method == "template" else None
         if self._template is not None:
@@ -129,7 +172,7 @@ class MinMaxMapper:
         names = AUTO_ORDER if backend == "auto" else (backend,)
         errors = []
         for name in names:
-            need = self.grid.nbytes
+            need = self.grid.nbytes * (9 if self.rule == "visible" else 4) // 4
             free = _free_memory_bytes(name)
             if free is not None and need > free:
                 msg = (
@@ -148,6 +191,7 @@ class MinMaxMapper:
                     self.grid.n_voxels,
                     self._template,
                     self._use_table,
+                    visible=self.rule == "visible",
                 )
             except (BackendUnavailableError, GridTooLargeError) as e:
                 if backend != "auto":
@@ -227,8 +271,13 @@ class MinMaxMapper:
 
     # ------------------------------------------------------------------ results
     def raw_values(self) -> np.ndarray:
-        """(nx, ny, nz) float32 copy of the grid with ``+inf`` for never observed."""
-        return self._backend.read().reshape(self.grid.shape)
+        """(nx, ny, nz) float32 copy of the map values with ``+inf`` for never observed."""
+        g = self._backend.read()
+        if self.rule == "visible":
+            from gpumap.reference import visible_values
+
+            g = visible_values(g, *self._backend.read_evidence())
+        return g.reshape(self.grid.shape)
 
     def values(self) -> np.ndarray:
         """(nx, ny, nz) float32 copy of the grid, ``NaN`` = never observed, else in [0, 1]."""
@@ -249,14 +298,18 @@ class MinMaxMapper:
     def reset(self) -> None:
         """Forget every ping: all voxels unknown again."""
         self._backend.write(np.full(self.grid.n_voxels, np.inf, dtype=np.float32))
+        if self.rule == "visible":
+            self._backend.write_evidence(*_evidence_empty(self.grid.n_voxels))
         self.n_integrated = 0
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | os.PathLike) -> Path:
         """Write the map to ``path`` (.npz), atomically: a crash leaves the old file intact.
 
-        Lossless: the raw float32 grid (``+inf`` unknown), both specs, the method and the
-        ping count, under a format name and version checked by :meth:`load`.
+        Lossless: ``values``, the float32 map as :meth:`raw_values` gives it (``+inf``
+        unknown); for the visible rule its state (``min_all`` and ``bright`` float32,
+        ``count`` uint8); both specs, the method, rule, threshold and the ping count, under a
+        format name and version checked by :meth:`load`.
         """
         path = Path(path)
         if path.suffix != ".npz":
@@ -268,6 +321,8 @@ class MinMaxMapper:
             "grid": self.grid.to_dict(),
             "method": self.method,
             "shadow_m": self.shadow_m,
+            "rule": self.rule,
+            "threshold": self.threshold,
             "n_integrated": self.n_integrated,
             "backend": self.backend,
         }
@@ -275,7 +330,14 @@ class MinMaxMapper:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
         try:
             with os.fdopen(fd, "wb") as f:
-                np.savez_compressed(f, values=self.raw_values(), meta=np.array(json.dumps(meta)))
+                # 'values' is the map as values() reads it; the visible rule adds its state
+                arrays = {"values": self.raw_values()}
+                if self.rule == "visible":
+                    bright, count = self._backend.read_evidence()
+                    arrays["min_all"] = self._backend.read().reshape(self.grid.shape)
+                    arrays["bright"] = bright.reshape(self.grid.shape)
+                    arrays["count"] = count.reshape(self.grid.shape)
+                np.savez_compressed(f, **arrays, meta=np.array(json.dumps(meta)))
                 f.flush()
                 os.fsync(f.fileno())
             os.replace(tmp, path)
@@ -295,15 +357,23 @@ class MinMaxMapper:
                     )
                 meta = json.loads(str(z["meta"]))
                 values = z["values"]
+                keys = ("min_all", "bright", "count")
+                evidence = tuple(z[k] for k in keys) if all(k in z for k in keys) else None
         except (OSError, EOFError, zipfile.BadZipFile, json.JSONDecodeError) as e:
             raise ValueError(
                 f"Expected a gpumap map file (.npz) at {path}, but it cannot be read: {e}"
             ) from e
         if meta.get("format") != FILE_FORMAT:
             raise ValueError(f"Expected format {FILE_FORMAT!r} in {path}, but got {meta.get('format')!r}")
-        if meta.get("version") != FILE_VERSION:
+        if meta.get("version") not in (1, FILE_VERSION):
             raise ValueError(
-                f"Expected file version {FILE_VERSION} in {path}, but got {meta.get('version')!r}"
+                f"Expected file version 1 or {FILE_VERSION} in {path}, but got {meta.get('version')!r}"
+            )
+        rule = meta.get("rule", "plain")  # version 1 maps are plain min-max
+        if (rule == "visible") != (evidence is not None):
+            raise ValueError(
+                f"Expected 'min_all', 'bright' and 'count' in {path} exactly when its rule is 'visible', "
+                f"but the rule is {rule!r} and they are {'present' if evidence is not None else 'absent'}"
             )
         m = cls(
             SonarSpec.from_dict(meta["spec"]),
@@ -311,12 +381,24 @@ class MinMaxMapper:
             backend=backend,
             method=meta["method"],
             shadow_m=meta.get("shadow_m", 0.0),
+            rule=rule,
+            threshold=meta.get("threshold", 0.1),
         )
         if values.shape != m.grid.shape or values.dtype != np.float32:
             raise ValueError(
                 f"Expected values of shape {m.grid.shape} float32 in {path}, "
                 f"but got {values.shape} {values.dtype}"
             )
+        if evidence is not None:
+            values, bright, count = evidence
+            for name, a, dt in (("min_all", values, np.float32), ("bright", bright, np.float32),
+                                ("count", count, np.uint8)):
+                if a.shape != m.grid.shape or a.dtype != dt:
+                    raise ValueError(
+                        f"Expected {name} of shape {m.grid.shape} {np.dtype(dt)} in {path}, "
+                        f"but got {a.shape} {a.dtype}"
+                    )
+            m._backend.write_evidence(bright.ravel(), count.ravel())
         m._backend.write(values.ravel())
         m.n_integrated = int(meta["n_integrated"])
         return m

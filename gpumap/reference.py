@@ -20,14 +20,24 @@ Per voxel centre ``c`` (world frame) and ping ``(image, T_W_S)``:
    ``u = rho / sqrt(h^2 - rho^2)`` (every beam when ``h <= rho``; the first or last beam
    when the sum passes +-90 deg), where ``rho`` is the voxel's bounding-sphere radius
    (:func:`gpumap.geometry.footprint_radius_m`).
-4. Ping value = max of the image over the footprint; grid value = min(grid, ping value).
+4. Ping value = max of the image over the footprint.
+5. Update, ``rule = "plain"`` (the paper): ``grid = min(grid, v)``.
+   ``rule = "visible"`` keeps three numbers per voxel: ``grid = min(grid, v)`` over every
+   view, ``bright = min(bright, v)`` over the views with ``v >= thr``, and ``count``, the
+   carving evidence, raised only by *clear* dark views (``v < thr`` and no image cell
+   ``>= thr`` nearer than the footprint, ``bins [0, b0)``, in the footprint's beams: nothing
+   stood between the sonar and the voxel at any elevation): by 2 when ``v < thr_dark``, else
+   by 1, saturating at 255. A dark view behind a return proves nothing (the voxel may lie in
+   that return's acoustic shadow) and does not count. The map value is ``bright`` where the
+   voxel was ever bright and ``count < CARVE_VIEWS``, else ``grid``
+   (:func:`visible_values`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["beam_index_lo", "integrate_gather", "integrate_template", "voxel_ping_values"]
+__all__ = ["beam_index_lo", "integrate_gather", "integrate_template", "visible_values", "voxel_ping_values"]
 
 _F = np.float32
 
@@ -80,9 +90,12 @@ class _RangeMax:
 
 
 def voxel_ping_values(
-    params: np.ndarray, image: np.ndarray, edges: np.ndarray, centres_W: np.ndarray
-) -> np.ndarray:
+    params: np.ndarray, image: np.ndarray, edges: np.ndarray, centres_W: np.ndarray, clear: bool = False
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Ping value of each voxel centre, -1 where the ping does not observe it.
+
+    With ``clear=True`` also (m,) bool: the view is clear (no image cell ``>= thr`` in the
+    footprint's beams nearer than its first bin).
 
     Parameters
     ----------
@@ -114,8 +127,9 @@ def voxel_ping_values(
         & (t <= params["tan_hi"])
     )
     out = np.full(c.shape[0], -1.0, dtype=_F)
+    is_clear = np.zeros(c.shape[0], bool)
     if not seen.any():
-        return out
+        return (out, is_clear) if clear else out
     r, h2, t = r[seen], h2[seen], t[seen]
     rho = params["rho"]
     rmin = params["rmin"]
@@ -136,7 +150,18 @@ def voxel_ping_values(
     j0 = np.where(ok0, beam_index_lo((t - u) / np.where(ok0, d0, _F(1)), edges), 0)
     j1 = np.where(ok1, beam_index_lo((t + u) / np.where(ok1, d1, _F(1)), edges), n_beams - 1)
     out[seen] = _RangeMax(image, int(params["win"])).query(b0, b1, j0, j1)
-    return out
+    if not clear:
+        return out
+    # Nearest-return test by another route than the kernels' per-beam first bright bin: the
+    # largest cell over bins [0, b0) and the footprint's beams, from a running max along range.
+    ahead = np.maximum.accumulate(image, axis=0)
+    front = np.zeros(b0.shape, _F)
+    some = b0 > 0
+    if some.any():
+        rows = b0[some] - 1
+        front[some] = _RangeMax(ahead, 1).query(rows, rows, j0[some], j1[some])
+    is_clear[seen] = front < params["thr"]
+    return out, is_clear
 
 
 def _centres(params: np.ndarray, idx: np.ndarray) -> np.ndarray:
@@ -144,8 +169,45 @@ def _centres(params: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return params["origin"] + (idx.astype(_F) + _F(0.5)) * params["voxel"]
 
 
-def integrate_gather(params: np.ndarray, image: np.ndarray, edges: np.ndarray, grid: np.ndarray) -> None:
-    """Gather method: every voxel of the ping's box, min-updated in ``grid`` ((n,) float32) in place."""
+def _update_visible(
+    params: np.ndarray,
+    v: np.ndarray,
+    clear: np.ndarray,
+    flat: np.ndarray,
+    bright: np.ndarray,
+    count: np.ndarray,
+) -> None:
+    """The visible rule's evidence: ``bright`` and ``count`` at voxels ``flat``, in place."""
+    thr = params["thr"]
+    lit = v >= thr
+    bright[flat[lit]] = np.minimum(bright[flat[lit]], v[lit])
+    dark = clear & ~lit
+    step = np.where(v[dark] < params["thr_dark"], 2, 1)
+    count[flat[dark]] = np.minimum(count[flat[dark]].astype(np.int32) + step, 255).astype(np.uint8)
+
+
+def visible_values(grid: np.ndarray, bright: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """Map values of the visible rule: ``bright`` where the voxel was bright in some view and
+    fewer than :data:`~gpumap.geometry.CARVE_VIEWS` clear dark views count against it, else
+    ``grid`` (the min over every view; ``+inf`` never observed)."""
+    from gpumap.geometry import CARVE_VIEWS
+
+    keep = np.isfinite(bright) & (count < CARVE_VIEWS)
+    return np.where(keep, bright, grid)
+
+
+def integrate_gather(
+    params: np.ndarray,
+    image: np.ndarray,
+    edges: np.ndarray,
+    grid: np.ndarray,
+    state: tuple[np.ndarray, np.ndarray] | None = None,
+) -> None:
+    """Gather method: every voxel of the ping's box, min-updated in ``grid`` ((n,) float32) in place.
+
+    ``state``: ``(bright (n,) float32, count (n,) uint8)``, the visible rule's evidence (None:
+    the plain rule).
+    """
     lo = params["box_lo"].astype(np.int64)
     n = params["box_n"].astype(np.int64)
     if n.prod() == 0:
@@ -158,10 +220,15 @@ def integrate_gather(params: np.ndarray, image: np.ndarray, edges: np.ndarray, g
     for k0 in range(0, int(n[2]), slab):
         ks = np.arange(k0, min(int(n[2]), k0 + slab)) + lo[2]
         idx = np.stack([np.repeat(II, ks.size), np.repeat(JJ, ks.size), np.tile(ks, II.size)], axis=-1)
-        v = voxel_ping_values(params, image, edges, _centres(params, idx))
+        if state is None:
+            v = voxel_ping_values(params, image, edges, _centres(params, idx))
+        else:
+            v, clear = voxel_ping_values(params, image, edges, _centres(params, idx), clear=True)
         m = v >= 0
         flat = (idx[m, 0] * dims[1] + idx[m, 1]) * dims[2] + idx[m, 2]
         grid[flat] = np.minimum(grid[flat], v[m])
+        if state is not None:
+            _update_visible(params, v[m], clear[m], flat, *state)
 
 
 def integrate_template(

@@ -1,7 +1,8 @@
 // Min-max occupancy kernels in OpenCL C 1.2 (device code only; twin: minmax.py).
 // Same arguments in the same order as the Warp kernels: ping parameters, image, tangents of the beam edges,
-// beam look-up table, max table, [template,] grid. (Warp tells "no table" by an empty array; OpenCL, which has
-// no empty buffers, by the extra use_table flag after the table.) PingParams matches gpumap.geometry.PING_DTYPE field for field.
+// beam look-up table, max table, first bright bin per beam, [template,] grid [, bright minimum, clear-dark
+// count]. (Warp tells "no table" by an empty array; OpenCL, which has no empty buffers, by the extra
+// use_table flag after the table.) PingParams matches gpumap.geometry.PING_DTYPE field for field.
 
 typedef struct {
     float A[9];      // rotation of T_S_W, row-major
@@ -31,6 +32,9 @@ typedef struct {
     float slab;      // r_max sin(vfov / 2): |z| of any imaged point in the sonar frame is below it
     int chunk;       // voxels of a column per gather work-item (GPUs: a few; CPUs: all)
     float near;      // rho + shadow_m: the footprint reaches this far towards the sonar, m
+    float thr;       // occupied intensity: a footprint max >= thr is a bright view
+    float thr_dark;  // a clear view darker than this counts twice towards carving
+    int rule;        // 0: plain min; 1: visibility-aware (bright / count evidence)
 } PingParams;
 
 // Largest beam j in [0, n_beams - 1] with tan_edges[j] <= t (0 when none), t = tan(azimuth). A
@@ -45,14 +49,18 @@ inline int beam_index_lo(float t, __global const float *tan_edges, __global cons
     return j;
 }
 
-// Max image value over the footprint of the voxel centred at c (world); -1 if unobserved.
+// Max image value over the footprint of the voxel centred at c (world); -1 if unobserved. *clear is
+// set (visible rule) to 1 when first_bright (per beam, the first bin >= thr) puts no return nearer
+// than the footprint's first bin in any of its beams, else 0.
 // Footprint: bins [b0, b0 + win - 1] x beams [j0, j1], reaching near = rho + shadow_m towards
 // the sonar. With a max table (use_table) the
 // max is two reads; without, a loop over the cells (faster on GPUs: no table to build).
 inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
                               __global const float *image, __global const float *tan_edges,
-                              __global const int *lut, __global const float *table, int use_table)
+                              __global const int *lut, __global const float *table, int use_table,
+                              __global const int *first_bright, int *clear)
 {
+    *clear = 0;
     float x = P->A[0] * cx + P->A[1] * cy + P->A[2] * cz + P->b[0];
     float y = P->A[3] * cx + P->A[4] * cy + P->A[5] * cz + P->b[1];
     float z = P->A[6] * cx + P->A[7] * cy + P->A[8] * cz + P->b[2];
@@ -73,6 +81,10 @@ inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
         float d0 = 1.0f + t * u, d1 = 1.0f - t * u;
         if (d0 > 0.0f) j0 = beam_index_lo((t - u) / d0, tan_edges, lut, P->lut_n, P);
         if (d1 > 0.0f) j1 = beam_index_lo((t + u) / d1, tan_edges, lut, P->lut_n, P);
+    }
+    if (P->rule == 1) {
+        *clear = 1;
+        for (int jj = j0; jj <= j1; ++jj) if (first_bright[jj] < b0) *clear = 0;
     }
     if (use_table && first >= 0) {  // two reads (more near the apex)
         int k = 0;
@@ -125,6 +137,30 @@ __kernel void build_bin_window(const PingParams P, __global const float *image,
         float v = suf[(size_t)i * nb + j];
         if (e / P.win != i / P.win) v = fmax(v, pre[(size_t)e * nb + j]);  // reaches the next block
         table[(size_t)i * nb + j] = v;
+    }
+}
+
+// One work-item per beam j: the first bin whose intensity is >= thr (n_bins if none).
+__kernel void find_first_bright(const PingParams P, __global const float *image, __global int *first_bright)
+{
+    int j = get_global_id(0);
+    if (j >= P.n_beams) return;
+    int f = P.n_bins;
+    for (int i = 0; i < P.n_bins; ++i) {
+        if (image[(size_t)i * P.n_beams + j] >= P.thr) { f = i; break; }
+    }
+    first_bright[j] = f;
+}
+
+// Fold one view (value v, clear) into voxel idx: the plain min, and for the visible rule the
+// bright min and the clear-dark count (see gpumap.reference).
+inline void update_voxel(const PingParams *P, size_t idx, float v, int clear, __global float *grid,
+                         __global float *bright, __global uchar *count)
+{
+    grid[idx] = fmin(grid[idx], v);
+    if (P->rule == 1) {
+        if (v >= P->thr) bright[idx] = fmin(bright[idx], v);
+        else if (clear) count[idx] = (uchar)min((int)count[idx] + (v < P->thr_dark ? 2 : 1), 255);
     }
 }
 
@@ -205,8 +241,9 @@ inline void column_range(const PingParams *P, float cx, float cy, float *lo, flo
 // voxels that the column's range can hold (contiguous in memory).
 __kernel void integrate_gather(const PingParams P, __global const float *image,
                                __global const float *tan_edges, __global const int *lut,
-                               __global const float *table,
-                               int use_table, __global float *grid)
+                               __global const float *table, int use_table,
+                               __global const int *first_bright, __global float *grid,
+                               __global float *bright, __global uchar *count)
 {
     int tid = get_global_id(0);
     int n_chunks = (P.box_n[2] + P.chunk - 1) / P.chunk;
@@ -224,19 +261,21 @@ __kernel void integrate_gather(const PingParams P, __global const float *image,
     int k0 = max(c0, (int)ceil((z0 - P.origin[2]) / P.voxel - 0.5f) - 1);
     int k1 = min(min(c0 + P.chunk, P.box_lo[2] + P.box_n[2]) - 1,
                  (int)floor((z1 - P.origin[2]) / P.voxel - 0.5f) + 1);
-    __global float *column = grid + ((size_t)i * P.dims[1] + j) * P.dims[2];
+    size_t base = ((size_t)i * P.dims[1] + j) * P.dims[2];
     for (int k = k0; k <= k1; ++k) {
         float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
-        float v = voxel_ping_value(&P, cx, cy, cz, image, tan_edges, lut, table, use_table);
-        if (v >= 0.0f) column[k] = fmin(column[k], v);
+        int clear;
+        float v = voxel_ping_value(&P, cx, cy, cz, image, tan_edges, lut, table, use_table, first_bright,
+                                   &clear);
+        if (v >= 0.0f) update_voxel(&P, base + k, v, clear, grid, bright, count);
     }
 }
 
 // One work-item per template point: the paper's steps 1-6.
 __kernel void integrate_template(const PingParams P, __global const float *image,
                                  __global const float *tan_edges, __global const int *lut,
-                               __global const float *table,
-                                 int use_table, __global const float *template_S,
+                                 __global const float *table, int use_table,
+                                 __global const int *first_bright, __global const float *template_S,
                                  __global float *grid)
 {
     int tid = get_global_id(0);
@@ -252,7 +291,9 @@ __kernel void integrate_template(const PingParams P, __global const float *image
     float cx = P.origin[0] + ((float)i + 0.5f) * P.voxel;  // step 3
     float cy = P.origin[1] + ((float)j + 0.5f) * P.voxel;
     float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
-    float v = voxel_ping_value(&P, cx, cy, cz, image, tan_edges, lut, table, use_table);  // steps 4-5
+    int clear;
+    float v = voxel_ping_value(&P, cx, cy, cz, image, tan_edges, lut, table, use_table, first_bright,
+                               &clear);  // steps 4-5
     if (v >= 0.0f) {
         // step 6; grid values are >= 0 (or +inf), whose IEEE bits order like ints
         size_t idx = ((size_t)i * P.dims[1] + j) * P.dims[2] + k;

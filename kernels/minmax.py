@@ -4,10 +4,12 @@
 ``integrate_template`` one per template point; each voxel's centre goes to the sonar frame,
 is tested against the field of view, and takes the image maximum over its footprint, which
 min-updates the grid. ``build_bin_window`` and ``build_beam_levels`` build the per-ping max
-table that CPUs read instead of looping over cells. Arguments, in order: the ping
+table that CPUs read instead of looping over cells; ``find_first_bright`` the per-beam nearest
+return that tells clear views for the visibility-aware rule. Arguments, in order: the ping
 parameters, the image, the tangents of the beam edges, the beam look-up table, the max table
-(empty: none), [the template,] the grid. The host (``gpumap/backends.py``) owns arrays,
-devices and launches.
+(empty: none), the first bright bin per beam (empty: plain rule), [the template,] the grid
+[, the bright minimum and the clear-dark count (visible rule; empty otherwise)]. The host
+(``gpumap/backends.py``) owns arrays, devices and launches.
 """
 
 import warp as wp
@@ -42,6 +44,9 @@ class PingParams:
     slab: float  # r_max sin(vfov / 2): |z| of any imaged point in the sonar frame is below it
     chunk: int  # voxels of a column per gather thread (GPUs: a few, for threads in flight; CPUs: all)
     near: float  # rho + shadow_m: the footprint reaches this far towards the sonar, m
+    thr: float  # occupied intensity: a footprint max >= thr is a bright view
+    thr_dark: float  # a clear view darker than this counts twice towards carving
+    rule: int  # 0: plain min; 1: visibility-aware (bright / count evidence)
 
 
 @wp.func
@@ -68,8 +73,11 @@ def voxel_ping_value(
     tan_edges: wp.array(dtype=float),
     lut: wp.array(dtype=int),
     table: wp.array(dtype=float),
-) -> float:
-    """Max image value over the footprint of the voxel centred at c (world); -1 if unobserved.
+    first_bright: wp.array(dtype=int),
+) -> wp.vec2:
+    """(max image value over the footprint of the voxel centred at c (world), clear); value -1
+    if unobserved. For the visible rule, clear is 1 when ``first_bright`` (per beam, the first
+    bin >= thr) puts no return nearer than the footprint's first bin in any of its beams, else 0.
 
     The footprint is bins [b0, b0 + win - 1] x beams [j0, j1]: the smallest fixed-height
     window that always holds the bins of the voxel's bounding sphere (one extra bin at
@@ -77,20 +85,21 @@ def voxel_ping_value(
     beams the sphere spans. With a max table (non-empty ``table``) the max
     is two reads; without, a loop over the cells (faster on GPUs: no table to build).
     """
+    unseen = wp.vec2(-1.0, 0.0)
     x = P.A[0, 0] * c[0] + P.A[0, 1] * c[1] + P.A[0, 2] * c[2] + P.b[0]
     y = P.A[1, 0] * c[0] + P.A[1, 1] * c[1] + P.A[1, 2] * c[2] + P.b[1]
     z = P.A[2, 0] * c[0] + P.A[2, 1] * c[1] + P.A[2, 2] * c[2] + P.b[2]
     if x <= 0.0:  # the fan lies within +-90 deg of boresight
-        return -1.0
+        return unseen
     h2 = x * x + y * y
     r = wp.sqrt(h2 + z * z)
     if r < P.rmin or r >= P.rmax:
-        return -1.0
+        return unseen
     if z * z > P.tan2_half_vfov * h2:
-        return -1.0
+        return unseen
     t = y / x  # tan(azimuth): monotonic over the fan, so no atan2 is needed
     if t < P.tan_lo or t > P.tan_hi:
-        return -1.0
+        return unseen
     first = int(wp.floor((r - P.near - P.rmin) * P.inv_dr))  # may be < 0 near the blanking range
     b0 = wp.max(first, 0)
     b1 = wp.min(first + P.win - 1, P.n_bins - 1)
@@ -105,6 +114,14 @@ def voxel_ping_value(
             j0 = beam_index_lo((t - u) / d0, tan_edges, lut, P)
         if d1 > 0.0:
             j1 = beam_index_lo((t + u) / d1, tan_edges, lut, P)
+    clear = float(0.0)
+    if P.rule == 1:
+        blocked = int(0)
+        for jj in range(j0, j1 + 1):
+            if first_bright[jj] < b0:
+                blocked = 1
+        if blocked == 0:
+            clear = 1.0
     if table.shape[0] > 0 and first >= 0:  # the max table: two reads (more near the apex)
         k = int(0)
         while (2 << k) <= j1 - j0 + 1 and k + 1 < P.n_levels:
@@ -116,12 +133,49 @@ def voxel_ping_value(
         while jj <= j1 - w + 1:
             m = wp.max(m, table[base + jj])
             jj += w
-        return m
+        return wp.vec2(m, clear)
     v = float(0.0)
     for i in range(b0, b1 + 1):
         for j in range(j0, j1 + 1):
             v = wp.max(v, image[i, j])
-    return v
+    return wp.vec2(v, clear)
+
+
+@wp.kernel
+def find_first_bright(P: PingParams, image: wp.array2d(dtype=float), first_bright: wp.array(dtype=int)):
+    """One thread per beam j: the first bin whose intensity is >= thr (n_bins if none)."""
+    j = wp.tid()
+    f = P.n_bins
+    i = int(0)
+    while i < P.n_bins:
+        if image[i, j] >= P.thr:
+            f = i
+            i = P.n_bins
+        i += 1
+    first_bright[j] = f
+
+
+@wp.func
+def update_voxel(
+    P: PingParams,
+    idx: int,
+    vc: wp.vec2,
+    grid: wp.array(dtype=float),
+    bright: wp.array(dtype=float),
+    count: wp.array(dtype=wp.uint8),
+):
+    """Fold one view (value, clear) into voxel idx: the plain min, and for the visible rule
+    the bright min and the clear-dark count (see gpumap.reference)."""
+    v = vc[0]
+    grid[idx] = wp.min(grid[idx], v)
+    if P.rule == 1:
+        if v >= P.thr:
+            bright[idx] = wp.min(bright[idx], v)
+        elif vc[1] > 0.0:
+            step = int(1)
+            if v < P.thr_dark:
+                step = 2
+            count[idx] = wp.uint8(wp.min(int(count[idx]) + step, 255))
 
 
 @wp.kernel
@@ -254,7 +308,10 @@ def integrate_gather(
     tan_edges: wp.array(dtype=float),
     lut: wp.array(dtype=int),
     table: wp.array(dtype=float),
+    first_bright: wp.array(dtype=int),
     grid: wp.array(dtype=float),
+    bright: wp.array(dtype=float),
+    count: wp.array(dtype=wp.uint8),
 ):
     """One thread per chunk of an (i, j) column of the ping's index box: it walks the chunk's
     voxels that the column's range can hold (contiguous in memory)."""
@@ -277,9 +334,9 @@ def integrate_gather(
     )
     base = (i * P.dims[1] + j) * P.dims[2]
     for k in range(k0, k1 + 1):
-        v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table)
-        if v >= 0.0:
-            grid[base + k] = wp.min(grid[base + k], v)
+        vc = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table, first_bright)
+        if vc[0] >= 0.0:
+            update_voxel(P, base + k, vc, grid, bright, count)
 
 
 @wp.kernel
@@ -289,6 +346,7 @@ def integrate_template(
     tan_edges: wp.array(dtype=float),
     lut: wp.array(dtype=int),
     table: wp.array(dtype=float),
+    first_bright: wp.array(dtype=int),
     template_S: wp.array(dtype=wp.vec3),
     grid: wp.array(dtype=float),
 ):
@@ -300,7 +358,7 @@ def integrate_template(
     k = int(wp.floor((q[2] - P.origin[2]) / P.voxel))
     if i < 0 or j < 0 or k < 0 or i >= P.dims[0] or j >= P.dims[1] or k >= P.dims[2]:
         return
-    v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table)  # steps 3-5
+    v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table, first_bright)[0]  # 3-5
     if v >= 0.0:
         # step 6; several template points may land in one voxel: all carry the same value
         wp.atomic_min(grid, (i * P.dims[1] + j) * P.dims[2] + k, v)

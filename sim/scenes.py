@@ -9,6 +9,12 @@ along the trajectory. Scenes are built by small seeded functions registered in
 World frame of the ``tank`` scene: origin at the arm's base, x forward (away from the
 base, toward the objects), y left, z up. The grid is the paper's 4 x 3 x 1 m workspace,
 ``GridSpec((-2, -1.5, -0.5), (2, 1.5, 0.5), s)``.
+
+World frame of the ``circle`` scene: origin above the middle of the objects, z up; sand
+at about z = -0.3 m over a 3 x 3 m patch, grid ``GridSpec((-1.6, -1.6, -0.5), (1.6, 1.6,
+0.5), s)``. The sonar circles the objects from five stations (pitch and roll sweeps at
+each), so that every object's far side is in the acoustic shadow in some views and faces
+the sonar in others: the scene for measuring the shadow problem of min-max mapping.
 """
 
 from __future__ import annotations
@@ -29,6 +35,9 @@ __all__ = [
     "SCENES",
     "make_scene",
     "tank_scene",
+    "circle_scene",
+    "circle_trajectory",
+    "BACKGROUND_OBJECTS",
     "pose_from_xyz_ypr",
     "box_scene",
 ]
@@ -85,6 +94,11 @@ class SceneObject:
     contains: Callable[[np.ndarray], np.ndarray] | None = None
 
 
+#: Object names that are background rather than obstacles (the default complement of
+#: :attr:`Scene.small_objects`).
+BACKGROUND_OBJECTS: tuple[str, ...] = ("sand", "walls")
+
+
 @dataclass
 class Scene:
     """A scene with everything the simulator, the mapper and the metrics need.
@@ -102,6 +116,10 @@ class Scene:
     feature_ids : (m,) int64
     features_W : (m, 3) float64
         Point features (on surfaces) with their ids, world frame, metres.
+    small_objects : tuple of str
+        Names of the objects proper (obstacles: chain, rock, ...), as opposed to the
+        background (sand, walls); metrics report "objects" rates over these. Default: every
+        object whose name is not in :data:`BACKGROUND_OBJECTS`, taken at construction.
     """
 
     name: str
@@ -114,6 +132,18 @@ class Scene:
     features_W: np.ndarray
     materials: dict[str, Material] = field(default_factory=lambda: dict(MATERIALS))
     seed: int = 0
+    small_objects: tuple[str, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if self.small_objects is None:
+            self.small_objects = tuple(n for n in self.object_names if n not in BACKGROUND_OBJECTS)
+        else:
+            self.small_objects = tuple(self.small_objects)
+            unknown = sorted(set(self.small_objects) - set(self.object_names))
+            if unknown:
+                raise ValueError(
+                    f"Expected small_objects among the object names {self.object_names}, but got {unknown}"
+                )
 
     @property
     def object_names(self) -> list[str]:
@@ -216,6 +246,62 @@ def _torus(center: np.ndarray, R_major: float, r_minor: float, Rot: np.ndarray):
     return mesh, contains
 
 
+# ------------------------------------------------------------------------------ shared objects
+def _sand_object(
+    h: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    x_range: tuple[float, float],
+    y_range: tuple[float, float],
+    z_bottom: float,
+    step_m: float = 0.025,
+) -> SceneObject:
+    """"sand": the height field ``z = h(x, y)`` over a rectangle, solid from ``z_bottom`` up to it."""
+    x0, x1 = x_range
+    y0, y1 = y_range
+    xs = np.arange(x0, x1 + 1e-9, step_m)
+    ys = np.arange(y0, y1 + 1e-9, step_m)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    V = np.stack([X, Y, h(X, Y)], -1).reshape(-1, 3)
+    nx_, ny_ = X.shape
+    ii, jj = np.meshgrid(np.arange(nx_ - 1), np.arange(ny_ - 1), indexing="ij")
+    a = (ii * ny_ + jj).ravel()
+    b, c, d = a + ny_, a + ny_ + 1, a + 1
+    F = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    sand = trimesh.Trimesh(V, F, process=False)
+
+    def sand_contains(p: np.ndarray) -> np.ndarray:
+        p = np.asarray(p)
+        inside = (p[:, 0] >= x0) & (p[:, 0] <= x1) & (p[:, 1] >= y0) & (p[:, 1] <= y1)
+        return inside & (p[:, 2] <= h(p[:, 0], p[:, 1])) & (p[:, 2] >= z_bottom)
+
+    return SceneObject("sand", sand, "sand", sand_contains)
+
+
+def _rock_object(
+    rng: np.random.Generator, rc: np.ndarray, radii: np.ndarray, name: str = "rock"
+) -> SceneObject:
+    """Star-shaped blob at ``rc``: semi-axes ``radii`` modulated by a few seeded smooth harmonics."""
+    kdir = rng.normal(size=(5, 3))
+    kph = rng.uniform(0, 2 * np.pi, 5)
+    kamp = rng.uniform(0.03, 0.08, 5)
+    Rrock = _rot_z(rng.uniform(0, np.pi))
+
+    def bump(u: np.ndarray) -> np.ndarray:
+        return 1.0 + np.sin(u @ kdir.T * 2.0 + kph) @ kamp
+
+    ico = trimesh.creation.icosphere(subdivisions=3)
+    u = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
+    rock_V = rc + ((u * bump(u)[:, None]) * radii) @ Rrock.T
+    rock = trimesh.Trimesh(rock_V, ico.faces, process=False)
+
+    def rock_contains(p: np.ndarray) -> np.ndarray:
+        q = ((np.asarray(p) - rc) @ Rrock) / radii
+        n = np.linalg.norm(q, axis=1)
+        uq = q / np.maximum(n, 1e-12)[:, None]
+        return n <= bump(uq)
+
+    return SceneObject(name, rock, "rock", rock_contains)
+
+
 # ------------------------------------------------------------------------------ the tank
 def _sand_height_fn(rng: np.random.Generator, z0: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
     """Seeded smooth sand surface: ripples of a few mm plus low bumps of about 1 cm."""
@@ -264,23 +350,7 @@ def tank_scene(seed: int = 0, voxel_size_m: float = 0.03, n_pitch: int = 16, n_m
 
     # Sand floor: a height field over the tank's inside; solid below the surface.
     h = _sand_height_fn(rng, z_floor)
-    xs = np.arange(x0, x1 + 1e-9, 0.025)
-    ys = np.arange(-yh, yh + 1e-9, 0.025)
-    X, Y = np.meshgrid(xs, ys, indexing="ij")
-    V = np.stack([X, Y, h(X, Y)], -1).reshape(-1, 3)
-    nx_, ny_ = X.shape
-    ii, jj = np.meshgrid(np.arange(nx_ - 1), np.arange(ny_ - 1), indexing="ij")
-    a = (ii * ny_ + jj).ravel()
-    b, c, d = a + ny_, a + ny_ + 1, a + 1
-    F = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
-    sand = trimesh.Trimesh(V, F, process=False)
-
-    def sand_contains(p: np.ndarray) -> np.ndarray:
-        p = np.asarray(p)
-        inside = (p[:, 0] >= x0) & (p[:, 0] <= x1) & (np.abs(p[:, 1]) <= yh)
-        return inside & (p[:, 2] <= h(p[:, 0], p[:, 1])) & (p[:, 2] >= zb - 1.0)
-
-    objects.append(SceneObject("sand", sand, "sand", sand_contains))
+    objects.append(_sand_object(h, (x0, x1), (-yh, yh), zb - 1.0))
 
     # Walls from below the grid up to the rim.
     zc, zh = 0.5 * (z_rim + zb - 0.1), z_rim - (zb - 0.1)
@@ -312,28 +382,9 @@ def tank_scene(seed: int = 0, voxel_size_m: float = 0.03, n_pitch: int = 16, n_m
     objects.append(_merged("chain", parts, "metal"))
 
     # Rock: star-shaped blob, radius modulated by a few seeded smooth harmonics.
-    rc = np.array([1.05, 0.32, z_floor + 0.06])
-    radii = np.array([0.14, 0.11, 0.09])
-    kdir = rng.normal(size=(5, 3))
-    kph = rng.uniform(0, 2 * np.pi, 5)
-    kamp = rng.uniform(0.03, 0.08, 5)
-    Rrock = _rot_z(rng.uniform(0, np.pi))
-
-    def bump(u: np.ndarray) -> np.ndarray:
-        return 1.0 + np.sin(u @ kdir.T * 2.0 + kph) @ kamp
-
-    ico = trimesh.creation.icosphere(subdivisions=3)
-    u = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
-    rock_V = rc + ((u * bump(u)[:, None]) * radii) @ Rrock.T
-    rock = trimesh.Trimesh(rock_V, ico.faces, process=False)
-
-    def rock_contains(p: np.ndarray) -> np.ndarray:
-        q = ((np.asarray(p) - rc) @ Rrock) / radii
-        n = np.linalg.norm(q, axis=1)
-        uq = q / np.maximum(n, 1e-12)[:, None]
-        return n <= bump(uq)
-
-    objects.append(SceneObject("rock", rock, "rock", rock_contains))
+    rock = _rock_object(rng, np.array([1.05, 0.32, z_floor + 0.06]), np.array([0.14, 0.11, 0.09]))
+    rock_V = rock.mesh.vertices
+    objects.append(rock)
 
     # Tool basket: open-top lattice box of 1 cm bars.
     bc = np.array([0.62, 0.55, float(h(0.62, 0.55))])
@@ -386,7 +437,8 @@ def tank_scene(seed: int = 0, voxel_size_m: float = 0.03, n_pitch: int = 16, n_m
     T_W_S, T_W_D = _tank_trajectory(n_pitch, n_move)
     spec = gpumap.SonarSpec.uniform(hfov_deg=130, vfov_deg=20, n_beams=512, n_bins=400,
                                     range_min_m=0.1, range_max_m=2.0)
-    return Scene("tank", objects, grid, spec, T_W_S, T_W_D, feature_ids, features_W, seed=seed)
+    return Scene("tank", objects, grid, spec, T_W_S, T_W_D, feature_ids, features_W, seed=seed,
+                 small_objects=("chain", "rock", "basket", "pipe"))
 
 
 SONAR_MOUNT_PITCH_DEG = 12.8  # paper, Fig. 1
@@ -418,6 +470,133 @@ def _tank_trajectory(n_pitch: int, n_move: int) -> tuple[np.ndarray, np.ndarray]
     return W @ T_wrist_S, W @ T_wrist_D
 
 
+# ------------------------------------------------------------------------------ circling the objects
+CIRCLE = {
+    "floor_z_m": -0.3,  # mean sand surface
+    "sand_half_m": 1.5,  # sand over [-1.5, 1.5]^2
+}
+
+
+def circle_scene(
+    seed: int = 0,
+    voxel_size_m: float = 0.03,
+    n_stations: int = 5,
+    n_pitch: int = 7,
+    n_roll: int = 5,
+    radius_m: float = 1.2,
+    height_m: float = 0.4,
+    pitch_deg: tuple[float, float] = (10.0, 40.0),
+    roll_deg: float = 20.0,
+) -> Scene:
+    """Objects on sand seen from ``n_stations`` sides: the acoustic-shadow test scene.
+
+    A 3 x 3 m patch of sand (mean surface z = -0.3 m, seeded ripples, solid below) holds,
+    within about 0.45 m of the origin: a "box" of 30 x 20 x 25 cm (yawed 25 deg, sunk
+    1 cm), a "rock" (seeded star-shaped blob of about 26 x 20 x 16 cm, partly buried), a
+    thin metal "pipe" (2.8 cm across, 0.8 m long) lying on the sand and an upright "post"
+    (8 cm across, 35 cm tall). The sonar visits ``n_stations`` stations evenly spaced on a
+    circle of ``radius_m`` around the origin, ``height_m`` above the mean sand, yawed to
+    look at the origin (the first station is at -y, the stations then go counter-clockwise).
+    At each it sweeps the pitch over ``pitch_deg`` (``n_pitch`` pings, level) and then the
+    roll over ``+-roll_deg`` (``n_roll`` pings, pitched down to the origin), so with five
+    stations every object is seen from opposite sides (144 deg apart) and its far side is
+    in the acoustic shadow in some views and faces the sonar in others. ``T_W_D`` equals
+    ``T_W_S`` (no DVL in this scene). The seed sets the sand ripples and the rock's shape.
+    """
+    if n_stations < 1 or n_pitch < 1 or n_roll < 0:
+        raise ValueError(
+            f"Expected n_stations >= 1, n_pitch >= 1 and n_roll >= 0, but got n_stations={n_stations}, "
+            f"n_pitch={n_pitch}, n_roll={n_roll}"
+        )
+    rng = np.random.default_rng(seed)
+    z_floor, half = CIRCLE["floor_z_m"], CIRCLE["sand_half_m"]
+    grid = gpumap.GridSpec((-1.6, -1.6, -0.5), (1.6, 1.6, 0.5), voxel_size_m)
+    h = _sand_height_fn(rng, z_floor)
+    objects = [_sand_object(h, (-half, half), (-half, half), grid.min_corner_m[2] - 1.0)]
+
+    def ground(xy: np.ndarray) -> float:
+        return float(h(xy[0], xy[1]))
+
+    # Box: 30 x 20 x 25 cm, yawed, its bottom 1 cm into the sand.
+    box_c, box_size, box_R = np.array([0.30, 0.25]), np.array([0.30, 0.20, 0.25]), _rot_z(math.radians(25))
+    box_bottom = ground(box_c) - 0.01
+    box_center = np.array([*box_c, box_bottom + 0.5 * box_size[2]])
+    mesh, contains = _box(box_center, box_size, box_R)
+    objects.append(SceneObject("box", mesh, "plastic", contains))
+
+    # Rock: a blob about a third buried.
+    rock_c = np.array([-0.35, 0.20])
+    rock = _rock_object(rng, np.array([*rock_c, ground(rock_c) + 0.05]), np.array([0.13, 0.10, 0.08]))
+    objects.append(rock)
+
+    # Pipe: 2.8 cm across, 0.8 m long, lying on the sand.
+    r_pipe, pipe_c, pipe_yaw = 0.014, np.array([0.0, -0.25]), math.radians(10)
+    u = 0.4 * np.array([math.cos(pipe_yaw), math.sin(pipe_yaw)])
+    pa, pb = pipe_c - u, pipe_c + u
+    p0, p1 = np.array([*pa, ground(pa) + r_pipe]), np.array([*pb, ground(pb) + r_pipe])
+    mesh, contains = _cylinder(p0, p1, r_pipe)
+    objects.append(SceneObject("pipe", mesh, "metal", contains))
+
+    # Post: upright cylinder from 5 cm under the sand to 35 cm above it.
+    r_post, post_c, post_h = 0.04, np.array([-0.05, 0.12]), 0.35
+    post_top = np.array([*post_c, ground(post_c) + post_h])
+    mesh, contains = _cylinder(post_top - [0, 0, post_h + 0.05], post_top, r_post)
+    objects.append(SceneObject("post", mesh, "plastic", contains))
+
+    # Features on surfaces: box corners (top, and where the vertical edges meet the sand),
+    # pipe ends and middle (top), rock extremes, the post's top centre and rim.
+    feats = []
+    for x in (-0.5, 0.5):
+        for y in (-0.5, 0.5):
+            top = box_center + box_R @ (box_size * np.array([x, y, 0.5]))
+            feats.append(top)
+            feats.append(np.array([*top[:2], max(ground(top[:2]), box_bottom)]))
+    feats += [p0 + [0, 0, r_pipe], p1 + [0, 0, r_pipe], 0.5 * (p0 + p1) + [0, 0, r_pipe]]
+    rock_V = rock.mesh.vertices
+    for dirv in ([0, 0, 1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]):
+        feats.append(rock_V[int(np.argmax(rock_V @ np.array(dirv, float)))])
+    feats.append(post_top)
+    for a in np.arange(4) * (math.pi / 2):
+        feats.append(post_top + r_post * np.array([math.cos(a), math.sin(a), 0.0]))
+    features_W = np.array(feats, dtype=np.float64)
+    feature_ids = np.arange(len(features_W), dtype=np.int64) + 100
+
+    T_W_S = circle_trajectory(n_stations, n_pitch, n_roll, radius_m, z_floor + height_m, pitch_deg, roll_deg)
+    spec = gpumap.SonarSpec.uniform(hfov_deg=130, vfov_deg=20, n_beams=512, n_bins=400,
+                                    range_min_m=0.1, range_max_m=2.0)
+    return Scene("circle", objects, grid, spec, T_W_S, T_W_S.copy(), feature_ids, features_W, seed=seed,
+                 small_objects=("box", "rock", "pipe", "post"))
+
+
+def circle_trajectory(
+    n_stations: int,
+    n_pitch: int,
+    n_roll: int,
+    radius_m: float,
+    z_m: float,
+    pitch_deg: tuple[float, float] = (10.0, 40.0),
+    roll_deg: float = 20.0,
+) -> np.ndarray:
+    """(n_stations * (n_pitch + n_roll), 4, 4) sonar poses circling the origin at height ``z_m``.
+
+    Station ``s`` is at azimuth ``-90 + 360 s / n_stations`` deg (the first at -y), yawed
+    toward the z axis. It first pitches from ``pitch_deg[0]`` to ``pitch_deg[1]`` down
+    (level), then rolls from ``-roll_deg`` to ``+roll_deg`` pitched down to the point of
+    the mean sand below the origin (``atan2(z_m + 0.3, radius_m)``).
+    """
+    poses = []
+    look_down = math.atan2(z_m - CIRCLE["floor_z_m"], radius_m)
+    for k in range(n_stations):
+        a = math.radians(-90.0) + 2 * math.pi * k / n_stations
+        xyz = np.array([radius_m * math.cos(a), radius_m * math.sin(a), z_m])
+        yaw = a + math.pi
+        for p in np.linspace(*pitch_deg, n_pitch):
+            poses.append(pose_from_xyz_ypr(xyz, yaw, math.radians(p)))
+        for r in np.linspace(-roll_deg, roll_deg, n_roll):
+            poses.append(pose_from_xyz_ypr(xyz, yaw, look_down, math.radians(r)))
+    return np.array(poses)
+
+
 # ------------------------------------------------------------------------------ analytic test scene
 def box_scene(
     boxes: list[tuple[tuple[float, float, float], tuple[float, float, float]]],
@@ -443,11 +622,11 @@ def _prism(**kw) -> Scene:
     return prism_scene(**kw)
 
 
-SCENES: dict[str, Callable[..., Scene]] = {"tank": tank_scene, "prism": _prism}
+SCENES: dict[str, Callable[..., Scene]] = {"tank": tank_scene, "circle": circle_scene, "prism": _prism}
 
 
 def make_scene(name: str, **kw) -> Scene:
-    """Build a registered scene by name (``tank``, ``prism``)."""
+    """Build a registered scene by name (``tank``, ``circle``, ``prism``)."""
     if name not in SCENES:
         raise ValueError(f"Expected a scene name in {sorted(SCENES)}, but got {name!r}")
     return SCENES[name](**kw)

@@ -36,6 +36,20 @@ How a ping is made (:meth:`SonarSimulator.ping`)
    ``noise_floor`` and clipping to [0, 1]. Noise is seeded by ``(seed, ping index)``, so
    a ping is reproducible whatever the order pings are made in.
 
+Detectable ground truth (:func:`detected_points`)
+-------------------------------------------------
+A visible surface point (``Ping.points_W``: one per unoccluded ray) is not necessarily
+*detectable*: at grazing incidence, far away or off the beam's axis its cell may be too
+faint to stand out of the noise. Each ping therefore also keeps the noise-free image
+``Ping.clean_image = 1 - exp(-gain * E)`` (the same display law on the mean energy: no
+speckle, no noise floor) and, for each visible point, the cell its ray fell in
+(``Ping.ray_bins``, ``Ping.ray_beams``, int16). :func:`detected_points` returns the
+points whose cell in ``clean_image`` reaches a threshold (``Ping.detected_W`` at
+:data:`OCCUPIED_THRESHOLD`): what an ideal detector could call occupied in this ping. A
+cell is shared by every ray at its range and azimuth, so a faint point beside a bright
+one at the same range and beam counts as detected: that is the elevation ambiguity the
+mapper lives with too. Extra memory per ping: 4 bytes per ray plus one float32 image.
+
 Intensity scale (what "occupied" means): with the defaults, sand at 1 m and 30-40 deg
 grazing images at about 0.2-0.4, metal and rock facing the sonar at 0.6-1, walls near
 normal incidence saturate, and empty water (speckle-free noise floor) has mean ~0.02 and
@@ -55,7 +69,7 @@ from gpumap.errors import check_pose
 
 from .scenes import Scene
 
-__all__ = ["SonarSimulator", "Ping", "OCCUPIED_THRESHOLD"]
+__all__ = ["SonarSimulator", "Ping", "OCCUPIED_THRESHOLD", "detected_points"]
 
 #: Intensity from which a voxel is called occupied (see the module docstring).
 OCCUPIED_THRESHOLD = 0.1
@@ -77,6 +91,12 @@ class Ping:
         Ids of the scene features visible in this ping (in the field of view, unoccluded).
     feature_ranges_m, feature_bearings_rad : (m,) float64
         Their true range and azimuth.
+    clean_image : (n_bins, n_beams) float32 or None
+        Noise-free image ``1 - exp(-gain * E)`` (no speckle, no noise floor); ``None`` when
+        the ping was not made by :class:`SonarSimulator`.
+    ray_bins, ray_beams : (n,) int16 or None
+        Cell ``(bin, beam)`` of each visible point's ray (rows of ``points_W``; int32 for
+        images of 32768 bins or beams or more).
     """
 
     image: np.ndarray
@@ -85,6 +105,39 @@ class Ping:
     feature_ids: np.ndarray
     feature_ranges_m: np.ndarray
     feature_bearings_rad: np.ndarray
+    clean_image: np.ndarray | None = None
+    ray_bins: np.ndarray | None = None
+    ray_beams: np.ndarray | None = None
+
+    @property
+    def detected_W(self) -> np.ndarray:
+        """(k, 3) float32 visible points whose noise-free cell reaches :data:`OCCUPIED_THRESHOLD`."""
+        return detected_points(self, OCCUPIED_THRESHOLD)
+
+
+def detected_points(ping: Ping, threshold: float = OCCUPIED_THRESHOLD) -> np.ndarray:
+    """Visible surface points of ``ping`` whose cell in the noise-free image is ``>= threshold``.
+
+    Parameters
+    ----------
+    ping : Ping
+        Made by :meth:`SonarSimulator.ping` (it needs ``clean_image``, ``ray_bins`` and
+        ``ray_beams``).
+    threshold : float
+        Intensity in [0, 1] on the display scale of ``ping.image``.
+
+    Returns
+    -------
+    (k, 3) float32
+        Rows of ``ping.points_W``, world frame, metres.
+    """
+    if ping.clean_image is None or ping.ray_bins is None or ping.ray_beams is None:
+        raise ValueError(
+            "Expected a ping with 'clean_image', 'ray_bins' and 'ray_beams' (made by SonarSimulator.ping), "
+            "but got None"
+        )
+    cell = ping.clean_image[ping.ray_bins.astype(np.intp), ping.ray_beams.astype(np.intp)]
+    return ping.points_W[cell >= np.float32(threshold)]
 
 
 class SonarSimulator:
@@ -153,6 +206,7 @@ class SonarSimulator:
         d_az = float(azimuth_step_rad or 0.5 * beam_w.min())
         d_el = float(elevation_step_rad or math.radians(0.1))
         self._setup_cameras(n_cameras, d_az, d_el)
+        self._cell_dtype = np.int16 if max(sp.n_bins, sp.n_beams) < 2**15 else np.int32
         self._renderer = None
         self._build_gl_scene()
 
@@ -322,6 +376,8 @@ class SonarSimulator:
         E = np.bincount(bins * sp.n_beams + self._beam[hi], weights=e, minlength=sp.n_bins * sp.n_beams)
         E = E.reshape(sp.n_bins, sp.n_beams)
 
+        clean = (1.0 - np.exp(-self.gain * E)).astype(np.float32)
+
         rng = np.random.default_rng([self.seed, int(index)])
         speckle = rng.gamma(self.looks, 1.0 / self.looks, size=E.shape)
         img = 1.0 - np.exp(-self.gain * E * speckle)
@@ -330,7 +386,8 @@ class SonarSimulator:
 
         points_W = (T[:3, 3] + (d_S * r[:, None]) @ R.T).astype(np.float32)
         fid, fr, fb = self._visible_features(T, depths)
-        return Ping(img, T, points_W, fid, fr, fb)
+        return Ping(img, T, points_W, fid, fr, fb, clean_image=clean,
+                    ray_bins=bins.astype(self._cell_dtype), ray_beams=self._beam[hi].astype(self._cell_dtype))
 
     def _visible_features(
         self, T_W_S: np.ndarray, depths: list[np.ndarray], tol_m: float = 0.02

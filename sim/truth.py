@@ -4,10 +4,16 @@ A voxel is occupied when a surface passes through it (the surface is sampled den
 at least ``samples_per_voxel`` points per voxel edge, so a surface crossing a voxel lands
 a sample in it except for slivers thinner than ``voxel / samples_per_voxel``) or when its
 centre lies inside a solid (each object's analytic ``contains``).
+
+What the pings could know (:func:`ground_truth_masks`): a voxel is *seen* when a visible
+surface point of some ping (an unoccluded ray in the field of view) falls in it, and
+*detectable* when a point whose noise-free image cell reaches the occupied threshold does
+(:func:`~.sonar.detected_points`); detectable voxels are a subset of the seen ones.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,9 +21,10 @@ import trimesh
 
 import gpumap
 
-from .scenes import Scene
+from .scenes import BACKGROUND_OBJECTS, Scene
+from .sonar import OCCUPIED_THRESHOLD, Ping, detected_points
 
-__all__ = ["Truth", "occupancy", "points_to_voxels"]
+__all__ = ["Truth", "occupancy", "points_to_voxels", "ground_truth_masks"]
 
 
 @dataclass
@@ -34,15 +41,30 @@ class Truth:
         Index into ``names`` of the object owning the voxel (small objects win over the
         sand and walls where they share a voxel), -1 for free voxels.
     names : list of str
+    small_objects : tuple of str, optional
+        Names of the obstacles (the scene's :attr:`~.scenes.Scene.small_objects`); default:
+        every name not in :data:`~.scenes.BACKGROUND_OBJECTS`.
     """
 
     occupied: np.ndarray
     surface: np.ndarray
     label: np.ndarray
     names: list[str]
+    small_objects: tuple[str, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if self.small_objects is None:
+            self.small_objects = tuple(n for n in self.names if n not in BACKGROUND_OBJECTS)
+        else:
+            self.small_objects = tuple(self.small_objects)
 
     def mask(self, name: str) -> np.ndarray:
         return self.label == self.names.index(name)
+
+    def objects_mask(self, names: Iterable[str] | None = None) -> np.ndarray:
+        """(nx, ny, nz) bool: voxels labelled with one of ``names`` (default: the small objects)."""
+        names = self.small_objects if names is None else tuple(names)
+        return np.isin(self.label, [self.names.index(n) for n in names if n in self.names])
 
 
 def points_to_voxels(points_W: np.ndarray, grid: gpumap.GridSpec) -> np.ndarray:
@@ -95,7 +117,36 @@ def occupancy(scene: Scene, grid: gpumap.GridSpec | None = None, samples_per_vox
             label[flat[label[flat] < 0]] = i
     occ = surface | inside
     return Truth(occ.reshape(shape), surface.reshape(shape), label.reshape(shape),
-                 [o.name for o in scene.objects])
+                 [o.name for o in scene.objects], scene.small_objects)
+
+
+def ground_truth_masks(
+    pings: Iterable[Ping], grid: gpumap.GridSpec, threshold: float = OCCUPIED_THRESHOLD
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(seen, detectable)``: (nx, ny, nz) bool masks of what some ping saw / could detect.
+
+    Parameters
+    ----------
+    pings : iterable of Ping
+        Made by :class:`~.sonar.SonarSimulator` (a generator will do: each ping is used once).
+    grid : gpumap.GridSpec
+    threshold : float
+        Occupied threshold on the noise-free image (see :func:`~.sonar.detected_points`).
+
+    Returns
+    -------
+    seen : (nx, ny, nz) bool
+        Voxels holding a visible surface point of some ping.
+    detectable : (nx, ny, nz) bool
+        Voxels holding a visible point whose noise-free cell is ``>= threshold`` in that
+        ping; a subset of ``seen``.
+    """
+    seen = np.zeros(grid.n_voxels, bool)
+    detectable = np.zeros(grid.n_voxels, bool)
+    for p in pings:
+        seen[points_to_voxels(p.points_W, grid)] = True
+        detectable[points_to_voxels(detected_points(p, threshold), grid)] = True
+    return seen.reshape(grid.shape), detectable.reshape(grid.shape)
 
 
 def _clip_mesh(mesh: trimesh.Trimesh, lo: np.ndarray, hi: np.ndarray) -> trimesh.Trimesh | None:

@@ -346,6 +346,9 @@ def test_grid_too_big_for_memory_says_how_much_it_needs(monkeypatch):
     assert mapper_mod._free_memory_bytes("numpy") > 0  # this machine's own figure is readable
     monkeypatch.setattr(mapper_mod, "_free_memory_bytes", lambda name: 2**30)  # 1 GiB free
     with pytest.raises(ValueError, match=r"need 3\.73 GiB and numpy has 1\.00 GiB free"):
+        gpumap.MinMaxMapper(SPEC, grid, backend="numpy", rule="plain")
+    # the visible rule keeps 5 more bytes per voxel (bright float32, count uint8): 9 / 4 as much
+    with pytest.raises(ValueError, match=r"need 8\.38 GiB and numpy has 1\.00 GiB free"):
         gpumap.MinMaxMapper(SPEC, grid, backend="numpy")
     with pytest.raises(gpumap.BackendUnavailableError, match="fits in memory"):
         gpumap.MinMaxMapper(SPEC, grid, backend="auto")  # auto tries each, then says why none ran

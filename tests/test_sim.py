@@ -9,8 +9,8 @@ import pytest
 import trimesh
 from gpumap.sim.dvl import DVLSimulator
 from gpumap.sim.scenes import SceneObject, box_scene, make_scene, pose_from_xyz_ypr
-from gpumap.sim.sonar import SonarSimulator
-from gpumap.sim.truth import occupancy
+from gpumap.sim.sonar import OCCUPIED_THRESHOLD, Ping, SonarSimulator, detected_points
+from gpumap.sim.truth import ground_truth_masks, occupancy
 
 import gpumap
 
@@ -132,3 +132,121 @@ def test_truth_occupancy_of_an_analytic_box():
     assert truth.occupied.sum() == expect.sum()
     assert np.array_equal(truth.occupied, expect)
     assert np.all(truth.label[expect] == 0)
+
+
+# ------------------------------------------------------------------------------ detectable truth
+def test_plane_at_normal_incidence_is_detectable():
+    scene = box_scene([((1.05, 0.0, 0.0), (0.1, 6.0, 6.0))], spec=SPEC)
+    with _sim(scene) as sim:
+        p = sim.ping(np.eye(4))
+    assert p.clean_image.shape == p.image.shape and p.clean_image.dtype == np.float32
+    assert len(p.ray_bins) == len(p.ray_beams) == len(p.points_W)
+    # Without speckle and noise the image is the clean image.
+    np.testing.assert_allclose(p.image, p.clean_image, atol=1e-4)
+    det = detected_points(p, OCCUPIED_THRESHOLD)
+    assert len(det) > 0 and len(det) <= len(p.points_W)
+    assert np.array_equal(p.detected_W, det)
+    # Detected points are visible points (rows of points_W) ...
+    assert set(map(tuple, det.tolist())) <= set(map(tuple, p.points_W.tolist()))
+    # ... and the points at normal incidence (straight ahead) are among them.
+    ahead = det[np.hypot(det[:, 1], det[:, 2]) < 0.03]
+    assert len(ahead) > 0 and np.allclose(ahead[:, 0], 1.0, atol=1e-3)
+    # Each point's cell is where its range and azimuth put it.
+    pol = SPEC.to_polar(p.points_W)
+    assert np.all(np.abs(p.ray_bins - SPEC.bin_index(pol[:, 0])) <= 1)
+    assert np.all(np.abs(p.ray_beams - SPEC.beam_index(pol[:, 1])) <= 1)
+    # The threshold is on the clean image: nothing is brighter than 1, everything >= 0.
+    assert len(detected_points(p, 1.01)) == 0
+    assert len(detected_points(p, 0.0)) == len(p.points_W)
+
+
+def test_ping_without_clean_image_has_no_detections():
+    p = Ping(np.zeros(SPEC.image_shape, np.float32), np.eye(4), np.zeros((3, 3), np.float32),
+             np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+    with pytest.raises(ValueError, match="clean_image"):
+        detected_points(p)
+
+
+# ------------------------------------------------------------------------------ the circle scene
+def _stations(scene):
+    """(n_stations,) list of pose-index arrays, one per sonar position."""
+    pos = np.round(scene.T_W_S[:, :3, 3], 9)
+    _, inv = np.unique(pos, axis=0, return_inverse=True)
+    return [np.flatnonzero(inv == s) for s in range(inv.max() + 1)]
+
+
+def test_circle_scene_is_deterministic_per_seed():
+    a, b = make_scene("circle", voxel_size_m=0.06, seed=1), make_scene("circle", voxel_size_m=0.06, seed=1)
+    c = make_scene("circle", voxel_size_m=0.06, seed=2)
+    assert a.object_names == b.object_names and a.object_names[0] == "sand"
+    assert set(a.small_objects) == {"box", "rock", "pipe", "post"}
+    for o1, o2 in zip(a.objects, b.objects, strict=True):
+        assert np.array_equal(o1.mesh.vertices, o2.mesh.vertices)
+    assert np.array_equal(a.T_W_S, b.T_W_S) and np.array_equal(a.features_W, b.features_W)
+    assert not np.array_equal(a.object("sand").mesh.vertices, c.object("sand").mesh.vertices)
+    assert not np.array_equal(a.object("rock").mesh.vertices, c.object("rock").mesh.vertices)
+    # Features lie on surfaces: within 5 mm of each there is solid and there is water.
+    assert a.feature_ids[0] == 100 and len(np.unique(a.feature_ids)) == len(a.feature_ids)
+    steps = 0.005 * np.stack(np.meshgrid(*[[-1, 0, 1]] * 3, indexing="ij"), -1).reshape(-1, 3)
+    for f in a.features_W:
+        q = f + steps
+        solid = np.logical_or.reduce([o.contains(q) for o in a.objects])
+        assert solid.any() and not solid.all(), f
+    # A valid SE(3) trajectory inside the grid.
+    R = a.T_W_S[:, :3, :3]
+    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
+    lo, hi = np.array(a.grid.min_corner_m), np.array(a.grid.max_corner_m)
+    assert np.all((a.T_W_S[:, :3, 3] > lo) & (a.T_W_S[:, :3, 3] < hi))
+
+
+def test_circle_stations_see_every_object_from_opposite_sides():
+    scene = make_scene("circle", voxel_size_m=0.06)
+    stations = _stations(scene)
+    assert len(stations) == 5
+    sp = scene.sonar_spec
+    centres = {}
+    for name in scene.small_objects:
+        V = np.asarray(scene.object(name).mesh.vertices)
+        centres[name] = V.mean(0)
+        in_view = []
+        for idx in stations:
+            T = scene.T_W_S[idx]
+            p_S = np.einsum("kji,knj->kni", T[:, :3, :3], V[None] - T[:, None, :3, 3])
+            in_view.append(bool(sp.in_fov(p_S).any()))
+        assert sum(in_view) >= (3 if name == "pipe" else 5), (name, in_view)
+    # Every object is viewed from directions more than 120 deg apart.
+    for name, c in centres.items():
+        d = np.array([c[:2] - scene.T_W_S[idx[0], :2, 3] for idx in stations])
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        worst = np.degrees(np.arccos(np.clip((d @ d.T).min(), -1, 1)))
+        assert worst > 120, (name, worst)
+    # Each station pitches and rolls.
+    for idx in stations:
+        T = scene.T_W_S[idx]
+        pitch = np.degrees(np.arcsin(-T[:, 2, 0]))  # boresight below the horizon
+        roll = np.degrees(np.arctan2(T[:, 2, 1], T[:, 2, 2]))
+        assert np.ptp(pitch) >= 20 and np.ptp(roll) >= 20
+
+
+def test_circle_far_sides_are_shadowed_in_some_views():
+    scene = make_scene("circle", voxel_size_m=0.03)
+    truth = occupancy(scene)
+    stations = _stations(scene)
+    # One ping per station, looking at the objects level (roll = 0, pitched at the centre).
+    roll = np.arctan2(scene.T_W_S[:, 2, 1], scene.T_W_S[:, 2, 2])
+    sel = [idx[np.argmin(np.abs(roll[idx]))] for idx in stations]
+    with _sim(scene) as sim:
+        pings = [sim.ping(scene.T_W_S[k], k) for k in sel]
+    seen, det = ground_truth_masks(pings, scene.grid, OCCUPIED_THRESHOLD)
+    assert not np.any(det & ~seen), "detectable voxels must be seen"
+    # Grazing sand far away is seen but too faint to detect.
+    sand = truth.mask("sand")
+    assert (seen & ~det & sand).sum() > 0
+    # Every object is detected, and from no single station is all of it seen: its far side
+    # is in the shadow of that view, and another view sees it.
+    for name in scene.small_objects:
+        m = truth.mask(name)
+        assert (det & m).any(), name
+        each = [ground_truth_masks([p], scene.grid)[0] & m for p in pings]
+        union = np.logical_or.reduce(each)
+        assert all((union & ~e).any() for e in each), name
