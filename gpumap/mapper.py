@@ -63,17 +63,18 @@ class MinMaxMapper:
 
     How views combine (``rule``):
 
-    - ``"visible"`` (default with ``method="gather"``): a dark view lowers a voxel only where it proves the voxel
-      empty. A view is *clear* when no image cell ``>= threshold`` lies nearer than the
-      voxel's footprint in the footprint's beams: nothing stood between the sonar and the
-      voxel, at any elevation. A dark view behind a return proves nothing (the voxel may sit
-      in that return's acoustic shadow, or be a surface seen at grazing incidence behind
-      nearer parts of itself). A voxel ever seen bright (``>= threshold``) keeps the dimmest
-      of its bright values until clear dark views carve it: two of them, or one darker than
-      ``threshold / 2`` (speckle rarely darkens a seen surface that far). A voxel never seen
-      bright takes the minimum over its views, as in the plain rule. Every update is a min, a
-      max or a count, so the map does not depend on the order of the pings. Costs 5 bytes
-      per voxel more (a float32 and a uint8) and a per-beam scan of each ping.
+    - ``"visible"`` (default with ``method="gather"``): a dark view lowers a voxel only
+      where it proves the voxel empty. A view is *clear* when no image cell
+      ``>= threshold`` lies nearer than the voxel's footprint in the footprint's beams:
+      nothing stood between the sonar and the voxel, at any elevation. A dark view behind
+      a return proves nothing: the voxel may sit in that return's acoustic shadow, or be a
+      surface seen at grazing incidence behind nearer parts of itself. A voxel ever seen
+      bright (``>= threshold``) keeps the dimmest of its bright values until clear dark
+      views carve it: two of them, or one darker than ``threshold / 2`` (speckle rarely
+      darkens a seen surface that far). A voxel never seen bright takes the minimum over
+      its views, as in the plain rule. Every update is a min or a count, so the map does
+      not depend on the order of the pings. Costs 5 bytes per voxel more (a float32 and a
+      uint8) and a per-beam scan of each ping.
     - ``"plain"``: the paper's rule: the minimum over all views. A ping carves voxels in its
       acoustic shadow, so surfaces seen from one side are erased by views from the other.
 
@@ -284,6 +285,19 @@ class MinMaxMapper:
         v = self.raw_values()
         v[np.isinf(v)] = np.nan
         return v
+
+    def evidence(self) -> dict[str, np.ndarray]:
+        """The visible rule's per-voxel state, (nx, ny, nz) copies: ``min_all`` float32 (min over
+        every view, ``+inf`` never observed), ``bright`` float32 (min over bright views, ``+inf``
+        none) and ``count`` uint8 (clear dark evidence). Raises for the plain rule."""
+        if self.rule != "visible":
+            raise ValueError(
+                f"Expected a mapper with rule='visible' for evidence(), but its rule is {self.rule!r}"
+            )
+        bright, count = self._backend.read_evidence()
+        shape = self.grid.shape
+        return {"min_all": self._backend.read().reshape(shape), "bright": bright.reshape(shape),
+                "count": count.reshape(shape)}
 
     def observed(self) -> np.ndarray:
         """(nx, ny, nz) bool: voxels seen by at least one ping."""
