@@ -29,7 +29,7 @@ import gpumap
 from .metrics import evaluate
 from .scenes import SCENES, Scene, make_scene
 from .sonar import OCCUPIED_THRESHOLD, Ping, SonarSimulator
-from .truth import Truth, occupancy, points_to_voxels
+from .truth import Truth, ground_truth_masks, occupancy, points_to_voxels
 
 __all__ = ["main", "run_demo"]
 
@@ -48,6 +48,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="odometry noise per step (m and rad); adds odometry and EKF rows")
     p.add_argument("--pings", type=int, default=None, help="use only this many pings (evenly spaced)")
     p.add_argument("--threshold", type=float, default=OCCUPIED_THRESHOLD, help="occupied intensity")
+    p.add_argument("--rule", default="visible", choices=["visible", "plain"],
+                   help="how views combine: 'visible' (a dark view carves only when nothing is in front "
+                        "of the voxel in its beams) or 'plain' (the paper's min); the other rule is "
+                        "always mapped too, for the side-by-side 'rules' rows")
     p.add_argument("--shadow-m", type=float, default=0.0, metavar="M",
                    help="acoustic-shadow allowance (metres): returns also count up to M behind them; "
                         "0 = the paper's min-max")
@@ -65,11 +69,12 @@ def _progress(it, disable: bool, **kw):
 def _map_pings(
     scene: Scene, truth: Truth, pings: list[Ping], seen_each: list[np.ndarray], poses: np.ndarray,
     backend: str, method: str, threshold: float, quiet: bool, label: str, curve: bool, shadow_m: float = 0.0,
-    mapper: gpumap.MinMaxMapper | None = None,
+    mapper: gpumap.MinMaxMapper | None = None, rule: str | None = None,
+    detectable: np.ndarray | None = None,
 ) -> tuple[gpumap.MinMaxMapper, list[float], list[dict]]:
     if mapper is None:
         mapper = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, method=method,
-                                     shadow_m=shadow_m)
+                                     shadow_m=shadow_m, rule=_rule(rule, method), threshold=threshold)
     times, history = [], []
     seen = np.zeros(scene.grid.n_voxels, bool)
     for k in _progress(range(len(pings)), quiet, desc=f"map ({label})", unit="ping"):
@@ -80,7 +85,7 @@ def _map_pings(
         seen[seen_each[k]] = True
         if curve:
             ev = evaluate(mapper.values(), truth, threshold, seen.reshape(scene.grid.shape),
-                          scene.grid.voxel_size_m)
+                          scene.grid.voxel_size_m, detectable=detectable)
             history.append(ev.to_dict())
     return mapper, times, history
 
@@ -176,10 +181,21 @@ def _pose_error(T_est: np.ndarray, T_true: np.ndarray) -> dict:
             "rotation_error_mean_deg": float(ang.mean())}
 
 
+_SUMMARY_KEYS = (
+    "false_negative_rate_detectable", "false_negative_rate_objects_detectable", "miss_rate",
+    "miss_rate_objects", "observed_surface_fraction", "false_negative_rate", "false_negative_rate_objects",
+    "false_negative_rate_all", "false_positive_rate", "false_positive_rate_far", "free_carved_fraction",
+    "pipe_found",
+)
+
+
 def _summary(ev: dict) -> dict:
-    keys = ("false_negative_rate", "false_negative_rate_objects", "false_negative_rate_all",
-            "false_positive_rate", "false_positive_rate_far", "free_carved_fraction", "pipe_found")
-    return {k: ev[k] for k in keys}
+    return {k: ev[k] for k in _SUMMARY_KEYS}
+
+
+def _rule(rule: str | None, method: str) -> str:
+    """The visible rule needs the gather method: the template method keeps the paper's rule."""
+    return "plain" if method == "template" else (rule or "visible")
 
 
 def run_demo(args: argparse.Namespace) -> dict:
@@ -195,8 +211,9 @@ def run_demo(args: argparse.Namespace) -> dict:
         sel = np.unique(np.linspace(0, n - 1, args.pings).round().astype(int))
     T_true = scene.T_W_S[sel]
     # fail before minutes of simulation if the backend cannot run here (it also compiles the kernels)
+    rule = _rule(args.rule, args.method)
     first = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=args.backend, method=args.method,
-                                shadow_m=args.shadow_m)
+                                shadow_m=args.shadow_m, rule=rule, threshold=args.threshold)
     truth = occupancy(scene, seed=args.seed)
 
     t0 = time.perf_counter()
@@ -209,15 +226,28 @@ def run_demo(args: argparse.Namespace) -> dict:
             if i == 0 or k == sel[len(sel) // 2]:
                 sample = p
     sim_s = time.perf_counter() - t0
+    _, detectable = ground_truth_masks(pings, scene.grid, args.threshold)
 
     mapper, times, history = _map_pings(scene, truth, pings, seen_each, T_true, args.backend, args.method,
                                         args.threshold, quiet, "true poses", curve=True,
-                                        shadow_m=args.shadow_m, mapper=first)
+                                        shadow_m=args.shadow_m, mapper=first, detectable=detectable)
     final = history[-1]
+    # the other rule on the same pings, side by side
+    other = "plain" if rule == "visible" else "visible"
+    rules = {rule: {**_summary(final), "height_error_m": final["height_error_m"],
+                    "ms_per_image": 1e3 * float(np.mean(times[1:] if len(times) > 1 else times))}}
+    if args.method == "gather":
+        m_o, t_o, _ = _map_pings(scene, truth, pings, seen_each, T_true, args.backend, args.method,
+                                 args.threshold, quiet, f"{other} rule", curve=False, shadow_m=args.shadow_m,
+                                 rule=other)
+        ev_o = _final_eval(m_o, scene, truth, seen_each, args.threshold, detectable, full=True)
+        rules[other] = {**_summary(ev_o), "height_error_m": ev_o["height_error_m"],
+                        "ms_per_image": 1e3 * float(np.mean(t_o[1:] if len(t_o) > 1 else t_o))}
     metrics = {
         "scene": scene.name,
         "backend": mapper.backend,
         "method": args.method,
+        "rule": rule,
         "voxel_size_m": scene.grid.voxel_size_m,
         "grid_shape": list(scene.grid.shape),
         "images": len(pings),
@@ -228,6 +258,7 @@ def run_demo(args: argparse.Namespace) -> dict:
         "sim_ms_per_image": 1e3 * sim_s / len(pings),
         **{k: final[k] for k in final if k != "threshold"},
         "height_error_first_view_m": history[0]["height_error_m"],
+        "rules": rules,
     }
     mapper.save(out / "map.npz")
 
@@ -236,8 +267,9 @@ def run_demo(args: argparse.Namespace) -> dict:
         U, T_odo = _odometry(T_true, float(args.pose_noise), rng)
         rows = {"true": {**_summary(final), **_pose_error(T_true, T_true)}}
         m_odo, _, _ = _map_pings(scene, truth, pings, seen_each, T_odo, args.backend, args.method,
-                                 args.threshold, quiet, "odometry", curve=False, shadow_m=args.shadow_m)
-        rows["odometry"] = {**_final_eval(m_odo, scene, truth, seen_each, args.threshold),
+                                 args.threshold, quiet, "odometry", curve=False, shadow_m=args.shadow_m,
+                                 rule=rule)
+        rows["odometry"] = {**_final_eval(m_odo, scene, truth, seen_each, args.threshold, detectable),
                             **_pose_error(T_odo, T_true)}
         try:
             T_ekf = _ekf_poses(scene, pings, U, float(args.pose_noise), rng)
@@ -245,8 +277,9 @@ def run_demo(args: argparse.Namespace) -> dict:
             rows["ekf"] = {"error": f"gpumap.ekf unavailable: {e}"}
         else:
             m_ekf, _, _ = _map_pings(scene, truth, pings, seen_each, T_ekf, args.backend, args.method,
-                                     args.threshold, quiet, "EKF", curve=False, shadow_m=args.shadow_m)
-            rows["ekf"] = {**_final_eval(m_ekf, scene, truth, seen_each, args.threshold),
+                                     args.threshold, quiet, "EKF", curve=False, shadow_m=args.shadow_m,
+                                     rule=rule)
+            rows["ekf"] = {**_final_eval(m_ekf, scene, truth, seen_each, args.threshold, detectable),
                            **_pose_error(T_ekf, T_true)}
         metrics["pose_noise"] = {"sigma": float(args.pose_noise), "rows": rows}
 
@@ -256,12 +289,14 @@ def run_demo(args: argparse.Namespace) -> dict:
     return metrics
 
 
-def _final_eval(mapper, scene: Scene, truth: Truth, seen_each: list[np.ndarray], threshold: float) -> dict:
+def _final_eval(mapper, scene: Scene, truth: Truth, seen_each: list[np.ndarray], threshold: float,
+                detectable: np.ndarray | None = None, full: bool = False) -> dict:
     seen = np.zeros(scene.grid.n_voxels, bool)
     for s in seen_each:
         seen[s] = True
-    ev = evaluate(mapper.values(), truth, threshold, seen.reshape(scene.grid.shape), scene.grid.voxel_size_m)
-    return _summary(ev.to_dict())
+    ev = evaluate(mapper.values(), truth, threshold, seen.reshape(scene.grid.shape), scene.grid.voxel_size_m,
+                  detectable=detectable)
+    return ev.to_dict() if full else _summary(ev.to_dict())
 
 
 def _jsonable(o):
@@ -348,9 +383,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.voxel_size <= 0:
         raise SystemExit(f"Expected --voxel-size > 0, but got {args.voxel_size}")
     m = run_demo(args)
-    print(json.dumps({k: m[k] for k in ("scene", "backend", "voxel_size_m", "images", "ms_per_image",
-                                         "false_negative_rate", "false_positive_rate", "pipe_found",
+    print(json.dumps({k: m[k] for k in ("scene", "backend", "rule", "voxel_size_m", "images", "ms_per_image",
                                          "demo_s")}, indent=1))
+    print(f"{'rule':8s} {'FN det':>7s} {'FN obj':>7s} {'miss':>6s} {'FP far':>7s} {'carved':>7s} pipe")
+    for name, row in m["rules"].items():
+        print(f"{name:8s} {row['false_negative_rate_detectable']:7.3f} "
+              f"{row['false_negative_rate_objects_detectable']:7.3f} {row['miss_rate']:6.3f} "
+              f"{row['false_positive_rate_far']:7.3f} {row['free_carved_fraction']:7.3f} {row['pipe_found']}")
     if "pose_noise" in m:
         for name, row in m["pose_noise"]["rows"].items():
             print(f"{name:9s} FN {row.get('false_negative_rate', float('nan')):.3f} "

@@ -21,8 +21,14 @@ def test_demo_end_to_end(tmp_path):
     # A garbage map (all free, all occupied, random) fails these bounds.
     assert m["false_negative_rate_objects"] < 0.3
     assert m["false_negative_rate"] < 0.5
-    assert m["false_positive_rate"] < 0.6
+    assert m["false_positive_rate"] < 0.8
     assert m["free_carved_fraction"] > 0.05
+    # both rules side by side; the visible rule (default) misses fewer detectable surfaces
+    vis, plain = m["rules"]["visible"], m["rules"]["plain"]
+    assert m["rule"] == "visible"
+    assert vis["false_negative_rate_detectable"] == m["false_negative_rate_detectable"]
+    assert vis["miss_rate"] < plain["miss_rate"]
+    assert vis["observed_surface_fraction"] == plain["observed_surface_fraction"]
     assert set(m["pose_noise"]["rows"]) == {"true", "odometry", "ekf"}
     with np.load(out / "map.npz") as z:
         assert z["values"].shape == tuple(m["grid_shape"])
