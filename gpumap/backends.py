@@ -80,6 +80,13 @@ class Backend:
         raise NotImplementedError
 
 
+def _check_rule(params: np.ndarray, visible: bool) -> None:
+    """A backend built without the visible rule's evidence must never run its update (the
+    kernels would write past one-element stand-in buffers)."""
+    if int(params["rule"]) == 1 and not visible:
+        raise ValueError("Expected a backend built with visible=True for rule='visible' parameters")
+
+
 def _evidence_init(n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.full(n, np.inf, dtype=np.float32), np.zeros(n, dtype=np.uint8)
 
@@ -98,6 +105,7 @@ class NumpyBackend(Backend):
     def integrate(self, params, image, method, n_threads):
         from gpumap import reference
 
+        _check_rule(params, self.state is not None)
         if image.dtype == np.uint8:
             image = np.multiply(image, U8_SCALE, out=self.buf)
         if method == "gather":
@@ -164,6 +172,7 @@ class WarpBackend(Backend):
             self.grid = wp.full(n_voxels, value=np.inf, dtype=float)
             # the visible rule's evidence (empty for the plain rule: its kernels never touch it)
             n_ev = n_voxels if visible else 0
+            self.visible = visible
             self.bright = wp.full(n_ev, value=np.inf, dtype=float)
             self.count = wp.zeros(n_ev, dtype=wp.uint8)
             self.first_bright = wp.zeros(n_beams, dtype=int)
@@ -210,6 +219,7 @@ class WarpBackend(Backend):
 
     def integrate(self, params, image, method, n_threads):
         wp = self.wp
+        _check_rule(params, self.visible)
         if self.staging:
             s = self.slot
             if self.events[s] is not None:
@@ -388,6 +398,7 @@ class OpenCLBackend(Backend):
         # the visible rule's evidence (one-element stand-ins for the plain rule: OpenCL has no
         # empty buffers, and its kernels never touch them)
         n_ev = n_voxels if visible else 1
+        self.visible = visible
         self.bright = cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * n_ev)
         cl.enqueue_fill_buffer(self.queue, self.bright, np.float32(np.inf), 0, 4 * n_ev)
         self.count = cl.Buffer(self.ctx, mf.READ_WRITE, size=max(4, n_ev))
@@ -433,6 +444,7 @@ class OpenCLBackend(Backend):
 
     def integrate(self, params, image, method, n_threads):
         cl = self.cl
+        _check_rule(params, self.visible)
         # blocking: the caller may reuse `image` as soon as this returns
         s = self.slot
         self.slot = (s + 1) % N_SLOTS

@@ -86,12 +86,21 @@ class SceneObject:
     contains : callable or None
         ``contains(p_W: (n, 3) float) -> (n,) bool``, the solid's interior (analytic), or
         ``None`` for objects treated as surfaces only.
+    solid_bounds : (2, 3) float or None
+        World box holding the solid where it reaches beyond the mesh (the sand's solid goes
+        down to the grid's floor below its surface mesh); None: the mesh's bounds.
     """
 
     name: str
     mesh: trimesh.Trimesh
     material: str
     contains: Callable[[np.ndarray], np.ndarray] | None = None
+    solid_bounds: np.ndarray | None = None
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) world box holding the solid (``solid_bounds``, else the mesh's bounds)."""
+        return self.mesh.bounds if self.solid_bounds is None else np.asarray(self.solid_bounds, float)
 
 
 #: Object names that are background rather than obstacles (the default complement of
@@ -273,7 +282,9 @@ def _sand_object(
         inside = (p[:, 0] >= x0) & (p[:, 0] <= x1) & (p[:, 1] >= y0) & (p[:, 1] <= y1)
         return inside & (p[:, 2] <= h(p[:, 0], p[:, 1])) & (p[:, 2] >= z_bottom)
 
-    return SceneObject("sand", sand, "sand", sand_contains)
+    # the solid reaches down to z_bottom, far below its surface mesh: truth must test it all
+    solid = np.array([[x0, y0, z_bottom], [x1, y1, float(V[:, 2].max())]])
+    return SceneObject("sand", sand, "sand", sand_contains, solid)
 
 
 def _rock_object(

@@ -102,8 +102,8 @@ def occupancy(scene: Scene, grid: gpumap.GridSpec | None = None, samples_per_vox
             surface[vox] = True
             label[vox] = i
         if o.contains is not None:
-            blo = np.maximum(o.mesh.bounds[0], lo)
-            bhi = np.minimum(o.mesh.bounds[1], hi)
+            blo = np.maximum(o.bounds[0], lo)
+            bhi = np.minimum(o.bounds[1], hi)
             if np.any(bhi <= blo):
                 continue
             i0 = np.clip(grid.index_of(blo), 0, np.array(shape) - 1)

@@ -70,7 +70,7 @@ def test_oasis_rule_fnr_zero_equals_thresholded_min_max_map():
     images = [(rng.random(spec.image_shape, dtype=np.float32) ** 4) for _ in range(4)]
     poses = [_pose(math.radians(p), math.radians(y)) for p, y in ((15, 0), (25, 10), (10, -15), (30, 5))]
     rule = OasisRule(spec, grid, threshold=thr, fnr=0.0, backend="numpy")
-    mm = gpumap.MinMaxMapper(spec, grid, backend="numpy")
+    mm = gpumap.MinMaxMapper(spec, grid, backend="numpy", rule="plain")
     for im, T in zip(images, poses, strict=True):
         rule.integrate(im, T)
         mm.integrate(im, T)
