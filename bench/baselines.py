@@ -207,7 +207,7 @@ class OasisRule:
         self.threshold = float(threshold)
         self.fnr = float(fnr)
         self.grid = grid
-        self.mapper = gpumap.MinMaxMapper(spec, grid, backend=backend, method=method)
+        self.mapper = gpumap.MinMaxMapper(spec, grid, backend=backend, method=method, rule="plain")
         self.hits = np.zeros(grid.shape, dtype=np.uint16)
         self.observations = np.zeros(grid.shape, dtype=np.uint16)
 

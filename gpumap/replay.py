@@ -6,11 +6,17 @@ Usage::
                        [--grid auto|xmin,ymin,zmin,xmax,ymax,zmax] [--threshold 0.4|auto]
                        [--static] [--stride N] [--max-frames N] [--vfov-deg D]
                        [--flip-lr] [--flip-ud] [--no-pictures]
+                       [--rule visible|plain] [--compare-rules]
 
 Writes into ``--out`` (default ``replay_out/``): ``map.npz`` (``MinMaxMapper.save``),
 ``occupied.ply`` (occupied voxel centres with their value as ``intensity``), ``views.png``
 (3-D render from three viewpoints), ``floor_slice.png`` (horizontal slice through the
 densest low layer: the floor) and ``summary.json``; prints images/s.
+
+``--rule`` picks how views combine (``MinMaxMapper``'s ``rule``); the mapper counts a view
+as bright from ``--threshold`` on. ``--compare-rules`` replays the same frames under both
+rules and adds ``rules.png`` (the two maps side by side, and where they differ) and a
+``rule_comparison`` section to ``summary.json`` (see :func:`compare_rules`).
 """
 
 from __future__ import annotations
@@ -27,7 +33,23 @@ import numpy as np
 
 from gpumap.spec import GridSpec, SonarSpec
 
-__all__ = ["auto_grid", "main", "otsu_threshold", "run_replay"]
+__all__ = [
+    "DEFAULT_THRESHOLD",
+    "RULES",
+    "auto_grid",
+    "compare_rules",
+    "main",
+    "otsu_threshold",
+    "replay_rules",
+    "run_replay",
+    "run_rule_comparison",
+]
+
+#: Occupied intensity of ``gpumap replay`` (on the OASIS tank views agree above it); also the
+#: mapper's bright threshold when the reading threshold is only known after the run (Otsu).
+DEFAULT_THRESHOLD = 0.4
+#: The mapper's rules, in the order the comparison shows them.
+RULES = ("plain", "visible")
 
 
 def auto_grid(spec: SonarSpec, poses: Sequence[np.ndarray], voxel_size_m: float,
@@ -91,6 +113,9 @@ def run_replay(
     max_frames: int | None = None,
     progress: bool = True,
     mapper_cls=None,
+    rule: str | None = None,
+    threshold: float = DEFAULT_THRESHOLD,
+    positions: list | None = None,
 ) -> tuple[object, dict]:
     """Integrate every posed frame of ``recording``; return ``(mapper, stats)``.
 
@@ -105,6 +130,14 @@ def run_replay(
         Use every ``stride``-th frame, at most ``max_frames`` of them.
     mapper_cls : type, optional
         Defaults to :class:`gpumap.MinMaxMapper`.
+    rule : str or None
+        ``"visible"``, ``"plain"`` or None (the mapper's default for ``method``: visible
+        for gather, plain for template).
+    threshold : float
+        The mapper's bright threshold (``MinMaxMapper(threshold=)``): set it to the
+        intensity the map is read at.
+    positions : list, optional
+        When given, the world position (3,) of every integrated ping is appended to it.
 
     Returns
     -------
@@ -113,7 +146,8 @@ def run_replay(
         ``frames`` integrated, ``skipped_no_pose``, ``skipped_spec``, ``seconds_setup``
         (creating the mapper), ``seconds_total`` (read + convert + integrate, after
         setup), ``seconds_integrate``, ``images_per_s`` (total) and
-        ``integrate_per_s``, ``backend``.
+        ``integrate_per_s``, ``backend``, ``rule``, ``mapper_threshold``, ``grid``,
+        ``grid_shape``.
     """
     from tqdm import tqdm
 
@@ -167,7 +201,8 @@ def run_replay(
     for fr in tqdm(selected(), total=total, unit="img", disable=not progress, desc="replay"):
         if mapper is None:  # backend start-up (imports, compiling kernels) is timed apart
             ts = time.perf_counter()
-            mapper = mapper_cls(fr.spec, grid, backend=backend, method=method)
+            mapper = mapper_cls(fr.spec, grid, backend=backend, method=method, rule=rule,
+                                threshold=threshold)
             t_setup = time.perf_counter() - ts
         if fr.spec != mapper.spec:
             stats["skipped_spec"] += 1
@@ -180,6 +215,8 @@ def run_replay(
         mapper.integrate(fr.image, T)
         t_int += time.perf_counter() - t1
         stats["frames"] += 1
+        if positions is not None:
+            positions.append(np.asarray(T, dtype=np.float64)[:3, 3].copy())
     if mapper is None:
         raise ValueError(f"Expected frames in {recording.path}, but it has none")
     t1 = time.perf_counter()
@@ -196,6 +233,8 @@ def run_replay(
         images_per_s=n / t_total if n else 0.0,
         integrate_per_s=n / t_int if n and t_int > 0 else 0.0,
         backend=mapper.backend,
+        rule=getattr(mapper, "rule", rule),
+        mapper_threshold=float(getattr(mapper, "threshold", threshold)),
         grid=grid.to_dict(),
         grid_shape=list(grid.shape),
     )
@@ -280,6 +319,282 @@ def save_pictures(values: np.ndarray, grid: GridSpec, threshold: float, out: Pat
     return {"floor_z_m": z, "pictures": ["views.png", "floor_slice.png"]}
 
 
+def replay_rules(recording, *, rules: Sequence[str] = RULES, grid: GridSpec | None = None,
+                 positions: list | None = None, **kwargs) -> dict[str, tuple[object, dict]]:
+    """Replay ``recording`` once per rule in ``rules``, on one grid; ``{rule: (mapper, stats)}``.
+
+    ``kwargs`` go to :func:`run_replay` (``threshold`` included: every rule's mapper gets the
+    same bright threshold). The recording is read once per rule, so no frames are held in
+    memory; the first run sizes the grid (unless ``grid`` is given) and fills ``positions``.
+    """
+    out: dict[str, tuple[object, dict]] = {}
+    for rule in rules:
+        mapper, stats = run_replay(recording, grid=grid, rule=rule,
+                                   positions=positions if not out else None, **kwargs)
+        grid = mapper.grid
+        out[rule] = (mapper, stats)
+    return out
+
+
+def _quantiles(x: np.ndarray, q=(10, 50, 90)) -> list[float] | None:
+    return [round(float(v), 3) for v in np.percentile(x, q)] if x.size else None
+
+
+def compare_rules(values: dict[str, np.ndarray], grid: GridSpec, threshold: float,
+                  positions: np.ndarray | None = None, picture: Path | None = None,
+                  title: str = "") -> dict:
+    """Compare the maps of the plain and the visible rule read at ``threshold``.
+
+    Parameters
+    ----------
+    values : dict
+        ``{"plain": values, "visible": values}``, the ``MinMaxMapper.values()`` of the same
+        frames on the same grid (NaN = never observed).
+    grid : GridSpec
+    threshold : float
+        Occupied if value >= this.
+    positions : (P, 3) float, optional
+        Sonar positions (world), for the range of the differing voxels from the sonar.
+    picture : Path, optional
+        Where to write the side-by-side picture (PNG).
+
+    Returns
+    -------
+    dict
+        ``threshold``; ``rules`` (per rule: ``occupied_voxels``, ``observed_voxels``);
+        ``observed_equal`` (both rules observe the same voxels, as they should);
+        ``occupied_both``; ``visible_only`` (occupied under visible, free under plain: the
+        plain rule carved them, as a dark view in their acoustic shadow or at grazing
+        incidence does) and ``plain_only`` (the reverse: always 0, see next);
+        ``visible_ge_plain`` (every observed voxel's visible value >= its plain value: the
+        visible rule's value is either the min over all views, the plain value, or the
+        dimmest bright view, which is no lower; so plain-occupied implies visible-occupied
+        at any reading threshold, and a voxel whose views were all bright has the same value
+        under both);
+        ``where``: quantiles (10/50/90 %) and histograms of the range from the nearest sonar
+        position and of the height, for the voxels only visible calls occupied and for those
+        both call occupied, the plain values of the former, the floor height and the
+        fractions of each group below, at (+-0.25 m) and above the floor; ``text``, a
+        sentence on where the differences lie; ``picture`` (file name) when written.
+    """
+    vp, vv = values["plain"], values["visible"]
+    if vp.shape != grid.shape or vv.shape != grid.shape:
+        raise ValueError(
+            f"Expected both maps of shape {grid.shape}, but got {vp.shape} and {vv.shape}"
+        )
+    thr = float(threshold)
+    obs = {r: np.isfinite(v) for r, v in values.items()}
+    occ = {r: obs[r] & (values[r] >= np.float32(thr)) for r in values}
+    both_obs = obs["plain"] & obs["visible"]
+    vis_only = occ["visible"] & ~occ["plain"]
+    plain_only = occ["plain"] & ~occ["visible"]
+    both = occ["plain"] & occ["visible"]
+    res: dict = {
+        "threshold": thr,
+        "rules": {r: {"occupied_voxels": int(occ[r].sum()), "observed_voxels": int(obs[r].sum())}
+                  for r in RULES},
+        "observed_equal": bool(np.array_equal(obs["plain"], obs["visible"])),
+        "occupied_both": int(both.sum()),
+        "visible_only": int(vis_only.sum()),
+        "plain_only": int(plain_only.sum()),
+        "visible_ge_plain": bool(np.all(vv[both_obs] >= vp[both_obs])),
+    }
+
+    # where the differences lie: range from the nearest sonar position, height
+    pts = {k: grid.centers(np.argwhere(m)) for k, m in
+           (("visible_only", vis_only), ("plain_only", plain_only), ("both", both))}
+    where: dict = {}
+    dist: dict[str, np.ndarray] = {}
+    if positions is not None and len(positions):
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(np.asarray(positions, dtype=np.float64).reshape(-1, 3))
+        dist = {k: tree.query(p)[0] if len(p) else np.zeros(0) for k, p in pts.items()}
+        r_max = max(float(d.max()) for d in dist.values() if d.size) if any(
+            d.size for d in dist.values()) else 1.0
+        edges = np.arange(0.0, r_max + 0.25, 0.25)
+        where["range_from_sonar_m"] = {k: _quantiles(d) for k, d in dist.items()}
+        where["range_histogram"] = {"edges_m": [round(float(e), 3) for e in edges],
+                                    **{k: np.histogram(d, edges)[0].tolist() for k, d in dist.items()}}
+    z = {k: p[:, 2] for k, p in pts.items()}
+    z_lo, z_hi = grid.min_corner_m[2], grid.max_corner_m[2]
+    zedges = np.arange(z_lo, z_hi + 0.2, 0.2)
+    where["height_m"] = {k: _quantiles(v) for k, v in z.items()}
+    where["height_histogram"] = {"edges_m": [round(float(e), 3) for e in zedges],
+                                 **{k: np.histogram(v, zedges)[0].tolist() for k, v in z.items()}}
+    where["plain_value_of_visible_only"] = _quantiles(vp[vis_only])
+    # the floor: the horizontal layer with the most voxels occupied under either rule, low half
+    union = occ["plain"] | occ["visible"]
+    counts = union.sum(axis=(0, 1))
+    nz = grid.shape[2]
+    k_floor = int(np.argmax(counts[: max(1, nz // 2)]))
+    floor_z = grid.min_corner_m[2] + (k_floor + 0.5) * grid.voxel_size_m
+    where["floor_z_m"] = round(float(floor_z), 3)
+    near = 0.25  # metres: "at the floor"
+    frac = {k: {"below": float(np.mean(v < floor_z - near)),
+                "at": float(np.mean(np.abs(v - floor_z) <= near)),
+                "above": float(np.mean(v > floor_z + near))} if v.size else None
+            for k, v in z.items()}
+    where["fraction_vs_floor_0.25m"] = {
+        k: ({b: round(x, 3) for b, x in f.items()} if f is not None else None) for k, f in frac.items()
+    }
+    if positions is not None and len(positions):
+        where["sonar_height_m"] = _quantiles(np.asarray(positions)[:, 2], (0, 50, 100))
+    res["where"] = where
+    res["text"] = _where_text(res, where, frac)
+    if picture is not None:
+        _rules_picture(values, occ, vis_only, plain_only, both, dist, z, zedges, floor_z, grid,
+                       thr, Path(picture), title)
+        res["picture"] = Path(picture).name
+    return res
+
+
+def _where_text(res: dict, where: dict, frac: dict) -> str:
+    n_v, n_p = res["rules"]["visible"]["occupied_voxels"], res["rules"]["plain"]["occupied_voxels"]
+    t = (f"visible {n_v} occupied voxels, plain {n_p}; {res['visible_only']} occupied only under "
+         f"visible (plain carved them), {res['plain_only']} only under plain; observed voxels "
+         f"{'identical' if res['observed_equal'] else 'DIFFER'} "
+         f"({res['rules']['visible']['observed_voxels']}).")
+    if not res["visible_only"]:
+        return t
+    pv = where["plain_value_of_visible_only"]
+    t += f" Plain lowered those to a median {pv[1]:.2f} (10-90 %: {pv[0]:.2f}-{pv[2]:.2f})."
+    r = where.get("range_from_sonar_m")
+    if r and r["both"]:
+        t += (f" They lie {r['visible_only'][1]:.2f} m (median; 10-90 %: {r['visible_only'][0]:.2f}"
+              f"-{r['visible_only'][2]:.2f}) from the nearest sonar position, against "
+              f"{r['both'][1]:.2f} m for voxels both rules keep.")
+    h = where["height_m"]
+    if h["both"]:
+        fv, fb = frac["visible_only"], frac["both"]
+        t += (f" Heights: median z {h['visible_only'][1]:.2f} m against {h['both'][1]:.2f} m; "
+              f"relative to the floor (z {where['floor_z_m']:.2f} m, +-0.25 m): {fv['below']:.0%} "
+              f"below, {fv['at']:.0%} at, {fv['above']:.0%} above it, against {fb['below']:.0%}, "
+              f"{fb['at']:.0%}, {fb['above']:.0%} of the voxels both keep.")
+    return t
+
+
+def _rules_picture(values, occ, vis_only, plain_only, both, dist, z, zedges, floor_z, grid, thr,
+                   path: Path, title: str) -> None:
+    """Plain and visible maps from one viewpoint, one colour scale; their difference; histograms."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    union = occ["plain"] | occ["visible"]
+    idx_u = np.argwhere(union)
+    if idx_u.size:  # frame the occupied voxels of either map (one box for every panel)
+        lo = grid.centers(idx_u.min(0)) - grid.voxel_size_m
+        hi = grid.centers(idx_u.max(0)) + grid.voxel_size_m
+    else:
+        lo, hi = np.asarray(grid.min_corner_m), np.asarray(grid.max_corner_m)
+    rng = np.random.default_rng(0)
+
+    def cloud(mask, cap=50_000):
+        idx = np.argwhere(mask)
+        if len(idx) > cap:  # thin uniformly (same seed for every panel)
+            idx = idx[np.sort(rng.choice(len(idx), cap, replace=False))]
+        return idx
+
+    fig = plt.figure(figsize=(15, 7.6), dpi=80)
+    gs = fig.add_gridspec(2, 4, width_ratios=(1, 1, 1, 0.85), hspace=0.12, wspace=0.05)
+    views = [(28, -60, "oblique"), (89.9, -90, "top")]
+    sc = None
+    for row, (elev, azim, vname) in enumerate(views):
+        for col, name in enumerate(("plain", "visible", "difference")):
+            ax = fig.add_subplot(gs[row, col], projection="3d")
+            if name in values:
+                idx = cloud(occ[name])
+                p = grid.centers(idx)
+                v = values[name][tuple(idx.T)]
+                sc = ax.scatter(p[:, 0], p[:, 1], p[:, 2], c=v, s=1.2, cmap="viridis", vmin=thr,
+                                vmax=1.0, depthshade=False, linewidths=0)
+                head = f"{name}: {int(occ[name].sum())} occupied"
+            else:
+                # one scatter, so that matplotlib sorts every group's points by depth together
+                kinds = ((both, "#9a9a9a", "both"), (vis_only, "#d62728", "visible only"),
+                         (plain_only, "#1f77b4", "plain only"))
+                idx = [cloud(m) for m, _, _ in kinds]
+                p = grid.centers(np.concatenate(idx)) if sum(map(len, idx)) else np.zeros((0, 3))
+                col = np.concatenate([np.repeat([matplotlib.colors.to_rgba(c)], len(i), 0)
+                                      for i, (_, c, _) in zip(idx, kinds, strict=True)])
+                ax.scatter(p[:, 0], p[:, 1], p[:, 2], c=col, s=1.2, depthshade=False, linewidths=0)
+                head = "difference"
+                if row == 0:
+                    for m, c, lab in kinds:
+                        ax.scatter([], [], [], c=c, s=1.2, label=f"{lab} ({int(m.sum())})")
+                    ax.legend(loc="upper left", fontsize=7, markerscale=6, frameon=False)
+            ax.view_init(elev=elev, azim=azim)
+            ax.set_title(f"{head} ({vname})", fontsize=9)
+            for lab, setter in (("x", ax.set_xlabel), ("y", ax.set_ylabel), ("z", ax.set_zlabel)):
+                setter(f"{lab} [m]", fontsize=7, labelpad=-2)
+            ax.tick_params(labelsize=6, pad=0)
+            ax.set_xlim(lo[0], hi[0])
+            ax.set_ylim(lo[1], hi[1])
+            ax.set_zlim(lo[2], hi[2])
+            ax.set_box_aspect(tuple(hi - lo))
+            if row == 1:
+                ax.set_zticks([])
+                ax.set_zlabel("")
+    if sc is not None:
+        cax = fig.add_axes((0.05, 0.08, 0.012, 0.35))
+        fig.colorbar(sc, cax=cax, label="min-max value")
+        cax.yaxis.set_label_position("left")
+        cax.yaxis.tick_left()
+
+    groups = (("both", "0.55"), ("visible_only", "#d62728"), ("plain_only", "#1f77b4"))
+    ax = fig.add_subplot(gs[0, 3])
+    if dist:
+        edges = np.arange(0.0, max(float(d.max()) for d in dist.values() if d.size) + 0.1, 0.1) \
+            if any(d.size for d in dist.values()) else np.arange(0, 1.1, 0.1)
+        for k, colour in groups:
+            if dist[k].size:
+                ax.hist(dist[k], edges, histtype="step", color=colour, lw=1.5,
+                        label=k.replace("_", " "))
+        ax.set_xlabel("range from the nearest sonar position [m]", fontsize=8)
+        ax.legend(fontsize=7, frameon=False)
+    ax.set_ylabel("occupied voxels", fontsize=8)
+    ax.yaxis.tick_right()
+    ax.yaxis.set_label_position("right")
+    ax.tick_params(labelsize=7)
+    ax = fig.add_subplot(gs[1, 3])
+    for k, colour in groups:
+        if z[k].size:
+            ax.hist(z[k], zedges, histtype="step", color=colour, lw=1.5, orientation="horizontal",
+                    label=k.replace("_", " "))
+    ax.axhline(floor_z, color="k", ls=":", lw=1, label=f"floor (z {floor_z:.2f} m)")
+    ax.legend(fontsize=7, frameon=False, loc="upper right")
+    ax.set_ylabel("height z [m]", fontsize=8)
+    ax.yaxis.tick_right()
+    ax.yaxis.set_label_position("right")
+    ax.set_xlabel("occupied voxels", fontsize=8)
+    ax.tick_params(labelsize=7)
+    fig.suptitle(f"{title}  plain vs visible rule, occupied = value >= {thr:.2f}, "
+                 f"{grid.voxel_size_m * 100:g} cm voxels", fontsize=11)
+    fig.subplots_adjust(left=0.07, right=0.955, top=0.93, bottom=0.06)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def run_rule_comparison(recording, *, threshold: float = DEFAULT_THRESHOLD,
+                        picture: str | Path | None = None, title: str = "",
+                        **kwargs) -> tuple[dict[str, tuple[object, dict]], dict]:
+    """Replay ``recording`` under both rules (mapper threshold = ``threshold``) and compare.
+
+    ``kwargs`` go to :func:`run_replay`. Returns ``({rule: (mapper, stats)}, comparison)``,
+    the comparison as :func:`compare_rules` gives it.
+    """
+    positions: list = []
+    runs = replay_rules(recording, threshold=threshold, positions=positions, **kwargs)
+    grid = runs["plain"][0].grid
+    values = {r: m.values() for r, (m, _) in runs.items()}
+    cmp_ = compare_rules(values, grid, threshold, np.asarray(positions).reshape(-1, 3),
+                         None if picture is None else Path(picture), title=title)
+    return runs, cmp_
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``gpumap replay``; returns the process exit status."""
     ap = argparse.ArgumentParser(prog="gpumap replay", description=__doc__.splitlines()[0])
@@ -289,9 +604,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--method", default="gather", choices=["gather", "template"])
     ap.add_argument("--out", default="replay_out", help="output folder (default replay_out)")
     ap.add_argument("--grid", default="auto", help="auto or xmin,ymin,zmin,xmax,ymax,zmax (m)")
-    ap.add_argument("--threshold", default="0.4",
-                    help="occupied if value >= this (default 0.4; on the OASIS tank views agree "
-                         "above it); 'auto' = Otsu over observed voxels")
+    ap.add_argument("--threshold", default=str(DEFAULT_THRESHOLD),
+                    help=f"occupied if value >= this (default {DEFAULT_THRESHOLD}; on the OASIS tank "
+                         "views agree above it), also the mapper's bright threshold (its "
+                         "'threshold': the visible rule's returns and shadows); 'auto' = Otsu over "
+                         "observed voxels, known only after the run, so the mapper then uses "
+                         f"{DEFAULT_THRESHOLD}")
+    ap.add_argument("--rule", default=None, choices=list(RULES),
+                    help="how views combine: 'visible' (default; a dark view carves a voxel only "
+                         "when nothing bright lies nearer in its beams) or 'plain' (the paper's "
+                         "min over views: a ping carves its acoustic shadow). --method template "
+                         "supports only 'plain' and defaults to it")
+    ap.add_argument("--compare-rules", action="store_true",
+                    help="also replay the frames under the other rule and write rules.png (both "
+                         "maps side by side, and where they differ) and a 'rule_comparison' "
+                         "section in summary.json")
     ap.add_argument("--static", action="store_true",
                     help="map every ping at one fixed (identity) pose: for pose-less recordings")
     ap.add_argument("--stride", type=int, default=1, help="use every N-th frame")
@@ -325,9 +652,32 @@ def main(argv: list[str] | None = None) -> int:
             stride = 1
         rec = open_recording(a.path, **kwargs)
         grid = _parse_grid(a.grid, a.voxel_size)
-        mapper, stats = run_replay(rec, voxel_size_m=a.voxel_size, backend=a.backend,
-                                   method=a.method, grid=grid, static=a.static, stride=stride,
-                                   max_frames=a.max_frames, progress=not a.quiet)
+        if a.threshold == "auto":
+            mapper_thr = DEFAULT_THRESHOLD
+        else:
+            try:
+                mapper_thr = float(a.threshold)
+            except ValueError:
+                raise ValueError(
+                    f"Expected --threshold to be a number in (0, 1] or 'auto', but got {a.threshold!r}"
+                ) from None
+        rule = a.rule or ("visible" if a.method == "gather" else "plain")
+        replay_kw = dict(voxel_size_m=a.voxel_size, backend=a.backend, method=a.method,
+                         static=a.static, stride=stride, max_frames=a.max_frames,
+                         progress=not a.quiet, threshold=mapper_thr)
+        positions: list = []
+        if a.compare_rules:
+            if a.method != "gather":
+                raise ValueError(
+                    f"Expected --method gather with --compare-rules (the visible rule needs it), "
+                    f"but got --method {a.method}"
+                )
+            # the chosen rule first: it sizes the grid, and its run's timings are the ones reported
+            order = (rule, *[r for r in RULES if r != rule])
+            runs = replay_rules(rec, rules=order, grid=grid, positions=positions, **replay_kw)
+            mapper, stats = runs[rule]
+        else:
+            mapper, stats = run_replay(rec, grid=grid, rule=a.rule, **replay_kw)
     except (ValueError, FileNotFoundError) as e:  # FormatError is a ValueError
         kind = "format error" if isinstance(e, FormatError) else "error"
         print(f"gpumap replay: {kind}: {e}", file=sys.stderr)
@@ -345,15 +695,27 @@ def main(argv: list[str] | None = None) -> int:
     stats["occupied_voxels"] = int(occ.sum())
     stats["observed_voxels"] = int(np.isfinite(values).sum())
     if not a.no_pictures:
-        stats.update(save_pictures(values, mapper.grid, thr, out, title=Path(a.path).name))
+        stats.update(save_pictures(values, mapper.grid, thr, out,
+                                   title=f"{Path(a.path).name} ({stats['rule']} rule)"))
+    if a.compare_rules:
+        other = {r: m.values() for r, (m, _) in runs.items() if r != rule}
+        cmp_ = compare_rules({rule: values, **other}, mapper.grid, thr,
+                             np.asarray(positions).reshape(-1, 3),
+                             None if a.no_pictures else out / "rules.png", title=Path(a.path).name)
+        cmp_["runs"] = {r: {k: st[k] for k in ("frames", "backend", "seconds_total",
+                                                 "images_per_s", "integrate_per_s")}
+                        for r, (_, st) in runs.items()}
+        stats["rule_comparison"] = cmp_
     (out / "summary.json").write_text(json.dumps(stats, indent=2))
     print(f"gpumap replay: {stats['frames']} images on {stats['backend']} in "
           f"{stats['seconds_total']:.2f} s: {stats['images_per_s']:.1f} images/s overall "
           f"(read + convert + integrate), {stats['integrate_per_s']:.1f} images/s counting only "
           f"the time spent in integrate() (device kernels overlap the reading); "
           f"grid {tuple(stats['grid_shape'])} at {mapper.grid.voxel_size_m} m; "
-          f"{stats['occupied_voxels']} occupied (>= {thr:.3f}) of {stats['observed_voxels']} "
-          f"observed voxels; wrote {out}/")
+          f"{stats['occupied_voxels']} occupied (>= {thr:.3f}, {stats['rule']} rule) of "
+          f"{stats['observed_voxels']} observed voxels; wrote {out}/")
+    if a.compare_rules:
+        print(f"gpumap replay: rules: {stats['rule_comparison']['text']}")
     if stats["skipped_no_pose"] or stats["skipped_spec"]:
         print(f"gpumap replay: skipped {stats['skipped_no_pose']} frames without a pose and "
               f"{stats['skipped_spec']} whose sonar geometry differs from the first",

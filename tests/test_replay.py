@@ -14,7 +14,7 @@ from conftest import DATA, needs_data
 from gpumap.io import open_recording, read_ply
 from gpumap.io.fan import FanGeometry, open_fan_folder
 from gpumap.io.oculus import encode_simple_ping
-from gpumap.replay import auto_grid, main, otsu_threshold, run_replay
+from gpumap.replay import auto_grid, main, otsu_threshold, run_replay, run_rule_comparison
 
 
 # ------------------------------------------------------------------ replay on real data
@@ -37,6 +37,98 @@ def test_replay_oasis_writes_map_ply_pictures(tmp_path: Path, capsys) -> None:
 
     m = gpumap.MinMaxMapper.load(out / "map.npz")
     assert m.grid.voxel_size_m == 0.08
+
+
+def _meta(path: Path) -> dict:
+    with np.load(path, allow_pickle=False) as z:
+        return json.loads(str(z["meta"]))
+
+
+@needs_data
+def test_replay_rule_and_threshold_reach_the_mapper(tmp_path: Path) -> None:
+    common = [str(DATA / "oasis_tank"), "--stride", "12", "--quiet", "--no-pictures",
+              "--voxel-size", "0.1", "--backend", "numpy"]
+    for extra, rule, thr in (([], "visible", 0.4), (["--rule", "plain"], "plain", 0.4),
+                             (["--rule", "visible", "--threshold", "0.3"], "visible", 0.3)):
+        out = tmp_path / "_".join(["r", *extra]).replace("-", "")
+        assert main([*common, "--out", str(out), *extra]) == 0
+        meta = _meta(out / "map.npz")
+        assert (meta["rule"], meta["threshold"]) == (rule, pytest.approx(thr)), extra
+        s = json.loads((out / "summary.json").read_text())
+        assert (s["rule"], s["mapper_threshold"], s["threshold"]) == (rule, pytest.approx(thr), thr)
+    # Otsu's threshold is known only after the run: the mapper counts bright from 0.4
+    out = tmp_path / "auto"
+    assert main([*common, "--out", str(out), "--threshold", "auto"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert _meta(out / "map.npz")["threshold"] == pytest.approx(0.4)
+    assert s["mapper_threshold"] == pytest.approx(0.4) and 0 < s["threshold"] < 1
+
+
+def test_replay_rejects_bad_rule_settings(tmp_path: Path, capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["x", "--rule", "shadow"])
+    bag = tmp_path / "bag2"
+    _write_ros2_psi(bag, n=2)
+    out = str(tmp_path / "o")
+    assert main([str(bag), "--out", out, "--quiet", "--method", "template", "--rule", "visible"]) == 2
+    assert "rule='plain'" in capsys.readouterr().err
+    assert main([str(bag), "--out", out, "--quiet", "--threshold", "abc"]) == 2
+    assert "--threshold" in capsys.readouterr().err
+    # the template method alone picks the plain rule
+    assert main([str(bag), "--out", out, "--quiet", "--no-pictures", "--method", "template",
+                 "--backend", "numpy"]) == 0
+    assert _meta(Path(out) / "map.npz")["rule"] == "plain"
+
+
+@needs_data
+def test_rules_on_real_frames_observe_alike_and_plain_occupied_stays_occupied(tmp_path: Path) -> None:
+    """Both rules observe the same voxels; a voxel plain calls occupied (all its views bright)
+    has the same value under visible, so it is occupied there too; visible only keeps more."""
+    rec = open_fan_folder(DATA / "oasis_tank", stride=3)
+    runs, c = run_rule_comparison(rec, threshold=0.4, voxel_size_m=0.08, backend="numpy",
+                                  progress=False)
+    (mp, sp), (mv, sv) = runs["plain"], runs["visible"]
+    assert (sp["rule"], sv["rule"]) == ("plain", "visible") and sp["frames"] == sv["frames"] == 41
+    assert mp.grid == mv.grid and (mp.rule, mv.rule) == ("plain", "visible")
+    vp, vv = mp.values(), mv.values()
+    np.testing.assert_array_equal(np.isfinite(vp), np.isfinite(vv))
+    obs = np.isfinite(vp)
+    occ_p, occ_v = obs & (vp >= np.float32(0.4)), obs & (vv >= np.float32(0.4))
+    assert occ_p.sum() > 100
+    assert not (occ_p & ~occ_v).any()  # plain-occupied => visible-occupied
+    assert np.all(vv[obs] >= vp[obs])  # visible only ever keeps a bright value plain lowers
+    kept = obs & (vv != vp)
+    assert kept.any() and np.all(vv[kept] >= np.float32(0.4))
+    np.testing.assert_array_equal(vv[occ_p], vp[occ_p])  # all views bright: same value
+    # the visible map's min over every view is the plain map, bit for bit
+    with np.load(mv.save(tmp_path / "v.npz")) as z:
+        np.testing.assert_array_equal(z["min_all"], mp.raw_values())
+    assert c["observed_equal"] and c["visible_ge_plain"] and c["plain_only"] == 0
+    assert c["rules"]["plain"]["occupied_voxels"] == int(occ_p.sum())
+    assert c["rules"]["visible"]["occupied_voxels"] == int(occ_v.sum())
+    assert c["visible_only"] == int((occ_v & ~occ_p).sum()) > 0
+    assert c["occupied_both"] == int(occ_p.sum())
+    assert c["rules"]["plain"]["observed_voxels"] == c["rules"]["visible"]["observed_voxels"] == obs.sum()
+    w = c["where"]
+    assert sum(w["range_histogram"]["visible_only"]) == c["visible_only"]
+    assert sum(w["height_histogram"]["both"]) == c["occupied_both"]
+    assert "plain carved them" in c["text"]
+
+
+@needs_data
+def test_replay_compare_rules_writes_picture_and_figures(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "out"
+    assert main([str(DATA / "oasis_tank"), "--stride", "6", "--out", str(out), "--quiet",
+                 "--voxel-size", "0.1", "--backend", "numpy", "--compare-rules"]) == 0
+    assert "rules: visible" in capsys.readouterr().out
+    s = json.loads((out / "summary.json").read_text())
+    c = s["rule_comparison"]
+    assert s["rule"] == "visible" and c["picture"] == "rules.png"
+    assert (out / "rules.png").stat().st_size > 10_000
+    assert c["rules"]["visible"]["occupied_voxels"] == s["occupied_voxels"]
+    assert c["observed_equal"] and c["plain_only"] == 0 and c["visible_only"] > 0
+    assert set(c["runs"]) == {"plain", "visible"} and c["runs"]["plain"]["frames"] == s["frames"]
+    assert _meta(out / "map.npz")["rule"] == "visible"
 
 
 @needs_data
@@ -220,14 +312,17 @@ def test_replay_on_a_ros2_bag(tmp_path: Path) -> None:
 # ------------------------------------------------------------------ OASIS image convention
 @needs_data
 def test_oasis_documented_convention_beats_mirrored() -> None:
-    """Views agree under the documented convention: more voxels survive the min over views."""
+    """Views agree under the documented convention: more voxels survive the min over views.
+
+    The plain rule's min over views is the consistency test; the visible rule keeps a bright
+    value that a view from elsewhere disagrees with, so it cannot tell the conventions apart."""
     counts = {}
     for name, geom in [("documented", FanGeometry()), ("flip_lr", FanGeometry(flip_lr=True))]:
         rec = open_fan_folder(DATA / "oasis_tank", geom=geom, stride=3)
         frames = list(rec)
         grid = auto_grid(frames[0].spec, [f.T_W_S for f in frames], 0.08)
         mapper, _ = run_replay(frames_recording(rec, frames), grid=grid, progress=False,
-                               backend="numpy")
+                               backend="numpy", rule="plain")
         v = mapper.values()
         counts[name] = int((v[np.isfinite(v)] >= 0.4).sum())
     assert counts["documented"] > 1.3 * counts["flip_lr"], counts
