@@ -70,11 +70,11 @@ class MinMaxMapper:
       a return proves nothing: the voxel may sit in that return's acoustic shadow, or be a
       surface seen at grazing incidence behind nearer parts of itself. A voxel ever seen
       bright (``>= threshold``) keeps the dimmest of its bright values until clear dark
-      views carve it: two of them, or one darker than ``threshold / 2`` (speckle rarely
-      darkens a seen surface that far). A voxel never seen bright takes the minimum over
-      its views, as in the plain rule. Every update is a min or a count, so the map does
-      not depend on the order of the pings. Costs 5 bytes per voxel more (a float32 and a
-      uint8) and a per-beam scan of each ping.
+      views carve it: ``carve_views`` (2) of them, one darker than ``threshold / 2``
+      counting twice (speckle rarely darkens a seen surface that far). A voxel never seen
+      bright takes the minimum over its views, as in the plain rule. Every update is a min
+      or a count, so the map does not depend on the order of the pings. Costs 5 bytes per
+      voxel more (a float32 and a uint8) and a per-beam scan of each ping.
     - ``"plain"``: the paper's rule: the minimum over all views. A ping carves voxels in its
       acoustic shadow, so surfaces seen from one side are erased by views from the other.
 
@@ -111,6 +111,12 @@ class MinMaxMapper:
         Intensity in (0, 1] from which a view counts as bright (the visible rule's returns and
         shadows). Set it to the threshold you read the map at; lower is more conservative
         (more views count as bright, fewer carve). Default 0.1.
+    carve_views : int
+        Visible rule: the clear dark evidence that carves a voxel once seen bright, in views
+        (one darker than ``threshold / 2`` counts twice). 2 (default) keeps a surface through
+        one speckle-dark view; 1 carves more water and more weak surfaces (fewer false
+        positives, more false negatives); larger is more conservative. Read-time only: it
+        may be changed between pings (:attr:`carve_views`), in 1..255.
     """
 
     def __init__(
@@ -124,6 +130,7 @@ class MinMaxMapper:
         footprint_max: str = "auto",
         rule: str | None = None,
         threshold: float = 0.1,
+        carve_views: int = 2,
     ) -> None:
         if not isinstance(spec, SonarSpec):
             raise TypeError(f"Expected a gpumap.SonarSpec for 'spec', but got {type(spec).__name__}")
@@ -151,6 +158,7 @@ class MinMaxMapper:
             raise ValueError(f"Expected threshold in (0, 1], but got {thr}")
         self.rule = rule
         self.threshold = thr
+        self.carve_views = carve_views
         self._use_table = None if footprint_max == "auto" else footprint_max == "table"
         self.spec = spec
         self.grid = grid
@@ -277,7 +285,7 @@ class MinMaxMapper:
         if self.rule == "visible":
             from gpumap.reference import visible_values
 
-            g = visible_values(g, *self._backend.read_evidence())
+            g = visible_values(g, *self._backend.read_evidence(), self.carve_views)
         return g.reshape(self.grid.shape)
 
     def values(self) -> np.ndarray:
@@ -285,6 +293,17 @@ class MinMaxMapper:
         v = self.raw_values()
         v[np.isinf(v)] = np.nan
         return v
+
+    @property
+    def carve_views(self) -> int:
+        """Visible rule: clear dark views that carve a voxel once seen bright (see the class)."""
+        return self._carve_views
+
+    @carve_views.setter
+    def carve_views(self, n: int) -> None:
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= 255:
+            raise ValueError(f"Expected carve_views to be an integer in 1..255, but got {n!r}")
+        self._carve_views = int(n)
 
     def evidence(self) -> dict[str, np.ndarray]:
         """The visible rule's per-voxel state, (nx, ny, nz) copies: ``min_all`` float32 (min over
@@ -337,6 +356,7 @@ class MinMaxMapper:
             "shadow_m": self.shadow_m,
             "rule": self.rule,
             "threshold": self.threshold,
+            "carve_views": self.carve_views,
             "n_integrated": self.n_integrated,
             "backend": self.backend,
         }
@@ -397,6 +417,7 @@ class MinMaxMapper:
             shadow_m=meta.get("shadow_m", 0.0),
             rule=rule,
             threshold=meta.get("threshold", 0.1),
+            carve_views=meta.get("carve_views", 2),
         )
         if values.shape != m.grid.shape or values.dtype != np.float32:
             raise ValueError(

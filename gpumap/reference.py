@@ -186,13 +186,16 @@ def _update_visible(
     count[flat[dark]] = np.minimum(count[flat[dark]].astype(np.int32) + step, 255).astype(np.uint8)
 
 
-def visible_values(grid: np.ndarray, bright: np.ndarray, count: np.ndarray) -> np.ndarray:
+def visible_values(
+    grid: np.ndarray, bright: np.ndarray, count: np.ndarray, carve_views: int | None = None
+) -> np.ndarray:
     """Map values of the visible rule: ``bright`` where the voxel was bright in some view and
-    fewer than :data:`~gpumap.geometry.CARVE_VIEWS` clear dark views count against it, else
-    ``grid`` (the min over every view; ``+inf`` never observed)."""
+    its clear dark evidence ``count`` is below ``carve_views`` (default
+    :data:`~gpumap.geometry.CARVE_VIEWS`), else ``grid`` (the min over every view; ``+inf``
+    never observed)."""
     from gpumap.geometry import CARVE_VIEWS
 
-    keep = np.isfinite(bright) & (count < CARVE_VIEWS)
+    keep = np.isfinite(bright) & (count < (CARVE_VIEWS if carve_views is None else carve_views))
     return np.where(keep, bright, grid)
 
 

@@ -116,7 +116,10 @@ def test_surface_bright_in_nine_views_survives_one_speckle_dark_view(backend):
     assert np.all(plain[seen] < THR)  # the paper's rule does erase it: the test can fail
     # two such views, or one far darker, do carve
     pings2, _ = _one_voxel_pings(9, 0.08, dark_views=2)
-    assert np.all(_run(backend, pings2).values().ravel()[seen] < THR)
+    m2 = _run(backend, pings2)
+    assert np.all(m2.values().ravel()[seen] < THR)
+    m2.carve_views = 3  # a read-time knob: more evidence needed, the surface is back
+    assert np.all(m2.values().ravel()[seen] >= THR)
     pings3, _ = _one_voxel_pings(9, 0.01)
     assert np.all(_run(backend, pings3).values().ravel()[seen] < THR)
 
@@ -178,6 +181,9 @@ def test_bad_rule_and_threshold_are_refused():
     for bad in (0.0, 1.5, float("nan")):
         with pytest.raises(ValueError, match="threshold"):
             gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=bad)
+    for bad in (0, 256, 1.5, True):
+        with pytest.raises(ValueError, match="carve_views"):
+            gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", carve_views=bad)
     assert gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", method="template").rule == "plain"
     with pytest.raises(ValueError, match="evidence"):
         gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain").evidence()
@@ -187,7 +193,7 @@ def test_save_load_keeps_the_evidence(backend, tmp_path):
     pings = _random_pings(3, 5)
     m = _run(backend, pings)
     m2 = gpumap.MinMaxMapper.load(m.save(tmp_path / "map.npz"), backend=backend)
-    assert m2.rule == "visible" and m2.threshold == pytest.approx(THR)
+    assert m2.rule == "visible" and m2.threshold == pytest.approx(THR) and m2.carve_views == 2
     for k in ("min_all", "bright", "count"):
         np.testing.assert_array_equal(m2.evidence()[k], m.evidence()[k])
     # and it goes on integrating as the original would
