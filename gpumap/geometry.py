@@ -21,6 +21,8 @@ __all__ = [
     "footprint_radius_m",
     "make_template_S",
     "ping_params",
+    "pose_pad_m",
+    "set_footprint_pad",
 ]
 
 # The footprint is the voxel's bounding sphere, padded to absorb float32 rounding of the
@@ -117,6 +119,30 @@ def static_params(
 RULES = ("plain", "visible")
 #: Clear dark views that carve a voxel once seen bright (a view darker than thr_dark counts twice).
 CARVE_VIEWS = 2
+
+
+def pose_pad_m(pose_cov: np.ndarray, range_max_m: float, sigmas: float) -> float:
+    """How far a voxel's sonar-frame position may move under pose uncertainty, metres.
+
+    ``pose_cov`` is (6, 6) over (translation m, rotation vector rad) of a right perturbation
+    ``T_W_S = T_hat @ Exp(delta)`` (:mod:`gpumap.ekf`'s convention). A world point at range
+    ``r`` moves in the sonar frame by ``-delta_t - delta_theta x p``, at most
+    ``|delta_t| + r |delta_theta|``; each norm is bounded at ``sigmas`` standard deviations
+    along its worst direction (the square root of the block's largest eigenvalue, times
+    ``sqrt(3)`` so that the bound holds for the 3-D norm, not one axis), at ``r = r_max``.
+    """
+    ev_t = float(np.linalg.eigvalsh(pose_cov[:3, :3])[-1])
+    ev_r = float(np.linalg.eigvalsh(pose_cov[3:, 3:])[-1])
+    k = sigmas * math.sqrt(3.0)
+    return k * (math.sqrt(max(ev_t, 0.0)) + range_max_m * math.sqrt(max(ev_r, 0.0)))
+
+
+def set_footprint_pad(params: np.ndarray, rho0: float, near0: float, pad_m: float) -> None:
+    """Grow this ping's footprint by ``pad_m`` (radius and reach towards the sonar) in place."""
+    params["rho"] = rho0 + pad_m
+    params["near"] = near0 + pad_m
+    win = int(math.floor((float(params["rho"]) + float(params["near"])) * float(params["inv_dr"]))) + 2
+    params["win"] = min(win, int(params["n_bins"]))
 
 
 def beam_tan_edges(spec: SonarSpec) -> np.ndarray:

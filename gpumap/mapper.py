@@ -14,7 +14,14 @@ import numpy as np
 from gpumap.backends import AUTO_ORDER, BACKENDS, Backend, GridTooLargeError, make_backend
 from gpumap.backends import available_backends as _available
 from gpumap.errors import BackendUnavailableError, check_finite_scalar, check_pose
-from gpumap.geometry import RULES, make_template_S, ping_params, static_params
+from gpumap.geometry import (
+    RULES,
+    make_template_S,
+    ping_params,
+    pose_pad_m,
+    set_footprint_pad,
+    static_params,
+)
 from gpumap.spec import GridSpec, SonarSpec
 
 __all__ = ["MinMaxMapper", "available_backends"]
@@ -48,6 +55,21 @@ def _free_memory_bytes(name: str) -> int | None:
     except Exception:  # the check is advisory; the allocation itself still fails loudly
         return None
     return None
+
+
+def _check_pose_cov(pose_cov: object) -> np.ndarray:
+    """(6, 6) finite, symmetric, positive semi-definite float64, or raise saying what came."""
+    C = np.asarray(pose_cov)
+    if C.shape != (6, 6) or C.dtype.kind not in "fiu":
+        raise ValueError(f"Expected pose_cov of shape (6, 6) real, but got {C.shape} {C.dtype}")
+    C = C.astype(np.float64)
+    scale = max(1.0, float(np.abs(C).max())) if np.all(np.isfinite(C)) else np.inf
+    if not np.isfinite(scale) or not np.allclose(C, C.T, rtol=0.0, atol=1e-9 * scale):
+        raise ValueError("Expected a finite, symmetric pose_cov, but got one that is not")
+    C = 0.5 * (C + C.T)
+    if np.linalg.eigvalsh(C)[0] < -1e-12 * scale:
+        raise ValueError("Expected a positive semi-definite pose_cov, but it has a negative eigenvalue")
+    return C
 
 
 def _evidence_empty(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -169,6 +191,8 @@ class MinMaxMapper:
             raise ValueError(f"Expected shadow_m >= 0, but got {shadow}")
         self.shadow_m = shadow
         self._params = static_params(spec, grid, shadow, rule, thr)
+        self._rho0, self._near0 = float(self._params["rho"]), float(self._params["near"])
+        self._pad = 0.0
         self._fov_pts_S = spec.fov_corners_S()
         self._template = make_template_S(spec, grid.voxel_size_m) if method == "template" else None
         if self._template is not None:
@@ -254,7 +278,13 @@ class MinMaxMapper:
         np.add(image, np.float32(0.0), out=out, casting="same_kind")  # -0.0 -> +0.0, float64 -> 32
         return out
 
-    def integrate(self, image: np.ndarray, T_W_S: np.ndarray) -> None:
+    def integrate(
+        self,
+        image: np.ndarray,
+        T_W_S: np.ndarray,
+        pose_cov: np.ndarray | None = None,
+        pose_sigmas: float = 2.0,
+    ) -> None:
         """Fuse one ping into the map.
 
         Parameters
@@ -263,11 +293,30 @@ class MinMaxMapper:
             Polar image: row = range bin (ascending), column = beam (ascending azimuth).
         T_W_S : (4, 4) float
             Sonar pose: maps sonar-frame points to the world frame, metres.
+        pose_cov : (6, 6) float, optional
+            Uncertainty of ``T_W_S`` over (translation m, rotation vector rad), a right
+            perturbation ``T_W_S = T_hat @ Exp(delta)`` as :attr:`gpumap.ekf.SonarEKF.pose_cov`
+            gives it. Every footprint then grows by how far a voxel may move at
+            ``pose_sigmas`` standard deviations (:func:`gpumap.geometry.pose_pad_m`), at the
+            field of view's far edge: the map stays conservative (a voxel's ping value covers
+            every pose within the bound) at the price of wider footprints.
+        pose_sigmas : float
+            The bound's width in standard deviations (default 2).
 
         Raises ``ValueError``/``TypeError`` on bad input, leaving the map untouched.
         """
         T = check_pose(T_W_S, "T_W_S")
         img = self._check_image(image)
+        pad = 0.0
+        if pose_cov is not None:
+            C = _check_pose_cov(pose_cov)
+            k = check_finite_scalar(pose_sigmas, "pose_sigmas")
+            if k < 0:
+                raise ValueError(f"Expected pose_sigmas >= 0, but got {k}")
+            pad = pose_pad_m(C, self.spec.range_max_m, k)
+        if pad != self._pad:
+            set_footprint_pad(self._params, self._rho0, self._near0, pad)
+            self._pad = pad
         n = ping_params(self._params, T, self._fov_pts_S, self.grid)
         self._backend.integrate(self._params, img, self.method, n)
         self.n_integrated += 1
