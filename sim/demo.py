@@ -11,7 +11,8 @@ dead-reckoned poses whose every step carries Gaussian noise of SIGMA metres on e
 translation axis and SIGMA radians on each rotation axis (drift), and (c) at the poses of
 :class:`gpumap.ekf.SonarEKF` fed that odometry, the simulated (range, azimuth) features
 with noise (1 cm, 0.3 deg), and the wrist DVL's four slant ranges to the tank floor (the
-vertical information that features alone do not carry; see ``_ekf_poses``).
+vertical information that features alone do not carry; see ``_ekf_poses``), and (d) at the
+EKF poses with their covariance (``integrate(pose_cov=...)``: footprints grow with it).
 """
 
 from __future__ import annotations
@@ -70,7 +71,7 @@ def _map_pings(
     scene: Scene, truth: Truth, pings: list[Ping], seen_each: list[np.ndarray], poses: np.ndarray,
     backend: str, method: str, threshold: float, quiet: bool, label: str, curve: bool, shadow_m: float = 0.0,
     mapper: gpumap.MinMaxMapper | None = None, rule: str | None = None,
-    detectable: np.ndarray | None = None,
+    detectable: np.ndarray | None = None, pose_covs: np.ndarray | None = None,
 ) -> tuple[gpumap.MinMaxMapper, list[float], list[dict]]:
     if mapper is None:
         mapper = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, method=method,
@@ -79,7 +80,7 @@ def _map_pings(
     seen = np.zeros(scene.grid.n_voxels, bool)
     for k in _progress(range(len(pings)), quiet, desc=f"map ({label})", unit="ping"):
         t0 = time.perf_counter()
-        mapper.integrate(pings[k].image, poses[k])
+        mapper.integrate(pings[k].image, poses[k], None if pose_covs is None else pose_covs[k])
         mapper.synchronize()
         times.append(time.perf_counter() - t0)
         seen[seen_each[k]] = True
@@ -127,14 +128,15 @@ def _dvl_rays_S(T_W_S: np.ndarray, T_S_D: np.ndarray, rays_D: np.ndarray) -> tup
 
 
 def _ekf_poses(scene: Scene, pings: list[Ping], U: np.ndarray, sigma: float,
-               rng: np.random.Generator) -> np.ndarray:
+               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """EKF poses from odometry, the (range, azimuth) features and, in the tank, the DVL.
 
     The tank's DVL (four A50 beams, wrist mount of :func:`~.scenes.mounts`) is simulated at
     the true pose with ``DVL_RANGE_SIGMA_M`` noise and fused as ranges to the floor plane
     ``z = TANK["floor_z_m"]`` (-0.42 m, the sand's mean level), each beam with variance
     ``DVL_RANGE_SIGMA_M^2 + (SAND_ROUGHNESS_M / cos(incidence))^2``. Beams hitting an object
-    on the sand fail the filter's gate; those with no return (NaN) are skipped.
+    on the sand fail the filter's gate; those with no return (NaN) are skipped. Returns the
+    poses (n, 4, 4) and their covariances (n, 6, 6).
     """
     from gpumap.ekf import SonarEKF
 
@@ -154,6 +156,7 @@ def _ekf_poses(scene: Scene, pings: list[Ping], U: np.ndarray, sigma: float,
         T_S_D = se3_inverse(T_wrist_S) @ T_wrist_D
         floor_n, floor_d = np.array([0.0, 0.0, 1.0]), float(TANK["floor_z_m"])
     out = np.zeros((len(pings), 4, 4))
+    covs = np.zeros((len(pings), 6, 6))
     for k, p in enumerate(pings):
         if k > 0:
             ekf.predict(U[k], Q)
@@ -170,7 +173,8 @@ def _ekf_poses(scene: Scene, pings: list[Ping], U: np.ndarray, sigma: float,
             b = p.feature_bearings_rad + rng.normal(0, BEARING_SIGMA_RAD, len(p.feature_ids))
             ekf.update(p.feature_ids, r, b)
         out[k] = ekf.pose
-    return out
+        covs[k] = ekf.pose_cov
+    return out, covs
 
 
 def _pose_error(T_est: np.ndarray, T_true: np.ndarray) -> dict:
@@ -272,7 +276,7 @@ def run_demo(args: argparse.Namespace) -> dict:
         rows["odometry"] = {**_final_eval(m_odo, scene, truth, seen_each, args.threshold, detectable),
                             **_pose_error(T_odo, T_true)}
         try:
-            T_ekf = _ekf_poses(scene, pings, U, float(args.pose_noise), rng)
+            T_ekf, C_ekf = _ekf_poses(scene, pings, U, float(args.pose_noise), rng)
         except ImportError as e:  # the EKF module is optional for the demo
             rows["ekf"] = {"error": f"gpumap.ekf unavailable: {e}"}
         else:
@@ -281,6 +285,12 @@ def run_demo(args: argparse.Namespace) -> dict:
                                      rule=rule)
             rows["ekf"] = {**_final_eval(m_ekf, scene, truth, seen_each, args.threshold, detectable),
                            **_pose_error(T_ekf, T_true)}
+            # the same poses with their covariance: footprints grow with the uncertainty
+            m_cov, _, _ = _map_pings(scene, truth, pings, seen_each, T_ekf, args.backend, args.method,
+                                     args.threshold, quiet, "EKF + covariance", curve=False,
+                                     shadow_m=args.shadow_m, rule=rule, pose_covs=C_ekf)
+            rows["ekf_cov"] = {**_final_eval(m_cov, scene, truth, seen_each, args.threshold, detectable),
+                               **_pose_error(T_ekf, T_true)}
         metrics["pose_noise"] = {"sigma": float(args.pose_noise), "rows": rows}
 
     _figures(out, scene, truth, mapper, sample, history, args.threshold)
@@ -404,8 +414,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{row['false_positive_rate_far']:7.3f} {row['free_carved_fraction']:7.3f} {row['pipe_found']}")
     if "pose_noise" in m:
         for name, row in m["pose_noise"]["rows"].items():
-            print(f"{name:9s} FN {row.get('false_negative_rate', float('nan')):.3f} "
-                  f"FP {row.get('false_positive_rate', float('nan')):.3f} "
+            print(f"{name:9s} FN det {row.get('false_negative_rate_detectable', float('nan')):.3f} "
+                  f"FP far {row.get('false_positive_rate_far', float('nan')):.3f} "
                   f"pose err {row.get('translation_error_mean_m', float('nan')):.3f} m")
     return 0
 

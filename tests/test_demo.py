@@ -29,6 +29,6 @@ def test_demo_end_to_end(tmp_path):
     assert vis["false_negative_rate_detectable"] == m["false_negative_rate_detectable"]
     assert vis["miss_rate"] < plain["miss_rate"]
     assert vis["observed_surface_fraction"] == plain["observed_surface_fraction"]
-    assert set(m["pose_noise"]["rows"]) == {"true", "odometry", "ekf"}
+    assert set(m["pose_noise"]["rows"]) == {"true", "odometry", "ekf", "ekf_cov"}
     with np.load(out / "map.npz") as z:
         assert z["values"].shape == tuple(m["grid_shape"])
