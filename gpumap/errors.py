@@ -29,6 +29,10 @@ def check_pose(T: object, name: str = "T_W_S", atol: float = 1e-5) -> np.ndarray
     Raises if the shape is wrong, any entry is NaN/inf, the last row is not ``[0, 0, 0, 1]``,
     or the rotation block is not orthonormal with determinant +1 (within ``atol``).
     """
+    if isinstance(T, np.ma.MaskedArray):
+        raise TypeError(f"Expected a plain array for '{name}', but got a masked array (fill it first)")
+    if np.iscomplexobj(T):
+        raise TypeError(f"Expected real entries in '{name}', but got complex dtype {np.asarray(T).dtype}")
     a = np.array(T, dtype=np.float64, copy=True)
     if a.shape != (4, 4):
         raise ValueError(f"Expected a (4, 4) transform for '{name}', but got shape {a.shape}")

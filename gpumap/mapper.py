@@ -6,6 +6,7 @@ import json
 import logging
 import os
 import tempfile
+import threading
 import zipfile
 from pathlib import Path
 
@@ -59,6 +60,8 @@ def _free_memory_bytes(name: str) -> int | None:
 
 def _check_pose_cov(pose_cov: object) -> np.ndarray:
     """(6, 6) finite, symmetric, positive semi-definite float64, or raise saying what came."""
+    if isinstance(pose_cov, np.ma.MaskedArray):
+        raise TypeError("Expected a plain array for 'pose_cov', but got a masked array")
     C = np.asarray(pose_cov)
     if C.shape != (6, 6) or C.dtype.kind not in "fiu":
         raise ValueError(f"Expected pose_cov of shape (6, 6) real, but got {C.shape} {C.dtype}")
@@ -198,6 +201,10 @@ class MinMaxMapper:
         if self._template is not None:
             self._params["n_points"] = self._template.shape[0]
         self._staging = np.empty(spec.image_shape, dtype=np.float32)
+        # One ping at a time: integrate, reads and writes hold this lock, so threads sharing a
+        # mapper serialize (and, every update being a min or a count, get the map one thread
+        # would have made).
+        self._lock = threading.RLock()
         self._backend = self._make_backend(backend)
         log.info("gpumap: backend %s on %s", self._backend.name, self._backend.device)
 
@@ -250,6 +257,11 @@ class MinMaxMapper:
         mapper's staging buffer. Raises on anything else."""
         if not isinstance(image, np.ndarray):
             raise TypeError(f"Expected a numpy array for 'image', but got {type(image).__name__}")
+        if isinstance(image, np.ma.MaskedArray):  # its data under the mask could be anything
+            raise TypeError(
+                "Expected a plain numpy array for 'image', but got a masked array: fill it first "
+                "(image.filled(0.0) treats masked cells as no return)"
+            )
         if image.shape != self.spec.image_shape:
             raise ValueError(
                 f"Expected image of shape {self.spec.image_shape} (n_bins, n_beams) for 'image', "
@@ -306,6 +318,10 @@ class MinMaxMapper:
         Raises ``ValueError``/``TypeError`` on bad input, leaving the map untouched.
         """
         T = check_pose(T_W_S, "T_W_S")
+        with self._lock:  # the staging buffer and the ping parameters are the mapper's own
+            self._integrate_locked(image, T, pose_cov, pose_sigmas)
+
+    def _integrate_locked(self, image: np.ndarray, T: np.ndarray, pose_cov, pose_sigmas) -> None:
         img = self._check_image(image)
         pad = 0.0
         if pose_cov is not None:
@@ -319,22 +335,24 @@ class MinMaxMapper:
             self._pad = pad
         n = ping_params(self._params, T, self._fov_pts_S, self.grid)
         self._backend.integrate(self._params, img, self.method, n)
-        self.n_integrated += 1
+        self.n_integrated += 1  # under the lock
 
     def synchronize(self) -> None:
         """Wait until every ping handed to :meth:`integrate` is in the grid (GPU backends run async)."""
         sync = getattr(self._backend, "synchronize", None)
         if sync is not None:
-            sync()
+            with self._lock:
+                sync()
 
     # ------------------------------------------------------------------ results
     def raw_values(self) -> np.ndarray:
         """(nx, ny, nz) float32 copy of the map values with ``+inf`` for never observed."""
-        g = self._backend.read()
-        if self.rule == "visible":
-            from gpumap.reference import visible_values
+        with self._lock:
+            g = self._backend.read()
+            if self.rule == "visible":
+                from gpumap.reference import visible_values
 
-            g = visible_values(g, *self._backend.read_evidence(), self.carve_views)
+                g = visible_values(g, *self._backend.read_evidence(), self.carve_views)
         return g.reshape(self.grid.shape)
 
     def values(self) -> np.ndarray:
@@ -362,9 +380,11 @@ class MinMaxMapper:
             raise ValueError(
                 f"Expected a mapper with rule='visible' for evidence(), but its rule is {self.rule!r}"
             )
-        bright, count = self._backend.read_evidence()
+        with self._lock:
+            bright, count = self._backend.read_evidence()
+            min_all = self._backend.read()
         shape = self.grid.shape
-        return {"min_all": self._backend.read().reshape(shape), "bright": bright.reshape(shape),
+        return {"min_all": min_all.reshape(shape), "bright": bright.reshape(shape),
                 "count": count.reshape(shape)}
 
     def observed(self) -> np.ndarray:
@@ -379,10 +399,11 @@ class MinMaxMapper:
 
     def reset(self) -> None:
         """Forget every ping: all voxels unknown again."""
-        self._backend.write(np.full(self.grid.n_voxels, np.inf, dtype=np.float32))
-        if self.rule == "visible":
-            self._backend.write_evidence(*_evidence_empty(self.grid.n_voxels))
-        self.n_integrated = 0
+        with self._lock:
+            self._backend.write(np.full(self.grid.n_voxels, np.inf, dtype=np.float32))
+            if self.rule == "visible":
+                self._backend.write_evidence(*_evidence_empty(self.grid.n_voxels))
+            self.n_integrated = 0
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | os.PathLike) -> Path:
@@ -396,6 +417,13 @@ class MinMaxMapper:
         path = Path(path)
         if path.suffix != ".npz":
             path = path.with_suffix(path.suffix + ".npz") if path.suffix else path.with_suffix(".npz")
+        with self._lock:  # one consistent snapshot, even while other threads integrate
+            # 'values' is the map as values() reads it; the visible rule adds its state
+            arrays = {"values": self.raw_values()}
+            if self.rule == "visible":
+                ev = self.evidence()
+                arrays.update(min_all=ev["min_all"], bright=ev["bright"], count=ev["count"])
+            n_integrated = self.n_integrated
         meta = {
             "format": FILE_FORMAT,
             "version": FILE_VERSION,
@@ -406,20 +434,13 @@ class MinMaxMapper:
             "rule": self.rule,
             "threshold": self.threshold,
             "carve_views": self.carve_views,
-            "n_integrated": self.n_integrated,
+            "n_integrated": n_integrated,
             "backend": self.backend,
         }
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
         try:
             with os.fdopen(fd, "wb") as f:
-                # 'values' is the map as values() reads it; the visible rule adds its state
-                arrays = {"values": self.raw_values()}
-                if self.rule == "visible":
-                    bright, count = self._backend.read_evidence()
-                    arrays["min_all"] = self._backend.read().reshape(self.grid.shape)
-                    arrays["bright"] = bright.reshape(self.grid.shape)
-                    arrays["count"] = count.reshape(self.grid.shape)
                 np.savez_compressed(f, **arrays, meta=np.array(json.dumps(meta)))
                 f.flush()
                 os.fsync(f.fileno())
@@ -431,58 +452,165 @@ class MinMaxMapper:
 
     @classmethod
     def load(cls, path: str | os.PathLike, backend: str = "auto") -> MinMaxMapper:
-        """Read a map written by :meth:`save` onto ``backend``."""
+        """Read a map written by :meth:`save` onto ``backend``.
+
+        Checked before anything large is read or allocated: the metadata (format, version,
+        every field's type and range), each array's declared shape and dtype against the
+        grid, and each member's declared size against what its compressed bytes can hold
+        (deflate inflates at most ~1,000 : 1), so a small file cannot make it allocate
+        gigabytes. Then the values: finite in [0, 1] or ``+inf`` (never observed), and for the
+        visible rule consistent with its state. Raises ``ValueError`` saying what was
+        expected and what came.
+        """
+        path = Path(path)
         try:
-            with np.load(path, allow_pickle=False) as z:
-                if "meta" not in z or "values" not in z:
+            with zipfile.ZipFile(path) as zf:
+                members = {i.filename: i for i in zf.infolist()}
+                if "meta.npy" not in members or "values.npy" not in members:
                     raise ValueError(
-                        f"Expected a gpumap map file with 'meta' and 'values', but {path} has {z.files}"
+                        f"Expected a gpumap map file with 'meta' and 'values', but {path} has "
+                        f"{sorted(n.removesuffix('.npy') for n in members)}"
                     )
-                meta = json.loads(str(z["meta"]))
-                values = z["values"]
-                keys = ("min_all", "bright", "count")
-                evidence = tuple(z[k] for k in keys) if all(k in z for k in keys) else None
-        except (OSError, EOFError, zipfile.BadZipFile, json.JSONDecodeError) as e:
+                headers = {
+                    n: _npy_header(zf, info, path) for n, info in members.items() if n.endswith(".npy")
+                }
+                if members["meta.npy"].file_size > _META_MAX_BYTES:
+                    raise ValueError(
+                        f"Expected map metadata under {_META_MAX_BYTES} bytes in {path}, "
+                        f"but it declares {members['meta.npy'].file_size}"
+                    )
+                with zf.open("meta.npy") as f:
+                    meta = json.loads(str(np.lib.format.read_array(f, allow_pickle=False)))
+                spec, grid, opts, n_integrated = _check_meta(meta, path)
+                names = ("values", "min_all", "bright", "count") if opts["rule"] == "visible" else ("values",)
+                for name in names:
+                    dt = np.uint8 if name == "count" else np.float32
+                    shape, dtype = headers.get(f"{name}.npy", (None, None))
+                    if shape != grid.shape or dtype != np.dtype(dt):
+                        raise ValueError(
+                            f"Expected '{name}' of shape {grid.shape} {np.dtype(dt)} in {path}, "
+                            f"but got {'nothing' if shape is None else f'{shape} {dtype}'}"
+                        )
+                need = sum(int(np.prod(grid.shape)) * (1 if n == "count" else 4) for n in names)
+                free = _free_memory_bytes("numpy")
+                if free is not None and 2 * need > free:
+                    raise ValueError(
+                        f"Expected a map that fits in memory, but {path} holds {need / 2**30:.2f} GiB "
+                        f"(twice that while loading) and {free / 2**30:.2f} GiB are free"
+                    )
+                arrays = {}
+                for name in names:
+                    with zf.open(f"{name}.npy") as f:
+                        arrays[name] = np.lib.format.read_array(f, allow_pickle=False)
+        except (OSError, EOFError, zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError) as e:
             raise ValueError(
                 f"Expected a gpumap map file (.npz) at {path}, but it cannot be read: {e}"
             ) from e
-        if meta.get("format") != FILE_FORMAT:
-            raise ValueError(f"Expected format {FILE_FORMAT!r} in {path}, but got {meta.get('format')!r}")
-        if meta.get("version") not in (1, FILE_VERSION):
-            raise ValueError(
-                f"Expected file version 1 or {FILE_VERSION} in {path}, but got {meta.get('version')!r}"
-            )
-        rule = meta.get("rule", "plain")  # version 1 maps are plain min-max
-        if (rule == "visible") != (evidence is not None):
-            raise ValueError(
-                f"Expected 'min_all', 'bright' and 'count' in {path} exactly when its rule is 'visible', "
-                f"but the rule is {rule!r} and they are {'present' if evidence is not None else 'absent'}"
-            )
-        m = cls(
-            SonarSpec.from_dict(meta["spec"]),
-            GridSpec.from_dict(meta["grid"]),
-            backend=backend,
-            method=meta["method"],
-            shadow_m=meta.get("shadow_m", 0.0),
-            rule=rule,
-            threshold=meta.get("threshold", 0.1),
-            carve_views=meta.get("carve_views", 2),
-        )
-        if values.shape != m.grid.shape or values.dtype != np.float32:
-            raise ValueError(
-                f"Expected values of shape {m.grid.shape} float32 in {path}, "
-                f"but got {values.shape} {values.dtype}"
-            )
-        if evidence is not None:
-            values, bright, count = evidence
-            for name, a, dt in (("min_all", values, np.float32), ("bright", bright, np.float32),
-                                ("count", count, np.uint8)):
-                if a.shape != m.grid.shape or a.dtype != dt:
-                    raise ValueError(
-                        f"Expected {name} of shape {m.grid.shape} {np.dtype(dt)} in {path}, "
-                        f"but got {a.shape} {a.dtype}"
-                    )
-            m._backend.write_evidence(bright.ravel(), count.ravel())
-        m._backend.write(values.ravel())
-        m.n_integrated = int(meta["n_integrated"])
+        _check_map_values(arrays, opts, path)
+        m = cls(spec, grid, backend=backend, **opts)
+        if opts["rule"] == "visible":
+            m._backend.write_evidence(arrays["bright"].ravel(), arrays["count"].ravel())
+            m._backend.write(arrays["min_all"].ravel())
+        else:
+            m._backend.write(arrays["values"].ravel())
+        m.n_integrated = n_integrated
         return m
+
+
+# Map metadata is a small JSON document; anything larger is not one of ours.
+_META_MAX_BYTES = 1 << 20
+# deflate's largest expansion is about 1032 : 1; a member that claims more is a bomb.
+_DEFLATE_MAX_RATIO = 1100
+
+
+def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path) -> tuple[tuple, np.dtype]:
+    """(shape, dtype) of one .npy member from its header, checked against its sizes."""
+    with zf.open(info) as f:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+        elif version in ((2, 0), (3, 0)):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+        else:
+            raise ValueError(f"Expected .npy version 1-3 for {info.filename} in {path}, but got {version}")
+        header_bytes = f.tell()
+    data_bytes = -1 if dtype.hasobject else int(np.prod(shape, dtype=object)) * dtype.itemsize
+    if data_bytes < 0 or fortran or info.file_size != header_bytes + data_bytes:
+        raise ValueError(
+            f"Expected {info.filename} in {path} to hold its declared {shape} {dtype} array "
+            f"({header_bytes + max(data_bytes, 0)} bytes, C order), but the archive says {info.file_size}"
+        )
+    bomb = info.file_size > _DEFLATE_MAX_RATIO * info.compress_size + 4096
+    if info.compress_type != zipfile.ZIP_STORED and bomb:
+        raise ValueError(
+            f"Expected {info.filename} in {path} to inflate at most {_DEFLATE_MAX_RATIO}:1, but it declares "
+            f"{info.file_size} bytes from {info.compress_size}: refused before inflating"
+        )
+    return tuple(shape), dtype
+
+
+def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec, dict, int]:
+    """The specs, the constructor options and the ping count of a map file's metadata."""
+    if not isinstance(meta, dict):
+        raise ValueError(f"Expected a JSON object as map metadata in {path}, but got {type(meta).__name__}")
+    if meta.get("format") != FILE_FORMAT:
+        raise ValueError(f"Expected format {FILE_FORMAT!r} in {path}, but got {meta.get('format')!r}")
+    if meta.get("version") not in (1, FILE_VERSION):
+        raise ValueError(
+            f"Expected file version 1 or {FILE_VERSION} in {path}, but got {meta.get('version')!r}"
+        )
+    try:
+        spec = SonarSpec.from_dict(meta["spec"])
+        grid = GridSpec.from_dict(meta["grid"])
+    except (KeyError, TypeError, ValueError, OverflowError) as e:
+        raise ValueError(
+            f"Expected a sonar spec and a grid spec in the metadata of {path}, but: {e!r}"
+        ) from e
+    n = meta.get("n_integrated")
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise ValueError(f"Expected a non-negative integer n_integrated in {path}, but got {n!r}")
+    rule = meta.get("rule", "plain")  # version 1 maps are plain min-max
+    opts = {
+        "method": meta.get("method"),
+        "shadow_m": meta.get("shadow_m", 0.0),
+        "rule": rule,
+        "threshold": meta.get("threshold", 0.1),
+        "carve_views": meta.get("carve_views", 2),
+    }
+    if opts["method"] not in METHODS or rule not in RULES:
+        raise ValueError(
+            f"Expected method in {METHODS} and rule in {RULES} in {path}, but got "
+            f"{opts['method']!r} and {rule!r}"
+        )
+    for key in ("shadow_m", "threshold"):
+        if isinstance(opts[key], bool) or not isinstance(opts[key], (int, float)):
+            raise ValueError(f"Expected a number for {key} in {path}, but got {opts[key]!r}")
+    return spec, grid, opts, n
+
+
+def _check_map_values(arrays: dict[str, np.ndarray], opts: dict, path: Path) -> None:
+    """Values a map can hold: finite in [0, 1] or +inf; the visible rule's state consistent."""
+    for name in ("values", "min_all", "bright"):
+        if name not in arrays:
+            continue
+        a = arrays[name]
+        fin = np.isfinite(a)
+        bad = ~(fin | (a == np.inf)) | (fin & ((a < 0) | (a > 1)))
+        if bad.any():
+            i = np.unravel_index(int(np.argmax(bad)), a.shape)
+            raise ValueError(
+                f"Expected '{name}' in [0, 1] or +inf (never observed) in {path}, but got {a[i]} at "
+                f"{tuple(int(x) for x in i)} and {int(bad.sum()) - 1} more"
+            )
+    if opts["rule"] == "visible":
+        from gpumap.reference import visible_values
+
+        unseen = np.isinf(arrays["min_all"])
+        if np.any(unseen & (np.isfinite(arrays["bright"]) | (arrays["count"] > 0))):
+            raise ValueError(f"Expected no evidence on never-observed voxels in {path}, but some have it")
+        cv = opts["carve_views"]
+        if isinstance(cv, bool) or not isinstance(cv, int) or not 1 <= cv <= 255:
+            raise ValueError(f"Expected carve_views in 1..255 in {path}, but got {cv!r}")
+        if not np.array_equal(visible_values(arrays["min_all"], arrays["bright"], arrays["count"], cv),
+                              arrays["values"]):
+            raise ValueError(f"Expected 'values' in {path} to follow from its state, but they disagree")

@@ -457,11 +457,9 @@ def test_gpu_table_builders_match_cpu_ones():
             be = OpenCLBackend(SPEC, GRID.n_voxels, None, use_table=True, kind="cpu")
             be.is_gpu = gpu_style  # pick the builder, not the device
             prg = be.k_gather.program
-            be.k_window, be.k_levels = (
-                (prg.build_bin_window_cells, prg.build_beam_levels_cells)
-                if gpu_style
-                else (prg.build_bin_window, prg.build_beam_levels)
-            )
+            names = ("build_bin_window_cells", "build_beam_levels_cells") if gpu_style else (
+                "build_bin_window", "build_beam_levels")
+            be.k_window, be.k_levels = (be.cl.Kernel(prg, n) for n in names)
             be.integrate(params, img, "gather", n_cols)
             out = np.empty(table_size(SPEC), np.float32)
             be.cl.enqueue_copy(be.queue, out, be.table, is_blocking=True)
