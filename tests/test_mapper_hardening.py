@@ -156,3 +156,48 @@ def test_opencl_mappers_do_not_leak():
     before = rss_mb()
     churn(150)
     assert rss_mb() - before < 40
+
+
+# ----------------------------------------------------------------------------- property-based
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from hypothesis.extra import numpy as hnp  # noqa: E402
+
+_FUZZ_IMAGE = (np.random.default_rng(8).random(SPEC.image_shape) ** 5).astype(np.float32)
+_FUZZ_MAPPER = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")
+_FUZZ_MAPPER.integrate(_FUZZ_IMAGE, T_A)
+_FUZZ_BEFORE = _FUZZ_MAPPER.evidence()
+
+_images = st.one_of(
+    hnp.arrays(st.sampled_from([np.float32, np.float64, np.uint8, np.int16, np.complex64, np.bool_]),
+               st.sampled_from([SPEC.image_shape, SPEC.image_shape[::-1], (SPEC.n_bins,), (0, 0)]),
+               elements=None),
+    hnp.arrays(np.float32, SPEC.image_shape,
+               elements=st.one_of(st.floats(-2, 2, width=32), st.sampled_from([np.nan, np.inf, -np.inf]))),
+)
+_poses = st.one_of(
+    hnp.arrays(np.float64, st.sampled_from([(4, 4), (3, 4), (4,)]),
+               elements=st.one_of(st.floats(-10, 10), st.sampled_from([np.nan, np.inf]))),
+    st.just(T_B),
+)
+
+
+@settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+@given(image=_images, T=_poses)
+def test_integrate_either_maps_or_refuses_and_changes_nothing(image, T):
+    """Random images (any dtype, shape, NaN, out of range) and poses: a valid ping maps, anything
+    else raises ValueError/TypeError with the map byte-identical."""
+    m = _FUZZ_MAPPER
+    before_n = m.n_integrated
+    try:
+        m.integrate(image, T)
+    except (ValueError, TypeError):
+        after = m.evidence()
+        for k in after:
+            np.testing.assert_array_equal(after[k], _FUZZ_BEFORE[k])
+        assert m.n_integrated == before_n
+    else:  # it took the ping: undo, so every example starts from the same map
+        v = m.raw_values()
+        assert np.all(np.isinf(v) | ((v >= 0) & (v <= 1)))
+        m.reset()
+        m.integrate(_FUZZ_IMAGE, T_A)
