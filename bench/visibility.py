@@ -1,0 +1,244 @@
+"""``python -m bench.visibility``: the visible rule against the paper's plain min-max (issue #10).
+
+Each scene's pings are simulated once (they do not depend on the voxel size) and quantized
+to uint8, as the Oculus delivers. For every voxel size the scene's ground truth and the
+seen / detectable masks (:func:`gpumap.sim.metrics.ground_truth_masks`) are built on that
+grid, then every rule maps all pings with the true poses: integrate() + synchronize() per
+ping is timed (after a warm-up, map reset) and the map is scored at the mapper's threshold
+(:func:`gpumap.sim.metrics.evaluate`). The FN-vs-FP curve re-reads the same map at other
+thresholds (the mapper's own stays 0.1), plotted at 3 cm to ``docs/visibility_fn_fp_<scene>.png``.
+Writes a JSON (machine, git state, rows, curves) and prints a markdown table.
+
+    python -m bench.visibility                                   # tank and circle, 5 to 1 cm
+    python -m bench.visibility --scenes circle --voxel-sizes 0.03 --backend numpy
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+import gpumap
+
+from .common import CpuShare, compact, load_average, machine_info
+
+RULES = ("plain", "visible")
+THRESHOLD = 0.1
+CURVE_THRESHOLDS = np.linspace(0.02, 0.6, 30)
+PLOT_VOXEL_M = 0.03
+WARMUP = 2  # pings integrated, synchronized and discarded (map reset) before timing
+SCORE_KEYS = ("false_negative_rate_detectable", "false_negative_rate_objects_detectable", "miss_rate",
+              "miss_rate_objects", "observed_surface_fraction", "false_positive_rate_far",
+              "free_carved_fraction", "pipe_found", "height_error_m")
+# (header, row key, format): the printed table
+COLUMNS = (
+    ("scene", "scene", "s"),
+    ("voxel", "voxel_cm", "cm"),
+    ("rule", "rule", "s"),
+    ("ms/img (median)", "ms_median", ".1f"),
+    ("images/s", "images_per_s", ".0f"),
+    ("FN det", "false_negative_rate_detectable", "%"),
+    ("FN obj det", "false_negative_rate_objects_detectable", "%"),
+    ("miss", "miss_rate", "%"),
+    ("miss obj", "miss_rate_objects", "%"),
+    ("obs surface", "observed_surface_fraction", "%"),
+    ("FP far", "false_positive_rate_far", "%"),
+    ("water carved", "free_carved_fraction", "%"),
+    ("carved vs plain", "carved_vs_plain", ".2f"),
+    ("pipe", "pipe_found", "s"),
+    ("worst height err (vox)", "height_error_worst_vox", "+.1f"),
+)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m bench.visibility", description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", nargs="+", default=["tank", "circle"])
+    p.add_argument("--voxel-sizes", type=float, nargs="+", default=[0.05, 0.03, 0.02, 0.01])
+    p.add_argument("--backend", default="opencl", help="gpumap backend (default opencl: PoCL on a CPU)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=Path("bench/results/visibility.json"))
+    p.add_argument("--fig-dir", type=Path, default=Path("docs"), help="where the FN-FP plots go")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def simulate(name: str, seed: int, progress: bool) -> tuple[list, np.ndarray, np.ndarray, float]:
+    """Every ping of scene ``name``'s trajectory: (pings, uint8 images, poses, simulator images/s)."""
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    from gpumap.sim.scenes import make_scene
+    from gpumap.sim.sonar import SonarSimulator
+
+    scene = make_scene(name, seed=seed)
+    pings = []
+    t0 = time.perf_counter()
+    with SonarSimulator(scene, seed=seed) as sim:
+        for k in tqdm(range(len(scene.T_W_S)), desc=f"simulate {name}", unit="ping", disable=not progress):
+            pings.append(sim.ping(scene.T_W_S[k], k))
+    rate = len(pings) / (time.perf_counter() - t0)
+    images = np.stack([np.round(p.image * 255.0).astype(np.uint8) for p in pings])
+    return pings, images, scene.T_W_S.copy(), rate
+
+
+def map_pings(spec, grid, images: np.ndarray, poses: np.ndarray, backend: str, rule: str) -> tuple:
+    """Map every ping with ``rule``; returns (values, speed dict, backend name, device)."""
+    m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule=rule, threshold=THRESHOLD)
+    for k in range(WARMUP):
+        m.integrate(images[k], poses[k])
+    m.synchronize()
+    m.reset()
+    ms = []
+    for img, T in zip(images, poses, strict=True):
+        t = time.perf_counter()
+        m.integrate(img, T)
+        m.synchronize()
+        ms.append(1e3 * (time.perf_counter() - t))
+    a = np.asarray(ms)
+    speed = {"ms_median": np.median(a), "ms_p95": np.percentile(a, 95),
+             "images_per_s": 1e3 * a.size / a.sum()}
+    return m.values(), speed, m.backend, m.device
+
+
+def score(values: np.ndarray, truth, seen: np.ndarray, det: np.ndarray, voxel_m: float) -> dict[str, Any]:
+    """The scores of :data:`SCORE_KEYS` at :data:`THRESHOLD`, plus the worst height error in voxels."""
+    from gpumap.sim.metrics import evaluate
+
+    ev = evaluate(values, truth, THRESHOLD, seen, voxel_m, detectable=det).to_dict()
+    out = {k: ev[k] for k in SCORE_KEYS}
+    he = {k: x for k, x in ev["height_error_m"].items() if x is not None and np.isfinite(x)}
+    worst = max(he.values(), key=abs) if he else float("nan")  # signed: + is the elevation stretch
+    out["height_error_worst_vox"] = worst / voxel_m
+    return out
+
+
+def run_scene(name: str, args: argparse.Namespace, bar: tqdm) -> tuple[list[dict], dict, dict]:
+    """Rows, FN-FP curves (by voxel size, then rule) and simulation facts of one scene."""
+    from gpumap.sim.metrics import fn_fp_curve, ground_truth_masks
+    from gpumap.sim.scenes import make_scene
+    from gpumap.sim.truth import occupancy
+
+    pings, images, poses, sim_rate = simulate(name, args.seed, not args.no_progress)
+    rows, curves = [], {}
+    for v in args.voxel_sizes:
+        t0 = time.perf_counter()
+        scene = make_scene(name, voxel_size_m=v, seed=args.seed)
+        if not np.allclose(scene.T_W_S, poses):
+            raise RuntimeError(f"Expected {name}'s poses not to depend on the voxel size, but {v} m differs")
+        truth = occupancy(scene, seed=args.seed)
+        seen, det = ground_truth_masks(pings, scene.grid, THRESHOLD)
+        truth_s = time.perf_counter() - t0
+        by_rule = {}
+        for rule in RULES:
+            bar.set_postfix_str(f"{name} {v * 100:g} cm {rule}")
+            values, speed, backend, device = map_pings(scene.sonar_spec, scene.grid, images, poses,
+                                                        args.backend, rule)
+            row = {"scene": name, "voxel_size_m": v, "voxel_cm": v * 100, "rule": rule, "backend": backend,
+                   "device": device, "grid_shape": list(scene.grid.shape), "pings": len(images),
+                   "truth_s": truth_s, **speed, **score(values, truth, seen, det, v)}
+            c = fn_fp_curve(values, truth, CURVE_THRESHOLDS, seen, det)
+            by_rule[rule] = {k: x.tolist() for k, x in c.items()}
+            rows.append(row)
+            bar.update()
+        plain = next(r for r in rows if r["voxel_size_m"] == v and r["rule"] == "plain")
+        for r in rows[-len(RULES):]:
+            r["carved_vs_plain"] = r["free_carved_fraction"] / plain["free_carved_fraction"]
+        curves[str(v)] = by_rule
+    return rows, curves, {"pings": len(images), "image_shape": list(images.shape[1:]),
+                          "simulator_images_per_s": sim_rate}
+
+
+def plot_curves(name: str, by_rule: dict, path: Path) -> None:
+    """Two panels (FN detectable and miss rate against FP far), one curve per rule; dot = 0.1."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(8, 3.4), dpi=80)
+    i = int(np.argmin(np.abs(CURVE_THRESHOLDS - THRESHOLD)))
+    for ax, key, label in zip(axes, ("false_negative_rate_detectable", "miss_rate"),
+                              ("FN (detectable)", "miss rate (unknown = missed)"), strict=True):
+        for rule, color in zip(RULES, ("tab:blue", "tab:orange"), strict=True):
+            c = by_rule[rule]
+            fp, y = 100 * np.asarray(c["false_positive_rate_far"]), 100 * np.asarray(c[key])
+            ax.plot(fp, y, ".-", color=color, label=rule)
+            ax.plot(fp[i], y[i], "o", color=color)
+        ax.set(xlabel="FP far (%)", ylabel=f"{label} (%)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(title=f"rule (dot: threshold {CURVE_THRESHOLDS[i]:.2f})", fontsize=8)
+    fig.suptitle(f"{name}, {PLOT_VOXEL_M * 100:g} cm: thresholds {CURVE_THRESHOLDS[0]:g} to "
+                 f"{CURVE_THRESHOLDS[-1]:g}", fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def _cell(x: Any, fmt: str) -> str:
+    if x is None or (isinstance(x, float) and not np.isfinite(x)):
+        return "–"
+    if isinstance(x, bool):
+        return "yes" if x else "no"
+    if fmt in ("%", "cm"):
+        return f"{100 * x:.1f} %" if fmt == "%" else f"{x:g} cm"
+    return str(x) if fmt == "s" else format(x, fmt)
+
+
+def markdown_table(rows: list[dict]) -> str:
+    """The rows as a markdown table (:data:`COLUMNS`)."""
+    head = "| " + " | ".join(h for h, _, _ in COLUMNS) + " |"
+    rule = "|" + "|".join("---" if f == "s" else "---:" for _, _, f in COLUMNS) + "|"
+    body = ["| " + " | ".join(_cell(r.get(k), f) for _, k, f in COLUMNS) + " |" for r in rows]
+    return "\n".join([head, rule, *body])
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``python -m bench.visibility``."""
+    args = _parser().parse_args(argv)
+    t_start = time.perf_counter()
+    info = machine_info()
+    rows, curves, sims = [], {}, {}
+    bar = tqdm(total=len(args.scenes) * len(args.voxel_sizes) * len(RULES), desc="visibility", unit="map",
+               disable=args.no_progress)
+    with CpuShare() as share:
+        for name in args.scenes:
+            r, curves[name], sims[name] = run_scene(name, args, bar)
+            rows += r
+            by_rule = curves[name].get(str(PLOT_VOXEL_M))
+            if by_rule is not None:
+                plot_curves(name, by_rule, args.fig_dir / f"visibility_fn_fp_{name}.png")
+    bar.close()
+    info["load_avg_end"] = load_average()
+    info["cpu_share_during_run"] = {"others_cores": share.others_cores, "steal_cores": share.steal_cores,
+                                    "bench_cores": share.own_cores}
+    result = {
+        "schema": "gpumap-visibility/1",  # not "gpumap-bench/": bench.report skips this file
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "argv": sys.argv[1:] if argv is None else argv,
+        "machine": info,
+        "run": {"scenes": sims, "seed": args.seed, "threshold": THRESHOLD, "backend": args.backend,
+                "rules": list(RULES), "warmup_pings": WARMUP, "poses": "true (simulator)",
+                "image_dtype": "uint8 (intensity * 255, rounded; as the Oculus delivers)",
+                "timing_note": "each ping integrate()+synchronize(), image upload included; images_per_s = "
+                "pings / summed synced time",
+                "curve_thresholds": CURVE_THRESHOLDS.tolist(),
+                "duration_s": time.perf_counter() - t_start},
+        "rows": rows,
+        "fn_fp_curves": curves,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(compact(result), separators=(",", ":")))
+    print(markdown_table(rows))
+    print(f"\nwrote {args.out} in {result['run']['duration_s']:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
