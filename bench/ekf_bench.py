@@ -1,27 +1,40 @@
 """EKF bench: the prism simulation of Mai et al. (Fig. 7, Fig. 8b) over many seeds, NEES
-consistency, an odometry-noise sweep, and the cost of an update vs the number of features.
+consistency, an odometry-noise sweep, and the cost of an update vs the number of features;
+and (``--vs-batch``, issue #11) the EKF against the batch MAP of the same model and odometry.
 
 Run::
 
     .venv/bin/python -m bench.ekf_bench --out DIR [--seeds 50]
+    .venv/bin/python -m bench.ekf_bench --vs-batch --out bench/results [--batch-seeds 20]
 
-Writes ``DIR/ekf_bench.json`` and PNG figures (``ekf_fig7_pose_error.png``,
-``ekf_fig8b_feature_error.png``, ``ekf_nees.png``, ``ekf_cost.png``, ``ekf_scene.png``).
+The first writes ``DIR/ekf_bench.json`` and PNG figures (``ekf_fig7_pose_error.png``,
+``ekf_fig8b_feature_error.png``, ``ekf_nees.png``, ``ekf_cost.png``, ``ekf_scene.png``). The
+second writes ``DIR/ekf_vs_batch.json`` (per seed: ``ekf_vs_batch_seeds.jsonl``) and the section
+"EKF against the batch MAP (issue #11)" at the end of ``BENCHMARKS.md`` (``--benchmarks``;
+``bench.report`` does not keep that section: rerun this after the report).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import datetime
+import hashlib
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 from gpumap.sim.prism import (
     PrismConfig,
+    PrismRun,
     measure,
+    motion_cov,
+    nees,
+    nees_world,
     pose_error,
+    prism_trajectory,
     run_filter,
     run_odometry,
     simulate,
@@ -29,8 +42,10 @@ from gpumap.sim.prism import (
 from scipy.stats import chi2
 from tqdm import tqdm
 
-from gpumap.ekf import SonarEKF
-from gpumap.lie import se3_exp
+from bench.common import compact, machine_info
+from gpumap.batch import BatchProblem
+from gpumap.ekf import SonarEKF, spherical_point
+from gpumap.lie import se3_adjoint, se3_exp, se3_inverse
 
 
 def _prism_stats(cfg: PrismConfig, seeds: int, desc: str, bar: bool = True, init: str = "arc") -> dict:
@@ -117,8 +132,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reps", type=int, default=200, help="timed updates per feature count")
     ap.add_argument("--init", default="arc", choices=["arc", "triangulate"],
                     help="feature initialisation of SonarEKF (init=)")
+    ap.add_argument("--vs-batch", action="store_true",
+                    help="only the EKF / batch MAP / odometry comparison over the issue #11 classes")
+    ap.add_argument("--batch-seeds", type=int, default=20, help="seeds per class for --vs-batch")
+    ap.add_argument("--benchmarks", type=Path, default=Path("BENCHMARKS.md"),
+                    help="--vs-batch: markdown file whose issue #11 section is (re)written")
     args = ap.parse_args(argv)
+    args.argv = argv
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.vs_batch:
+        return run_vs_batch(args)
 
     cfg = PrismConfig()
     st = _prism_stats(cfg, args.seeds, "prism seeds", init=args.init)
@@ -279,6 +302,426 @@ def _figures(out: Path, st: dict, summary: dict) -> None:
     fig.tight_layout()
     fig.savefig(out / "ekf_scene.png", dpi=120)
     plt.close(fig)
+
+
+# --------------------------------------------------------------------------- EKF vs batch MAP (issue #11)
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    """One scenario class of issue #11: scene, sensor, trajectory and noise (seeded per run)."""
+
+    name: str
+    n_views: int = 21
+    n_points: int = 8
+    hfov_deg: float = 32.0
+    vfov_deg: float = 20.0
+    roll_end_deg: float = 70.0
+    odometry_pct: float = 2.0
+    outlier_m: float = 0.0
+    prism: bool = False
+    #: Elevations at 60-95 % of the half aperture (near the edges); False: uniform over it (the prior).
+    edge: bool = True
+
+    def config(self) -> PrismConfig:
+        """Sensor, trajectory and noise; odometry sigma ``q = odometry_pct`` % of the translation,
+        rotation ``q/2`` % of the angle turned plus ``q`` mrad per metre (the prism's 2 % / 1 % / 2 mrad)."""
+        q = self.odometry_pct
+        return PrismConfig(n_views=self.n_views, hfov_rad=float(np.deg2rad(self.hfov_deg)),
+                           vfov_rad=float(np.deg2rad(self.vfov_deg)),
+                           roll_end_rad=float(np.deg2rad(self.roll_end_deg)),
+                           k_t=q / 100.0, k_r=q / 200.0, k_rt_rad_per_m=q / 1000.0,
+                           advance_m=0.5 if self.prism else 0.3)
+
+
+#: The classes of issue #11: 2-3 m range, 12-40 deg apertures with points near the edges, roll
+#: sweeps 0-70 deg, 6-21 views, 3-14 points, 1-5 % odometry noise, one outlier return.
+SCENARIOS = [
+    Scenario("prism (paper)", prism=True, vfov_deg=14.0),
+    Scenario("aperture 20x12 deg", hfov_deg=20.0, vfov_deg=12.0),
+    Scenario("aperture 40x40 deg", hfov_deg=40.0, vfov_deg=40.0),
+    Scenario("no roll", roll_end_deg=0.0),
+    Scenario("roll 0-35 deg", roll_end_deg=35.0),
+    Scenario("6 views", n_views=6),
+    Scenario("3 points, 12 views", n_points=3, n_views=12),
+    Scenario("14 points", n_points=14),
+    Scenario("odometry 1 %", odometry_pct=1.0),
+    Scenario("odometry 5 %", odometry_pct=5.0),
+    Scenario("one outlier (+15 cm)", outlier_m=0.15),
+    Scenario("control: uniform elevations", edge=False),
+]
+
+
+def scenario_run(sc: Scenario, seed: int) -> tuple[PrismRun, tuple[int, int] | None]:
+    """A seeded run of a scenario class, and the (view, index) of its outlier return (or None).
+
+    Non-prism classes: points 2-3 m ahead of the first pose (the world frame), azimuth within
+    90 % of the half aperture, elevation at 60-95 % of the half aperture (near the top or bottom
+    edge, where the elevation prior's mean 0 is most wrong; ``edge=False``: uniform over the
+    aperture, as the prior says); the prism's trajectory (looking at
+    2.5 m ahead, rolling 0 -> ``roll_end``), noisy odometry and returns as in sim/prism.py.
+    The outlier (if any) is added to the range of one re-observation in the second half.
+    """
+    cfg = sc.config()
+    if sc.prism:
+        run = simulate(seed, cfg)
+    else:
+        rng = np.random.default_rng(1000 + seed)
+        n = sc.n_points
+        el = rng.choice([-1.0, 1.0], n) * rng.uniform(0.6, 0.95, n) * 0.5 * cfg.vfov_rad
+        el = el if sc.edge else rng.uniform(-0.5, 0.5, n) * cfg.vfov_rad
+        s = np.column_stack([rng.uniform(2.0, 3.0, n), rng.uniform(-0.9, 0.9, n) * 0.5 * cfg.hfov_rad, el])
+        T = prism_trajectory(cfg)
+        U_odo, Q = np.empty((sc.n_views - 1, 4, 4)), np.empty((sc.n_views - 1, 6, 6))
+        for k in range(sc.n_views - 1):
+            U_true = se3_inverse(T[k]) @ T[k + 1]
+            U_odo[k] = U_true @ se3_exp(-rng.multivariate_normal(np.zeros(6), motion_cov(U_true, cfg)))
+            Q[k] = motion_cov(U_odo[k], cfg)
+        run = PrismRun(cfg, spherical_point(s)[0], T, U_odo, Q)
+        for k in range(sc.n_views):
+            ids, r, b = measure(T[k], run.points_W, rng, cfg.range_sigma_m, cfg.bearing_sigma_rad,
+                                cfg.hfov_rad, cfg.vfov_rad)
+            run.ids.append(ids)
+            run.ranges_m.append(r)
+            run.bearings_rad.append(b)
+    where = None
+    if sc.outlier_m:
+        rng = np.random.default_rng(2000 + seed)
+        seen: set[int] = set()
+        cand = []  # re-observations in the second half of the run
+        for k, ids in enumerate(run.ids):
+            cand += [(k, q) for q, i in enumerate(ids) if i in seen and k >= sc.n_views // 2]
+            seen.update(ids.tolist())
+        where = cand[int(rng.integers(len(cand)))]
+        run.ranges_m[where[0]] = run.ranges_m[where[0]].copy()
+        run.ranges_m[where[0]][where[1]] += sc.outlier_m
+    return run, where
+
+
+def _run_ekf(run: PrismRun, init: str) -> tuple[SonarEKF, float, int, int]:
+    """EKF over a run (update at view 0, then predict + update); returns it, the summed NIS of
+    the fused returns, its dof, and the number of gated returns."""
+    cfg = run.config
+    ekf = SonarEKF(run.T_W_S[0], np.zeros((6, 6)), range_sigma_m=cfg.range_sigma_m,
+                   bearing_sigma_rad=cfg.bearing_sigma_rad, vfov_rad=cfg.vfov_rad, init=init)
+    nis, dof, gated = 0.0, 0, 0
+    for k in range(run.T_W_S.shape[0]):
+        if k:
+            ekf.predict(run.U_odo[k - 1], run.Q[k - 1])
+        res = ekf.update(run.ids[k], run.ranges_m[k], run.bearings_rad[k])
+        gated += len(res.rejected)
+        if res.nis is not None:
+            nis, dof = nis + res.nis, dof + res.nis_dof
+    return ekf, nis, dof, gated
+
+
+def _pose_nees(T_hat: np.ndarray, T_true: np.ndarray, P: np.ndarray) -> float:
+    e = pose_error(T_hat, T_true)
+    return float(e @ np.linalg.solve(P, e))
+
+
+def _anchored_nees(L_hat: dict, C_L: np.ndarray, poses: np.ndarray, first: dict, P: np.ndarray) -> float:
+    """Joint NEES of features in anchored ``(r, az, el)``: each in the (estimated, fixed) frame of the
+    pose where it was first seen, as the EKF keeps them (sim.prism.nees); ``C_L`` (3L, 3L) world."""
+    e, J = [], np.zeros_like(C_L)
+    for j, i in enumerate(L_hat):
+        R, t = poses[first[i], :3, :3], poses[first[i], :3, 3]
+        q, q_true = R.T @ (L_hat[i] - t), R.T @ (P[i] - t)
+        d = _sph(q_true) - _sph(q)
+        d[1] = (d[1] + np.pi) % (2 * np.pi) - np.pi
+        e.append(d)
+        x, y, z = q
+        h2, r2 = x * x + y * y, q @ q
+        h = np.sqrt(h2)
+        D = np.array([q / np.sqrt(r2), [-y / h2, x / h2, 0.0], np.array([-x * z, -y * z, h2]) / (h * r2)])
+        J[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = D @ R.T
+    e = np.concatenate(e)
+    return float(e @ np.linalg.solve(J @ C_L @ J.T, e))
+
+
+def _sph(p: np.ndarray) -> np.ndarray:
+    return np.array([np.linalg.norm(p), np.arctan2(p[1], p[0]), np.arctan2(p[2], np.hypot(p[0], p[1]))])
+
+
+def _one_seed(sc: Scenario, seed: int) -> dict:
+    """Every estimator on one seeded run: final errors, NEES, NIS (see :func:`batch_comparison`)."""
+    run, outlier = scenario_run(sc, seed)
+    cfg, T_true, P = run.config, run.T_W_S, run.points_W
+    out: dict = dict(seed=seed, outlier=outlier, returns=int(sum(len(i) for i in run.ids)))
+    first: dict[int, int] = {}
+    for k, ids in enumerate(run.ids):
+        for i in ids.tolist():
+            first.setdefault(i, k)
+
+    def final(T: np.ndarray) -> dict:
+        e = pose_error(T, T_true[-1])
+        return dict(pos_mm=1e3 * float(np.linalg.norm(T[:3, 3] - T_true[-1, :3, 3])),
+                    rot_deg=float(np.rad2deg(np.linalg.norm(e[3:]))))
+
+    # Odometry: dead reckoning and its covariance (F = Ad(U^-1) and + Q, as the EKF's predict).
+    To = run_odometry(run)
+    Po = np.zeros((6, 6))
+    for U, Q in zip(run.U_odo, run.Q, strict=True):
+        F = se3_adjoint(se3_inverse(U))
+        Po = F @ Po @ F.T + Q
+    out["odometry"] = final(To[-1]) | dict(pose_nees=_pose_nees(To[-1], T_true[-1], Po))
+    for init in ("arc", "triangulate"):
+        t0 = time.perf_counter()
+        ekf, nis, nis_dof, gated = _run_ekf(run, init)
+        lm = ekf.landmarks
+        out[f"ekf_{init}"] = final(ekf.pose) | dict(
+            lm_mm=1e3 * float(np.mean([np.linalg.norm(lm[i] - P[i]) for i in lm])),
+            pose_nees=_pose_nees(ekf.pose, T_true[-1], ekf.pose_cov),
+            lm_nees_anchored=nees(ekf, T_true[-1], P)[1],
+            lm_nees=float(nees_world(ekf, P)), lm_dof=3 * len(lm), nis=nis, nis_dof=nis_dof, gated=gated,
+            s=time.perf_counter() - t0)
+    problem = BatchProblem(T_true[0], np.zeros((6, 6)), list(zip(run.U_odo, run.Q, strict=True)),
+                           list(zip(run.ids, run.ranges_m, run.bearings_rad, strict=True)),
+                           range_sigma_m=cfg.range_sigma_m, bearing_sigma_rad=cfg.bearing_sigma_rad,
+                           vfov_rad=cfg.vfov_rad)
+    for name, loss in (("batch", "linear"), ("batch_huber", "huber")):
+        t0 = time.perf_counter()
+        res = problem.solve(loss=loss, f_scale=3.0)
+        o = 6 * res.poses.shape[0]
+        e = np.concatenate([P[i] - res.landmarks[i] for i in res.landmark_ids])
+        out[name] = final(res.poses[-1]) | dict(
+            lm_mm=1e3 * float(np.mean([np.linalg.norm(res.landmarks[i] - P[i]) for i in res.landmark_ids])),
+            pose_nees=_pose_nees(res.poses[-1], T_true[-1], res.pose_cov[-1]),
+            lm_nees=float(e @ np.linalg.solve(res.covariance[o:, o:], e)), lm_dof=int(e.size),
+            lm_nees_anchored=_anchored_nees(res.landmarks, res.covariance[o:, o:], res.poses, first, P),
+            nis=res.chi2, nis_dof=res.dof, iterations=res.n_iterations, success=res.success,
+            s=time.perf_counter() - t0)
+    return out
+
+
+ESTIMATORS = ("odometry", "ekf_arc", "ekf_triangulate", "batch", "batch_huber")
+
+
+def _norm_band(dof: int, p: float = 0.95) -> list[float]:
+    """Two-sided ``p`` band of ``chi2(dof) / dof``."""
+    return [float(v) for v in chi2.ppf([(1 - p) / 2, (1 + p) / 2], dof) / dof]
+
+
+def _summarise(sc: Scenario, seeds: list[dict]) -> dict:
+    """Means over seeds; NEES and NIS pooled (sum over seeds / summed dof) with their 95 % bands."""
+    S = len(seeds)
+    summ: dict = dict(scenario=dataclasses.asdict(sc), seeds=S,
+                      returns_mean=float(np.mean([d["returns"] for d in seeds])))
+    for est in ESTIMATORS:
+        rows = [d[est] for d in seeds]
+        e: dict = {k: float(np.mean([r[k] for r in rows])) for k in ("pos_mm", "rot_deg")}
+        e["pose_nees_norm"] = float(np.mean([r["pose_nees"] for r in rows]) / 6.0)
+        e["pose_nees_band95"] = _norm_band(6 * S)
+        if est != "odometry":
+            e["lm_mm"] = float(np.mean([r["lm_mm"] for r in rows]))
+            D = int(sum(r["lm_dof"] for r in rows))
+            e["lm_nees_norm"], e["lm_nees_band95"] = sum(r["lm_nees"] for r in rows) / D, _norm_band(D)
+            e["lm_nees_anchored_norm"] = sum(r["lm_nees_anchored"] for r in rows) / D
+            e["lm_nees_anchored_band95"] = e["lm_nees_band95"]
+            D = int(sum(r["nis_dof"] for r in rows))
+            e["nis_norm"], e["nis_band95"] = sum(r["nis"] for r in rows) / D, _norm_band(D)
+            e["seconds_mean"] = float(np.mean([r["s"] for r in rows]))
+        if est.startswith("ekf"):
+            e["gated_returns"] = int(sum(r["gated"] for r in rows))
+        if est.startswith("batch"):
+            e["all_converged"] = bool(all(r["success"] for r in rows))
+        summ[est] = e
+    b, bh = [d["batch"]["lm_mm"] for d in seeds], [d["batch_huber"]["lm_mm"] for d in seeds]
+    for init in ("arc", "triangulate"):
+        a = [d[f"ekf_{init}"]["lm_mm"] for d in seeds]
+        summ[f"ratio_{init}_to_batch"] = float(np.mean(a) / np.mean(b))
+        summ[f"seeds_{init}_above_1.1x_batch"] = int(sum(x > 1.1 * y for x, y in zip(a, b, strict=True)))
+        summ[f"ratio_{init}_to_batch_huber"] = float(np.mean(a) / np.mean(bh))
+    return summ
+
+
+def batch_comparison(n_seeds: int, bar: bool = True) -> list[dict]:
+    """Every scenario class over ``n_seeds`` seeds: per-class summary with the per-seed rows."""
+    out = []
+    for sc in tqdm(SCENARIOS, desc="vs batch", disable=not bar, leave=False):
+        seeds = [_one_seed(sc, s) for s in range(n_seeds)]
+        out.append(_summarise(sc, seeds) | dict(per_seed=seeds))
+    return out
+
+
+def _inside(v: float, band: list[float]) -> bool:
+    return band[0] <= v <= band[1]
+
+
+def _cell(v: float, band: list[float] | None = None, limit: float | None = None, fmt: str = ".2f") -> str:
+    """Number, bold (with an arrow) where it is outside its band or above its limit."""
+    t = format(v, fmt)
+    if band is not None and not _inside(v, band):
+        return f"**{t} {'↑' if v > band[1] else '↓'}**"
+    if limit is not None and v > limit:
+        return f"**{t}**"
+    return t
+
+
+SECTION = "## EKF against the batch MAP (issue #11)"
+
+
+def batch_markdown(summary: dict) -> str:
+    """The BENCHMARKS.md section for an ``ekf_vs_batch.json`` summary."""
+    cls, run, m = summary["classes"], summary["run"], summary["machine"]
+    S = cls[0]["seeds"]
+    git = m.get("git", {})
+    L = [SECTION, "",
+         f"`{run['command']}`: {run['seconds']:.0f} s on {m['cpu_model']} ({m['affinity_cpus']} cores), "
+         f"{run['date']}; commit `{str(git.get('commit'))[:10]}` with modified "
+         f"{', '.join(f'`{f}`' for f in git.get('modified', [])) or 'nothing'} (`gpumap/ekf.py` sha256 "
+         f"`{run['sha256']['gpumap/ekf.py'][:12]}`); numbers in `bench/results/ekf_vs_batch.json`, "
+         "every seed's in `ekf_vs_batch_seeds.jsonl`. `python -m bench.report` rewrites this file "
+         "without this section: rerun the command after it.",
+         "",
+         *_headline(cls),
+         "",
+         f"Each class: {S} seeds, the same returns, odometry and noise model for every estimator. "
+         "**EKF arc / tri**: `SonarEKF(init='arc' | 'triangulate')`, gate 0.999, final estimate; "
+         "**batch**: `gpumap.batch` MAP of the same model (elevation prior `N(0, vfov^2/12)` where "
+         "first seen; first pose held, as the EKF's), quadratic loss; **huber**: the same with a Huber "
+         "loss at 3 sigma on the returns; **odo**: dead reckoning. Landmark error: mean distance "
+         "to the truth (mm), averaged over the seeds; **arc/b, tri/b**: EKF over batch, ratio of "
+         "the means (issue target <= 1.1, bold above), in brackets the seeds where the EKF was "
+         "above 1.1x the batch. Scenes other than the prism: points 2-3 m ahead at 60-95 % of the "
+         "half elevation aperture (near the top or bottom edge), azimuth within 90 % of the half "
+         "aperture; the prism's trajectory (boresight on a point 2.5 m ahead, sway +-0.4 m, rise "
+         "0.25 m, advance 0.3 m, roll 0 -> 70 deg unless named); hfov x vfov 32 x 20 deg unless "
+         "named; range sigma 3 mm, bearing sigma 0.1 deg; odometry sigma q = 2 % of the "
+         "translation unless named (rotation q/2 % of the angle + q mrad/m).",
+         "",
+         "| class | views | points | returns | EKF arc mm | EKF tri mm | batch mm | huber mm | arc/b "
+         "| tri/b | final position mm: odo / arc / tri / batch "
+         "| final rotation deg: odo / arc / tri / batch |",
+         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"]
+    for c in cls:
+        sc = c["scenario"]
+        pos = " / ".join(f"{c[e]['pos_mm']:.1f}" for e in ESTIMATORS[:4])
+        rot = " / ".join(f"{c[e]['rot_deg']:.2f}" for e in ESTIMATORS[:4])
+        L.append(
+            f"| {sc['name']} | {sc['n_views']} | {8 if sc['prism'] else sc['n_points']} | "
+            f"{c['returns_mean']:.0f} | {c['ekf_arc']['lm_mm']:.1f} | {c['ekf_triangulate']['lm_mm']:.1f} | "
+            f"{c['batch']['lm_mm']:.1f} | {c['batch_huber']['lm_mm']:.1f} | "
+            f"{_cell(c['ratio_arc_to_batch'], limit=1.1)} ({c['seeds_arc_above_1.1x_batch']}) | "
+            f"{_cell(c['ratio_triangulate_to_batch'], limit=1.1)} "
+            f"({c['seeds_triangulate_above_1.1x_batch']}) | "
+            f"{pos} | {rot} |")
+    band = cls[0]["batch"]["pose_nees_band95"]
+    L += ["",
+          "Consistency: NEES and NIS divided by their degrees of freedom and pooled over the seeds "
+          "(sum / summed dof); bold with an arrow where outside the two-sided 95 % chi-square band "
+          f"(`scipy.stats.chi2`; pose: [{band[0]:.2f}, {band[1]:.2f}]; the landmark and NIS bands, "
+          "with more dof, are narrower and in the JSON). Pose NEES: last pose, 6 dof. Landmark NEES, "
+          "all features jointly: **anchored**, in ``(r, az, el)`` of the estimated pose where each "
+          "was first seen (the EKF's own state, `sim.prism.nees`; the batch's Cartesian covariance "
+          "pushed through the same map), and **world** ``(x, y, z)`` (EKF: its first-order "
+          "`covariance`). A Cartesian Gaussian cannot follow the elevation arc: a point seen at "
+          "elevation 9 deg but placed at 0 sits ~3 cm off the tangent along the range (10 range "
+          "sigmas), so world NEES blows up for any estimator wherever elevation stays weakly "
+          "observed. NIS: EKF, the summed NIS of the fused returns (gated ones left out); batch, "
+          "its residual chi-square over residuals minus unknowns (the same quantity for a linear "
+          "model; for huber still unrobustified, so the outlier's own residual is in it). Odometry "
+          "has no features and no innovations.",
+          "",
+          "| class | pose NEES/6: odo / arc / tri / batch / huber | landmark NEES/dof anchored: arc / tri "
+          "/ batch / huber | landmark NEES/dof world: arc / tri / batch / huber "
+          "| NIS/dof: arc / tri / batch / huber | gated returns: arc / tri |",
+          "|---|---|---|---|---|---|"]
+    for c in cls:
+        pn = " / ".join(_cell(c[e]["pose_nees_norm"], c[e]["pose_nees_band95"]) for e in ESTIMATORS)
+        la = " / ".join(_cell(c[e]["lm_nees_anchored_norm"], c[e]["lm_nees_band95"]) for e in ESTIMATORS[1:])
+        ln = " / ".join(_cell(c[e]["lm_nees_norm"], c[e]["lm_nees_band95"]) for e in ESTIMATORS[1:])
+        ni = " / ".join(_cell(c[e]["nis_norm"], c[e]["nis_band95"]) for e in ESTIMATORS[1:])
+        L.append(f"| {c['scenario']['name']} | {pn} | {la} | {ln} | {ni} | "
+                 f"{c['ekf_arc']['gated_returns']} / {c['ekf_triangulate']['gated_returns']} |")
+    L += ["", "Where the EKF misses issue #11's targets in this run (computed from the JSON, nothing was "
+          "tuned; the batch's value in brackets where it misses too, i.e. where the model, not the "
+          "filter, is what fails):", ""]
+    L += _shortfalls(cls) or ["- nowhere"]
+    return "\n".join(L) + "\n"
+
+
+def _headline(cls: list[dict]) -> list[str]:
+    """Two computed sentences: the EKF/batch landmark-error ratios and the pose against odometry."""
+    out = []
+    for init, tag in (("arc", "arc"), ("triangulate", "triangulated")):
+        r = [c[f"ratio_{init}_to_batch"] for c in cls]
+        over = [c["scenario"]["name"] for c in cls if c[f"ratio_{init}_to_batch"] > 1.1]
+        out.append(f"- EKF ({tag} init) / batch MAP landmark error: {min(r):.2f}-{max(r):.2f}x over the "
+                   f"{len(cls)} classes; above 1.1x in {len(over)}"
+                   + (f" ({', '.join(over)})." if over else "."))
+    worse = [c["scenario"]["name"] for c in cls if c["ekf_arc"]["pos_mm"] >= c["odometry"]["pos_mm"]]
+    out.append("- Final position error of the EKF (arc) below odometry's in "
+               f"{len(cls) - len(worse)} of {len(cls)} classes"
+               + (f" (not: {', '.join(worse)})." if worse else "."))
+    return out
+
+
+def _shortfalls(cls: list[dict]) -> list[str]:
+    out = []
+    for c in cls:
+        bad = []
+        for init, tag in (("arc", "arc"), ("triangulate", "tri")):
+            e = c[f"ekf_{init}"]
+            if c[f"ratio_{init}_to_batch"] > 1.1:
+                bad.append(f"{tag}: landmark error {c[f'ratio_{init}_to_batch']:.2f}x the batch's")
+            b = c["batch"]
+            if e["pos_mm"] >= c["odometry"]["pos_mm"]:
+                also = f" (batch {b['pos_mm']:.1f})" if b["pos_mm"] >= c["odometry"]["pos_mm"] else ""
+                bad.append(f"{tag}: final position error {e['pos_mm']:.1f} mm, not below odometry's "
+                           f"{c['odometry']['pos_mm']:.1f} mm{also}")
+            for k, what in (("pose_nees", "pose NEES"), ("lm_nees_anchored", "anchored landmark NEES"),
+                            ("lm_nees", "world landmark NEES"), ("nis", "NIS")):
+                band = e[f"{k}_band95"]
+                if not _inside(e[f"{k}_norm"], band):
+                    miss = not _inside(b[f"{k}_norm"], b[f"{k}_band95"])
+                    also = f" (batch {b[f'{k}_norm']:.2f})" if miss else ""
+                    bad.append(f"{tag}: {what}/dof {e[f'{k}_norm']:.2f} outside [{band[0]:.2f}, "
+                               f"{band[1]:.2f}]{also}")
+        if bad:
+            out.append(f"- **{c['scenario']['name']}**: " + "; ".join(bad) + ".")
+    return out
+
+
+def _write_section(path: Path, text: str) -> None:
+    """Replace (or append) the issue #11 section of ``path``; it runs to the next ``## `` heading."""
+    old = path.read_text() if path.exists() else ""
+    i = old.find(SECTION)
+    if i < 0:
+        new = old.rstrip("\n") + "\n\n" + text
+    else:
+        j = old.find("\n## ", i + len(SECTION))
+        new = old[:i] + text + ("" if j < 0 else "\n" + old[j + 1 :])
+    path.write_text(new)
+
+
+def run_vs_batch(args: argparse.Namespace) -> int:
+    """``--vs-batch``: :func:`batch_comparison`, its JSON and its BENCHMARKS.md section."""
+    t0 = time.perf_counter()
+    info = machine_info()
+    classes = batch_comparison(args.batch_seeds)
+    root = Path(__file__).resolve().parents[1]
+    argv = sys.argv[1:] if args.argv is None else args.argv
+    summary = compact(dict(
+        schema="gpumap-ekf-vs-batch/1",  # not "gpumap-bench/": bench.report skips this file
+        machine=info,
+        run=dict(command="python -m bench.ekf_bench " + " ".join(argv),
+                 date=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+                 seconds=time.perf_counter() - t0,
+                 sha256={f: hashlib.sha256((root / f).read_bytes()).hexdigest()
+                         for f in ("gpumap/ekf.py", "gpumap/batch.py")}),
+        classes=classes,
+    ), 6)
+    # Summaries in the JSON; every seed's numbers one line each beside it (JSON Lines).
+    rows = [json.dumps(compact(dict(scenario=c["scenario"]["name"]) | d, 4))
+            for c in classes for d in c.pop("per_seed")]
+    for c in summary["classes"]:
+        c.pop("per_seed")
+    (args.out / "ekf_vs_batch.json").write_text(json.dumps(summary, indent=1))
+    (args.out / "ekf_vs_batch_seeds.jsonl").write_text("\n".join(rows) + "\n")
+    md = batch_markdown(summary)
+    if args.benchmarks is not None:
+        _write_section(args.benchmarks, md)
+    print(md)
+    return 0
 
 
 if __name__ == "__main__":
