@@ -12,6 +12,9 @@ Writes into ``--out`` (default ``replay_out/``): ``map.npz`` (``MinMaxMapper.sav
 ``occupied.ply`` (occupied voxel centres with their value as ``intensity``), ``views.png``
 (3-D render from three viewpoints), ``floor_slice.png`` (horizontal slice through the
 densest low layer: the floor) and ``summary.json``; prints images/s.
+The files are written into a temporary folder and replace an earlier run's as one set
+(:func:`gpumap.cli.output_set`): an interrupted run leaves the old set or the new one, whole.
+Every flag is checked before the recording is read (bad ones exit with status 2 and one line).
 
 ``--rule`` picks how views combine (``MinMaxMapper``'s ``rule``); the mapper counts a view
 as bright from ``--threshold`` on. ``--compare-rules`` replays the same frames under both
@@ -31,10 +34,24 @@ from pathlib import Path
 
 import numpy as np
 
+from gpumap.cli import (
+    ArgumentParser,
+    backend_name,
+    error_line,
+    grid_box,
+    output_dir,
+    output_set,
+    positive_float,
+    positive_int,
+    threshold_or_auto,
+    user_errors,
+    vfov_deg,
+)
 from gpumap.spec import GridSpec, SonarSpec
 
 __all__ = [
     "DEFAULT_THRESHOLD",
+    "OUTPUTS",
     "RULES",
     "auto_grid",
     "compare_rules",
@@ -239,18 +256,6 @@ def run_replay(
         grid_shape=list(grid.shape),
     )
     return mapper, stats
-
-
-def _parse_grid(text: str, voxel: float) -> GridSpec | None:
-    if text == "auto":
-        return None
-    try:
-        v = [float(x) for x in text.split(",")]
-    except ValueError:
-        v = []
-    if len(v) != 6:
-        raise ValueError(f"Expected --grid auto or xmin,ymin,zmin,xmax,ymax,zmax, but got {text!r}")
-    return GridSpec(tuple(v[:3]), tuple(v[3:]), voxel)
 
 
 def save_pictures(values: np.ndarray, grid: GridSpec, threshold: float, out: Path,
@@ -595,18 +600,24 @@ def run_rule_comparison(recording, *, threshold: float = DEFAULT_THRESHOLD,
     return runs, cmp_
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``gpumap replay``; returns the process exit status."""
-    ap = argparse.ArgumentParser(prog="gpumap replay", description=__doc__.splitlines()[0])
+#: Every file ``gpumap replay`` can write into ``--out``: one run's set replaces the last one's.
+OUTPUTS = ("map.npz", "occupied.ply", "views.png", "floor_slice.png", "rules.png", "summary.json")
+
+
+def _parser() -> ArgumentParser:
+    ap = ArgumentParser(prog="gpumap replay", description=__doc__.splitlines()[0])
     ap.add_argument("path", help="recording: Oculus .raw/.oculus, ARIS .aris, fan folder, ROS bag")
-    ap.add_argument("--voxel-size", type=float, default=0.05, help="metres (default 0.05)")
-    ap.add_argument("--backend", default="auto")
+    ap.add_argument("--voxel-size", type=positive_float, default=0.05, help="metres (default 0.05)")
+    ap.add_argument("--backend", type=backend_name, default="auto")
     ap.add_argument("--method", default="gather", choices=["gather", "template"])
-    ap.add_argument("--out", default="replay_out", help="output folder (default replay_out)")
-    ap.add_argument("--grid", default="auto", help="auto or xmin,ymin,zmin,xmax,ymax,zmax (m)")
-    ap.add_argument("--threshold", default=str(DEFAULT_THRESHOLD),
-                    help=f"occupied if value >= this (default {DEFAULT_THRESHOLD}; on the OASIS tank "
-                         "views agree above it), also the mapper's bright threshold (its "
+    ap.add_argument("--out", type=output_dir, default="replay_out",
+                    help="output folder (default replay_out); its files are replaced as one set")
+    ap.add_argument("--grid", type=grid_box, default="auto",
+                    help="auto or xmin,ymin,zmin,xmax,ymax,zmax (m); write --grid=-1,... when it "
+                         "starts with a minus sign")
+    ap.add_argument("--threshold", type=threshold_or_auto, default=DEFAULT_THRESHOLD,
+                    help=f"occupied if value >= this, in (0, 1] (default {DEFAULT_THRESHOLD}; on the "
+                         "OASIS tank views agree above it), also the mapper's bright threshold (its "
                          "'threshold': the visible rule's returns and shadows); 'auto' = Otsu over "
                          "observed voxels, known only after the run, so the mapper then uses "
                          f"{DEFAULT_THRESHOLD}")
@@ -618,102 +629,59 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--compare-rules", action="store_true",
                     help="also replay the frames under the other rule and write rules.png (both "
                          "maps side by side, and where they differ) and a 'rule_comparison' "
-                         "section in summary.json")
+                         "section in summary.json (needs --method gather)")
     ap.add_argument("--static", action="store_true",
                     help="map every ping at one fixed (identity) pose: for pose-less recordings")
-    ap.add_argument("--stride", type=int, default=1, help="use every N-th frame")
-    ap.add_argument("--max-frames", type=int, default=None)
-    ap.add_argument("--vfov-deg", type=float, default=None, help="vertical aperture override")
+    ap.add_argument("--stride", type=positive_int, default=1, help="use every N-th frame")
+    ap.add_argument("--max-frames", type=positive_int, default=None)
+    ap.add_argument("--vfov-deg", type=vfov_deg, default=None, help="vertical aperture override")
     ap.add_argument("--flip-lr", action="store_true", help="fan folders: mirror columns")
     ap.add_argument("--flip-ud", action="store_true", help="fan folders: mirror rows")
     ap.add_argument("--no-pictures", action="store_true")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    return ap
+
+
+def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]:
+    """Parse and check every flag, alone and together, before any work; exit 2 on a bad one."""
+    ap = _parser()
     a = ap.parse_args(argv)
+    if a.method == "template" and a.rule == "visible":
+        ap.error("argument --rule: Expected rule='plain' with --method template (the template "
+                 "method's duplicate points cannot count views once), but got --rule visible")
+    if a.compare_rules and a.method != "gather":
+        ap.error(f"argument --compare-rules: Expected --method gather (the visible rule needs it), "
+                 f"but got --method {a.method}")
+    grid = None
+    if a.grid is not None:
+        try:
+            grid = GridSpec(a.grid[:3], a.grid[3:], a.voxel_size)
+        except ValueError as e:
+            ap.error(f"argument --grid: {e}")
+    return a, grid
 
-    from gpumap.io import FormatError, open_recording
 
-    kwargs: dict = {}
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``gpumap replay``; returns the process exit status.
+
+    Bad flags exit with status 2 (``SystemExit``) before anything is read; bad input found
+    later (an unreadable recording, no poses, a backend that cannot run) prints one line and
+    returns 2. The outputs replace those in ``--out`` as one set, only once all are written.
+    """
+    a, grid = _parse(argv)
     try:
-        p = Path(a.path)
-        if a.flip_lr or a.flip_ud or (a.vfov_deg is not None and p.is_dir()
-                                      and not (p / "metadata.yaml").exists()):
-            from gpumap.io.fan import OASIS_SPEC, FanGeometry
-
-            kwargs["geom"] = FanGeometry(flip_lr=a.flip_lr, flip_ud=a.flip_ud)
-            if a.vfov_deg is not None:
-                kwargs["spec"] = SonarSpec(OASIS_SPEC.range_min_m, OASIS_SPEC.range_max_m,
-                                           OASIS_SPEC.n_bins, OASIS_SPEC.bearings_rad,
-                                           math.radians(a.vfov_deg))
-        elif a.vfov_deg is not None:
-            kwargs["vfov_deg"] = a.vfov_deg
-        stride = a.stride
-        if p.is_dir() and not (p / "metadata.yaml").exists():
-            kwargs["stride"] = stride  # the fan reader skips pictures without decoding them
-            stride = 1
-        rec = open_recording(a.path, **kwargs)
-        grid = _parse_grid(a.grid, a.voxel_size)
-        if a.threshold == "auto":
-            mapper_thr = DEFAULT_THRESHOLD
-        else:
-            try:
-                mapper_thr = float(a.threshold)
-            except ValueError:
-                raise ValueError(
-                    f"Expected --threshold to be a number in (0, 1] or 'auto', but got {a.threshold!r}"
-                ) from None
-        rule = a.rule or ("visible" if a.method == "gather" else "plain")
-        replay_kw = dict(voxel_size_m=a.voxel_size, backend=a.backend, method=a.method,
-                         static=a.static, stride=stride, max_frames=a.max_frames,
-                         progress=not a.quiet, threshold=mapper_thr)
-        positions: list = []
-        if a.compare_rules:
-            if a.method != "gather":
-                raise ValueError(
-                    f"Expected --method gather with --compare-rules (the visible rule needs it), "
-                    f"but got --method {a.method}"
-                )
-            # the chosen rule first: it sizes the grid, and its run's timings are the ones reported
-            order = (rule, *[r for r in RULES if r != rule])
-            runs = replay_rules(rec, rules=order, grid=grid, positions=positions, **replay_kw)
-            mapper, stats = runs[rule]
-        else:
-            mapper, stats = run_replay(rec, grid=grid, rule=a.rule, **replay_kw)
-    except (ValueError, FileNotFoundError) as e:  # FormatError is a ValueError
-        kind = "format error" if isinstance(e, FormatError) else "error"
-        print(f"gpumap replay: {kind}: {e}", file=sys.stderr)
+        stats, grid_out = _replay(a, grid)
+    except user_errors() as e:
+        print(error_line("gpumap replay", e), file=sys.stderr)
         return 2
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    values = mapper.values()
-    thr = otsu_threshold(values) if a.threshold == "auto" else float(a.threshold)
-    mapper.save(out / "map.npz")
-    occ = np.isfinite(values) & (values >= thr)
-    from gpumap.io.ply import write_ply
-
-    write_ply(out / "occupied.ply", mapper.grid.centers(np.argwhere(occ)), values[occ])
-    stats["threshold"] = thr
-    stats["occupied_voxels"] = int(occ.sum())
-    stats["observed_voxels"] = int(np.isfinite(values).sum())
-    if not a.no_pictures:
-        stats.update(save_pictures(values, mapper.grid, thr, out,
-                                   title=f"{Path(a.path).name} ({stats['rule']} rule)"))
-    if a.compare_rules:
-        other = {r: m.values() for r, (m, _) in runs.items() if r != rule}
-        cmp_ = compare_rules({rule: values, **other}, mapper.grid, thr,
-                             np.asarray(positions).reshape(-1, 3),
-                             None if a.no_pictures else out / "rules.png", title=Path(a.path).name)
-        cmp_["runs"] = {r: {k: st[k] for k in ("frames", "backend", "seconds_total",
-                                                 "images_per_s", "integrate_per_s")}
-                        for r, (_, st) in runs.items()}
-        stats["rule_comparison"] = cmp_
-    (out / "summary.json").write_text(json.dumps(stats, indent=2))
+    thr = stats["threshold"]
     print(f"gpumap replay: {stats['frames']} images on {stats['backend']} in "
           f"{stats['seconds_total']:.2f} s: {stats['images_per_s']:.1f} images/s overall "
           f"(read + convert + integrate), {stats['integrate_per_s']:.1f} images/s counting only "
           f"the time spent in integrate() (device kernels overlap the reading); "
-          f"grid {tuple(stats['grid_shape'])} at {mapper.grid.voxel_size_m} m; "
+          f"grid {tuple(stats['grid_shape'])} at {grid_out.voxel_size_m} m; "
           f"{stats['occupied_voxels']} occupied (>= {thr:.3f}, {stats['rule']} rule) of "
-          f"{stats['observed_voxels']} observed voxels; wrote {out}/")
+          f"{stats['observed_voxels']} observed voxels; wrote {a.out}/")
     if a.compare_rules:
         print(f"gpumap replay: rules: {stats['rule_comparison']['text']}")
     if stats["skipped_no_pose"] or stats["skipped_spec"]:
@@ -722,6 +690,67 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
     return 0
 
+
+def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpec]:
+    """Map the recording of parsed flags ``a``; write the output set; ``(summary, grid)``."""
+    from gpumap.io import open_recording
+
+    kwargs: dict = {}
+    p = Path(a.path)
+    if a.flip_lr or a.flip_ud or (a.vfov_deg is not None and p.is_dir()
+                                  and not (p / "metadata.yaml").exists()):
+        from gpumap.io.fan import OASIS_SPEC, FanGeometry
+
+        kwargs["geom"] = FanGeometry(flip_lr=a.flip_lr, flip_ud=a.flip_ud)
+        if a.vfov_deg is not None:
+            kwargs["spec"] = SonarSpec(OASIS_SPEC.range_min_m, OASIS_SPEC.range_max_m,
+                                       OASIS_SPEC.n_bins, OASIS_SPEC.bearings_rad,
+                                       math.radians(a.vfov_deg))
+    elif a.vfov_deg is not None:
+        kwargs["vfov_deg"] = a.vfov_deg
+    stride = a.stride
+    if p.is_dir() and not (p / "metadata.yaml").exists():
+        kwargs["stride"] = stride  # the fan reader skips pictures without decoding them
+        stride = 1
+    rec = open_recording(a.path, **kwargs)
+    mapper_thr = DEFAULT_THRESHOLD if a.threshold == "auto" else a.threshold
+    rule = a.rule or ("visible" if a.method == "gather" else "plain")
+    replay_kw = dict(voxel_size_m=a.voxel_size, backend=a.backend, method=a.method,
+                     static=a.static, stride=stride, max_frames=a.max_frames,
+                     progress=not a.quiet, threshold=mapper_thr)
+    positions: list = []
+    if a.compare_rules:
+        # the chosen rule first: it sizes the grid, and its run's timings are the ones reported
+        order = (rule, *[r for r in RULES if r != rule])
+        runs = replay_rules(rec, rules=order, grid=grid, positions=positions, **replay_kw)
+        mapper, stats = runs[rule]
+    else:
+        mapper, stats = run_replay(rec, grid=grid, rule=a.rule, **replay_kw)
+    values = mapper.values()
+    thr = otsu_threshold(values) if a.threshold == "auto" else float(a.threshold)
+    occ = np.isfinite(values) & (values >= thr)
+    stats["threshold"] = thr
+    stats["occupied_voxels"] = int(occ.sum())
+    stats["observed_voxels"] = int(np.isfinite(values).sum())
+    from gpumap.io.ply import write_ply
+
+    with output_set(a.out, OUTPUTS) as out:  # all of them appear in --out together, or none
+        mapper.save(out / "map.npz")
+        write_ply(out / "occupied.ply", mapper.grid.centers(np.argwhere(occ)), values[occ])
+        if not a.no_pictures:
+            stats.update(save_pictures(values, mapper.grid, thr, out,
+                                       title=f"{Path(a.path).name} ({stats['rule']} rule)"))
+        if a.compare_rules:
+            other = {r: m.values() for r, (m, _) in runs.items() if r != rule}
+            cmp_ = compare_rules({rule: values, **other}, mapper.grid, thr,
+                                 np.asarray(positions).reshape(-1, 3),
+                                 None if a.no_pictures else out / "rules.png", title=Path(a.path).name)
+            cmp_["runs"] = {r: {k: st[k] for k in ("frames", "backend", "seconds_total",
+                                                     "images_per_s", "integrate_per_s")}
+                            for r, (_, st) in runs.items()}
+            stats["rule_comparison"] = cmp_
+        (out / "summary.json").write_text(json.dumps(stats, indent=2))
+    return stats, mapper.grid
 
 if __name__ == "__main__":
     raise SystemExit(main())

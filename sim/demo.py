@@ -20,12 +20,26 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 import gpumap
+from gpumap.cli import (
+    ArgumentParser,
+    backend_name,
+    error_line,
+    nonnegative_float,
+    nonnegative_int,
+    output_dir,
+    output_set,
+    positive_float,
+    positive_int,
+    unit_interval,
+    user_errors,
+)
 
 from .metrics import evaluate
 from .scenes import SCENES, Scene, make_scene
@@ -39,24 +53,28 @@ BEARING_SIGMA_RAD = math.radians(0.3)
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="gpumap demo", description=__doc__.splitlines()[0])
+    p = ArgumentParser(prog="gpumap demo", description=__doc__.splitlines()[0])
     p.add_argument("--scene", default="tank", choices=sorted(SCENES))
-    p.add_argument("--voxel-size", type=float, default=0.03, help="voxel edge, metres")
-    p.add_argument("--backend", default="auto", help="auto|numpy|warp-cpu|warp-cuda|opencl")
+    p.add_argument("--voxel-size", type=positive_float, default=0.03, help="voxel edge, metres")
+    p.add_argument("--backend", type=backend_name, default="auto",
+                   help="auto|numpy|warp-cpu|warp-cuda|opencl")
     p.add_argument("--method", default="gather", choices=["gather", "template"])
-    p.add_argument("--out", default="demo_out", help="output folder")
-    p.add_argument("--pose-noise", type=float, default=None, metavar="SIGMA",
+    p.add_argument("--out", type=output_dir, default="demo_out",
+                   help="output folder; its files are replaced as one set")
+    p.add_argument("--pose-noise", type=nonnegative_float, default=None, metavar="SIGMA",
                    help="odometry noise per step (m and rad); adds odometry and EKF rows")
-    p.add_argument("--pings", type=int, default=None, help="use only this many pings (evenly spaced)")
-    p.add_argument("--threshold", type=float, default=OCCUPIED_THRESHOLD, help="occupied intensity")
+    p.add_argument("--pings", type=positive_int, default=None,
+                   help="use only this many pings (evenly spaced)")
+    p.add_argument("--threshold", type=unit_interval, default=OCCUPIED_THRESHOLD,
+                   help="occupied intensity, in (0, 1]")
     p.add_argument("--rule", default="visible", choices=["visible", "plain"],
                    help="how views combine: 'visible' (a dark view carves only when nothing is in front "
                         "of the voxel in its beams) or 'plain' (the paper's min); the other rule is "
                         "always mapped too, for the side-by-side 'rules' rows")
-    p.add_argument("--shadow-m", type=float, default=0.0, metavar="M",
+    p.add_argument("--shadow-m", type=nonnegative_float, default=0.0, metavar="M",
                    help="acoustic-shadow allowance (metres): returns also count up to M behind them; "
                         "0 = the paper's min-max")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -399,12 +417,25 @@ def _figures(out: Path, scene: Scene, truth: Truth, mapper, sample: Ping, histor
     plt.close(fig)
 
 
+#: Every file ``gpumap demo`` writes into ``--out``: one run's set replaces the last one's.
+OUTPUTS = ("metrics.json", "map.npz", "sonar_image.png", "map_vs_truth.png", "error_by_views.png")
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``gpumap demo``; returns the exit status."""
+    """Entry point of ``gpumap demo``; returns the exit status.
+
+    Bad flags exit with status 2 (``SystemExit``) before any work; bad input found later (a
+    backend that cannot run here) prints one line and returns 2. The outputs replace those
+    in ``--out`` as one set, only once all are written.
+    """
     args = _parser().parse_args(argv)
-    if args.voxel_size <= 0:
-        raise SystemExit(f"Expected --voxel-size > 0, but got {args.voxel_size}")
-    m = run_demo(args)
+    out = args.out
+    try:
+        with output_set(out, OUTPUTS) as tmp:  # all of them appear in --out together, or none
+            m = run_demo(argparse.Namespace(**{**vars(args), "out": tmp}))
+    except user_errors() as e:
+        print(error_line("gpumap demo", e), file=sys.stderr)
+        return 2
     print(json.dumps({k: m[k] for k in ("scene", "backend", "rule", "voxel_size_m", "images", "ms_per_image",
                                          "demo_s")}, indent=1))
     print(f"{'rule':8s} {'FN det':>7s} {'FN obj':>7s} {'miss':>6s} {'FP far':>7s} {'carved':>7s} pipe")

@@ -70,10 +70,14 @@ def test_replay_rejects_bad_rule_settings(tmp_path: Path, capsys) -> None:
     bag = tmp_path / "bag2"
     _write_ros2_psi(bag, n=2)
     out = str(tmp_path / "o")
-    assert main([str(bag), "--out", out, "--quiet", "--method", "template", "--rule", "visible"]) == 2
-    assert "rule='plain'" in capsys.readouterr().err
-    assert main([str(bag), "--out", out, "--quiet", "--threshold", "abc"]) == 2
-    assert "--threshold" in capsys.readouterr().err
+    # flags that do not go together are refused while parsing, before the recording is read
+    with pytest.raises(SystemExit) as e:
+        main([str(bag), "--out", out, "--quiet", "--method", "template", "--rule", "visible"])
+    assert e.value.code == 2 and "rule='plain'" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main([str(bag), "--out", out, "--quiet", "--threshold", "abc"])
+    assert e.value.code == 2 and "--threshold" in capsys.readouterr().err
+    assert not Path(out).exists()
     # the template method alone picks the plain rule
     assert main([str(bag), "--out", out, "--quiet", "--no-pictures", "--method", "template",
                  "--backend", "numpy"]) == 0
