@@ -6,11 +6,71 @@ import math
 
 import numpy as np
 
-__all__ = ["BackendUnavailableError", "check_finite_scalar", "check_pose"]
+__all__ = [
+    "BackendUnavailableError",
+    "FormatError",
+    "LimitError",
+    "MissingFileError",
+    "check_finite_scalar",
+    "check_pose",
+]
 
 
 class BackendUnavailableError(RuntimeError):
     """A backend asked for by name cannot run on this machine (the reason is in the message)."""
+
+
+class FormatError(ValueError):
+    """A file is truncated, corrupt, or not in the layout it claims (gpumap's reader error).
+
+    Every reader in :mod:`gpumap.io` raises this (or :class:`LimitError`) for anything wrong
+    with the bytes it was given, never a library's own exception; it is a ``ValueError``.
+
+    Parameters
+    ----------
+    message : str
+        What was expected and what came.
+    offset : int or None
+        Byte offset in the file (or in the decompressed item, as the message says) where
+        the problem was found; ``None`` where a byte offset does not apply.
+    path : str or None
+        The file concerned.
+
+    Attributes
+    ----------
+    offset, path
+        As given (``str(error)`` starts with ``"<path>, byte <offset>: "`` when known).
+    """
+
+    def __init__(self, message: str, offset: int | None = None, path: str | None = None):
+        where = []
+        if path is not None:
+            where.append(str(path))
+        if offset is not None:
+            where.append(f"byte {offset}")
+        prefix = (", ".join(where) + ": ") if where else ""
+        super().__init__(prefix + message)
+        self.message = message
+        self.offset = offset
+        self.path = None if path is None else str(path)
+
+    def __reduce__(self):  # picklable with its fields (multiprocessing, logging handlers)
+        return (type(self), (self.message, self.offset, self.path))
+
+
+class LimitError(FormatError):
+    """A size that a file declares is beyond what gpumap will allocate for it.
+
+    Raised *before* allocating or inflating: the message names the field, the declared size
+    and the budget from :mod:`gpumap.limits`.
+    """
+
+
+class MissingFileError(FormatError, FileNotFoundError):
+    """A file that a recording needs beside it (a beam angle table) is not there.
+
+    Both a :class:`FormatError` and a ``FileNotFoundError``.
+    """
 
 
 def check_finite_scalar(value: object, name: str) -> float:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import math
 import struct
 import zlib
@@ -343,3 +344,503 @@ def test_ply_round_trip(tmp_path: Path, binary: bool) -> None:
     np.testing.assert_allclose(d["intensity"], val, rtol=1e-6)
     head = p.read_bytes()[:200]
     assert head.startswith(b"ply\nformat " + (b"binary_little_endian" if binary else b"ascii"))
+
+
+# ------------------------------------------------------------------ hostile files (issue #12)
+# Builders are module-level so the fuzz suite can reuse them.
+def zero_deflate(n_mib: int) -> bytes:
+    """A zlib stream (header, no end) of ``n_mib`` MiB of zeros: ~1 KB per MiB."""
+    c = zlib.compressobj(9)
+    first = c.compress(bytes(1 << 20)) + c.flush(zlib.Z_FULL_FLUSH)
+    block = c.compress(bytes(1 << 20)) + c.flush(zlib.Z_FULL_FLUSH)
+    return first + block * (n_mib - 1)
+
+
+def png_bytes(w: int, h: int, depth: int, ctype: int, idat: bytes, extra: bytes = b"") -> bytes:
+    """A PNG from its parts (IHDR fields, compressed IDAT, extra chunks before IDAT)."""
+    def chunk(t: bytes, d: bytes) -> bytes:
+        return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d) & 0xFFFFFFFF)
+
+    ihdr = struct.pack(">IIBBBBB", w, h, depth, ctype, 0, 0, 0)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + extra + chunk(b"IDAT", idat)
+            + chunk(b"IEND", b""))
+
+
+def png_chunk(t: bytes, d: bytes) -> bytes:
+    return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d) & 0xFFFFFFFF)
+
+
+def _log_item(payload: bytes, orig: int, comp: int = 1, size_item: int = 40, t: float = 1.0) -> bytes:
+    return struct.pack("<2I2H4xdH2x2I4x", 0xAABBCCDD, size_item, 10, 0, t, comp, orig,
+                       len(payload)) + payload
+
+
+def _log(items: bytes, size_header: int = 48) -> bytes:
+    return struct.pack("<2I16s2H4xqd", 0x11223344, size_header, b"Oculus", 1, 0, 0, 0.0) + items
+
+
+def _small_ping(version: int = 1) -> bytearray:
+    return bytearray(encode_simple_ping(np.full((20, 8), 7, np.uint8),
+                                        [-300, -200, -100, 0, 50, 100, 200, 300], 0.01,
+                                        version=version))
+
+
+def hostile_cases(tmp: Path) -> dict[str, tuple]:
+    """name -> (callable that reads the file to the end, the gpumap error it must raise)."""
+    from gpumap.io import LimitError, open_fan_folder
+    from gpumap.io.fan import read_grey_png
+
+    def put(name: str, data: bytes) -> Path:
+        p = tmp / name
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_bytes(data)
+        return p
+
+    cases: dict[str, tuple] = {}
+    msg = bytes(_small_ping())
+    bomb = zero_deflate(2900)  # 3 MB that inflate to 2.9 GiB
+    p = put("bomb.oculus", _log(_log_item(struct.pack(">I", 1000) + bomb, 1000)))
+    cases["oculus log: 3 MB item declaring 1,000 B, inflating to 2.9 GiB"] = (
+        lambda p=p: list(open_oculus_log(p)), FormatError)
+    p = put("orig.oculus", _log(_log_item(struct.pack(">I", 2**32 - 1) + bomb[:5000], 2**32 - 1)))
+    cases["oculus log: originalSize 4 GiB"] = (lambda p=p: list(open_oculus_log(p)), LimitError)
+    item = bytearray(_log_item(msg, len(msg), comp=0))
+    item[32:36] = struct.pack("<I", 2**32 - 1)
+    p = put("payload.oculus", _log(bytes(item)))
+    cases["oculus log: payloadSize 4 GiB"] = (lambda p=p: list(open_oculus_log(p)), LimitError)
+    item = bytearray(_log_item(msg, len(msg), comp=0))
+    item[4:8] = struct.pack("<I", 2**32 - 1)
+    p = put("itemhead.oculus", _log(bytes(item)))
+    cases["oculus log: item sizeHeader 4 GiB"] = (lambda p=p: list(open_oculus_log(p)), LimitError)
+    p = put("filehead.oculus", _log(_log_item(msg, len(msg), comp=0), size_header=2**32 - 1))
+    cases["oculus log: file sizeHeader 4 GiB"] = (lambda p=p: list(open_oculus_log(p)), LimitError)
+    raw = _small_ping()
+    raw[10:14] = struct.pack("<I", 2**32 - 16)
+    p = put("payload.raw", bytes(raw))
+    cases["oculus raw: payloadSize 4 GiB"] = (lambda p=p: list(open_oculus_raw(p)), LimitError)
+    raw = _small_ping()
+    raw[106:110] = struct.pack("<2H", 65535, 65535)
+    p = put("dims.raw", bytes(raw))
+    cases["oculus raw: 65535 x 65535 ping"] = (lambda p=p: list(open_oculus_raw(p)), LimitError)
+    ang = np.linspace(-10, 10, 8)
+    p = tmp / "big.aris"
+    write_aris(p, [np.zeros((30, 8), np.uint8)] * 2)
+    a = bytearray(p.read_bytes())
+    a[16:20], a[24:28] = struct.pack("<I", 1024), struct.pack("<I", 100_000)
+    p.write_bytes(bytes(a))
+    cases["aris: 1024 beams x 100,000 samples"] = (
+        lambda p=p: list(open_aris(p, beam_angles_deg=ang)), LimitError)
+    a = bytearray(a)
+    a[16:20], a[24:28], a[4:8] = struct.pack("<I", 8), struct.pack("<I", 30), struct.pack("<I", 2**32 - 1)
+    p2 = put("count.aris", bytes(a))
+    cases["aris: FrameCount 2^32 - 1"] = (lambda p=p2: list(open_aris(p, beam_angles_deg=ang)),
+                                          FormatError)
+    p = put("fan/sonar/image_0000.png", png_bytes(12000, 12000, 8, 0, zero_deflate(138)))
+    cases["fan PNG: 12000 x 12000 (137 MiB of pixels)"] = (
+        lambda p=p: read_grey_png(p, expected_shape=(398, 722)), LimitError)
+    cases["fan folder: 12000 x 12000 picture"] = (lambda: list(open_fan_folder(tmp / "fan")), LimitError)
+    p = put("huge.png", png_bytes(2**31 - 1, 2**31 - 1, 8, 0, zero_deflate(1)))
+    cases["fan PNG: (2^31 - 1) x (2^31 - 1)"] = (lambda p=p: read_grey_png(p), LimitError)
+    p = put("wide.png", png_bytes(723, 398, 8, 0, zero_deflate(1)))
+    cases["fan PNG: 398 x 723, not the geometry's 398 x 722"] = (
+        lambda p=p: read_grey_png(p, expected_shape=(398, 722)), FormatError)
+    head = b"ply\nformat binary_little_endian 1.0\nelement vertex %d\nproperty float x\nend_header\n"
+    p = put("huge.ply", head % 10**12 + bytes(64))
+    cases["PLY: 10^12 vertices declared"] = (lambda p=p: read_ply(p), LimitError)
+    p = put("short.ply", head % 10**8 + bytes(100))
+    cases["PLY: 10^8 vertices declared, 100 bytes of data"] = (lambda p=p: read_ply(p), FormatError)
+    p = put("ascii.ply", (head % 10**8).replace(b"binary_little_endian", b"ascii") + b"1\n" * 50)
+    cases["PLY ascii: 10^8 vertices declared, 50 lines"] = (lambda p=p: read_ply(p), FormatError)
+    return cases
+
+
+def test_hostile_files_fail_fast_and_small(tmp_path: Path) -> None:
+    """Every hostile file of issue #12 gives gpumap's error in < 1 s and far under 1 GB."""
+    import time
+    import tracemalloc
+
+    from gpumap.limits import MEMORY_TARGET_BYTES
+
+    for name, (read, err) in hostile_cases(tmp_path).items():
+        tracemalloc.start()
+        t0 = time.perf_counter()
+        try:
+            with pytest.raises(err) as e:
+                read()
+        finally:
+            dt = time.perf_counter() - t0
+            _cur, peak = tracemalloc.get_traced_memory()
+            tracemalloc.stop()
+        assert isinstance(e.value, FormatError) and "expected" in str(e.value), name
+        assert dt < 1.0, (name, dt)
+        assert peak < MEMORY_TARGET_BYTES // 16, (name, peak)  # measured: < 2 MB each
+
+
+def test_oculus_log_inflation_is_exact(tmp_path: Path) -> None:
+    msg = bytes(_small_ping(2))
+    ok = struct.pack(">I", len(msg)) + zlib.compress(msg)
+    p = tmp_path / "a.oculus"
+    p.write_bytes(_log(_log_item(ok, len(msg))))
+    assert len(list(open_oculus_log(p))) == 1
+    bad = {
+        "prefix differs": (struct.pack(">I", len(msg) + 1) + zlib.compress(msg), len(msg), "prefix"),
+        "stream longer": (struct.pack(">I", len(msg) - 1) + zlib.compress(msg), len(msg) - 1,
+                          "holds more"),
+        "stream shorter": (struct.pack(">I", len(msg) + 1) + zlib.compress(msg), len(msg) + 1,
+                           "gives"),
+        "stream cut": (ok[:-6], len(msg), "cut short|failed"),
+        "checksum": (ok[:-1] + bytes([ok[-1] ^ 1]), len(msg), "failed"),
+    }
+    for name, (payload, orig, match) in bad.items():
+        p.write_bytes(_log(_log_item(payload, orig)))
+        with pytest.raises(FormatError, match=match):
+            list(open_oculus_log(p))
+        assert name
+
+
+def test_oculus_log_nonfinite_time_and_zero_header(tmp_path: Path) -> None:
+    msg = bytes(_small_ping())
+    p = tmp_path / "t.oculus"
+    p.write_bytes(_log(_log_item(msg, len(msg), comp=0, t=float("nan"))))
+    with pytest.raises(FormatError, match="finite item time"):
+        list(open_oculus_log(p))
+    # an item header of size 0 must not stall count()
+    item = bytearray(_log_item(msg, len(msg), comp=0))
+    item[4:8] = bytes(4)
+    p.write_bytes(_log(bytes(item)))
+    assert open_oculus_log(p).count() == 0
+    with pytest.raises(FormatError, match="item header size"):
+        list(open_oculus_log(p))
+
+
+# ------------------------------------------------------------------ fan pictures of every PNG mode
+def _pack_bits(vals: list[int], depth: int) -> bytes:
+    bits = "".join(format(v, f"0{depth}b") for v in vals)
+    bits += "0" * (-len(bits) % 8)
+    return bytes(int(bits[i:i + 8], 2) for i in range(0, len(bits), 8))
+
+
+def _png(w: int, h: int, depth: int, ctype: int, rows: list[bytes], extra: bytes = b"") -> bytes:
+    return png_bytes(w, h, depth, ctype, zlib.compress(b"".join(b"\0" + r for r in rows)), extra)
+
+
+def _luma(r, g, b):
+    return (0.299 * np.asarray(r) + 0.587 * np.asarray(g) + 0.114 * np.asarray(b)) / 255.0
+
+
+def _mode_cases() -> dict[str, tuple[bytes, np.ndarray, float]]:
+    """name -> (PNG bytes, expected grey row, tolerance)."""
+    v8 = [0, 1, 128, 255]
+    v16 = [0, 1, 32768, 65535]
+    pal = [(255, 0, 0), (0, 255, 0), (0, 0, 255), (10, 20, 30)]
+    plte = png_chunk(b"PLTE", bytes(c for rgb in pal for c in rgb))
+    out = {
+        "1-bit": (_png(4, 1, 1, 0, [_pack_bits([0, 1, 1, 0], 1)]), np.array([0, 1, 1, 0.0]), 0),
+        "2-bit grey": (_png(4, 1, 2, 0, [_pack_bits([0, 1, 2, 3], 2)]), np.array([0, 1, 2, 3]) / 3, 1e-6),
+        "4-bit grey": (_png(4, 1, 4, 0, [_pack_bits([0, 1, 8, 15], 4)]), np.array([0, 1, 8, 15]) / 15,
+                       1e-6),
+        "8-bit grey (L)": (_png(4, 1, 8, 0, [bytes(v8)]), np.array(v8) / 255, 1e-7),
+        "16-bit grey (I;16)": (_png(4, 1, 16, 0, [b"".join(struct.pack(">H", v) for v in v16)]),
+                               np.array(v16) / 65535, 1e-7),
+        "grey + alpha (LA), alpha ignored": (
+            _png(4, 1, 8, 4, [b"".join(bytes([v, a]) for v, a in zip(v8, [0, 255, 7, 0], strict=True))]),
+            np.array(v8) / 255, 1e-7),
+        "16-bit grey + alpha": (
+            _png(4, 1, 16, 4, [b"".join(struct.pack(">HH", v, 0) for v in v16)]),
+            np.array([0, 0, 128, 255]) / 255, 1 / 255),
+        "palette (P) by luminance": (
+            _png(4, 1, 2, 3, [_pack_bits([0, 1, 2, 3], 2)], plte),
+            _luma(*np.array(pal).T), 1 / 255),
+        "palette + tRNS": (
+            _png(4, 1, 8, 3, [bytes([3, 2, 1, 0])], plte + png_chunk(b"tRNS", bytes([0, 9, 255, 255]))),
+            _luma(*np.array(pal[::-1]).T), 1 / 255),
+        "RGB by luminance": (
+            _png(4, 1, 8, 2, [bytes(c for rgb in pal for c in rgb)]), _luma(*np.array(pal).T), 1 / 255),
+        "RGB grey stays exact": (
+            _png(4, 1, 8, 2, [bytes(c for v in v8 for c in (v, v, v))]), np.array(v8) / 255, 1e-7),
+        "RGBA, alpha ignored": (
+            _png(4, 1, 8, 6, [bytes(c for rgb in pal for c in (*rgb, 0))]), _luma(*np.array(pal).T),
+            1 / 255),
+        "16-bit RGB": (_png(4, 1, 16, 2, [b"".join(struct.pack(">HHH", v, v, v) for v in v16)]),
+                       np.array([0, 0, 128, 255]) / 255, 1 / 255),
+    }
+    return out
+
+
+@pytest.mark.parametrize("name", list(_mode_cases()))
+def test_fan_png_modes(tmp_path: Path, name: str) -> None:
+    from gpumap.io.fan import read_grey_png
+
+    data, expect, tol = _mode_cases()[name]
+    p = tmp_path / "image_0000.png"
+    p.write_bytes(data)
+    a = read_grey_png(p, expected_shape=(1, 4))
+    assert a.dtype == np.float32 and a.shape == (1, 4)
+    assert np.all((a >= 0) & (a <= 1))
+    np.testing.assert_allclose(a[0], expect, atol=tol + 1e-7)
+
+
+def test_fan_folder_reads_palette_pictures(tmp_path: Path) -> None:
+    """A palette picture is its grey levels, not its palette indices (the old misreading)."""
+    from gpumap.io import open_fan_folder
+
+    geom = FanGeometry(n_rows=40, n_cols=61, pixel_m=0.05, apex_row=39.0, apex_col=30.0)
+    spec = SonarSpec.uniform(hfov_deg=90, n_beams=16, n_bins=20, range_min_m=0.1, range_max_m=1.9)
+    grey = np.full((40, 61), 200, np.uint8)
+    plte = png_chunk(b"PLTE", bytes([200, 200, 200]))  # index 0 -> grey 200
+    rows = [bytes(61)] * 40
+    (tmp_path / "sonar").mkdir()
+    (tmp_path / "sonar" / "image_0000.png").write_bytes(_png(61, 40, 8, 3, rows, plte))
+    (tmp_path / "sonar" / "image_0001.png").write_bytes(_png(61, 40, 8, 0, [r.tobytes() for r in grey]))
+    a, b = (f.image for f in open_fan_folder(tmp_path, spec=spec, geom=geom))
+    np.testing.assert_array_equal(a, b)
+    assert a.max() == pytest.approx(200 / 255)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "bad IHDR CRC", "garbage IDAT", "not a PNG", "JPEG",
+                                    "empty", "bad bit depth"])
+def test_corrupt_png_is_a_format_error(tmp_path: Path, damage: str) -> None:
+    from PIL import Image
+
+    from gpumap.io.fan import read_grey_png
+
+    good = _png(8, 4, 8, 0, [bytes(range(8))] * 4)
+    data = {
+        "truncated": good[:-30],
+        "bad IHDR CRC": good[:29] + bytes([good[29] ^ 1]) + good[30:],
+        "garbage IDAT": png_bytes(8, 4, 8, 0, b"\x78\x9c" + bytes(range(200, 240))),
+        "not a PNG": b"hello, world" * 10,
+        "empty": b"",
+        "bad bit depth": png_bytes(8, 4, 3, 0, zlib.compress(bytes(40))),
+    }.get(damage)
+    if damage == "JPEG":
+        buf = io.BytesIO()
+        Image.fromarray(np.zeros((4, 8), np.uint8)).save(buf, format="JPEG")
+        data = buf.getvalue()
+    p = tmp_path / "image_0000.png"
+    p.write_bytes(data)
+    with pytest.raises(FormatError, match="expected"):
+        read_grey_png(p, expected_shape=(4, 8))
+
+
+# ------------------------------------------------------------------ pose tables
+_HEAD = "frame," + ",".join(f"T_W_S_{i}{j}" for i in range(4) for j in range(4))
+_EYE = ",".join(str(v) for v in np.eye(4).reshape(-1))
+
+
+@pytest.mark.parametrize("rows, match", [
+    ([f"0,{_EYE}", f"10,{_EYE}", f"10,{_EYE}"], "frame 10 is also on line 3"),
+    ([f"0,{_EYE}", f"20,{_EYE}", f"10,{_EYE}"], "ascending order.*frame 10 comes after frame 20"),
+    ([f"0,{_EYE}", "1," + _EYE.replace("1.0", "nan", 1)], "line 3: expected finite"),
+    ([f"0,{_EYE}", "1," + _EYE.replace("0.0", "inf", 1)], "line 3: expected finite"),
+    ([f"0,{_EYE}", "1," + _EYE.replace("1.0", "2.0", 1)], "line 3: .*orthonormal"),
+    ([f"0,{_EYE}", f"1,{_EYE},7"], "line 3: expected 17 fields"),
+    ([f"x,{_EYE}"], "line 2: expected numbers"),
+    ([f"-1,{_EYE}"], "frame number >= 0"),
+])
+def test_pose_table_is_checked(tmp_path: Path, rows: list[str], match: str) -> None:
+    from gpumap.io.fan import read_poses_csv
+
+    p = tmp_path / "sonar_poses.csv"
+    p.write_text("\n".join([_HEAD, *rows]) + "\n")
+    with pytest.raises(FormatError, match=match):
+        read_poses_csv(p)
+
+
+def test_pose_table_time_column(tmp_path: Path) -> None:
+    from gpumap.io.fan import read_pose_table
+
+    head = _HEAD.replace("frame,", "frame,time_s,")
+    p = tmp_path / "sonar_poses.csv"
+    p.write_text("\n".join([head, f"0,10.0,{_EYE}", f"5,10.5,{_EYE}"]) + "\n")
+    frames, times, T = read_pose_table(p)
+    assert frames.tolist() == [0, 5] and times.tolist() == [10.0, 10.5] and T.shape == (2, 4, 4)
+    for rows, match in [([f"0,10.0,{_EYE}", f"5,10.0,{_EYE}"], "time_s to increase"),
+                        ([f"0,nan,{_EYE}"], "finite time_s")]:
+        p.write_text("\n".join([head, *rows]) + "\n")
+        with pytest.raises(FormatError, match=match):
+            read_pose_table(p)
+    for text, match in [(b"\xff\xfe\x00garbage", "UTF-8"), (b"frame,a,b\n", "header"),
+                        (b"", "header"), (_HEAD.encode() + b"\n0,\x00" + b",0" * 15, "line 2|NUL")]:
+        p.write_bytes(text)
+        with pytest.raises(FormatError, match=match):
+            read_pose_table(p)
+
+
+@needs_data
+def test_real_pose_table_passes_the_checks() -> None:
+    from gpumap.io.fan import read_pose_table
+
+    frames, times, T = read_pose_table(OASIS / "sonar_poses.csv")
+    assert len(frames) == 123 and times is None and np.all(np.diff(frames) > 0)
+
+
+def test_fan_folder_refuses_two_pictures_of_one_frame(tmp_path: Path) -> None:
+    from gpumap.io import open_fan_folder
+
+    (tmp_path / "sonar").mkdir()
+    for name in ("image_10.png", "image_010.png"):
+        (tmp_path / "sonar" / name).write_bytes(_png(4, 1, 8, 0, [bytes(4)]))
+    with pytest.raises(FormatError, match="both frame 10"):
+        open_fan_folder(tmp_path)
+
+
+# ------------------------------------------------------------------ PLY checks and atomic writes
+def test_ply_cut_on_a_record_boundary_is_refused(tmp_path: Path) -> None:
+    p = tmp_path / "a.ply"
+    write_ply(p, np.ones((10, 3)), np.zeros(10))
+    raw = p.read_bytes()
+    for cut, match in [(len(raw) - 16, "cut short"), (len(raw) - 3, "cut short")]:
+        p.write_bytes(raw[:cut])
+        with pytest.raises(FormatError, match=match):
+            read_ply(p)
+    p.write_bytes(raw + bytes(16))
+    with pytest.raises(FormatError, match="left over"):
+        read_ply(p)
+    write_ply(p, np.ones((10, 3)), binary=False)
+    raw = p.read_bytes()
+    p.write_bytes(raw[: raw.rindex(b"1 1 1\n")])  # one whole line short
+    with pytest.raises(FormatError, match="expected 10"):
+        read_ply(p)
+
+
+_PLY_HEAD = "ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n"
+
+
+@pytest.mark.parametrize("header, match", [
+    ("plx\n", "starting 'ply'"),
+    ("ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\n", "end_header"),
+    (_PLY_HEAD.replace("1.0", "2.0"), "format"),
+    (_PLY_HEAD.replace("binary_little_endian", "utf8"), "format"),
+    (_PLY_HEAD.replace("vertex 1", "vertex abc"), "integer element count"),
+    (_PLY_HEAD.replace("vertex 1", "vertex -5"), "count >= 0"),
+    (_PLY_HEAD.replace("vertex 1", "vertex"), "element <name> <count>"),
+    (_PLY_HEAD.replace("float x", "quaternion x"), "PLY type"),
+    (_PLY_HEAD.replace("float x", "float"), "property <type> <name>"),
+    (_PLY_HEAD.replace("float x", "list uchar int idx"), "list property"),
+    (_PLY_HEAD.replace("property float x\n", "property float x\nproperty float x\n"), "repeats"),
+    (_PLY_HEAD.replace("element vertex 1\n", "property float y\nelement vertex 1\n"), "'element' before"),
+    (_PLY_HEAD.replace("end_header", "element face 3\nend_header"), "only a vertex element"),
+    (_PLY_HEAD.replace("element vertex 1\nproperty float x\n", "element face 0\n"), "element vertex"),
+    (_PLY_HEAD.replace("format", "frobnicate"), "header keyword"),
+    (_PLY_HEAD.replace("end_header", "comment \xe9\nend_header"), "ASCII header"),
+    ("ply\n" + "comment x\n" * 20000, "end_header"),
+])
+def test_malformed_ply_headers(tmp_path: Path, header: str, match: str) -> None:
+    p = tmp_path / "bad.ply"
+    p.write_bytes(header.encode("latin-1") + bytes(4))
+    with pytest.raises(FormatError, match=match):
+        read_ply(p)
+
+
+def test_ply_types_and_ascii_values(tmp_path: Path) -> None:
+    p = tmp_path / "t.ply"
+    head = ("ply\nformat binary_big_endian 1.0\nelement vertex 2\nproperty double x\n"
+            "property uchar c\nproperty int i\nelement face 0\nproperty list uchar int idx\nend_header\n")
+    rec = np.array([(1.5, 7, -3), (2.5, 255, 4)], dtype=[("x", ">f8"), ("c", "u1"), ("i", ">i4")])
+    p.write_bytes(head.encode() + rec.tobytes())
+    d = read_ply(p)
+    assert d["x"].tolist() == [1.5, 2.5] and d["c"].tolist() == [7, 255] and d["i"].tolist() == [-3, 4]
+    assert d["x"].dtype == np.float64 and d["c"].dtype == np.uint8
+    head = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty uchar c\nend_header\n"
+    p.write_text(head + "1.5 7\n2.5 255\n")
+    d = read_ply(p)
+    assert d["c"].tolist() == [7, 255] and d["x"].dtype == np.float32
+    for body, match in [("1.5 7\n2.5 256\n", "0..255"), ("1.5 7\n2.5 1.5\n", "integer"),
+                        ("1.5 7\n2.5\n", "numbers"), ("1.5 7\nabc 1\n", "numbers")]:
+        p.write_text(head + body)
+        with pytest.raises(FormatError, match=match):
+            read_ply(p)
+
+
+def test_write_ply_is_atomic(tmp_path: Path, monkeypatch) -> None:
+    import os
+
+    p = tmp_path / "a.ply"
+    write_ply(p, np.zeros((5, 3)))
+    p.chmod(0o640)
+    before = p.read_bytes()
+
+    def boom(fd):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "fsync", boom)
+    with pytest.raises(OSError, match="disk full"):
+        write_ply(p, np.ones((500, 3)))
+    monkeypatch.undo()
+    assert p.read_bytes() == before and sorted(x.name for x in tmp_path.iterdir()) == ["a.ply"]
+    write_ply(p, np.ones((7, 3)))
+    assert len(read_ply(p)["x"]) == 7 and (p.stat().st_mode & 0o777) == 0o640
+    with pytest.raises(TypeError, match="complex"):
+        write_ply(p, np.ones((2, 3), np.complex64))
+
+
+# ------------------------------------------------------------------ content before extension
+def test_open_recording_decides_by_content(tmp_path: Path) -> None:
+    rng = np.random.default_rng(7)
+    aris = tmp_path / "rec.bin"
+    write_aris(aris, [rng.integers(0, 255, (30, 48), dtype=np.uint8)])
+    (tmp_path / "beam_angles_ARIS1800_1200_48.csv").write_text(
+        "beam,center_deg\n" + "".join(f"{k},{-12 + 0.5 * k}\n" for k in range(48)))
+    assert open_recording(aris).kind == "aris"  # no telling extension: content decides
+    raw = tmp_path / "ping.dat"
+    raw.write_bytes(bytes(_small_ping()))
+    assert open_recording(raw).kind == "oculus-raw"
+    for name, data, match in [
+        ("x.oculus", aris.read_bytes(), "extension '.oculus' says.*content is an ARIS"),
+        ("x.aris", raw.read_bytes(), "extension '.aris' says.*Oculus network messages"),
+        ("x.bag", raw.read_bytes(), "ROS 1 bag"),
+        ("x.aris", b"nothing like ARIS", "extension '.aris' says, but the file starts"),
+        ("x.bag.dat", b"#ROSBAG V2.0\n" + bytes(20), "named '\\*.bag'"),
+        ("pic.png", _png(4, 1, 8, 0, [bytes(4)]), "single PNG"),
+        ("empty", b"", "expected a recording"),
+    ]:
+        p = tmp_path / name
+        p.write_bytes(data)
+        with pytest.raises(FormatError, match=match):
+            open_recording(p)
+
+
+def test_corrupt_ros_bag_is_a_format_error(tmp_path: Path) -> None:
+    p = tmp_path / "broken.bag"
+    p.write_bytes(b"#ROSBAG V2.0\n" + bytes(range(256)) * 8)
+    with pytest.raises(FormatError, match="bag"):
+        open_recording(p)
+    d = tmp_path / "bag2"
+    d.mkdir()
+    (d / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 9, storage_identifier: x}\n")
+    with pytest.raises(FormatError, match="bag"):
+        open_recording(d)
+
+
+def test_errors_are_one_family() -> None:
+    import pickle
+
+    import gpumap.errors
+    import gpumap.io
+    from gpumap.io import LimitError
+
+    assert gpumap.io.FormatError is gpumap.errors.FormatError and issubclass(FormatError, ValueError)
+    assert issubclass(LimitError, FormatError)
+    e = pickle.loads(pickle.dumps(LimitError("expected less", offset=12, path="f")))
+    assert type(e) is LimitError and (e.offset, e.path) == (12, "f")
+    assert str(e) == "f, byte 12: expected less"
+
+
+def test_limits_agree_with_the_map_side() -> None:
+    """gpumap.limits states the map-side limits too; they must match what spec/mapper enforce."""
+    import gpumap.mapper
+    import gpumap.spec
+    from gpumap import limits
+
+    for mod, name, ours in [(gpumap.spec, "_MAX_VOXELS", limits.MAX_GRID_VOXELS),
+                            (gpumap.mapper, "_META_MAX_BYTES", limits.MAX_MAP_META_BYTES),
+                            (gpumap.mapper, "_DEFLATE_MAX_RATIO", limits.MAX_DEFLATE_RATIO)]:
+        theirs = getattr(mod, name, None)
+        if theirs is not None and theirs is not ours:
+            assert theirs == ours, (mod.__name__, name)
+    with pytest.raises(LimitErrorT := limits.LimitError, match="at most 10"):
+        limits.check_size(11, 10, "x")
+    with pytest.raises(FormatError, match="holds only 3"):
+        limits.check_size(5, 10, "x", available=3)
+    assert limits.check_size(np.uint32(5), 10, "x") == 5 and LimitErrorT is not FormatError

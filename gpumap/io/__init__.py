@@ -1,15 +1,23 @@
 """Sonar recordings in, maps out: readers that stream :class:`SonarFrame` objects, and PLY export.
 
-``open_recording(path)`` sniffs the format:
+``open_recording(path)`` decides the reader by content (magic bytes), then checks that a
+telling file extension agrees (a mismatch is a :class:`FormatError` saying both):
 
+- a directory with ``metadata.yaml`` (ROS 2 bag) -> :func:`open_rosbag`
 - a directory with fan PNGs (``sonar/*.png``) and ``sonar_poses.csv`` -> :func:`open_fan_folder`
-- a ROS 1 ``.bag``, a ROS 2 bag directory (``metadata.yaml``) or ``.mcap`` -> :func:`open_rosbag`
-- a file starting ``DDF`` -> :func:`open_aris`
-- a file starting with the ``.oculus`` log magic ``0x11223344`` -> :func:`open_oculus_log`
+- a file starting ``#ROSBAG V2.0`` (ROS 1, ``.bag``), ``\\x89MCAP0`` (``.mcap``) or
+  ``SQLite format 3`` (``.db3``) -> :func:`open_rosbag`
+- a file starting ``DDF`` (``.aris``, ``.ddf``) -> :func:`open_aris`
+- a file starting with the ``.oculus`` log magic ``0x11223344`` (``.oculus``) -> :func:`open_oculus_log`
 - a file starting with the Oculus message id ``0x4f53`` -> :func:`open_oculus_raw`
 
-Every reader yields a frame only once it is fully read and validated; a truncated or
-corrupt file raises :class:`FormatError` (a ``ValueError``) naming the byte offset.
+One error family: every reader raises :class:`FormatError` (a ``ValueError``; its
+``offset`` is the byte where the problem is, when one applies) for anything wrong with a
+file, and :class:`LimitError` (a ``FormatError``) when a size the file declares is beyond
+a budget of :mod:`gpumap.limits` -- checked before allocating. Library errors (Pillow,
+rosbags, zlib, csv) are wrapped, never passed through. A path that does not exist is a
+``FileNotFoundError``. Every reader yields a frame only once it is fully read and
+validated, so a truncated or corrupt file gives its whole frames, then the error.
 """
 
 from __future__ import annotations
@@ -18,9 +26,10 @@ import os
 from pathlib import Path
 from typing import Any
 
+from gpumap.errors import MissingFileError
 from gpumap.io.aris import open_aris, write_aris
 from gpumap.io.fan import FanGeometry, fan_to_polar, open_fan_folder, polar_to_fan
-from gpumap.io.frame import FormatError, Recording, SonarFrame
+from gpumap.io.frame import FormatError, LimitError, Recording, SonarFrame
 from gpumap.io.oculus import (
     decode_message,
     encode_simple_ping,
@@ -33,6 +42,8 @@ from gpumap.io.ply import read_ply, write_ply
 __all__ = [
     "FanGeometry",
     "FormatError",
+    "LimitError",
+    "MissingFileError",
     "Recording",
     "SonarFrame",
     "decode_message",
@@ -46,6 +57,7 @@ __all__ = [
     "open_rosbag",
     "polar_to_fan",
     "read_ply",
+    "sniff",
     "write_aris",
     "write_oculus_log",
     "write_ply",
@@ -57,6 +69,34 @@ def open_rosbag(path: str | os.PathLike, **kwargs: Any) -> Recording:
     from gpumap.io.rosbag import open_rosbag as _open
 
     return _open(path, **kwargs)
+
+
+# (kind, magic at byte 0, name for messages); the first match decides
+_MAGIC: tuple[tuple[str, bytes, str], ...] = (
+    ("ros1", b"#ROSBAG V2.0", "a ROS 1 bag ('#ROSBAG V2.0')"),
+    ("mcap", b"\x89MCAP0\r\n", "an MCAP file (ROS 2 bag)"),
+    ("db3", b"SQLite format 3\x00", "an SQLite file (ROS 2 .db3 bag)"),
+    ("aris", b"DDF", "an ARIS/DIDSON file ('DDF')"),
+    ("oculus-log", (0x11223344).to_bytes(4, "little"), "a ViewPoint .oculus log (0x11223344)"),
+    ("oculus-raw", (0x4F53).to_bytes(2, "little"), "Oculus network messages (0x4f53)"),
+    ("png", b"\x89PNG\r\n\x1a\n", "a PNG picture"),
+)
+_BY_EXTENSION = {".bag": "ros1", ".mcap": "mcap", ".db3": "db3", ".aris": "aris", ".ddf": "aris",
+                 ".oculus": "oculus-log", ".png": "png"}
+
+
+def sniff(path: str | os.PathLike) -> str | None:
+    """The kind of recording a file holds, from its first bytes (``None`` if not recognised).
+
+    One of ``"ros1"``, ``"mcap"``, ``"db3"``, ``"aris"``, ``"oculus-log"``, ``"oculus-raw"``,
+    ``"png"``.
+    """
+    with open(path, "rb") as f:
+        head = f.read(16)
+    for kind, magic, _name in _MAGIC:
+        if head.startswith(magic):
+            return kind
+    return None
 
 
 def open_recording(path: str | os.PathLike, **kwargs: Any) -> Recording:
@@ -72,7 +112,8 @@ def open_recording(path: str | os.PathLike, **kwargs: Any) -> Recording:
     Raises
     ------
     FormatError
-        If the format is not recognised (the message lists what was looked for).
+        If the format is not recognised (the message lists what was looked for), or the
+        file's extension names another format than its content.
     FileNotFoundError
         If ``path`` does not exist.
     """
@@ -89,15 +130,31 @@ def open_recording(path: str | os.PathLike, **kwargs: Any) -> Recording:
                           "found neither", path=str(p))
     with open(p, "rb") as f:
         head = f.read(16)
-    if head.startswith(b"#ROSBAG") or p.suffix in (".bag", ".mcap", ".db3"):
+    kind = sniff(p)
+    names = {k: n for k, _m, n in _MAGIC}
+    claimed = _BY_EXTENSION.get(p.suffix.lower())
+    if kind is None:
+        looked = "; ".join(n for _k, _m, n in _MAGIC)
+        if claimed is not None:
+            raise FormatError(f"expected {names[claimed]} as the extension {p.suffix!r} says, but the "
+                              f"file starts with {head[:8]!r}", offset=0, path=str(p))
+        raise FormatError(f"expected a recording ({looked}), but the file starts with {head[:8]!r}",
+                          offset=0, path=str(p))
+    if claimed is not None and claimed != kind:
+        raise FormatError(f"expected {names[claimed]} as the extension {p.suffix!r} says, but the "
+                          f"content is {names[kind]} (starts with {head[:8]!r}): rename the file",
+                          offset=0, path=str(p))
+    if kind == "png":
+        raise FormatError("expected a recording, but this is a single PNG picture: open the folder "
+                          "of fan pictures (with sonar_poses.csv) instead", offset=0, path=str(p))
+    if kind == "ros1" and p.suffix != ".bag":
+        raise FormatError("expected a ROS 1 bag to be named '*.bag' (the bag library picks its "
+                          f"reader by extension), but it is named {p.name!r}: rename it", offset=0,
+                          path=str(p))
+    if kind in ("ros1", "mcap", "db3"):
         return open_rosbag(p, **kwargs)
-    if head[:3] == b"DDF":
+    if kind == "aris":
         return open_aris(p, **kwargs)
-    if head[:4] == (0x11223344).to_bytes(4, "little"):
+    if kind == "oculus-log":
         return open_oculus_log(p, **kwargs)
-    if head[:2] == (0x4F53).to_bytes(2, "little"):
-        return open_oculus_raw(p, **kwargs)
-    raise FormatError(
-        f"expected a recording (Oculus messages 'SO', .oculus log 0x11223344, ARIS 'DDF', ROS "
-        f"bag), but the file starts with {head[:8]!r}", offset=0, path=str(p)
-    )
+    return open_oculus_raw(p, **kwargs)

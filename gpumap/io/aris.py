@@ -30,10 +30,15 @@ Conventions at this edge
 - Pose fields in the frame header are not used (they are zero/NaN in practice and their
   frame is vendor-specific): frames have ``T_W_S = None``.
 - DIDSON ``DDF_03``/``DDF_04`` files use different header sizes and offsets and are refused.
+- Budgets (:mod:`gpumap.limits`): ``beams * samples`` is checked against
+  ``MAX_IMAGE_PIXELS`` and a frame (``1024 + beams * samples``) against ``MAX_ITEM_BYTES``
+  when the file is opened, before any frame is read; frames are read one at a time and only
+  whole frames that the file holds are read.
 """
 
 from __future__ import annotations
 
+import io
 import math
 import os
 import struct
@@ -42,7 +47,10 @@ from pathlib import Path
 
 import numpy as np
 
+from gpumap import limits
+from gpumap.errors import MissingFileError
 from gpumap.io.frame import FormatError, Recording, SonarFrame
+from gpumap.limits import check_size, declared_product
 from gpumap.spec import SonarSpec
 
 __all__ = ["load_beam_table", "open_aris", "write_aris"]
@@ -53,16 +61,37 @@ DEFAULT_VFOV_DEG = 14.0
 
 
 def load_beam_table(path: str | os.PathLike) -> np.ndarray:
-    """Read a beam angle CSV (``beam,center_deg,...``) -> (n_beams,) float64 centre angles, degrees."""
-    rows = np.genfromtxt(path, delimiter=",", names=True)
-    if "beam" not in rows.dtype.names or "center_deg" not in rows.dtype.names:
-        raise ValueError(f"Expected columns 'beam' and 'center_deg' in {path}, but got "
-                         f"{rows.dtype.names}")
-    beam = rows["beam"].astype(int)
-    if not np.array_equal(np.sort(beam), np.arange(len(beam))):
-        raise ValueError(f"Expected beams numbered 0..{len(beam) - 1} in {path}")
-    out = np.empty(len(beam))
-    out[beam] = rows["center_deg"]
+    """Read a beam angle CSV (``beam,center_deg,...``) -> (n_beams,) float64 centre angles, degrees.
+
+    Raises
+    ------
+    FormatError
+        If the table is not such a CSV (columns, numbering 0..n-1, finite angles).
+    """
+    ps = os.fspath(path)
+    with open(ps, "rb") as f:
+        check_size(os.fstat(f.fileno()).st_size, limits.MAX_CSV_BYTES, "the beam angle table",
+                   path=ps)
+        text = f.read()
+    try:
+        rows = np.atleast_1d(np.genfromtxt(io.BytesIO(text), delimiter=",", names=True,
+                                           invalid_raise=True))
+    except (ValueError, IndexError, TypeError, UnicodeDecodeError) as e:
+        raise FormatError(f"expected a beam angle CSV (beam,center_deg,...), but reading it failed "
+                          f"({e})", path=ps) from None
+    names = rows.dtype.names or ()
+    if "beam" not in names or "center_deg" not in names:
+        raise FormatError(f"expected columns 'beam' and 'center_deg', but got {names}", path=ps)
+    beam_f = np.asarray(rows["beam"], dtype=np.float64)
+    ang = np.asarray(rows["center_deg"], dtype=np.float64)
+    n = len(beam_f)
+    if not np.array_equal(np.sort(beam_f), np.arange(n)):
+        raise FormatError(f"expected beams numbered 0..{n - 1}, but got {beam_f.tolist()[:8]}...",
+                          path=ps)
+    if not np.all(np.isfinite(ang)):
+        raise FormatError("expected finite 'center_deg' angles, but got NaN or inf", path=ps)
+    out = np.empty(n)
+    out[beam_f.astype(np.int64)] = ang
     return out
 
 
@@ -108,6 +137,9 @@ def open_aris(
     ------
     FormatError
         On a bad or unsupported header (at open) or a bad frame (when it is reached).
+    MissingFileError
+        If no beam table is given and none is found beside the file (a ``FormatError``
+        and a ``FileNotFoundError``).
     """
     p = Path(path)
     with open(p, "rb") as f:
@@ -129,7 +161,11 @@ def open_aris(
     if not (2 <= n_beams <= 1024) or not (1 <= n_samples <= 100_000):
         raise FormatError(f"expected 2..1024 beams and 1..100000 samples, but the header says "
                           f"{n_beams} beams x {n_samples} samples", 16, str(p))
-    frame_size = FRAME_HEADER + n_beams * n_samples
+    check_size(declared_product(n_beams, n_samples), limits.MAX_IMAGE_PIXELS,
+               "a frame's image (NumRawBeams x SamplesPerChannel)", unit="pixels", offset=16,
+               path=str(p))
+    frame_size = check_size(FRAME_HEADER + n_beams * n_samples, limits.MAX_ITEM_BYTES,
+                            "a frame (1024 + NumRawBeams x SamplesPerChannel)", offset=16, path=str(p))
     n_whole, rem = divmod(max(size - FILE_HEADER, 0), frame_size)
 
     if beam_angles_deg is None:
@@ -143,21 +179,28 @@ def open_aris(
             name = _table_name(n_beams, large_lens, system)
             found = _find_table(p, name) if name else None
             if found is None:
-                raise FileNotFoundError(
-                    f"Expected a beam angle table for {n_beams} beams (beam_angles_{name}.csv "
-                    f"beside {p}), but found none: pass beam_angles_deg or beam_table"
-                )
+                raise MissingFileError(
+                    f"expected a beam angle table for {n_beams} beams (beam_angles_{name}.csv "
+                    f"beside the file), but found none: pass beam_angles_deg or beam_table",
+                    path=str(p))
             beam_table = found
         beam_angles_deg = load_beam_table(beam_table)
     ang = np.asarray(beam_angles_deg, dtype=np.float64)
     if ang.shape != (n_beams,):
-        raise ValueError(f"Expected {n_beams} beam angles, but got shape {ang.shape}")
+        raise FormatError(f"expected one beam angle per beam, {n_beams} as the file header says "
+                          f"(NumRawBeams), but the table has shape {ang.shape}", 16, str(p))
+    if not np.all(np.isfinite(ang)):
+        raise ValueError("Expected finite beam angles, but got NaN or inf")
     if ang[0] > ang[-1]:  # a table given positive-to-starboard: beam 0 must be most negative
         ang = -ang
     order = np.argsort(ang, kind="stable")
     az = np.deg2rad(ang[order])
     vfov = math.radians(vfov_deg)
     ps = str(p)
+    try:  # the table (and vfov) must make a sonar before any frame is read
+        SonarSpec(0.0, 1.0, 1, az, vfov)
+    except ValueError as e:
+        raise FormatError(f"expected beam angles that make a valid sonar, but {e}", path=ps) from None
 
     def frames() -> Iterator[SonarFrame]:
         with open(p, "rb") as f:
@@ -203,9 +246,15 @@ def _decode_frame(buf: bytes, k: int, off: int, n_beams: int, n_samples: int, az
                           f"{reordered}", off + 516, path)
     dr = period * 1e-6 * c / 2.0
     r0 = delay * 1e-6 * c / 2.0
-    spec = SonarSpec(max(r0 - dr / 2.0, 0.0), r0 - dr / 2.0 + n_samples * dr, n_samples, az, vfov)
+    try:
+        spec = SonarSpec(max(r0 - dr / 2.0, 0.0), r0 - dr / 2.0 + n_samples * dr, n_samples, az, vfov)
+    except ValueError as e:
+        raise FormatError(f"expected a valid sonar geometry from SamplePeriod {period} us, "
+                          f"SampleStartDelay {delay} us and the beam table, but {e}", off + 452,
+                          path) from None
     data = np.frombuffer(buf, dtype=np.uint8, count=n_beams * n_samples, offset=FRAME_HEADER)
-    img = data.reshape(n_samples, n_beams)[:, order].astype(np.float32) / np.float32(255.0)
+    img = data.reshape(n_samples, n_beams)[:, order].astype(np.float32)
+    np.divide(img, np.float32(255.0), out=img)
     meta = {"format": "aris", "frame_index": int(index), "offset": off,
             "sound_speed": float(c), "sample_period_us": int(period),
             "sample_start_delay_us": int(delay), "first_sample_m": r0}

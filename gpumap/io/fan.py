@@ -13,23 +13,55 @@ beam's bearing). Samples whose 2x2 neighbourhood leaves the picture use the near
 edge pixel within half a pixel and 0 beyond. Because the fan was itself rendered from a
 polar image, the round trip ``polar -> fan -> polar`` is exact up to the two
 interpolations; :func:`polar_to_fan` is provided to measure that (see the tests).
+
+Pictures (:func:`read_grey_png`)
+--------------------------------
+A picture's size is read from its header and checked (against ``gpumap.limits.
+MAX_IMAGE_PIXELS`` and against the fan geometry) before a pixel is decoded. Every PNG
+mode becomes grey in ``[0, 1]``: 1-bit as 0/1; 2, 4 and 8-bit grey (``L``) by 1/255;
+16-bit grey (``I;16``) by 1/65535; palette (``P``) through the palette's luminance;
+``RGB`` through luminance (ITU-R 601-2: ``0.299 R + 0.587 G + 0.114 B``, which leaves a
+grey picture stored as RGB unchanged); the alpha of ``LA``, ``PA`` and ``RGBA`` is ignored
+(the fan's samples are the colour). A file that is not a PNG, or a corrupt one, is a
+:class:`~gpumap.errors.FormatError`.
+
+Pose table (:func:`read_pose_table`)
+------------------------------------
+``frame,T_W_S_00,...,T_W_S_33`` (row-major 4x4, maps sonar-frame points to world,
+metres), optionally ``frame,time_s,T_W_S_00,...``: one row per frame, frames strictly
+ascending (time runs forward; a duplicate frame is refused, naming it), times (when given)
+finite and strictly ascending, every pose finite and rigid.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import os
 import re
+import struct
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from gpumap.io.frame import FormatError, Recording, SonarFrame
+from gpumap import limits
+from gpumap.errors import check_pose
+from gpumap.io.frame import FormatError, LimitError, Recording, SonarFrame
+from gpumap.limits import check_size, declared_product
 from gpumap.spec import SonarSpec
 
-__all__ = ["FanGeometry", "fan_to_polar", "open_fan_folder", "polar_to_fan", "read_poses_csv"]
+__all__ = [
+    "FanGeometry",
+    "fan_to_polar",
+    "open_fan_folder",
+    "polar_to_fan",
+    "read_grey_png",
+    "read_pose_table",
+    "read_poses_csv",
+]
 
 
 @dataclass(frozen=True)
@@ -162,30 +194,231 @@ def polar_to_fan(polar: np.ndarray, spec: SonarSpec, geom: FanGeometry) -> np.nd
     return np.where(ok, out, np.float32(0.0)).astype(np.float32)
 
 
-def read_poses_csv(path: str | os.PathLike) -> dict[int, np.ndarray]:
-    """``frame, T_W_S_00 .. T_W_S_33`` (row-major) -> {frame: (4, 4) float64}."""
-    out: dict[int, np.ndarray] = {}
-    p = str(path)
-    with open(p, newline="") as f:
-        rd = csv.reader(f)
-        header = next(rd, None)
-        if header is None or len(header) != 17 or header[0].strip() != "frame":
-            raise FormatError(f"expected a header 'frame' + 16 matrix entries, but got {header}",
-                              path=p)
-        for line_no, row in enumerate(rd, start=2):
-            if not row:
+# ---------------------------------------------------------------- pictures
+_GREY_8 = ("L",)
+_GREY_16 = ("I;16", "I;16B", "I;16L", "I;16N")
+_VIA_LUMA = ("P", "PA", "RGB", "RGBA", "RGBX", "RGBa")
+_WITH_GREY_ALPHA = ("LA", "La")
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+_PIL_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error, zlib.error, IndexError,
+               KeyError, TypeError)
+
+
+def _check_png_chunks(data: bytes, name: str | None) -> None:
+    """Refuse a PNG whose size (IHDR) is beyond budget or whose chunks do not fit in the file."""
+    n = len(data)
+    if n >= 24 and data[12:16] == b"IHDR":
+        # the size is in the first chunk: refuse a bomb before Pillow parses anything
+        w, h = struct.unpack_from(">II", data, 16)
+        check_size(declared_product(w, h), limits.MAX_IMAGE_PIXELS, f"the picture ({w} x {h})",
+                   unit="pixels", offset=16, path=name)
+    i = len(_PNG_MAGIC)
+    while i + 8 <= n:
+        (length,) = struct.unpack_from(">I", data, i)
+        kind = data[i + 4:i + 8]
+        if length > 2**31 - 1 or i + 12 + length > n:
+            raise FormatError(f"expected PNG chunk {kind!r} of {length} bytes (+ 12) to fit in the "
+                              f"file, but {n - i} bytes are left", i, name)
+        i += 12 + length
+        if kind == b"IEND":
+            return
+
+
+def read_grey_png(
+    source: str | os.PathLike | bytes,
+    *,
+    expected_shape: tuple[int, int] | None = None,
+    formats: tuple[str, ...] = ("PNG",),
+    path: str | None = None,
+) -> np.ndarray:
+    """Decode a picture to grey float32 in ``[0, 1]``, checking its size before decoding.
+
+    Parameters
+    ----------
+    source : path-like or bytes
+        The file, or its bytes.
+    expected_shape : (rows, cols), optional
+        The size the picture must have; checked from the header, before decoding.
+    formats : tuple of str
+        Pillow formats accepted (default PNG only).
+    path : str, optional
+        Name for error messages when ``source`` is bytes.
+
+    Returns
+    -------
+    (rows, cols) float32
+        Grey levels (see the module notes for each mode).
+
+    Raises
+    ------
+    LimitError
+        If the header declares more than ``gpumap.limits.MAX_IMAGE_PIXELS`` pixels.
+    FormatError
+        If it is not such a picture, is corrupt or truncated, has an unsupported mode, or
+        is not ``expected_shape``.
+    """
+    from PIL import Image  # lazy: only the picture readers need Pillow
+
+    name = path if path is not None else (None if isinstance(source, bytes) else os.fspath(source))
+    fmt = "/".join(formats)
+    if isinstance(source, bytes):
+        data = source
+    else:
+        with open(source, "rb") as f:
+            check_size(os.fstat(f.fileno()).st_size, limits.MAX_ITEM_BYTES, "the picture file",
+                       path=name)
+            data = f.read()
+    if data.startswith(_PNG_MAGIC):
+        _check_png_chunks(data, name)
+    try:
+        # from memory: a length field Pillow believes can never make it allocate more than the file
+        im = Image.open(io.BytesIO(data), formats=list(formats))
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
+        raise LimitError(f"expected a {fmt} picture within Pillow's decompression-bomb limit, but "
+                         f"{e}", 0, name) from None
+    except FileNotFoundError:
+        raise
+    except _PIL_ERRORS as e:
+        raise FormatError(f"expected a {fmt} picture, but Pillow cannot open it ({e})", 0,
+                          name) from None
+    with im:
+        w, h = im.size
+        # the header's size, before a pixel is decoded
+        check_size(declared_product(w, h), limits.MAX_IMAGE_PIXELS,
+                   f"the picture ({w} x {h})", unit="pixels", offset=16, path=name)
+        if expected_shape is not None and (h, w) != tuple(expected_shape):
+            raise FormatError(f"expected a {expected_shape[0]} x {expected_shape[1]} picture (rows x "
+                              f"columns), but its header says {h} x {w}", 16, name)
+        mode = im.mode
+        try:
+            if mode == "1":
+                a = np.asarray(im, dtype=np.float32)  # bool -> 0 / 1
+            elif mode in _GREY_8:
+                a = np.asarray(im, dtype=np.float32) / np.float32(255.0)
+            elif mode in _GREY_16:
+                a = np.asarray(im).astype(np.float32) / np.float32(65535.0)
+            elif mode == "I":
+                raw = np.asarray(im)
+                if raw.size and (raw.min() < 0 or raw.max() > 65535):
+                    raise FormatError(f"expected 16-bit grey levels in mode I, but got "
+                                      f"{raw.min()}..{raw.max()}", None, name)
+                a = raw.astype(np.float32) / np.float32(65535.0)
+            elif mode in _WITH_GREY_ALPHA:
+                a = np.asarray(im.getchannel(0), dtype=np.float32) / np.float32(255.0)
+            elif mode in _VIA_LUMA:
+                if mode in ("P", "PA"):  # the palette's colours (transparency dropped below)
+                    im = im.convert("RGBA")
+                a = np.asarray(im.convert("L"), dtype=np.float32) / np.float32(255.0)
+            else:
+                raise FormatError(f"expected a grey, palette, grey+alpha, RGB or RGBA picture, but "
+                                  f"got Pillow mode {mode!r}", None, name)
+        except (Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
+            raise LimitError(f"expected a picture within Pillow's decompression-bomb limit, but {e}",
+                             0, name) from None
+        except _PIL_ERRORS as e:
+            if isinstance(e, FormatError):
+                raise
+            raise FormatError(f"expected a complete {fmt} picture, but decoding failed ({e})", None,
+                              name) from None
+    if a.shape != (h, w):
+        raise FormatError(f"expected {h} x {w} decoded pixels, but got {a.shape}", None, name)
+    return np.ascontiguousarray(a, dtype=np.float32)
+
+
+# ---------------------------------------------------------------- pose table
+_MAT = [f"T_W_S_{i}{j}" for i in range(4) for j in range(4)]
+
+
+def read_pose_table(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Read a pose table (layout in the module notes) and check it.
+
+    Returns
+    -------
+    frames : (n,) int64
+        Strictly ascending frame numbers.
+    times_s : (n,) float64 or None
+        Strictly ascending times, seconds, when the table has a ``time_s`` column.
+    T_W_S : (n, 4, 4) float64
+        Rigid, finite poses.
+
+    Raises
+    ------
+    FormatError
+        Naming the line (and the frame) of the first problem: wrong header or field count,
+        a field that is not a number, a duplicate frame, frames or times out of order, a
+        non-finite or non-rigid pose.
+    """
+    p = os.fspath(path)
+    with open(p, "rb") as fb:
+        check_size(os.fstat(fb.fileno()).st_size, limits.MAX_CSV_BYTES, "the pose table", path=p)
+        raw = fb.read()
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise FormatError(f"expected a UTF-8 text table, but byte {e.start} is not", e.start, p) from None
+    frames: list[int] = []
+    times: list[float] = []
+    poses: list[np.ndarray] = []
+    line_of: dict[int, int] = {}
+    try:
+        rd = csv.reader(io.StringIO(text, newline=""))
+        header = [h.strip() for h in next(rd, None) or []]
+        with_time = len(header) == 18 and header[1] == "time_s"
+        if header[:1] != ["frame"] or header[1 + with_time:] != _MAT:
+            raise FormatError(f"expected a header 'frame', optionally 'time_s', then {_MAT[0]} .. "
+                              f"{_MAT[-1]}, but got {header}", path=p)
+        n_fields = 17 + with_time
+        for row in rd:
+            line_no = rd.line_num
+            if not row or all(not v.strip() for v in row):
                 continue
-            if len(row) != 17:
-                raise FormatError(f"line {line_no}: expected 17 fields, but got {len(row)}", path=p)
+            if len(row) != n_fields:
+                raise FormatError(f"line {line_no}: expected {n_fields} fields, but got {len(row)}",
+                                  path=p)
             try:
                 k = int(row[0])
-                T = np.array([float(v) for v in row[1:]], dtype=np.float64).reshape(4, 4)
+                vals = [float(v) for v in row[1:]]
             except ValueError as e:
                 raise FormatError(f"line {line_no}: expected numbers, but {e}", path=p) from None
+            if k < 0:
+                raise FormatError(f"line {line_no}: expected a frame number >= 0, but got {k}", path=p)
+            if k in line_of:
+                raise FormatError(f"line {line_no}: expected one pose per frame, but frame {k} is "
+                                  f"also on line {line_of[k]} (duplicate frame)", path=p)
+            if frames and k < frames[-1]:
+                raise FormatError(f"line {line_no}: expected frames in ascending order (time runs "
+                                  f"forward), but frame {k} comes after frame {frames[-1]} on line "
+                                  f"{line_of[frames[-1]]}", path=p)
+            if with_time:
+                t = vals.pop(0)
+                if not np.isfinite(t):
+                    raise FormatError(f"line {line_no}: expected a finite time_s for frame {k}, but "
+                                      f"got {t}", path=p)
+                if times and t <= times[-1]:
+                    raise FormatError(f"line {line_no}: expected time_s to increase, but frame {k} "
+                                      f"has {t} after {times[-1]} (frame {frames[-1]})", path=p)
+                times.append(t)
+            T = np.array(vals, dtype=np.float64).reshape(4, 4)
             if not np.all(np.isfinite(T)):
-                raise FormatError(f"line {line_no}: expected finite pose entries", path=p)
-            out[k] = T
-    return out
+                raise FormatError(f"line {line_no}: expected finite pose entries for frame {k}, but "
+                                  "got NaN or inf", path=p)
+            try:
+                T = check_pose(T, f"T_W_S of frame {k}")
+            except ValueError as e:
+                raise FormatError(f"line {line_no}: {e}", path=p) from None
+            line_of[k] = line_no
+            frames.append(k)
+            poses.append(T)
+    except csv.Error as e:
+        raise FormatError(f"expected a CSV table, but {e}", path=p) from None
+    return (np.asarray(frames, dtype=np.int64), np.asarray(times) if with_time else None,
+            np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4))
+
+
+def read_poses_csv(path: str | os.PathLike) -> dict[int, np.ndarray]:
+    """``frame, T_W_S_00 .. T_W_S_33`` (row-major) -> {frame: (4, 4) float64}; see :func:`read_pose_table`."""
+    frames, _t, T = read_pose_table(path)
+    return {int(k): T[i] for i, k in enumerate(frames)}
 
 
 _NUM = re.compile(r"(\d+)")
@@ -217,44 +450,52 @@ def open_fan_folder(
 
     Notes
     -----
-    Pictures are read lazily, one per frame; RGB pictures are averaged to grey; uint8 is
-    scaled by 1/255 (16-bit by 1/65535).
-    """
-    from PIL import Image  # lazy: only this reader needs Pillow
+    Pictures are read lazily, one per frame, each checked from its header (size) before it
+    is decoded; every PNG mode becomes grey in [0, 1] (see :func:`read_grey_png`). The pose
+    table is read and checked when the folder is opened (:func:`read_pose_table`); with a
+    ``time_s`` column frames carry it as ``timestamp_s``.
 
+    Raises
+    ------
+    FormatError
+        If there are no pictures, two pictures have the same frame number, or the pose
+        table is malformed (at open); if a picture is corrupt or the wrong size (when it is
+        reached).
+    """
     root = Path(folder)
     geom = geom or FanGeometry()
     img_dir = root / image_dir if (root / image_dir).is_dir() else root
-    files = []
-    for f in img_dir.iterdir():
+    by_frame: dict[int, Path] = {}
+    for f in sorted(img_dir.iterdir()):
         if f.suffix.lower() == ".png":
             m = _NUM.findall(f.stem)
             if m:
-                files.append((int(m[-1]), f))
-    if not files:
+                k = int(m[-1])
+                if k in by_frame:
+                    raise FormatError(f"expected one picture per frame number, but {by_frame[k].name} "
+                                      f"and {f.name} are both frame {k}", path=str(img_dir))
+                by_frame[k] = f
+    if not by_frame:
         raise FormatError(f"expected PNG fan pictures in {img_dir}, but found none", path=str(root))
-    files.sort()
-    files = files[:: max(1, int(stride))]
+    files = sorted(by_frame.items())[:: max(1, int(stride))]
     pose_path = Path(poses) if poses is not None else root / "sonar_poses.csv"
-    T = read_poses_csv(pose_path) if pose_path.is_file() else {}
+    T: dict[int, np.ndarray] = {}
+    t_of: dict[int, float] = {}
+    if pose_path.is_file():
+        fr, ts, Ts = read_pose_table(pose_path)
+        T = {int(k): Ts[i] for i, k in enumerate(fr)}
+        if ts is not None:
+            t_of = {int(k): float(ts[i]) for i, k in enumerate(fr)}
     has_poses = bool(T) and all(k in T for k, _ in files)
     sampler = _fan_sampler(spec, geom)
+    shape = (geom.n_rows, geom.n_cols)
 
     def frames() -> Iterator[SonarFrame]:
         for k, f in files:
-            with Image.open(f) as im:
-                a = np.asarray(im)
-            if a.ndim == 3:
-                a = a[..., :3].astype(np.float32).mean(axis=-1)
-                scale = 255.0
-            else:
-                scale = 65535.0 if a.dtype == np.uint16 else 255.0
-            fan = a.astype(np.float32) / np.float32(scale)
-            if fan.shape != (geom.n_rows, geom.n_cols):
-                raise FormatError(f"expected a {geom.n_rows} x {geom.n_cols} picture, but got "
-                                  f"{fan.shape}", path=str(f))
+            fan = read_grey_png(f, expected_shape=shape)
             img = sampler(fan)
-            yield SonarFrame(image=img, spec=spec, timestamp_s=None, T_W_S=T.get(k),
+            np.clip(img, 0.0, 1.0, out=img)  # a convex mix of [0, 1] values, less float32 rounding
+            yield SonarFrame(image=img, spec=spec, timestamp_s=t_of.get(k), T_W_S=T.get(k),
                              meta={"format": "fan", "frame": k, "file": str(f)})
 
     return Recording(str(root), "fan-folder", frames, has_poses=has_poses,

@@ -13,35 +13,10 @@ from typing import Any
 
 import numpy as np
 
+from gpumap.errors import FormatError, LimitError
 from gpumap.spec import SonarSpec
 
-__all__ = ["FormatError", "Recording", "SonarFrame"]
-
-
-class FormatError(ValueError):
-    """A recording is truncated, corrupt or not in the layout it claims.
-
-    Parameters
-    ----------
-    message : str
-        What was expected and what came.
-    offset : int or None
-        Byte offset in the file (or in the decompressed item, as the message says) where
-        the problem was found; ``None`` where a byte offset does not apply.
-    path : str or None
-        The file concerned.
-    """
-
-    def __init__(self, message: str, offset: int | None = None, path: str | None = None):
-        where = []
-        if path is not None:
-            where.append(str(path))
-        if offset is not None:
-            where.append(f"byte {offset}")
-        prefix = (": ".join([", ".join(where), ""])) if where else ""
-        super().__init__(prefix + message)
-        self.offset = offset
-        self.path = path
+__all__ = ["FormatError", "LimitError", "Recording", "SonarFrame"]
 
 
 @dataclass(frozen=True, eq=False)

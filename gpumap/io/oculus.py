@@ -48,6 +48,16 @@ uint16 compression; <2 pad>; uint32 originalSize, payloadSize; <4 pad>``) and
 one Oculus network message; ``compression`` 1 is Qt's ``qCompress`` (a big-endian uint32
 of the uncompressed size, then a zlib stream). Other item types are skipped. Encrypted
 logs are refused. The item time is the frame's ``timestamp_s``.
+
+Budgets (:mod:`gpumap.limits`)
+------------------------------
+Every size a file declares is checked before anything of that size is read, allocated or
+inflated: a message (``16 + payloadSize``) and a log item's stored and inflated sizes
+against ``MAX_ITEM_BYTES`` and against the bytes left in the file, header sizes against
+``MAX_HEADER_BYTES``, ``nRanges * nBeams`` against ``MAX_IMAGE_PIXELS``. A compressed item
+must declare the same size twice (``originalSize`` and the ``qCompress`` prefix); it is
+inflated with its output bounded by that size, so a small file can never inflate to more
+than it declares, and a stream that holds more (or less) is refused.
 """
 
 from __future__ import annotations
@@ -61,7 +71,9 @@ from typing import BinaryIO
 
 import numpy as np
 
+from gpumap import limits
 from gpumap.io.frame import FormatError, Recording, SonarFrame
+from gpumap.limits import check_size, declared_product
 from gpumap.spec import SonarSpec
 
 __all__ = [
@@ -186,6 +198,10 @@ def decode_message(
     if n_ranges < 1 or n_beams < 2:
         raise _fail(f"expected nRanges >= 1 and nBeams >= 2, but got {n_ranges} x {n_beams}",
                     base + o_nr, path)
+    check_size(declared_product(n_ranges, n_beams), limits.MAX_IMAGE_PIXELS, "nRanges x nBeams",
+               unit="pixels", offset=base + o_nr, path=path)
+    if t is not None and not math.isfinite(t):
+        raise _fail(f"expected a finite ping time, but got {t}", base + o_dsize - 8, path)
     bear_end = fixed + 2 * n_beams
     if bear_end > n:
         raise _fail(f"expected {n_beams} bearings (int16) ending at message byte {bear_end}, "
@@ -218,8 +234,8 @@ def decode_message(
         samples = rows[:, 4:].copy().view(dt).reshape(n_ranges, n_beams)
     else:
         samples = raw.view(dt).reshape(n_ranges, n_beams)
-    scale = float(np.iinfo(dt).max)
-    image = (samples[:, ::-1].astype(np.float32) / np.float32(scale)).astype(np.float32)
+    image = samples[:, ::-1].astype(np.float32)  # the one float copy: scaled in place
+    np.divide(image, np.float32(np.iinfo(dt).max), out=image)
     az = -np.deg2rad(bearings_cdeg[::-1].astype(np.float64) / 100.0)
     try:
         spec = SonarSpec(0.0, n_ranges * res, int(n_ranges), az, math.radians(vfov_deg))
@@ -239,7 +255,7 @@ def decode_message(
         "offset": base,
         **extra,
     }
-    return SonarFrame(image=np.ascontiguousarray(image), spec=spec, timestamp_s=t, meta=meta)
+    return SonarFrame(image=image, spec=spec, timestamp_s=t, meta=meta)
 
 
 def _read_exact(f: BinaryIO, n: int) -> bytes:
@@ -257,6 +273,7 @@ def iter_raw_messages(path: str | os.PathLike) -> Iterator[tuple[int, bytes]]:
     """
     p = os.fspath(path)
     with open(p, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
         off = 0
         while True:
             hdr = _read_exact(f, 16)
@@ -268,6 +285,8 @@ def iter_raw_messages(path: str | os.PathLike) -> Iterator[tuple[int, bytes]]:
             oid, _s, _d, _m, _v, payload, _sp = _HEADER.unpack(hdr)
             if oid != OCULUS_ID:
                 raise _fail(f"expected Oculus message id 0x4f53, but got 0x{oid:04x}", off, p)
+            check_size(16 + payload, limits.MAX_ITEM_BYTES, "an Oculus message (16 + payloadSize)",
+                       available=size - off, offset=off + 10, path=p)
             body = _read_exact(f, payload)
             if len(body) < payload:
                 raise _fail(f"expected {payload} payload bytes for the message starting at byte "
@@ -325,6 +344,7 @@ def iter_oculus_log(path: str | os.PathLike) -> Iterator[tuple[int, int, float, 
     """
     p = os.fspath(path)
     with open(p, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
         head = _read_exact(f, _LOG_HEADER.size)
         if len(head) < _LOG_HEADER.size:
             raise _fail(f"expected a {_LOG_HEADER.size}-byte .oculus file header, but the file has "
@@ -335,6 +355,8 @@ def iter_oculus_log(path: str | os.PathLike) -> Iterator[tuple[int, int, float, 
         if size_header < _LOG_HEADER.size:
             raise _fail(f"expected a file header size >= {_LOG_HEADER.size}, but got {size_header}",
                         4, p)
+        check_size(size_header, limits.MAX_HEADER_BYTES, "the file header (sizeHeader)",
+                   available=size, offset=4, path=p)
         if encryption != 0:
             raise _fail(f"expected an unencrypted log (encryption 0), but got {encryption}", 26, p)
         f.seek(size_header)
@@ -352,14 +374,24 @@ def iter_oculus_log(path: str | os.PathLike) -> Iterator[tuple[int, int, float, 
             if size_item < _LOG_ITEM.size:
                 raise _fail(f"expected an item header size >= {_LOG_ITEM.size}, but got {size_item}",
                             off + 4, p)
-            if size_item > _LOG_ITEM.size:
-                skip = _read_exact(f, size_item - _LOG_ITEM.size)
-                if len(skip) < size_item - _LOG_ITEM.size:
-                    raise _fail("expected the rest of the item header, but the file ends",
-                                off + _LOG_ITEM.size + len(skip), p)
-            data = _read_exact(f, payload)
+            check_size(size_item, limits.MAX_HEADER_BYTES, "an item header (sizeHeader)",
+                       available=size - off, offset=off + 4, path=p)
+            if not math.isfinite(t):
+                raise _fail(f"expected a finite item time, but got {t}", off + 16, p)
             start = off + size_item
-            if len(data) < payload:
+            if comp not in (0, 1):
+                raise _fail(f"expected compression 0 (none) or 1 (qCompress), but got {comp}",
+                            off + 24, p)
+            # both sizes before reading a byte of the payload
+            check_size(payload, limits.MAX_ITEM_BYTES, f"the payload (payloadSize) of the item at byte {off}",
+                       available=size - start, offset=off + 32, path=p)
+            check_size(orig, limits.MAX_ITEM_BYTES,
+                       f"the inflated item (originalSize) of the item at byte {off}",
+                       offset=off + 28, path=p)
+            if size_item > _LOG_ITEM.size:
+                f.read(size_item - _LOG_ITEM.size)  # in the file: checked just above
+            data = _read_exact(f, payload)
+            if len(data) < payload:  # the file shrank under us
                 raise _fail(f"expected {payload} payload bytes for the item at byte {off}, but the "
                             f"file ends after {len(data)}", start + len(data), p)
             if comp == 1:
@@ -367,22 +399,38 @@ def iter_oculus_log(path: str | os.PathLike) -> Iterator[tuple[int, int, float, 
                     raise _fail(f"expected a qCompress payload (4-byte size + zlib), but got "
                                 f"{payload} bytes", start, p)
                 (declared,) = struct.unpack_from(">I", data, 0)
-                try:
-                    data = zlib.decompress(data[4:])
-                except zlib.error as e:
-                    raise _fail(f"expected a zlib stream in the compressed item at byte {off}, but "
-                                f"inflating failed ({e})", start + 4, p) from None
-                if len(data) != declared or len(data) != orig:
-                    raise _fail(f"expected the item to inflate to {orig} bytes (qCompress header "
-                                f"says {declared}), but got {len(data)}", start, p)
-            elif comp != 0:
-                raise _fail(f"expected compression 0 (none) or 1 (qCompress), but got {comp}",
-                            off + 24, p)
+                if declared != orig:
+                    raise _fail(f"expected the qCompress size prefix to equal originalSize {orig}, "
+                                f"but it says {declared}", start, p)
+                data = _inflate_exact(data, orig, start, off, p)
             elif orig != payload:
                 raise _fail(f"expected originalSize == payloadSize for an uncompressed item, but "
                             f"got {orig} and {payload}", off + 28, p)
             yield off, typ, t, data
             off = start + payload
+
+
+def _inflate_exact(data: bytes, size: int, start: int, item: int, path: str) -> bytes:
+    """Inflate a ``qCompress`` payload (4-byte prefix, zlib) to exactly ``size`` bytes, never more."""
+    stream = memoryview(data)[4:]
+    if size == 0 and len(stream) == 0:  # qCompress of nothing is the bare prefix
+        return b""
+    d = zlib.decompressobj()
+    where = f"the compressed item at byte {item}"
+    try:
+        # one byte more than declared tells "too long"; short of that limit zlib consumes all
+        # the input, so a complete stream has reached its end (and checked its Adler-32)
+        out = d.decompress(stream, size + 1)
+    except zlib.error as e:
+        raise _fail(f"expected a zlib stream in {where}, but inflating failed ({e})", start + 4,
+                    path) from None
+    if len(out) > size:
+        raise _fail(f"expected {where} to inflate to {size} bytes (originalSize), but it holds more",
+                    start + 4, path)
+    if len(out) < size or not d.eof:
+        raise _fail(f"expected {where} to inflate to {size} bytes (originalSize) and end, but it "
+                    f"gives {len(out)} bytes{'' if d.eof else ' and is cut short'}", start + 4, path)
+    return out
 
 
 def open_oculus_log(path: str | os.PathLike, *, vfov_deg: float = DEFAULT_VFOV_DEG) -> Recording:
@@ -414,7 +462,7 @@ def open_oculus_log(path: str | os.PathLike, *, vfov_deg: float = DEFAULT_VFOV_D
                 f.seek(off)
                 magic, size_item, typ, _v, _t, _c, _o, payload = _LOG_ITEM.unpack(
                     f.read(_LOG_ITEM.size))
-                if magic != LOG_ITEM_MAGIC:
+                if magic != LOG_ITEM_MAGIC or size_item < _LOG_ITEM.size:
                     break
                 k += typ == LOG_TYPE_OCULUS_SONAR
                 off += size_item + payload

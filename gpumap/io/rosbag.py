@@ -21,6 +21,13 @@ bracketed by poses more than ``max_pose_gap_s`` apart, or that far outside the p
 span, get ``T_W_S = None`` (replay skips and counts them).
 
 The vertical aperture is not in either message: ``vfov_deg`` (default 20) is a parameter.
+
+Errors: whatever the bag library raises on a damaged bag (its own ``ReaderError``,
+``AnyReaderError`` and ``SerdeError``, and the ``struct``/``KeyError``/... that a corrupt
+record can provoke) comes out as :class:`~gpumap.errors.FormatError` naming the bag and
+what was being read; a damaged message names its index on the topic. Image sizes are
+checked against ``gpumap.limits.MAX_IMAGE_PIXELS`` before a picture is decoded; poses must
+be finite with a non-zero quaternion.
 For bags that do not store message definitions (ROS 2 sqlite3), the definitions below
 are registered; ``OculusFire`` is our reading of the driver's fire message and only needs
 to match the bag when the bag carries no definitions.
@@ -28,16 +35,35 @@ to match the bag when the bag carries no definitions.
 
 from __future__ import annotations
 
-import io
 import math
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
-from gpumap.io.frame import FormatError, Recording, SonarFrame
+from gpumap import limits
+from gpumap.io.fan import read_grey_png
+from gpumap.io.frame import FormatError, LimitError, Recording, SonarFrame
+from gpumap.limits import check_size, declared_product
 from gpumap.spec import SonarSpec
+
+_R = TypeVar("_R")
+
+
+def _bag_call(fn: Callable[[], _R], what: str, path: str) -> _R:
+    """Run one call into the bag library; its exceptions become gpumap's ``FormatError``."""
+    try:
+        return fn()
+    except FormatError:
+        raise
+    except MemoryError:
+        raise LimitError(f"expected {what} to fit in memory, but the bag declares a record too large "
+                         "to allocate", path=path) from None
+    except Exception as e:  # the library's own errors and whatever a corrupt record provokes
+        raise FormatError(f"expected {what}, but the bag library failed: {type(e).__name__}: {e}",
+                          path=path) from None
 
 __all__ = ["MSG_DEFINITIONS", "make_typestore", "open_rosbag"]
 
@@ -101,6 +127,12 @@ def _stamp(msg, fallback_ns: int) -> float:
 def _T(q: tuple[float, float, float, float], p: tuple[float, float, float]) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
+    qa, pa = np.asarray(q, dtype=np.float64), np.asarray(p, dtype=np.float64)
+    if not (np.all(np.isfinite(qa)) and np.all(np.isfinite(pa))):
+        raise FormatError(f"expected a finite pose, but got position {pa.tolist()}, quaternion "
+                          f"{qa.tolist()}")
+    if not np.linalg.norm(qa) > 1e-9:
+        raise FormatError(f"expected a non-zero quaternion, but got {qa.tolist()}")
     T = np.eye(4)
     T[:3, :3] = Rotation.from_quat(q).as_matrix()
     T[:3, 3] = p
@@ -136,14 +168,20 @@ class _PoseTrack:
 
 
 def _decode_psi(msg, vfov: float) -> tuple[np.ndarray, SonarSpec]:
-    d = np.array([[v.x, v.y, v.z] for v in msg.beam_directions], dtype=np.float64)
+    d = np.array([[v.x, v.y, v.z] for v in msg.beam_directions], dtype=np.float64).reshape(-1, 3)
     n_beams = int(msg.image.beam_count)
     if d.shape[0] != n_beams:
         raise FormatError(f"expected {n_beams} beam_directions, but got {d.shape[0]}")
+    if not np.all(np.isfinite(d)):
+        raise FormatError("expected finite beam_directions, but got NaN or inf")
     az = np.arctan2(-d[:, 1], d[:, 2])
     r = np.asarray(msg.ranges, dtype=np.float64)
     if r.size < 1:
         raise FormatError("expected at least one range, but 'ranges' is empty")
+    if not np.all(np.isfinite(r)):
+        raise FormatError("expected finite 'ranges', but got NaN or inf")
+    check_size(declared_product(r.size, n_beams), limits.MAX_IMAGE_PIXELS, "ranges x beam_count",
+               unit="pixels")
     dr = float(np.median(np.diff(r))) if r.size > 1 else 0.0
     if r.size > 1 and (dr <= 0 or np.max(np.abs(np.diff(r) - dr)) > 1e-3 * dr + 1e-6):
         raise FormatError("expected evenly spaced ascending 'ranges', but they are not")
@@ -167,23 +205,31 @@ def _decode_psi(msg, vfov: float) -> tuple[np.ndarray, SonarSpec]:
 
 
 def _decode_oculus_ping(msg, vfov: float) -> tuple[np.ndarray, SonarSpec]:
-    from PIL import Image
-
     nr, nb = int(msg.num_ranges), int(msg.num_beams)
+    check_size(declared_product(nr, nb), limits.MAX_IMAGE_PIXELS, "num_ranges x num_beams",
+               unit="pixels")
     b = np.asarray(msg.bearings, dtype=np.int64)
     if b.size != nb:
         raise FormatError(f"expected {nb} bearings, but got {b.size}")
-    with Image.open(io.BytesIO(bytes(np.asarray(msg.ping.data, dtype=np.uint8)))) as im:
-        a = np.asarray(im)
-    if a.ndim == 3:
-        a = a[..., 0]
-    if a.shape != (nr, nb):
-        raise FormatError(f"expected a {nr} x {nb} ping image, but got {a.shape}")
-    scale = 65535.0 if a.dtype == np.uint16 else 255.0
-    az = -np.deg2rad(b[::-1] / 100.0)
     res = float(msg.range_resolution)
+    if not (math.isfinite(res) and res > 0):
+        raise FormatError(f"expected a finite range_resolution > 0 m, but got {res}")
+    # size from the picture's header first: PNG (or JPEG) of num_ranges x num_beams
+    a = read_grey_png(bytes(np.asarray(msg.ping.data, dtype=np.uint8)), expected_shape=(nr, nb),
+                      formats=("PNG", "JPEG"), path="the ping picture")
+    az = -np.deg2rad(b[::-1] / 100.0)
     spec = SonarSpec(0.0, nr * res, nr, az, vfov)
-    return (a[:, ::-1].astype(np.float32) / np.float32(scale)), spec
+    return np.ascontiguousarray(a[:, ::-1]), spec
+
+
+def _bag_messages(rd, conns, path: str) -> Iterator[tuple]:
+    """``rd.messages(connections=conns)`` with the library's errors as ``FormatError``."""
+    it = _bag_call(lambda: iter(rd.messages(connections=conns)), "the bag's messages", path)
+    while True:
+        item = _bag_call(lambda: next(it, None), "the next message record", path)
+        if item is None:
+            return
+        yield item
 
 
 def open_rosbag(
@@ -219,9 +265,14 @@ def open_rosbag(
     from rosbags.highlevel import AnyReader
 
     p = Path(path)
+    ps = str(p)
+    if not p.exists():
+        raise FileNotFoundError(f"Expected a ROS bag at {p}, but nothing is there")
     ts = make_typestore(ros1=p.suffix == ".bag")
     vfov = math.radians(vfov_deg)
-    with AnyReader([p], default_typestore=ts) as rd:
+    rd = _bag_call(lambda: AnyReader([p], default_typestore=ts), "a ROS bag", ps)
+    _bag_call(rd.open, "a readable ROS bag (header, index and connections)", ps)
+    try:
         conns = rd.connections
         img_conns = [c for c in conns if (c.topic == image_topic if image_topic
                                           else c.msgtype in (PSI, OCULUS_PING))]
@@ -230,7 +281,7 @@ def open_rosbag(
                 f"expected exactly one sonar image topic ({PSI} or {OCULUS_PING}), but found "
                 f"{sorted({c.topic for c in img_conns}) or 'none'} among "
                 f"{sorted({(c.topic, c.msgtype) for c in conns})}: pass image_topic",
-                path=str(p))
+                path=ps)
         img_topic = img_conns[0].topic
         pose_conns = [c for c in conns if (c.topic == pose_topic if pose_topic
                                            else c.msgtype == POSE)]
@@ -238,45 +289,64 @@ def open_rosbag(
         times: list[float] = []
         poses: list[np.ndarray] = []
         if len({c.topic for c in pose_conns}) == 1 and (pose_topic or world_frame is None):
-            for c, t, raw in rd.messages(connections=pose_conns):
-                m = rd.deserialize(raw, c.msgtype)
-                o, q = m.pose.position, m.pose.orientation
+            for k, (c, t, raw) in enumerate(_bag_messages(rd, pose_conns, ps)):
+                m = _bag_call(lambda c=c, raw=raw: rd.deserialize(raw, c.msgtype),
+                              f"pose message {k} on {c.topic}", ps)
+                try:
+                    o, q = m.pose.position, m.pose.orientation
+                    poses.append(_T((q.x, q.y, q.z, q.w), (o.x, o.y, o.z)))
+                except (FormatError, AttributeError) as e:
+                    raise FormatError(f"pose message {k} on {c.topic}: {e}", path=ps) from None
                 times.append(_stamp(m, t))
-                poses.append(_T((q.x, q.y, q.z, q.w), (o.x, o.y, o.z)))
         elif world_frame is not None and tf_conns:
             if sonar_frame is None:
-                for c, _t, raw in rd.messages(connections=img_conns):
-                    sonar_frame = rd.deserialize(raw, c.msgtype).header.frame_id
+                for c, _t, raw in _bag_messages(rd, img_conns, ps):
+                    sonar_frame = _bag_call(lambda c=c, raw=raw: rd.deserialize(raw, c.msgtype),
+                                            f"the first message on {c.topic}", ps).header.frame_id
                     break
-            for c, t, raw in rd.messages(connections=tf_conns):
-                for tr in rd.deserialize(raw, c.msgtype).transforms:
+            for k, (c, t, raw) in enumerate(_bag_messages(rd, tf_conns, ps)):
+                msg = _bag_call(lambda c=c, raw=raw: rd.deserialize(raw, c.msgtype),
+                                f"TF message {k} on {c.topic}", ps)
+                for tr in msg.transforms:
                     if tr.header.frame_id == world_frame and tr.child_frame_id == sonar_frame:
                         r, q = tr.transform.translation, tr.transform.rotation
+                        try:
+                            poses.append(_T((q.x, q.y, q.z, q.w), (r.x, r.y, r.z)))
+                        except FormatError as e:
+                            raise FormatError(f"TF message {k} on {c.topic}: {e}", path=ps) from None
                         times.append(_stamp(tr, t))
-                        poses.append(_T((q.x, q.y, q.z, q.w), (r.x, r.y, r.z)))
             if not poses:
                 raise FormatError(f"expected TF transforms {world_frame} -> {sonar_frame}, but "
-                                  "the bag has none (only direct transforms are used)", path=str(p))
+                                  "the bag has none (only direct transforms are used)", path=ps)
         n_images = sum(c.msgcount for c in img_conns)
+    finally:
+        _bag_call(rd.close, "to close the bag", ps)
     if T_B_S is not None:
         E = np.asarray(T_B_S, dtype=np.float64)
         poses = [T @ E for T in poses]
     track = _PoseTrack(times, poses, max_pose_gap_s) if poses else None
 
     def frames() -> Iterator[SonarFrame]:
-        with AnyReader([p], default_typestore=ts) as rd2:
+        rd2 = _bag_call(lambda: AnyReader([p], default_typestore=ts), "a ROS bag", ps)
+        _bag_call(rd2.open, "a readable ROS bag", ps)
+        try:
             cs = [c for c in rd2.connections if c.topic == img_topic]
-            for k, (c, t, raw) in enumerate(rd2.messages(connections=cs)):
-                m = rd2.deserialize(raw, c.msgtype)
+            for k, (c, t, raw) in enumerate(_bag_messages(rd2, cs, ps)):
+                m = _bag_call(lambda c=c, raw=raw: rd2.deserialize(raw, c.msgtype),
+                              f"message {k} on {img_topic}", ps)
                 try:
                     img, spec = (_decode_psi(m, vfov) if c.msgtype == PSI
                                  else _decode_oculus_ping(m, vfov))
-                except (FormatError, ValueError) as e:
-                    raise FormatError(f"message {k} on {img_topic}: {e}", path=str(p)) from None
+                except LimitError as e:
+                    raise LimitError(f"message {k} on {img_topic}: {e}", path=ps) from None
+                except (FormatError, ValueError, AttributeError, TypeError) as e:
+                    raise FormatError(f"message {k} on {img_topic}: {e}", path=ps) from None
                 stamp = _stamp(m, t)
                 yield SonarFrame(image=img, spec=spec, timestamp_s=stamp,
                                  T_W_S=track(stamp) if track else None,
                                  meta={"format": c.msgtype, "topic": img_topic, "index": k})
+        finally:
+            _bag_call(rd2.close, "to close the bag", ps)
 
     return Recording(str(p), "rosbag", frames, has_poses=track is not None,
                      count=lambda: n_images)
