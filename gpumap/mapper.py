@@ -5,13 +5,13 @@ from __future__ import annotations
 import json
 import logging
 import os
-import tempfile
 import threading
 import zipfile
 from pathlib import Path
 
 import numpy as np
 
+from gpumap.atomic import atomic_write
 from gpumap.backends import AUTO_ORDER, BACKENDS, Backend, GridTooLargeError, make_backend
 from gpumap.backends import available_backends as _available
 from gpumap.errors import BackendUnavailableError, check_finite_scalar, check_pose
@@ -438,16 +438,8 @@ class MinMaxMapper:
             "backend": self.backend,
         }
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez_compressed(f, **arrays, meta=np.array(json.dumps(meta)))
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_write(path) as f:
+            np.savez_compressed(f, **arrays, meta=np.array(json.dumps(meta)))
         return path
 
     @classmethod

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import gc
 import json
+import os
+import stat
 import threading
 import zipfile
 
@@ -201,3 +203,18 @@ def test_integrate_either_maps_or_refuses_and_changes_nothing(image, T):
         assert np.all(np.isinf(v) | ((v >= 0) & (v <= 1)))
         m.reset()
         m.integrate(_FUZZ_IMAGE, T_A)
+
+
+def test_saved_map_gets_normal_file_permissions(tmp_path):
+    """A new map file gets 0o666 less the umask (as open() would), not mkstemp's 0o600;
+    an existing file keeps its permissions when it is replaced."""
+    old = os.umask(0o022)
+    try:
+        m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")
+        p = m.save(tmp_path / "m.npz")
+        assert stat.S_IMODE(p.stat().st_mode) == 0o644
+        p.chmod(0o640)
+        m.save(p)
+        assert stat.S_IMODE(p.stat().st_mode) == 0o640
+    finally:
+        os.umask(old)

@@ -17,12 +17,11 @@ per property. Anything else is a :class:`~gpumap.errors.FormatError` with its by
 from __future__ import annotations
 
 import os
-import tempfile
-from pathlib import Path
 
 import numpy as np
 
 from gpumap import limits
+from gpumap.atomic import atomic_write
 from gpumap.errors import FormatError
 from gpumap.limits import check_size
 
@@ -35,18 +34,6 @@ _TYPES = {
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
 _FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
-
-
-def _new_file_mode() -> int:
-    """0o666 less the process umask, read without changing it (Linux), else 0o644."""
-    try:
-        with open("/proc/self/status", "rb") as f:
-            for line in f:
-                if line.startswith(b"Umask:"):
-                    return 0o666 & ~int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    return 0o644
 
 
 def write_ply(
@@ -89,27 +76,13 @@ def write_ply(
               "comment gpumap occupied voxel centres", f"element vertex {p.shape[0]}"]
     header += [f"property float {name}" for name, _ in cols]
     header.append("end_header")
-    target = Path(path)
-    try:
-        mode = target.stat().st_mode & 0o7777
-    except OSError:
-        mode = _new_file_mode()
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=target.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(("\n".join(header) + "\n").encode("ascii"))
-            if binary:
-                f.write(rec.tobytes())
-            else:
-                flat = np.stack([rec[name] for name, _ in cols], axis=1)
-                np.savetxt(f, flat, fmt="%.9g")
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, mode)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_write(path) as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        if binary:
+            f.write(rec.tobytes())
+        else:
+            flat = np.stack([rec[name] for name, _ in cols], axis=1)
+            np.savetxt(f, flat, fmt="%.9g")
 
 
 def _read_header(f, path: str, size: int) -> tuple[str, int, list[tuple[str, str]], int]:
