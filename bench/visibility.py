@@ -11,6 +11,11 @@ Writes a JSON (machine, git state, rows, curves) and prints a markdown table.
 
     python -m bench.visibility                                   # tank and circle, 5 to 1 cm
     python -m bench.visibility --scenes circle --voxel-sizes 0.03 --backend numpy
+    python -m bench.visibility --carve-sweep 1 2 3 4 --voxel-sizes 0.03 0.02   # quality only
+
+``--carve-sweep`` maps each scene once with the visible rule and re-reads the map at each
+``carve_views`` (a read-time setting: no re-integration), scoring FN, FP and carving against
+the plain rule; it writes ``bench/results/visibility_carve.json`` and no speed figures.
 """
 
 from __future__ import annotations
@@ -67,6 +72,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=Path("bench/results/visibility.json"))
     p.add_argument("--fig-dir", type=Path, default=Path("docs"), help="where the FN-FP plots go")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--carve-sweep", type=int, nargs="+", metavar="K",
+                   help="quality only: score the visible map at each carve_views K (1..255)")
     return p
 
 
@@ -104,6 +111,37 @@ def map_pings(spec, grid, images: np.ndarray, poses: np.ndarray, backend: str, r
     speed = {"ms_median": np.median(a), "ms_p95": np.percentile(a, 95),
              "images_per_s": 1e3 * a.size / a.sum()}
     return m.values(), speed, m.backend, m.device
+
+
+def carve_sweep(args: argparse.Namespace) -> list[dict]:
+    """Rows of the ``--carve-sweep`` run: the plain rule, then the visible rule at each K."""
+    from gpumap.sim.metrics import ground_truth_masks
+    from gpumap.sim.scenes import make_scene
+    from gpumap.sim.truth import occupancy
+
+    rows = []
+    for name in args.scenes:
+        pings, images, poses, _ = simulate(name, args.seed, not args.no_progress)
+        for v in args.voxel_sizes:
+            scene = make_scene(name, voxel_size_m=v, seed=args.seed)
+            truth = occupancy(scene, seed=args.seed)
+            seen, det = ground_truth_masks(pings, scene.grid, THRESHOLD)
+            maps = {}
+            for rule in RULES:
+                m = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=args.backend, rule=rule,
+                                        threshold=THRESHOLD)
+                for img, T in zip(images, poses, strict=True):
+                    m.integrate(img, T)
+                maps[rule] = m
+            plain = score(maps["plain"].values(), truth, seen, det, v)
+            rows.append({"scene": name, "voxel_cm": v * 100, "rule": "plain", "carve_views": None, **plain,
+                         "carved_vs_plain": 1.0})
+            for k in args.carve_sweep:
+                maps["visible"].carve_views = k
+                r = score(maps["visible"].values(), truth, seen, det, v)
+                r["carved_vs_plain"] = r["free_carved_fraction"] / plain["free_carved_fraction"]
+                rows.append({"scene": name, "voxel_cm": v * 100, "rule": "visible", "carve_views": k, **r})
+    return rows
 
 
 def score(values: np.ndarray, truth, seen: np.ndarray, det: np.ndarray, voxel_m: float) -> dict[str, Any]:
@@ -191,11 +229,11 @@ def _cell(x: Any, fmt: str) -> str:
     return str(x) if fmt == "s" else format(x, fmt)
 
 
-def markdown_table(rows: list[dict]) -> str:
-    """The rows as a markdown table (:data:`COLUMNS`)."""
-    head = "| " + " | ".join(h for h, _, _ in COLUMNS) + " |"
-    rule = "|" + "|".join("---" if f == "s" else "---:" for _, _, f in COLUMNS) + "|"
-    body = ["| " + " | ".join(_cell(r.get(k), f) for _, k, f in COLUMNS) + " |" for r in rows]
+def markdown_table(rows: list[dict], columns: tuple | list = COLUMNS) -> str:
+    """The rows as a markdown table (default :data:`COLUMNS`)."""
+    head = "| " + " | ".join(h for h, _, _ in columns) + " |"
+    rule = "|" + "|".join("---" if f == "s" else "---:" for _, _, f in columns) + "|"
+    body = ["| " + " | ".join(_cell(r.get(k), f) for _, k, f in columns) + " |" for r in rows]
     return "\n".join([head, rule, *body])
 
 
@@ -204,6 +242,25 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     t_start = time.perf_counter()
     info = machine_info()
+    if args.carve_sweep:
+        if min(args.carve_sweep) < 1 or max(args.carve_sweep) > 255:
+            raise SystemExit(f"--carve-sweep: expected values in 1..255, got {args.carve_sweep}")
+        rows = carve_sweep(args)
+        out = args.out
+        if out == _parser().get_default("out"):
+            out = out.with_name("visibility_carve.json")
+        out.write_text(json.dumps(compact({
+            "schema": "gpumap-visibility-carve/1", "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "argv": sys.argv[1:] if argv is None else argv, "machine": info,
+            "run": {"seed": args.seed, "threshold": THRESHOLD, "backend": args.backend,
+                    "poses": "true (simulator)", "duration_s": time.perf_counter() - t_start},
+            "rows": rows}), separators=(",", ":")))
+        cols = [("scene", "scene", "s"), ("voxel", "voxel_cm", "cm"), ("rule", "rule", "s"),
+                ("carve_views", "carve_views", "s"), *[c for c in COLUMNS if c[1] in SCORE_KEYS + (
+                    "carved_vs_plain", "height_error_worst_vox")]]
+        print(markdown_table(rows, cols))
+        print(f"\nwrote {out}")
+        return 0
     rows, curves, sims = [], {}, {}
     bar = tqdm(total=len(args.scenes) * len(args.voxel_sizes) * len(RULES), desc="visibility", unit="map",
                disable=args.no_progress)
