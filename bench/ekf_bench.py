@@ -43,8 +43,8 @@ from scipy.stats import chi2
 from tqdm import tqdm
 
 from bench.common import compact, machine_info
-from gpumap.batch import BatchProblem
 from gpumap.ekf import SonarEKF, spherical_point
+from gpumap.ekf.batch import BatchProblem
 from gpumap.lie import se3_adjoint, se3_exp, se3_inverse
 
 
@@ -567,8 +567,8 @@ def batch_markdown(summary: dict) -> str:
     L = [SECTION, "",
          f"`{run['command']}`: {run['seconds']:.0f} s on {m['cpu_model']} ({m['affinity_cpus']} cores), "
          f"{run['date']}; commit `{str(git.get('commit'))[:10]}` with modified "
-         f"{', '.join(f'`{f}`' for f in git.get('modified', [])) or 'nothing'} (`gpumap/ekf.py` sha256 "
-         f"`{run['sha256']['gpumap/ekf.py'][:12]}`); numbers in `bench/results/ekf_vs_batch.json`, "
+         f"{', '.join(f'`{f}`' for f in git.get('modified', [])) or 'nothing'} (`gpumap/ekf/*.py` sha256 "
+         f"`{next(iter(run['sha256'].values()))[:12]}`); numbers in `bench/results/ekf_vs_batch.json`, "
          "every seed's in `ekf_vs_batch_seeds.jsonl`. `python -m bench.report` rewrites this file "
          "without this section: rerun the command after it.",
          "",
@@ -576,7 +576,7 @@ def batch_markdown(summary: dict) -> str:
          "",
          f"Each class: {S} seeds, the same returns, odometry and noise model for every estimator. "
          "**EKF arc / tri**: `SonarEKF(init='arc' | 'triangulate')`, gate 0.999, final estimate; "
-         "**batch**: `gpumap.batch` MAP of the same model (elevation prior `N(0, vfov^2/12)` where "
+         "**batch**: `gpumap.ekf.batch` MAP of the same model (elevation prior `N(0, vfov^2/12)` where "
          "first seen; first pose held, as the EKF's), quadratic loss; **huber**: the same with a Huber "
          "loss at 3 sigma on the returns; **odo**: dead reckoning. Landmark error: mean distance "
          "to the truth (mm), averaged over the seeds; **arc/b, tri/b**: EKF over batch, ratio of "
@@ -706,8 +706,8 @@ def run_vs_batch(args: argparse.Namespace) -> int:
         run=dict(command="python -m bench.ekf_bench " + " ".join(argv),
                  date=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
                  seconds=time.perf_counter() - t0,
-                 sha256={f: hashlib.sha256((root / f).read_bytes()).hexdigest()
-                         for f in ("gpumap/ekf.py", "gpumap/batch.py")}),
+                 sha256={"gpumap/ekf": hashlib.sha256(b"".join(
+                     f.read_bytes() for f in sorted((root / "gpumap/ekf").glob("*.py")))).hexdigest()}),
         classes=classes,
     ), 6)
     # Summaries in the JSON; every seed's numbers one line each beside it (JSON Lines).

@@ -1,4 +1,4 @@
-"""Tests of the batch MAP (gpumap.batch) against exact data, finite differences, the EKF on the
+"""Tests of the batch MAP (gpumap.ekf.batch) against exact data, finite differences, the EKF on the
 same model (prism scene), a robust loss against one outlier, and bad input."""
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from gpumap.sim.prism import (
 )
 from scipy.stats import chi2
 
-from gpumap.batch import BatchProblem, solve
 from gpumap.ekf import spherical_point
+from gpumap.ekf.batch import BatchProblem, solve
 from gpumap.lie import se3_exp, se3_inverse
 
 CFG = PrismConfig()
@@ -236,7 +236,7 @@ def test_bad_solve_and_cost_arguments_raise() -> None:
 
 @pytest.mark.parametrize("angle", [0.0, 1e-3, 0.19, 0.21, 1.5])
 def test_se3_right_jacobian_inverse_matches_finite_differences_of_log(angle: float) -> None:
-    from gpumap.batch import _se3_right_jacobian_inv
+    from gpumap.ekf.batch import _se3_right_jacobian_inv
     from gpumap.lie import se3_log
 
     rng = np.random.default_rng(5)
@@ -250,11 +250,11 @@ def test_se3_right_jacobian_inverse_matches_finite_differences_of_log(angle: flo
 
 
 def test_sparse_lsmr_steps_reach_the_dense_solution(prism_pairs, monkeypatch) -> None:
-    import gpumap.batch
+    import gpumap.ekf.batch
 
     problem = prism_pairs[1][2]
     dense = problem.solve()
-    monkeypatch.setattr(gpumap.batch, "DENSE_MAX_UNKNOWNS", 0)
+    monkeypatch.setattr(gpumap.ekf.batch, "DENSE_MAX_UNKNOWNS", 0)
     sparse = problem.solve()
     assert sparse.success and sparse.n_iterations < 30
     np.testing.assert_allclose(sparse.poses, dense.poses, atol=1e-8)

@@ -31,7 +31,7 @@ import scipy.optimize
 import scipy.sparse as sp
 import threadpoolctl
 
-from gpumap.ekf import spherical_point, wrap_angle
+from gpumap.ekf.measurement import spherical_point, wrap_angle
 from gpumap.errors import check_finite_scalar, check_pose
 from gpumap.lie import orthonormalize, se3_ad, se3_adjoint, se3_inverse, se3_log, so3_exp, so3_right_jacobian
 

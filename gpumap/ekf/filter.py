@@ -1,0 +1,712 @@
+"""The sonar EKF: one joint Gaussian over the sonar pose and its point features.
+
+See :mod:`gpumap.ekf` for the model, the conventions and the differences from Mai et al.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+
+from gpumap.ekf._checks import (
+    _check_cov,
+    _check_ids,
+    _check_matrix3,
+    _check_vector,
+    _chi2_2dof,
+    _chi2_quantile,
+    _real_array,
+)
+from gpumap.ekf.initialisation import _Held, anchor_jacobian, triangulate
+from gpumap.ekf.measurement import (
+    MIN_PLANE_COS,
+    _anchored_to_world,
+    _linearize,
+    plane_range_model,
+    spherical_point,
+    wrap_angle,
+)
+from gpumap.ekf.motion import _inject, motion_jacobian
+from gpumap.ekf.update import (
+    _apply,
+    _elevation_var_given_pose,
+    _hp,
+    _iterate,
+    _nis_2x2,
+    _robust_cholesky,
+    _s_blocks,
+)
+from gpumap.errors import check_finite_scalar, check_pose
+from gpumap.lie import orthonormalize, rpy_from_rotation, se3_inverse
+
+__all__ = ["PlaneUpdateResult", "SonarEKF", "UpdateResult"]
+
+_BLAS = None  # threadpoolctl controller, made on first use (it scans the loaded libraries once)
+
+
+def _blas_limited(method):
+    """Run an EKF step with the filter's BLAS thread limit (see ``SonarEKF(blas_threads=)``)."""
+
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        global _BLAS
+        if self._blas_threads is None:
+            return method(self, *args, **kwargs)
+        if _BLAS is None:
+            from threadpoolctl import ThreadpoolController
+
+            _BLAS = ThreadpoolController()
+        with _BLAS.limit(limits=self._blas_threads, user_api="blas"):
+            return method(self, *args, **kwargs)
+
+    return wrapper
+
+
+@dataclass(frozen=True)
+class PlaneUpdateResult:
+    """What :meth:`SonarEKF.update_plane_ranges` did with each ray (indices into its input).
+
+    Attributes
+    ----------
+    accepted : tuple of int
+        Rays that passed the gate and were fused.
+    rejected : dict of int to float
+        Rays that failed the chi-square (1 dof) gate, with their NIS.
+    skipped : tuple of int
+        Rays with a NaN range (no return).
+    degenerate : tuple of int
+        Rays (nearly) parallel to the plane or whose predicted hit lies behind the origin.
+    nis : float or None
+        Joint NIS of the accepted rays (``dof = len(accepted)``); None if none was fused.
+    """
+
+    accepted: tuple[int, ...] = ()
+    rejected: dict[int, float] = field(default_factory=dict)
+    skipped: tuple[int, ...] = ()
+    degenerate: tuple[int, ...] = ()
+    nis: float | None = None
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    """What :meth:`SonarEKF.update` did with each return.
+
+    Attributes
+    ----------
+    accepted_ids : tuple of int
+        Known features whose returns passed the gate and were fused.
+    rejected : dict of int to float
+        Known features whose returns failed the chi-square gate, with their NIS (2 dof).
+    initialized_ids : tuple of int
+        Features seen for the first time, added to the state (their return is spent on the
+        initialisation and not fused as an update).
+    degenerate_ids : tuple of int
+        Known features predicted on the sonar's z axis (azimuth undefined); not used.
+    deferred_ids : tuple of int
+        ``init="triangulate"``: held features whose return was stored, not fused.
+    released_ids : tuple of int
+        ``init="triangulate"``: held features whose elevation was triangulated by this return.
+    nis : float or None
+        Joint normalised innovation squared of the accepted returns, ``dof = 2 * len(accepted_ids)``;
+        None when nothing was fused.
+    """
+
+    accepted_ids: tuple[int, ...] = ()
+    rejected: dict[int, float] = field(default_factory=dict)
+    initialized_ids: tuple[int, ...] = ()
+    degenerate_ids: tuple[int, ...] = ()
+    nis: float | None = None
+    deferred_ids: tuple[int, ...] = ()
+    released_ids: tuple[int, ...] = ()
+
+    @property
+    def nis_dof(self) -> int:
+        """Degrees of freedom of :attr:`nis`."""
+        return 2 * len(self.accepted_ids)
+
+
+class SonarEKF:
+    """Joint EKF over the sonar pose and point features seen as (range, azimuth).
+
+    Features are stored as anchored spherical coordinates ``s = (r, az, el)`` in the sonar
+    frame where they were first seen (the anchor, a fixed transform equal to the pose
+    estimate at that moment), so the elevation arc of a first return is a straight line in
+    the state and its uniform prior is represented without the chord error of a Cartesian
+    Gaussian. The anchor's pose uncertainty is carried by the feature's covariance and its
+    cross-covariance with the pose (:func:`anchor_jacobian`). Everything the class returns
+    (:attr:`landmarks`, :meth:`landmark_cov`, :attr:`covariance`) is in world Cartesian
+    coordinates; :attr:`native_covariance` is the filter's own.
+
+    Parameters
+    ----------
+    T_W_S0 : (4, 4) float
+        Initial sonar pose (world from sonar).
+    pose_cov0 : (6, 6) float
+        Initial pose covariance over ``(translation m, rotation vector rad)``, right perturbation.
+    range_sigma_m : float
+        Standard deviation of a range measurement, metres (> 0).
+    bearing_sigma_rad : float
+        Standard deviation of an azimuth measurement, radians (> 0).
+    vfov_rad : float
+        Full vertical aperture, radians, in ``(0, pi)``. A new feature's elevation is taken
+        uniform over ``[-vfov/2, vfov/2]``: mean 0, variance ``vfov^2 / 12``.
+    gate_prob : float or None, default 0.999
+        Chi-square (2 dof) gate probability for each return; None disables gating.
+    iterations : int, default 1
+        Most Gauss-Newton passes of each update (iterated EKF); 1 is the plain EKF. Passes
+        stop early once the correction stops changing.
+    mature_elevation_sigma_rad : float or None, default None
+        If given, returns of features whose anchored elevation, conditioned on the pose, has
+        a standard deviation above this correct only their own feature (Schmidt update).
+    init : {"arc", "triangulate"}, default "arc"
+        Feature initialisation: ``"arc"`` fuses every return from the first re-observation on,
+        linearised at elevation 0; ``"triangulate"`` holds a feature's returns until its
+        elevation is triangulated (see the module notes), then fuses later returns.
+    init_elevation_sigma_rad : float or None, default None
+        ``init="triangulate"``: elevation standard deviation at which a held feature is
+        released; None gives half the prior's, ``vfov / (2 sqrt(12))``.
+    init_max_views : int, default 12
+        ``init="triangulate"``: most returns kept per held feature (the anchor's and the newest).
+    blas_threads : int or None, default 1
+        BLAS threads used inside ``predict`` and the updates (through threadpoolctl, set and
+        restored around each call, about 10 µs). The filter's matrices are small and dense:
+        on a loaded 2-core computer OpenBLAS's own threads made a 32-feature update 15 ms
+        instead of 1 ms (``bench/``). None leaves BLAS as the process has it.
+
+    Examples
+    --------
+    >>> ekf = SonarEKF(np.eye(4), np.zeros((6, 6)), range_sigma_m=0.01,
+    ...                bearing_sigma_rad=0.005, vfov_rad=np.deg2rad(14))
+    >>> ekf.predict(T_Sprev_Snext, motion_cov)          # doctest: +SKIP
+    >>> res = ekf.update(ids, ranges_m, bearings_rad)    # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        T_W_S0: np.ndarray,
+        pose_cov0: np.ndarray,
+        *,
+        range_sigma_m: float,
+        bearing_sigma_rad: float,
+        vfov_rad: float,
+        gate_prob: float | None = 0.999,
+        iterations: int = 1,
+        mature_elevation_sigma_rad: float | None = None,
+        init: str = "arc",
+        init_elevation_sigma_rad: float | None = None,
+        init_max_views: int = 12,
+        blas_threads: int | None = 1,
+    ) -> None:
+        if blas_threads is not None and (isinstance(blas_threads, bool) or int(blas_threads) < 1):
+            raise ValueError(f"Expected blas_threads >= 1 or None, but got {blas_threads!r}")
+        self._blas_threads = None if blas_threads is None else int(blas_threads)
+        T = check_pose(T_W_S0, "T_W_S0")
+        P0 = _check_cov(pose_cov0, 6, "pose_cov0")
+        sr = check_finite_scalar(range_sigma_m, "range_sigma_m")
+        sb = check_finite_scalar(bearing_sigma_rad, "bearing_sigma_rad")
+        vf = check_finite_scalar(vfov_rad, "vfov_rad")
+        if sr <= 0 or sb <= 0:
+            raise ValueError(
+                f"Expected range_sigma_m > 0 and bearing_sigma_rad > 0, but got {sr} and {sb}"
+            )
+        if not 0 < vf < math.pi:
+            raise ValueError(f"Expected 0 < vfov_rad < pi, but got {vf}")
+        if gate_prob is not None:
+            gp = check_finite_scalar(gate_prob, "gate_prob")
+            if not 0 < gp < 1:
+                raise ValueError(f"Expected 0 < gate_prob < 1 (or None), but got {gp}")
+            self._gate = _chi2_2dof(gp)
+            self._gate1 = _chi2_quantile(gp, 1)
+        else:
+            self._gate = self._gate1 = math.inf
+        if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
+            raise ValueError(f"Expected an integer iterations >= 1, but got {iterations!r}")
+        self.iterations = int(iterations)
+        if mature_elevation_sigma_rad is not None:
+            me = check_finite_scalar(mature_elevation_sigma_rad, "mature_elevation_sigma_rad")
+            if me <= 0:
+                raise ValueError(f"Expected mature_elevation_sigma_rad > 0 (or None), but got {me}")
+            mature_elevation_sigma_rad = me
+        self.mature_elevation_sigma_rad = mature_elevation_sigma_rad
+        if init not in ("arc", "triangulate"):
+            raise ValueError(f"Expected init 'arc' or 'triangulate', but got {init!r}")
+        self.init = init
+        if init_elevation_sigma_rad is None:
+            init_elevation_sigma_rad = 0.5 * vf / math.sqrt(12.0)
+        ie = check_finite_scalar(init_elevation_sigma_rad, "init_elevation_sigma_rad")
+        if ie <= 0:
+            raise ValueError(f"Expected init_elevation_sigma_rad > 0, but got {ie}")
+        self.init_elevation_sigma_rad = ie
+        if (isinstance(init_max_views, bool) or not isinstance(init_max_views, (int, np.integer))
+                or init_max_views < 2):
+            raise ValueError(f"Expected an integer init_max_views >= 2, but got {init_max_views!r}")
+        self.init_max_views = int(init_max_views)
+        self.range_sigma_m = sr
+        self.bearing_sigma_rad = sb
+        self.vfov_rad = vf
+        self.elevation_var_rad2 = vf * vf / 12.0
+        T[:3, :3] = orthonormalize(T[:3, :3])
+        self._T = T
+        self._P = P0
+        self._S = np.zeros((0, 3))  # anchored spherical coordinates (r, az, el)
+        self._Ra = np.zeros((0, 3, 3))  # anchor rotations R_W_A
+        self._ta = np.zeros((0, 3))  # anchor positions t_W_A
+        self._ids: list[int] = []
+        self._index: dict[int, int] = {}
+        self._nis: float | None = None
+        self._nis_dof = 0
+        # init="triangulate": features whose returns are held back until their elevation is
+        # triangulated: id -> (covariance of the pose since the anchor, held returns).
+        self._held: dict[int, _Held] = {}
+
+    # ------------------------------------------------------------------ read-only views
+    @property
+    def pose(self) -> np.ndarray:
+        """(4, 4) float64 copy of the estimated ``T_W_S``."""
+        return self._T.copy()
+
+    @property
+    def pose_cov(self) -> np.ndarray:
+        """(6, 6) float64 pose covariance, ``(translation m, rotation vector rad)``, right perturbation."""
+        return self._P[:6, :6].copy()
+
+    @property
+    def rpy_rad(self) -> np.ndarray:
+        """(3,) ``[roll, pitch, yaw]`` of the estimate, ``R = Rz(yaw) Ry(pitch) Rx(roll)``; output only."""
+        return rpy_from_rotation(self._T[:3, :3])
+
+    @property
+    def landmarks(self) -> dict[int, np.ndarray]:
+        """Feature id -> (3,) float64 world position."""
+        L, _ = self._world_points()
+        return {i: L[k].copy() for i, k in self._index.items()}
+
+    @property
+    def landmark_ids(self) -> tuple[int, ...]:
+        """Feature ids in state order (the order of :attr:`covariance` after the pose)."""
+        return tuple(self._ids)
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """(6 + 3n, 6 + 3n) float64 covariance of pose and world feature positions.
+
+        Pose block as :attr:`pose_cov`; feature blocks are world Cartesian, first-order
+        (``J P J^T`` with ``J = R_W_A dp/ds`` per feature).
+        """
+        _, J = self._world_points()
+        n = len(self._ids)
+        B = np.zeros_like(self._P)
+        B[:6, :6] = np.eye(6)
+        for k in range(n):
+            s = 6 + 3 * k
+            B[s : s + 3, s : s + 3] = J[k]
+        C = B @ self._P @ B.T
+        return 0.5 * (C + C.T)
+
+    @property
+    def native_covariance(self) -> np.ndarray:
+        """(6 + 3n, 6 + 3n) float64 covariance of the filter's own state.
+
+        Pose error ``(rho, phi)``, then each feature's anchored ``(r m, az rad, el rad)``.
+        """
+        return self._P.copy()
+
+    @property
+    def landmark_anchors(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """Feature id -> ``(T_W_A (4, 4), s (3,))``: anchor pose and anchored ``(r, az, el)``."""
+        out = {}
+        for i, k in self._index.items():
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = self._Ra[k], self._ta[k]
+            out[i] = (T, self._S[k].copy())
+        return out
+
+    @property
+    def nis(self) -> float | None:
+        """Joint NIS of the last update's fused returns (``dof = nis_dof``); None if none fused."""
+        return self._nis
+
+    @property
+    def nis_dof(self) -> int:
+        """Degrees of freedom of :attr:`nis` (2 per fused return)."""
+        return self._nis_dof
+
+    def landmark_cov(self, landmark_id: int) -> np.ndarray:
+        """(3, 3) float64 covariance of one feature's world position (first order).
+
+        Raises
+        ------
+        KeyError
+            If the feature is not in the state.
+        """
+        k = self._slot(landmark_id)
+        s = 6 + 3 * k
+        _, D = spherical_point(self._S[k])
+        J = self._Ra[k] @ D
+        C = J @ self._P[s : s + 3, s : s + 3] @ J.T
+        return 0.5 * (C + C.T)
+
+    def _slot(self, landmark_id: int) -> int:
+        try:
+            return self._index[int(landmark_id)]
+        except (KeyError, TypeError, ValueError):
+            raise KeyError(f"Expected a feature id in the state {sorted(self._index)}, but got "
+                           f"{landmark_id!r}") from None
+
+    def _world_points(
+        self, S: np.ndarray | None = None, Ra: np.ndarray | None = None, ta: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """World points ``(n, 3)`` and ``d l / d s`` ``(n, 3, 3)`` of anchored features."""
+        S = self._S if S is None else S
+        Ra = self._Ra if Ra is None else Ra
+        ta = self._ta if ta is None else ta
+        return _anchored_to_world(S, Ra, ta)
+
+    # ------------------------------------------------------------------ filter steps
+    @_blas_limited
+    def predict(self, T_Sprev_Snext: np.ndarray, motion_cov: np.ndarray) -> None:
+        """Move the pose by a relative motion measured in the previous sonar frame.
+
+        Parameters
+        ----------
+        T_Sprev_Snext : (4, 4) float
+            Odometry increment ``U``: ``T_W_Snext = T_W_Sprev @ U``.
+        motion_cov : (6, 6) float
+            Covariance of ``w`` in ``U_true = U @ Exp(w)``, ``(translation m, rotation vector rad)``.
+        """
+        U = check_pose(T_Sprev_Snext, "T_Sprev_Snext")
+        Q = _check_cov(motion_cov, 6, "motion_cov")
+        U[:3, :3] = orthonormalize(U[:3, :3])
+        F = motion_jacobian(U)
+        P = self._P.copy()
+        P[:6, :] = F @ P[:6, :]
+        P[:, :6] = P[:, :6] @ F.T
+        P[:6, :6] += Q
+        P = 0.5 * (P + P.T)
+        T = self._T @ U
+        T[:3, :3] = orthonormalize(T[:3, :3])
+        if not (np.all(np.isfinite(P)) and np.all(np.isfinite(T))):
+            raise FloatingPointError("predict produced non-finite values; the filter is unchanged")
+        held = {i: h.moved(F, Q) for i, h in self._held.items()}
+        self._T, self._P, self._held = T, P, held
+
+    @_blas_limited
+    def update(
+        self, ids: Iterable[int] | np.ndarray, ranges_m: np.ndarray, bearings_rad: np.ndarray
+    ) -> UpdateResult:
+        """Fuse one ping's feature returns; add features seen for the first time.
+
+        Known features are gated one by one (chi-square, 2 dof, on each return's own
+        innovation covariance), then the accepted ones are fused jointly. New features are
+        then initialised from the updated pose. On any error the filter is left unchanged.
+
+        Parameters
+        ----------
+        ids : (m,) int
+            Feature ids (known correspondences), each at most once.
+        ranges_m : (m,) float
+            Measured ranges, metres, > 0.
+        bearings_rad : (m,) float
+            Measured azimuths ``atan2(y, x)`` in the sonar frame, radians (any branch).
+
+        Returns
+        -------
+        UpdateResult
+        """
+        id_list = _check_ids(ids)
+        m = len(id_list)
+        rng_m = _check_vector(ranges_m, m, "ranges_m")
+        brg = _check_vector(bearings_rad, m, "bearings_rad")
+        if np.any(rng_m <= 0):
+            raise ValueError(f"Expected ranges_m > 0, but got minimum {float(rng_m.min())}")
+
+        known = [k for k in range(m) if id_list[k] in self._index and id_list[k] not in self._held]
+        held_k = [k for k in range(m) if id_list[k] in self._held]
+        new = [k for k in range(m) if id_list[k] not in self._index]
+        T, P, S = self._T, self._P, self._S
+        accepted: list[int] = []
+        rejected: dict[int, float] = {}
+        degenerate: list[int] = []
+        nis: float | None = None
+
+        if known:
+            slots = np.array([self._index[id_list[k]] for k in known])
+            meas = np.stack([rng_m[known], brg[known]], axis=1)
+            Ra, ta = self._Ra[slots], self._ta[slots]
+            nu, Hp, Hs, ok = _linearize(T, S[slots], Ra, ta, meas)
+            degenerate = [id_list[known[j]] for j in np.flatnonzero(~ok)]
+            sel = np.flatnonzero(ok)
+            nu, Hp, Hs, slots = nu[sel], Hp[sel], Hs[sel], slots[sel]
+            meas, Ra, ta = meas[sel], Ra[sel], ta[sel]
+            r_var = np.array([self.range_sigma_m**2, self.bearing_sigma_rad**2])
+            # Per-return gate on the 2x2 marginal innovation covariance. A return that fails
+            # at the prior's linearisation gets a second, iterated test on its own (the arc's
+            # curvature, not the return, may be what failed), judged by its nonlinear NIS.
+            HP = _hp(P, Hp, Hs, slots)  # (k, 2, N)
+            d2 = _nis_2x2(_s_blocks(HP, Hp, Hs, slots) + np.diag(r_var), nu)
+            if self.iterations > 1:
+                for j in np.flatnonzero(~(d2 <= self._gate)):
+                    js = slice(j, j + 1)
+                    _, _, _, d2j = _iterate(T, P, S[slots[js]], Ra[js], ta[js], slots[js], meas[js],
+                                            nu[js], Hp[js], Hs[js], r_var, self.iterations)
+                    if d2j <= self._gate:
+                        d2[j] = d2j
+            keep = np.flatnonzero(d2 <= self._gate)
+            for j in np.flatnonzero(~(d2 <= self._gate)):
+                rejected[id_list[known[sel[j]]]] = float(d2[j])
+            if keep.size:
+                kk = keep
+                own = None
+                if self.mature_elevation_sigma_rad is not None:
+                    own = _elevation_var_given_pose(P, slots[kk]) > self.mature_elevation_sigma_rad**2
+                dx, g, nis, _ = _iterate(T, P, S[slots[kk]], Ra[kk], ta[kk], slots[kk], meas[kk],
+                                         nu[kk], Hp[kk], Hs[kk], r_var, self.iterations, own)
+                T, P = _apply(T, P, dx, g)
+                S = S + dx[6:].reshape(-1, 3)
+                S[:, 1] = wrap_angle(S[:, 1])
+                accepted = [id_list[known[sel[j]]] for j in keep]
+
+        new_ids: list[int] = []
+        index = dict(self._index)
+        ids_order = list(self._ids)
+        Ra, ta = self._Ra, self._ta
+        held, deferred, released = self._held, [], []
+        if held_k:
+            S, P, held, deferred, released = self._release(
+                T, S, P, [(id_list[k], rng_m[k], brg[k]) for k in held_k])
+        Nz = np.diag([self.range_sigma_m**2, self.bearing_sigma_rad**2, self.elevation_var_rad2])
+        inits = [(k, np.array([rng_m[k], float(wrap_angle(brg[k])), 0.0]), Nz) for k in new]
+        if inits and self.init == "triangulate":
+            held = dict(held)
+            for k, s_k, _ in inits:
+                held[id_list[k]] = _Held.start(s_k[:2])
+        if inits:
+            Nn = P.shape[0]
+            n_new = len(inits)
+            Pn = np.zeros((Nn + 3 * n_new, Nn + 3 * n_new))
+            Pn[:Nn, :Nn] = P
+            s_new = np.zeros((n_new, 3))
+            for q, (k, s_k, N_k) in enumerate(inits):
+                s_new[q] = s_k
+                A = anchor_jacobian(s_new[q])
+                c = Nn + 3 * q
+                cross = A @ Pn[:6, :c]  # (3, c): correlated through the anchor pose only
+                Pn[c : c + 3, :c] = cross
+                Pn[:c, c : c + 3] = cross.T
+                Pn[c : c + 3, c : c + 3] = A @ Pn[:6, :6] @ A.T + N_k
+                index[id_list[k]] = len(ids_order)
+                ids_order.append(id_list[k])
+                new_ids.append(id_list[k])
+            S = np.concatenate([S, s_new], axis=0)
+            Ra = np.concatenate([Ra, np.broadcast_to(T[:3, :3], (n_new, 3, 3))], axis=0)
+            ta = np.concatenate([ta, np.broadcast_to(T[:3, 3], (n_new, 3))], axis=0)
+            P = 0.5 * (Pn + Pn.T)
+
+        if not (np.all(np.isfinite(P)) and np.all(np.isfinite(T)) and np.all(np.isfinite(S))):
+            raise FloatingPointError("update produced non-finite values; the filter is unchanged")
+        self._T, self._P, self._S, self._Ra, self._ta = T, P, S, Ra, ta
+        self._index, self._ids = index, ids_order
+        self._held = held
+        if accepted:
+            self._nis, self._nis_dof = nis, 2 * len(accepted)
+        return UpdateResult(
+            accepted_ids=tuple(accepted),
+            rejected=rejected,
+            initialized_ids=tuple(new_ids),
+            degenerate_ids=tuple(degenerate),
+            nis=nis if accepted else None,
+            deferred_ids=tuple(deferred),
+            released_ids=tuple(released),
+        )
+
+    @_blas_limited
+    def update_plane_ranges(
+        self,
+        origins_S: np.ndarray,
+        directions_S: np.ndarray,
+        ranges_m: np.ndarray,
+        plane_n_W: np.ndarray,
+        plane_d_m: float,
+        range_sigma_m: float,
+    ) -> PlaneUpdateResult:
+        """Fuse ranges measured along known rays to a known world plane (e.g. DVL beams to the floor).
+
+        Ray ``i`` starts at ``T_W_S @ origins_S[i]`` and runs along ``R_W_S @ directions_S[i]``;
+        its range is where it meets the plane ``n . p = d`` (:func:`plane_range_model`). For a
+        DVL on the same rigid body, pass its beams through the fixed mount: origins
+        ``T_S_D[:3, 3]`` and directions ``T_S_D[:3, :3] @ beam_D``. Such ranges observe the
+        sonar's height above the plane and its tilt relative to it (pitch and roll for a level
+        floor), never the position along the plane or the rotation about its normal.
+
+        NaN ranges are skipped; rays (nearly) parallel to the plane, or hitting it behind their
+        origin, are reported degenerate; each other ray is gated on its own innovation
+        variance (chi-square, 1 dof, at the filter's ``gate_prob``), then the accepted rays are
+        fused jointly (one linearisation, Cholesky gain, Joseph form). The features move with
+        the pose through their correlations. On any error the filter is left unchanged.
+
+        Parameters
+        ----------
+        origins_S : (m, 3) float
+            Ray origins in the sonar frame, metres.
+        directions_S : (m, 3) float
+            Unit ray directions in the sonar frame.
+        ranges_m : (m,) float
+            Measured ranges along each ray, metres, > 0; NaN = no return (skipped).
+        plane_n_W : (3,) float
+            Plane normal in the world (normalised here; ``plane_d_m`` is scaled with it).
+        plane_d_m : float
+            Plane offset, ``n . p = d``; for a floor at height ``z0``: ``n = (0, 0, 1)``, ``d = z0``.
+        range_sigma_m : float
+            Standard deviation of each range, metres (> 0): sensor noise plus the plane's
+            roughness seen along the ray.
+
+        Returns
+        -------
+        PlaneUpdateResult
+        """
+        o = _check_matrix3(origins_S, None, "origins_S")
+        m = o.shape[0]
+        u = _check_matrix3(directions_S, m, "directions_S")
+        un = np.linalg.norm(u, axis=1)
+        if m and float(np.abs(un - 1.0).max()) > 1e-6:
+            raise ValueError(f"Expected unit vectors in 'directions_S', but got norms from "
+                             f"{float(un.min()):.6g} to {float(un.max()):.6g}")
+        rng_m = _real_array(ranges_m, "ranges_m")
+        if rng_m.shape != (m,):
+            raise ValueError(f"Expected shape ({m},) for 'ranges_m', but got {rng_m.shape}")
+        if np.any(np.isinf(rng_m)):
+            raise ValueError("Expected finite values or NaN (no return) in 'ranges_m', but got inf")
+        valid = ~np.isnan(rng_m)
+        if np.any(rng_m[valid] <= 0):
+            raise ValueError(f"Expected ranges_m > 0, but got minimum {float(rng_m[valid].min())}")
+        n_W = _check_vector(plane_n_W, 3, "plane_n_W")
+        nn = float(np.linalg.norm(n_W))
+        if not nn > 0:
+            raise ValueError("Expected a non-zero 'plane_n_W', but got the zero vector")
+        d = check_finite_scalar(plane_d_m, "plane_d_m") / nn
+        n_W = n_W / nn
+        sr = check_finite_scalar(range_sigma_m, "range_sigma_m")
+        if not sr > 0:
+            raise ValueError(f"Expected range_sigma_m > 0, but got {sr}")
+
+        skipped = tuple(int(i) for i in np.flatnonzero(~valid))
+        r_hat, H, cos_inc = plane_range_model(self._T, o, u, n_W, d)
+        ok = valid & (np.abs(cos_inc) >= MIN_PLANE_COS) & np.isfinite(r_hat) & (r_hat > 0)
+        degenerate = tuple(int(i) for i in np.flatnonzero(valid & ~ok))
+        idx = np.flatnonzero(ok)
+        if idx.size == 0:
+            return PlaneUpdateResult(skipped=skipped, degenerate=degenerate)
+        P = self._P
+        nu = rng_m[idx] - r_hat[idx]
+        Hp = H[idx]  # (a, 6); the features' columns of H are zero
+        var = sr * sr
+        HPp = Hp @ P[:6, :6]
+        s_ii = np.einsum("ij,ij->i", HPp, Hp) + var
+        d2 = nu * nu / s_ii
+        rejected = {int(idx[j]): float(d2[j]) for j in np.flatnonzero(~(d2 <= self._gate1))}
+        keep = np.flatnonzero(d2 <= self._gate1)
+        if keep.size == 0:
+            return PlaneUpdateResult(rejected=rejected, skipped=skipped, degenerate=degenerate)
+        Hp, nu = Hp[keep], nu[keep]
+        HP = Hp @ P[:6]  # (a, N)
+        S = HP[:, :6] @ Hp.T
+        S[np.diag_indices(keep.size)] += var
+        S = 0.5 * (S + S.T)
+        cho = _robust_cholesky(S)
+        KT = scipy.linalg.cho_solve(cho, HP, check_finite=False)  # (a, N) = K^T, no inverse
+        nis = float(nu @ scipy.linalg.cho_solve(cho, nu, check_finite=False))
+        dx = KT.T @ nu
+        # Joseph form (I - K H) P (I - K H)^T + K R K^T with H = [Hp, 0].
+        AP = P - KT.T @ HP
+        Pn = AP - (AP[:, :6] @ Hp.T) @ KT + var * (KT.T @ KT)
+        T, Pn = _inject(self._T, Pn, dx[:6])
+        S_f = self._S + dx[6:].reshape(-1, 3)
+        S_f[:, 1] = wrap_angle(S_f[:, 1])
+        if not (np.all(np.isfinite(Pn)) and np.all(np.isfinite(T)) and np.all(np.isfinite(S_f))):
+            raise FloatingPointError(
+                "update_plane_ranges produced non-finite values; the filter is unchanged")
+        self._T, self._P, self._S = T, Pn, S_f
+        return PlaneUpdateResult(
+            accepted=tuple(int(i) for i in idx[keep]),
+            rejected=rejected,
+            skipped=skipped,
+            degenerate=degenerate,
+            nis=nis,
+        )
+
+    @property
+    def held_ids(self) -> tuple[int, ...]:
+        """Features in the state whose returns are held back until their elevation is triangulated."""
+        return tuple(self._held)
+
+    def _release(
+        self, T: np.ndarray, S: np.ndarray, P: np.ndarray, returns: list[tuple[int, float, float]]
+    ) -> tuple[np.ndarray, np.ndarray, dict, list[int], list[int]]:
+        """Store held features' returns; triangulate each and release those that are ready.
+
+        ``returns`` are ``(id, range, azimuth)`` at the current pose estimate ``T``. A feature
+        is released when its elevation in the anchor frame is triangulated to
+        ``init_elevation_sigma_rad`` with a residual that passes a chi-square test (0.999);
+        a failing residual drops the oldest non-anchor return (an outlier, or a view whose
+        relative pose drifted more than its covariance says). Releasing replaces the
+        independent elevation term of the arc prior, ``U(-vfov/2, vfov/2)`` (mean 0, variance
+        ``vfov^2 / 12``), by the triangulated ``N(el, sigma^2)``: this is exact bookkeeping
+        because none of the feature's returns was fused, so that term is still independent of
+        the rest of the state, untouched by every update since. The returns used for the
+        triangulation are spent (not fused again). Nothing here mutates ``self``.
+
+        Returns
+        -------
+        S, P : new anchored coordinates and covariance
+        held : dict, the new held table
+        deferred, released : lists of ids
+        """
+        held = dict(self._held)
+        S, P = S.copy(), P.copy()
+        r_var = np.array([self.range_sigma_m**2, self.bearing_sigma_rad**2])
+        deferred, released = [], []
+        for i, r, a in returns:
+            k = self._index[i]
+            T_W_A = np.eye(4)
+            T_W_A[:3, :3], T_W_A[:3, 3] = self._Ra[k], self._ta[k]
+            h = held[i].add(se3_inverse(T) @ T_W_A, float(r), float(wrap_angle(a)), self.init_max_views)
+            tri = triangulate(h.X, h.z, h.Ce, r_var, self.vfov_rad) if h.z.shape[0] >= 2 else None
+            if tri is not None and tri.cost > _chi2_quantile(0.999, tri.dof):
+                h = h.drop_oldest()
+                tri = None
+            ready = (tri is not None and tri.elevation_sigma_rad <= self.init_elevation_sigma_rad
+                     and abs(tri.s[2]) <= 0.5 * self.vfov_rad + 3.0 * tri.elevation_sigma_rad)
+            if ready:
+                e = 6 + 3 * k + 2
+                S[k, 2] += tri.s[2]
+                P[e, e] += tri.cov[2, 2] - self.elevation_var_rad2
+                del held[i]
+                released.append(i)
+            else:
+                held[i] = h
+                deferred.append(i)
+        return S, 0.5 * (P + P.T), held, deferred, released
+
+    def forget(self, landmark_id: int) -> None:
+        """Marginalise one feature out of the state (drop its rows and columns).
+
+        Raises
+        ------
+        KeyError
+            If the feature is not in the state.
+        """
+        k = self._slot(landmark_id)
+        self._held.pop(int(landmark_id), None)
+        s = 6 + 3 * k
+        keep = np.r_[0:s, s + 3 : self._P.shape[0]]
+        self._P = self._P[np.ix_(keep, keep)].copy()
+        self._S = np.delete(self._S, k, axis=0)
+        self._Ra = np.delete(self._Ra, k, axis=0)
+        self._ta = np.delete(self._ta, k, axis=0)
+        del self._ids[k]
+        self._index = {i: j for j, i in enumerate(self._ids)}
