@@ -30,6 +30,7 @@ from gpumap.errors import MissingFileError
 from gpumap.io.aris import open_aris, write_aris
 from gpumap.io.fan import FanGeometry, fan_to_polar, open_fan_folder, polar_to_fan
 from gpumap.io.frame import FormatError, LimitError, Recording, SonarFrame
+from gpumap.io.octomap import write_octomap_bt as write_octomap_bt  # OctoMap .bt export (issue #14)
 from gpumap.io.oculus import (
     decode_message,
     encode_simple_ping,
