@@ -637,6 +637,10 @@ _EYE = ",".join(str(v) for v in np.eye(4).reshape(-1))
     ([f"0,{_EYE}", f"1,{_EYE},7"], "line 3: expected 17 fields"),
     ([f"x,{_EYE}"], "line 2: expected numbers"),
     ([f"-1,{_EYE}"], "frame number >= 0"),
+    # a frame beyond int64 was an OverflowError when the table became an array
+    ([f"0,{_EYE}", f"99999999999999999999,{_EYE}"], "frame number >= 0 and <= 9223372036854775807"),
+    ([f"1_000,{_EYE}"], "not a decimal integer"),  # int() takes these, a CSV should not
+    (["\u0663," + _EYE], "not a decimal integer"),  # an Arabic-Indic 3
 ])
 def test_pose_table_is_checked(tmp_path: Path, rows: list[str], match: str) -> None:
     from gpumap.io.fan import read_poses_csv
@@ -683,6 +687,11 @@ def test_fan_folder_refuses_two_pictures_of_one_frame(tmp_path: Path) -> None:
         (tmp_path / "sonar" / name).write_bytes(_png(4, 1, 8, 0, [bytes(4)]))
     with pytest.raises(FormatError, match="both frame 10"):
         open_fan_folder(tmp_path)
+    (tmp_path / "sonar" / "image_010.png").unlink()
+    assert open_fan_folder(tmp_path).count() == 1
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="stride >= 1"):
+            open_fan_folder(tmp_path, stride=bad)
 
 
 # ------------------------------------------------------------------ PLY checks and atomic writes
@@ -747,7 +756,8 @@ def test_ply_types_and_ascii_values(tmp_path: Path) -> None:
     d = read_ply(p)
     assert d["c"].tolist() == [7, 255] and d["x"].dtype == np.float32
     for body, match in [("1.5 7\n2.5 256\n", "0..255"), ("1.5 7\n2.5 1.5\n", "integer"),
-                        ("1.5 7\n2.5\n", "numbers"), ("1.5 7\nabc 1\n", "numbers")]:
+                        ("1.5 7\n2.5\n", "numbers"), ("1.5 7\nabc 1\n", "numbers"),
+                        ("1.5 7\x0c2.5 255\n", "expected 2 vertex lines")]:  # a form feed is no newline
         p.write_text(head + body)
         with pytest.raises(FormatError, match=match):
             read_ply(p)
@@ -811,6 +821,71 @@ def test_corrupt_ros_bag_is_a_format_error(tmp_path: Path) -> None:
     (d / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 9, storage_identifier: x}\n")
     with pytest.raises(FormatError, match="bag"):
         open_recording(d)
+
+
+def tiny_bag(path: Path, *, n_images: int = 2, data_len: int | None = None,
+             pose_x: float | None = None) -> None:
+    """A ROS 1 bag: 3 PoseStamped (x = 0, 0.1, 0.2 m at 10, 11, 12 s) and ProjectedSonarImages
+    at 10.5, 11.5 s of 20 ranges (bin centres ``(i + 0.5) * 5 cm``, float32) x 8 beams."""
+    pytest.importorskip("rosbags")
+    from rosbags.rosbag1 import Writer
+
+    from gpumap.io.rosbag import PSI, make_typestore
+
+    ts = make_typestore(ros1=True)
+    T = ts.types
+    Header, Time = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]
+    with Writer(path) as w:
+        ci = w.add_connection("/sonar/image", PSI, typestore=ts)
+        cp = w.add_connection("/sonar/pose", "geometry_msgs/msg/PoseStamped", typestore=ts)
+        for k in range(3):
+            msg = T["geometry_msgs/msg/PoseStamped"](
+                header=Header(seq=k, stamp=Time(sec=10 + k, nanosec=0), frame_id="world"),
+                pose=T["geometry_msgs/msg/Pose"](
+                    position=T["geometry_msgs/msg/Point"](x=0.1 * k if pose_x is None else pose_x,
+                                                          y=0.0, z=0.0),
+                    orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))
+            w.write(cp, (10 + k) * 10**9, ts.serialize_ros1(msg, "geometry_msgs/msg/PoseStamped"))
+        az = np.linspace(-0.5, 0.5, 8)
+        dirs = [T["geometry_msgs/msg/Vector3"](x=0.0, y=float(-math.sin(a)), z=float(math.cos(a)))
+                for a in az]
+        for k in range(n_images):
+            data = np.full(20 * 8, 9 * (k + 1), np.uint8)[:data_len]
+            msg = T[PSI](
+                header=Header(seq=k, stamp=Time(sec=10 + k, nanosec=500_000_000), frame_id="sonar"),
+                ping_info=T["marine_acoustic_msgs/msg/PingInfo"](
+                    frequency=1e6, sound_speed=1500.0, tx_beamwidths=np.zeros(0, np.float32),
+                    rx_beamwidths=np.zeros(0, np.float32)),
+                beam_directions=dirs, ranges=((np.arange(20) + 0.5) * 0.05).astype(np.float32),
+                image=T["marine_acoustic_msgs/msg/SonarImageData"](
+                    is_bigendian=False, dtype=0, beam_count=8, data=data))
+            w.write(ci, int((10.5 + k) * 1e9), ts.serialize_ros1(msg, PSI))
+
+
+def test_ros_bag_errors_are_format_errors(tmp_path: Path) -> None:
+    """A bag cut anywhere, a short image, a NaN pose: gpumap's error naming what, never a
+    rosbags/struct traceback; the intact bag reads (bins starting at 0 m despite float32)."""
+    p = tmp_path / "a.bag"
+    tiny_bag(p)
+    frames = list(open_recording(p))
+    assert len(frames) == 2 and frames[0].spec.range_min_m == 0.0  # was a -6e-9 m refusal
+    assert frames[0].spec.range_max_m == pytest.approx(1.0)
+    np.testing.assert_allclose(frames[0].T_W_S[:3, 3], [0.05, 0, 0], atol=1e-12)  # interpolated
+    assert frames[1].image.max() == pytest.approx(18 / 255)
+    raw = p.read_bytes()
+    q = tmp_path / "cut.bag"
+    for cut in range(13, len(raw), max(1, len(raw) // 80)):
+        q.write_bytes(raw[:cut])
+        with pytest.raises(FormatError, match="expected|bag"):
+            list(open_recording(q))
+    q.unlink()
+    tiny_bag(q, data_len=100)
+    with pytest.raises(FormatError, match="message 0 on /sonar/image: expected 20 x 8 x 1 = 160"):
+        list(open_recording(q))
+    q.unlink()
+    tiny_bag(q, pose_x=float("nan"))
+    with pytest.raises(FormatError, match="pose message 0 on /sonar/pose: expected a finite pose"):
+        open_recording(q)
 
 
 def test_errors_are_one_family() -> None:

@@ -327,6 +327,8 @@ def read_grey_png(
 
 # ---------------------------------------------------------------- pose table
 _MAT = [f"T_W_S_{i}{j}" for i in range(4) for j in range(4)]
+_INT = re.compile(r"[+-]?[0-9]{1,30}")  # ASCII digits only (int() also takes "1_0" and "\u0663")
+_MAX_FRAME = 2**63 - 1  # frames are returned as int64
 
 
 def read_pose_table(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
@@ -375,13 +377,18 @@ def read_pose_table(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | N
             if len(row) != n_fields:
                 raise FormatError(f"line {line_no}: expected {n_fields} fields, but got {len(row)}",
                                   path=p)
+            cell = row[0].strip()
+            if not _INT.fullmatch(cell):
+                raise FormatError(f"line {line_no}: expected numbers, but the frame is {cell[:30]!r} "
+                                  "(not a decimal integer)", path=p)
+            k = int(cell)
             try:
-                k = int(row[0])
                 vals = [float(v) for v in row[1:]]
             except ValueError as e:
                 raise FormatError(f"line {line_no}: expected numbers, but {e}", path=p) from None
-            if k < 0:
-                raise FormatError(f"line {line_no}: expected a frame number >= 0, but got {k}", path=p)
+            if not 0 <= k <= _MAX_FRAME:
+                raise FormatError(f"line {line_no}: expected a frame number >= 0 and <= {_MAX_FRAME}, "
+                                  f"but got {cell[:30]}", path=p)
             if k in line_of:
                 raise FormatError(f"line {line_no}: expected one pose per frame, but frame {k} is "
                                   f"also on line {line_of[k]} (duplicate frame)", path=p)
@@ -421,7 +428,7 @@ def read_poses_csv(path: str | os.PathLike) -> dict[int, np.ndarray]:
     return {int(k): T[i] for i, k in enumerate(frames)}
 
 
-_NUM = re.compile(r"(\d+)")
+_NUM = re.compile(r"([0-9]+)")
 
 
 def open_fan_folder(
@@ -477,7 +484,9 @@ def open_fan_folder(
                 by_frame[k] = f
     if not by_frame:
         raise FormatError(f"expected PNG fan pictures in {img_dir}, but found none", path=str(root))
-    files = sorted(by_frame.items())[:: max(1, int(stride))]
+    if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
+        raise ValueError(f"Expected an integer stride >= 1, but got {stride!r}")
+    files = sorted(by_frame.items())[:: int(stride)]
     pose_path = Path(poses) if poses is not None else root / "sonar_poses.csv"
     T: dict[int, np.ndarray] = {}
     t_of: dict[int, float] = {}

@@ -212,7 +212,8 @@ def read_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
                               f"{left} bytes follow", size, ps)
         text = f.read(left)
     try:
-        lines = text.decode("ascii").splitlines()
+        # lines end at "\n" only (str.splitlines would also split at form feeds and the like)
+        lines = [ln.rstrip("\r") for ln in text.decode("ascii").split("\n")]
     except UnicodeDecodeError as e:
         raise FormatError(f"expected ASCII vertex data, but byte {start + e.start} is not",
                           start + e.start, ps) from None

@@ -199,8 +199,11 @@ def _decode_psi(msg, vfov: float) -> tuple[np.ndarray, SonarSpec]:
     else:
         img = np.clip(np.nan_to_num(a.astype(np.float64)), 0.0, 1.0)
     order = np.argsort(az, kind="stable")
-    spec = SonarSpec(float(r[0] - dr / 2), float(r[0] - dr / 2 + r.size * dr), int(r.size),
-                     az[order], vfov)
+    lo = float(r[0] - dr / 2)
+    hi = lo + r.size * dr
+    if -1e-3 * dr < lo < 0.0:  # bins that start at 0 m, seen through float32 bin centres
+        lo = 0.0
+    spec = SonarSpec(lo, float(hi), int(r.size), az[order], vfov)
     return np.ascontiguousarray(img[:, order], dtype=np.float32), spec
 
 
