@@ -36,11 +36,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import DATA, needs_data
+from conftest import DATA
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
-
-pytestmark = needs_data
 
 TIME_CAP_S = 1.0
 SCALE = float(os.environ.get("GPUMAP_FUZZ_EXAMPLES", "1.0"))
@@ -87,14 +85,23 @@ def _read_case(kind: str, root: Path) -> int:
     if kind == "__sleep__":  # harness self-test: the time cap
         time.sleep(3 * TIME_CAP_S + 5.0)
         return 0
+    if kind == "hostile":  # one of tests/test_io.py's hostile files, built before the cap
+        name = (root / "name").read_text()
+        read, _err = _HOSTILE[name]
+        read()
+        raise AssertionError(f"hostile file {name!r} was read without an error")
+    if kind == "any":  # arbitrary bytes under an arbitrary name, through open_recording
+        target = next(f for f in root.iterdir())
+        kind = "open"
     if kind == "ply":
         d = read_ply(root / "cloud.ply")
         n = {len(v) for v in d.values()}
         if len(n) > 1:
             raise AssertionError(f"read_ply returned columns of different lengths {n}")
         return 0
-    target = {"fan": root, "aris": root / "rec.aris", "oculus-raw": root / "rec.raw",
-              "oculus-log": root / "rec.oculus", "rosbag": root / "rec.bag"}[kind]
+    if kind != "open":
+        target = {"fan": root, "aris": root / "rec.aris", "oculus-raw": root / "rec.raw",
+                  "oculus-log": root / "rec.oculus", "rosbag": root / "rec.bag"}[kind]
     rec = open_recording(target)
     rec.count()
     rec.poses()
@@ -117,6 +124,26 @@ def _warm_up(files: dict[str, dict[str, bytes]], work: Path) -> None:
         _read_case(kind, root)
 
 
+_HOSTILE: dict = {}
+
+
+def _rss_peak_reset() -> bool:
+    """Reset the kernel's peak-RSS mark (VmHWM) of this process; False where not allowed."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _rss_kib(field: str) -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    return -1
+
+
 def _worker_main(conn, mem_cap: int, warm: dict) -> None:
     import resource
     import shutil
@@ -129,6 +156,10 @@ def _worker_main(conn, mem_cap: int, warm: dict) -> None:
     work = Path(tempfile.mkdtemp(prefix="gpumap-fuzz-"))
     try:
         _warm_up(warm, work)
+        from test_io import hostile_cases  # tests/ is on the path the parent passes down
+
+        (work / "hostile").mkdir()
+        _HOSTILE.update(hostile_cases(work / "hostile"))
         vm = int(Path("/proc/self/statm").read_text().split()[0]) * os.sysconf("SC_PAGE_SIZE")
         _soft, hard = resource.getrlimit(resource.RLIMIT_AS)
         cap = vm + mem_cap
@@ -145,12 +176,19 @@ def _worker_main(conn, mem_cap: int, warm: dict) -> None:
             k += 1
             root = work / f"case{k}"
             t0 = time.perf_counter()
+            peak = -1
             try:
                 for rel, data in case.items():
                     (root / rel).parent.mkdir(parents=True, exist_ok=True)
                     (root / rel).write_bytes(data)
+                base = _rss_kib("VmRSS")
+                measured = _rss_peak_reset()
                 t0 = time.perf_counter()
-                n = _read_case(kind, root)
+                try:
+                    n = _read_case(kind, root)
+                finally:
+                    if measured:
+                        peak = max(0, _rss_kib("VmHWM") - base) * 1024
                 out = ("frames", n, "")
             except FormatError as e:
                 out = ("gpumap-error", type(e).__name__, str(e)[:300])
@@ -158,7 +196,7 @@ def _worker_main(conn, mem_cap: int, warm: dict) -> None:
                 out = ("other", type(e).__name__, traceback.format_exc()[-3000:])
             dt = time.perf_counter() - t0
             shutil.rmtree(root, ignore_errors=True)
-            conn.send((*out, dt))
+            conn.send((*out, dt, peak))
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
@@ -171,6 +209,7 @@ class CappedRunner:
         self.warm, self.mem_cap = warm, mem_cap
         self.proc = None
         self.cap_info = None
+        self.last_peak_bytes = -1  # the last case's peak RSS above the child's own (-1: unknown)
         self._start()
 
     def _start(self) -> None:
@@ -200,10 +239,12 @@ class CappedRunner:
         'timeout' or 'died'."""
         try:
             self.conn.send((kind, case))
+            self.last_peak_bytes = -1
             if not self.conn.poll(2 * TIME_CAP_S + 2.0):
                 self._restart()
                 return ("timeout", "", f"no answer within {2 * TIME_CAP_S + 2.0} s", math.inf)
-            return self.conn.recv()
+            *out, self.last_peak_bytes = self.conn.recv()
+            return tuple(out)
         except (EOFError, BrokenPipeError, ConnectionResetError):
             code = self.proc.exitcode
             self._restart()
@@ -291,6 +332,8 @@ def seeds(tmp_path_factory) -> dict:
     from gpumap.io import write_oculus_log, write_ply
     from gpumap.io.oculus import iter_raw_messages
 
+    if DATA is None:
+        pytest.skip("shared/data (real recordings) not found beside the checkout (../shared/data)")
     tmp = tmp_path_factory.mktemp("seeds")
     out = _Seeds()
     raw3 = (DATA / "oculus" / "three_pings_8bit.raw").read_bytes()
@@ -358,11 +401,15 @@ def _kind(name: str) -> str:
 
 
 @pytest.fixture(scope="module")
-def runner(seeds):
+def runner(request):
+    """The capped child; warmed up on the real files when they are there (works without)."""
     from gpumap.limits import MEMORY_TARGET_BYTES
 
-    warm = {_kind(k): v["files"] for k, v in seeds.items() if k in ("oculus-raw", "oculus-log", "aris",
-                                                                   "fan", "ply-bin", "rosbag")}
+    warm = {}
+    if DATA is not None:
+        seeds = request.getfixturevalue("seeds")
+        warm = {_kind(k): v["files"] for k, v in seeds.items()
+                if k in ("oculus-raw", "oculus-log", "aris", "fan", "ply-bin", "rosbag")}
     r = CappedRunner(warm, MEMORY_TARGET_BYTES)
     yield r
     r.close()
@@ -539,3 +586,286 @@ def test_fuzz_ply(runner, seeds, muts, binary) -> None:
 @given(muts=MUTATIONS)
 def test_fuzz_rosbag(runner, seeds, muts) -> None:
     _fuzz_one(runner, seeds, "rosbag", "rec.bag", muts)
+
+
+# ------------------------------------------------------------------ hostile files, in the capped child
+def test_hostile_files_in_the_capped_child(runner, tmp_path) -> None:
+    """Each hostile file of issue #12 (tests/test_io.py) again, now under RLIMIT_AS (1 GiB) in
+    the child, with its peak RSS measured by the kernel (VmHWM, C allocations included):
+    gpumap's own error, in under a second, costing far less than 1 GiB."""
+    from test_io import hostile_cases
+
+    from gpumap.limits import MEMORY_TARGET_BYTES
+
+    cases = hostile_cases(tmp_path)  # only for the names and the errors; the child has its own
+    peaks = {}
+    for name, (_read, err) in cases.items():
+        status, detail, message, dt = runner.run("hostile", {"name": name.encode()})
+        assert (status, detail) == ("gpumap-error", err.__name__), (name, status, detail, message)
+        assert "expected" in message, (name, message)
+        assert dt < TIME_CAP_S, (name, dt)
+        peaks[name] = runner.last_peak_bytes
+    known = {k: v for k, v in peaks.items() if v >= 0}
+    # measured: 0-15 MiB above the child's own footprint (most: the fan folder's sampler tables)
+    assert all(v < MEMORY_TARGET_BYTES // 16 for v in known.values()), known
+
+
+# ------------------------------------------------------------------ the public API, by construction
+# These build their inputs from parameters Hypothesis draws and know the answer independently:
+# valid inputs must give exactly that answer, inputs made invalid on purpose must give
+# gpumap's error. Sizes are bounded by construction, so they run in this process.
+def _rigid(q: tuple[float, float, float, float], t: tuple[float, float, float]) -> np.ndarray:
+    w, x, y, z = np.asarray(q) / np.linalg.norm(q)
+    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+_unit = st.floats(-1.0, 1.0, allow_nan=False)
+_quat = st.tuples(_unit, _unit, _unit, _unit).map(lambda q: q if np.linalg.norm(q) > 0.1 else (1.0, *q[1:]))
+_trans = st.tuples(*[st.floats(-1e3, 1e3, allow_nan=False)] * 3)
+_FRAME_DAMAGE = ["-1", "x", "1_0", "99999999999999999999", "", "1.5", "dup", "back"]
+_TIME_DAMAGE = ["nan", "inf", "-inf", "same", "back", "abc"]
+_POSE_DAMAGE = ["nan", "inf", "1e400", "abc", "skew", "mirror", "last row", "missing", "extra"]
+_row = st.fixed_dictionaries({
+    "step": st.integers(1, 10**6), "dt": st.floats(1e-3, 1e3), "q": _quat, "t": _trans,
+    "damage": st.one_of(st.none(), st.none(), st.none(),
+                        st.tuples(st.just("frame"), st.sampled_from(_FRAME_DAMAGE)),
+                        st.tuples(st.just("time"), st.sampled_from(_TIME_DAMAGE)),
+                        st.tuples(st.just("pose"), st.sampled_from(_POSE_DAMAGE),
+                                  st.integers(0, 15))),
+})
+
+
+def _pose_table_text(rows: list[dict], with_time: bool, start: int) -> tuple[str, bool, tuple]:
+    """-> (CSV text, whether it is valid, (frames, times, T) it holds when valid)."""
+    head = "frame," + ("time_s," if with_time else "") + ",".join(
+        f"T_W_S_{i}{j}" for i in range(4) for j in range(4))
+    lines, frames, times, Ts = [head], [], [], []
+    valid, k, t = True, start, 1.7e9
+    for i, r in enumerate(rows):
+        k, t = (k + r["step"] if i else k), t + r["dt"]
+        T = _rigid(r["q"], r["t"])
+        fcell, tcell = str(k), repr(t)
+        cells = [repr(float(v)) for v in T.reshape(-1)]
+        d = r["damage"]
+        if d and d[0] == "time" and not with_time:
+            d = None
+        if d and d[0] == "frame" and d[1] in ("dup", "back") and not frames:
+            d = None
+        if d:
+            valid = False
+            if d[0] == "frame":
+                fcell = {"dup": str(frames[-1] if frames else 0),
+                         "back": str(frames[-1] - 1 if frames else 0)}.get(d[1], d[1])
+            elif d[0] == "time":
+                tcell = {"same": repr(times[-1]) if times else "nan",
+                         "back": repr(times[-1] - 0.5) if times else "nan"}.get(d[1], d[1])
+                if d[1] in ("same", "back") and not times:
+                    tcell = "nan"
+            else:
+                kind, j = d[1], d[2]
+                if kind in ("nan", "inf", "1e400", "abc"):
+                    cells[j] = kind
+                elif kind == "skew":  # one rotation or translation entry off by 0.5
+                    m = j % 12 if j % 4 != 3 else 0
+                    m = m if m % 4 != 3 else m - 1
+                    cells[m] = repr(float(T.reshape(-1)[m]) + 0.5)
+                elif kind == "mirror":
+                    for m in (0, 4, 8):  # negate the first column: det -1
+                        cells[m] = repr(-float(T.reshape(-1)[m]))
+                elif kind == "last row":
+                    cells[12 + j % 4] = "0.5" if j % 4 != 3 else "2.0"
+                elif kind == "missing":
+                    del cells[j]
+                else:
+                    cells.insert(j, "0.0")
+        lines.append(",".join([fcell, *([tcell] if with_time else []), *cells]))
+        frames.append(k)
+        times.append(t)
+        Ts.append(T)
+    return "\n".join(lines) + "\n", valid, (frames, times, Ts)
+
+
+@_fuzz_settings(200)
+@given(rows=st.lists(_row, min_size=0, max_size=6), with_time=st.booleans(),
+       start=st.integers(0, 2**40))
+def test_pose_table_property(rows, with_time, start) -> None:
+    """read_pose_table: a valid table comes back exactly; a table damaged anywhere (frame,
+    time or pose) is refused with gpumap's error."""
+    import tempfile
+
+    from gpumap.errors import FormatError
+    from gpumap.io.fan import read_pose_table
+
+    text, valid, (frames, times, Ts) = _pose_table_text(rows, with_time, start)
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "sonar_poses.csv"
+        p.write_text(text)
+        if not valid:
+            with pytest.raises(FormatError):
+                read_pose_table(p)
+            return
+        f, t, T = read_pose_table(p)
+    assert f.dtype == np.int64 and f.tolist() == frames
+    assert (t is None) == (not with_time)
+    if with_time:
+        assert t.tolist() == times
+    assert T.shape == (len(rows), 4, 4)
+    np.testing.assert_array_equal(T, np.asarray(Ts).reshape(-1, 4, 4))  # repr round-trips exactly
+
+
+# (colour type, bit depths): every mode the PNG standard allows
+_PNG_MODES = [(0, (1, 2, 4, 8, 16)), (2, (8, 16)), (3, (1, 2, 4, 8)), (4, (8, 16)), (6, (8, 16))]
+_png_mode = st.sampled_from([(c, d) for c, ds in _PNG_MODES for d in ds])
+
+
+def _luma(rgb: np.ndarray) -> np.ndarray:
+    return rgb[..., 0] * 0.299 + rgb[..., 1] * 0.587 + rgb[..., 2] * 0.114
+
+
+def _encode_png(ctype: int, depth: int, px: np.ndarray, palette: np.ndarray | None) -> bytes:
+    """A PNG from samples (h, w, channels) of ``depth`` bits: rows packed MSB first, filter 0."""
+    from test_io import png_bytes, png_chunk
+
+    h, w, _c = px.shape
+    rows = []
+    for y in range(h):
+        v = px[y].reshape(-1)
+        if depth == 16:
+            raw = v.astype(">u2").tobytes()
+        elif depth == 8:
+            raw = v.astype(np.uint8).tobytes()
+        else:
+            bits = np.unpackbits(v.astype(np.uint8)[:, None], axis=1)[:, 8 - depth:].reshape(-1)
+            raw = np.packbits(bits).tobytes()
+        rows.append(b"\0" + raw)
+    extra = b""
+    if palette is not None:
+        extra = png_chunk(b"PLTE", palette.astype(np.uint8).tobytes())
+    return png_bytes(w, h, depth, ctype, zlib.compress(b"".join(rows)), extra)
+
+
+@_fuzz_settings(200)
+@given(mode=_png_mode, w=st.integers(1, 13), h=st.integers(1, 9), seed=st.integers(0, 2**32 - 1))
+def test_png_modes_property(mode, w, h, seed) -> None:
+    """read_grey_png on every PNG colour type and bit depth, random sizes and pixels: the grey
+    levels an independent reading of the samples gives (grey / max, palette and RGB by luma,
+    alpha ignored), within one 8-bit step where Pillow reduces to 8 bits."""
+    from gpumap.io.fan import read_grey_png
+
+    ctype, depth = mode
+    rng = np.random.default_rng(seed)
+    top = (1 << depth) - 1
+    channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}[ctype]
+    px = rng.integers(0, top, size=(h, w, channels), endpoint=True)
+    palette = None
+    if ctype == 3:
+        palette = rng.integers(0, 255, size=(top + 1, 3), endpoint=True)
+    got = read_grey_png(_encode_png(ctype, depth, px, palette), expected_shape=(h, w))
+    assert got.dtype == np.float32 and got.shape == (h, w) and got.flags.c_contiguous
+    if ctype == 0:  # grey: exact
+        expect, tol = px[..., 0] / top, 1e-6
+    elif ctype == 4:  # grey + alpha: the grey (16 bit reduced to 8)
+        expect, tol = px[..., 0] / top, (1 / 255 if depth == 16 else 1e-6)
+    elif ctype == 3:
+        expect, tol = _luma(palette[px[..., 0]]) / 255, 1 / 255 + 1e-6
+    else:  # RGB / RGBA: luma of the colour
+        expect, tol = _luma(px[..., :3] / top), (2 / 255 if depth == 16 else 1 / 255) + 1e-6
+    np.testing.assert_allclose(got, expect, atol=tol, rtol=0)
+
+
+_sample_dtype = st.sampled_from([np.uint8, np.uint16, np.uint32])
+
+
+@_fuzz_settings(200)
+@given(dtype=_sample_dtype, n_ranges=st.integers(1, 40), bearings=st.sets(
+    st.integers(-4400, 4400), min_size=2, max_size=24), version=st.sampled_from([1, 2]),
+    gains=st.booleans(), pad=st.integers(0, 64), res=st.floats(1e-4, 1.0), seed=st.integers(0, 2**32 - 1),
+    damage=st.lists(st.tuples(st.integers(0, 400), st.integers(0, 2**32 - 1), st.sampled_from([1, 2, 4, 8])),
+                    max_size=3))
+def test_oculus_message_property(dtype, n_ranges, bearings, version, gains, pad, res, seed,
+                                 damage) -> None:
+    """encode_simple_ping -> decode_message gives the samples back exactly (columns reversed,
+    azimuth = -bearing; bearings within +-44 deg so the fan's edges stay inside +-90); the
+    same message with header bytes overwritten decodes to a frame that passes the frame
+    checks, or gpumap's error -- nothing else."""
+    from gpumap.errors import FormatError
+    from gpumap.io import decode_message, encode_simple_ping
+    from gpumap.io.oculus import _FIXED1, _FIXED2
+
+    rng = np.random.default_rng(seed)
+    b = np.array(sorted(bearings), dtype=np.int16)
+    top = np.iinfo(dtype).max
+    samples = rng.integers(0, top, size=(n_ranges, b.size), dtype=dtype, endpoint=True)
+    g = rng.integers(0, 2**32 - 1, size=n_ranges, dtype=np.uint32) if gains else None
+    fixed = _FIXED2 if version == 2 else _FIXED1
+    msg = encode_simple_ping(samples, b, res, version=version, gains=g, ping_id=int(seed % 2**32),
+                             ping_start_time=seed % 1000 / 7.0, image_offset=fixed + 2 * b.size + pad)
+    fr = decode_message(msg)
+    assert _frame_problem(fr) is None
+    if dtype is np.uint32:
+        np.testing.assert_allclose(fr.image, samples[:, ::-1] / top, rtol=1e-6)
+    else:
+        np.testing.assert_array_equal(np.round(fr.image.astype(np.float64) * top), samples[:, ::-1])
+    np.testing.assert_array_equal(fr.meta["bearings_cdeg"], b)
+    np.testing.assert_allclose(fr.spec.bearings_rad, -np.deg2rad(b[::-1] / 100.0))
+    assert fr.spec.n_bins == n_ranges and fr.spec.range_max_m == pytest.approx(n_ranges * res)
+    assert (fr.meta["gains"] is None) == (not gains)
+    if gains:
+        np.testing.assert_array_equal(fr.meta["gains"], g)
+    bad = bytearray(msg)
+    for off, val, size in damage:
+        off %= max(1, min(len(bad), fixed + 2 * b.size) - size + 1)
+        bad[off:off + size] = (val % (1 << (8 * size))).to_bytes(size, "little")
+    try:
+        fr2 = decode_message(bytes(bad))
+    except FormatError:
+        return
+    assert fr2 is None or _frame_problem(fr2) is None, _frame_problem(fr2)
+
+
+_f32 = st.floats(width=32, allow_nan=True, allow_infinity=True)
+
+
+@_fuzz_settings(150)
+@given(points=st.lists(st.tuples(_f32, _f32, _f32), max_size=40), with_intensity=st.booleans(),
+       binary=st.booleans(), data=st.data())
+def test_ply_round_trip_property(points, with_intensity, binary, data) -> None:
+    """write_ply -> read_ply returns every float32 exactly (NaN and inf included), ASCII or binary."""
+    import tempfile
+
+    from gpumap.io import read_ply, write_ply
+
+    P = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    v = None
+    if with_intensity:
+        v = np.asarray(data.draw(st.lists(_f32, min_size=len(P), max_size=len(P))), dtype=np.float32)
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "c.ply"
+        write_ply(p, P, v, binary=binary)
+        got = read_ply(p)
+    assert sorted(got) == sorted(["x", "y", "z"] + (["intensity"] if with_intensity else []))
+    for j, k in enumerate("xyz"):
+        assert got[k].dtype == np.float32
+        np.testing.assert_array_equal(got[k], P[:, j])
+    if with_intensity:
+        np.testing.assert_array_equal(got["intensity"], v)
+
+
+_MAGICS = [b"", b"#ROSBAG V2.0\n", b"\x89MCAP0\r\n", b"SQLite format 3\x00", b"DDF\x05",
+           (0x11223344).to_bytes(4, "little"), (0x4F53).to_bytes(2, "little"), b"\x89PNG\r\n\x1a\n"]
+_NAMES = ["rec.bag", "rec.mcap", "rec.db3", "rec.aris", "rec.ddf", "rec.oculus", "rec.png", "rec.raw",
+          "rec"]
+
+
+@_fuzz_settings(200)
+@given(magic=st.sampled_from(_MAGICS), name=st.sampled_from(_NAMES),
+       body=st.binary(max_size=3000))
+def test_open_recording_on_any_bytes(runner, magic, name, body) -> None:
+    """open_recording on any small file under any telling name, read to the end in the capped
+    child: frames that pass the checks, or gpumap's error."""
+    _check(runner, f"any {name}", "any", {name: magic + body})
