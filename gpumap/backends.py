@@ -20,7 +20,7 @@ from importlib import resources
 import numpy as np
 
 from gpumap.errors import BackendUnavailableError
-from gpumap.geometry import PING_DTYPE, beam_lut, beam_tan_edges
+from gpumap.geometry import MAX_TABLE_LEVELS, PING_DTYPE, beam_lut, beam_tan_edges
 from gpumap.spec import SonarSpec
 
 log = logging.getLogger("gpumap")
@@ -31,8 +31,6 @@ AUTO_ORDER = ("warp-cuda", "opencl-gpu", "opencl-cpu", "warp-cpu", "numpy")
 
 def table_size(spec: SonarSpec) -> int:
     """Floats in a per-ping max table: its levels plus two scratch planes."""
-    from gpumap.geometry import MAX_TABLE_LEVELS
-
     return (min(spec.n_beams.bit_length(), MAX_TABLE_LEVELS) + 2) * spec.n_bins * spec.n_beams
 
 
@@ -40,7 +38,17 @@ U8_SCALE = np.float32(1.0 / 255.0)  # 8-bit pings: intensity = byte * U8_SCALE, 
 # Image upload slots: the host may prepare this many pings ahead of the device.
 N_SLOTS = 4
 GPU_CHUNK = 16  # voxels of a column per gather thread on GPUs
+#: Threads a CPU backend's gather may use (warp-cpu splits its launch; PoCL uses every core).
+CPU_THREADS = min(2, os.cpu_count() or 1)
 CPU_CHUNK = 1 << 30  # on CPUs, the whole column
+
+
+@functools.cache
+def _cpu_pool():
+    """One worker thread, shared by every warp-cpu mapper, for the second half of a gather."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    return ThreadPoolExecutor(1, thread_name_prefix="gpumap-cpu")
 
 
 class GridTooLargeError(ValueError):
@@ -62,6 +70,15 @@ class Backend:
     def integrate(self, params: np.ndarray, image: np.ndarray, method: str, n_threads: int) -> None:
         """Apply one ping. ``image`` is (n_bins, n_beams) float32 in [0, 1]."""
         raise NotImplementedError
+
+    def integrate_batch(
+        self, params: np.ndarray, images: np.ndarray, method: str, n_threads: np.ndarray
+    ) -> None:
+        """Apply B pings: ``params`` (B,) PING_DTYPE, ``images`` (B, n_bins, n_beams) uint8 or
+        float32, ``n_threads`` (B,) ints. The same grid as B calls of :meth:`integrate` (this
+        default makes them; GPU backends fold the whole batch in a few launches)."""
+        for b in range(params.shape[0]):
+            self.integrate(params[b, ...], images[b], method, int(n_threads[b]))
 
     def read(self) -> np.ndarray:
         """(n_voxels,) float32 copy of the grid, +inf = unknown."""
@@ -159,6 +176,65 @@ def _warp_params(minmax, p: np.ndarray):
     return s
 
 
+def build_table_host(image: np.ndarray, win: int, n_levels: int, table: np.ndarray, rows: np.ndarray) -> None:
+    """The per-ping max table in NumPy (CPUs): what ``build_bin_window`` and
+    ``build_beam_levels`` make, in a dozen whole-image passes instead of a strided walk.
+
+    ``table`` is (n_levels, n_bins, n_beams) float32, written in place; ``rows`` (n_bins,)
+    int: for each bin i, ``max(min(i + win - 1, n_bins - 1) - 2^k + 1, i)`` with ``2^k`` the
+    largest power of two <= win (:func:`table_rows`). Maxima are exact, so the values are
+    the kernels' bit for bit.
+    """
+    n = image.shape[0]
+    s = table[0]
+    s[...] = image
+    w = 1
+    while 2 * w <= win:  # s[i] = max over bins [i, i + 2w - 1] (clipped)
+        np.maximum(s[: n - w], s[w:], out=s[: n - w])
+        w *= 2
+    # level 0: two overlapping spans of w cover [i, min(i + win - 1, n - 1)]
+    np.maximum(s, s[rows], out=s)
+    step = 1
+    for k in range(1, n_levels):  # beam spans of 2^k (clipped at the last beam)
+        prev, cur = table[k - 1], table[k]
+        np.maximum(prev[:, :-step], prev[:, step:], out=cur[:, :-step])
+        np.maximum(prev[:, -step:], prev[:, -1:], out=cur[:, -step:])
+        step *= 2
+
+
+def table_rows(n_bins: int, win: int) -> np.ndarray:
+    """The second read of :func:`build_table_host`'s level 0, per bin."""
+    w = 1 << (max(1, win).bit_length() - 1)
+    i = np.arange(n_bins)
+    return np.maximum(np.minimum(i + win - 1, n_bins - 1) - w + 1, i)
+
+
+#: Pings a GPU folds per launch (more are split); buffers grow to the largest batch seen.
+BATCH_MAX = 64
+
+
+def _union_groups(params: np.ndarray, n_threads: np.ndarray, slack: float = 2.0) -> list[tuple[int, int]]:
+    """Split a batch into runs of pings whose boxes' union box holds at most ``slack`` times
+    the voxels of the boxes themselves (far-apart pings would make threads walk empty space)."""
+    lo = params["box_lo"].astype(np.int64)
+    hi = lo + params["box_n"].astype(np.int64)
+    vol = np.where(n_threads > 0, np.prod(hi - lo, axis=1), 0)
+    out, start = [], 0
+    ulo, uhi, total = None, None, 0
+    for b in range(params.shape[0]):
+        if vol[b] == 0:
+            continue
+        nlo = lo[b] if ulo is None else np.minimum(ulo, lo[b])
+        nhi = hi[b] if uhi is None else np.maximum(uhi, hi[b])
+        if ulo is not None and (np.prod(nhi - nlo) > slack * (total + vol[b]) or b - start >= BATCH_MAX):
+            out.append((start, b))
+            start, nlo, nhi, total = b, lo[b], hi[b], 0
+        ulo, uhi, total = nlo, nhi, total + vol[b]
+    if ulo is not None:
+        out.append((start, params.shape[0]))
+    return out
+
+
 class WarpBackend(Backend):
     def __init__(self, spec, n_voxels, template_S, use_table=None, device="cpu", *, visible=False):
         n_bins, n_beams = spec.image_shape
@@ -169,6 +245,7 @@ class WarpBackend(Backend):
         self.dev = wp.get_device("cuda:0" if device == "cuda" else "cpu")
         self.name = f"warp-{device}"
         self.device = f"{self.dev.alias} ({self.dev.name})"
+        self.n_bins, self.n_beams = n_bins, n_beams
         with wp.ScopedDevice(self.dev):
             self.grid = wp.full(n_voxels, value=np.inf, dtype=float)
             # the visible rule's evidence (empty for the plain rule: its kernels never touch it)
@@ -194,6 +271,10 @@ class WarpBackend(Backend):
         # host can prepare ping k+1 while the GPU still works on ping k.
         self.staging = []
         self.events = []
+        self._batch = None  # GPU batch buffers, allocated on the first batch
+        # fold a batch in a few launches (GPUs); CPUs loop over integrate (tests may set it
+        # on warp-cpu to run the batch kernels there)
+        self.batch_kernels = self.dev.is_cuda
         if self.dev.is_cuda:
             self.staging = [
                 wp.empty((n_bins, n_beams), dtype=float, device="cpu", pinned=True) for _ in range(N_SLOTS)
@@ -213,6 +294,15 @@ class WarpBackend(Backend):
                 device=self.dev,
                 record_cmd=True,
             )
+        else:
+            # CPUs: the max table in NumPy (whole-image passes), and the gather split in two
+            # halves of the box's rows run on two threads (Warp's CPU kernels are serial; the
+            # launch releases the GIL). Each half owns its voxels: the same grid as one launch.
+            if self.use_table:
+                nl = min(n_beams.bit_length(), MAX_TABLE_LEVELS)
+                self.table_np = self.table.numpy()[: nl * n_bins * n_beams].reshape(nl, n_bins, n_beams)
+            self._rows = {}
+            self._pool = _cpu_pool() if CPU_THREADS > 1 else None
         self.slot = 0
         self._cmds = None
         self.image_np = None if self.dev.is_cuda else self.image.numpy()
@@ -235,6 +325,8 @@ class WarpBackend(Backend):
                 wp.copy(self.image, self.staging[s])
                 self.events[s] = wp.record_event()
             self.slot = (s + 1) % N_SLOTS
+        elif method == "gather" and not n_threads:
+            return
         elif image.dtype == np.uint8:
             np.multiply(image, U8_SCALE, out=self.image_np)
         else:
@@ -248,10 +340,34 @@ class WarpBackend(Backend):
         ctypes.memmove(self._P_addr, params.ctypes.data, PING_DTYPE.itemsize)
         for cmd in self._cmds["table"]:
             cmd.launch()
+        if not self.dev.is_cuda and self.use_table:
+            win = int(params["win"])
+            rows = self._rows.get(win)
+            if rows is None:
+                rows = self._rows[win] = table_rows(self.n_bins, win)
+            build_table_host(self.image_np, win, self.table_np.shape[0], self.table_np, rows)
         cmd = self._cmds[method]
-        if method == "gather":
-            cmd.set_dim(n_threads * -(-int(params["box_n"][2]) // self.chunk))
+        if method != "gather":
+            cmd.launch()
+            return
+        n_chunks = -(-int(params["box_n"][2]) // self.chunk)
+        n0 = int(params["box_n"][0])
+        if self._pool is None or self.dev.is_cuda or n0 < 2 or n_threads < 64:
+            cmd.set_dim(n_threads * n_chunks)
+            cmd.launch()
+            return
+        # two halves of the box's rows, one per core
+        half = n0 // 2
+        cols = n_threads // n0
+        ctypes.memmove(self._P2_addr, params.ctypes.data, PING_DTYPE.itemsize)
+        self._P._ctype.box_n[0] = half
+        self._P2._ctype.box_lo[0] = int(params["box_lo"][0]) + half
+        self._P2._ctype.box_n[0] = n0 - half
+        cmd.set_dim(half * cols * n_chunks)
+        self._cmd2.set_dim((n0 - half) * cols * n_chunks)
+        fut = self._pool.submit(self._cmd2.launch)
         cmd.launch()
+        fut.result()
 
     def _record(self, params):
         """Record every launch once (``record_cmd``); a ping then only swaps the parameters.
@@ -276,30 +392,19 @@ class WarpBackend(Backend):
                     **rec,
                 )
             )
-        if self.use_table:
-            if self.dev.is_cuda:  # one thread per cell
-                cells = (int(params["n_bins"]), int(params["n_beams"]))
-                table += [
-                    wp.launch(k.build_bin_window_cells, dim=cells, inputs=[P, self.image, self.table], **rec),
-                    wp.launch(k.build_beam_levels_cells, dim=cells, inputs=[P, self.table], **rec),
-                ]
-            else:  # one thread per beam, then per row: fewest operations
-                nb, nr = int(params["n_beams"]), int(params["n_bins"])
-                table += [
-                    wp.launch(k.build_bin_window, dim=nb, inputs=[P, self.image, self.table], **rec),
-                    wp.launch(k.build_beam_levels, dim=nr, inputs=[P, self.table], **rec),
-                ]
+        if self.use_table and self.dev.is_cuda:  # one thread per cell (CPUs: build_table_host)
+            cells = (int(params["n_bins"]), int(params["n_beams"]))
+            table += [
+                wp.launch(k.build_bin_window_cells, dim=cells, inputs=[P, self.image, self.table], **rec),
+                wp.launch(k.build_beam_levels_cells, dim=cells, inputs=[P, self.table], **rec),
+            ]
+        gather_args = [
+            self.image, self.edges, self.lut, self.table, self.first_bright,
+            self.grid, self.bright, self.count,
+        ]
         self._cmds = {
             "table": table,
-            "gather": wp.launch(
-                k.integrate_gather,
-                dim=1,
-                inputs=[
-                    P, self.image, self.edges, self.lut, self.table, self.first_bright,
-                    self.grid, self.bright, self.count,
-                ],
-                **rec,
-            ),
+            "gather": wp.launch(k.integrate_gather, dim=1, inputs=[P, *gather_args], **rec),
             "template": None
             if self.template is None
             else wp.launch(
@@ -312,6 +417,96 @@ class WarpBackend(Backend):
                 **rec,
             ),
         }
+        if not self.dev.is_cuda:  # the second half of a split gather has its own parameters
+            self._P2 = _warp_params(k, params)
+            self._P2_addr = ctypes.addressof(self._P2._ctype)
+            self._cmd2 = wp.launch(k.integrate_gather, dim=1, inputs=[self._P2, *gather_args], **rec)
+
+    # ------------------------------------------------------------------ batches (CUDA)
+    def integrate_batch(self, params, images, method, n_threads):
+        if not self.batch_kernels or method != "gather":
+            return super().integrate_batch(params, images, method, n_threads)
+        _check_rule(params[0, ...], self.visible)
+        params["chunk"] = self.chunk
+        for b0, b1 in _union_groups(params, n_threads):
+            self._launch_batch(params[b0:b1], images[b0:b1], n_threads[b0:b1])
+
+    def _batch_buffers(self, n: int) -> dict:
+        """Device and pinned host buffers for up to ``n`` pings (grown to the next power of two)."""
+        bb = self._batch
+        if bb is not None and bb["cap"] >= n:
+            return bb
+        wp = self.wp
+        pin = self.dev.is_cuda
+        self.synchronize()  # old buffers may still be in flight
+        cap = min(BATCH_MAX, 1 << (n - 1).bit_length())
+        shape = (cap, self.n_bins, self.n_beams)
+        n_table = self.table.shape[0]
+        dev = self.dev
+        bb = {
+            "cap": cap,
+            # two pinned host slots: batch k+1 is written while batch k's upload may run
+            "host_u8": [wp.empty(shape, dtype=wp.uint8, device="cpu", pinned=pin) for _ in range(2)],
+            "host_f": [wp.empty(shape, dtype=float, device="cpu", pinned=pin) for _ in range(2)],
+            "host_P": [wp.empty(cap, dtype=self.k.PingParams, device="cpu", pinned=pin) for _ in range(2)],
+            "events": [None, None],
+            "slot": 0,
+            "u8": wp.empty(shape, dtype=wp.uint8, device=dev),
+            "images": wp.empty(shape, dtype=float, device=dev),
+            "P": wp.empty(cap, dtype=self.k.PingParams, device=dev),
+            "tables": wp.empty((cap, n_table), dtype=float, device=dev),
+            "first_bright": wp.zeros((cap, self.n_beams), dtype=int, device=dev),
+        }
+        bb["host_u8_np"] = [a.numpy() for a in bb["host_u8"]]
+        bb["host_f_np"] = [a.numpy() for a in bb["host_f"]]
+        self._batch = bb
+        return bb
+
+    def _launch_batch(self, params, images, n_threads):
+        wp, k = self.wp, self.k
+        B = params.shape[0]
+        bb = self._batch_buffers(B)
+        s = bb["slot"]
+        bb["slot"] = 1 - s
+        if bb["events"][s] is not None:
+            wp.synchronize_event(bb["events"][s])
+        hp = bb["host_P"][s]
+        ctypes.memmove(hp.ptr, params.ctypes.data, B * PING_DTYPE.itemsize)
+        P = bb["P"][:B]
+        wp.copy(P, hp[:B])
+        imgs = bb["images"][:B]
+        if images.dtype == np.uint8:
+            np.copyto(bb["host_u8_np"][s][:B], images)
+            wp.copy(bb["u8"][:B], bb["host_u8"][s][:B])
+            bb["events"][s] = wp.record_event() if self.dev.is_cuda else None
+            wp.launch(k.convert_u8_batch, dim=images.shape, inputs=[bb["u8"][:B], float(U8_SCALE), imgs],
+                      device=self.dev)
+        else:
+            np.copyto(bb["host_f_np"][s][:B], images)
+            wp.copy(imgs, bb["host_f"][s][:B])
+            bb["events"][s] = wp.record_event() if self.dev.is_cuda else None
+        fb = bb["first_bright"]  # (cap, ...): kernels index their B first rows only
+        tables = bb["tables"]
+        if int(params["rule"][0]) == 1:
+            wp.launch(k.find_first_bright_batch, dim=(B, self.n_beams), inputs=[P, imgs, fb], device=self.dev)
+        if self.use_table:
+            cells = images.shape
+            wp.launch(k.build_bin_window_cells_batch, dim=cells, inputs=[P, imgs, tables], device=self.dev)
+            wp.launch(k.build_beam_levels_cells_batch, dim=cells, inputs=[P, tables], device=self.dev)
+        live = n_threads > 0
+        lo = params["box_lo"][live].min(axis=0)
+        hi = (params["box_lo"] + params["box_n"])[live].max(axis=0)
+        n = hi - lo
+        n_chunks = -(-int(n[2]) // self.chunk)
+        wp.launch(
+            k.integrate_gather_batch,
+            dim=int(n[0]) * int(n[1]) * n_chunks,
+            inputs=[
+                P, wp.vec3i(*lo.tolist()), wp.vec3i(*n.tolist()), self.chunk, imgs, self.edges, self.lut,
+                tables, fb, self.grid, self.bright, self.count,
+            ],
+            device=self.dev,
+        )
 
     def read(self):
         return self.grid.numpy().copy()
@@ -400,6 +595,7 @@ class OpenCLBackend(Backend):
             )
         self.cl = cl
         self.ctx, prg = _opencl_context(d)
+        self._cl_device = d
         self.queue = cl.CommandQueue(self.ctx)
         self.name = "opencl"
         self.device = f"{d.platform.name.strip()}: {d.name.strip()}"
@@ -430,7 +626,13 @@ class OpenCLBackend(Backend):
         self.n_bins = n_bins
         # per-ping max table: two reads per voxel instead of a loop; same answers either way
         self.use_table = True if use_table is None else bool(use_table)
-        self.table = cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * max(1, table_size(spec) * self.use_table))
+        self.table = cl.Buffer(self.ctx, mf.READ_WRITE | (0 if self.is_gpu else mf.ALLOC_HOST_PTR),
+                               size=4 * max(1, table_size(spec) * self.use_table))
+        self.n_levels = min(n_beams.bit_length(), MAX_TABLE_LEVELS)
+        self._rows = {}
+        self.host_f = np.empty((n_bins, n_beams), np.float32)  # CPUs: the image the host table reads
+        self._batch = None  # GPU batch buffers, allocated on the first batch
+        self.batch_kernels = self.is_gpu
         self.template = None
         if template_S is not None:
             self.template = cl.Buffer(
@@ -489,11 +691,8 @@ class OpenCLBackend(Backend):
                 gs = -(-(self.n_bins * self.n_beams) // self.wg) * self.wg
                 self.k_window(self.queue, (gs,), (self.wg,), P, image_buf, self.table)
                 self.k_levels(self.queue, (gs,), (self.wg,), P, self.table)
-            else:
-                gs = -(-self.n_beams // 16) * 16
-                self.k_window(self.queue, (gs,), (16,), P, image_buf, self.table)
-                gs = -(-self.n_bins // 16) * 16
-                self.k_levels(self.queue, (gs,), (16,), P, self.table)
+            else:  # CPUs: whole-image NumPy passes into the mapped table (no copy)
+                self._host_table(params, image)
         args = (P, image_buf, self.edges, self.lut, self.table, flag, self.first_bright)
         if method == "gather":
             n_threads *= -(-int(params["box_n"][2]) // self.chunk)
@@ -505,6 +704,116 @@ class OpenCLBackend(Backend):
             gs = -(-self.n_points // self.wg) * self.wg
             self.k_template(self.queue, (gs,), (self.wg,), *args, self.template, self.grid)
         self.queue.flush()
+
+    def _host_table(self, params, image) -> None:
+        cl = self.cl
+        if image.dtype == np.uint8:
+            image = np.multiply(image, U8_SCALE, out=self.host_f)
+        win = int(params["win"])
+        rows = self._rows.get(win)
+        if rows is None:
+            rows = self._rows[win] = table_rows(self.n_bins, win)
+        shape = (self.n_levels, self.n_bins, self.n_beams)
+        # in order: the map waits for the previous ping's kernels, which read the table
+        tab, _ = cl.enqueue_map_buffer(
+            self.queue, self.table, cl.map_flags.WRITE_INVALIDATE_REGION, 0, shape, np.float32
+        )
+        try:
+            build_table_host(image, win, self.n_levels, tab, rows)
+        finally:
+            tab.base.release(self.queue)
+
+    # ------------------------------------------------------------------ batches (GPUs)
+    def integrate_batch(self, params, images, method, n_threads):
+        if not self.batch_kernels or method != "gather":
+            return super().integrate_batch(params, images, method, n_threads)
+        _check_rule(params[0, ...], self.visible)
+        params["chunk"] = self.chunk
+        for b0, b1 in _union_groups(params, n_threads):
+            self._launch_batch(params[b0:b1], images[b0:b1], n_threads[b0:b1])
+
+    def _batch_buffers(self, n: int) -> dict:
+        bb = self._batch
+        if bb is not None and bb["cap"] >= n:
+            return bb
+        cl = self.cl
+        mf = cl.mem_flags
+        self.queue.finish()  # old buffers may still be in flight
+        cap = min(BATCH_MAX, 1 << (n - 1).bit_length())
+        plane = self.n_bins * self.n_beams
+        n_table = (self.n_levels + 2) * plane if self.use_table else 1
+
+        def host(nbytes):  # page-locked where the driver offers it (ALLOC_HOST_PTR), mapped once
+            buf = cl.Buffer(self.ctx, mf.READ_ONLY | mf.ALLOC_HOST_PTR, size=nbytes)
+            arr, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.WRITE, 0, (nbytes,), np.uint8)
+            return buf, arr
+
+        bb = {
+            "cap": cap,
+            "n_table": n_table,
+            "host": [host(cap * (4 * plane + PING_DTYPE.itemsize)) for _ in range(2)],
+            "uploads": [None, None],
+            "slot": 0,
+            "P": cl.Buffer(self.ctx, mf.READ_ONLY, size=cap * PING_DTYPE.itemsize),
+            "u8": cl.Buffer(self.ctx, mf.READ_ONLY, size=cap * plane),
+            "images": cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * cap * plane),
+            "tables": cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * cap * n_table),
+            "first_bright": cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * cap * self.n_beams),
+        }
+        k = functools.partial(self.cl.Kernel, _opencl_context(self._cl_device)[1])
+        for name in ("find_first_bright_batch", "build_bin_window_cells_batch",
+                     "build_beam_levels_cells_batch", "integrate_gather_batch"):
+            bb[name] = k(name)
+        self._batch = bb
+        return bb
+
+    def _launch_batch(self, params, images, n_threads):
+        cl = self.cl
+        B = params.shape[0]
+        bb = self._batch_buffers(B)
+        s = bb["slot"]
+        bb["slot"] = 1 - s
+        if bb["uploads"][s] is not None:
+            for ev in bb["uploads"][s]:
+                ev.wait()
+        buf, host = bb["host"][s]
+        plane = self.n_bins * self.n_beams
+        pb = B * PING_DTYPE.itemsize
+        host[:pb] = params.view(np.uint8).reshape(-1)
+        nb = images.nbytes
+        host[pb : pb + nb] = images.reshape(-1).view(np.uint8)
+        q = self.queue
+        ups = [cl.enqueue_copy(q, bb["P"], host[:pb], is_blocking=False)]
+        img_dst = bb["u8"] if images.dtype == np.uint8 else bb["images"]
+        ups.append(cl.enqueue_copy(q, img_dst, host[pb : pb + nb], is_blocking=False))
+        bb["uploads"][s] = ups
+        wg = self.wg
+        i32 = np.int32
+        if images.dtype == np.uint8:
+            n_px = B * plane
+            self.k_u8(q, (-(-n_px // wg) * wg,), (wg,), bb["u8"], U8_SCALE, bb["images"], i32(n_px))
+        P = bb["P"]
+        stride = i32(bb["n_table"])
+        if int(params["rule"][0]) == 1:
+            n = B * self.n_beams
+            bb["find_first_bright_batch"](q, (-(-n // wg) * wg,), (wg,), P, i32(B), i32(self.n_beams),
+                                          bb["images"], bb["first_bright"])
+        if self.use_table:
+            gs = (-(-(B * plane) // wg) * wg,)
+            bb["build_bin_window_cells_batch"](q, gs, (wg,), P, i32(B), i32(plane), stride, bb["images"],
+                                               bb["tables"])
+            bb["build_beam_levels_cells_batch"](q, gs, (wg,), P, i32(B), i32(plane), stride, bb["tables"])
+        live = n_threads > 0
+        lo = params["box_lo"][live].min(axis=0)
+        n = (params["box_lo"] + params["box_n"])[live].max(axis=0) - lo
+        n_chunks = -(-int(n[2]) // self.chunk)
+        total = int(n[0]) * int(n[1]) * n_chunks
+        bb["integrate_gather_batch"](
+            q, (-(-total // wg) * wg,), (wg,), P, i32(B), *(i32(x) for x in lo), *(i32(x) for x in n),
+            i32(self.chunk), i32(plane), stride, bb["images"], self.edges, self.lut, bb["tables"],
+            i32(self.use_table), bb["first_bright"], self.grid, self.bright, self.count,
+        )
+        q.flush()
 
     def read(self):
         out = np.empty(self.n_voxels, dtype=np.float32)

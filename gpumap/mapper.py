@@ -337,6 +337,110 @@ class MinMaxMapper:
         self._backend.integrate(self._params, img, self.method, n)
         self.n_integrated += 1  # under the lock
 
+    def integrate_batch(
+        self,
+        images: np.ndarray,
+        T_W_S: np.ndarray,
+        pose_cov: np.ndarray | None = None,
+        pose_sigmas: float = 2.0,
+    ) -> None:
+        """Fuse B pings into the map: the same map, bit for bit, as B calls of :meth:`integrate`.
+
+        Every update is a minimum or a saturating count, so the order of the pings does not
+        matter and the batch is exact for both rules. GPU backends upload the whole batch at
+        once and fold it in a few launches (each thread owns its voxels and walks the pings:
+        no atomics); CPU backends apply the pings one after the other.
+
+        Parameters
+        ----------
+        images : (B, n_bins, n_beams) uint8 (scaled by 1/255) or float32/float64 in [0, 1]
+            Polar images, as :meth:`integrate` takes one.
+        T_W_S : (B, 4, 4) float
+            Sonar poses, metres.
+        pose_cov : (6, 6) or (B, 6, 6) float, optional
+            Pose uncertainty, one for every ping or one per ping (see :meth:`integrate`).
+        pose_sigmas : float
+            The bound's width in standard deviations (default 2).
+
+        Every ping is checked before any is applied: on bad input it raises
+        ``ValueError``/``TypeError`` saying which ping, and the map is left untouched.
+        """
+        imgs = self._check_images(images)
+        B = imgs.shape[0]
+        if isinstance(T_W_S, np.ma.MaskedArray):
+            raise TypeError("Expected a plain array for 'T_W_S', but got a masked array (fill it first)")
+        Ts = np.asarray(T_W_S)
+        if Ts.shape != (B, 4, 4):
+            raise ValueError(
+                f"Expected T_W_S of shape ({B}, 4, 4) for {B} images, but got {Ts.shape}"
+            )
+        Ts = np.stack([check_pose(Ts[k], f"T_W_S[{k}]") for k in range(B)]) if B else Ts
+        pads = np.zeros(B)
+        if pose_cov is not None:
+            k = check_finite_scalar(pose_sigmas, "pose_sigmas")
+            if k < 0:
+                raise ValueError(f"Expected pose_sigmas >= 0, but got {k}")
+            C = np.asarray(pose_cov) if not isinstance(pose_cov, np.ma.MaskedArray) else pose_cov
+            if getattr(C, "shape", None) == (B, 6, 6):
+                r = self.spec.range_max_m
+                pads = np.array([pose_pad_m(_check_pose_cov(C[b]), r, k) for b in range(B)])
+            elif getattr(C, "shape", None) == (6, 6) or B == 0:
+                pads[:] = pose_pad_m(_check_pose_cov(C), self.spec.range_max_m, k)
+            else:
+                raise ValueError(
+                    f"Expected pose_cov of shape (6, 6) or ({B}, 6, 6), but got {getattr(C, 'shape', None)}"
+                )
+        if B == 0:
+            return
+        with self._lock:
+            params = np.empty(B, dtype=self._params.dtype)
+            n_threads = np.empty(B, dtype=np.int64)
+            for b in range(B):
+                if pads[b] != self._pad:
+                    set_footprint_pad(self._params, self._rho0, self._near0, float(pads[b]))
+                    self._pad = float(pads[b])
+                n_threads[b] = ping_params(self._params, Ts[b], self._fov_pts_S, self.grid)
+                params[b] = self._params
+            self._backend.integrate_batch(params, imgs, self.method, n_threads)
+            self.n_integrated += B
+
+    def _check_images(self, images: object) -> np.ndarray:
+        """(B, n_bins, n_beams) C-contiguous uint8 or float32 in [0, 1] (converted if needed)."""
+        if not isinstance(images, np.ndarray):
+            raise TypeError(f"Expected a numpy array for 'images', but got {type(images).__name__}")
+        if isinstance(images, np.ma.MaskedArray):
+            raise TypeError(
+                "Expected a plain numpy array for 'images', but got a masked array: fill it first"
+            )
+        if images.ndim != 3 or images.shape[1:] != self.spec.image_shape:
+            raise ValueError(
+                f"Expected images of shape (B, {self.spec.image_shape[0]}, {self.spec.image_shape[1]}) "
+                f"(pings, n_bins, n_beams) for 'images', but got {images.shape}"
+            )
+        if images.dtype == np.uint8:
+            return np.ascontiguousarray(images)
+        if images.dtype == np.float32 and images.flags.c_contiguous:
+            if images.size == 0 or images.view(np.uint32).max() <= _ONE_BITS:  # see _check_image
+                return images
+        elif images.dtype not in (np.float32, np.float64):
+            raise TypeError(f"Expected images of dtype float32 or uint8 for 'images', but got {images.dtype}")
+        bad = ~np.isfinite(images)
+        if bad.any():
+            b, r, c = np.argwhere(bad)[0]
+            raise ValueError(
+                f"Expected finite intensities in 'images', but got {images[b, r, c]} at (ping {b}, bin {r}, "
+                f"beam {c}) and {int(bad.sum()) - 1} more"
+            )
+        lo, hi = images.min(), images.max()
+        if not (lo >= 0.0 and hi <= 1.0):
+            b = int(np.argmax(((images < 0) | (images > 1)).reshape(images.shape[0], -1).any(1)))
+            raise ValueError(
+                f"Expected intensities in [0, 1] in 'images', but got range [{lo}, {hi}] (first at ping {b})"
+            )
+        out = np.empty(images.shape, np.float32)
+        np.add(images, np.float32(0.0), out=out, casting="same_kind")  # -0.0 -> +0.0, float64 -> 32
+        return out
+
     def synchronize(self) -> None:
         """Wait until every ping handed to :meth:`integrate` is in the grid (GPU backends run async)."""
         sync = getattr(self._backend, "synchronize", None)

@@ -237,6 +237,30 @@ inline void column_range(const PingParams *P, float cx, float cy, float *lo, flo
     clip_linear(lo, hi, P->slab + p0z, az);
 }
 
+// Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold.
+inline void gather_column(const PingParams *P, int i, int j, int c0, int c1, __global const float *image,
+                          __global const float *tan_edges, __global const int *lut,
+                          __global const float *table, int use_table, __global const int *first_bright,
+                          __global float *grid, __global float *bright, __global uchar *count)
+{
+    float cx = P->origin[0] + ((float)i + 0.5f) * P->voxel;
+    float cy = P->origin[1] + ((float)j + 0.5f) * P->voxel;
+    float z0, z1;
+    column_range(P, cx, cy, &z0, &z1);
+    if (z0 > z1) return;
+    // voxel centres inside [z0, z1], padded by one voxel against rounding
+    int k0 = max(c0, (int)ceil((z0 - P->origin[2]) / P->voxel - 0.5f) - 1);
+    int k1 = min(c1, (int)floor((z1 - P->origin[2]) / P->voxel - 0.5f) + 1);
+    size_t base = ((size_t)i * P->dims[1] + j) * P->dims[2];
+    for (int k = k0; k <= k1; ++k) {
+        float cz = P->origin[2] + ((float)k + 0.5f) * P->voxel;
+        int clear;
+        float v = voxel_ping_value(P, cx, cy, cz, image, tan_edges, lut, table, use_table, first_bright,
+                                   &clear);
+        if (v >= 0.0f) update_voxel(P, base + k, v, clear, grid, bright, count);
+    }
+}
+
 // One work-item per chunk of an (i, j) column of the ping's index box: it walks the chunk's
 // voxels that the column's range can hold (contiguous in memory).
 __kernel void integrate_gather(const PingParams P, __global const float *image,
@@ -250,24 +274,92 @@ __kernel void integrate_gather(const PingParams P, __global const float *image,
     if (tid >= P.box_n[0] * P.box_n[1] * n_chunks) return;
     int col = tid / n_chunks;
     int c0 = P.box_lo[2] + (tid % n_chunks) * P.chunk;
+    int c1 = min(c0 + P.chunk, P.box_lo[2] + P.box_n[2]) - 1;
     int i = P.box_lo[0] + col / P.box_n[1];
     int j = P.box_lo[1] + col % P.box_n[1];
-    float cx = P.origin[0] + ((float)i + 0.5f) * P.voxel;
-    float cy = P.origin[1] + ((float)j + 0.5f) * P.voxel;
-    float z0, z1;
-    column_range(&P, cx, cy, &z0, &z1);
-    if (z0 > z1) return;
-    // voxel centres inside [z0, z1], padded by one voxel against rounding
-    int k0 = max(c0, (int)ceil((z0 - P.origin[2]) / P.voxel - 0.5f) - 1);
-    int k1 = min(min(c0 + P.chunk, P.box_lo[2] + P.box_n[2]) - 1,
-                 (int)floor((z1 - P.origin[2]) / P.voxel - 0.5f) + 1);
-    size_t base = ((size_t)i * P.dims[1] + j) * P.dims[2];
-    for (int k = k0; k <= k1; ++k) {
-        float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
-        int clear;
-        float v = voxel_ping_value(&P, cx, cy, cz, image, tan_edges, lut, table, use_table, first_bright,
-                                   &clear);
-        if (v >= 0.0f) update_voxel(&P, base + k, v, clear, grid, bright, count);
+    gather_column(&P, i, j, c0, c1, image, tan_edges, lut, table, use_table, first_bright, grid, bright, count);
+}
+
+// ---------------------------------------------------------------------------------------- batches
+// B pings in one launch per step (twins of minmax.py's *_batch kernels): ping b's image, max table
+// and first bright bins start at b * plane, b * table_stride and b * n_beams. Each gather work-item
+// owns its voxels and folds ping 0, 1, ... into them: no atomics, the same grid as B launches.
+
+__kernel void find_first_bright_batch(__global const PingParams *Ps, const int n_pings, const int n_beams,
+                                      __global const float *images, __global int *first_bright)
+{
+    int c = get_global_id(0);
+    if (c >= n_pings * n_beams) return;
+    int b = c / n_beams, j = c % n_beams;
+    PingParams P = Ps[b];
+    __global const float *image = images + (size_t)b * P.n_bins * P.n_beams;
+    int f = P.n_bins;
+    for (int i = 0; i < P.n_bins; ++i) {
+        if (image[(size_t)i * P.n_beams + j] >= P.thr) { f = i; break; }
+    }
+    first_bright[c] = f;
+}
+
+__kernel void build_bin_window_cells_batch(__global const PingParams *Ps, const int n_pings, const int plane,
+                                           const int table_stride, __global const float *images,
+                                           __global float *tables)
+{
+    int g = get_global_id(0);
+    if (g >= n_pings * plane) return;
+    int b = g / plane, c = g % plane;
+    const int n_bins = Ps[b].n_bins, n_beams = Ps[b].n_beams, win = Ps[b].win;
+    __global const float *image = images + (size_t)b * plane;
+    int i = c / n_beams, j = c % n_beams;
+    float v = 0.0f;
+    for (int r = i; r < min(i + win, n_bins); ++r) v = fmax(v, image[(size_t)r * n_beams + j]);
+    tables[(size_t)b * table_stride + c] = v;
+}
+
+__kernel void build_beam_levels_cells_batch(__global const PingParams *Ps, const int n_pings, const int plane,
+                                            const int table_stride, __global float *tables)
+{
+    int g = get_global_id(0);
+    if (g >= n_pings * plane) return;
+    int b = g / plane, c = g % plane;
+    const int n_bins = Ps[b].n_bins, n_beams = Ps[b].n_beams, n_levels = Ps[b].n_levels;
+    __global float *table = tables + (size_t)b * table_stride;
+    int i = c / n_beams, j = c % n_beams;
+    __global const float *row = table + (size_t)i * n_beams;
+    float v = row[j];
+    for (int k = 1, w = 1; k < n_levels; ++k, w *= 2) {
+        for (int jj = w; jj < 2 * w; ++jj) v = fmax(v, row[min(j + jj, n_beams - 1)]);
+        table[((size_t)k * n_bins + i) * n_beams + j] = v;
+    }
+}
+
+// One work-item per chunk of an (i, j) column of the union box (lo, n) of the pings' boxes.
+__kernel void integrate_gather_batch(__global const PingParams *Ps, const int n_pings, const int lo0,
+                                     const int lo1, const int lo2, const int n0, const int n1, const int n2,
+                                     const int chunk, const int plane, const int table_stride,
+                                     __global const float *images, __global const float *tan_edges,
+                                     __global const int *lut, __global const float *tables, int use_table,
+                                     __global const int *first_bright, __global float *grid,
+                                     __global float *bright, __global uchar *count)
+{
+    int tid = get_global_id(0);
+    int n_chunks = (n2 + chunk - 1) / chunk;
+    if (tid >= n0 * n1 * n_chunks) return;
+    int col = tid / n_chunks;
+    int c0 = lo2 + (tid % n_chunks) * chunk;
+    int c1 = min(c0 + chunk, lo2 + n2) - 1;
+    int i = lo0 + col / n1;
+    int j = lo1 + col % n1;
+    for (int b = 0; b < n_pings; ++b) {
+        __global const PingParams *Q = Ps + b;
+        if (i < Q->box_lo[0] || i >= Q->box_lo[0] + Q->box_n[0] || j < Q->box_lo[1] ||
+            j >= Q->box_lo[1] + Q->box_n[1])
+            continue;
+        int k0 = max(c0, Q->box_lo[2]), k1 = min(c1, Q->box_lo[2] + Q->box_n[2] - 1);
+        if (k0 > k1) continue;
+        PingParams P = *Q;
+        gather_column(&P, i, j, k0, k1, images + (size_t)b * plane, tan_edges, lut,
+                      tables + (size_t)b * table_stride, use_table, first_bright + (size_t)b * P.n_beams,
+                      grid, bright, count);
     }
 }
 

@@ -141,10 +141,9 @@ def voxel_ping_value(
     return wp.vec2(v, clear)
 
 
-@wp.kernel
-def find_first_bright(P: PingParams, image: wp.array2d(dtype=float), first_bright: wp.array(dtype=int)):
-    """One thread per beam j: the first bin whose intensity is >= thr (n_bins if none)."""
-    j = wp.tid()
+@wp.func
+def first_bright_bin(P: PingParams, image: wp.array2d(dtype=float), j: int) -> int:
+    """The first bin of beam j whose intensity is >= thr (n_bins if none)."""
     f = P.n_bins
     i = int(0)
     while i < P.n_bins:
@@ -152,7 +151,14 @@ def find_first_bright(P: PingParams, image: wp.array2d(dtype=float), first_brigh
             f = i
             i = P.n_bins
         i += 1
-    first_bright[j] = f
+    return f
+
+
+@wp.kernel
+def find_first_bright(P: PingParams, image: wp.array2d(dtype=float), first_bright: wp.array(dtype=int)):
+    """One thread per beam j: the first bin whose intensity is >= thr (n_bins if none)."""
+    j = wp.tid()
+    first_bright[j] = first_bright_bin(P, image, j)
 
 
 @wp.func
@@ -228,21 +234,18 @@ def build_beam_levels(P: PingParams, table: wp.array(dtype=float)):
         step = step * 2
 
 
-@wp.kernel
-def build_bin_window_cells(P: PingParams, image: wp.array2d(dtype=float), table: wp.array(dtype=float)):
-    """GPU twin of build_bin_window: one thread per cell (i, j), win reads each."""
-    i, j = wp.tid()
+@wp.func
+def bin_window_cell(
+    P: PingParams, image: wp.array2d(dtype=float), table: wp.array(dtype=float), i: int, j: int
+):
     v = float(0.0)
     for b in range(i, wp.min(i + P.win, P.n_bins)):
         v = wp.max(v, image[b, j])
     table[i * P.n_beams + j] = v
 
 
-@wp.kernel
-def build_beam_levels_cells(P: PingParams, table: wp.array(dtype=float)):
-    """GPU twin of build_beam_levels: one thread per cell (i, j), reading level 0 only
-    (2^(n_levels - 1) reads), so every level comes from one launch."""
-    i, j = wp.tid()
+@wp.func
+def beam_levels_cell(P: PingParams, table: wp.array(dtype=float), i: int, j: int):
     row = i * P.n_beams
     v = table[row + j]
     w = int(1)
@@ -251,6 +254,21 @@ def build_beam_levels_cells(P: PingParams, table: wp.array(dtype=float)):
             v = wp.max(v, table[row + wp.min(j + jj, P.n_beams - 1)])
         table[(k * P.n_bins + i) * P.n_beams + j] = v
         w = 2 * w
+
+
+@wp.kernel
+def build_bin_window_cells(P: PingParams, image: wp.array2d(dtype=float), table: wp.array(dtype=float)):
+    """GPU twin of build_bin_window: one thread per cell (i, j), win reads each."""
+    i, j = wp.tid()
+    bin_window_cell(P, image, table, i, j)
+
+
+@wp.kernel
+def build_beam_levels_cells(P: PingParams, table: wp.array(dtype=float)):
+    """GPU twin of build_beam_levels: one thread per cell (i, j), reading level 0 only
+    (2^(n_levels - 1) reads), so every level comes from one launch."""
+    i, j = wp.tid()
+    beam_levels_cell(P, table, i, j)
 
 
 @wp.func
@@ -301,6 +319,37 @@ def column_range(P: PingParams, cx: float, cy: float) -> wp.vec2:
     return z
 
 
+@wp.func
+def gather_column(
+    P: PingParams,
+    i: int,
+    j: int,
+    c0: int,
+    c1: int,
+    image: wp.array2d(dtype=float),
+    tan_edges: wp.array(dtype=float),
+    lut: wp.array(dtype=int),
+    table: wp.array(dtype=float),
+    first_bright: wp.array(dtype=int),
+    grid: wp.array(dtype=float),
+    bright: wp.array(dtype=float),
+    count: wp.array(dtype=wp.uint8),
+):
+    """Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold."""
+    cx = P.origin[0] + (float(i) + 0.5) * P.voxel
+    cy = P.origin[1] + (float(j) + 0.5) * P.voxel
+    z = column_range(P, cx, cy)
+    if z[0] <= z[1]:
+        # voxel centres inside [z0, z1], padded by one voxel against rounding
+        k0 = wp.max(c0, int(wp.ceil((z[0] - P.origin[2]) / P.voxel - 0.5)) - 1)
+        k1 = wp.min(c1, int(wp.floor((z[1] - P.origin[2]) / P.voxel - 0.5)) + 1)
+        base = (i * P.dims[1] + j) * P.dims[2]
+        for k in range(k0, k1 + 1):
+            vc = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table, first_bright)
+            if vc[0] >= 0.0:
+                update_voxel(P, base + k, vc, grid, bright, count)
+
+
 @wp.kernel
 def integrate_gather(
     P: PingParams,
@@ -321,22 +370,85 @@ def integrate_gather(
     c0 = P.box_lo[2] + (tid - col * n_chunks) * P.chunk
     i = P.box_lo[0] + col // P.box_n[1]
     j = P.box_lo[1] + col - (col // P.box_n[1]) * P.box_n[1]
-    cx = P.origin[0] + (float(i) + 0.5) * P.voxel
-    cy = P.origin[1] + (float(j) + 0.5) * P.voxel
-    z = column_range(P, cx, cy)
-    if z[0] > z[1]:
-        return
-    # voxel centres inside [z0, z1], padded by one voxel against rounding
-    k0 = wp.max(c0, int(wp.ceil((z[0] - P.origin[2]) / P.voxel - 0.5)) - 1)
-    k1 = wp.min(
-        wp.min(c0 + P.chunk, P.box_lo[2] + P.box_n[2]) - 1,
-        int(wp.floor((z[1] - P.origin[2]) / P.voxel - 0.5)) + 1,
-    )
-    base = (i * P.dims[1] + j) * P.dims[2]
-    for k in range(k0, k1 + 1):
-        vc = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table, first_bright)
-        if vc[0] >= 0.0:
-            update_voxel(P, base + k, vc, grid, bright, count)
+    c1 = wp.min(c0 + P.chunk, P.box_lo[2] + P.box_n[2]) - 1
+    gather_column(P, i, j, c0, c1, image, tan_edges, lut, table, first_bright, grid, bright, count)
+
+
+# ----------------------------------------------------------------------------- batches
+# A batch of B pings in one launch per step. Each thread owns its voxels (a chunk of a column of
+# the union of the pings' boxes) and folds every ping into them in turn: no atomics, and every
+# voxel sees exactly the views B sequential launches would give it, so the map is the same bit
+# for bit (each update is a min or a saturating count, which no order changes).
+
+
+@wp.kernel
+def convert_u8_batch(src: wp.array3d(dtype=wp.uint8), scale: float, dst: wp.array3d(dtype=float)):
+    """One thread per pixel of every ping: dst = src * scale."""
+    b, i, j = wp.tid()
+    dst[b, i, j] = float(src[b, i, j]) * scale
+
+
+@wp.kernel
+def find_first_bright_batch(
+    Ps: wp.array(dtype=PingParams), images: wp.array3d(dtype=float), first_bright: wp.array2d(dtype=int)
+):
+    """One thread per (ping, beam): find_first_bright for every ping."""
+    b, j = wp.tid()
+    first_bright[b, j] = first_bright_bin(Ps[b], images[b], j)
+
+
+@wp.kernel
+def build_bin_window_cells_batch(
+    Ps: wp.array(dtype=PingParams), images: wp.array3d(dtype=float), tables: wp.array2d(dtype=float)
+):
+    """One thread per (ping, cell): build_bin_window_cells for every ping."""
+    b, i, j = wp.tid()
+    bin_window_cell(Ps[b], images[b], tables[b], i, j)
+
+
+@wp.kernel
+def build_beam_levels_cells_batch(Ps: wp.array(dtype=PingParams), tables: wp.array2d(dtype=float)):
+    """One thread per (ping, cell): build_beam_levels_cells for every ping."""
+    b, i, j = wp.tid()
+    beam_levels_cell(Ps[b], tables[b], i, j)
+
+
+@wp.kernel
+def integrate_gather_batch(
+    Ps: wp.array(dtype=PingParams),
+    box_lo: wp.vec3i,
+    box_n: wp.vec3i,
+    chunk: int,
+    images: wp.array3d(dtype=float),
+    tan_edges: wp.array(dtype=float),
+    lut: wp.array(dtype=int),
+    tables: wp.array2d(dtype=float),
+    first_bright: wp.array2d(dtype=int),
+    grid: wp.array(dtype=float),
+    bright: wp.array(dtype=float),
+    count: wp.array(dtype=wp.uint8),
+):
+    """One thread per chunk of an (i, j) column of the union box (box_lo, box_n) of the pings'
+    boxes; it folds ping 0, 1, ... into its voxels, each ping only within that ping's box."""
+    tid = wp.tid()
+    n_chunks = (box_n[2] + chunk - 1) // chunk
+    col = tid // n_chunks
+    c0 = box_lo[2] + (tid - col * n_chunks) * chunk
+    c1 = wp.min(c0 + chunk, box_lo[2] + box_n[2]) - 1
+    i = box_lo[0] + col // box_n[1]
+    j = box_lo[1] + col - (col // box_n[1]) * box_n[1]
+    for b in range(Ps.shape[0]):
+        P = Ps[b]
+        lo = P.box_lo
+        n = P.box_n
+        if i >= lo[0] and i < lo[0] + n[0] and j >= lo[1] and j < lo[1] + n[1]:
+            k0 = wp.max(c0, lo[2])
+            k1 = wp.min(c1, lo[2] + n[2] - 1)
+            if k0 <= k1:
+                gather_column(
+                    P, i, j, k0, k1, images[b], tan_edges, lut, tables[b], first_bright[b],
+                    grid, bright, count,
+                )
 
 
 @wp.kernel
