@@ -10,9 +10,11 @@ The public API::
 """
 
 from gpumap.errors import BackendUnavailableError
+from gpumap.sparse import MapMemoryError, SparseMinMaxMapper, SparseSpec
 from gpumap.spec import GridSpec, SonarSpec
 
-__all__ = ["BackendUnavailableError", "GridSpec", "MinMaxMapper", "SonarSpec", "available_backends"]
+__all__ = ["BackendUnavailableError", "GridSpec", "MapMemoryError", "MinMaxMapper", "SonarSpec",
+           "SparseMinMaxMapper", "SparseSpec", "available_backends"]
 __version__ = "0.1.0"
 
 
