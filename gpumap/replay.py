@@ -133,6 +133,7 @@ def run_replay(
     rule: str | None = None,
     threshold: float = DEFAULT_THRESHOLD,
     positions: list | None = None,
+    on_ping=None,
 ) -> tuple[object, dict]:
     """Integrate every posed frame of ``recording``; return ``(mapper, stats)``.
 
@@ -155,6 +156,9 @@ def run_replay(
         intensity the map is read at.
     positions : list, optional
         When given, the world position (3,) of every integrated ping is appended to it.
+    on_ping : callable, optional
+        ``on_ping(image, T_W_S, mapper)`` after each integrated ping (the live view and
+        recording of :mod:`gpumap.viewer`); its time counts in ``seconds_total``.
 
     Returns
     -------
@@ -234,6 +238,8 @@ def run_replay(
         stats["frames"] += 1
         if positions is not None:
             positions.append(np.asarray(T, dtype=np.float64)[:3, 3].copy())
+        if on_ping is not None:
+            on_ping(fr.image, T, mapper)
     if mapper is None:
         raise ValueError(f"Expected frames in {recording.path}, but it has none")
     t1 = time.perf_counter()
@@ -639,6 +645,9 @@ def _parser() -> ArgumentParser:
     ap.add_argument("--flip-ud", action="store_true", help="fan folders: mirror rows")
     ap.add_argument("--no-pictures", action="store_true")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    from gpumap.viewer.cli import add_view_args
+
+    add_view_args(ap)
     return ap
 
 
@@ -646,6 +655,9 @@ def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]
     """Parse and check every flag, alone and together, before any work; exit 2 on a bad one."""
     ap = _parser()
     a = ap.parse_args(argv)
+    from gpumap.viewer.cli import check_view_args
+
+    check_view_args(ap, a)
     if a.method == "template" and a.rule == "visible":
         ap.error("argument --rule: Expected rule='plain' with --method template (the template "
                  "method's duplicate points cannot count views once), but got --rule visible")
@@ -669,11 +681,18 @@ def main(argv: list[str] | None = None) -> int:
     returns 2. The outputs replace those in ``--out`` as one set, only once all are written.
     """
     a, grid = _parse(argv)
+    a.view_sessions = []  # the live view / recording, if asked for (gpumap.viewer)
     try:
         stats, grid_out = _replay(a, grid)
     except user_errors() as e:
+        for s in a.view_sessions:
+            s.abort()
         print(error_line("gpumap replay", e), file=sys.stderr)
         return 2
+    except BaseException:
+        for s in a.view_sessions:
+            s.abort()
+        raise
     thr = stats["threshold"]
     print(f"gpumap replay: {stats['frames']} images on {stats['backend']} in "
           f"{stats['seconds_total']:.2f} s: {stats['images_per_s']:.1f} images/s overall "
@@ -688,7 +707,34 @@ def main(argv: list[str] | None = None) -> int:
         print(f"gpumap replay: skipped {stats['skipped_no_pose']} frames without a pose and "
               f"{stats['skipped_spec']} whose sonar geometry differs from the first",
               file=sys.stderr)
+    for s in a.view_sessions:
+        s.serve()
     return 0
+
+
+def _view_hook(a: argparse.Namespace, threshold: float):
+    """``on_ping`` for :func:`run_replay` feeding ``--view``/``--record`` (None without them).
+
+    The session opens at the first ping (when the grid and the sonar are known) and follows
+    only the first mapper it sees: with ``--compare-rules``, the chosen rule's run.
+    """
+    if not (getattr(a, "view", False) or getattr(a, "record", None) is not None):
+        return None
+    from gpumap.viewer.cli import Session
+
+    state: dict = {}
+
+    def on_ping(image, T_W_S, mapper) -> None:
+        if "mapper" not in state:
+            state["mapper"] = mapper
+            s = Session(a, mapper.spec, mapper.grid, threshold,
+                        title=f"gpumap replay {Path(a.path).name} ({mapper.grid.voxel_size_m * 100:g} cm)")
+            a.view_sessions.append(s)
+            state["session"] = s
+        if mapper is state["mapper"]:
+            state["session"].ping(image, T_W_S, mapper)
+
+    return on_ping
 
 
 def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpec]:
@@ -719,6 +765,7 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
                      static=a.static, stride=stride, max_frames=a.max_frames,
                      progress=not a.quiet, threshold=mapper_thr)
     positions: list = []
+    replay_kw["on_ping"] = _view_hook(a, mapper_thr)
     if a.compare_rules:
         # the chosen rule first: it sizes the grid, and its run's timings are the ones reported
         order = (rule, *[r for r in RULES if r != rule])
@@ -726,6 +773,8 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
         mapper, stats = runs[rule]
     else:
         mapper, stats = run_replay(rec, grid=grid, rule=a.rule, **replay_kw)
+    for s in getattr(a, "view_sessions", ()):
+        s.finish(mapper)
     values = mapper.values()
     thr = otsu_threshold(values) if a.threshold == "auto" else float(a.threshold)
     occ = np.isfinite(values) & (values >= thr)

@@ -76,6 +76,9 @@ def _parser() -> argparse.ArgumentParser:
                         "0 = the paper's min-max")
     p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--no-progress", action="store_true")
+    from gpumap.viewer.cli import add_view_args
+
+    add_view_args(p)
     return p
 
 
@@ -89,7 +92,7 @@ def _map_pings(
     scene: Scene, truth: Truth, pings: list[Ping], seen_each: list[np.ndarray], poses: np.ndarray,
     backend: str, method: str, threshold: float, quiet: bool, label: str, curve: bool, shadow_m: float = 0.0,
     mapper: gpumap.MinMaxMapper | None = None, rule: str | None = None,
-    detectable: np.ndarray | None = None, pose_covs: np.ndarray | None = None,
+    detectable: np.ndarray | None = None, pose_covs: np.ndarray | None = None, on_ping=None,
 ) -> tuple[gpumap.MinMaxMapper, list[float], list[dict]]:
     if mapper is None:
         mapper = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, method=method,
@@ -101,6 +104,8 @@ def _map_pings(
         mapper.integrate(pings[k].image, poses[k], None if pose_covs is None else pose_covs[k])
         mapper.synchronize()
         times.append(time.perf_counter() - t0)
+        if on_ping is not None:  # the live view / recording (after the timing)
+            on_ping(pings[k].image, poses[k], mapper)
         seen[seen_each[k]] = True
         if curve:
             ev = evaluate(mapper.values(), truth, threshold, seen.reshape(scene.grid.shape),
@@ -221,7 +226,13 @@ def _rule(rule: str | None, method: str) -> str:
 
 
 def run_demo(args: argparse.Namespace) -> dict:
-    """Run the demo for parsed ``args``; returns the metrics written to ``metrics.json``."""
+    """Run the demo for parsed ``args``; returns the metrics written to ``metrics.json``.
+
+    With ``args.view`` / ``args.record`` (:func:`gpumap.viewer.cli.add_view_args`) the mapping
+    at true poses is shown live / recorded; the :class:`~gpumap.viewer.cli.Session` is
+    appended to ``args.view_sessions`` when there is one (the caller serves it on after the
+    outputs are written).
+    """
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     quiet = bool(args.no_progress)
@@ -249,10 +260,12 @@ def run_demo(args: argparse.Namespace) -> dict:
                 sample = p
     sim_s = time.perf_counter() - t0
     _, detectable = ground_truth_masks(pings, scene.grid, args.threshold)
+    session = _view_session(args, scene, truth, detectable, getattr(args, "view_sessions", None))
 
     mapper, times, history = _map_pings(scene, truth, pings, seen_each, T_true, args.backend, args.method,
                                         args.threshold, quiet, "true poses", curve=True,
-                                        shadow_m=args.shadow_m, mapper=first, detectable=detectable)
+                                        shadow_m=args.shadow_m, mapper=first, detectable=detectable,
+                                        on_ping=None if session is None else session.ping)
     final = history[-1]
     # the other rule on the same pings, side by side
     other = "plain" if rule == "visible" else "visible"
@@ -310,11 +323,39 @@ def run_demo(args: argparse.Namespace) -> dict:
             rows["ekf_cov"] = {**_final_eval(m_cov, scene, truth, seen_each, args.threshold, detectable),
                                **_pose_error(T_ekf, T_true)}
         metrics["pose_noise"] = {"sigma": float(args.pose_noise), "rows": rows}
+        if session is not None:
+            session.add_path("true", T_true[:, :3, 3], (40, 160, 40))
+            session.add_path("odometry", T_odo[:, :3, 3], (140, 140, 140))
+            if "error" not in rows["ekf"]:
+                session.add_path("ekf", T_ekf[:, :3, 3], (40, 90, 230))
+    if session is not None:
+        session.finish(mapper)
 
     _figures(out, scene, truth, mapper, sample, history, args.threshold)
     metrics["demo_s"] = time.perf_counter() - t_start
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_jsonable))
     return metrics
+
+
+def _view_session(args: argparse.Namespace, scene: Scene, truth: Truth, detectable: np.ndarray,
+                  sessions: list | None):
+    """The live view / recording of the true-pose mapping, with the truth beside the map; or None."""
+    from gpumap.viewer.cli import Session
+
+    session = Session.open(args, scene.sonar_spec, scene.grid, args.threshold,
+                           title=f"gpumap demo ({scene.name}, {scene.grid.voxel_size_m * 100:g} cm)")
+    if session is None:
+        return None
+    if sessions is not None:
+        sessions.append(session)
+    import matplotlib
+
+    g = scene.grid
+    idx = np.argwhere(truth.surface & detectable.reshape(g.shape))
+    shift = np.array([np.asarray(g.max_corner_m)[0] - np.asarray(g.min_corner_m)[0] + 0.3, 0.0, 0.0])
+    tab = (matplotlib.colormaps["tab10"](np.arange(10))[:, :3] * 255).astype(np.uint8)
+    session.add_points("truth", g.centers(idx) + shift, tab[truth.label[tuple(idx.T)] % 10])
+    return session
 
 
 def _final_eval(mapper, scene: Scene, truth: Truth, seen_each: list[np.ndarray], threshold: float,
@@ -428,14 +469,25 @@ def main(argv: list[str] | None = None) -> int:
     backend that cannot run here) prints one line and returns 2. The outputs replace those
     in ``--out`` as one set, only once all are written.
     """
-    args = _parser().parse_args(argv)
+    from gpumap.viewer.cli import check_view_args
+
+    parser = _parser()
+    args = parser.parse_args(argv)
+    check_view_args(parser, args)
     out = args.out
+    sessions: list = []
     try:
         with output_set(out, OUTPUTS) as tmp:  # all of them appear in --out together, or none
-            m = run_demo(argparse.Namespace(**{**vars(args), "out": tmp}))
+            m = run_demo(argparse.Namespace(**{**vars(args), "out": tmp, "view_sessions": sessions}))
     except user_errors() as e:
+        for s in sessions:
+            s.abort()
         print(error_line("gpumap demo", e), file=sys.stderr)
         return 2
+    except BaseException:
+        for s in sessions:
+            s.abort()
+        raise
     print(json.dumps({k: m[k] for k in ("scene", "backend", "rule", "voxel_size_m", "images", "ms_per_image",
                                          "demo_s")}, indent=1))
     print(f"{'rule':8s} {'FN det':>7s} {'FN obj':>7s} {'miss':>6s} {'FP far':>7s} {'carved':>7s} pipe")
@@ -448,6 +500,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name:9s} FN det {row.get('false_negative_rate_detectable', float('nan')):.3f} "
                   f"FP far {row.get('false_positive_rate_far', float('nan')):.3f} "
                   f"pose err {row.get('translation_error_mean_m', float('nan')):.3f} m")
+    for s in sessions:
+        s.serve()
     return 0
 
 

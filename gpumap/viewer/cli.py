@@ -1,0 +1,322 @@
+"""Command-line glue of the viewer: ``--view``/``--record`` of ``demo`` and ``replay``; ``gpumap view``.
+
+``gpumap view PATH`` serves a saved map (``map.npz``: its occupied voxels, coloured by value
+or height, threshold adjustable) or a recording (``*.gpumap-rec``: a ping slider and a play
+button replay the run: images, pose, trajectory and the map as it was at that ping).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gpumap.viewer import MISSING_VIEWER
+
+__all__ = ["Session", "add_view_args", "check_view_args", "main"]
+
+
+def _port(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"Expected a port number, but got {text!r}") from None
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"Expected a port in 0..65535 (0 = any free one), but got {text!r}")
+    return v
+
+
+def _seconds(text: str) -> float:
+    from gpumap.cli import nonnegative_float
+
+    return nonnegative_float(text)
+
+
+def add_view_args(p: argparse.ArgumentParser, record: bool = True) -> None:
+    """Add ``--view``, ``--view-host``, ``--view-port``, ``--view-every``, ``--view-hold``, ``--record``."""
+    from gpumap.cli import output_file, positive_int
+
+    g = p.add_argument_group("live view (optional extra: pip install 'gpumap[viewer]')")
+    g.add_argument(
+        "--view",
+        action="store_true",
+        help="serve a live 3-D view of the map as it grows (open the printed address in a browser)",
+    )
+    g.add_argument(
+        "--view-host",
+        default="127.0.0.1",
+        metavar="ADDR",
+        help="address the view binds to (default 127.0.0.1: this machine only; 0.0.0.0 lets "
+        "another machine, e.g. the ship's laptop, connect)",
+    )
+    g.add_argument("--view-port", type=_port, default=8080, metavar="PORT", help="default 8080")
+    g.add_argument(
+        "--view-every",
+        type=positive_int,
+        default=10,
+        metavar="N",
+        help="refresh the map's voxels at most every N pings (and at most twice a second)",
+    )
+    g.add_argument(
+        "--view-hold",
+        type=_seconds,
+        default=None,
+        metavar="SECONDS",
+        help="after the run, keep serving this long (default: until Ctrl-C)",
+    )
+    if record:
+        g.add_argument(
+            "--record",
+            type=output_file,
+            default=None,
+            metavar="FILE",
+            help="keep a recording (pings, poses, the map's changes; no viewer needed) that "
+            "'gpumap view FILE' plays back",
+        )
+
+
+def check_view_args(p: argparse.ArgumentParser, a: argparse.Namespace) -> None:
+    """Refuse ``--view`` up front (one line, exit 2) when viser is not installed."""
+    if getattr(a, "view", False) and importlib.util.find_spec("viser") is None:
+        p.error(f"argument --view: {MISSING_VIEWER}")
+
+
+class Session:
+    """The live view and/or the recording of one run (either may be off).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        With the flags of :func:`add_view_args`.
+    spec, grid, threshold, title
+        The map being built.
+    """
+
+    def __init__(
+        self, args: argparse.Namespace, spec: Any, grid: Any, threshold: float, title: str = "gpumap"
+    ) -> None:
+        self.viewer = None
+        self.recorder = None
+        self.hold = getattr(args, "view_hold", None)
+        every = int(getattr(args, "view_every", 10) or 10)
+        if getattr(args, "record", None) is not None:
+            from gpumap.viewer.recording import Recorder
+
+            self.recorder = Recorder(args.record, spec, grid, threshold, map_every=every, title=title)
+        if getattr(args, "view", False):
+            from gpumap.viewer.live import MapViewer
+
+            self.viewer = MapViewer(
+                spec, grid, threshold, host=args.view_host, port=args.view_port, title=title, map_every=every
+            )
+            print(
+                f"gpumap: live view at {self.viewer.url} (bound to {args.view_host}:{self.viewer.port})",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    @classmethod
+    def open(
+        cls, args: argparse.Namespace | None, spec: Any, grid: Any, threshold: float, title: str = "gpumap"
+    ) -> Session | None:
+        """A session, or None when neither ``--view`` nor ``--record`` was asked for."""
+        if args is None or not (getattr(args, "view", False) or getattr(args, "record", None) is not None):
+            return None
+        return cls(args, spec, grid, threshold, title)
+
+    def ping(self, image: np.ndarray, T_W_S: np.ndarray, mapper: Any) -> None:
+        if self.recorder is not None:
+            self.recorder.ping(image, T_W_S, mapper)
+        if self.viewer is not None:
+            self.viewer.ping(image, T_W_S, mapper)
+
+    def add_points(self, name: str, points: np.ndarray, colors: np.ndarray) -> None:
+        if self.recorder is not None:
+            self.recorder.add(f"{name}_points", points)
+            self.recorder.add(f"{name}_colors", colors)
+        if self.viewer is not None:
+            self.viewer.add_points(f"/{name}", points, colors)
+
+    def add_path(self, name: str, positions: np.ndarray, color: tuple[int, int, int]) -> None:
+        if self.recorder is not None:
+            self.recorder.add(f"path_{name}", positions)
+        if self.viewer is not None:
+            self.viewer.add_path(name, positions, color)
+
+    def add_landmarks(self, positions: np.ndarray, covs: np.ndarray | None) -> None:
+        if self.recorder is not None:
+            self.recorder.add("landmarks", positions)
+            if covs is not None:
+                self.recorder.add("landmark_covs", covs)
+        if self.viewer is not None:
+            self.viewer.add_landmarks(positions, covs)
+
+    def finish(self, mapper: Any) -> None:
+        """Close the recording (final map sampled) and show the final map."""
+        if self.recorder is not None:
+            path = self.recorder.close(mapper.values())
+            print(f"gpumap: recorded {self.recorder.n_pings} pings to {path}", file=sys.stderr)
+        if self.viewer is not None:
+            self.viewer.finish(mapper)
+
+    def abort(self) -> None:
+        if self.recorder is not None:
+            self.recorder.abort()
+        if self.viewer is not None:
+            self.viewer.close()
+            self.viewer = None
+
+    def serve(self) -> None:
+        """Keep the view up after the run (``--view-hold`` seconds, or until Ctrl-C)."""
+        if self.viewer is None:
+            return
+        if self.hold is None:
+            print(f"gpumap: serving the view at {self.viewer.url} until Ctrl-C", file=sys.stderr, flush=True)
+        else:
+            print(
+                f"gpumap: serving the view at {self.viewer.url} for {self.hold:g} s",
+                file=sys.stderr,
+                flush=True,
+            )
+        try:
+            self.viewer.wait(self.hold)
+        except KeyboardInterrupt:
+            pass
+
+
+# ---------------------------------------------------------------------- gpumap view
+def _parser() -> argparse.ArgumentParser:
+    from gpumap.cli import ArgumentParser, existing_file
+
+    p = ArgumentParser(
+        prog="gpumap view",
+        description="serve a saved map (map.npz) or a recording (--record FILE) in the browser view",
+    )
+    p.add_argument("path", type=existing_file, help="map.npz (gpumap demo/replay) or a recording")
+    p.add_argument(
+        "--threshold",
+        type=float,
+        default=None,
+        help="occupied if value >= this (default: the map's own threshold)",
+    )
+    add_view_args(p, record=False)
+    return p
+
+
+def _view_map(path: Path, a: argparse.Namespace) -> Any:
+    from gpumap.mapper import MinMaxMapper
+    from gpumap.viewer.live import MapViewer
+
+    m = MinMaxMapper.load(path, backend="numpy")
+    thr = float(m.threshold if a.threshold is None else a.threshold)
+    v = MapViewer(m.spec, m.grid, thr, host=a.view_host, port=a.view_port, title=f"gpumap view {path.name}")
+    v.set_values(m.values())
+    v.n_pings = int(m.n_integrated)
+    v.finish()
+    slider = v.server.gui.add_slider("occupied from", 0.01, 1.0, 0.01, thr)
+    values = m.values()
+
+    def _rethreshold(_e) -> None:
+        v.threshold = float(slider.value)
+        v.reset_map()
+        v.set_values(values)
+        v.finish()
+
+    slider.on_update(_rethreshold)
+    return v
+
+
+def _view_recording(path: Path, a: argparse.Namespace) -> Any:
+    from gpumap.viewer.live import MapViewer
+    from gpumap.viewer.recording import read_recording
+
+    rec = read_recording(path)
+    thr = float(rec.meta["threshold"])
+    v = MapViewer(
+        rec.spec,
+        rec.grid,
+        thr,
+        host=a.view_host,
+        port=a.view_port,
+        title=rec.meta.get("title") or f"gpumap view {path.name}",
+    )
+    pings = list(rec.pings())  # images are uint8: ~n_bins x n_beams bytes each
+    if not pings:
+        raise ValueError(f"Expected pings in {path}, but it holds none")
+    ex = rec.extras
+    for name in [k[: -len("_points")] for k in ex if k.endswith("_points")]:
+        v.add_points(f"/{name}", ex[f"{name}_points"], ex.get(f"{name}_colors", (120, 120, 120)))
+    colours = {"true": (40, 160, 40), "odometry": (140, 140, 140), "ekf": (40, 90, 230)}
+    for k in [k for k in ex if k.startswith("path_")]:
+        v.add_path(k[5:], ex[k], colours.get(k[5:], (200, 200, 0)))
+    if "landmarks" in ex:
+        v.add_landmarks(ex["landmarks"], ex.get("landmark_covs"))
+    positions = np.array([p.T_W_S[:3, 3] for p in pings])
+    state = {"at": -1}
+
+    def show(k: int) -> None:
+        with v._lock:
+            if k < state["at"]:
+                v.reset_map()
+                state["at"] = -1
+            for p in pings[state["at"] + 1 : k + 1]:
+                if p.set_idx is not None:
+                    v.apply_diff(p.set_idx, p.set_val, p.clear_idx)
+            state["at"] = k
+            v._positions = list(positions[: k + 1])
+            n_occ = int(np.count_nonzero(v._q))
+            v.show_ping(
+                pings[k].image,
+                pings[k].T_W_S,
+                f"**ping {k + 1} / {len(pings)}**  \n{n_occ} occupied voxels (value >= {thr:g})",
+            )
+
+    gui = v.server.gui
+    slider = gui.add_slider("ping", 1, len(pings), 1, len(pings))
+    playing = gui.add_checkbox("play", False)
+    slider.on_update(lambda _e: show(int(slider.value) - 1))
+
+    def _play() -> None:
+        while True:
+            time.sleep(0.1)
+            if playing.value:
+                slider.value = int(slider.value) % len(pings) + 1
+
+    threading.Thread(target=_play, daemon=True).start()
+    show(len(pings) - 1)
+    v.n_pings = len(pings)
+    return v
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``gpumap view PATH``; returns the exit status."""
+    p = _parser()
+    a = p.parse_args(argv)
+    a.view = True
+    check_view_args(p, a)
+    path = Path(a.path)
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as zf:
+            names = set(zf.namelist())
+    except zipfile.BadZipFile:
+        raise ValueError(f"Expected a map (map.npz) or a gpumap recording, but {path} is not a zip") from None
+    v = _view_recording(path, a) if "meta.json" in names else _view_map(path, a)
+    print(
+        f"gpumap view: serving {path} at {v.url} "
+        + ("until Ctrl-C" if a.view_hold is None else f"for {a.view_hold:g} s"),
+        file=sys.stderr,
+        flush=True,
+    )
+    try:
+        v.wait(a.view_hold)
+    except KeyboardInterrupt:
+        pass
+    return 0
