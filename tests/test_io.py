@@ -444,6 +444,18 @@ def hostile_cases(tmp: Path) -> dict[str, tuple]:
     p = put("wide.png", png_bytes(723, 398, 8, 0, zero_deflate(1)))
     cases["fan PNG: 398 x 723, not the geometry's 398 x 722"] = (
         lambda p=p: read_grey_png(p, expected_shape=(398, 722)), FormatError)
+    # a beam table found beside an ARIS file is read too: 16 MB of "1,2" rows took 0.9 GB, 12 s
+    bt = tmp / "bt"
+    bt.mkdir(exist_ok=True)
+    write_aris(bt / "rec.aris", [np.zeros((30, 48), np.uint8)])
+    (bt / "beam_angles_ARIS1800_1200_48.csv").write_bytes(b"beam,center_deg\n" + b"1,2\n" * 4_000_000)
+    cases["aris: 16 MB beam angle table beside it"] = (lambda: list(open_recording(bt / "rec.aris")),
+                                                       LimitError)
+    p = put("poses/sonar_poses.csv", b"frame,")
+    with open(p, "r+b") as f:
+        f.truncate((64 << 20) + 1)  # sparse: the size is what is checked, before reading
+    put("poses/sonar/image_0000.png", png_bytes(1, 1, 8, 0, zlib.compress(b"\0\0")))
+    cases["fan folder: 64 MiB + 1 B pose table"] = (lambda: open_fan_folder(tmp / "poses"), LimitError)
     head = b"ply\nformat binary_little_endian 1.0\nelement vertex %d\nproperty float x\nend_header\n"
     p = put("huge.ply", head % 10**12 + bytes(64))
     cases["PLY: 10^12 vertices declared"] = (lambda p=p: read_ply(p), LimitError)

@@ -38,6 +38,7 @@ Conventions at this edge
 
 from __future__ import annotations
 
+import csv
 import io
 import math
 import os
@@ -63,29 +64,51 @@ DEFAULT_VFOV_DEG = 14.0
 def load_beam_table(path: str | os.PathLike) -> np.ndarray:
     """Read a beam angle CSV (``beam,center_deg,...``) -> (n_beams,) float64 centre angles, degrees.
 
+    The table must be at most ``gpumap.limits.MAX_TABLE_BYTES`` (checked before reading).
+
     Raises
     ------
     FormatError
         If the table is not such a CSV (columns, numbering 0..n-1, finite angles).
+    LimitError
+        If the file is larger than the budget.
     """
     ps = os.fspath(path)
     with open(ps, "rb") as f:
-        check_size(os.fstat(f.fileno()).st_size, limits.MAX_CSV_BYTES, "the beam angle table",
+        check_size(os.fstat(f.fileno()).st_size, limits.MAX_TABLE_BYTES, "the beam angle table",
                    path=ps)
-        text = f.read()
+        raw = f.read(limits.MAX_TABLE_BYTES + 1)
+    check_size(len(raw), limits.MAX_TABLE_BYTES, "the beam angle table", path=ps)  # grew meanwhile
     try:
-        rows = np.atleast_1d(np.genfromtxt(io.BytesIO(text), delimiter=",", names=True,
-                                           invalid_raise=True))
-    except (ValueError, IndexError, TypeError, UnicodeDecodeError) as e:
-        raise FormatError(f"expected a beam angle CSV (beam,center_deg,...), but reading it failed "
-                          f"({e})", path=ps) from None
-    names = rows.dtype.names or ()
-    if "beam" not in names or "center_deg" not in names:
-        raise FormatError(f"expected columns 'beam' and 'center_deg', but got {names}", path=ps)
-    beam_f = np.asarray(rows["beam"], dtype=np.float64)
-    ang = np.asarray(rows["center_deg"], dtype=np.float64)
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise FormatError(f"expected a UTF-8 beam angle CSV, but byte {e.start} is not", e.start,
+                          ps) from None
+    try:
+        rd = csv.reader(io.StringIO(text, newline=""))
+        names = [h.strip() for h in next(rd, None) or []]
+        if "beam" not in names or "center_deg" not in names:
+            raise FormatError(f"expected columns 'beam' and 'center_deg', but got {names}", path=ps)
+        i_beam, i_ang = names.index("beam"), names.index("center_deg")
+        beams: list[float] = []
+        angles: list[float] = []
+        for row in rd:
+            if not row or all(not v.strip() for v in row):
+                continue
+            if len(row) != len(names):
+                raise FormatError(f"line {rd.line_num}: expected {len(names)} fields, but got "
+                                  f"{len(row)}", path=ps)
+            try:
+                beams.append(float(row[i_beam]))
+                angles.append(float(row[i_ang]))
+            except ValueError as e:
+                raise FormatError(f"line {rd.line_num}: expected numbers, but {e}", path=ps) from None
+    except csv.Error as e:
+        raise FormatError(f"expected a beam angle CSV, but {e}", path=ps) from None
+    beam_f = np.asarray(beams, dtype=np.float64)
+    ang = np.asarray(angles, dtype=np.float64)
     n = len(beam_f)
-    if not np.array_equal(np.sort(beam_f), np.arange(n)):
+    if n == 0 or not np.array_equal(np.sort(beam_f), np.arange(n)):
         raise FormatError(f"expected beams numbered 0..{n - 1}, but got {beam_f.tolist()[:8]}...",
                           path=ps)
     if not np.all(np.isfinite(ang)):

@@ -35,12 +35,15 @@ finite and strictly ascending, every pose finite and rigid.
 
 from __future__ import annotations
 
+import bisect
 import csv
 import io
+import math
 import os
 import re
 import struct
 import zlib
+from array import array
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -334,6 +337,10 @@ _MAX_FRAME = 2**63 - 1  # frames are returned as int64
 def read_pose_table(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Read a pose table (layout in the module notes) and check it.
 
+    The file must be at most ``gpumap.limits.MAX_CSV_BYTES``; rows are stored compactly
+    (136 bytes each) as they are parsed and the poses checked together at the end, so the
+    largest table costs a few hundred MB, not gigabytes.
+
     Returns
     -------
     frames : (n,) int64
@@ -346,80 +353,103 @@ def read_pose_table(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | N
     Raises
     ------
     FormatError
-        Naming the line (and the frame) of the first problem: wrong header or field count,
-        a field that is not a number, a duplicate frame, frames or times out of order, a
-        non-finite or non-rigid pose.
+        Naming the line (and the frame) of the problem: wrong header or field count, a
+        field that is not a number, a duplicate frame, frames or times out of order, a
+        non-finite or non-rigid pose (the first such line of each kind).
+    LimitError
+        If the file is larger than ``gpumap.limits.MAX_CSV_BYTES``.
     """
     p = os.fspath(path)
     with open(p, "rb") as fb:
         check_size(os.fstat(fb.fileno()).st_size, limits.MAX_CSV_BYTES, "the pose table", path=p)
-        raw = fb.read()
+        raw = fb.read(limits.MAX_CSV_BYTES + 1)
+    check_size(len(raw), limits.MAX_CSV_BYTES, "the pose table", path=p)  # it grew meanwhile
     try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise FormatError(f"expected a UTF-8 text table, but byte {e.start} is not", e.start, p) from None
-    frames: list[int] = []
-    times: list[float] = []
-    poses: list[np.ndarray] = []
-    line_of: dict[int, int] = {}
-    try:
-        rd = csv.reader(io.StringIO(text, newline=""))
-        header = [h.strip() for h in next(rd, None) or []]
-        with_time = len(header) == 18 and header[1] == "time_s"
-        if header[:1] != ["frame"] or header[1 + with_time:] != _MAT:
-            raise FormatError(f"expected a header 'frame', optionally 'time_s', then {_MAT[0]} .. "
-                              f"{_MAT[-1]}, but got {header}", path=p)
-        n_fields = 17 + with_time
-        for row in rd:
-            line_no = rd.line_num
-            if not row or all(not v.strip() for v in row):
-                continue
-            if len(row) != n_fields:
-                raise FormatError(f"line {line_no}: expected {n_fields} fields, but got {len(row)}",
-                                  path=p)
-            cell = row[0].strip()
-            if not _INT.fullmatch(cell):
-                raise FormatError(f"line {line_no}: expected numbers, but the frame is {cell[:30]!r} "
-                                  "(not a decimal integer)", path=p)
-            k = int(cell)
-            try:
-                vals = [float(v) for v in row[1:]]
-            except ValueError as e:
-                raise FormatError(f"line {line_no}: expected numbers, but {e}", path=p) from None
-            if not 0 <= k <= _MAX_FRAME:
-                raise FormatError(f"line {line_no}: expected a frame number >= 0 and <= {_MAX_FRAME}, "
-                                  f"but got {cell[:30]}", path=p)
-            if k in line_of:
-                raise FormatError(f"line {line_no}: expected one pose per frame, but frame {k} is "
-                                  f"also on line {line_of[k]} (duplicate frame)", path=p)
-            if frames and k < frames[-1]:
-                raise FormatError(f"line {line_no}: expected frames in ascending order (time runs "
-                                  f"forward), but frame {k} comes after frame {frames[-1]} on line "
-                                  f"{line_of[frames[-1]]}", path=p)
-            if with_time:
-                t = vals.pop(0)
-                if not np.isfinite(t):
-                    raise FormatError(f"line {line_no}: expected a finite time_s for frame {k}, but "
-                                      f"got {t}", path=p)
-                if times and t <= times[-1]:
-                    raise FormatError(f"line {line_no}: expected time_s to increase, but frame {k} "
-                                      f"has {t} after {times[-1]} (frame {frames[-1]})", path=p)
-                times.append(t)
-            T = np.array(vals, dtype=np.float64).reshape(4, 4)
-            if not np.all(np.isfinite(T)):
-                raise FormatError(f"line {line_no}: expected finite pose entries for frame {k}, but "
-                                  "got NaN or inf", path=p)
-            try:
-                T = check_pose(T, f"T_W_S of frame {k}")
-            except ValueError as e:
-                raise FormatError(f"line {line_no}: {e}", path=p) from None
-            line_of[k] = line_no
-            frames.append(k)
-            poses.append(T)
+        return _parse_pose_table(io.TextIOWrapper(io.BytesIO(raw), encoding="utf-8-sig", newline=""), p)
+    except UnicodeDecodeError:
+        try:
+            raw.decode("utf-8-sig")
+            at = None
+        except UnicodeDecodeError as e:
+            at = e.start
+        raise FormatError(f"expected a UTF-8 text table, but byte {at} is not", at, p) from None
     except csv.Error as e:
         raise FormatError(f"expected a CSV table, but {e}", path=p) from None
-    return (np.asarray(frames, dtype=np.int64), np.asarray(times) if with_time else None,
-            np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4))
+
+
+def _parse_pose_table(text: io.TextIOBase, p: str) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    frames = array("q")
+    lines = array("q")
+    times = array("d")
+    vals_all = array("d")
+    rd = csv.reader(text)
+    header = [h.strip() for h in next(rd, None) or []]
+    with_time = len(header) == 18 and header[1] == "time_s"
+    if header[:1] != ["frame"] or header[1 + with_time:] != _MAT:
+        raise FormatError(f"expected a header 'frame', optionally 'time_s', then {_MAT[0]} .. "
+                          f"{_MAT[-1]}, but got {header}", path=p)
+    n_fields = 17 + with_time
+    isfinite = math.isfinite
+    for row in rd:
+        line_no = rd.line_num
+        if not row or all(not v.strip() for v in row):
+            continue
+        if len(row) != n_fields:
+            raise FormatError(f"line {line_no}: expected {n_fields} fields, but got {len(row)}", path=p)
+        cell = row[0].strip()
+        if not _INT.fullmatch(cell):
+            raise FormatError(f"line {line_no}: expected numbers, but the frame is {cell[:30]!r} "
+                              "(not a decimal integer)", path=p)
+        k = int(cell)
+        try:
+            vals = [float(v) for v in row[1:]]
+        except ValueError as e:
+            raise FormatError(f"line {line_no}: expected numbers, but {e}", path=p) from None
+        if not 0 <= k <= _MAX_FRAME:
+            raise FormatError(f"line {line_no}: expected a frame number >= 0 and <= {_MAX_FRAME}, "
+                              f"but got {cell[:30]}", path=p)
+        if frames and k <= frames[-1]:
+            i = bisect.bisect_left(frames, k)  # frames so far are strictly ascending
+            if i < len(frames) and frames[i] == k:
+                raise FormatError(f"line {line_no}: expected one pose per frame, but frame {k} is "
+                                  f"also on line {lines[i]} (duplicate frame)", path=p)
+            raise FormatError(f"line {line_no}: expected frames in ascending order (time runs "
+                              f"forward), but frame {k} comes after frame {frames[-1]} on line "
+                              f"{lines[-1]}", path=p)
+        if with_time:
+            t = vals.pop(0)
+            if not isfinite(t):
+                raise FormatError(f"line {line_no}: expected a finite time_s for frame {k}, but "
+                                  f"got {t}", path=p)
+            if times and t <= times[-1]:
+                raise FormatError(f"line {line_no}: expected time_s to increase, but frame {k} "
+                                  f"has {t} after {times[-1]} (frame {frames[-1]})", path=p)
+            times.append(t)
+        if not all(isfinite(v) for v in vals):
+            raise FormatError(f"line {line_no}: expected finite pose entries for frame {k}, but "
+                              "got NaN or inf", path=p)
+        frames.append(k)
+        lines.append(line_no)
+        vals_all.extend(vals)
+    # the parsed values themselves, no copy (the array's buffer stays with the result)
+    T = np.frombuffer(vals_all, dtype=np.float64).reshape(-1, 4, 4) if vals_all else np.zeros((0, 4, 4))
+    # rigid, checked in blocks (bounded temporaries); a row that is not clearly fine is
+    # judged by check_pose itself, whose message and tolerance it gets
+    for b0 in range(0, len(T), 1 << 16):
+        Tb = T[b0:b0 + (1 << 16)]
+        R = Tb[:, :3, :3]
+        G = np.einsum("nji,njk->nik", R, R) - np.eye(3)
+        det = np.einsum("ni,ni->n", np.cross(R[:, :, 0], R[:, :, 1]), R[:, :, 2])
+        last = np.abs(Tb[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)
+        suspect = (np.abs(G).max(axis=(1, 2)) > 0.5e-5) | (last > 0.5e-5) | (det < 0.5)
+        for i in b0 + np.flatnonzero(suspect):
+            try:
+                check_pose(T[i], f"T_W_S of frame {frames[i]}")
+            except ValueError as e:
+                raise FormatError(f"line {lines[i]}: {e}", path=p) from None
+    return (np.frombuffer(frames, dtype=np.int64).copy() if frames else np.zeros(0, np.int64),
+            np.frombuffer(times, dtype=np.float64).copy() if with_time and times else
+            (np.zeros(0) if with_time else None), T)
 
 
 def read_poses_csv(path: str | os.PathLike) -> dict[int, np.ndarray]:
