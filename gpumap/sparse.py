@@ -1243,6 +1243,11 @@ class SparseMinMaxMapper:
                 )
 
     # ------------------------------------------------------------------ reading
+    def _settle(self) -> None:
+        """Before a read: raise on a kernel error, free blocks no ping has observed."""
+        self.check()
+        self._reclaim()
+
     def _blocks(self) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """Used blocks' coords (n, 3) int64 (lexicographic order) and their (n, B^3) arrays."""
         self.check()
@@ -1268,7 +1273,10 @@ class SparseMinMaxMapper:
     def grid(self) -> GridSpec:
         """The dense :class:`GridSpec` that :meth:`values` covers: the bounds, or for an
         unbounded map the box of its blocks (one voxel at the origin while empty)."""
+        if self.sparse.bounds is not None:
+            return self.sparse.grid
         with self._lock:
+            self._settle()
             i0, i1 = self._whole_box()
         return self._box_grid(i0, i1)
 
@@ -1313,6 +1321,7 @@ class SparseMinMaxMapper:
     def raw_values(self) -> np.ndarray:
         """Map values over :attr:`grid`, float32 with ``+inf`` for never observed."""
         with self._lock:
+            self._settle()
             return self._dense(*self._whole_box(), ("values",))["values"]
 
     def values(self) -> np.ndarray:
@@ -1332,6 +1341,7 @@ class SparseMinMaxMapper:
                 f"Expected a mapper with rule='visible' for evidence(), but its rule is {self.rule!r}"
             )
         with self._lock:
+            self._settle()
             return self._dense(*self._whole_box(), ("min_all", "bright", "count"))
 
     def values_in_box(self, lo_m, hi_m) -> tuple[GridSpec, np.ndarray]:
@@ -1353,6 +1363,7 @@ class SparseMinMaxMapper:
                 "holds none (inside the bounds)"
             )
         with self._lock:
+            self._settle()
             v = self._dense(i0, i1, ("values",))["values"]
         v[np.isinf(v)] = np.nan
         return self._box_grid(i0, i1), v
@@ -1363,6 +1374,7 @@ class SparseMinMaxMapper:
         (4, 4) pose whose position is taken) and ``radius_m``, only those within that distance."""
         thr = np.float32(check_finite_scalar(threshold, "threshold"))
         with self._lock:
+            self._settle()
             coords, data = self._blocks()
         B, s = self.B, self.sparse.voxel_size_m
         c = None
