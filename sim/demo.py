@@ -50,12 +50,15 @@ __all__ = ["main", "run_demo"]
 
 RANGE_SIGMA_M = 0.01
 BEARING_SIGMA_RAD = math.radians(0.3)
+#: Voxel edge (metres) of each scene when ``--voxel-size`` is not given; others take 0.03.
+DEFAULT_VOXEL_M = {"survey": 0.05}
 
 
 def _parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog="gpumap demo", description=__doc__.splitlines()[0])
     p.add_argument("--scene", default="tank", choices=sorted(SCENES))
-    p.add_argument("--voxel-size", type=positive_float, default=0.03, help="voxel edge, metres")
+    p.add_argument("--voxel-size", type=positive_float, default=None,
+                   help="voxel edge, metres (default: 0.03; 0.05 for the survey scene)")
     p.add_argument("--backend", type=backend_name, default="auto",
                    help="auto|numpy|warp-cpu|warp-cuda|opencl")
     p.add_argument("--method", default="gather", choices=["gather", "template"])
@@ -95,10 +98,10 @@ def _map_pings(
     detectable: np.ndarray | None = None, pose_covs: np.ndarray | None = None, on_ping=None,
 ) -> tuple[gpumap.MinMaxMapper, list[float], list[dict]]:
     if mapper is None:
-        mapper = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, method=method,
-                                     shadow_m=shadow_m, rule=_rule(rule, method), threshold=threshold)
+        mapper = build_mapper(scene, backend, method, _rule(rule, method), threshold, shadow_m)
     times, history = [], []
     seen = np.zeros(scene.grid.n_voxels, bool)
+    curve_at = _curve_pings(len(pings), scene.grid.n_voxels) if curve else set()
     for k in _progress(range(len(pings)), quiet, desc=f"map ({label})", unit="ping"):
         t0 = time.perf_counter()
         mapper.integrate(pings[k].image, poses[k], None if pose_covs is None else pose_covs[k])
@@ -107,11 +110,65 @@ def _map_pings(
         if on_ping is not None:  # the live view / recording (after the timing)
             on_ping(pings[k].image, poses[k], mapper)
         seen[seen_each[k]] = True
-        if curve:
+        if k in curve_at:
             ev = evaluate(mapper.values(), truth, threshold, seen.reshape(scene.grid.shape),
                           scene.grid.voxel_size_m, detectable=detectable)
-            history.append(ev.to_dict())
+            history.append({**ev.to_dict(), "pings": k + 1})
     return mapper, times, history
+
+
+#: Above this many (pings x grid voxels) the error curve is scored after a dozen pings spread
+#: over the run rather than after every ping (one score of the survey's 24 M voxels takes ~2 s).
+CURVE_VOXEL_BUDGET = 1e9
+
+
+def _curve_pings(n_pings: int, n_voxels: int) -> set[int]:
+    """Indices of the pings after which the error curve is scored (always the first and last)."""
+    if n_pings * n_voxels <= CURVE_VOXEL_BUDGET:
+        return set(range(n_pings))
+    return {int(i) for i in np.linspace(0, n_pings - 1, 12).round()}
+
+
+def build_mapper(scene: Scene, backend: str, method: str, rule: str, threshold: float,
+                 shadow_m: float = 0.0) -> gpumap.MinMaxMapper:
+    """The mapper every row of the demo integrates into: a dense grid over ``scene.grid``.
+
+    The one place that chooses the map's storage; what the demo reads from a mapper is
+    ``integrate``, ``synchronize``, ``values`` (over ``scene.grid``), ``rule``, ``backend``,
+    ``save`` and :func:`_memory_report`.
+    """
+    return gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, method=method,
+                               shadow_m=shadow_m, rule=rule, threshold=threshold)
+
+
+def _bytes_per_voxel(rule: str) -> int:
+    """Dense storage per voxel: the float32 value, plus the visible rule's float32 and uint8."""
+    return 9 if rule == "visible" else 4
+
+
+def _memory_report(mapper: gpumap.MinMaxMapper, scene: Scene) -> dict:
+    """Bytes the map holds next to what the voxels it observed need and the dense equivalents.
+
+    ``map_bytes``: the mapper's per-voxel arrays; ``observed_voxels``/``observed_bytes``:
+    the voxels some ping observed and their bytes at the same cost per voxel (what an ideal
+    sparse map would hold); ``dense_grid_bytes``: a dense grid over ``scene.grid``; for a
+    scene with a seabed (``survey``), ``dense_water_column_bytes``: a dense grid over the
+    grid's plan area from its floor up to the sea surface (z = 0), what a dense map needs
+    without knowing where the seabed lies.
+    """
+    g = scene.grid
+    bpv = _bytes_per_voxel(mapper.rule)
+    observed = int(np.count_nonzero(np.isfinite(mapper.values())))
+    rep = {"storage": "dense", "bytes_per_voxel": bpv, "map_bytes": g.n_voxels * bpv,
+           "observed_voxels": observed, "observed_bytes": observed * bpv,
+           "dense_grid_voxels": g.n_voxels, "dense_grid_bytes": g.n_voxels * bpv}
+    if scene.seabed_z_m is not None and g.min_corner_m[2] < 0.0:
+        s = g.voxel_size_m
+        lo, hi = np.asarray(g.min_corner_m), np.asarray(g.max_corner_m)
+        ext = [hi[0] - lo[0], hi[1] - lo[1], -lo[2]]
+        n = int(np.prod([math.ceil(round(e / s, 9)) for e in ext]))
+        rep.update(dense_water_column_voxels=n, dense_water_column_bytes=n * bpv)
+    return rep
 
 
 def _odometry(T_true: np.ndarray, sigma: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -237,7 +294,8 @@ def run_demo(args: argparse.Namespace) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     quiet = bool(args.no_progress)
     t_start = time.perf_counter()
-    scene = make_scene(args.scene, voxel_size_m=args.voxel_size, seed=args.seed)
+    voxel_m = DEFAULT_VOXEL_M.get(args.scene, 0.03) if args.voxel_size is None else args.voxel_size
+    scene = make_scene(args.scene, voxel_size_m=voxel_m, seed=args.seed)
     n = len(scene.T_W_S)
     sel = np.arange(n)
     if args.pings is not None:
@@ -245,13 +303,12 @@ def run_demo(args: argparse.Namespace) -> dict:
     T_true = scene.T_W_S[sel]
     # fail before minutes of simulation if the backend cannot run here (it also compiles the kernels)
     rule = _rule(args.rule, args.method)
-    first = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=args.backend, method=args.method,
-                                shadow_m=args.shadow_m, rule=rule, threshold=args.threshold)
+    first = build_mapper(scene, args.backend, args.method, rule, args.threshold, args.shadow_m)
     truth = occupancy(scene, seed=args.seed)
 
     t0 = time.perf_counter()
     pings, seen_each = [], []
-    with SonarSimulator(scene, seed=args.seed) as sim:
+    with SonarSimulator(scene, seed=args.seed, **scene.sonar_params) as sim:
         for i, k in enumerate(_progress(sel, quiet, desc="simulate", unit="ping")):
             p = sim.ping(scene.T_W_S[k], int(k))
             pings.append(p)
@@ -291,9 +348,10 @@ def run_demo(args: argparse.Namespace) -> dict:
         "ms_per_image": 1e3 * float(np.mean(times[1:] if len(times) > 1 else times)),
         "ms_per_image_first": 1e3 * times[0],
         "sim_ms_per_image": 1e3 * sim_s / len(pings),
-        **{k: final[k] for k in final if k != "threshold"},
+        **{k: final[k] for k in final if k not in ("threshold", "pings")},
         "height_error_first_view_m": history[0]["height_error_m"],
         "rules": rules,
+        "memory": _memory_report(mapper, scene),
     }
     mapper.save(out / "map.npz")
 
@@ -440,7 +498,7 @@ def _figures(out: Path, scene: Scene, truth: Truth, mapper, sample: Ping, histor
     plt.close(fig)
 
     # Error by view count.
-    k = np.arange(1, len(history) + 1)
+    k = np.array([h.get("pings", i + 1) for i, h in enumerate(history)])
     fig, ax = plt.subplots(1, 2, figsize=(12, 4.5))
     for key in ("false_negative_rate", "false_negative_rate_objects", "false_positive_rate",
                 "free_carved_fraction"):
@@ -495,6 +553,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:8s} {row['false_negative_rate_detectable']:7.3f} "
               f"{row['false_negative_rate_objects_detectable']:7.3f} {row['miss_rate']:6.3f} "
               f"{row['false_positive_rate_far']:7.3f} {row['free_carved_fraction']:7.3f} {row['pipe_found']}")
+    mem = m["memory"]
+    dense = [f"dense grid {mem['dense_grid_bytes'] / 2**20:.1f} MiB"]
+    if "dense_water_column_bytes" in mem:
+        dense.append(f"dense to the surface {mem['dense_water_column_bytes'] / 2**20:.1f} MiB")
+    print(f"map memory {mem['map_bytes'] / 2**20:.1f} MiB ({mem['storage']}); observed "
+          f"{mem['observed_voxels']} voxels x {mem['bytes_per_voxel']} B = "
+          f"{mem['observed_bytes'] / 2**20:.1f} MiB; " + "; ".join(dense))
     if "pose_noise" in m:
         for name, row in m["pose_noise"]["rows"].items():
             print(f"{name:9s} FN det {row.get('false_negative_rate_detectable', float('nan')):.3f} "

@@ -37,6 +37,9 @@ __all__ = [
     "tank_scene",
     "circle_scene",
     "circle_trajectory",
+    "survey_scene",
+    "lawnmower_trajectory",
+    "survey_mounts",
     "BACKGROUND_OBJECTS",
     "pose_from_xyz_ypr",
     "box_scene",
@@ -129,6 +132,12 @@ class Scene:
         Names of the objects proper (obstacles: chain, rock, ...), as opposed to the
         background (sand, walls); metrics report "objects" rates over these. Default: every
         object whose name is not in :data:`BACKGROUND_OBJECTS`, taken at construction.
+    seabed_z_m : callable or None
+        ``seabed_z_m(x, y) -> z``: the analytic height of the sand's surface (world, metres,
+        broadcasting arrays), where a scene defines one (``survey``); None otherwise.
+    sonar_params : dict of str -> float
+        Keyword arguments for :class:`~.sonar.SonarSimulator` that suit the scene (a survey
+        sonar at 8 m runs more gain than a tank sonar at 2 m); empty: the defaults.
     """
 
     name: str
@@ -142,6 +151,8 @@ class Scene:
     materials: dict[str, Material] = field(default_factory=lambda: dict(MATERIALS))
     seed: int = 0
     small_objects: tuple[str, ...] | None = None
+    seabed_z_m: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+    sonar_params: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.small_objects is None:
@@ -608,6 +619,253 @@ def circle_trajectory(
     return np.array(poses)
 
 
+# ------------------------------------------------------------------------------ a seabed survey
+SURVEY = {
+    "x_half_m": 25.0,  # seabed over [-25, 25] x [-10, 10]
+    "y_half_m": 10.0,
+    "floor_z_m": -4.0,  # mean seabed: 4 m of water below the surface at z = 0
+    "vehicle_z_m": -1.5,  # 2.5 m above the mean seabed
+    "sonar_pitch_deg": 30.0,  # below horizontal
+    "mesh_step_m": 0.1,  # heightfield vertex spacing: 501 x 201 vertices, 200,000 triangles
+}
+
+
+def _seabed_height_fns(
+    rng: np.random.Generator, z0: float
+) -> tuple[Callable[[np.ndarray, np.ndarray], np.ndarray], Callable[[np.ndarray, np.ndarray], np.ndarray]]:
+    """Seeded seabed ``(h, h_smooth)``: undulations of about 0.25 m plus sand ripples.
+
+    ``h_smooth`` is the undulating floor alone (four long waves, 12-30 m, amplitudes 12, 8, 6
+    and 5 cm); ``h`` adds ripples: crests roughly across a seeded direction, 0.6-0.9 m apart,
+    3 cm high with a slowly varying height and a gently sinuous crest line, plus a 1 cm
+    cross ripple of 0.45 m.
+    """
+    lam = rng.uniform(12.0, 30.0, 4)
+    ang = rng.uniform(0.0, 2 * np.pi, 4)
+    k_long = (2 * np.pi / lam)[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
+    ph_long = rng.uniform(0, 2 * np.pi, 4)
+    amp_long = np.array([0.12, 0.08, 0.06, 0.05])
+    crest = rng.uniform(0.0, np.pi)
+    k_rip = 2 * np.pi / rng.uniform(0.6, 0.9)
+    u_rip = np.array([np.cos(crest), np.sin(crest)])
+    u_cross = np.array([-u_rip[1], u_rip[0]])
+    k_cross = 2 * np.pi / 0.45
+    ph_rip = rng.uniform(0, 2 * np.pi, 4)
+
+    def h_smooth(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+        z = np.full(np.broadcast(x, y).shape, z0)
+        for i in range(4):
+            z = z + amp_long[i] * np.sin(k_long[i, 0] * x + k_long[i, 1] * y + ph_long[i])
+        return z
+
+    def h(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+        a = x * u_rip[0] + y * u_rip[1]  # across the crests
+        b = x * u_cross[0] + y * u_cross[1]  # along them
+        wiggle = 0.6 * np.sin(0.35 * b + ph_rip[0])  # sinuous crest lines
+        height = 0.03 * (0.75 + 0.25 * np.sin(0.2 * b + 0.13 * a + ph_rip[1]))
+        z = h_smooth(x, y) + height * np.sin(k_rip * a + wiggle + ph_rip[2])
+        return z + 0.01 * np.sin(k_cross * b + 0.3 * a + ph_rip[3])
+
+    return h, h_smooth
+
+
+def _union_culled(parts: list[tuple[trimesh.Trimesh, Callable]], pad_m: float = 1e-6) -> Callable:
+    """Union of the parts' ``contains``, each tested only on the points inside its mesh's box.
+
+    For objects made of many small parts spread over a large area (rocks, pipeline
+    segments), where :func:`_union` would test every part on every point of the whole box.
+    """
+    boxes = [(m.bounds[0] - pad_m, m.bounds[1] + pad_m) for m, _ in parts]
+    fns = [f for _, f in parts]
+
+    def contains(p: np.ndarray) -> np.ndarray:
+        p = np.asarray(p)
+        out = np.zeros(len(p), bool)
+        for (lo, hi), f in zip(boxes, fns, strict=True):
+            idx = np.flatnonzero(np.all((p >= lo) & (p <= hi), axis=1))
+            if len(idx):
+                out[idx] |= f(p[idx])
+        return out
+
+    return contains
+
+
+def survey_scene(
+    seed: int = 0,
+    voxel_size_m: float = 0.05,
+    n_lines: int = 4,
+    line_spacing_m: float = 5.0,
+    line_half_m: float = 22.0,
+    ping_spacing_m: float = 1.0,
+    n_rocks: int = 14,
+    wobble_deg: float = 1.5,
+) -> Scene:
+    """A vehicle surveys 50 x 20 m of seabed in a lawnmower pattern: the large-map scene.
+
+    World frame: z up, z = 0 at the sea surface; the seabed covers ``[-25, 25] x [-10, 10]``
+    m at a mean depth of 4 m (``SURVEY["floor_z_m"]``), undulating by about 0.25 m with
+    3 cm sand ripples (seeded, :func:`_seabed_height_fns`; a heightfield mesh at 10 cm, solid
+    down to below the grid). On it: ``n_rocks`` seeded star-shaped rocks of 0.4-1.4 m, partly
+    buried, merged into one object "rocks"; a pipeline "pipe" of 30 cm diameter across the
+    whole area (straight in plan, following the seabed's undulation in 2.4 m segments, its
+    lower 7-11 cm buried); and a "wreck": a hull box of 7 x 2.4 x 1.3 m (yawed 35 deg, rolled
+    5 deg, sunk 0.3 m) with a deckhouse of 2.2 x 1.6 x 0.6 m, its top about 1.6 m above the
+    seabed. Objects are placed at fixed spots; the seed sets the seabed and the rocks.
+
+    The vehicle flies at 1.5 m depth (about 2.5 m altitude) along ``n_lines`` lines parallel
+    to x, ``line_spacing_m`` apart and centred on y = 0, over ``x in [-line_half_m,
+    line_half_m]``, alternating direction, joined by half-circle turns; a ping every
+    ``ping_spacing_m`` of path (200 pings with the defaults), with a gentle roll and pitch
+    wobble of ``wobble_deg``. The sonar (130 x 20 deg, 512 beams, 400 bins over 0.5-8 m)
+    looks ahead pitched 30 deg down, so each line sees a band about 12 m wide and the bands
+    of neighbouring lines overlap. The DVL looks straight down (``T_W_D``: its x axis to
+    -z). The grid is the seabed band ``[-25, 25] x [-10, 10] x [-4.6, -1.6]`` m (the
+    water above the vehicle's path and the rock far below the seabed hold nothing the sonar
+    can see). ``Scene.seabed_z_m`` is the seabed's analytic height.
+    """
+    if n_lines < 1 or line_spacing_m <= 0 or line_half_m <= 0 or ping_spacing_m <= 0 or n_rocks < 0:
+        raise ValueError(
+            f"Expected n_lines >= 1, line_spacing_m > 0, line_half_m > 0, ping_spacing_m > 0 and "
+            f"n_rocks >= 0, but got n_lines={n_lines}, line_spacing_m={line_spacing_m}, "
+            f"line_half_m={line_half_m}, ping_spacing_m={ping_spacing_m}, n_rocks={n_rocks}"
+        )
+    c = SURVEY
+    xh, yh, z0 = c["x_half_m"], c["y_half_m"], c["floor_z_m"]
+    rng = np.random.default_rng(seed)
+    grid = gpumap.GridSpec((-xh, -yh, z0 - 0.6), (xh, yh, c["vehicle_z_m"] - 0.1), voxel_size_m)
+    h, h_smooth = _seabed_height_fns(rng, z0)
+    objects = [_sand_object(h, (-xh, xh), (-yh, yh), grid.min_corner_m[2] - 1.0, step_m=c["mesh_step_m"])]
+
+    # Wreck: a hull box, yawed and listing, sunk 0.3 m, with a deckhouse aft of the middle.
+    wc = np.array([7.0, -3.0])
+    hull_size, sink = np.array([7.0, 2.4, 1.3]), 0.3
+    R_w = _rot_z(math.radians(35.0)) @ _rot_x(math.radians(5.0))
+    hull_c = np.array([*wc, float(h_smooth(*wc)) - sink + 0.5 * hull_size[2]])
+    house_size = np.array([2.2, 1.6, 0.6])
+    house_c = hull_c + R_w @ np.array([-1.4, 0.0, 0.5 * (hull_size[2] + house_size[2])])
+    wreck = _merged("wreck", [_box(hull_c, hull_size, R_w), _box(house_c, house_size, R_w)], "metal")
+    objects.append(wreck)
+
+    # Pipeline: straight in plan across the area, its axis 8 cm above the smooth seabed.
+    r_pipe = 0.15
+    pa, pb = np.array([-xh + 0.5, 6.0]), np.array([xh - 0.5, -1.0])
+    n_seg = int(math.ceil(np.linalg.norm(pb - pa) / 2.4))
+    knots = [pa + (pb - pa) * t for t in np.linspace(0.0, 1.0, n_seg + 1)]
+    axis = [np.array([*q, float(h_smooth(*q)) + r_pipe - 0.07]) for q in knots]
+    parts = [_cylinder(axis[i], axis[i + 1], r_pipe, sections=16) for i in range(n_seg)]
+    mesh = trimesh.util.concatenate([m for m, _ in parts])
+    objects.append(SceneObject("pipe", mesh, "metal", _union_culled(parts)))
+
+    # Rocks: seeded spots at least 2 m from the wreck's footprint and the pipeline, 1.5 m apart.
+    d_pipe = pb - pa
+    d_pipe = d_pipe / np.linalg.norm(d_pipe)
+    rocks, centres = [], []
+    while len(rocks) < n_rocks:
+        q = rng.uniform([-xh + 1.5, -yh + 1.5], [xh - 1.5, yh - 1.5])
+        off = q - pa
+        if abs(off[0] * d_pipe[1] - off[1] * d_pipe[0]) < 2.0 + r_pipe:
+            continue
+        local = (R_w[:2, :2].T @ (q - wc))
+        if np.all(np.abs(local) < 0.5 * hull_size[:2] + 2.0):
+            continue
+        if any(np.linalg.norm(q - p) < 1.5 for p in centres):
+            continue
+        radii = rng.uniform(0.2, 0.7) * np.array([1.0, rng.uniform(0.6, 1.0), rng.uniform(0.45, 0.8)])
+        rock = _rock_object(rng, np.array([*q, float(h(*q)) + 0.3 * radii[2]]), radii)
+        rocks.append(rock)
+        centres.append(q)
+    if rocks:
+        mesh = trimesh.util.concatenate([r.mesh for r in rocks])
+        culled = _union_culled([(r.mesh, r.contains) for r in rocks], pad_m=0.05)
+        objects.append(SceneObject("rocks", mesh, "rock", culled))
+
+    # Features on surfaces: the hull's and deckhouse's top corners, the pipeline's top every
+    # fourth knot, each rock's top.
+    feats = []
+    for cc, size in ((hull_c, hull_size), (house_c, house_size)):
+        for sx in (-0.5, 0.5):
+            for sy in (-0.5, 0.5):
+                feats.append(cc + R_w @ (size * np.array([sx, sy, 0.5])))
+    feats += [a + [0, 0, r_pipe] for a in axis[::4]]
+    for r in rocks:
+        V = r.mesh.vertices
+        feats.append(V[int(np.argmax(V[:, 2]))])
+    features_W = np.array(feats, dtype=np.float64)
+    feature_ids = np.arange(len(features_W), dtype=np.int64) + 100
+
+    T_W_V = lawnmower_trajectory(n_lines, line_spacing_m, line_half_m, ping_spacing_m, c["vehicle_z_m"],
+                                 wobble_deg)
+    T_V_S, T_V_D = survey_mounts()
+    spec = gpumap.SonarSpec.uniform(hfov_deg=130, vfov_deg=20, n_beams=512, n_bins=400,
+                                    range_min_m=0.5, range_max_m=8.0)
+    return Scene("survey", objects, grid, spec, T_W_V @ T_V_S, T_W_V @ T_V_D, feature_ids, features_W,
+                 seed=seed, small_objects=("wreck", "pipe", "rocks") if rocks else ("wreck", "pipe"),
+                 seabed_z_m=h, sonar_params=dict(SURVEY_SONAR))
+
+
+#: Simulator settings of the survey sonar (see :attr:`Scene.sonar_params`): more gain than the
+#: tank's 2 m sonar (returns from 4-8 m are weaker: the elevation sum falls as 1/r) and the
+#: absorption of sea water.
+SURVEY_SONAR: dict[str, float] = {"gain": 6000.0, "absorption_db_per_m": 0.3}
+
+
+def survey_mounts() -> tuple[np.ndarray, np.ndarray]:
+    """``(T_V_S, T_V_D)``: sonar and DVL on the survey vehicle (V: x forward, y left, z up).
+
+    The sonar sits at the bow (0.6 m ahead, 0.1 m below the vehicle's origin) pitched
+    ``SURVEY["sonar_pitch_deg"]`` down; the DVL 0.2 m below the origin looking straight down.
+    """
+    T_V_S = pose_from_xyz_ypr(np.array([0.6, 0.0, -0.1]), 0.0, math.radians(SURVEY["sonar_pitch_deg"]))
+    T_V_D = pose_from_xyz_ypr(np.array([0.0, 0.0, -0.2]), 0.0, math.pi / 2)
+    return T_V_S, T_V_D
+
+
+def lawnmower_trajectory(
+    n_lines: int,
+    line_spacing_m: float,
+    line_half_m: float,
+    ping_spacing_m: float,
+    z_m: float,
+    wobble_deg: float = 0.0,
+) -> np.ndarray:
+    """(n, 4, 4) vehicle poses ``T_W_V`` along a lawnmower pattern at depth ``z_m``.
+
+    Line ``i`` runs along x over ``[-line_half_m, line_half_m]`` at ``y = (i - (n_lines -
+    1) / 2) * line_spacing_m``, the first toward +x and the next ones alternating; a
+    half-circle of radius ``line_spacing_m / 2`` beyond each line's end joins it to the
+    next. Poses are taken every ``ping_spacing_m`` of path length from the first line's
+    start, heading along the path (yaw = the path's tangent), with roll ``wobble_deg *
+    sin(2 pi s / 7.3 m)`` and pitch ``0.6 wobble_deg * sin(2 pi s / 11.9 m)`` (s the path
+    length; positive pitch is nose down).
+    """
+    R = 0.5 * line_spacing_m
+    L = 2.0 * line_half_m
+    ys = (np.arange(n_lines) - 0.5 * (n_lines - 1)) * line_spacing_m
+    seg_len = [L if i % 2 == 0 else math.pi * R for i in range(2 * n_lines - 1)]
+    ends = np.cumsum(seg_len)
+    s_all = np.arange(0.0, ends[-1] + 1e-9, ping_spacing_m)
+    poses = []
+    for s in s_all:
+        j = min(int(np.searchsorted(ends, s, side="right")), len(seg_len) - 1)
+        u = s - (ends[j] - seg_len[j])
+        line = j // 2
+        sign = 1.0 if line % 2 == 0 else -1.0  # direction of travel of line `line`
+        if j % 2 == 0:  # straight line
+            x, y, yaw = sign * (-line_half_m + u), ys[line], 0.0 if sign > 0 else math.pi
+        else:  # half-circle to line + 1 (toward +y): counter-clockwise after a +x line, else clockwise
+            a = u / R
+            cx, cy = sign * line_half_m, ys[line] + R
+            x = cx + sign * R * math.sin(a)
+            y = cy - R * math.cos(a)
+            yaw = a if sign > 0 else math.pi - a
+        roll = math.radians(wobble_deg) * math.sin(2 * math.pi * s / 7.3)
+        pitch = 0.6 * math.radians(wobble_deg) * math.sin(2 * math.pi * s / 11.9)
+        poses.append(pose_from_xyz_ypr(np.array([x, y, z_m]), yaw, pitch, roll))
+    return np.array(poses)
+
+
 # ------------------------------------------------------------------------------ analytic test scene
 def box_scene(
     boxes: list[tuple[tuple[float, float, float], tuple[float, float, float]]],
@@ -633,11 +891,13 @@ def _prism(**kw) -> Scene:
     return prism_scene(**kw)
 
 
-SCENES: dict[str, Callable[..., Scene]] = {"tank": tank_scene, "circle": circle_scene, "prism": _prism}
+SCENES: dict[str, Callable[..., Scene]] = {
+    "tank": tank_scene, "circle": circle_scene, "prism": _prism, "survey": survey_scene,
+}
 
 
 def make_scene(name: str, **kw) -> Scene:
-    """Build a registered scene by name (``tank``, ``circle``, ``prism``)."""
+    """Build a registered scene by name (``tank``, ``circle``, ``prism``, ``survey``)."""
     if name not in SCENES:
         raise ValueError(f"Expected a scene name in {sorted(SCENES)}, but got {name!r}")
     return SCENES[name](**kw)
