@@ -13,27 +13,34 @@ Kalman Filter by Using Acoustic Camera Images" (Section 3), with these changes:
   uncertainty, which also gives the pose-feature cross-covariance. (The paper sets the
   elevation to 0 and says nothing of its uncertainty; a small variance there makes the
   first updates overconfident, a huge one makes them wrong through linearisation.)
-- **Triangulated elevation** (``init="triangulate"``; default ``"arc"``): a new feature
-  enters the state as above, anchored where first seen, but its returns are *held* (not
-  fused) and stored with the relative pose from the anchor (the filter's estimates) and its
-  odometry covariance. Each held return triggers a small Gauss-Newton triangulation in the
-  anchor frame (:func:`triangulate`: scan along the first arc, then refine; residuals weighted
-  by the measurement noise inflated by the relative-pose covariance; covariance from the
-  Hessian). Once the elevation sigma is below ``init_elevation_sigma_rad`` (default half
-  the prior's) and the residual passes a chi-square test, the arc prior's independent
-  elevation term ``U(-vfov/2, vfov/2)`` is replaced by the triangulated ``N(el, sigma^2)``.
-  That is exact bookkeeping, because no return of the feature was fused, so that term is
-  still independent of everything else; the anchor-pose cross-covariance is kept. The held
-  returns are spent on the triangulation. Features that never get parallax are never fused
-  (consistent, but they add nothing). Measured (see bench/ekf_bench.py): consistent (pose
-  NEES ~6.6 on the prism and the tank) but not better overall: prism feature error 12.0 mm vs
-  9.3 mm for the arc; tank at 0.005 m/rad odometry noise 3.3 cm vs 4.0 cm; at 0.02 nothing
-  triangulates (relative pitch from odometry is too loose), so it falls back to odometry.
-  Hence ``"arc"`` stays the default.
-- **Iterated update** (``iterations > 1``): Gauss-Newton passes that relinearise at the
-  updated estimate (IEKF); a return failing the gate at the prior's linearisation gets an
-  iterated second test. Default 1 (plain EKF): on the tank and prism scenes iterating gains
-  little, because the error comes from the elevation prior's mean (0), not the Jacobian.
+- **Second-order elevation term** (``second_order=True``): linearised at elevation 0 a
+  range has no first-order sensitivity to elevation, so the chord effect ``r (1 - cos el)``
+  of a point off the horizontal plane used to become a range bias (~4 sigma after 1.5 m
+  along the beam). Each return's prediction and noise get the Gaussian second-order terms
+  of the elevation direction (``h_ee var_e / 2``, ``h_ee h_ee^T var_e^2 / 2``); they vanish
+  as the elevation is learned.
+- **Relinearised updates and gate** (``relinearize_iterations=5``): an update holding a
+  return of a feature whose elevation is still uncertain (sd given the pose above
+  ``init_elevation_sigma_rad``, default half the prior's) runs Gauss-Newton passes (IEKF),
+  and such a return that fails the chi-square gate at the prior's linearisation is tested
+  again at its own relinearised estimate (off-axis points were refused at elevation 0).
+  ``iterations`` (default 1) sets the passes for the other updates.
+- **Triangulated start** (``init="triangulate"``; default ``"arc"``): every return is fused
+  as with the arc, so the cross-covariances are the same; each return of an uncertain
+  feature first triangulates it along its arc: Gauss-Newton from ``init_starts``
+  elevations over the aperture (and from the estimate), on that return with the filter's
+  full prior, the lowest MAP cost wins and the joint update starts there. (An earlier
+  version held the returns back and replaced the elevation by an independent triangulated
+  one: it lost the returns' pose information and was 1.1-2.3x the batch MAP's error.)
+- **Gauge**: the filter runs in the frame of the first pose estimate ``G = T_W_S0``;
+  ``pose_cov0`` is the uncertainty of ``G`` (the last 6 states), which relative returns
+  never observe and every world output (:attr:`SonarEKF.pose_cov`, ``landmark_cov``,
+  ``covariance``) adds. (Before, a huge ``pose_cov0`` went through the features' anchors by
+  a linearisation that could not hold, and the absolute pose covariance collapsed.)
+- **Innovation monitor** (``nis_window=200``): :meth:`SonarEKF.innovation_stats` pools the
+  NIS and the innovations of the last returns and estimates the range and bearing noise
+  from them (Mehra's covariance matching); an update whose pooled NIS leaves its 99.99 %
+  band warns once (``RuntimeWarning`` and the ``gpumap.ekf`` logger).
 - **Immature features** (``mature_elevation_sigma_rad``, off by default): returns of
   features whose elevation given the pose is still looser than this update only their own
   feature (Schmidt-Kalman consider update; Joseph form keeps the covariance right). This
@@ -44,7 +51,8 @@ Kalman Filter by Using Acoustic Camera Images" (Section 3), with these changes:
   tilt relative to it (pitch, roll); never position along it or heading. Gated per ray
   (chi-square, 1 dof); NaN ranges (no return) and rays parallel to the plane are skipped.
 - **Gating**: each return's innovation is tested on its own ``2x2`` innovation covariance
-  against a chi-square (2 dof) quantile; returns that fail are reported, not used.
+  against a chi-square (2 dof) quantile (at the relinearised estimate for uncertain
+  features); returns that fail are reported, not used.
 - **Numerics**: gains by Cholesky solve of the innovation covariance (never its inverse),
   Joseph-form covariance update, symmetrised; azimuth residuals wrapped to ``(-pi, pi]``;
   after each update the pose-error covariance is moved to the new linearisation point
@@ -75,7 +83,7 @@ model over a whole sweep: the filter's yardstick, and a smoother).
 
 from __future__ import annotations
 
-from gpumap.ekf.filter import PlaneUpdateResult, SonarEKF, UpdateResult
+from gpumap.ekf.filter import InnovationStats, PlaneUpdateResult, SonarEKF, UpdateResult
 from gpumap.ekf.initialisation import Triangulation, anchor_jacobian, triangulate
 from gpumap.ekf.measurement import (
     MIN_HORIZONTAL_M,
@@ -90,6 +98,7 @@ from gpumap.ekf.motion import motion_jacobian
 __all__ = [
     "MIN_HORIZONTAL_M",
     "MIN_PLANE_COS",
+    "InnovationStats",
     "PlaneUpdateResult",
     "SonarEKF",
     "Triangulation",

@@ -5,8 +5,11 @@ See :mod:`gpumap.ekf` for the model, the conventions and the differences from Ma
 
 from __future__ import annotations
 
+import collections
 import functools
+import logging
 import math
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -22,29 +25,31 @@ from gpumap.ekf._checks import (
     _chi2_quantile,
     _real_array,
 )
-from gpumap.ekf.initialisation import _Held, anchor_jacobian, triangulate
+from gpumap.ekf.initialisation import anchor_jacobian
 from gpumap.ekf.measurement import (
     MIN_PLANE_COS,
     _anchored_to_world,
     _linearize,
     plane_range_model,
-    spherical_point,
     wrap_angle,
 )
-from gpumap.ekf.motion import _inject, motion_jacobian
+from gpumap.ekf.motion import _inject, _inject_gauge, motion_jacobian
 from gpumap.ekf.update import (
     _apply,
     _elevation_var_given_pose,
     _hp,
     _iterate,
     _nis_2x2,
+    _Returns,
     _robust_cholesky,
     _s_blocks,
 )
 from gpumap.errors import check_finite_scalar, check_pose
-from gpumap.lie import orthonormalize, rpy_from_rotation, se3_inverse
+from gpumap.lie import orthonormalize, rpy_from_rotation, se3_adjoint, se3_inverse
 
-__all__ = ["PlaneUpdateResult", "SonarEKF", "UpdateResult"]
+__all__ = ["InnovationStats", "PlaneUpdateResult", "SonarEKF", "UpdateResult"]
+
+_log = logging.getLogger("gpumap.ekf")
 
 _BLAS = None  # threadpoolctl controller, made on first use (it scans the loaded libraries once)
 
@@ -107,10 +112,6 @@ class UpdateResult:
         initialisation and not fused as an update).
     degenerate_ids : tuple of int
         Known features predicted on the sonar's z axis (azimuth undefined); not used.
-    deferred_ids : tuple of int
-        ``init="triangulate"``: held features whose return was stored, not fused.
-    released_ids : tuple of int
-        ``init="triangulate"``: held features whose elevation was triangulated by this return.
     nis : float or None
         Joint normalised innovation squared of the accepted returns, ``dof = 2 * len(accepted_ids)``;
         None when nothing was fused.
@@ -121,13 +122,42 @@ class UpdateResult:
     initialized_ids: tuple[int, ...] = ()
     degenerate_ids: tuple[int, ...] = ()
     nis: float | None = None
-    deferred_ids: tuple[int, ...] = ()
-    released_ids: tuple[int, ...] = ()
 
     @property
     def nis_dof(self) -> int:
         """Degrees of freedom of :attr:`nis`."""
         return 2 * len(self.accepted_ids)
+
+
+
+@dataclass(frozen=True)
+class InnovationStats:
+    """What :meth:`SonarEKF.innovation_stats` found in the recent innovations.
+
+    Attributes
+    ----------
+    returns : int
+        Fused returns pooled (the last ``nis_window``, or fewer).
+    nis_per_dof : float
+        Their summed NIS over ``2 * returns``: about 1 when the configured noise is right.
+    band : (float, float)
+        Two-sided 99.99 % band of ``nis_per_dof`` for a consistent filter (chi-square).
+    range_nis, bearing_nis : float
+        ``mean(nu_i^2) / mean(S_ii)`` per component (1 when consistent): which one is off.
+    range_sigma_m, bearing_sigma_rad : float
+        Noise estimated from the innovations: ``sqrt(mean(nu_i^2) - mean((H P H^T)_ii))``
+        (Mehra's covariance matching, clamped at 0). Noisy with few returns, and biased when
+        the state's own covariance is wrong; a hint for ``range_sigma_m`` and
+        ``bearing_sigma_rad``, not a calibration.
+    """
+
+    returns: int
+    nis_per_dof: float
+    band: tuple[float, float]
+    range_nis: float
+    bearing_nis: float
+    range_sigma_m: float
+    bearing_sigma_rad: float
 
 
 class SonarEKF:
@@ -164,14 +194,40 @@ class SonarEKF:
         If given, returns of features whose anchored elevation, conditioned on the pose, has
         a standard deviation above this correct only their own feature (Schmidt update).
     init : {"arc", "triangulate"}, default "arc"
-        Feature initialisation: ``"arc"`` fuses every return from the first re-observation on,
-        linearised at elevation 0; ``"triangulate"`` holds a feature's returns until its
-        elevation is triangulated (see the module notes), then fuses later returns.
+        Where the updates of a feature whose elevation is still uncertain (standard deviation
+        above ``init_elevation_sigma_rad``) are linearised. Both fuse every return from the
+        first re-observation on, so the pose-feature cross-covariances are the same.
+        ``"arc"``: Gauss-Newton from the filter's estimate (elevation 0 at first).
+        ``"triangulate"``: each such return first triangulates the feature along its
+        elevation arc: Gauss-Newton from ``init_starts`` elevations spread over the
+        aperture and from the estimate, each on that return with the filter's prior (all
+        cross-covariances included); the start with the lowest MAP cost is where the joint
+        update starts (Gauss-Newton cannot leave the stationary point at elevation 0 that
+        the arc's symmetry makes, a scan can).
     init_elevation_sigma_rad : float or None, default None
-        ``init="triangulate"``: elevation standard deviation at which a held feature is
-        released; None gives half the prior's, ``vfov / (2 sqrt(12))``.
-    init_max_views : int, default 12
-        ``init="triangulate"``: most returns kept per held feature (the anchor's and the newest).
+        Elevation standard deviation (given the pose) above which a feature counts as
+        uncertain: its returns are relinearised (``relinearize_iterations``) and gated at the
+        relinearised estimate. None gives half the prior's, ``vfov / (2 sqrt(12))``.
+    relinearize_iterations : int, default 5
+        Most Gauss-Newton passes of an update that holds a return of an uncertain feature
+        (the larger of this and ``iterations``); such a return that fails the gate at the
+        prior's linearisation is tested again at its own relinearised estimate. 1 turns
+        both off.
+    init_starts : int, default 5
+        ``init="triangulate"``: elevations of the scan, evenly over 80 % of the aperture.
+    second_order : bool, default True
+        Gaussian second-order terms in the elevation direction: the predicted
+        ``(range, azimuth)`` get ``h_ee var_e / 2`` and ``R`` gets ``h_ee h_ee^T var_e^2 / 2``,
+        where ``h_ee`` is the second derivative in the anchored elevation and ``var_e`` its
+        variance given the pose (at most the aperture prior's). Linearised at elevation 0 a
+        range has no first-order sensitivity to elevation; without this term the chord
+        effect ``r (1 - cos el)`` of a point off the horizontal plane is absorbed as a range
+        bias. It vanishes as the elevation is learned.
+    nis_window : int, default 200
+        Returns over which :meth:`innovation_stats` pools the NIS and the innovations; once
+        the window is full, an update whose pooled NIS per dof falls outside the two-sided
+        99.99 % chi-square band warns once (``RuntimeWarning`` and the ``gpumap.ekf``
+        logger) with the noise the innovations suggest. 0 turns the monitor off.
     blas_threads : int or None, default 1
         BLAS threads used inside ``predict`` and the updates (through threadpoolctl, set and
         restored around each call, about 10 µs). The filter's matrices are small and dense:
@@ -199,7 +255,10 @@ class SonarEKF:
         mature_elevation_sigma_rad: float | None = None,
         init: str = "arc",
         init_elevation_sigma_rad: float | None = None,
-        init_max_views: int = 12,
+        relinearize_iterations: int = 5,
+        init_starts: int = 5,
+        second_order: bool = True,
+        nis_window: int = 200,
         blas_threads: int | None = 1,
     ) -> None:
         if blas_threads is not None and (isinstance(blas_threads, bool) or int(blas_threads) < 1):
@@ -242,43 +301,66 @@ class SonarEKF:
         if ie <= 0:
             raise ValueError(f"Expected init_elevation_sigma_rad > 0, but got {ie}")
         self.init_elevation_sigma_rad = ie
-        if (isinstance(init_max_views, bool) or not isinstance(init_max_views, (int, np.integer))
-                or init_max_views < 2):
-            raise ValueError(f"Expected an integer init_max_views >= 2, but got {init_max_views!r}")
-        self.init_max_views = int(init_max_views)
+        for name, v, lo in (("relinearize_iterations", relinearize_iterations, 1),
+                            ("init_starts", init_starts, 1), ("nis_window", nis_window, 0)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+                raise ValueError(f"Expected an integer {name} >= {lo}, but got {v!r}")
+        self.relinearize_iterations = int(relinearize_iterations)
+        self.init_starts = int(init_starts)
+        self.second_order = bool(second_order)
+        self.nis_window = int(nis_window)
         self.range_sigma_m = sr
         self.bearing_sigma_rad = sb
         self.vfov_rad = vf
         self.elevation_var_rad2 = vf * vf / 12.0
         T[:3, :3] = orthonormalize(T[:3, :3])
-        self._T = T
-        self._P = P0
+        # The filter runs in the frame of the first pose estimate, G = T_W_S0 (the gauge):
+        # inside, the pose starts at the identity, exactly known, and pose_cov0 is the
+        # uncertainty of G, the last 6 states. Nothing relative observes G, so a huge
+        # pose_cov0 stays huge instead of passing through the features' anchors.
+        self._G = T
+        self._T = np.eye(4)
+        self._P = np.zeros((12, 12))
+        self._P[6:, 6:] = P0
         self._S = np.zeros((0, 3))  # anchored spherical coordinates (r, az, el)
-        self._Ra = np.zeros((0, 3, 3))  # anchor rotations R_W_A
-        self._ta = np.zeros((0, 3))  # anchor positions t_W_A
+        self._Ra = np.zeros((0, 3, 3))  # anchor rotations R_L_A (L: the gauge's frame)
+        self._ta = np.zeros((0, 3))  # anchor positions t_L_A
         self._ids: list[int] = []
         self._index: dict[int, int] = {}
         self._nis: float | None = None
         self._nis_dof = 0
-        # init="triangulate": features whose returns are held back until their elevation is
-        # triangulated: id -> (covariance of the pose since the anchor, held returns).
-        self._held: dict[int, _Held] = {}
+        # Innovation monitor: per fused update (returns, NIS, sum nu nu^T, sum S) over the
+        # last nis_window returns; _nis_warned avoids repeating the warning.
+        self._innov: collections.deque = collections.deque()
+        self._nis_warned = False
 
     # ------------------------------------------------------------------ read-only views
     @property
     def pose(self) -> np.ndarray:
         """(4, 4) float64 copy of the estimated ``T_W_S``."""
-        return self._T.copy()
+        return self._G @ self._T
+
+    def _pose_rows(self) -> np.ndarray:
+        """(6, N) map from the state's error to the world pose's right perturbation.
+
+        ``T_W_S = G Exp(g) T Exp(d) = G T Exp(Ad(T^-1) g + d)``.
+        """
+        B = np.zeros((6, self._P.shape[0]))
+        B[:, :6] = np.eye(6)
+        B[:, -6:] = se3_adjoint(se3_inverse(self._T))
+        return B
 
     @property
     def pose_cov(self) -> np.ndarray:
         """(6, 6) float64 pose covariance, ``(translation m, rotation vector rad)``, right perturbation."""
-        return self._P[:6, :6].copy()
+        B = self._pose_rows()
+        C = B @ self._P @ B.T
+        return 0.5 * (C + C.T)
 
     @property
     def rpy_rad(self) -> np.ndarray:
         """(3,) ``[roll, pitch, yaw]`` of the estimate, ``R = Rz(yaw) Ry(pitch) Rx(roll)``; output only."""
-        return rpy_from_rotation(self._T[:3, :3])
+        return rpy_from_rotation(self.pose[:3, :3])
 
     @property
     def landmarks(self) -> dict[int, np.ndarray]:
@@ -298,22 +380,41 @@ class SonarEKF:
         Pose block as :attr:`pose_cov`; feature blocks are world Cartesian, first-order
         (``J P J^T`` with ``J = R_W_A dp/ds`` per feature).
         """
-        _, J = self._world_points()
+        L, J = self._world_points()
         n = len(self._ids)
-        B = np.zeros_like(self._P)
-        B[:6, :6] = np.eye(6)
+        B = np.zeros((6 + 3 * n, self._P.shape[0]))
+        B[:6] = self._pose_rows()
         for k in range(n):
             s = 6 + 3 * k
             B[s : s + 3, s : s + 3] = J[k]
+            B[s : s + 3, -6:] = self._gauge_jacobian(L[k])
         C = B @ self._P @ B.T
         return 0.5 * (C + C.T)
 
+    def _gauge_jacobian(self, l_W: np.ndarray) -> np.ndarray:
+        """(3, 6) derivative of a world point ``G l_L`` in the gauge's right perturbation."""
+        R = self._G[:3, :3]
+        q = R.T @ (l_W - self._G[:3, 3])
+        return np.concatenate([R, -R @ np.array([[0.0, -q[2], q[1]], [q[2], 0.0, -q[0]],
+                                                 [-q[1], q[0], 0.0]])], axis=1)
+
     @property
     def native_covariance(self) -> np.ndarray:
-        """(6 + 3n, 6 + 3n) float64 covariance of the filter's own state.
+        """(6 + 3n, 6 + 3n) float64 covariance of the filter's own state, less the gauge.
 
-        Pose error ``(rho, phi)``, then each feature's anchored ``(r m, az rad, el rad)``.
+        Pose error ``(rho, phi)``, then each feature's anchored ``(r m, az rad, el rad)``;
+        both relative to the first pose estimate ``G = T_W_S0``. With ``pose_cov0 = 0`` (the
+        world is the first sonar frame) that is the whole state; otherwise the error of ``G``
+        is in :attr:`state_covariance`.
         """
+        n = self._P.shape[0] - 6
+        return self._P[:n, :n].copy()
+
+    @property
+    def state_covariance(self) -> np.ndarray:
+        """(6 + 3n + 6, 6 + 3n + 6) float64: :attr:`native_covariance` and, last, the right
+        perturbation of the first pose estimate ``G`` (it starts as ``pose_cov0``; only
+        :meth:`update_plane_ranges`, an absolute measurement, changes it)."""
         return self._P.copy()
 
     @property
@@ -323,7 +424,7 @@ class SonarEKF:
         for i, k in self._index.items():
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = self._Ra[k], self._ta[k]
-            out[i] = (T, self._S[k].copy())
+            out[i] = (self._G @ T, self._S[k].copy())
         return out
 
     @property
@@ -346,9 +447,10 @@ class SonarEKF:
         """
         k = self._slot(landmark_id)
         s = 6 + 3 * k
-        _, D = spherical_point(self._S[k])
-        J = self._Ra[k] @ D
-        C = J @ self._P[s : s + 3, s : s + 3] @ J.T
+        L, D = self._world_points(self._S[k : k + 1], self._Ra[k : k + 1], self._ta[k : k + 1])
+        J = np.concatenate([D[0], self._gauge_jacobian(L[0])], axis=1)
+        idx = np.r_[s : s + 3, self._P.shape[0] - 6 : self._P.shape[0]]
+        C = J @ self._P[np.ix_(idx, idx)] @ J.T
         return 0.5 * (C + C.T)
 
     def _slot(self, landmark_id: int) -> int:
@@ -365,7 +467,9 @@ class SonarEKF:
         S = self._S if S is None else S
         Ra = self._Ra if Ra is None else Ra
         ta = self._ta if ta is None else ta
-        return _anchored_to_world(S, Ra, ta)
+        L, J = _anchored_to_world(S, Ra, ta)
+        R = self._G[:3, :3]
+        return L @ R.T + self._G[:3, 3], R @ J
 
     # ------------------------------------------------------------------ filter steps
     @_blas_limited
@@ -392,8 +496,7 @@ class SonarEKF:
         T[:3, :3] = orthonormalize(T[:3, :3])
         if not (np.all(np.isfinite(P)) and np.all(np.isfinite(T))):
             raise FloatingPointError("predict produced non-finite values; the filter is unchanged")
-        held = {i: h.moved(F, Q) for i, h in self._held.items()}
-        self._T, self._P, self._held = T, P, held
+        self._T, self._P = T, P
 
     @_blas_limited
     def update(
@@ -425,37 +528,58 @@ class SonarEKF:
         if np.any(rng_m <= 0):
             raise ValueError(f"Expected ranges_m > 0, but got minimum {float(rng_m.min())}")
 
-        known = [k for k in range(m) if id_list[k] in self._index and id_list[k] not in self._held]
-        held_k = [k for k in range(m) if id_list[k] in self._held]
+        known = [k for k in range(m) if id_list[k] in self._index]
         new = [k for k in range(m) if id_list[k] not in self._index]
-        T, P, S = self._T, self._P, self._S
+        T, P, S, G = self._T, self._P, self._S, self._G
         accepted: list[int] = []
         rejected: dict[int, float] = {}
         degenerate: list[int] = []
         nis: float | None = None
+        innov = None
 
         if known:
             slots = np.array([self._index[id_list[k]] for k in known])
             meas = np.stack([rng_m[known], brg[known]], axis=1)
             Ra, ta = self._Ra[slots], self._ta[slots]
-            nu, Hp, Hs, ok = _linearize(T, S[slots], Ra, ta, meas)
+            nu, Hp, Hs, ok, hee = _linearize(T, S[slots], Ra, ta, meas)
             degenerate = [id_list[known[j]] for j in np.flatnonzero(~ok)]
             sel = np.flatnonzero(ok)
-            nu, Hp, Hs, slots = nu[sel], Hp[sel], Hs[sel], slots[sel]
+            nu, Hp, Hs, hee, slots = nu[sel], Hp[sel], Hs[sel], hee[sel], slots[sel]
             meas, Ra, ta = meas[sel], Ra[sel], ta[sel]
+            e = 6 + 3 * slots + 2
+            # How loose each elevation is relative to the current pose (what the returns see;
+            # a common pose offset is not), at most the aperture prior's.
+            ve = np.minimum(_elevation_var_given_pose(P, slots), self.elevation_var_rad2)
+            uncertain = ve > self.init_elevation_sigma_rad**2
             r_var = np.array([self.range_sigma_m**2, self.bearing_sigma_rad**2])
-            # Per-return gate on the 2x2 marginal innovation covariance. A return that fails
-            # at the prior's linearisation gets a second, iterated test on its own (the arc's
-            # curvature, not the return, may be what failed), judged by its nonlinear NIS.
+            ret = _Returns(S[slots], Ra, ta, slots, meas, r_var, ve if self.second_order else 0.0 * ve)
+            nu_e, Rb = ret.terms(nu, hee)
+            # Per-return gate on the 2x2 marginal innovation covariance. A return of a feature
+            # whose elevation is uncertain is also solved on its own by Gauss-Newton (from
+            # several elevations with init="triangulate"): if it failed at the prior's
+            # linearisation it is judged again by the NIS there (the arc's curvature, not the
+            # return, may be what failed), and the best start seeds the joint update.
             HP = _hp(P, Hp, Hs, slots)  # (k, 2, N)
-            d2 = _nis_2x2(_s_blocks(HP, Hp, Hs, slots) + np.diag(r_var), nu)
-            if self.iterations > 1:
-                for j in np.flatnonzero(~(d2 <= self._gate)):
-                    js = slice(j, j + 1)
-                    _, _, _, d2j = _iterate(T, P, S[slots[js]], Ra[js], ta[js], slots[js], meas[js],
-                                            nu[js], Hp[js], Hs[js], r_var, self.iterations)
-                    if d2j <= self._gate:
-                        d2[j] = d2j
+            Sb = _s_blocks(HP, Hp, Hs, slots) + Rb
+            d2 = _nis_2x2(Sb, nu_e)
+            passes = max(self.iterations, self.relinearize_iterations)
+            shift = np.zeros(len(slots))
+            if passes > 1:
+                scan = self.init == "triangulate"
+                for j in np.flatnonzero(uncertain & (scan | ~(d2 <= self._gate))):
+                    js = np.array([j])
+                    lin = (nu[js], Hp[js], Hs[js], hee[js])
+                    best = _iterate(T, P, ret.take(js), lin, passes)[3], 0.0
+                    if scan:
+                        for el in np.linspace(-0.4, 0.4, self.init_starts) * self.vfov_rad:
+                            dx0 = np.zeros(P.shape[0])
+                            dx0[e[j]] = el - S[slots[j], 2]
+                            c = _iterate(T, P, ret.take(js), lin, passes, dx0=dx0)[3]
+                            if c < best[0]:
+                                best = c, dx0[e[j]]
+                    if not d2[j] <= self._gate:
+                        d2[j] = best[0]
+                    shift[j] = best[1]
             keep = np.flatnonzero(d2 <= self._gate)
             for j in np.flatnonzero(~(d2 <= self._gate)):
                 rejected[id_list[known[sel[j]]]] = float(d2[j])
@@ -464,27 +588,26 @@ class SonarEKF:
                 own = None
                 if self.mature_elevation_sigma_rad is not None:
                     own = _elevation_var_given_pose(P, slots[kk]) > self.mature_elevation_sigma_rad**2
-                dx, g, nis, _ = _iterate(T, P, S[slots[kk]], Ra[kk], ta[kk], slots[kk], meas[kk],
-                                         nu[kk], Hp[kk], Hs[kk], r_var, self.iterations, own)
+                dx0 = None
+                if np.any(shift[kk]):
+                    dx0 = np.zeros(P.shape[0])
+                    dx0[e[kk]] = shift[kk]
+                lin = (nu[kk], Hp[kk], Hs[kk], hee[kk])
+                dx, g, _, nis = _iterate(T, P, ret.take(kk), lin, passes if np.any(uncertain[kk])
+                                         else self.iterations, own, dx0)
                 T, P = _apply(T, P, dx, g)
-                S = S + dx[6:].reshape(-1, 3)
+                G, P = _inject_gauge(G, P, dx[-6:])
+                S = S + dx[6:-6].reshape(-1, 3)
                 S[:, 1] = wrap_angle(S[:, 1])
                 accepted = [id_list[known[sel[j]]] for j in keep]
+                innov = (len(kk), nis, np.einsum("ki,kj->ij", nu_e[kk], nu_e[kk]), Sb[kk].sum(axis=0))
 
         new_ids: list[int] = []
         index = dict(self._index)
         ids_order = list(self._ids)
         Ra, ta = self._Ra, self._ta
-        held, deferred, released = self._held, [], []
-        if held_k:
-            S, P, held, deferred, released = self._release(
-                T, S, P, [(id_list[k], rng_m[k], brg[k]) for k in held_k])
         Nz = np.diag([self.range_sigma_m**2, self.bearing_sigma_rad**2, self.elevation_var_rad2])
         inits = [(k, np.array([rng_m[k], float(wrap_angle(brg[k])), 0.0]), Nz) for k in new]
-        if inits and self.init == "triangulate":
-            held = dict(held)
-            for k, s_k, _ in inits:
-                held[id_list[k]] = _Held.start(s_k[:2])
         if inits:
             Nn = P.shape[0]
             n_new = len(inits)
@@ -505,23 +628,25 @@ class SonarEKF:
             S = np.concatenate([S, s_new], axis=0)
             Ra = np.concatenate([Ra, np.broadcast_to(T[:3, :3], (n_new, 3, 3))], axis=0)
             ta = np.concatenate([ta, np.broadcast_to(T[:3, 3], (n_new, 3))], axis=0)
+            # The new features went after the gauge's 6 states: move those back to the end.
+            order = np.r_[0 : Nn - 6, Nn : Nn + 3 * n_new, Nn - 6 : Nn]
+            Pn = Pn[np.ix_(order, order)]
             P = 0.5 * (Pn + Pn.T)
 
-        if not (np.all(np.isfinite(P)) and np.all(np.isfinite(T)) and np.all(np.isfinite(S))):
+        if not (np.all(np.isfinite(P)) and np.all(np.isfinite(T)) and np.all(np.isfinite(S))
+                and np.all(np.isfinite(G))):
             raise FloatingPointError("update produced non-finite values; the filter is unchanged")
-        self._T, self._P, self._S, self._Ra, self._ta = T, P, S, Ra, ta
+        self._T, self._P, self._S, self._Ra, self._ta, self._G = T, P, S, Ra, ta, G
         self._index, self._ids = index, ids_order
-        self._held = held
         if accepted:
             self._nis, self._nis_dof = nis, 2 * len(accepted)
+            self._monitor(innov)
         return UpdateResult(
             accepted_ids=tuple(accepted),
             rejected=rejected,
             initialized_ids=tuple(new_ids),
             degenerate_ids=tuple(degenerate),
             nis=nis if accepted else None,
-            deferred_ids=tuple(deferred),
-            released_ids=tuple(released),
         )
 
     @_blas_limited
@@ -595,7 +720,7 @@ class SonarEKF:
             raise ValueError(f"Expected range_sigma_m > 0, but got {sr}")
 
         skipped = tuple(int(i) for i in np.flatnonzero(~valid))
-        r_hat, H, cos_inc = plane_range_model(self._T, o, u, n_W, d)
+        r_hat, H, cos_inc = plane_range_model(self.pose, o, u, n_W, d)
         ok = valid & (np.abs(cos_inc) >= MIN_PLANE_COS) & np.isfinite(r_hat) & (r_hat > 0)
         degenerate = tuple(int(i) for i in np.flatnonzero(valid & ~ok))
         idx = np.flatnonzero(ok)
@@ -603,18 +728,17 @@ class SonarEKF:
             return PlaneUpdateResult(skipped=skipped, degenerate=degenerate)
         P = self._P
         nu = rng_m[idx] - r_hat[idx]
-        Hp = H[idx]  # (a, 6); the features' columns of H are zero
+        Hp = H[idx] @ self._pose_rows()  # (a, N): pose and gauge; the features' columns are zero
         var = sr * sr
-        HPp = Hp @ P[:6, :6]
-        s_ii = np.einsum("ij,ij->i", HPp, Hp) + var
+        s_ii = np.einsum("ij,ij->i", Hp @ P, Hp) + var
         d2 = nu * nu / s_ii
         rejected = {int(idx[j]): float(d2[j]) for j in np.flatnonzero(~(d2 <= self._gate1))}
         keep = np.flatnonzero(d2 <= self._gate1)
         if keep.size == 0:
             return PlaneUpdateResult(rejected=rejected, skipped=skipped, degenerate=degenerate)
         Hp, nu = Hp[keep], nu[keep]
-        HP = Hp @ P[:6]  # (a, N)
-        S = HP[:, :6] @ Hp.T
+        HP = Hp @ P  # (a, N)
+        S = HP @ Hp.T
         S[np.diag_indices(keep.size)] += var
         S = 0.5 * (S + S.T)
         cho = _robust_cholesky(S)
@@ -623,14 +747,16 @@ class SonarEKF:
         dx = KT.T @ nu
         # Joseph form (I - K H) P (I - K H)^T + K R K^T with H = [Hp, 0].
         AP = P - KT.T @ HP
-        Pn = AP - (AP[:, :6] @ Hp.T) @ KT + var * (KT.T @ KT)
+        Pn = AP - (AP @ Hp.T) @ KT + var * (KT.T @ KT)
         T, Pn = _inject(self._T, Pn, dx[:6])
-        S_f = self._S + dx[6:].reshape(-1, 3)
+        G, Pn = _inject_gauge(self._G, Pn, dx[-6:])
+        S_f = self._S + dx[6:-6].reshape(-1, 3)
         S_f[:, 1] = wrap_angle(S_f[:, 1])
-        if not (np.all(np.isfinite(Pn)) and np.all(np.isfinite(T)) and np.all(np.isfinite(S_f))):
+        if not (np.all(np.isfinite(Pn)) and np.all(np.isfinite(T)) and np.all(np.isfinite(S_f))
+                and np.all(np.isfinite(G))):
             raise FloatingPointError(
                 "update_plane_ranges produced non-finite values; the filter is unchanged")
-        self._T, self._P, self._S = T, Pn, S_f
+        self._T, self._P, self._S, self._G = T, Pn, S_f, G
         return PlaneUpdateResult(
             accepted=tuple(int(i) for i in idx[keep]),
             rejected=rejected,
@@ -639,58 +765,53 @@ class SonarEKF:
             nis=nis,
         )
 
-    @property
-    def held_ids(self) -> tuple[int, ...]:
-        """Features in the state whose returns are held back until their elevation is triangulated."""
-        return tuple(self._held)
+    def innovation_stats(self) -> InnovationStats | None:
+        """NIS and measurement noise estimated from the last ``nis_window`` fused returns.
 
-    def _release(
-        self, T: np.ndarray, S: np.ndarray, P: np.ndarray, returns: list[tuple[int, float, float]]
-    ) -> tuple[np.ndarray, np.ndarray, dict, list[int], list[int]]:
-        """Store held features' returns; triangulate each and release those that are ready.
-
-        ``returns`` are ``(id, range, azimuth)`` at the current pose estimate ``T``. A feature
-        is released when its elevation in the anchor frame is triangulated to
-        ``init_elevation_sigma_rad`` with a residual that passes a chi-square test (0.999);
-        a failing residual drops the oldest non-anchor return (an outlier, or a view whose
-        relative pose drifted more than its covariance says). Releasing replaces the
-        independent elevation term of the arc prior, ``U(-vfov/2, vfov/2)`` (mean 0, variance
-        ``vfov^2 / 12``), by the triangulated ``N(el, sigma^2)``: this is exact bookkeeping
-        because none of the feature's returns was fused, so that term is still independent of
-        the rest of the state, untouched by every update since. The returns used for the
-        triangulation are spent (not fused again). Nothing here mutates ``self``.
-
-        Returns
-        -------
-        S, P : new anchored coordinates and covariance
-        held : dict, the new held table
-        deferred, released : lists of ids
+        Returns None before any return was fused (or with ``nis_window=0``). See
+        :class:`InnovationStats`.
         """
-        held = dict(self._held)
-        S, P = S.copy(), P.copy()
+        if not self._innov:
+            return None
+        n = sum(v[0] for v in self._innov)
+        nis = sum(v[1] for v in self._innov)
+        NN = sum(v[2] for v in self._innov) / n
+        SS = sum(v[3] for v in self._innov) / n
+        dof = 2 * n
+        lo, hi = (_chi2_quantile(p, dof) / dof for p in (0.00005, 0.99995))
         r_var = np.array([self.range_sigma_m**2, self.bearing_sigma_rad**2])
-        deferred, released = [], []
-        for i, r, a in returns:
-            k = self._index[i]
-            T_W_A = np.eye(4)
-            T_W_A[:3, :3], T_W_A[:3, 3] = self._Ra[k], self._ta[k]
-            h = held[i].add(se3_inverse(T) @ T_W_A, float(r), float(wrap_angle(a)), self.init_max_views)
-            tri = triangulate(h.X, h.z, h.Ce, r_var, self.vfov_rad) if h.z.shape[0] >= 2 else None
-            if tri is not None and tri.cost > _chi2_quantile(0.999, tri.dof):
-                h = h.drop_oldest()
-                tri = None
-            ready = (tri is not None and tri.elevation_sigma_rad <= self.init_elevation_sigma_rad
-                     and abs(tri.s[2]) <= 0.5 * self.vfov_rad + 3.0 * tri.elevation_sigma_rad)
-            if ready:
-                e = 6 + 3 * k + 2
-                S[k, 2] += tri.s[2]
-                P[e, e] += tri.cov[2, 2] - self.elevation_var_rad2
-                del held[i]
-                released.append(i)
-            else:
-                held[i] = h
-                deferred.append(i)
-        return S, 0.5 * (P + P.T), held, deferred, released
+        # Mehra: E[nu nu^T] = H P H^T + R, so R ~ mean(nu nu^T) - mean(H P H^T).
+        R_hat = np.maximum(np.diag(NN) - (np.diag(SS) - r_var), 0.0)
+        return InnovationStats(
+            returns=int(n), nis_per_dof=float(nis / dof), band=(float(lo), float(hi)),
+            range_nis=float(NN[0, 0] / SS[0, 0]), bearing_nis=float(NN[1, 1] / SS[1, 1]),
+            range_sigma_m=float(math.sqrt(R_hat[0])), bearing_sigma_rad=float(math.sqrt(R_hat[1])))
+
+    def _monitor(self, innov: tuple | None) -> None:
+        """Add an update's innovations to the window; warn once when the NIS leaves its band."""
+        if innov is None or self.nis_window == 0:
+            return
+        self._innov.append(innov)
+        while sum(v[0] for v in self._innov) - self._innov[0][0] >= self.nis_window:
+            self._innov.popleft()
+        st = self.innovation_stats()
+        if st is None or st.returns < self.nis_window:
+            return
+        lo, hi = st.band
+        if lo <= st.nis_per_dof <= hi:
+            self._nis_warned = False
+            return
+        if self._nis_warned:
+            return
+        self._nis_warned = True
+        msg = (f"SonarEKF: NIS per dof over the last {st.returns} returns is {st.nis_per_dof:.2f}, "
+               f"outside the 99.99 % band [{lo:.2f}, {hi:.2f}] of a filter whose noise is right: "
+               f"its covariance is {'overconfident' if st.nis_per_dof > hi else 'too loose'}. "
+               f"Configured range_sigma_m={self.range_sigma_m:.4g}, bearing_sigma_rad="
+               f"{self.bearing_sigma_rad:.4g}; the innovations suggest {st.range_sigma_m:.4g} m and "
+               f"{st.bearing_sigma_rad:.4g} rad (innovation_stats()).")
+        _log.warning(msg)
+        warnings.warn(msg, RuntimeWarning, stacklevel=4)
 
     def forget(self, landmark_id: int) -> None:
         """Marginalise one feature out of the state (drop its rows and columns).
@@ -701,7 +822,6 @@ class SonarEKF:
             If the feature is not in the state.
         """
         k = self._slot(landmark_id)
-        self._held.pop(int(landmark_id), None)
         s = 6 + 3 * k
         keep = np.r_[0:s, s + 3 : self._P.shape[0]]
         self._P = self._P[np.ix_(keep, keep)].copy()

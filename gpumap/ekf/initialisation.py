@@ -3,7 +3,8 @@
 A new feature is stored as ``s = (r, az, el)`` in the frame of the sonar pose where it was
 first seen (its anchor); :func:`anchor_jacobian` carries the anchor pose's uncertainty into
 ``s``. :func:`triangulate` locates a point from several (range, azimuth) returns at known
-relative poses (``SonarEKF(init="triangulate")``).
+relative poses (a standalone tool: ``SonarEKF(init="triangulate")`` scans the arc inside the
+update instead, with the filter's full prior).
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from gpumap.ekf.measurement import _hat_batch, _range_azimuth, spherical_point, wrap_angle
-from gpumap.lie import se3_adjoint, se3_inverse
 
 __all__ = ["Triangulation", "anchor_jacobian", "triangulate"]
 
@@ -44,45 +44,6 @@ def anchor_jacobian(s: np.ndarray) -> np.ndarray:
     J[:, :3] = Dinv
     J[:, 3:] = -Dinv @ np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
     return J
-
-
-@dataclass(frozen=True)
-class _Held:
-    """Returns of one held feature, for :func:`triangulate` in its anchor frame ``A``.
-
-    ``C`` is the covariance of the right perturbation of ``T_A^-1 T_now`` (odometry since the
-    anchor, grown by each predict). ``X (k, 4, 4)`` are the views' frames from the anchor frame
-    (``T_V^-1 T_A``, estimates when taken), ``z (k, 2)`` the returns and ``Ce (k, 6, 6)`` the
-    covariance of each ``X``'s right perturbation. The anchor's own return is last.
-    """
-
-    C: np.ndarray
-    X: np.ndarray
-    z: np.ndarray
-    Ce: np.ndarray
-
-    @staticmethod
-    def start(z0: np.ndarray) -> _Held:
-        return _Held(np.zeros((6, 6)), np.eye(4)[None], np.asarray(z0, float)[None], np.zeros((1, 6, 6)))
-
-    def moved(self, F: np.ndarray, Q: np.ndarray) -> _Held:
-        return _Held(F @ self.C @ F.T + Q, self.X, self.z, self.Ce)
-
-    def add(self, X: np.ndarray, r: float, a: float, max_views: int) -> _Held:
-        # X = T_V^-1 T_A = Y^-1 with Y = T_A^-1 T_V, Y_true = Y Exp(eps), cov(eps) = C
-        # => X_true = X Exp(-Ad(Y) eps).
-        Ad = se3_adjoint(se3_inverse(X))
-        Xs = np.concatenate([self.X[:-1], X[None], self.X[-1:]])
-        zs = np.concatenate([self.z[:-1], [[r, a]], self.z[-1:]])
-        Cs = np.concatenate([self.Ce[:-1], (Ad @ self.C @ Ad.T)[None], self.Ce[-1:]])
-        if Xs.shape[0] > max_views:  # keep the anchor (last) and the newest
-            Xs, zs, Cs = Xs[1:], zs[1:], Cs[1:]
-        return _Held(self.C, Xs, zs, Cs)
-
-    def drop_oldest(self) -> _Held:
-        if self.X.shape[0] <= 2:
-            return _Held(self.C, self.X[-1:], self.z[-1:], self.Ce[-1:])
-        return _Held(self.C, self.X[1:], self.z[1:], self.Ce[1:])
 
 
 @dataclass(frozen=True)

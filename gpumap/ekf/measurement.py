@@ -198,8 +198,9 @@ def _anchored_to_world(
 
 def _linearize(
     T: np.ndarray, S: np.ndarray, Ra: np.ndarray, ta: np.ndarray, meas: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Innovations ``(k, 2)``, ``H_pose (k, 2, 6)``, ``H_s (k, 2, 3)`` and a usable mask ``(k,)``.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Innovations ``(k, 2)``, ``H_pose (k, 2, 6)``, ``H_s (k, 2, 3)``, a usable mask ``(k,)``
+    and the second derivative of ``(range, azimuth)`` in the anchored elevation ``(k, 2)``.
 
     ``S``, ``Ra``, ``ta`` are the anchored coordinates and anchors of the ``k`` returns'
     features, ``meas`` their ``(range, azimuth)``. A return is not usable when its feature is
@@ -207,11 +208,41 @@ def _linearize(
     degenerate (``r <= 0`` or elevation at +-90 deg).
     """
     Lw, J = _anchored_to_world(S, Ra, ta)
-    z, Hp, Hl, rh = _observe_batch(T[:3, :3], T[:3, 3], Lw)
+    R, t = T[:3, :3], T[:3, 3]
+    z, Hp, Hl, rh = _observe_batch(R, t, Lw)
     ok = (rh > MIN_HORIZONTAL_M * np.maximum(1.0, z[:, 0])) & (S[:, 0] > 0) & (np.cos(S[:, 2]) > 1e-6)
     nu = meas - z
     nu[:, 1] = wrap_angle(nu[:, 1])
-    return nu, Hp, Hl @ J, ok
+    return nu, Hp, Hl @ J, ok, _elevation_curvature(R, t, Lw, J, Lw - ta)
+
+
+def _elevation_curvature(
+    R: np.ndarray, t: np.ndarray, Lw: np.ndarray, J: np.ndarray, arm_W: np.ndarray
+) -> np.ndarray:
+    """``d^2 (range, azimuth) / d el^2`` ``(k, 2)`` of anchored features seen from ``(R, t)``.
+
+    The point moves on its elevation arc: ``d l / d el = J[:, :, 2]`` and
+    ``d^2 l / d el^2 = -(l - t_A)`` (``arm_W``, the anchor-to-point vector: ``d^2 p / d el^2 = -p``
+    in spherical coordinates). With ``q = R^T (l - t)`` and ``v = dq/d el``:
+    ``r'' = q_hat . q'' + (|v|^2 - (q_hat . v)^2) / |q|`` and, for ``az = atan2(y, x)``,
+    ``az'' = (x q''_y - y q''_x) / rho^2 + (2 x y (v_x^2 - v_y^2) + 2 (y^2 - x^2) v_x v_y) / rho^4``.
+    At elevation 0 the range has no first-order sensitivity to elevation; this is the term
+    that carries the chord effect (``SonarEKF(second_order=True)``).
+    """
+    q = (Lw - t) @ R
+    v = J[:, :, 2] @ R
+    a = -(arm_W @ R)
+    x, y = q[:, 0], q[:, 1]
+    r = np.linalg.norm(q, axis=1)
+    rs = np.where(r > 0, r, 1.0)
+    rho2 = x * x + y * y
+    hs = np.where(rho2 > 0, rho2, 1.0)
+    qv = np.einsum("ki,ki->k", q, v) / rs
+    d_r = np.einsum("ki,ki->k", q, a) / rs + (np.einsum("ki,ki->k", v, v) - qv * qv) / rs
+    vx, vy = v[:, 0], v[:, 1]
+    d_az = (x * a[:, 1] - y * a[:, 0]) / hs + (
+        2 * x * y * (vx * vx - vy * vy) + 2 * (y * y - x * x) * vx * vy) / (hs * hs)
+    return np.stack([d_r, d_az], axis=1)
 
 
 def _range_azimuth(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -40,3 +40,15 @@ def _inject(T: np.ndarray, Pn: np.ndarray, dpose: np.ndarray) -> tuple[np.ndarra
     Pn[:, :6] = Pn[:, :6] @ G.T
     Pn = 0.5 * (Pn + Pn.T)
     return Tn, Pn
+
+
+def _inject_gauge(G: np.ndarray, Pn: np.ndarray, dg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_inject` for the gauge, the last 6 states (nothing to do for a zero correction)."""
+    if not np.any(dg):
+        return G, Pn
+    Gn = G @ se3_exp(dg)
+    Gn[:3, :3] = orthonormalize(Gn[:3, :3])
+    J = np.eye(6) - 0.5 * se3_ad(dg)
+    Pn[-6:, :] = J @ Pn[-6:, :]
+    Pn[:, -6:] = Pn[:, -6:] @ J.T
+    return Gn, 0.5 * (Pn + Pn.T)

@@ -34,15 +34,16 @@ def _s_blocks(HP: np.ndarray, Hp: np.ndarray, Hs: np.ndarray, slots: np.ndarray)
 @dataclass
 class _Gain:
     """One linearisation's gain: ``K^T`` (2a, N), ``H P`` (2a, N), the pose block of ``H``
-    (2a, 6), the feature blocks ``H_s`` (a, 2, 3) and their state columns (3a,), ``R`` (2a,)
-    and the Cholesky factor of the innovation covariance."""
+    (2a, 6), the feature blocks ``H_s`` (a, 2, 3) and their state columns (3a,), the
+    measurement covariance blocks ``R`` (a, 2, 2) and the Cholesky factor of the innovation
+    covariance."""
 
     KT: np.ndarray
     HPf: np.ndarray
     Hpf: np.ndarray
     Hs: np.ndarray
     cols: np.ndarray
-    Rd: np.ndarray
+    Rb: np.ndarray
     cho: tuple[np.ndarray, bool]
 
     def nis(self, nu: np.ndarray) -> float:
@@ -55,19 +56,54 @@ class _Gain:
         return self.Hpf @ dx[:6] + np.einsum("kij,kj->ki", self.Hs, dx[self.cols].reshape(a, 3)).reshape(-1)
 
 
+@dataclass
+class _Returns:
+    """What an update needs of ``a`` returns besides the state: their features' anchored
+    coordinates ``S (a, 3)``, anchors ``Ra (a, 3, 3)``, ``ta (a, 3)``, state slots ``(a,)``,
+    measurements ``(a, 2)``, the noise variances ``r_var (2,)`` and, for the second-order
+    elevation term, each feature's prior elevation variance ``ve (a,)`` (zeros: first order).
+    """
+
+    S: np.ndarray
+    Ra: np.ndarray
+    ta: np.ndarray
+    slots: np.ndarray
+    meas: np.ndarray
+    r_var: np.ndarray
+    ve: np.ndarray
+
+    def take(self, sel: np.ndarray) -> _Returns:
+        return _Returns(self.S[sel], self.Ra[sel], self.ta[sel], self.slots[sel], self.meas[sel],
+                        self.r_var, self.ve[sel])
+
+    def terms(self, nu: np.ndarray, hee: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Second-order innovations and measurement covariance blocks ``(a, 2)``, ``(a, 2, 2)``.
+
+        For an elevation ``e ~ N(e_hat, ve)`` the Gaussian second-order filter predicts
+        ``E[h] = h(e_hat) + h_ee ve / 2`` and adds ``h_ee h_ee^T ve^2 / 2`` to ``R`` (only the
+        elevation direction is curved enough to matter: at ``e = 0`` the range has no
+        first-order sensitivity to it, only this one).
+        """
+        Rb = np.zeros((nu.shape[0], 2, 2))
+        Rb[:, 0, 0], Rb[:, 1, 1] = self.r_var[0], self.r_var[1]
+        Rb += (0.5 * self.ve**2)[:, None, None] * hee[:, :, None] * hee[:, None, :]
+        return nu - 0.5 * self.ve[:, None] * hee, Rb
+
+
 def _gain(
     P: np.ndarray,
     Hp: np.ndarray,
     Hs: np.ndarray,
     slots: np.ndarray,
-    r_var: np.ndarray,
+    Rb: np.ndarray,
     own_only: np.ndarray | None = None,
 ) -> _Gain:
     """Kalman gain of ``a`` returns with block-sparse ``H`` (pose block + each return's feature).
 
-    ``own_only`` (a,) bool marks returns whose gain is cut to their own feature's three
-    states (Schmidt-Kalman "consider" update: the rest of the state is not corrected by
-    them; the Joseph form keeps the covariance right for this suboptimal gain).
+    ``Rb (a, 2, 2)`` are the returns' measurement covariances. ``own_only`` (a,) bool marks
+    returns whose gain is cut to their own feature's three states (Schmidt-Kalman "consider"
+    update: the rest of the state is not corrected by them; the Joseph form keeps the
+    covariance right for this suboptimal gain).
     """
     a = Hp.shape[0]
     N = P.shape[0]
@@ -76,8 +112,8 @@ def _gain(
     cols = (6 + 3 * slots[:, None] + np.arange(3)[None]).reshape(-1)  # (3a,)
     S = HPf[:, :6] @ Hpf.T
     S += np.einsum("mkj,kij->mki", HPf[:, cols].reshape(2 * a, a, 3), Hs).reshape(2 * a, 2 * a)
-    Rd = np.tile(r_var, a)
-    S[np.diag_indices(2 * a)] += Rd
+    S4 = S.reshape(a, 2, a, 2)
+    S4[np.arange(a), :, np.arange(a), :] += Rb
     S = 0.5 * (S + S.T)
     cho = _robust_cholesky(S)
     KT = scipy.linalg.cho_solve(cho, HPf, check_finite=False)  # (2a, N) = K^T, no inverse
@@ -86,32 +122,28 @@ def _gain(
             keep = KT[2 * j : 2 * j + 2, cols[3 * j : 3 * j + 3]].copy()
             KT[2 * j : 2 * j + 2] = 0.0
             KT[2 * j : 2 * j + 2, cols[3 * j : 3 * j + 3]] = keep
-    return _Gain(KT, HPf, Hpf, Hs, cols, Rd, cho)
+    return _Gain(KT, HPf, Hpf, Hs, cols, Rb, cho)
 
 
 def _iterate(
     T: np.ndarray,
     P: np.ndarray,
-    S: np.ndarray,
-    Ra: np.ndarray,
-    ta: np.ndarray,
-    slots: np.ndarray,
-    meas: np.ndarray,
-    nu: np.ndarray,
-    Hp: np.ndarray,
-    Hs: np.ndarray,
-    r_var: np.ndarray,
+    ret: _Returns,
+    lin: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     iterations: int,
     own_only: np.ndarray | None = None,
+    dx0: np.ndarray | None = None,
 ) -> tuple[np.ndarray, _Gain, float, float]:
     """Iterated (Gauss-Newton) EKF solve of ``a`` returns; the first pass is the plain EKF.
 
-    Pass ``i`` relinearises at the current estimate ``x_i`` (pose ``T Exp(dx_pose)``,
-    features ``S + dx_s``) and solves ``x_{i+1} = K_i (z - h(x_i) + H_i x_i)``, where the
-    pose block of ``H_i`` carries the right Jacobian ``J_r(dx_pose) ~ I - ad(dx_pose)/2``
-    because the error state stays in the prior's tangent space. It stops when the step
-    stops changing, after ``iterations`` passes, or when a relinearisation would be
-    degenerate (then it keeps the last good pass).
+    ``lin = (nu, H_pose, H_s, h_ee)`` is :func:`_linearize` at the prior. Pass ``i``
+    relinearises at the current estimate ``x_i`` (pose ``T Exp(dx_pose)``, features
+    ``S + dx_s``) and solves ``x_{i+1} = K_i (z - h(x_i) + H_i x_i)``, where the pose block of
+    ``H_i`` carries the right Jacobian ``J_r(dx_pose) ~ I - ad(dx_pose)/2`` because the error
+    state stays in the prior's tangent space. ``dx0`` starts the passes there instead of at
+    the prior (a start elsewhere on the elevation arc; the prior's own linearisation is then
+    only a fallback). It stops when the step stops changing, after ``iterations`` passes, or
+    when a relinearisation would be degenerate (then it keeps the last good pass).
 
     Returns
     -------
@@ -123,20 +155,26 @@ def _iterate(
         NIS of the prior linearisation, and of the last one (``nu_eff^T S^-1 nu_eff``, the
         minimum of the linearised MAP cost: the nonlinear NIS at convergence).
     """
-    g = _gain(P, Hp, Hs, slots, r_var, own_only)
-    nu_f = nu.reshape(-1)
+    nu, Hp, Hs, hee = lin
+    nu_e, Rb = ret.terms(nu, hee)
+    g = _gain(P, Hp, Hs, ret.slots, Rb, own_only)
+    nu_f = nu_e.reshape(-1)
     nis0 = nis = g.nis(nu_f)
     dx = g.KT.T @ nu_f
-    for _ in range(1, iterations):
+    start = 1
+    if dx0 is not None:
+        dx, start = dx0, 0
+    rows = (6 + 3 * ret.slots[:, None] + np.arange(3)[None]).reshape(-1)
+    for _ in range(start, iterations):
         dpose = dx[:6]
         Ti = T @ se3_exp(dpose)
-        rows = (6 + 3 * slots[:, None] + np.arange(3)[None]).reshape(-1)
-        Si = S + dx[rows].reshape(-1, 3)
-        nu_i, Hp_i, Hs_i, ok = _linearize(Ti, Si, Ra, ta, meas)
+        Si = ret.S + dx[rows].reshape(-1, 3)
+        nu_i, Hp_i, Hs_i, ok, hee_i = _linearize(Ti, Si, ret.Ra, ret.ta, ret.meas)
         if not np.all(ok):
             break
         Hp_i = Hp_i @ (np.eye(6) - 0.5 * se3_ad(dpose))
-        gi = _gain(P, Hp_i, Hs_i, slots, r_var, own_only)
+        nu_i, Rb_i = ret.terms(nu_i, hee_i)
+        gi = _gain(P, Hp_i, Hs_i, ret.slots, Rb_i, own_only)
         eff = nu_i.reshape(-1) + gi.h_times(dx)
         dx_new = gi.KT.T @ eff
         if not np.all(np.isfinite(dx_new)):
@@ -160,7 +198,9 @@ def _apply(T: np.ndarray, P: np.ndarray, dx: np.ndarray, g: _Gain) -> tuple[np.n
     APHt = AP[:, :6] @ g.Hpf.T + np.einsum(
         "nkj,kij->nki", AP[:, g.cols].reshape(N, a, 3), g.Hs
     ).reshape(N, 2 * a)
-    Pn = AP - APHt @ g.KT + (g.KT.T * g.Rd) @ g.KT
+    KT3 = g.KT.reshape(a, 2, N)
+    RKT = np.einsum("kij,kjn->kin", g.Rb, KT3).reshape(2 * a, N)
+    Pn = AP - APHt @ g.KT + g.KT.T @ RKT
     return _inject(T, Pn, dx[:6])
 
 
