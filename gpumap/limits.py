@@ -33,8 +33,11 @@ __all__ = [
     "MAX_PLY_HEADER_BYTES",
     "MAX_PLY_PROPERTIES",
     "MAX_PLY_VERTICES",
+    "MAX_RANGE_M",
     "MAX_TABLE_BYTES",
+    "MIN_BIN_SIZE_M",
     "MEMORY_TARGET_BYTES",
+    "check_geometry",
     "check_size",
     "declared_product",
 ]
@@ -86,6 +89,36 @@ MAX_MAP_META_BYTES = 1 << 20
 
 MAX_DEFLATE_RATIO = 1100
 """Deflate inflates at most ~1032 : 1; a member declaring more is refused before inflating."""
+
+
+MIN_BIN_SIZE_M = 1e-5
+"""10 um: the finest range bin a file may declare (imaging sonars resolve millimetres; a bin of
+1e-300 m decoded fine and then overflowed the mapper's float32 ``1 / bin size``)."""
+
+MAX_RANGE_M = 1e4
+"""10 km: the farthest range a file may declare for a ping (``range_max_m``)."""
+
+
+def check_geometry(spec, what: str = "the ping", *, offset: int | None = None,
+                   path: str | None = None):
+    """Refuse a sonar geometry read from a file whose bins or range are beyond the limits above.
+
+    ``spec`` is a :class:`~gpumap.SonarSpec` (already valid as such); returned unchanged.
+
+    Raises
+    ------
+    FormatError
+        If ``spec.bin_size_m < MIN_BIN_SIZE_M`` or ``spec.range_max_m > MAX_RANGE_M``.
+    """
+    if not spec.bin_size_m >= MIN_BIN_SIZE_M:
+        raise FormatError(f"expected range bins of at least {MIN_BIN_SIZE_M} m for {what} "
+                          f"(gpumap.limits.MIN_BIN_SIZE_M), but they are {spec.bin_size_m:.3g} m",
+                          offset, path)
+    if not spec.range_max_m <= MAX_RANGE_M:
+        raise FormatError(f"expected a range of at most {MAX_RANGE_M:g} m for {what} "
+                          f"(gpumap.limits.MAX_RANGE_M), but it reaches {spec.range_max_m:.3g} m",
+                          offset, path)
+    return spec
 
 
 def declared_product(*factors: int) -> int:

@@ -7,8 +7,9 @@ overwritten with extreme values (0, 1, maxima, 2^31, NaN, inf, ...), PNG header 
 with their CRC fixed, CSV and PLY tokens replaced -- and reads it to the end through
 ``open_recording`` (or ``read_ply``). The property: the reader either yields frames that
 pass the frame checks (float32, the spec's shape, finite, in [0, 1], finite poses and
-times) and then stops or raises gpumap's :class:`~gpumap.errors.FormatError` -- never any
-other exception.
+times, a geometry within ``gpumap.limits``; the first frame must also integrate into a small
+numpy map) and then stops or raises gpumap's :class:`~gpumap.errors.FormatError` -- never
+any other exception.
 
 Every case runs in a child process (one, reused; started fresh after a kill) whose
 address space is capped with ``RLIMIT_AS`` at its own footprint plus
@@ -73,7 +74,23 @@ def _frame_problem(fr) -> str | None:
         return "T_W_S is not a finite 4x4"
     if fr.timestamp_s is not None and not math.isfinite(fr.timestamp_s):
         return f"timestamp {fr.timestamp_s} is not finite"
+    from gpumap import limits
+
+    if not (fr.spec.bin_size_m >= limits.MIN_BIN_SIZE_M and fr.spec.range_max_m <= limits.MAX_RANGE_M):
+        return f"geometry beyond gpumap.limits: bins {fr.spec.bin_size_m} m, range {fr.spec.range_max_m} m"
     return None
+
+
+def _map_one(fr) -> None:
+    """What a user does next: integrate the frame (at its pose, or the origin) into a small map."""
+    import gpumap
+
+    grid = gpumap.GridSpec(min_corner_m=(-1, -1, -1), max_corner_m=(1, 1, 1), voxel_size_m=0.5)
+    m = gpumap.MinMaxMapper(fr.spec, grid, backend="numpy")
+    m.integrate(fr.image, fr.T_W_S if fr.T_W_S is not None else np.eye(4))
+    v = m.values()
+    if not np.all(np.isnan(v) | ((v >= 0) & (v <= 1))):
+        raise AssertionError("the map holds values outside [0, 1]")
 
 
 def _read_case(kind: str, root: Path) -> int:
@@ -110,6 +127,11 @@ def _read_case(kind: str, root: Path) -> int:
         problem = _frame_problem(fr)
         if problem:
             raise AssertionError(f"frame {n}: {problem}")
+        if n == 0:
+            try:
+                _map_one(fr)
+            except Exception as e:  # a frame a reader yields must map
+                raise AssertionError(f"frame 0 does not map: {type(e).__name__}: {e}") from e
         n += 1
     return n
 

@@ -488,6 +488,23 @@ def test_hostile_files_fail_fast_and_small(tmp_path: Path) -> None:
         assert peak < MEMORY_TARGET_BYTES // 16, (name, peak)  # measured: < 2 MB each
 
 
+@pytest.mark.parametrize("res, match", [(1e-300, "range bins of at least"), (1e-320, "range bins"),
+                                        (1e300, "range of at most"), (3000.0, "range of at most")])
+def test_extreme_sonar_geometry_is_refused(res: float, match: str) -> None:
+    """A ping whose rangeResolution is 1e-300 m decoded, then overflowed the mapper (1 / bin size
+    to float32: OverflowError); geometry is now held to gpumap.limits at the reader."""
+    from gpumap.limits import MAX_RANGE_M, MIN_BIN_SIZE_M
+
+    msg = encode_simple_ping(np.zeros((5, 4), np.uint8), [-100, 0, 50, 100], res)
+    with pytest.raises(FormatError, match=match) as e:
+        decode_message(msg)
+    assert e.value.offset == 162  # rangeResolution in the v2 layout (the default)
+    fr = decode_message(encode_simple_ping(np.zeros((5, 4), np.uint8), [-100, 0, 50, 100], 2e-5))
+    assert fr.spec.bin_size_m >= MIN_BIN_SIZE_M and fr.spec.range_max_m <= MAX_RANGE_M
+    fr = decode_message(encode_simple_ping(np.zeros((5, 4), np.uint8), [-100, 0, 50, 100], 1999.0))
+    assert fr.spec.range_max_m == pytest.approx(9995.0)
+
+
 def test_oculus_log_inflation_is_exact(tmp_path: Path) -> None:
     msg = bytes(_small_ping(2))
     ok = struct.pack(">I", len(msg)) + zlib.compress(msg)

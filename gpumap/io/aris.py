@@ -275,6 +275,8 @@ def _decode_frame(buf: bytes, k: int, off: int, n_beams: int, n_samples: int, az
         raise FormatError(f"expected a valid sonar geometry from SamplePeriod {period} us, "
                           f"SampleStartDelay {delay} us and the beam table, but {e}", off + 452,
                           path) from None
+    limits.check_geometry(spec, f"frame {k} (SamplePeriod, SampleStartDelay, SoundSpeed)",
+                          offset=off + 452, path=path)
     data = np.frombuffer(buf, dtype=np.uint8, count=n_beams * n_samples, offset=FRAME_HEADER)
     img = data.reshape(n_samples, n_beams)[:, order].astype(np.float32)
     np.divide(img, np.float32(255.0), out=img)

@@ -241,6 +241,7 @@ def decode_message(
         spec = SonarSpec(0.0, n_ranges * res, int(n_ranges), az, math.radians(vfov_deg))
     except ValueError as e:
         raise _fail(f"expected a valid sonar geometry, but {e}", base + o_nr, path) from None
+    limits.check_geometry(spec, "the ping (rangeResolution, nRanges)", offset=base + o_res, path=path)
     meta = {
         "format": f"oculus-simple-ping-v{version}",
         "ping_id": int(ping_id),

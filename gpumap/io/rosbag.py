@@ -203,7 +203,8 @@ def _decode_psi(msg, vfov: float) -> tuple[np.ndarray, SonarSpec]:
     hi = lo + r.size * dr
     if -1e-3 * dr < lo < 0.0:  # bins that start at 0 m, seen through float32 bin centres
         lo = 0.0
-    spec = SonarSpec(lo, float(hi), int(r.size), az[order], vfov)
+    spec = limits.check_geometry(SonarSpec(lo, float(hi), int(r.size), az[order], vfov),
+                                 "the image ('ranges')")
     return np.ascontiguousarray(img[:, order], dtype=np.float32), spec
 
 
@@ -221,7 +222,8 @@ def _decode_oculus_ping(msg, vfov: float) -> tuple[np.ndarray, SonarSpec]:
     a = read_grey_png(bytes(np.asarray(msg.ping.data, dtype=np.uint8)), expected_shape=(nr, nb),
                       formats=("PNG", "JPEG"), path="the ping picture")
     az = -np.deg2rad(b[::-1] / 100.0)
-    spec = SonarSpec(0.0, nr * res, nr, az, vfov)
+    spec = limits.check_geometry(SonarSpec(0.0, nr * res, nr, az, vfov),
+                                 "the ping (range_resolution, num_ranges)")
     return np.ascontiguousarray(a[:, ::-1]), spec
 
 
