@@ -40,7 +40,7 @@ Kalman Filter by Using Acoustic Camera Images" (Section 3), with these changes:
 - **Innovation monitor** (``nis_window=200``): :meth:`SonarEKF.innovation_stats` pools the
   NIS and the innovations of the last returns and estimates the range and bearing noise
   from them (Mehra's covariance matching); an update whose pooled NIS leaves its 99.99 %
-  band warns once (``RuntimeWarning`` and the ``gpumap.ekf`` logger).
+  band warns once (``RuntimeWarning``; logged at INFO on ``gpumap.ekf``).
 - **Immature features** (``mature_elevation_sigma_rad``, off by default): returns of
   features whose elevation given the pose is still looser than this update only their own
   feature (Schmidt-Kalman consider update; Joseph form keeps the covariance right). This

@@ -226,7 +226,7 @@ class SonarEKF:
     nis_window : int, default 200
         Returns over which :meth:`innovation_stats` pools the NIS and the innovations; once
         the window is full, an update whose pooled NIS per dof falls outside the two-sided
-        99.99 % chi-square band warns once (``RuntimeWarning`` and the ``gpumap.ekf``
+        99.99 % chi-square band warns once (``RuntimeWarning``; also logged at INFO on ``gpumap.ekf``
         logger) with the noise the innovations suggest. 0 turns the monitor off.
     blas_threads : int or None, default 1
         BLAS threads used inside ``predict`` and the updates (through threadpoolctl, set and
@@ -810,7 +810,7 @@ class SonarEKF:
                f"Configured range_sigma_m={self.range_sigma_m:.4g}, bearing_sigma_rad="
                f"{self.bearing_sigma_rad:.4g}; the innovations suggest {st.range_sigma_m:.4g} m and "
                f"{st.bearing_sigma_rad:.4g} rad (innovation_stats()).")
-        _log.warning(msg)
+        _log.info(msg)
         warnings.warn(msg, RuntimeWarning, stacklevel=4)
 
     def forget(self, landmark_id: int) -> None:
