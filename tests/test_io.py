@@ -840,6 +840,16 @@ def test_open_recording_decides_by_content(tmp_path: Path) -> None:
             open_recording(p)
 
 
+def test_open_recording_refuses_pipes_and_devices(tmp_path: Path) -> None:
+    import os
+
+    fifo = tmp_path / "rec.oculus"
+    os.mkfifo(fifo)  # reading it would block for ever
+    for p in (fifo, Path("/dev/zero")):
+        with pytest.raises(FormatError, match="regular file"):
+            open_recording(p)
+
+
 def test_corrupt_ros_bag_is_a_format_error(tmp_path: Path) -> None:
     p = tmp_path / "broken.bag"
     p.write_bytes(b"#ROSBAG V2.0\n" + bytes(range(256)) * 8)

@@ -129,6 +129,9 @@ def open_recording(path: str | os.PathLike, **kwargs: Any) -> Recording:
             return open_fan_folder(p, **kwargs)
         raise FormatError("expected a ROS 2 bag (metadata.yaml) or a folder of fan PNGs, but "
                           "found neither", path=str(p))
+    if not p.is_file():  # a FIFO would block the read below; a device has no end
+        raise FormatError("expected a regular file or a folder, but this is neither (a pipe, "
+                          "socket or device)", path=str(p))
     with open(p, "rb") as f:
         head = f.read(16)
     kind = sniff(p)
