@@ -721,6 +721,11 @@ def test_fan_folder_refuses_two_pictures_of_one_frame(tmp_path: Path) -> None:
     for bad in (0, -1, 1.5, True):
         with pytest.raises(ValueError, match="stride >= 1"):
             open_fan_folder(tmp_path, stride=bad)
+    import os
+
+    os.mkfifo(tmp_path / "sonar" / "image_0001.png")  # decoding it would block for ever
+    with pytest.raises(FormatError, match="regular files"):
+        open_fan_folder(tmp_path)
 
 
 # ------------------------------------------------------------------ PLY checks and atomic writes

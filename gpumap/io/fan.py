@@ -505,6 +505,9 @@ def open_fan_folder(
     by_frame: dict[int, Path] = {}
     for f in sorted(img_dir.iterdir()):
         if f.suffix.lower() == ".png":
+            if not f.is_file():
+                raise FormatError(f"expected fan pictures to be regular files, but {f.name} is not "
+                                  "(a folder, pipe or device)", path=str(img_dir))
             m = _NUM.findall(f.stem)
             if m:
                 k = int(m[-1])
