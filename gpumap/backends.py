@@ -176,30 +176,60 @@ def _warp_params(minmax, p: np.ndarray):
     return s
 
 
-def build_table_host(image: np.ndarray, win: int, n_levels: int, table: np.ndarray, rows: np.ndarray) -> None:
+def build_table_host(
+    image: np.ndarray,
+    win: int,
+    n_levels: int,
+    table: np.ndarray,
+    rows: np.ndarray,
+    scratch: np.ndarray | None = None,
+    pool=None,
+) -> None:
     """The per-ping max table in NumPy (CPUs): what ``build_bin_window`` and
     ``build_beam_levels`` make, in a dozen whole-image passes instead of a strided walk.
 
     ``table`` is (n_levels, n_bins, n_beams) float32, written in place; ``rows`` (n_bins,)
     int: for each bin i, ``max(min(i + win - 1, n_bins - 1) - 2^k + 1, i)`` with ``2^k`` the
-    largest power of two <= win (:func:`table_rows`). Maxima are exact, so the values are
-    the kernels' bit for bit.
+    largest power of two <= win (:func:`table_rows`). A uint8 ``image`` is maximised as bytes
+    in ``scratch`` (same shape as ``table``, uint8; a quarter of the memory traffic) and then
+    scaled: ``byte * U8_SCALE`` is monotonic, so the max of the scaled bytes is the scaled max.
+    With a ``pool`` (an executor with a free worker) the passes run on two threads: level 0 by
+    halves of the beams, the beam levels by halves of the bins (NumPy releases the GIL).
+    Maxima are exact, so the values are the kernels' bit for bit.
     """
-    n = image.shape[0]
-    s = table[0]
-    s[...] = image
-    w = 1
-    while 2 * w <= win:  # s[i] = max over bins [i, i + 2w - 1] (clipped)
-        np.maximum(s[: n - w], s[w:], out=s[: n - w])
-        w *= 2
-    # level 0: two overlapping spans of w cover [i, min(i + win - 1, n - 1)]
-    np.maximum(s, s[rows], out=s)
-    step = 1
-    for k in range(1, n_levels):  # beam spans of 2^k (clipped at the last beam)
-        prev, cur = table[k - 1], table[k]
-        np.maximum(prev[:, :-step], prev[:, step:], out=cur[:, :-step])
-        np.maximum(prev[:, -step:], prev[:, -1:], out=cur[:, -step:])
-        step *= 2
+    lv = table if image.dtype != np.uint8 else scratch
+    n, nj = image.shape
+
+    def bins(c0: int, c1: int) -> None:  # level 0 of beams [c0, c1)
+        s = lv[0, :, c0:c1]
+        s[...] = image[:, c0:c1]
+        w = 1
+        while 2 * w <= win:  # s[i] = max over bins [i, i + 2w - 1] (clipped)
+            np.maximum(s[: n - w], s[w:], out=s[: n - w])
+            w *= 2
+        # two overlapping spans of w cover [i, min(i + win - 1, n - 1)]
+        np.maximum(s, s[rows], out=s)
+
+    def beams(r0: int, r1: int) -> None:  # levels 1.. of bins [r0, r1), then the scaling
+        step = 1
+        for k in range(1, n_levels):  # beam spans of 2^k (clipped at the last beam)
+            prev, cur = lv[k - 1, r0:r1], lv[k, r0:r1]
+            np.maximum(prev[:, :-step], prev[:, step:], out=cur[:, :-step])
+            np.maximum(prev[:, -step:], prev[:, -1:], out=cur[:, -step:])
+            step *= 2
+        if lv is not table:
+            np.multiply(lv[:, r0:r1], U8_SCALE, out=table[:, r0:r1])
+
+    if pool is None:
+        bins(0, nj)
+        beams(0, n)
+        return
+    for fn, size in ((bins, nj), (beams, n)):
+        fut = pool.submit(fn, size // 2, size)
+        try:
+            fn(0, size // 2)
+        finally:
+            fut.result()
 
 
 def table_rows(n_bins: int, win: int) -> np.ndarray:
@@ -272,6 +302,7 @@ class WarpBackend(Backend):
         self.staging = []
         self.events = []
         self._batch = None  # GPU batch buffers, allocated on the first batch
+        self._pool = None
         # fold a batch in a few launches (GPUs); CPUs loop over integrate (tests may set it
         # on warp-cpu to run the batch kernels there)
         self.batch_kernels = self.dev.is_cuda
@@ -301,6 +332,7 @@ class WarpBackend(Backend):
             if self.use_table:
                 nl = min(n_beams.bit_length(), MAX_TABLE_LEVELS)
                 self.table_np = self.table.numpy()[: nl * n_bins * n_beams].reshape(nl, n_bins, n_beams)
+                self.table_u8 = np.empty(self.table_np.shape, np.uint8)
             self._rows = {}
             self._pool = _cpu_pool() if CPU_THREADS > 1 else None
         self.slot = 0
@@ -345,7 +377,8 @@ class WarpBackend(Backend):
             rows = self._rows.get(win)
             if rows is None:
                 rows = self._rows[win] = table_rows(self.n_bins, win)
-            build_table_host(self.image_np, win, self.table_np.shape[0], self.table_np, rows)
+            src = image if image.dtype == np.uint8 else self.image_np
+            build_table_host(src, win, self.table_np.shape[0], self.table_np, rows, self.table_u8, self._pool)
         cmd = self._cmds[method]
         if method != "gather":
             cmd.launch()
@@ -630,7 +663,8 @@ class OpenCLBackend(Backend):
                                size=4 * max(1, table_size(spec) * self.use_table))
         self.n_levels = min(n_beams.bit_length(), MAX_TABLE_LEVELS)
         self._rows = {}
-        self.host_f = np.empty((n_bins, n_beams), np.float32)  # CPUs: the image the host table reads
+        self.table_u8 = None if self.is_gpu else np.empty((self.n_levels, n_bins, n_beams), np.uint8)
+        self._pool = _cpu_pool() if CPU_THREADS > 1 and not self.is_gpu else None
         self._batch = None  # GPU batch buffers, allocated on the first batch
         self.batch_kernels = self.is_gpu
         self.template = None
@@ -707,8 +741,6 @@ class OpenCLBackend(Backend):
 
     def _host_table(self, params, image) -> None:
         cl = self.cl
-        if image.dtype == np.uint8:
-            image = np.multiply(image, U8_SCALE, out=self.host_f)
         win = int(params["win"])
         rows = self._rows.get(win)
         if rows is None:
@@ -719,7 +751,7 @@ class OpenCLBackend(Backend):
             self.queue, self.table, cl.map_flags.WRITE_INVALIDATE_REGION, 0, shape, np.float32
         )
         try:
-            build_table_host(image, win, self.n_levels, tab, rows)
+            build_table_host(image, win, self.n_levels, tab, rows, self.table_u8, self._pool)
         finally:
             tab.base.release(self.queue)
 

@@ -15,14 +15,7 @@ from gpumap.atomic import atomic_write
 from gpumap.backends import AUTO_ORDER, BACKENDS, Backend, GridTooLargeError, make_backend
 from gpumap.backends import available_backends as _available
 from gpumap.errors import BackendUnavailableError, check_finite_scalar, check_pose
-from gpumap.geometry import (
-    RULES,
-    make_template_S,
-    ping_params,
-    pose_pad_m,
-    set_footprint_pad,
-    static_params,
-)
+from gpumap.geometry import RULES, make_template_S, pose_pad_m, static_params
 from gpumap.spec import GridSpec, SonarSpec
 
 __all__ = ["MinMaxMapper", "available_backends"]
@@ -73,6 +66,31 @@ def _check_pose_cov(pose_cov: object) -> np.ndarray:
     if np.linalg.eigvalsh(C)[0] < -1e-12 * scale:
         raise ValueError("Expected a positive semi-definite pose_cov, but it has a negative eigenvalue")
     return C
+
+
+def _check_poses(Ts: np.ndarray) -> np.ndarray:
+    """(B, 4, 4) float64 copy of ``Ts`` after :func:`gpumap.errors.check_pose`'s checks, in
+    whole-array form; the first pose that fails is handed to check_pose for its message."""
+    if np.iscomplexobj(Ts) or Ts.dtype.kind not in "fiub":
+        raise TypeError(f"Expected real entries in 'T_W_S', but got dtype {Ts.dtype}")
+    a = np.array(Ts, dtype=np.float64)
+    if a.shape[0] == 0:
+        return a
+    atol = 1e-5
+    R = a[:, :3, :3]
+    G = np.einsum("bki,bkj->bij", R, R) - np.eye(3)
+    c0, c1, c2 = R[:, :, 0], R[:, :, 1], R[:, :, 2]
+    det = np.einsum("bi,bi->b", np.cross(c0, c1), c2)
+    with np.errstate(invalid="ignore"):
+        bad = (
+            ~np.isfinite(a).all(axis=(1, 2))
+            | (np.abs(a[:, 3] - (0.0, 0.0, 0.0, 1.0)) > atol).any(axis=1)
+            | (np.abs(G).max(axis=(1, 2)) > atol)
+            | (det < 0)
+        )
+    for k in np.flatnonzero(bad):  # raises with check_pose's message (or the pose passes)
+        a[k] = check_pose(Ts[k], f"T_W_S[{k}]")
+    return a
 
 
 def _evidence_empty(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -318,24 +336,57 @@ class MinMaxMapper:
         Raises ``ValueError``/``TypeError`` on bad input, leaving the map untouched.
         """
         T = check_pose(T_W_S, "T_W_S")
-        with self._lock:  # the staging buffer and the ping parameters are the mapper's own
-            self._integrate_locked(image, T, pose_cov, pose_sigmas)
+        pads = np.zeros(1)
+        with self._lock:  # the staging buffer is the mapper's own
+            img = self._check_image(image)
+            if pose_cov is not None:
+                pads[0] = self._pose_pad(_check_pose_cov(pose_cov), pose_sigmas)
+            params, n_threads = self._ping_params(T[None], pads)
+            self._backend.integrate(params[0, ...], img, self.method, int(n_threads[0]))
+            self.n_integrated += 1  # under the lock
 
-    def _integrate_locked(self, image: np.ndarray, T: np.ndarray, pose_cov, pose_sigmas) -> None:
-        img = self._check_image(image)
-        pad = 0.0
-        if pose_cov is not None:
-            C = _check_pose_cov(pose_cov)
-            k = check_finite_scalar(pose_sigmas, "pose_sigmas")
-            if k < 0:
-                raise ValueError(f"Expected pose_sigmas >= 0, but got {k}")
-            pad = pose_pad_m(C, self.spec.range_max_m, k)
-        if pad != self._pad:
-            set_footprint_pad(self._params, self._rho0, self._near0, pad)
-            self._pad = pad
-        n = ping_params(self._params, T, self._fov_pts_S, self.grid)
-        self._backend.integrate(self._params, img, self.method, n)
-        self.n_integrated += 1  # under the lock
+    def _pose_pad(self, C: np.ndarray, pose_sigmas: float) -> float:
+        k = check_finite_scalar(pose_sigmas, "pose_sigmas")
+        if k < 0:
+            raise ValueError(f"Expected pose_sigmas >= 0, but got {k}")
+        return pose_pad_m(C, self.spec.range_max_m, k)
+
+    def _ping_params(self, Ts: np.ndarray, pads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(B,) PING_DTYPE records and gather column counts for checked poses ``Ts`` (B, 4, 4)
+        and footprint pads (B,) m, in whole-array NumPy (the work of
+        :func:`gpumap.geometry.ping_params` and :func:`~gpumap.geometry.set_footprint_pad`,
+        vectorised: one code path for a ping and a batch, so both give the same records)."""
+        B = Ts.shape[0]
+        P = np.empty(B, dtype=self._params.dtype)
+        P[...] = self._params
+        R = Ts[:, :3, :3]
+        t = Ts[:, :3, 3]
+        Rt = R.transpose(0, 2, 1)
+        P["R"] = R.reshape(B, 9)
+        P["t"] = t
+        P["A"] = Rt.reshape(B, 9)
+        # -(R^T t), each entry summed in a fixed order
+        P["b"] = -(R[:, 0, :] * t[:, 0:1] + R[:, 1, :] * t[:, 1:2] + R[:, 2, :] * t[:, 2:3])
+        if np.any(pads != 0.0):
+            P["rho"] = self._rho0 + pads
+            P["near"] = self._near0 + pads
+            win = np.floor((P["rho"].astype(np.float64) + P["near"]) * P["inv_dr"].astype(np.float64)) + 2
+            P["win"] = np.minimum(win, self.spec.n_bins)
+        pts = self._fov_pts_S  # (m, 3): the box, padded by a voxel, holds every visible centre
+        W = (pts[None, :, 0:1] * Rt[:, None, 0, :] + pts[None, :, 1:2] * Rt[:, None, 1, :]
+             + pts[None, :, 2:3] * Rt[:, None, 2, :])
+        s = self.grid.voxel_size_m
+        lo_m = np.asarray(self.grid.min_corner_m, dtype=np.float64)
+        dims = np.asarray(self.grid.shape)
+        q0 = (W.min(axis=1) + t - lo_m) / s
+        q1 = (W.max(axis=1) + t - lo_m) / s
+        i0 = np.minimum(np.maximum(np.floor(q0).astype(np.int64) - 1, 0), dims)
+        i1 = np.minimum(np.maximum(np.floor(q1).astype(np.int64) + 1, -1), dims - 1)
+        n = np.maximum(i1 - i0 + 1, 0)
+        P["box_lo"] = i0
+        P["box_n"] = n
+        n_threads = np.where(n[:, 2] > 0, n[:, 0] * n[:, 1], 0)
+        return P, n_threads
 
     def integrate_batch(
         self,
@@ -374,33 +425,22 @@ class MinMaxMapper:
             raise ValueError(
                 f"Expected T_W_S of shape ({B}, 4, 4) for {B} images, but got {Ts.shape}"
             )
-        Ts = np.stack([check_pose(Ts[k], f"T_W_S[{k}]") for k in range(B)]) if B else Ts
+        Ts = _check_poses(Ts)
         pads = np.zeros(B)
         if pose_cov is not None:
-            k = check_finite_scalar(pose_sigmas, "pose_sigmas")
-            if k < 0:
-                raise ValueError(f"Expected pose_sigmas >= 0, but got {k}")
-            C = np.asarray(pose_cov) if not isinstance(pose_cov, np.ma.MaskedArray) else pose_cov
-            if getattr(C, "shape", None) == (B, 6, 6):
-                r = self.spec.range_max_m
-                pads = np.array([pose_pad_m(_check_pose_cov(C[b]), r, k) for b in range(B)])
-            elif getattr(C, "shape", None) == (6, 6) or B == 0:
-                pads[:] = pose_pad_m(_check_pose_cov(C), self.spec.range_max_m, k)
+            C = pose_cov if isinstance(pose_cov, np.ma.MaskedArray) else np.asarray(pose_cov)
+            shape = getattr(C, "shape", None)
+            if shape == (B, 6, 6) and B:
+                covs = [_check_pose_cov(C[b]) for b in range(B)]
+                pads = np.array([self._pose_pad(c, pose_sigmas) for c in covs])
+            elif shape == (6, 6):
+                pads[:] = self._pose_pad(_check_pose_cov(C), pose_sigmas)
             else:
-                raise ValueError(
-                    f"Expected pose_cov of shape (6, 6) or ({B}, 6, 6), but got {getattr(C, 'shape', None)}"
-                )
+                raise ValueError(f"Expected pose_cov of shape (6, 6) or ({B}, 6, 6), but got {shape}")
         if B == 0:
             return
         with self._lock:
-            params = np.empty(B, dtype=self._params.dtype)
-            n_threads = np.empty(B, dtype=np.int64)
-            for b in range(B):
-                if pads[b] != self._pad:
-                    set_footprint_pad(self._params, self._rho0, self._near0, float(pads[b]))
-                    self._pad = float(pads[b])
-                n_threads[b] = ping_params(self._params, Ts[b], self._fov_pts_S, self.grid)
-                params[b] = self._params
+            params, n_threads = self._ping_params(Ts, pads)
             self._backend.integrate_batch(params, imgs, self.method, n_threads)
             self.n_integrated += B
 
