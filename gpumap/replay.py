@@ -219,12 +219,16 @@ def run_replay(
     t_int = 0.0
     t0 = time.perf_counter()
     t_setup = 0.0
+    # Frames go to the mapper REPLAY_BATCH at a time (integrate_batch: one upload and a few
+    # launches on a GPU, the same map as one call per frame); one at a time with a per-ping hook.
+    batch: list | None = None
     for fr in tqdm(selected(), total=total, unit="img", disable=not progress, desc="replay"):
         if mapper is None:  # backend start-up (imports, compiling kernels) is timed apart
             ts = time.perf_counter()
             mapper = mapper_cls(fr.spec, grid, backend=backend, method=method, rule=rule,
                                 threshold=threshold)
             t_setup = time.perf_counter() - ts
+            batch = [] if on_ping is None and hasattr(mapper, "integrate_batch") else None
         if fr.spec != mapper.spec:
             stats["skipped_spec"] += 1
             continue
@@ -233,7 +237,14 @@ def run_replay(
             stats["skipped_no_pose"] += 1
             continue
         t1 = time.perf_counter()
-        mapper.integrate(fr.image, T)
+        if batch is None:
+            mapper.integrate(fr.image, T)
+        else:
+            if batch and fr.image.dtype != batch[0][0].dtype:
+                _flush_batch(mapper, batch)
+            batch.append((np.array(fr.image), T))  # a copy: a reader may reuse its buffer
+            if len(batch) == REPLAY_BATCH:
+                _flush_batch(mapper, batch)
         t_int += time.perf_counter() - t1
         stats["frames"] += 1
         if positions is not None:
@@ -243,6 +254,8 @@ def run_replay(
     if mapper is None:
         raise ValueError(f"Expected frames in {recording.path}, but it has none")
     t1 = time.perf_counter()
+    if batch:
+        _flush_batch(mapper, batch)
     if hasattr(mapper, "synchronize"):
         mapper.synchronize()
     t_end = time.perf_counter()
@@ -262,6 +275,16 @@ def run_replay(
         grid_shape=list(grid.shape),
     )
     return mapper, stats
+
+
+#: Frames per ``integrate_batch`` call of :func:`run_replay`.
+REPLAY_BATCH = 32
+
+
+def _flush_batch(mapper, batch: list) -> None:
+    """Integrate the buffered (image, T_W_S) frames in one call and empty the buffer."""
+    mapper.integrate_batch(np.stack([b[0] for b in batch]), np.stack([b[1] for b in batch]))
+    batch.clear()
 
 
 def save_pictures(values: np.ndarray, grid: GridSpec, threshold: float, out: Path,
