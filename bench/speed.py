@@ -36,7 +36,7 @@ import numpy as np
 
 import gpumap
 
-from .common import compact, machine_info
+from .common import CpuShare, compact, machine_info
 
 CACHE = Path("bench/results/tmp/oasis_polar.npz")
 #: The OASIS configuration's grid box (configs/base.yaml of the public code), metres.
@@ -120,6 +120,15 @@ def sonar_budget(p99_ms: float) -> dict[str, float]:
 def time_backend(fr: Frames, backend: str, voxel_size_m: float, rule: str, *, n_latency: int,
                  n_stream: int, batch: int | None, check: bool) -> dict[str, Any]:
     """One row: latency, sequential and batched throughput, and the batch check."""
+    with CpuShare() as share:
+        row = _time_backend(fr, backend, voxel_size_m, rule, n_latency=n_latency, n_stream=n_stream,
+                            batch=batch, check=check)
+    row["others_cores"] = share.others_cores  # what other processes took of the machine meanwhile
+    return row
+
+
+def _time_backend(fr: Frames, backend: str, voxel_size_m: float, rule: str, *, n_latency: int,
+                  n_stream: int, batch: int | None, check: bool) -> dict[str, Any]:
     grid = oasis_grid(voxel_size_m)
     n = len(fr.images)
     t0 = time.perf_counter()
