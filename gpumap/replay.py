@@ -288,8 +288,9 @@ def _flush_batch(mapper, batch: list) -> None:
 
 
 def save_pictures(values: np.ndarray, grid: GridSpec, threshold: float, out: Path,
-                  title: str = "") -> dict:
-    """Write ``views.png`` (occupied voxels from three viewpoints) and ``floor_slice.png``.
+                  title: str = "", positions: np.ndarray | None = None) -> dict:
+    """Write ``views.png`` (occupied voxels shaded in 3-D, colour = height, beside a top-down
+    height map with a colour bar; ``positions`` (P, 3): the sonar's path) and ``floor_slice.png``.
 
     Returns
     -------
@@ -302,33 +303,10 @@ def save_pictures(values: np.ndarray, grid: GridSpec, threshold: float, out: Pat
     import matplotlib.pyplot as plt
 
     occ = np.isfinite(values) & (values >= threshold)
-    idx = np.argwhere(occ)
-    pts = grid.centers(idx)
-    val = values[occ]
-    if pts.shape[0] > 60_000:  # keep the render light: strongest voxels first
-        keep = np.argsort(val)[-60_000:]
-        pts, val = pts[keep], val[keep]
-    fig = plt.figure(figsize=(12, 4.2), dpi=80)
-    views = [(25, -60, "oblique"), (89, -90, "top (x right, y up)"), (0, -90, "side (x-z)")]
-    for k, (elev, azim, name) in enumerate(views):
-        ax = fig.add_subplot(1, 3, k + 1, projection="3d")
-        ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c=val, s=1.5, cmap="viridis",
-                   vmin=threshold, vmax=1.0, depthshade=False, linewidths=0)
-        ax.view_init(elev=elev, azim=azim)
-        ax.set_title(name, fontsize=9)
-        ax.set_xlabel("x [m]", fontsize=7)
-        ax.set_ylabel("y [m]", fontsize=7)
-        ax.set_zlabel("z [m]", fontsize=7)
-        ax.tick_params(labelsize=6)
-        lo, hi = np.asarray(grid.min_corner_m), np.asarray(grid.max_corner_m)
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(lo[1], hi[1])
-        ax.set_zlim(lo[2], hi[2])
-        ax.set_box_aspect(tuple(hi - lo))
-    fig.suptitle(f"{title}  occupied voxels (value >= {threshold:.2f}): {occ.sum()}", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(out / "views.png")
-    plt.close(fig)
+    # the occupied voxels shaded in 3-D (pyrender offscreen) beside a top-down height map
+    from gpumap.viewer.render import replay_views
+
+    replay_views(out / "views.png", values, grid, threshold, title=title, positions=positions)
 
     # floor: the horizontal layer with the most occupied voxels in the lower half of the box
     counts = occ.sum(axis=(0, 1))
@@ -795,7 +773,7 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
         runs = replay_rules(rec, rules=order, grid=grid, positions=positions, **replay_kw)
         mapper, stats = runs[rule]
     else:
-        mapper, stats = run_replay(rec, grid=grid, rule=a.rule, **replay_kw)
+        mapper, stats = run_replay(rec, grid=grid, rule=a.rule, positions=positions, **replay_kw)
     for s in getattr(a, "view_sessions", ()):
         s.finish(mapper)
     values = mapper.values()
@@ -811,7 +789,8 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
         write_ply(out / "occupied.ply", mapper.grid.centers(np.argwhere(occ)), values[occ])
         if not a.no_pictures:
             stats.update(save_pictures(values, mapper.grid, thr, out,
-                                       title=f"{Path(a.path).name} ({stats['rule']} rule)"))
+                                       title=f"{Path(a.path).name} ({stats['rule']} rule)",
+                                       positions=np.asarray(positions).reshape(-1, 3) if positions else None))
         if a.compare_rules:
             other = {r: m.values() for r, (m, _) in runs.items() if r != rule}
             cmp_ = compare_rules({rule: values, **other}, mapper.grid, thr,

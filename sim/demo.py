@@ -455,47 +455,11 @@ def _figures(out: Path, scene: Scene, truth: Truth, mapper, sample: Ping, histor
     fig.savefig(out / "sonar_image.png", dpi=90)
     plt.close(fig)
 
-    # Map vs truth, both over the voxels the pings observed (the truth elsewhere was never seen).
-    # The map shows its exposed surface: occupied voxels next to a voxel it calls free (what an
-    # arm coming through the water meets); solid regions behind them (the sand's inside, shadows
-    # no view saw clearly) are left out of the picture, not out of the map.
-    from scipy import ndimage
+    # Map vs truth from one viewpoint (shaded voxels, pyrender offscreen), top-down height maps,
+    # and false negatives / positives per object (gpumap.viewer.render).
+    from gpumap.viewer.render import demo_pictures
 
-    v = mapper.values()
-    g = scene.grid
-    seen = np.isfinite(v)
-    occ = seen & (np.nan_to_num(v, nan=-1) >= threshold)
-    free = seen & ~occ
-    exposed = occ & ndimage.binary_dilation(free, structure=ndimage.generate_binary_structure(3, 1))
-    idx_m = np.argwhere(exposed)
-    idx_t = np.argwhere(truth.surface & seen)
-    lab = truth.label[tuple(idx_t.T)]
-    rs = np.random.default_rng(0)
-    lo_b = g.centers(idx_t).min(0) - 0.1 if len(idx_t) else np.asarray(g.min_corner_m)
-    hi_b = g.centers(idx_t).max(0) + 0.1 if len(idx_t) else np.asarray(g.max_corner_m)
-    fig = plt.figure(figsize=(14, 6))
-    panels = [
-        (idx_m, v[tuple(idx_m.T)], "inferno",
-         f"map ({mapper.rule} rule): occupied voxels next to free water (colour = intensity)"),
-        (idx_t, lab, "tab10", "truth: surface voxels the pings observed (colour = object)"),
-    ]
-    for j, (idx, col, cmap, title) in enumerate(panels):
-        a = fig.add_subplot(1, 2, j + 1, projection="3d")
-        if len(idx) > 60000:
-            keep = rs.choice(len(idx), 60000, replace=False)
-            idx, col = idx[keep], col[keep]
-        p = g.centers(idx)
-        vmin, vmax = (0, 1) if j == 0 else (-1, 9)
-        a.scatter(p[:, 0], p[:, 1], p[:, 2], c=col, s=1, cmap=cmap, vmin=vmin, vmax=vmax)
-        a.set(xlim=(lo_b[0], hi_b[0]), ylim=(lo_b[1], hi_b[1]), zlim=(lo_b[2], hi_b[2]), title=title,
-              xlabel="x", ylabel="y")
-        a.title.set_fontsize(9)
-        a.view_init(elev=35, azim=-140)
-    names = ", ".join(f"{i}: {n}" for i, n in enumerate(truth.names))
-    fig.text(0.75, 0.02, f"objects (tab10 order): {names}", ha="center", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "map_vs_truth.png", dpi=90)
-    plt.close(fig)
+    demo_pictures(out, scene.grid, mapper.values(), truth, threshold, mapper.rule, title=f"{scene.name}: ")
 
     # Error by view count.
     k = np.array([h.get("pings", i + 1) for i, h in enumerate(history)])
@@ -517,7 +481,8 @@ def _figures(out: Path, scene: Scene, truth: Truth, mapper, sample: Ping, histor
 
 
 #: Every file ``gpumap demo`` writes into ``--out``: one run's set replaces the last one's.
-OUTPUTS = ("metrics.json", "map.npz", "sonar_image.png", "map_vs_truth.png", "error_by_views.png")
+OUTPUTS = ("metrics.json", "map.npz", "sonar_image.png", "map_vs_truth.png", "error_by_views.png",
+           "height_map.png", "errors_by_object.png")
 
 
 def main(argv: list[str] | None = None) -> int:

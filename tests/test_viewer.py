@@ -145,8 +145,12 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _chromium_page(url: str, wait_s: float, size=(1280, 800)) -> tuple[bytes, list[str]]:
-    """Open ``url`` in headless Chromium over the DevTools protocol: (PNG screenshot, console errors)."""
+def _chromium_page(url: str, wait_s: float, size=(1280, 800), done=None) -> tuple[bytes, list[str]]:
+    """Open ``url`` in headless Chromium over the DevTools protocol: (PNG screenshot, console errors).
+
+    Screenshots are taken every 2 s after the first 4 s until ``done(png)`` holds or ``wait_s``
+    has passed (a loaded 2-core machine renders slowly in software); the last one comes back.
+    """
     from websockets.sync.client import connect
 
     profile = tempfile.mkdtemp(prefix="gpumap-chromium-")
@@ -191,12 +195,17 @@ def _chromium_page(url: str, wait_s: float, size=(1280, 800)) -> tuple[bytes, li
                 call(f"{dom}.enable")
             call("Page.navigate", url=url)
             t_end = time.monotonic() + wait_s
-            while time.monotonic() < t_end:
+            t_shot = time.monotonic() + 4.0
+            while True:
                 try:
-                    note(json.loads(ws.recv(timeout=max(0.05, t_end - time.monotonic()))))
+                    note(json.loads(ws.recv(timeout=max(0.05, min(t_end, t_shot) - time.monotonic()))))
                 except TimeoutError:
-                    break
-            png = base64.b64decode(call("Page.captureScreenshot", format="png")["data"])
+                    pass
+                if time.monotonic() >= t_shot or time.monotonic() >= t_end:
+                    png = base64.b64decode(call("Page.captureScreenshot", format="png")["data"])
+                    if time.monotonic() >= t_end or (done is not None and done(png)):
+                        break
+                    t_shot = time.monotonic() + 2.0
         return png, errors
     finally:
         proc.terminate()
@@ -247,6 +256,11 @@ def _map_pixels(png: bytes) -> tuple[float, int]:
     return float(differs.mean()), int(np.count_nonzero(sat > 60))
 
 
+def _looks_rendered(png: bytes) -> bool:
+    differs, coloured = _map_pixels(png)
+    return differs > 0.03 and coloured > 2000
+
+
 @needs_viser
 @needs_chromium
 def test_demo_view_renders_in_chromium_and_records(tmp_path):
@@ -258,7 +272,7 @@ def test_demo_view_renders_in_chromium_and_records(tmp_path):
                       "--view-port", str(port), "--view-hold", "120", "--record", str(rec_path),
                       "--view-every", "2"], ready="serving the view")
     try:
-        png, errors = _chromium_page(f"http://127.0.0.1:{port}", wait_s=12)
+        png, errors = _chromium_page(f"http://127.0.0.1:{port}", wait_s=60, done=_looks_rendered)
     finally:
         _stop(proc)
     (tmp_path / "shot.png").write_bytes(png)
@@ -282,7 +296,7 @@ def test_view_saved_map_in_chromium(tmp_path):
     proc, _ = _start([sys.executable, "-m", "gpumap.cli", "view", str(tmp_path / "out" / "map.npz"),
                       "--view-port", str(port), "--view-hold", "120"], ready="serving")
     try:
-        png, errors = _chromium_page(f"http://127.0.0.1:{port}", wait_s=10)
+        png, errors = _chromium_page(f"http://127.0.0.1:{port}", wait_s=60, done=_looks_rendered)
     finally:
         _stop(proc)
     assert errors == [], errors

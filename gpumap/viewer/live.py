@@ -9,7 +9,9 @@ mapper; what it sends is throttled so that viewing never dominates the run:
   ``pose_interval_s`` (0.1 s) of wall time;
 - the map: at most every ``map_interval_s`` (0.5 s) and every ``map_every`` pings; only the
   16^3-voxel blocks whose occupied voxels changed are sent again, each block one batched
-  mesh of boxes coloured by value (viridis) or height (turbo).
+  mesh of boxes coloured by value (viridis) or height (turbo);
+- and both only while the time spent viewing stays within ``budget`` (10 %) of the wall
+  time: an update that took ``dt`` holds the next one of its kind off for ``dt / budget``.
 
 Scene tree: ``/map/b_I_J_K`` (blocks), ``/sonar`` (frame, ``/sonar/fov``, ``/sonar/fan``),
 ``/trajectory``, ``/truth`` (demo: the true surface beside the map), ``/paths/NAME`` and
@@ -162,6 +164,8 @@ class MapViewer:
         ... and at most this often (wall time); images, pose and trajectory at most every
         ``pose_interval_s``.
     color_by : {"value", "height"}
+    budget : float
+        Largest share of the wall time that viewing may take (see the module doc).
     """
 
     def __init__(
@@ -176,7 +180,8 @@ class MapViewer:
         map_every: int = 10,
         map_interval_s: float = 0.5,
         pose_interval_s: float = 0.1,
-        color_by: str = "value",
+        color_by: str = "height",
+        budget: float = 0.1,
     ) -> None:
         viser = require_viser()
         self.spec, self.grid, self.threshold = spec, grid, float(threshold)
@@ -189,12 +194,14 @@ class MapViewer:
         self._q = np.zeros(grid.n_voxels, np.uint8)  # quantised value of occupied voxels, 0 = not
         self._blocks: dict[tuple[int, int, int], Any] = {}
         self._positions: list[np.ndarray] = []
-        self._t_pose = -math.inf
-        self._t_map = -math.inf
+        self.budget = float(budget)
+        self._next_pose = -math.inf  # perf_counter time before which no pose/image update is sent
+        self._next_map = -math.inf
+        self.seconds_viewing = 0.0
         self._last_map_ping = -(10**9)
         self.n_pings = 0
         self.map_updates = 0
-        self._fan = FanRenderer(spec)
+        self._fan = FanRenderer(spec, height_px=120)
         self._lut_img = colormap_u8("copper")
         self._cube = _unit_cube()
         self._color_by = color_by
@@ -217,6 +224,7 @@ class MapViewer:
         )
         self._traj = None
         self._frame = [lo.copy(), hi.copy()]
+        self._included: list[tuple[np.ndarray, np.ndarray]] = []
 
         @self.server.on_client_connect
         def _(client) -> None:
@@ -274,6 +282,8 @@ class MapViewer:
             pos,
             batched_colors=self._colors(flat, q),
             lod="off",
+            material="toon5",
+            flat_shading=True,
             cast_shadow=False,
             receive_shadow=False,
         )
@@ -326,7 +336,8 @@ class MapViewer:
                 )
             else:
                 self._fan_node.image = fan
-            self._polar_gui.image = self._lut_img[u8[::-1]]  # far range at the top
+            step = max(1, u8.shape[0] // 200)  # the panel shows ~300 px: no need for every bin
+            self._polar_gui.image = self._lut_img[u8[::-step, ::step]]  # far range at the top
             self._fan_gui.image = fan[..., :3]
             if len(self._positions) >= 2:
                 p = np.asarray(self._positions, np.float32)
@@ -346,8 +357,7 @@ class MapViewer:
         self.n_pings += 1
         self._positions.append(np.asarray(T_W_S, np.float64)[:3, 3].copy())
         now = time.perf_counter()
-        if force or now - self._t_pose >= self.pose_interval_s:
-            self._t_pose = now
+        if force or now >= self._next_pose:
             n_occ = int(np.count_nonzero(self._q))
             self.show_ping(
                 image,
@@ -355,12 +365,18 @@ class MapViewer:
                 f"**ping {k + 1}**  \n{n_occ} occupied voxels "
                 f"(value >= {self.threshold:g}) at {self.grid.voxel_size_m * 100:g} cm",
             )
+            t = time.perf_counter()
+            self.seconds_viewing += t - now
+            self._next_pose = t + max(self.pose_interval_s - (t - now), (t - now) / self.budget)
+            now = t
         if mapper is not None and (
-            force or (k - self._last_map_ping >= self.map_every and now - self._t_map >= self.map_interval_s)
+            force or (k - self._last_map_ping >= self.map_every and now >= self._next_map)
         ):
             self._last_map_ping = k
             self.set_values(mapper.values())
-            self._t_map = time.perf_counter()
+            t = time.perf_counter()
+            self.seconds_viewing += t - now
+            self._next_map = t + max(self.map_interval_s - (t - now), (t - now) / self.budget)
 
     def finish(self, mapper: Any = None, values: np.ndarray | None = None) -> None:
         """Show the final map and last ping state."""
@@ -368,6 +384,7 @@ class MapViewer:
             values = mapper.values()
         if values is not None:
             self.set_values(values)
+        self.frame_content()
         n_occ = int(np.count_nonzero(self._q))
         self._status.content = (
             f"**done: {self.n_pings} pings**  \n{n_occ} occupied voxels "
@@ -379,6 +396,21 @@ class MapViewer:
         p = np.asarray(points, np.float64).reshape(-1, 3)
         if len(p):
             self._frame = [np.minimum(self._frame[0], p.min(0)), np.maximum(self._frame[1], p.max(0))]
+            self._included.append((p.min(0), p.max(0)))
+
+    def frame_content(self) -> None:
+        """Frame what there is to see (occupied voxels, the path, included points), not the whole grid."""
+        boxes = list(self._included)
+        idx = np.flatnonzero(self._q)
+        if idx.size:
+            c = self.grid.centers(np.stack(np.unravel_index(idx, self.grid.shape), 1))
+            boxes.append((c.min(0), c.max(0)))
+        if self._positions:
+            p = np.asarray(self._positions)
+            boxes.append((p.min(0), p.max(0)))
+        if boxes:
+            vs = self.grid.voxel_size_m
+            self._frame = [np.min([b[0] for b in boxes], 0) - vs, np.max([b[1] for b in boxes], 0) + vs]
 
     def aim(self, client: Any) -> None:
         """Point ``client``'s camera at the framed box, from above and in front (z up)."""

@@ -23,6 +23,8 @@ from __future__ import annotations
 import io
 import json
 import os
+import queue
+import threading
 import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -126,11 +128,45 @@ class Recorder:
         self._file = self._ctx.__enter__()
         self._zip = zipfile.ZipFile(self._file, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1)
         self._closed = False
+        # compressing and writing happen on a thread of their own (zlib releases the GIL): the
+        # mapping loop only copies the image and, when a sample is due, the map's values
+        self._jobs: queue.Queue = queue.Queue(maxsize=256)
+        self._error: BaseException | None = None
+        self._writer = threading.Thread(target=self._write_loop, name="gpumap-recorder", daemon=True)
+        self._writer.start()
 
-    def _put(self, name: str, a: np.ndarray) -> None:
+    def _write_loop(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            if self._error is not None:
+                continue
+            try:
+                job()
+            except BaseException as e:  # reported by close()
+                self._error = e
+
+    def _check(self) -> None:
+        if self._error is not None:
+            raise RuntimeError(
+                f"Expected to write the recording {self.path}, but: {self._error}"
+            ) from self._error
+
+    def _write(self, name: str, a: np.ndarray) -> None:
         buf = io.BytesIO()
         np.save(buf, np.ascontiguousarray(a), allow_pickle=False)
         self._zip.writestr(name, buf.getvalue())
+
+    def _put(self, name: str, a: np.ndarray) -> None:
+        self._check()
+        a = np.array(a, copy=True)
+        self._jobs.put(lambda: self._write(name, a))
+
+    def _drain(self) -> None:
+        if self._writer.is_alive():
+            self._jobs.put(None)
+            self._writer.join()
 
     def ping(
         self, image: np.ndarray, T_W_S: np.ndarray, mapper: Any = None, values: np.ndarray | None = None
@@ -145,10 +181,16 @@ class Recorder:
             self._sample(k, mapper.values() if values is None else values)
 
     def _sample(self, k: int, values: np.ndarray) -> None:
-        set_idx, set_val, clear_idx = self._diff.update(values)
-        self._put(f"ping/{k:06d}/set_idx.npy", set_idx)
-        self._put(f"ping/{k:06d}/set_val.npy", set_val)
-        self._put(f"ping/{k:06d}/clear_idx.npy", clear_idx)
+        self._check()
+        v = np.array(values, dtype=np.float32, copy=True)
+
+        def job() -> None:
+            set_idx, set_val, clear_idx = self._diff.update(v)
+            self._write(f"ping/{k:06d}/set_idx.npy", set_idx)
+            self._write(f"ping/{k:06d}/set_val.npy", set_val)
+            self._write(f"ping/{k:06d}/clear_idx.npy", clear_idx)
+
+        self._jobs.put(job)
         self._last_sampled = k
 
     def add(self, name: str, array: np.ndarray) -> None:
@@ -170,6 +212,8 @@ class Recorder:
                     self._sample(last, values)
             for name, a in self._extras.items():
                 self._put(f"extra/{name}.npy", a)
+            self._drain()
+            self._check()
             meta = {
                 "format": FORMAT,
                 "version": VERSION,
@@ -185,6 +229,7 @@ class Recorder:
             self._zip.close()
         except BaseException as e:
             self._closed = True
+            self._drain()
             self._zip.close()
             self._ctx.__exit__(type(e), e, e.__traceback__)
             raise
@@ -197,6 +242,7 @@ class Recorder:
         if self._closed:
             return
         self._closed = True
+        self._drain()
         self._zip.close()
         err = RuntimeError("recording aborted")
         try:
