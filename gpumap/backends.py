@@ -51,6 +51,32 @@ def _cpu_pool():
     return ThreadPoolExecutor(1, thread_name_prefix="gpumap-cpu")
 
 
+@functools.cache
+def _copy_pool():
+    """Threads for filling page-locked staging buffers (NumPy copies release the GIL)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    return ThreadPoolExecutor(COPY_THREADS, thread_name_prefix="gpumap-copy")
+
+
+#: Threads that fill a GPU batch's staging buffer, and the bytes from which they are used.
+COPY_THREADS = max(1, min(4, (os.cpu_count() or 1) // 2))
+COPY_SPLIT_BYTES = 4 << 20
+
+
+def _copy_rows(dst: np.ndarray, src: np.ndarray) -> None:
+    """``dst[...] = src`` along the first axis, on COPY_THREADS threads when it is large."""
+    n = src.shape[0]
+    if COPY_THREADS < 2 or src.nbytes < COPY_SPLIT_BYTES or n < 2:
+        np.copyto(dst, src)
+        return
+    cuts = np.linspace(0, n, min(n, COPY_THREADS) + 1).astype(int)
+    pool = _copy_pool()
+    futs = [pool.submit(np.copyto, dst[a:b], src[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+    for f in futs:
+        f.result()
+
+
 class GridTooLargeError(ValueError):
     """The grid does not fit in the memory a backend can allocate (the message says how much)."""
 
@@ -482,6 +508,8 @@ class WarpBackend(Backend):
             "host_u8": [wp.empty(shape, dtype=wp.uint8, device="cpu", pinned=pin) for _ in range(2)],
             "host_f": [wp.empty(shape, dtype=float, device="cpu", pinned=pin) for _ in range(2)],
             "host_P": [wp.empty(cap, dtype=self.k.PingParams, device="cpu", pinned=pin) for _ in range(2)],
+            "host_box": [wp.empty((cap, 6), dtype=int, device="cpu", pinned=pin) for _ in range(2)],
+            "boxes": wp.empty((cap, 6), dtype=int, device=dev),
             "events": [None, None],
             "slot": 0,
             "u8": wp.empty(shape, dtype=wp.uint8, device=dev),
@@ -492,6 +520,7 @@ class WarpBackend(Backend):
         }
         bb["host_u8_np"] = [a.numpy() for a in bb["host_u8"]]
         bb["host_f_np"] = [a.numpy() for a in bb["host_f"]]
+        bb["host_box_np"] = [a.numpy() for a in bb["host_box"]]
         self._batch = bb
         return bb
 
@@ -507,15 +536,19 @@ class WarpBackend(Backend):
         ctypes.memmove(hp.ptr, params.ctypes.data, B * PING_DTYPE.itemsize)
         P = bb["P"][:B]
         wp.copy(P, hp[:B])
+        hb = bb["host_box_np"][s]
+        hb[:B, :3] = params["box_lo"]
+        hb[:B, 3:] = params["box_n"]
+        wp.copy(bb["boxes"], bb["host_box"][s], count=6 * B)
         imgs = bb["images"][:B]
         if images.dtype == np.uint8:
-            np.copyto(bb["host_u8_np"][s][:B], images)
+            _copy_rows(bb["host_u8_np"][s][:B], images)
             wp.copy(bb["u8"][:B], bb["host_u8"][s][:B])
             bb["events"][s] = wp.record_event() if self.dev.is_cuda else None
             wp.launch(k.convert_u8_batch, dim=images.shape, inputs=[bb["u8"][:B], float(U8_SCALE), imgs],
                       device=self.dev)
         else:
-            np.copyto(bb["host_f_np"][s][:B], images)
+            _copy_rows(bb["host_f_np"][s][:B], images)
             wp.copy(imgs, bb["host_f"][s][:B])
             bb["events"][s] = wp.record_event() if self.dev.is_cuda else None
         fb = bb["first_bright"]  # (cap, ...): kernels index their B first rows only
@@ -535,7 +568,8 @@ class WarpBackend(Backend):
             k.integrate_gather_batch,
             dim=int(n[0]) * int(n[1]) * n_chunks,
             inputs=[
-                P, wp.vec3i(*lo.tolist()), wp.vec3i(*n.tolist()), self.chunk, imgs, self.edges, self.lut,
+                P, bb["boxes"], wp.vec3i(*lo.tolist()), wp.vec3i(*n.tolist()), self.chunk, imgs, self.edges,
+                self.lut,
                 tables, fb, self.grid, self.bright, self.count,
             ],
             device=self.dev,
@@ -813,7 +847,7 @@ class OpenCLBackend(Backend):
         pb = B * PING_DTYPE.itemsize
         host[:pb] = params.view(np.uint8).reshape(-1)
         nb = images.nbytes
-        host[pb : pb + nb] = images.reshape(-1).view(np.uint8)
+        _copy_rows(host[pb : pb + nb].reshape(B, -1), images.reshape(B, -1).view(np.uint8))
         q = self.queue
         ups = [cl.enqueue_copy(q, bb["P"], host[:pb], is_blocking=False)]
         img_dst = bb["u8"] if images.dtype == np.uint8 else bb["images"]

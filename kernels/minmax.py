@@ -416,6 +416,7 @@ def build_beam_levels_cells_batch(Ps: wp.array(dtype=PingParams), tables: wp.arr
 @wp.kernel
 def integrate_gather_batch(
     Ps: wp.array(dtype=PingParams),
+    boxes: wp.array2d(dtype=int),
     box_lo: wp.vec3i,
     box_n: wp.vec3i,
     chunk: int,
@@ -429,7 +430,8 @@ def integrate_gather_batch(
     count: wp.array(dtype=wp.uint8),
 ):
     """One thread per chunk of an (i, j) column of the union box (box_lo, box_n) of the pings'
-    boxes; it folds ping 0, 1, ... into its voxels, each ping only within that ping's box."""
+    boxes; it folds ping 0, 1, ... into its voxels, each ping only within that ping's box
+    (``boxes[b]`` = box_lo, box_n of ping b: tested before its parameters are read)."""
     tid = wp.tid()
     n_chunks = (box_n[2] + chunk - 1) // chunk
     col = tid // n_chunks
@@ -438,13 +440,12 @@ def integrate_gather_batch(
     i = box_lo[0] + col // box_n[1]
     j = box_lo[1] + col - (col // box_n[1]) * box_n[1]
     for b in range(Ps.shape[0]):
-        P = Ps[b]
-        lo = P.box_lo
-        n = P.box_n
-        if i >= lo[0] and i < lo[0] + n[0] and j >= lo[1] and j < lo[1] + n[1]:
-            k0 = wp.max(c0, lo[2])
-            k1 = wp.min(c1, lo[2] + n[2] - 1)
+        inside_i = i >= boxes[b, 0] and i < boxes[b, 0] + boxes[b, 3]
+        if inside_i and j >= boxes[b, 1] and j < boxes[b, 1] + boxes[b, 4]:
+            k0 = wp.max(c0, boxes[b, 2])
+            k1 = wp.min(c1, boxes[b, 2] + boxes[b, 5] - 1)
             if k0 <= k1:
+                P = Ps[b]
                 gather_column(
                     P, i, j, k0, k1, images[b], tan_edges, lut, tables[b], first_bright[b],
                     grid, bright, count,

@@ -83,7 +83,9 @@ def test_batch_equals_sequential_bitwise(backend, rule, kernels):
 
 
 @pytest.mark.parametrize("rule", RULES)
-def test_uint8_batch_equals_sequential(backend, rule):
+def test_uint8_batch_equals_sequential(backend, rule, monkeypatch):
+    monkeypatch.setattr(gpumap.backends, "COPY_SPLIT_BYTES", 0)  # staging filled on threads
+    monkeypatch.setattr(gpumap.backends, "COPY_THREADS", 3)
     imgs, poses = _pings(6, seed=2)
     u8 = np.round(imgs * 255).astype(np.uint8)
     ref = _state(_sequential(backend, rule, u8, poses))
