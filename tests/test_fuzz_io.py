@@ -15,8 +15,10 @@ Every case runs in a child process (one, reused; started fresh after a kill) who
 address space is capped with ``RLIMIT_AS`` at its own footprint plus
 ``gpumap.limits.MEMORY_TARGET_BYTES`` (1 GiB), so a reader that tries to allocate what a
 file declares fails with ``MemoryError`` (a failure here) instead of taking the machine;
-each case must also finish within ``TIME_CAP_S`` (1 s) of CPU-bound work, or the child is
-killed and the case fails.
+a case that ends in gpumap's error must cost under ``TIME_CAP_S`` (1 s) of the child's CPU
+time, one that reads frames (and maps one) under ``WORK_CAP_S``; CPU time, not wall time, so
+a busy machine does not fail the suite. A child that does not answer within ``HANG_S`` of
+wall time is killed and the case fails.
 
 The hostile files of ``tests/test_io.py`` run in the same capped child, their peak RSS
 measured by the kernel (``VmHWM``). Properties of the public API built from drawn
@@ -48,7 +50,9 @@ from conftest import DATA
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-TIME_CAP_S = 1.0
+TIME_CAP_S = 1.0  # CPU seconds to refuse a file (the issue's "under a second")
+WORK_CAP_S = 5.0  # CPU seconds to read a recording that yields frames and map its first
+HANG_S = 60.0  # wall seconds without an answer: the child is killed
 SCALE = float(os.environ.get("GPUMAP_FUZZ_EXAMPLES", "1.0"))
 
 
@@ -107,7 +111,7 @@ def _read_case(kind: str, root: Path) -> int:
     if kind == "__alloc__":  # harness self-test: the memory cap
         return int(np.ones(2**31, dtype=np.uint8).sum())
     if kind == "__sleep__":  # harness self-test: the time cap
-        time.sleep(3 * TIME_CAP_S + 5.0)
+        time.sleep(5.0)
         return 0
     if kind == "hostile":  # one of tests/test_io.py's hostile files, built before the cap
         name = (root / "name").read_text()
@@ -117,6 +121,8 @@ def _read_case(kind: str, root: Path) -> int:
     if kind == "any":  # arbitrary bytes under an arbitrary name, through open_recording
         target = next(f for f in root.iterdir())
         kind = "open"
+    if kind == "map":
+        return _load_map(root / "map.npz")
     if kind == "ply":
         d = read_ply(root / "cloud.ply")
         n = {len(v) for v in d.values()}
@@ -141,6 +147,35 @@ def _read_case(kind: str, root: Path) -> int:
                 raise AssertionError(f"frame 0 does not map: {type(e).__name__}: {e}") from e
         n += 1
     return n
+
+
+class LoaderRefused(Exception):
+    """``MinMaxMapper.load`` refused a file with its ``ValueError`` (its documented error)."""
+
+
+def _load_map(path: Path) -> int:
+    """Load a (mutated) saved map; what it accepts must be a map that saves and loads again."""
+    import gpumap
+    from gpumap.errors import FormatError
+
+    try:
+        m = gpumap.MinMaxMapper.load(path, backend="numpy")
+    except FormatError:
+        raise
+    except ValueError as e:
+        raise LoaderRefused(str(e)) from None
+    v = m.values()
+    if not np.all(np.isnan(v) | ((v >= 0) & (v <= 1))):
+        raise AssertionError("the loaded map holds values outside [0, 1] and NaN")
+    if m.rule == "visible":
+        ev = m.evidence()
+        if any(np.any(a < 0) for a in ev.values() if a.dtype.kind in "iu"):
+            raise AssertionError("the loaded map holds negative counts")
+    m.occupied_points(0.5)
+    again = path.with_name("again.npz")
+    m.save(again)
+    np.testing.assert_array_equal(gpumap.MinMaxMapper.load(again, backend="numpy").values(), v)
+    return int(np.isfinite(v).sum())
 
 
 def _warm_up(files: dict[str, dict[str, bytes]], work: Path) -> None:
@@ -204,7 +239,7 @@ def _worker_main(conn, mem_cap: int, warm: dict) -> None:
             kind, case = job
             k += 1
             root = work / f"case{k}"
-            t0 = time.perf_counter()
+            t0, w0 = time.process_time(), time.perf_counter()
             peak = -1
             try:
                 for rel, data in case.items():
@@ -212,20 +247,20 @@ def _worker_main(conn, mem_cap: int, warm: dict) -> None:
                     (root / rel).write_bytes(data)
                 base = _rss_kib("VmRSS")
                 measured = _rss_peak_reset()
-                t0 = time.perf_counter()
+                t0, w0 = time.process_time(), time.perf_counter()
                 try:
                     n = _read_case(kind, root)
                 finally:
                     if measured:
                         peak = max(0, _rss_kib("VmHWM") - base) * 1024
                 out = ("frames", n, "")
-            except FormatError as e:
+            except (FormatError, LoaderRefused) as e:
                 out = ("gpumap-error", type(e).__name__, str(e)[:300])
             except BaseException as e:  # noqa: BLE001 - everything else is the finding
                 out = ("other", type(e).__name__, traceback.format_exc()[-3000:])
-            dt = time.perf_counter() - t0
+            dt, wall = time.process_time() - t0, time.perf_counter() - w0
             shutil.rmtree(root, ignore_errors=True)
-            conn.send((*out, dt, peak))
+            conn.send((*out, dt, peak, wall))
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
@@ -239,6 +274,7 @@ class CappedRunner:
         self.proc = None
         self.cap_info = None
         self.last_peak_bytes = -1  # the last case's peak RSS above the child's own (-1: unknown)
+        self.last_wall_s = math.inf  # the last case's wall time
         self._start()
 
     def _start(self) -> None:
@@ -263,16 +299,16 @@ class CappedRunner:
         assert msg[0] == "ready", msg
         self.cap_info = msg[1:]
 
-    def run(self, kind: str, case: dict[str, bytes]) -> tuple:
-        """-> (status, detail, message, seconds); status 'frames', 'gpumap-error', 'other',
-        'timeout' or 'died'."""
+    def run(self, kind: str, case: dict[str, bytes], hang_s: float = HANG_S) -> tuple:
+        """-> (status, detail, message, CPU seconds); status 'frames', 'gpumap-error', 'other',
+        'timeout' (no answer within ``hang_s`` wall seconds) or 'died'."""
         try:
             self.conn.send((kind, case))
-            self.last_peak_bytes = -1
-            if not self.conn.poll(2 * TIME_CAP_S + 2.0):
+            self.last_peak_bytes, self.last_wall_s = -1, math.inf
+            if not self.conn.poll(hang_s):
                 self._restart()
-                return ("timeout", "", f"no answer within {2 * TIME_CAP_S + 2.0} s", math.inf)
-            *out, self.last_peak_bytes = self.conn.recv()
+                return ("timeout", "", f"no answer within {hang_s} s", math.inf)
+            *out, self.last_peak_bytes, self.last_wall_s = self.conn.recv()
             return tuple(out)
         except (EOFError, BrokenPipeError, ConnectionResetError):
             code = self.proc.exitcode
@@ -421,6 +457,23 @@ def seeds(tmp_path_factory) -> dict:
     bag = tmp / "rec.bag"
     _ros1_bag(bag, raw3)
     out["rosbag"] = {"files": {"rec.bag": bag.read_bytes()}, "fields": []}
+    # a map of four real tank pings, as save() writes it, and its members for mutation
+    import zipfile
+
+    import gpumap
+    from gpumap.io import open_fan_folder
+
+    frames = list(open_fan_folder(DATA / "oasis_tank", stride=40))
+    grid = gpumap.GridSpec(min_corner_m=(-0.5, -1.5, -1.0), max_corner_m=(2.5, 1.5, 0.5),
+                           voxel_size_m=0.1)
+    m = gpumap.MinMaxMapper(frames[0].spec, grid, backend="numpy")
+    for fr in frames:
+        m.integrate(fr.image, fr.T_W_S)
+    m.save(tmp / "map.npz")
+    with zipfile.ZipFile(tmp / "map.npz") as z:
+        members = {i.filename: z.read(i) for i in z.infolist()}
+    out["map"] = {"files": {"map.npz": (tmp / "map.npz").read_bytes()}, "fields": [],
+                  "members": members}
     return out
 
 
@@ -438,7 +491,7 @@ def runner(request):
     if DATA is not None:
         seeds = request.getfixturevalue("seeds")
         warm = {_kind(k): v["files"] for k, v in seeds.items()
-                if k in ("oculus-raw", "oculus-log", "aris", "fan", "ply-bin", "rosbag")}
+                if k in ("oculus-raw", "oculus-log", "aris", "fan", "ply-bin", "rosbag", "map")}
     r = CappedRunner(warm, MEMORY_TARGET_BYTES)
     yield r
     r.close()
@@ -541,7 +594,8 @@ def _check(runner: CappedRunner, name: str, kind: str, case: dict[str, bytes]) -
     event(f"{name}: {status} {detail}".strip())
     sizes = {k: len(v) for k, v in case.items()}
     assert status in ("frames", "gpumap-error"), f"{name}: {status} {detail}\n{message}\n(sizes {sizes})"
-    assert dt < TIME_CAP_S, f"{name}: took {dt:.2f} s (cap {TIME_CAP_S} s); {status} {detail} {message}"
+    cap = TIME_CAP_S if status == "gpumap-error" else WORK_CAP_S
+    assert dt < cap, f"{name}: took {dt:.2f} s of CPU (cap {cap} s); {status} {detail} {message}"
 
 
 def _fuzz_one(runner, seeds, name: str, target: str, muts) -> None:
@@ -554,15 +608,15 @@ def _fuzz_one(runner, seeds, name: str, target: str, muts) -> None:
 # ------------------------------------------------------------------ the harness itself
 def test_harness_reads_the_real_files_and_enforces_its_caps(runner, seeds) -> None:
     expect = {"oculus-raw": 3, "oculus-log": 2, "oculus-log-plain": 2, "aris": 6, "fan": 1,
-              "fan-csv": 1, "ply-bin": 0, "ply-ascii": 0, "rosbag": 2}
+              "fan-csv": 1, "ply-bin": 0, "ply-ascii": 0, "rosbag": 2, "map": 4304}
     for name, n in expect.items():
         status, detail, message, dt = runner.run(_kind(name), seeds[name]["files"])
         assert (status, detail) == ("frames", n), (name, status, detail, message)
-        assert dt < TIME_CAP_S / 2, (name, dt)
+        assert dt < WORK_CAP_S / 2, (name, dt)
     # the caps are real: 2 GiB cannot be had, and a hang is cut off (the child is replaced)
     status, detail, _m, _dt = runner.run("__alloc__", {})
     assert (status, detail) in (("other", "MemoryError"), ("died", "-9")), (status, detail)
-    assert runner.run("__sleep__", {})[0] == "timeout"
+    assert runner.run("__sleep__", {}, hang_s=2.0)[0] == "timeout"
     assert runner.run("aris", seeds["aris"]["files"])[:2] == ("frames", 6)
     vm, cap = runner.cap_info
     assert cap - vm <= 1 << 30
@@ -898,3 +952,31 @@ def test_open_recording_on_any_bytes(runner, magic, name, body) -> None:
     """open_recording on any small file under any telling name, read to the end in the capped
     child: frames that pass the checks, or gpumap's error."""
     _check(runner, f"any {name}", "any", {name: magic + body})
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "known bug on the mapper side (gpumap/mapper.py, not this suite's to fix): MinMaxMapper.load "
+    "lets tokenize.TokenError/SyntaxError (a damaged .npy header dict), zlib.error (damaged deflate "
+    "data) and NotImplementedError (an unknown zip compression method) escape instead of its "
+    "ValueError; strict: once load catches them this test passes and the marker must go"))
+@_fuzz_settings(200)
+@given(member=st.integers(0, 10), muts=MUTATIONS, stored=st.booleans())
+def test_fuzz_saved_map(runner, seeds, member, muts, stored) -> None:
+    """MinMaxMapper.load on a real map (four tank pings) with one member mutated -- its npy
+    header text and data -- and the zip rebuilt (so the damage gets past the zip's CRC), or
+    the zip itself mutated: its ValueError, or a map that holds only possible values and
+    saves and loads again to the same values."""
+    import zipfile
+
+    seed = seeds["map"]
+    names = list(seed["members"])
+    buf = io.BytesIO()
+    if member < len(names):
+        with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED if stored else zipfile.ZIP_DEFLATED,
+                             compresslevel=1) as z:
+            for n, data in seed["members"].items():
+                z.writestr(n, mutate(data, muts, [], True) if n == names[member] else data)
+        data = buf.getvalue()
+    else:
+        data = mutate(seed["files"]["map.npz"], muts, [], False)
+    _check(runner, "map", "map", {"map.npz": data})
