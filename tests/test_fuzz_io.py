@@ -20,16 +20,17 @@ time, one that reads frames (and maps one) under ``WORK_CAP_S``; CPU time, not w
 a busy machine does not fail the suite. A child that does not answer within ``HANG_S`` of
 wall time is killed and the case fails.
 
-The hostile files of ``tests/test_io.py`` run in the same capped child, their peak RSS
-measured by the kernel (``VmHWM``). Properties of the public API built from drawn
-parameters (pose tables, PNGs of every colour type and depth, Oculus messages, PLY round
-trips, any bytes under any name) know their answers independently.
+``MinMaxMapper.load`` gets the same treatment on a saved map of real pings (members
+mutated and the zip rebuilt). The hostile files of ``tests/test_io.py`` run in the same
+capped child, their peak RSS measured by the kernel (``VmHWM``). Properties of the public
+API built from drawn parameters (pose tables, PNGs of every colour type and depth, Oculus
+messages, PLY round trips, any bytes under any name) know their answers independently.
 
 Budget: ``derandomize=True`` (a fixed seed per test, no example database), a fixed
 ``max_examples`` per test (``GPUMAP_FUZZ_EXAMPLES`` scales them for longer local runs;
-default 1.0 = about 3,000 cases: 56 s wall on 2 cores shared with other jobs (load 6),
-17 s of CPU; 20x = 41,000 cases found nothing). The tests on mutated real files skip, with
-the reason, when ../shared/data is absent; the others run anyway.
+default 1.0 = about 3,200 cases: 57 s wall on 2 cores shared with other jobs (load 6-7),
+21 s of CPU). The tests on mutated real files skip, with the reason, when ../shared/data
+is absent; the others run anyway.
 """
 
 from __future__ import annotations
