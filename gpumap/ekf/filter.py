@@ -14,7 +14,6 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 
 from gpumap.ekf._checks import (
     _check_cov,
@@ -33,9 +32,10 @@ from gpumap.ekf.measurement import (
     plane_range_model,
     wrap_angle,
 )
-from gpumap.ekf.motion import _inject, _inject_gauge, motion_jacobian
+from gpumap.ekf.motion import _inject, _inject_gauge, _renormalized, motion_jacobian
 from gpumap.ekf.update import (
     _apply,
+    _cho_solve,
     _elevation_var_given_pose,
     _hp,
     _iterate,
@@ -50,6 +50,12 @@ from gpumap.lie import orthonormalize, rpy_from_rotation, se3_adjoint, se3_inver
 __all__ = ["InnovationStats", "PlaneUpdateResult", "SonarEKF", "UpdateResult"]
 
 _log = logging.getLogger("gpumap.ekf")
+
+
+@functools.lru_cache(maxsize=64)
+def _nis_band(dof: int) -> tuple[float, float]:
+    """Two-sided 99.99 % band of ``chi2(dof) / dof``."""
+    return _chi2_quantile(0.00005, dof) / dof, _chi2_quantile(0.99995, dof) / dof
 
 _BLAS = None  # threadpoolctl controller, made on first use (it scans the loaded libraries once)
 
@@ -226,8 +232,8 @@ class SonarEKF:
     nis_window : int, default 200
         Returns over which :meth:`innovation_stats` pools the NIS and the innovations; once
         the window is full, an update whose pooled NIS per dof falls outside the two-sided
-        99.99 % chi-square band warns once (``RuntimeWarning``; also logged at INFO on ``gpumap.ekf``
-        logger) with the noise the innovations suggest. 0 turns the monitor off.
+        99.99 % chi-square band warns once (``RuntimeWarning``; also logged at INFO on
+        ``gpumap.ekf``) with the noise the innovations suggest. 0 turns the monitor off.
     blas_threads : int or None, default 1
         BLAS threads used inside ``predict`` and the updates (through threadpoolctl, set and
         restored around each call, about 10 µs). The filter's matrices are small and dense:
@@ -330,8 +336,9 @@ class SonarEKF:
         self._nis: float | None = None
         self._nis_dof = 0
         # Innovation monitor: per fused update (returns, NIS, sum nu nu^T, sum S) over the
-        # last nis_window returns; _nis_warned avoids repeating the warning.
+        # last nis_window returns, their running sum; _nis_warned avoids repeating the warning.
         self._innov: collections.deque = collections.deque()
+        self._isum = np.zeros(10)
         self._nis_warned = False
 
     # ------------------------------------------------------------------ read-only views
@@ -492,8 +499,7 @@ class SonarEKF:
         P[:, :6] = P[:, :6] @ F.T
         P[:6, :6] += Q
         P = 0.5 * (P + P.T)
-        T = self._T @ U
-        T[:3, :3] = orthonormalize(T[:3, :3])
+        T = _renormalized(self._T @ U)
         if not (np.all(np.isfinite(P)) and np.all(np.isfinite(T))):
             raise FloatingPointError("predict produced non-finite values; the filter is unchanged")
         self._T, self._P = T, P
@@ -541,18 +547,20 @@ class SonarEKF:
             slots = np.array([self._index[id_list[k]] for k in known])
             meas = np.stack([rng_m[known], brg[known]], axis=1)
             Ra, ta = self._Ra[slots], self._ta[slots]
-            nu, Hp, Hs, ok, hee = _linearize(T, S[slots], Ra, ta, meas)
+            # How loose each elevation is relative to the current pose (what the returns see;
+            # a common pose offset is not), at most the aperture prior's. Below 1 % of the
+            # prior's sd the second-order term is negligible and left out.
+            ve = np.minimum(_elevation_var_given_pose(P, slots), self.elevation_var_rad2)
+            ve2 = np.where(ve > 1e-4 * self.elevation_var_rad2, ve, 0.0) if self.second_order else 0.0 * ve
+            nu, Hp, Hs, ok, hee = _linearize(T, S[slots], Ra, ta, meas, bool(np.any(ve2)))
             degenerate = [id_list[known[j]] for j in np.flatnonzero(~ok)]
             sel = np.flatnonzero(ok)
             nu, Hp, Hs, hee, slots = nu[sel], Hp[sel], Hs[sel], hee[sel], slots[sel]
-            meas, Ra, ta = meas[sel], Ra[sel], ta[sel]
+            meas, Ra, ta, ve, ve2 = meas[sel], Ra[sel], ta[sel], ve[sel], ve2[sel]
             e = 6 + 3 * slots + 2
-            # How loose each elevation is relative to the current pose (what the returns see;
-            # a common pose offset is not), at most the aperture prior's.
-            ve = np.minimum(_elevation_var_given_pose(P, slots), self.elevation_var_rad2)
             uncertain = ve > self.init_elevation_sigma_rad**2
             r_var = np.array([self.range_sigma_m**2, self.bearing_sigma_rad**2])
-            ret = _Returns(S[slots], Ra, ta, slots, meas, r_var, ve if self.second_order else 0.0 * ve)
+            ret = _Returns(S[slots], Ra, ta, slots, meas, r_var, ve2)
             nu_e, Rb = ret.terms(nu, hee)
             # Per-return gate on the 2x2 marginal innovation covariance. A return of a feature
             # whose elevation is uncertain is also solved on its own by Gauss-Newton (from
@@ -600,7 +608,8 @@ class SonarEKF:
                 S = S + dx[6:-6].reshape(-1, 3)
                 S[:, 1] = wrap_angle(S[:, 1])
                 accepted = [id_list[known[sel[j]]] for j in keep]
-                innov = (len(kk), nis, np.einsum("ki,kj->ij", nu_e[kk], nu_e[kk]), Sb[kk].sum(axis=0))
+                innov = np.concatenate([[len(kk), nis], (nu_e[kk].T @ nu_e[kk]).ravel(),
+                                        Sb[kk].sum(axis=0).ravel()])
 
         new_ids: list[int] = []
         index = dict(self._index)
@@ -742,8 +751,8 @@ class SonarEKF:
         S[np.diag_indices(keep.size)] += var
         S = 0.5 * (S + S.T)
         cho = _robust_cholesky(S)
-        KT = scipy.linalg.cho_solve(cho, HP, check_finite=False)  # (a, N) = K^T, no inverse
-        nis = float(nu @ scipy.linalg.cho_solve(cho, nu, check_finite=False))
+        KT = _cho_solve(cho, HP)  # (a, N) = K^T, no inverse
+        nis = float(nu @ _cho_solve(cho, nu))
         dx = KT.T @ nu
         # Joseph form (I - K H) P (I - K H)^T + K R K^T with H = [Hp, 0].
         AP = P - KT.T @ HP
@@ -773,37 +782,38 @@ class SonarEKF:
         """
         if not self._innov:
             return None
-        n = sum(v[0] for v in self._innov)
-        nis = sum(v[1] for v in self._innov)
-        NN = sum(v[2] for v in self._innov) / n
-        SS = sum(v[3] for v in self._innov) / n
-        dof = 2 * n
-        lo, hi = (_chi2_quantile(p, dof) / dof for p in (0.00005, 0.99995))
+        v = np.sum(self._innov, axis=0)  # (n, nis, sum nu nu^T (4), sum S (4))
+        n = v[0]
+        NN, SS = v[2:6].reshape(2, 2) / n, v[6:10].reshape(2, 2) / n
+        dof = int(round(2 * n))
+        lo, hi = _nis_band(dof)
         r_var = np.array([self.range_sigma_m**2, self.bearing_sigma_rad**2])
         # Mehra: E[nu nu^T] = H P H^T + R, so R ~ mean(nu nu^T) - mean(H P H^T).
         R_hat = np.maximum(np.diag(NN) - (np.diag(SS) - r_var), 0.0)
         return InnovationStats(
-            returns=int(n), nis_per_dof=float(nis / dof), band=(float(lo), float(hi)),
+            returns=int(round(n)), nis_per_dof=float(v[1] / dof), band=(lo, hi),
             range_nis=float(NN[0, 0] / SS[0, 0]), bearing_nis=float(NN[1, 1] / SS[1, 1]),
             range_sigma_m=float(math.sqrt(R_hat[0])), bearing_sigma_rad=float(math.sqrt(R_hat[1])))
 
-    def _monitor(self, innov: tuple | None) -> None:
+    def _monitor(self, innov: np.ndarray | None) -> None:
         """Add an update's innovations to the window; warn once when the NIS leaves its band."""
         if innov is None or self.nis_window == 0:
             return
         self._innov.append(innov)
-        while sum(v[0] for v in self._innov) - self._innov[0][0] >= self.nis_window:
-            self._innov.popleft()
-        st = self.innovation_stats()
-        if st is None or st.returns < self.nis_window:
+        self._isum = self._isum + innov
+        while self._isum[0] - self._innov[0][0] >= self.nis_window:
+            self._isum = self._isum - self._innov.popleft()
+        if self._isum[0] < self.nis_window:
             return
-        lo, hi = st.band
-        if lo <= st.nis_per_dof <= hi:
+        dof = int(round(2 * self._isum[0]))
+        lo, hi = _nis_band(dof)
+        if lo <= self._isum[1] / dof <= hi:
             self._nis_warned = False
             return
         if self._nis_warned:
             return
         self._nis_warned = True
+        st = self.innovation_stats()
         msg = (f"SonarEKF: NIS per dof over the last {st.returns} returns is {st.nis_per_dof:.2f}, "
                f"outside the 99.99 % band [{lo:.2f}, {hi:.2f}] of a filter whose noise is right: "
                f"its covariance is {'overconfident' if st.nis_per_dof > hi else 'too loose'}. "

@@ -197,7 +197,8 @@ def _anchored_to_world(
 
 
 def _linearize(
-    T: np.ndarray, S: np.ndarray, Ra: np.ndarray, ta: np.ndarray, meas: np.ndarray
+    T: np.ndarray, S: np.ndarray, Ra: np.ndarray, ta: np.ndarray, meas: np.ndarray,
+    curvature: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Innovations ``(k, 2)``, ``H_pose (k, 2, 6)``, ``H_s (k, 2, 3)``, a usable mask ``(k,)``
     and the second derivative of ``(range, azimuth)`` in the anchored elevation ``(k, 2)``.
@@ -205,7 +206,7 @@ def _linearize(
     ``S``, ``Ra``, ``ta`` are the anchored coordinates and anchors of the ``k`` returns'
     features, ``meas`` their ``(range, azimuth)``. A return is not usable when its feature is
     predicted on the sonar's z axis (azimuth undefined) or its anchored coordinates are
-    degenerate (``r <= 0`` or elevation at +-90 deg).
+    degenerate (``r <= 0`` or elevation at +-90 deg). ``curvature=False``: zeros for the last.
     """
     Lw, J = _anchored_to_world(S, Ra, ta)
     R, t = T[:3, :3], T[:3, 3]
@@ -213,7 +214,8 @@ def _linearize(
     ok = (rh > MIN_HORIZONTAL_M * np.maximum(1.0, z[:, 0])) & (S[:, 0] > 0) & (np.cos(S[:, 2]) > 1e-6)
     nu = meas - z
     nu[:, 1] = wrap_angle(nu[:, 1])
-    return nu, Hp, Hl @ J, ok, _elevation_curvature(R, t, Lw, J, Lw - ta)
+    hee = _elevation_curvature(R, t, Lw, J, Lw - ta) if curvature else np.zeros_like(nu)
+    return nu, Hp, Hl @ J, ok, hee
 
 
 def _elevation_curvature(

@@ -33,8 +33,7 @@ def _inject(T: np.ndarray, Pn: np.ndarray, dpose: np.ndarray) -> tuple[np.ndarra
     ``T_true = T Exp(e)``, ``T_new = T Exp(d)``  =>  ``e_new ~= J_r(d) (e - d)``,
     ``J_r ~= I - ad(d)/2``. Returns the new pose and the symmetrised covariance.
     """
-    Tn = T @ se3_exp(dpose)
-    Tn[:3, :3] = orthonormalize(Tn[:3, :3])
+    Tn = _renormalized(T @ se3_exp(dpose))
     G = np.eye(6) - 0.5 * se3_ad(dpose)
     Pn[:6, :] = G @ Pn[:6, :]
     Pn[:, :6] = Pn[:, :6] @ G.T
@@ -46,9 +45,17 @@ def _inject_gauge(G: np.ndarray, Pn: np.ndarray, dg: np.ndarray) -> tuple[np.nda
     """:func:`_inject` for the gauge, the last 6 states (nothing to do for a zero correction)."""
     if not np.any(dg):
         return G, Pn
-    Gn = G @ se3_exp(dg)
-    Gn[:3, :3] = orthonormalize(Gn[:3, :3])
+    Gn = _renormalized(G @ se3_exp(dg))
     J = np.eye(6) - 0.5 * se3_ad(dg)
     Pn[-6:, :] = J @ Pn[-6:, :]
     Pn[:, -6:] = Pn[:, -6:] @ J.T
     return Gn, 0.5 * (Pn + Pn.T)
+
+
+def _renormalized(T: np.ndarray) -> np.ndarray:
+    """``T`` with its rotation projected back onto SO(3) once round-off has moved it 1e-12 away
+    (the SVD costs more than the whole check; products of rotations drift slowly)."""
+    R = T[:3, :3]
+    if float(np.abs(R.T @ R - np.eye(3)).max()) > 1e-12:
+        T[:3, :3] = orthonormalize(R)
+    return T

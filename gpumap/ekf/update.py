@@ -16,6 +16,8 @@ from gpumap.ekf.measurement import _linearize
 from gpumap.ekf.motion import _inject
 from gpumap.lie import se3_ad, se3_exp
 
+_EYE6 = np.eye(6)
+
 
 def _hp(P: np.ndarray, Hp: np.ndarray, Hs: np.ndarray, slots: np.ndarray) -> np.ndarray:
     """``H @ P`` for block-sparse ``H`` (pose block + one feature block per return), ``(k, 2, N)``."""
@@ -48,7 +50,7 @@ class _Gain:
 
     def nis(self, nu: np.ndarray) -> float:
         """``nu^T S^-1 nu`` for a stacked innovation ``(2a,)``."""
-        return float(nu @ scipy.linalg.cho_solve(self.cho, nu, check_finite=False))
+        return float(nu @ _cho_solve(self.cho, nu))
 
     def h_times(self, dx: np.ndarray) -> np.ndarray:
         """``H dx`` for a full error-state vector ``(N,)``; returns ``(2a,)``."""
@@ -116,7 +118,7 @@ def _gain(
     S4[np.arange(a), :, np.arange(a), :] += Rb
     S = 0.5 * (S + S.T)
     cho = _robust_cholesky(S)
-    KT = scipy.linalg.cho_solve(cho, HPf, check_finite=False)  # (2a, N) = K^T, no inverse
+    KT = _cho_solve(cho, HPf)  # (2a, N) = K^T, no inverse
     if own_only is not None and np.any(own_only):
         for j in np.flatnonzero(own_only):
             keep = KT[2 * j : 2 * j + 2, cols[3 * j : 3 * j + 3]].copy()
@@ -165,14 +167,15 @@ def _iterate(
     if dx0 is not None:
         dx, start = dx0, 0
     rows = (6 + 3 * ret.slots[:, None] + np.arange(3)[None]).reshape(-1)
+    curv = bool(np.any(ret.ve))
     for _ in range(start, iterations):
         dpose = dx[:6]
         Ti = T @ se3_exp(dpose)
         Si = ret.S + dx[rows].reshape(-1, 3)
-        nu_i, Hp_i, Hs_i, ok, hee_i = _linearize(Ti, Si, ret.Ra, ret.ta, ret.meas)
+        nu_i, Hp_i, Hs_i, ok, hee_i = _linearize(Ti, Si, ret.Ra, ret.ta, ret.meas, curv)
         if not np.all(ok):
             break
-        Hp_i = Hp_i @ (np.eye(6) - 0.5 * se3_ad(dpose))
+        Hp_i = Hp_i @ (_EYE6 - 0.5 * se3_ad(dpose))
         nu_i, Rb_i = ret.terms(nu_i, hee_i)
         gi = _gain(P, Hp_i, Hs_i, ret.slots, Rb_i, own_only)
         eff = nu_i.reshape(-1) + gi.h_times(dx)
@@ -212,7 +215,12 @@ def _elevation_var_given_pose(P: np.ndarray, slots: np.ndarray) -> np.ndarray:
     e = 6 + 3 * slots + 2
     Ppp = P[:6, :6]
     Pep = P[np.ix_(e, np.arange(6))]  # (k, 6)
-    lam, V = np.linalg.eigh(Ppp)
+    scale = float(np.abs(np.diag(Ppp)).max())
+    c, info = _POTRF(Ppp, lower=1, clean=1)
+    if info == 0 and float(np.diag(c).min()) ** 2 > 1e-12 * scale:  # well conditioned: Cholesky
+        y, _ = _POTRS(c, Pep.T, lower=1)
+        return P[e, e] - np.einsum("ik,ik->k", Pep.T, y)
+    lam, V = np.linalg.eigh(Ppp)  # singular (an exactly known pose direction): pseudo-inverse
     tol = max(float(lam.max()), 1e-300) * 1e-12
     inv = (V / np.where(lam > tol, lam, np.inf)) @ V.T
     return P[e, e] - np.einsum("ki,ij,kj->k", Pep, inv, Pep)
@@ -237,20 +245,28 @@ def _nis_2x2(S: np.ndarray, nu: np.ndarray) -> np.ndarray:
     return np.where(ok, y1 * y1 + y2 * y2, np.inf)
 
 
+_POTRF, _POTRS = scipy.linalg.lapack.get_lapack_funcs(("potrf", "potrs"), (np.zeros(1),))
+
+
+def _cho_solve(cho: tuple[np.ndarray, bool], b: np.ndarray) -> np.ndarray:
+    """``S^-1 b`` from :func:`_robust_cholesky`'s factor (LAPACK ``potrs``, no checks: hot path)."""
+    x, info = _POTRS(cho[0], b, lower=1)
+    if info != 0:
+        raise FloatingPointError(f"Expected a solvable innovation covariance, but LAPACK potrs said {info}")
+    return x
+
+
 def _robust_cholesky(S: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Cholesky factor of a symmetric ``S``; adds growing jitter only if round-off broke PD."""
-    try:
-        return scipy.linalg.cho_factor(S, lower=True, check_finite=False)
-    except np.linalg.LinAlgError:
-        pass
+    """Lower Cholesky factor of a symmetric ``S`` (LAPACK ``potrf``), as ``(L, True)``; adds
+    growing jitter only if round-off broke positive definiteness."""
+    c, info = _POTRF(S, lower=1, clean=1)
+    if info == 0:
+        return c, True
     d = np.abs(np.diag(S)).max()
     for k in range(-14, -5):
-        try:
-            return scipy.linalg.cho_factor(
-                S + (d * 10.0**k) * np.eye(S.shape[0]), lower=True, check_finite=False
-            )
-        except np.linalg.LinAlgError:
-            continue
+        c, info = _POTRF(S + (d * 10.0**k) * np.eye(S.shape[0]), lower=1, clean=1)
+        if info == 0:
+            return c, True
     raise FloatingPointError(
         "Expected a positive definite innovation covariance, but Cholesky failed even with "
         "jitter; the filter is unchanged"
