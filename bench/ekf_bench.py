@@ -43,10 +43,11 @@ from gpumap.sim.prism import (
 from scipy.stats import chi2
 from tqdm import tqdm
 
-from bench.common import compact, machine_info
 from gpumap.ekf import SonarEKF, spherical_point
 from gpumap.ekf.batch import BatchProblem
 from gpumap.lie import se3_adjoint, se3_exp, se3_inverse
+
+from .common import compact, machine_info
 
 
 def _prism_stats(cfg: PrismConfig, seeds: int, desc: str, bar: bool = True, init: str = "arc") -> dict:

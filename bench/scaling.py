@@ -145,7 +145,7 @@ def ekf_cost(
         for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
             env[k] = str(blas_threads)
         code = (
-            "import json, sys; from bench.scaling import ekf_cost; "
+            f"import json, sys; from {__package__}.scaling import ekf_cost; "
             f"print(json.dumps(ekf_cost({tuple(counts)!r}, {reps})))"
         )
         root = Path(__file__).resolve().parents[1]

@@ -4,7 +4,9 @@ Runs the OASIS tank frames (``shared/data/oasis_tank``) through :func:`gpumap.re
 at 5 cm on the default backend, alternating: no view; ``--view`` served with a headless
 Chromium connected (when Debian's ``chromium`` is installed; otherwise nobody watching);
 ``--record``. Each row is the best of ``--repeat`` runs of ``seconds_total`` (read + convert +
-integrate + viewing, after the mapper's set-up). Writes ``bench/results/viewer_cost.json``.
+integrate + viewing, after the mapper's set-up), and of the process's CPU seconds (all its
+threads: PoCL's, viser's, the recorder's; not the browser's), steadier than wall time on a
+shared machine. Writes ``bench/results/viewer_cost.json``.
 
     python -m bench.viewer_cost [--data ../shared/data/oasis_tank] [--repeat 3]
 """
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import socket
 import subprocess
@@ -20,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench.common import machine_info
+from .common import machine_info
 
 RESULTS = Path(__file__).resolve().parent / "results" / "viewer_cost.json"
 
@@ -54,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     grid, spec, thr = warm.grid, warm.spec, 0.4
     chromium = shutil.which("chromium")
     rows: dict[str, list[float]] = {"none": [], "view_no_browser": [], "view": [], "record": []}
+    cpu: dict[str, list[float]] = {k: [] for k in rows}
     extra: dict[str, dict] = {}
     tmp = Path(tempfile.mkdtemp(prefix="viewer-cost-"))
     try:
@@ -76,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
                         time.sleep(2.0)  # let the page settle before timing
                 elif mode == "record":
                     session = Session(_session_args(False, tmp / "run.gpumap-rec", 0), spec, grid, thr)
+                c0 = time.process_time()
                 mapper, st = run_replay(rec, voxel_size_m=a.voxel_size, grid=grid, progress=False,
                                         on_ping=None if session is None else session.ping)
                 if session is not None:
@@ -91,6 +96,7 @@ def main(argv: list[str] | None = None) -> int:
                     if session.recorder is not None:
                         extra["record"] = {"bytes": (tmp / "run.gpumap-rec").stat().st_size,
                                            "pings": session.recorder.n_pings}
+                cpu[mode].append(time.process_time() - c0)
                 if browser is not None:
                     browser.terminate()
                     browser.wait(10)
@@ -109,6 +115,9 @@ def main(argv: list[str] | None = None) -> int:
         "seconds": {k: round(min(v), 3) for k, v in rows.items()},
         "seconds_all": {k: [round(x, 3) for x in v] for k, v in rows.items()},
         "overhead": {k: round(min(v) / base - 1.0, 3) for k, v in rows.items() if k != "none"},
+        "cpu_seconds": {k: round(min(v), 3) for k, v in cpu.items()},
+        "cpu_overhead": {k: round(min(v) / min(cpu["none"]) - 1.0, 3) for k, v in cpu.items() if k != "none"},
+        "load_average": list(os.getloadavg()),
         "target_overhead": 0.20,
         "view": extra.get("view"),
         "view_no_browser": extra.get("view_no_browser"),
@@ -120,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(out, indent=2))
-    keys = ("frames", "backend", "seconds", "overhead", "view", "view_no_browser", "record")
+    keys = ("frames", "backend", "seconds", "overhead", "cpu_overhead", "load_average", "view", "record")
     print(json.dumps({k: out[k] for k in keys}, indent=1))
     return 0
 

@@ -10,7 +10,7 @@ mapper; what it sends is throttled so that viewing never dominates the run:
 - the map: at most every ``map_interval_s`` (0.5 s) and every ``map_every`` pings; only the
   16^3-voxel blocks whose occupied voxels changed are sent again, each block one batched
   mesh of boxes coloured by value (viridis) or height (turbo);
-- and both only while the time spent viewing stays within ``budget`` (10 %) of the wall
+- and both only while the time spent viewing stays within ``budget`` (5 %) of the wall
   time: an update that took ``dt`` holds the next one of its kind off for ``dt / budget``.
 
 Scene tree: ``/map/b_I_J_K`` (blocks), ``/sonar`` (frame, ``/sonar/fov``, ``/sonar/fan``),
@@ -181,7 +181,7 @@ class MapViewer:
         map_interval_s: float = 0.5,
         pose_interval_s: float = 0.1,
         color_by: str = "height",
-        budget: float = 0.1,
+        budget: float = 0.05,
     ) -> None:
         viser = require_viser()
         self.spec, self.grid, self.threshold = spec, grid, float(threshold)

@@ -4,8 +4,9 @@
 FILE`` plays it back in the browser view with a ping slider. Writing needs nothing beyond
 NumPy (no viewer): the vehicle can record while nobody watches, the laptop views it later.
 
-The file is a zip (``.gpumap-rec``; NumPy ``.npy`` members, deflated) written as the run goes
-and swapped into place atomically when it closes (:func:`gpumap.atomic.atomic_write`):
+The file is a zip (``.gpumap-rec``; NumPy ``.npy`` members; images stored, the rest
+deflated) written as the run goes and swapped into place atomically when it closes
+(:func:`gpumap.atomic.atomic_write`):
 
 - ``meta.json``: format name and version, the sonar and grid specs, the occupied threshold,
   ``n_pings``, ``title`` and any extras (truth, paths, landmarks are arrays below);
@@ -156,7 +157,10 @@ class Recorder:
     def _write(self, name: str, a: np.ndarray) -> None:
         buf = io.BytesIO()
         np.save(buf, np.ascontiguousarray(a), allow_pickle=False)
-        self._zip.writestr(name, buf.getvalue())
+        # images are stored as they are (deflating speckled sonar pings costs more CPU than the
+        # mapper and saves ~half); the map's changes and the metadata are deflated
+        kind = zipfile.ZIP_STORED if name.endswith("/image.npy") else zipfile.ZIP_DEFLATED
+        self._zip.writestr(name, buf.getvalue(), compress_type=kind)
 
     def _put(self, name: str, a: np.ndarray) -> None:
         self._check()
