@@ -78,6 +78,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="acoustic-shadow allowance (metres): returns also count up to M behind them; "
                         "0 = the paper's min-max")
     p.add_argument("--seed", type=nonnegative_int, default=0)
+    p.add_argument("--sparse", action="store_true",
+                   help="map into gpumap.SparseMinMaxMapper (blocks only where pings look, bounded by the "
+                        "scene's grid; the same values as the dense grid) and report its memory")
     p.add_argument("--no-progress", action="store_true")
     from gpumap.viewer.cli import add_view_args
 
@@ -96,9 +99,10 @@ def _map_pings(
     backend: str, method: str, threshold: float, quiet: bool, label: str, curve: bool, shadow_m: float = 0.0,
     mapper: gpumap.MinMaxMapper | None = None, rule: str | None = None,
     detectable: np.ndarray | None = None, pose_covs: np.ndarray | None = None, on_ping=None,
-) -> tuple[gpumap.MinMaxMapper, list[float], list[dict]]:
+    sparse: bool = False,
+) -> tuple[gpumap.MinMaxMapper | gpumap.SparseMinMaxMapper, list[float], list[dict]]:
     if mapper is None:
-        mapper = build_mapper(scene, backend, method, _rule(rule, method), threshold, shadow_m)
+        mapper = build_mapper(scene, backend, method, _rule(rule, method), threshold, shadow_m, sparse=sparse)
     times, history = [], []
     seen = np.zeros(scene.grid.n_voxels, bool)
     curve_at = _curve_pings(len(pings), scene.grid.n_voxels) if curve else set()
@@ -129,14 +133,23 @@ def _curve_pings(n_pings: int, n_voxels: int) -> set[int]:
     return {int(i) for i in np.linspace(0, n_pings - 1, 12).round()}
 
 
-def build_mapper(scene: Scene, backend: str, method: str, rule: str, threshold: float,
-                 shadow_m: float = 0.0) -> gpumap.MinMaxMapper:
-    """The mapper every row of the demo integrates into: a dense grid over ``scene.grid``.
+def build_mapper(
+    scene: Scene, backend: str, method: str, rule: str, threshold: float, shadow_m: float = 0.0,
+    sparse: bool = False,
+) -> gpumap.MinMaxMapper | gpumap.SparseMinMaxMapper:
+    """The mapper every row of the demo integrates into (the one place that picks the storage).
 
-    The one place that chooses the map's storage; what the demo reads from a mapper is
-    ``integrate``, ``synchronize``, ``values`` (over ``scene.grid``), ``rule``, ``backend``,
+    ``sparse=False``: a dense :class:`gpumap.MinMaxMapper` over ``scene.grid``; ``True``: a
+    :class:`gpumap.SparseMinMaxMapper` bounded by the same box (its voxels are the grid's, so
+    ``values()`` has the grid's shape and, where observed, the dense grid's values). What the
+    demo reads from either: ``integrate``, ``synchronize``, ``values``, ``rule``, ``backend``,
     ``save`` and :func:`_memory_report`.
     """
+    if sparse:
+        g = scene.grid
+        box = gpumap.SparseSpec(g.voxel_size_m, bounds=(g.min_corner_m, g.max_corner_m))
+        return gpumap.SparseMinMaxMapper(scene.sonar_spec, box, backend=backend, method=method,
+                                         shadow_m=shadow_m, rule=rule, threshold=threshold)
     return gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, method=method,
                                shadow_m=shadow_m, rule=rule, threshold=threshold)
 
@@ -146,22 +159,31 @@ def _bytes_per_voxel(rule: str) -> int:
     return 9 if rule == "visible" else 4
 
 
-def _memory_report(mapper: gpumap.MinMaxMapper, scene: Scene) -> dict:
+def _memory_report(mapper: gpumap.MinMaxMapper | gpumap.SparseMinMaxMapper, scene: Scene) -> dict:
     """Bytes the map holds next to what the voxels it observed need and the dense equivalents.
 
-    ``map_bytes``: the mapper's per-voxel arrays; ``observed_voxels``/``observed_bytes``:
-    the voxels some ping observed and their bytes at the same cost per voxel (what an ideal
-    sparse map would hold); ``dense_grid_bytes``: a dense grid over ``scene.grid``; for a
+    ``map_bytes``: the dense mapper's per-voxel arrays, or the sparse mapper's pool and index
+    (``total_bytes`` of :meth:`gpumap.SparseMinMaxMapper.memory_stats`, whose other figures
+    come along under ``sparse``); ``observed_voxels``/``observed_bytes``: the voxels some
+    ping observed and their bytes at the same cost per voxel (what an ideal sparse map
+    would hold); ``dense_grid_bytes``: a dense grid over ``scene.grid``; for a
     scene with a seabed (``survey``), ``dense_water_column_bytes``: a dense grid over the
     grid's plan area from its floor up to the sea surface (z = 0), what a dense map needs
     without knowing where the seabed lies.
     """
     g = scene.grid
     bpv = _bytes_per_voxel(mapper.rule)
-    observed = int(np.count_nonzero(np.isfinite(mapper.values())))
-    rep = {"storage": "dense", "bytes_per_voxel": bpv, "map_bytes": g.n_voxels * bpv,
+    if isinstance(mapper, gpumap.SparseMinMaxMapper):
+        st = mapper.memory_stats()
+        storage, map_bytes, observed = "sparse", int(st["total_bytes"]), int(st["observed_voxels"])
+    else:
+        storage, map_bytes = "dense", g.n_voxels * bpv
+        observed = int(np.count_nonzero(np.isfinite(mapper.values())))
+    rep = {"storage": storage, "bytes_per_voxel": bpv, "map_bytes": map_bytes,
            "observed_voxels": observed, "observed_bytes": observed * bpv,
            "dense_grid_voxels": g.n_voxels, "dense_grid_bytes": g.n_voxels * bpv}
+    if storage == "sparse":
+        rep["sparse"] = st
     if scene.seabed_z_m is not None and g.min_corner_m[2] < 0.0:
         s = g.voxel_size_m
         lo, hi = np.asarray(g.min_corner_m), np.asarray(g.max_corner_m)
@@ -303,7 +325,8 @@ def run_demo(args: argparse.Namespace) -> dict:
     T_true = scene.T_W_S[sel]
     # fail before minutes of simulation if the backend cannot run here (it also compiles the kernels)
     rule = _rule(args.rule, args.method)
-    first = build_mapper(scene, args.backend, args.method, rule, args.threshold, args.shadow_m)
+    sparse = bool(getattr(args, "sparse", False))
+    first = build_mapper(scene, args.backend, args.method, rule, args.threshold, args.shadow_m, sparse=sparse)
     truth = occupancy(scene, seed=args.seed)
 
     t0 = time.perf_counter()
@@ -331,7 +354,7 @@ def run_demo(args: argparse.Namespace) -> dict:
     if args.method == "gather":
         m_o, t_o, _ = _map_pings(scene, truth, pings, seen_each, T_true, args.backend, args.method,
                                  args.threshold, quiet, f"{other} rule", curve=False, shadow_m=args.shadow_m,
-                                 rule=other)
+                                 rule=other, sparse=sparse)
         ev_o = _final_eval(m_o, scene, truth, seen_each, args.threshold, detectable, full=True)
         rules[other] = {**_summary(ev_o), "height_error_m": ev_o["height_error_m"],
                         "ms_per_image": 1e3 * float(np.mean(t_o[1:] if len(t_o) > 1 else t_o))}
@@ -361,7 +384,7 @@ def run_demo(args: argparse.Namespace) -> dict:
         rows = {"true": {**_summary(final), **_pose_error(T_true, T_true)}}
         m_odo, _, _ = _map_pings(scene, truth, pings, seen_each, T_odo, args.backend, args.method,
                                  args.threshold, quiet, "odometry", curve=False, shadow_m=args.shadow_m,
-                                 rule=rule)
+                                 rule=rule, sparse=sparse)
         rows["odometry"] = {**_final_eval(m_odo, scene, truth, seen_each, args.threshold, detectable),
                             **_pose_error(T_odo, T_true)}
         try:
@@ -371,13 +394,13 @@ def run_demo(args: argparse.Namespace) -> dict:
         else:
             m_ekf, _, _ = _map_pings(scene, truth, pings, seen_each, T_ekf, args.backend, args.method,
                                      args.threshold, quiet, "EKF", curve=False, shadow_m=args.shadow_m,
-                                     rule=rule)
+                                     rule=rule, sparse=sparse)
             rows["ekf"] = {**_final_eval(m_ekf, scene, truth, seen_each, args.threshold, detectable),
                            **_pose_error(T_ekf, T_true)}
             # the same poses with their covariance: footprints grow with the uncertainty
             m_cov, _, _ = _map_pings(scene, truth, pings, seen_each, T_ekf, args.backend, args.method,
                                      args.threshold, quiet, "EKF + covariance", curve=False,
-                                     shadow_m=args.shadow_m, rule=rule, pose_covs=C_ekf)
+                                     shadow_m=args.shadow_m, rule=rule, pose_covs=C_ekf, sparse=sparse)
             rows["ekf_cov"] = {**_final_eval(m_cov, scene, truth, seen_each, args.threshold, detectable),
                                **_pose_error(T_ekf, T_true)}
         metrics["pose_noise"] = {"sigma": float(args.pose_noise), "rows": rows}
@@ -518,13 +541,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:8s} {row['false_negative_rate_detectable']:7.3f} "
               f"{row['false_negative_rate_objects_detectable']:7.3f} {row['miss_rate']:6.3f} "
               f"{row['false_positive_rate_far']:7.3f} {row['free_carved_fraction']:7.3f} {row['pipe_found']}")
-    mem = m["memory"]
-    dense = [f"dense grid {mem['dense_grid_bytes'] / 2**20:.1f} MiB"]
-    if "dense_water_column_bytes" in mem:
-        dense.append(f"dense to the surface {mem['dense_water_column_bytes'] / 2**20:.1f} MiB")
-    print(f"map memory {mem['map_bytes'] / 2**20:.1f} MiB ({mem['storage']}); observed "
-          f"{mem['observed_voxels']} voxels x {mem['bytes_per_voxel']} B = "
-          f"{mem['observed_bytes'] / 2**20:.1f} MiB; " + "; ".join(dense))
+    if "memory" in m:
+        mem = m["memory"]
+        dense = [f"dense grid {mem['dense_grid_bytes'] / 2**20:.1f} MiB"]
+        if "dense_water_column_bytes" in mem:
+            dense.append(f"dense to the surface {mem['dense_water_column_bytes'] / 2**20:.1f} MiB")
+        print(f"map memory {mem['map_bytes'] / 2**20:.1f} MiB ({mem['storage']}); observed "
+              f"{mem['observed_voxels']} voxels x {mem['bytes_per_voxel']} B = "
+              f"{mem['observed_bytes'] / 2**20:.1f} MiB; " + "; ".join(dense))
     if "pose_noise" in m:
         for name, row in m["pose_noise"]["rows"].items():
             print(f"{name:9s} FN det {row.get('false_negative_rate_detectable', float('nan')):.3f} "

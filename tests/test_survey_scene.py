@@ -3,6 +3,7 @@ against the scene's analytic seabed and solids."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -245,3 +246,25 @@ def test_survey_sonar_sees_the_seabed(scene):
     assert off.sum() > 0.5 * len(q)
     dz = q[off, 2] - scene.seabed_z_m(q[off, 0], q[off, 1])
     assert np.percentile(np.abs(dz), 99) < 0.02, np.percentile(np.abs(dz), 99)
+
+
+def test_demo_survey_reports_memory_and_sparse_maps_the_same(tmp_path):
+    from gpumap.sim.demo import main
+
+    args = ["--scene", "survey", "--voxel-size", "0.2", "--pings", "4", "--backend", "numpy", "--no-progress"]
+    assert main([*args, "--out", str(tmp_path / "dense")]) == 0
+    assert main([*args, "--sparse", "--out", str(tmp_path / "sparse")]) == 0
+    d, s = (json.loads((tmp_path / n / "metrics.json").read_text()) for n in ("dense", "sparse"))
+    assert d["scene"] == "survey" and d["images"] == 4 and d["voxel_size_m"] == 0.2
+    assert d["grid_shape"] == [250, 100, 15]
+    md, ms = d["memory"], s["memory"]
+    assert md["storage"] == "dense" and ms["storage"] == "sparse"
+    assert md["map_bytes"] == md["dense_grid_bytes"] == 250 * 100 * 15 * 9
+    assert md["dense_water_column_bytes"] == 250 * 100 * 23 * 9  # from 4.6 m down to the surface
+    # the same pings into either storage: the same observed voxels and the same scores
+    assert 0 < md["observed_voxels"] == ms["observed_voxels"] < 250 * 100 * 15
+    assert ms["map_bytes"] == ms["sparse"]["total_bytes"]
+    for key in ("false_negative_rate_detectable", "false_positive_rate_far", "miss_rate", "observed_fraction",
+                "free_carved_fraction"):
+        assert d[key] == s[key], key
+    assert d["rules"]["plain"]["miss_rate"] == s["rules"]["plain"]["miss_rate"]
