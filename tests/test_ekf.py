@@ -1081,3 +1081,26 @@ def test_blas_threads_are_pinned_inside_a_step_and_restored_after():
     with pytest.raises(ValueError, match="blas_threads"):
         SonarEKF(np.eye(4), np.eye(6) * 1e-4, range_sigma_m=0.01, bearing_sigma_rad=0.01,
                  vfov_rad=0.3, blas_threads=0)
+
+
+def test_elevation_curvature_matches_finite_differences_and_the_fast_path() -> None:
+    """d^2 (range, azimuth) / d el^2 along each feature's arc: the reference formula, the form
+    _linearize uses (built from its Jacobians), and central differences agree."""
+    from gpumap.ekf.measurement import _anchored_to_world, _elevation_curvature, _linearize
+
+    rng = np.random.default_rng(21)
+    for _ in range(5):
+        T, Ta = se3_exp(0.5 * rng.normal(size=6)), se3_exp(0.5 * rng.normal(size=6))
+        S = np.column_stack([rng.uniform(1, 3, 4), rng.uniform(-0.5, 0.5, 4), rng.uniform(-0.3, 0.3, 4)])
+        Ra, ta = np.repeat(Ta[None, :3, :3], 4, 0), np.repeat(Ta[None, :3, 3], 4, 0)
+        fast = _linearize(T, S, Ra, ta, np.zeros((4, 2)))[4]
+        Lw, J = _anchored_to_world(S, Ra, ta)
+        ref = _elevation_curvature(T[:3, :3], T[:3, 3], Lw, J, Lw - ta)
+        np.testing.assert_allclose(fast, ref, atol=1e-12)
+        h = 1e-4
+        d = np.zeros_like(S)
+        d[:, 2] = h
+        z = [-_linearize(T, S + k * d, Ra, ta, np.zeros((4, 2)), False)[0] for k in (-1, 0, 1)]
+        d_az = wrap_angle(z[2][:, 1] - z[1][:, 1]) - wrap_angle(z[1][:, 1] - z[0][:, 1])
+        fd = np.column_stack([(z[2][:, 0] - 2 * z[1][:, 0] + z[0][:, 0]) / h**2, d_az / h**2])
+        np.testing.assert_allclose(fast, fd, atol=1e-5 * (1 + np.abs(fd).max()))

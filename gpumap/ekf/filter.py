@@ -326,8 +326,10 @@ class SonarEKF:
         # pose_cov0 stays huge instead of passing through the features' anchors.
         self._G = T
         self._T = np.eye(4)
-        self._P = np.zeros((12, 12))
-        self._P[6:, 6:] = P0
+        # With pose_cov0 = 0 the gauge is exact and its states are left out (_ng = 0).
+        self._ng = 6 if np.any(P0) else 0
+        self._P = np.zeros((6 + self._ng, 6 + self._ng))
+        self._P[6:, 6:] = P0[: self._ng, : self._ng]
         self._S = np.zeros((0, 3))  # anchored spherical coordinates (r, az, el)
         self._Ra = np.zeros((0, 3, 3))  # anchor rotations R_L_A (L: the gauge's frame)
         self._ta = np.zeros((0, 3))  # anchor positions t_L_A
@@ -354,7 +356,8 @@ class SonarEKF:
         """
         B = np.zeros((6, self._P.shape[0]))
         B[:, :6] = np.eye(6)
-        B[:, -6:] = se3_adjoint(se3_inverse(self._T))
+        if self._ng:
+            B[:, -6:] = se3_adjoint(se3_inverse(self._T))
         return B
 
     @property
@@ -394,7 +397,8 @@ class SonarEKF:
         for k in range(n):
             s = 6 + 3 * k
             B[s : s + 3, s : s + 3] = J[k]
-            B[s : s + 3, -6:] = self._gauge_jacobian(L[k])
+            if self._ng:
+                B[s : s + 3, -6:] = self._gauge_jacobian(L[k])
         C = B @ self._P @ B.T
         return 0.5 * (C + C.T)
 
@@ -414,14 +418,15 @@ class SonarEKF:
         world is the first sonar frame) that is the whole state; otherwise the error of ``G``
         is in :attr:`state_covariance`.
         """
-        n = self._P.shape[0] - 6
+        n = self._P.shape[0] - self._ng
         return self._P[:n, :n].copy()
 
     @property
     def state_covariance(self) -> np.ndarray:
-        """(6 + 3n + 6, 6 + 3n + 6) float64: :attr:`native_covariance` and, last, the right
+        """(6 + 3n + g, 6 + 3n + g) float64: :attr:`native_covariance` and, last, the right
         perturbation of the first pose estimate ``G`` (it starts as ``pose_cov0``; only
-        :meth:`update_plane_ranges`, an absolute measurement, changes it)."""
+        :meth:`update_plane_ranges`, an absolute measurement, changes it). ``g = 6``, or 0
+        when ``pose_cov0`` was zero (``G`` is then exact and not kept in the state)."""
         return self._P.copy()
 
     @property
@@ -455,8 +460,8 @@ class SonarEKF:
         k = self._slot(landmark_id)
         s = 6 + 3 * k
         L, D = self._world_points(self._S[k : k + 1], self._Ra[k : k + 1], self._ta[k : k + 1])
-        J = np.concatenate([D[0], self._gauge_jacobian(L[0])], axis=1)
-        idx = np.r_[s : s + 3, self._P.shape[0] - 6 : self._P.shape[0]]
+        J = np.concatenate([D[0], self._gauge_jacobian(L[0])], axis=1) if self._ng else D[0]
+        idx = np.r_[s : s + 3, self._P.shape[0] - self._ng : self._P.shape[0]]
         C = J @ self._P[np.ix_(idx, idx)] @ J.T
         return 0.5 * (C + C.T)
 
@@ -492,7 +497,7 @@ class SonarEKF:
         """
         U = check_pose(T_Sprev_Snext, "T_Sprev_Snext")
         Q = _check_cov(motion_cov, 6, "motion_cov")
-        U[:3, :3] = orthonormalize(U[:3, :3])
+        U = _renormalized(U)
         F = motion_jacobian(U)
         P = self._P.copy()
         P[:6, :] = F @ P[:6, :]
@@ -548,10 +553,15 @@ class SonarEKF:
             meas = np.stack([rng_m[known], brg[known]], axis=1)
             Ra, ta = self._Ra[slots], self._ta[slots]
             # How loose each elevation is relative to the current pose (what the returns see;
-            # a common pose offset is not), at most the aperture prior's. Below 1 % of the
-            # prior's sd the second-order term is negligible and left out.
-            ve = np.minimum(_elevation_var_given_pose(P, slots), self.elevation_var_rad2)
-            ve2 = np.where(ve > 1e-4 * self.elevation_var_rad2, ve, 0.0) if self.second_order else 0.0 * ve
+            # a common pose offset is not), at most the aperture prior's. The second-order term
+            # is left out where even a generous bound on it (|h_ee| <= 10 r_A for the range,
+            # 10 for the azimuth) stays under 1 % of the noise; the conditional variance, below
+            # the marginal one, is only needed where the marginal one is above both thresholds.
+            ve = P[6 + 3 * slots + 2, 6 + 3 * slots + 2]
+            small2 = 2e-3 * np.minimum(self.range_sigma_m / S[slots, 0], self.bearing_sigma_rad)
+            if np.any(ve > np.minimum(small2, self.init_elevation_sigma_rad**2)):
+                ve = np.minimum(_elevation_var_given_pose(P, slots), self.elevation_var_rad2)
+            ve2 = np.where(ve > small2, ve, 0.0) if self.second_order else 0.0 * ve
             nu, Hp, Hs, ok, hee = _linearize(T, S[slots], Ra, ta, meas, bool(np.any(ve2)))
             degenerate = [id_list[known[j]] for j in np.flatnonzero(~ok)]
             sel = np.flatnonzero(ok)
@@ -604,8 +614,9 @@ class SonarEKF:
                 dx, g, _, nis = _iterate(T, P, ret.take(kk), lin, passes if np.any(uncertain[kk])
                                          else self.iterations, own, dx0)
                 T, P = _apply(T, P, dx, g)
-                G, P = _inject_gauge(G, P, dx[-6:])
-                S = S + dx[6:-6].reshape(-1, 3)
+                if self._ng:
+                    G, P = _inject_gauge(G, P, dx[-6:])
+                S = S + dx[6 : P.shape[0] - self._ng].reshape(-1, 3)
                 S[:, 1] = wrap_angle(S[:, 1])
                 accepted = [id_list[known[sel[j]]] for j in keep]
                 innov = np.concatenate([[len(kk), nis], (nu_e[kk].T @ nu_e[kk]).ravel(),
@@ -638,7 +649,8 @@ class SonarEKF:
             Ra = np.concatenate([Ra, np.broadcast_to(T[:3, :3], (n_new, 3, 3))], axis=0)
             ta = np.concatenate([ta, np.broadcast_to(T[:3, 3], (n_new, 3))], axis=0)
             # The new features went after the gauge's 6 states: move those back to the end.
-            order = np.r_[0 : Nn - 6, Nn : Nn + 3 * n_new, Nn - 6 : Nn]
+            g = self._ng
+            order = np.r_[0 : Nn - g, Nn : Nn + 3 * n_new, Nn - g : Nn]
             Pn = Pn[np.ix_(order, order)]
             P = 0.5 * (Pn + Pn.T)
 
@@ -758,8 +770,10 @@ class SonarEKF:
         AP = P - KT.T @ HP
         Pn = AP - (AP @ Hp.T) @ KT + var * (KT.T @ KT)
         T, Pn = _inject(self._T, Pn, dx[:6])
-        G, Pn = _inject_gauge(self._G, Pn, dx[-6:])
-        S_f = self._S + dx[6:-6].reshape(-1, 3)
+        G = self._G
+        if self._ng:
+            G, Pn = _inject_gauge(G, Pn, dx[-6:])
+        S_f = self._S + dx[6 : Pn.shape[0] - self._ng].reshape(-1, 3)
         S_f[:, 1] = wrap_angle(S_f[:, 1])
         if not (np.all(np.isfinite(Pn)) and np.all(np.isfinite(T)) and np.all(np.isfinite(S_f))
                 and np.all(np.isfinite(G))):

@@ -45,8 +45,8 @@ def _observe_batch(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Predicted ``(r, azimuth)`` and Jacobians for ``k`` world points at once.
 
-    Returns ``z (k, 2)``, ``H_pose (k, 2, 6)``, ``H_l (k, 2, 3)`` and the horizontal
-    distance ``(k,)`` (for the degenerate-geometry test).
+    Returns ``z (k, 2)``, ``H_pose (k, 2, 6)``, ``H_l (k, 2, 3)``, the horizontal
+    distance ``(k,)`` (for the degenerate-geometry test) and the points in the sonar frame.
     """
     P = (L - t) @ R  # (k, 3): rows are R^T (l - t)
     x, y = P[:, 0], P[:, 1]
@@ -69,7 +69,7 @@ def _observe_batch(
     Hp[:, :, 3:] = dz_dp @ dp_dphi
     Hl = dz_dp @ R.T
     z = np.stack([r, np.arctan2(y, x)], axis=1)
-    return z, Hp, Hl, rh
+    return z, Hp, Hl, rh, P
 
 
 def observation_model(
@@ -94,7 +94,7 @@ def observation_model(
         Jacobian with respect to ``l_W``.
     """
     T = np.asarray(T_W_S, dtype=np.float64)
-    z, Hp, Hl, _ = _observe_batch(T[:3, :3], T[:3, 3], np.asarray(l_W, dtype=np.float64)[None])
+    z, Hp, Hl, _, _ = _observe_batch(T[:3, :3], T[:3, 3], np.asarray(l_W, dtype=np.float64)[None])
     return z[0], Hp[0], Hl[0]
 
 
@@ -210,12 +210,23 @@ def _linearize(
     """
     Lw, J = _anchored_to_world(S, Ra, ta)
     R, t = T[:3, :3], T[:3, 3]
-    z, Hp, Hl, rh = _observe_batch(R, t, Lw)
+    z, Hp, Hl, rh, q = _observe_batch(R, t, Lw)
     ok = (rh > MIN_HORIZONTAL_M * np.maximum(1.0, z[:, 0])) & (S[:, 0] > 0) & (np.cos(S[:, 2]) > 1e-6)
     nu = meas - z
     nu[:, 1] = wrap_angle(nu[:, 1])
-    hee = _elevation_curvature(R, t, Lw, J, Lw - ta) if curvature else np.zeros_like(nu)
-    return nu, Hp, Hl @ J, ok, hee
+    Hs = Hl @ J
+    if not curvature:
+        return nu, Hp, Hs, ok, np.zeros_like(nu)
+    # d^2 z / d el^2 (see _elevation_curvature, the reference form), from what is at hand:
+    # dz/dq q'' = H_l (-(l - t_A)); q_hat . v = H_s[:, 0, 2]; |v| = r_A (the arc's radius).
+    hee = np.einsum("kij,kj->ki", Hl, ta - Lw)
+    rs = np.where(z[:, 0] > 0, z[:, 0], 1.0)
+    hee[:, 0] += (S[:, 0] ** 2 - Hs[:, 0, 2] ** 2) / rs
+    v = J[:, :, 2] @ R
+    x, y, vx, vy = q[:, 0], q[:, 1], v[:, 0], v[:, 1]
+    h2 = np.where(rh > 0, rh * rh, 1.0)
+    hee[:, 1] += (2 * x * y * (vx * vx - vy * vy) + 2 * (y * y - x * x) * vx * vy) / (h2 * h2)
+    return nu, Hp, Hs, ok, hee
 
 
 def _elevation_curvature(
