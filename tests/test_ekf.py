@@ -590,7 +590,7 @@ def test_second_order_update_matches_a_dense_reference() -> None:
     np.testing.assert_allclose(res.nis, nu @ np.linalg.solve(S, nu), rtol=1e-4)
 
 
-def _noise_run(bearing_factor: float, seed: int = 0) -> tuple[SonarEKF, list]:
+def _noise_run(bearing_factor: float, seed: int = 0, **kw) -> tuple[SonarEKF, list]:
     """The prism flown back and forth for 600 returns, with bearing noise bearing_factor x the configured."""
     import warnings as _w
 
@@ -598,7 +598,7 @@ def _noise_run(bearing_factor: float, seed: int = 0) -> tuple[SonarEKF, list]:
     rng = np.random.default_rng(seed)
     pts = prism_vertices()
     ekf = SonarEKF(np.eye(4), np.zeros((6, 6)), range_sigma_m=cfg.range_sigma_m,
-                   bearing_sigma_rad=cfg.bearing_sigma_rad, vfov_rad=cfg.vfov_rad)
+                   bearing_sigma_rad=cfg.bearing_sigma_rad, vfov_rad=cfg.vfov_rad, **kw)
     T, Q = np.eye(4), np.diag([1e-6] * 6)
     with _w.catch_warnings(record=True) as caught:
         _w.simplefilter("always")
@@ -1104,3 +1104,15 @@ def test_elevation_curvature_matches_finite_differences_and_the_fast_path() -> N
         d_az = wrap_angle(z[2][:, 1] - z[1][:, 1]) - wrap_angle(z[1][:, 1] - z[0][:, 1])
         fd = np.column_stack([(z[2][:, 0] - 2 * z[1][:, 0] + z[0][:, 0]) / h**2, d_az / h**2])
         np.testing.assert_allclose(fast, fd, atol=1e-5 * (1 + np.abs(fd).max()))
+
+
+def test_adapt_noise_raises_the_bearing_sigma_to_the_true_one_and_the_nis_comes_back() -> None:
+    ekf, warned = _noise_run(2.0, adapt_noise=True)
+    cfg = PrismConfig()
+    assert warned and "adapt_noise: now" in str(warned[0].message)
+    assert 1.6 < ekf.bearing_sigma_rad / cfg.bearing_sigma_rad < 2.4
+    assert ekf.range_sigma_m >= cfg.range_sigma_m
+    st = ekf.innovation_stats()
+    assert st.band[0] <= st.nis_per_dof <= st.band[1]
+    quiet, _ = _noise_run(1.0, adapt_noise=True)
+    assert quiet.bearing_sigma_rad == cfg.bearing_sigma_rad and quiet.range_sigma_m == cfg.range_sigma_m

@@ -234,6 +234,12 @@ class SonarEKF:
         the window is full, an update whose pooled NIS per dof falls outside the two-sided
         99.99 % chi-square band warns once (``RuntimeWarning``; also logged at INFO on
         ``gpumap.ekf``) with the noise the innovations suggest. 0 turns the monitor off.
+    adapt_noise : bool, default False
+        When the monitor finds the covariance overconfident, raise ``range_sigma_m`` and
+        ``bearing_sigma_rad`` to the innovations' estimates (never lower them), say so in the
+        warning, and start a new window (it may raise them again). Off by default: an
+        estimator that rewrites its own noise needs the user's consent; on real data whose
+        noise was never measured it is the honest choice.
     blas_threads : int or None, default 1
         BLAS threads used inside ``predict`` and the updates (through threadpoolctl, set and
         restored around each call, about 10 µs). The filter's matrices are small and dense:
@@ -265,6 +271,7 @@ class SonarEKF:
         init_starts: int = 5,
         second_order: bool = True,
         nis_window: int = 200,
+        adapt_noise: bool = False,
         blas_threads: int | None = 1,
     ) -> None:
         if blas_threads is not None and (isinstance(blas_threads, bool) or int(blas_threads) < 1):
@@ -315,6 +322,7 @@ class SonarEKF:
         self.init_starts = int(init_starts)
         self.second_order = bool(second_order)
         self.nis_window = int(nis_window)
+        self.adapt_noise = bool(adapt_noise)
         self.range_sigma_m = sr
         self.bearing_sigma_rad = sb
         self.vfov_rad = vf
@@ -834,6 +842,14 @@ class SonarEKF:
                f"Configured range_sigma_m={self.range_sigma_m:.4g}, bearing_sigma_rad="
                f"{self.bearing_sigma_rad:.4g}; the innovations suggest {st.range_sigma_m:.4g} m and "
                f"{st.bearing_sigma_rad:.4g} rad (innovation_stats()).")
+        if self.adapt_noise and st.nis_per_dof > hi:
+            self.range_sigma_m = max(self.range_sigma_m, st.range_sigma_m)
+            self.bearing_sigma_rad = max(self.bearing_sigma_rad, st.bearing_sigma_rad)
+            self._innov.clear()
+            self._isum = np.zeros(10)
+            self._nis_warned = False
+            msg += (f" adapt_noise: now range_sigma_m={self.range_sigma_m:.4g}, "
+                    f"bearing_sigma_rad={self.bearing_sigma_rad:.4g}.")
         _log.info(msg)
         warnings.warn(msg, RuntimeWarning, stacklevel=4)
 
