@@ -265,13 +265,13 @@ class _NumpyBackend(_Backend):
         self.index = np.array(index, np.int32)
 
     def set_blocks(self, slots, lins):
-        for s in slots[slots >= 0]:
-            a = slice(int(s) * self.B3, (int(s) + 1) * self.B3)
-            self.grid[a] = np.inf
-            if self.visible:
-                self.bright[a] = np.inf
-                self.count[a] = 0
-            self.seen[s] = 0
+        live = slots[slots >= 0].astype(np.int64)
+        a = (live[:, None] * self.B3 + np.arange(self.B3)).ravel()
+        self.grid[a] = np.inf
+        if self.visible:
+            self.bright[a] = np.inf
+            self.count[a] = 0
+        self.seen[live] = 0
         self.index[lins] = slots
 
     def integrate(self, params, image, n_cols, ilo, nbk):
@@ -380,11 +380,19 @@ class _WarpBackend(_Backend):
             self.staging_np = [a.numpy() for a in self.staging]
             self.staging_u8_np = [a.numpy() for a in self.staging_u8]
             self.events = [None] * N_SLOTS
+            self.cmd_u8 = wp.launch(
+                minmax.convert_u8,
+                dim=(n_bins, n_beams),
+                inputs=[self.image_u8, float(U8_SCALE), self.image],
+                device=self.dev,
+                record_cmd=True,
+            )
+        self.istage, self.ievents, self.islot, self.ipairs = [None] * N_SLOTS, [None] * N_SLOTS, 0, None
         self.image_np = None if self.dev.is_cuda else self.image.numpy()
         self._P = None
         self._cmds = None
         self._gather = None
-        self._new_dev = None
+        self._init_cmd = None
         self.grow(cap)
         wp.load_module(minmax, device=self.dev)
         wp.load_module(ks, device=self.dev)
@@ -408,25 +416,45 @@ class _WarpBackend(_Backend):
                 self.bright, self.count = bright, count
         self.cap = cap
         self._gather = None
+        self._init_cmd = None
 
     def set_index(self, index):
         self.index = self.wp.array(np.ascontiguousarray(index, np.int32), dtype=int, device=self.dev)
         self._gather = None
+        self._init_cmd = None
 
-    def _upload_ints(self, a: np.ndarray):
-        return self.wp.array(np.ascontiguousarray(a, np.int32), dtype=int, device=self.dev)
+    def _stage_pairs(self, slots: np.ndarray, lins: np.ndarray):
+        """(slots, lins) as one int32 device array: on CUDA through a ring of pinned buffers
+        (an async copy, refilled only once its last copy is done), so the host never waits."""
+        wp = self.wp
+        n = len(slots)
+        if not self.dev.is_cuda:
+            return wp.array(np.concatenate([slots, lins]).astype(np.int32), dtype=int, device=self.dev)
+        k = self.islot
+        self.islot = (k + 1) % N_SLOTS
+        if self.ievents[k] is not None:
+            wp.synchronize_event(self.ievents[k])
+        if self.istage[k] is None or self.istage[k].shape[0] < 2 * n:
+            self.istage[k] = wp.empty(max(2 * n, 4096), dtype=int, device="cpu", pinned=True)
+        host = self.istage[k].numpy()
+        host[:n] = slots
+        host[n : 2 * n] = lins
+        if self.ipairs is None or self.ipairs.shape[0] < 2 * n:
+            self.ipairs = wp.empty(max(2 * n, 4096), dtype=int, device=self.dev)
+        wp.copy(self.ipairs, self.istage[k], count=2 * n)
+        self.ievents[k] = wp.record_event()
+        return self.ipairs
 
     def set_blocks(self, slots, lins):
         wp = self.wp
-        if len(slots) == 0:
+        n = len(slots)
+        if n == 0:
             return
-        s, li = self._upload_ints(slots), self._upload_ints(lins)
-        wp.launch(
-            self.ks.init_blocks,
-            dim=len(slots) * self.B3,
-            inputs=[
-                s,
-                li,
+        pairs = self._stage_pairs(slots, lins)
+        if self._init_cmd is None or self._init_cmd[0] is not pairs:
+            args = [
+                pairs,
+                n,
                 self.B3,
                 int(self.visible),
                 float(np.inf),
@@ -435,10 +463,15 @@ class _WarpBackend(_Backend):
                 self.bright,
                 self.count,
                 self.seen,
-            ],
-            device=self.dev,
-        )
-        self._keep = (s, li)  # alive until the launch has read them
+            ]
+            cmd = wp.launch(
+                self.ks.init_blocks, dim=n * self.B3, inputs=args, device=self.dev, record_cmd=True
+            )
+            self._init_cmd = (pairs, cmd)
+        cmd = self._init_cmd[1]
+        cmd.set_param_by_name("n", n)
+        cmd.set_dim(n * self.B3)
+        cmd.launch()
 
     def _upload_image(self, image):
         wp = self.wp
@@ -450,12 +483,7 @@ class _WarpBackend(_Backend):
                 np.copyto(self.staging_u8_np[s], image)
                 wp.copy(self.image_u8, self.staging_u8[s])
                 self.events[s] = wp.record_event()
-                wp.launch(
-                    self.k.convert_u8,
-                    dim=(self.n_bins, self.n_beams),
-                    inputs=[self.image_u8, float(U8_SCALE), self.image],
-                    device=self.dev,
-                )
+                self.cmd_u8.launch()
             else:
                 np.copyto(self.staging_np[s], image)
                 wp.copy(self.image, self.staging[s])
@@ -637,6 +665,9 @@ class _OpenCLBackend(_Backend):
         else:
             self.k_window, self.k_levels = k("build_bin_window"), k("build_beam_levels")
         self.wg = 128
+        self.ihost = [np.empty(4096, np.int32) for _ in range(N_SLOTS)]
+        self.iuploads, self.islot, self.ipairs_n = [None] * N_SLOTS, 0, 4096
+        self.ipairs = self._buf(4 * self.ipairs_n)
         self.grow(cap)
 
     def _buf(self, nbytes: int):
@@ -673,26 +704,33 @@ class _OpenCLBackend(_Backend):
         self.cl.enqueue_copy(self.queue, self.index, a, is_blocking=True)
 
     def set_blocks(self, slots, lins):
-        if len(slots) == 0:
+        n = len(slots)
+        if n == 0:
             return
-        cl, mf = self.cl, self.mf
-        s = cl.Buffer(
-            self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(slots, np.int32)
-        )
-        li = cl.Buffer(
-            self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(lins, np.int32)
-        )
-        n = len(slots) * self.B3
-        gs = -(-n // self.wg) * self.wg
+        # (slots, lins) in one buffer, uploaded without blocking from a ring of host arrays
+        k = self.islot
+        self.islot = (k + 1) % N_SLOTS
+        if self.iuploads[k] is not None:
+            self.iuploads[k].wait()
+        if self.ihost[k].shape[0] < 2 * n:
+            self.ihost[k] = np.empty(max(2 * n, 4096), np.int32)
+        host = self.ihost[k]
+        host[:n] = slots
+        host[n : 2 * n] = lins
+        if self.ipairs_n < 2 * n:
+            self.ipairs_n = max(2 * n, 4096)
+            self.ipairs = self._buf(4 * self.ipairs_n)
+        self.iuploads[k] = self.cl.enqueue_copy(self.queue, self.ipairs, host[: 2 * n], is_blocking=False)
+        gs = -(-(n * self.B3) // self.wg) * self.wg
+        i32 = np.int32
         self.k_init(
             self.queue,
             (gs,),
             (self.wg,),
-            s,
-            li,
-            np.int32(len(slots)),
-            np.int32(self.B3),
-            np.int32(self.visible),
+            self.ipairs,
+            i32(n),
+            i32(self.B3),
+            i32(self.visible),
             np.float32(np.inf),
             self.index,
             self.grid,
@@ -1001,8 +1039,8 @@ class SparseMinMaxMapper:
                 self._pad = pad
             n_cols = self._fill_ping(p, T)
             if n_cols:
-                cand = self._candidate_blocks(p, T)
-                self._allocate(p, cand, T[:3, 3])
+                self._ensure_box(p)
+                self._allocate(self._candidate_lins(p, T), T[:3, 3])
                 ilo = self._lo_b * self.B
                 self._backend.integrate(p, img, n_cols, ilo, np.asarray(self._index.shape))
             self.n_integrated += 1
@@ -1037,11 +1075,12 @@ class SparseMinMaxMapper:
         n = p["box_n"]
         return int(n[0]) * int(n[1]) if n[2] > 0 else 0
 
-    def _candidate_blocks(self, p: np.ndarray, T: np.ndarray) -> np.ndarray:
-        """(m, 3) int64 blocks that may hold a voxel centre this ping observes: per block column
-        of the ping's box, the z-range that the field of view's range sphere, azimuth
-        half-planes, elevation slab and ``x > 0`` allow anywhere in the column (float64,
-        padded), as blocks."""
+    def _candidate_lins(self, p: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """Index entries (int64, into the flattened coarse index) of the blocks that may hold a
+        voxel centre this ping observes: per block column of the ping's box, the z-range that
+        the field of view's range sphere, azimuth half-planes, elevation slab and ``x > 0``
+        allow anywhere in the column (float64, padded against float32 rounding), as blocks.
+        The index must already cover the ping's box."""
         B, s = self.B, self.sparse.voxel_size_m
         o = self._origin
         lo = p["box_lo"].astype(np.int64)
@@ -1049,10 +1088,8 @@ class SparseMinMaxMapper:
         b0, b1 = lo // B, hi // B
         bx = np.arange(b0[0], b1[0] + 1)
         by = np.arange(b0[1], b1[1] + 1)
-        BX, BY = np.meshgrid(bx, by, indexing="ij")
-        BX, BY = BX.ravel(), BY.ravel()
-        cx = o[0] + (BX * B + 0.5 * B) * s
-        cy = o[1] + (BY * B + 0.5 * B) * s
+        cx = (o[0] + (bx + 0.5) * (B * s))[:, None]
+        cy = (o[1] + (by + 0.5) * (B * s))[None, :]
         t = T[:3, 3]
         A = T[:3, :3].T
         bb = -(A @ t)
@@ -1060,42 +1097,42 @@ class SparseMinMaxMapper:
         pad = 1e-4 * (1.0 + rmax + float(np.abs(t).max())) + 0.01 * s
         hd = B * s / math.sqrt(2.0) + pad  # the column's voxel centres lie within hd of (cx, cy)
         dmin = np.maximum(np.hypot(cx - t[0], cy - t[1]) - hd, 0.0)
-        q = (rmax + pad) ** 2 - dmin**2
+        q = (rmax + pad) ** 2 - dmin * dmin
         ok = q > 0
-        w = np.sqrt(np.where(ok, q, 0.0))
+        w = np.sqrt(np.maximum(q, 0.0))
         z0, z1 = t[2] - w, t[2] + w
-        wedge = p["wedge"].astype(np.float64)
+        wd = p["wedge"].astype(np.float64)
         slab = float(p["slab"])
-        cons = [
-            (wedge[0] * A[0] + wedge[1] * A[1], wedge[0] * bb[0] + wedge[1] * bb[1]),
-            (wedge[2] * A[0] + wedge[3] * A[1], wedge[2] * bb[0] + wedge[3] * bb[1]),
-            (-A[2], slab - bb[2]),
-            (A[2], slab + bb[2]),
-            (A[0], bb[0]),
-        ]
-        for g, g0 in cons:  # g . w + g0 >= 0 somewhere in the column at height z
-            alpha = g0 + g[0] * cx + g[1] * cy + hd * math.hypot(g[0], g[1]) + pad
-            beta = g[2]
-            if abs(beta) < 1e-12:
-                ok &= alpha >= 0
-                continue
-            zc = -alpha / beta
-            if beta > 0:
-                z0 = np.maximum(z0, zc)
-            else:
-                z1 = np.minimum(z1, zc)
-        k0 = np.floor((z0 - o[2]) / s - 0.5).astype(np.int64) - 1
-        k1 = np.ceil((z1 - o[2]) / s - 0.5).astype(np.int64) + 1
-        k0 = np.maximum(k0, lo[2])
-        k1 = np.minimum(k1, hi[2])
+        # g . w + g0 >= 0 for some w in the column at height z: alpha(column) + beta z >= 0
+        G = np.stack([wd[0] * A[0] + wd[1] * A[1], wd[2] * A[0] + wd[3] * A[1], -A[2], A[2], A[0]])
+        g0 = np.array(
+            [wd[0] * bb[0] + wd[1] * bb[1], wd[2] * bb[0] + wd[3] * bb[1], slab - bb[2], slab + bb[2], bb[0]]
+        )
+        base = g0 + hd * np.hypot(G[:, 0], G[:, 1]) + pad
+        alpha = base[:, None, None] + G[:, 0, None, None] * cx[None] + G[:, 1, None, None] * cy[None]
+        beta = G[:, 2]
+        up, down = beta > 1e-12, beta < -1e-12
+        if up.any():
+            z0 = np.maximum(z0, (-alpha[up] / beta[up, None, None]).max(axis=0))
+        if down.any():
+            z1 = np.minimum(z1, (-alpha[down] / beta[down, None, None]).min(axis=0))
+        level = ~(up | down)
+        if level.any():
+            ok &= (alpha[level] >= 0).all(axis=0)
+        k0 = np.maximum(np.floor((z0 - o[2]) / s - 0.5).astype(np.int64) - 1, lo[2])
+        k1 = np.minimum(np.ceil((z1 - o[2]) / s - 0.5).astype(np.int64) + 1, hi[2])
         ok &= k0 <= k1
-        bz0 = np.where(ok, k0 // B, 0)
-        n = np.where(ok, k1 // B - bz0 + 1, 0)
-        total = int(n.sum())
-        col = np.repeat(np.arange(n.size), n)
-        start = np.cumsum(n) - n
-        bz = bz0[col] + (np.arange(total) - start[col])
-        return np.stack([BX[col], BY[col], bz], axis=1)
+        bz0 = k0 // B
+        n = np.where(ok, k1 // B - bz0 + 1, 0).ravel()
+        nb = self._index.shape
+        lb = self._lo_b
+        col = (((bx - lb[0])[:, None] * nb[1] + (by - lb[1])[None, :]) * nb[2] + (bz0 - lb[2])).ravel()
+        return np.repeat(col - (np.cumsum(n) - n), n) + np.arange(int(n.sum()))
+
+    def _unravel(self, lins: np.ndarray) -> np.ndarray:
+        """(m,) index entries -> (m, 3) int64 block coordinates."""
+        nb = self._index.shape
+        return np.stack([lins // (nb[1] * nb[2]), (lins // nb[2]) % nb[1], lins % nb[2]], axis=1) + self._lo_b
 
     def _ensure_index(self, need_lo: np.ndarray, need_hi: np.ndarray) -> None:
         """Grow an unbounded map's coarse index to hold blocks need_lo..need_hi (inclusive)."""
@@ -1133,34 +1170,37 @@ class SparseMinMaxMapper:
         nb = self._index.shape
         return (r[:, 0] * nb[1] + r[:, 1]) * nb[2] + r[:, 2]
 
-    def _allocate(self, p: np.ndarray, cand: np.ndarray, sonar_t: np.ndarray) -> None:
-        """Give every candidate block without one a slot (growing, reclaiming or evicting)."""
-        B = self.B
-        lo = p["box_lo"].astype(np.int64)
-        hi = lo + p["box_n"].astype(np.int64) - 1
+    def _ensure_box(self, p: np.ndarray) -> None:
+        """An unbounded map's index grows to cover the ping's box (the kernel reads it there)."""
         if self._dims is None:
-            self._ensure_index(lo // B, hi // B)  # the kernel reads the index over the whole box
-        if len(cand) == 0:
+            lo = p["box_lo"].astype(np.int64)
+            hi = lo + p["box_n"].astype(np.int64) - 1
+            self._ensure_index(lo // self.B, hi // self.B)
+
+    def _allocate(self, lins: np.ndarray, sonar_t: np.ndarray) -> None:
+        """Give every candidate block (index entries ``lins``) without one a slot (growing,
+        reclaiming or evicting)."""
+        if len(lins) == 0:
             return
-        lins = self._lins(cand)
         flat = self._index.reshape(-1)
         new = flat[lins] < 0
-        n_new = int(new.sum())
+        n_new = int(np.count_nonzero(new))
         if n_new == 0:
             return
         if n_new > len(self._free):
             self._reclaim()
             new = flat[lins] < 0
-            n_new = int(new.sum())
+            n_new = int(np.count_nonzero(new))
             if n_new > len(self._free):
                 self._grow(n_new - len(self._free), lins, sonar_t)
-        slots = self._free[len(self._free) - n_new :][::-1]
-        self._free = self._free[: len(self._free) - n_new]
+        k = len(self._free) - n_new
+        slots = self._free[k:][::-1]
+        self._free = self._free[:k]
         new_lins = lins[new]
         flat[new_lins] = slots
-        self._coords[slots] = cand[new]
+        self._coords[slots] = self._unravel(new_lins)
         self._used[slots] = True
-        self._backend.set_blocks(slots.astype(np.int32), new_lins.astype(np.int32))
+        self._backend.set_blocks(slots, new_lins)
 
     def _grow(self, more: int, keep_lins: np.ndarray, sonar_t: np.ndarray) -> None:
         cap = self._backend.cap

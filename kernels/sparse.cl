@@ -48,32 +48,32 @@ __kernel void integrate_blocks(const PingParams P, __global const float *image,
             if (bk != cur) {
                 cur = bk;
                 slot = (col_ok && rk >= 0 && bk < nb2) ? index[colbase + bk] : -1;
+                if (slot >= 0) seen[slot] = 1;  // once per block a work-item touches, not per voxel
             }
             if (slot < 0) {
                 err[0] = 1;
             } else {
                 update_voxel(&P, (size_t)slot * B3 + within + rk - bk * B, v, clear, grid, bright, count);
-                seen[slot] = 1;
             }
         }
     }
 }
 
-// One work-item per voxel of each listed block: slot slots[b] becomes never observed (unknown = +inf,
-// no evidence) and index[lins[b]] = slots[b] (-1: freed).
-__kernel void init_blocks(__global const int *slots, __global const int *lins, int n, int B3, int visible,
-                          float unknown, __global int *index, __global float *grid, __global float *bright,
+// One work-item per voxel of each of n listed blocks (pairs: n slots, then n index entries): slot pairs[b]
+// becomes never observed (unknown = +inf, no evidence) and index[pairs[n + b]] = pairs[b] (-1: freed).
+__kernel void init_blocks(__global const int *pairs, int n, int B3, int visible, float unknown,
+                          __global int *index, __global float *grid, __global float *bright,
                           __global uchar *count, __global uchar *seen)
 {
     int tid = get_global_id(0);
     if (tid >= n * B3) return;
     int b = tid / B3, v = tid % B3;
-    int s = slots[b];
+    int s = pairs[b];
     if (s >= 0) {
         size_t a = (size_t)s * B3 + v;
         grid[a] = unknown;
         if (visible) { bright[a] = unknown; count[a] = 0; }
         if (v == 0) seen[s] = 0;
     }
-    if (v == 0) index[lins[b]] = s;
+    if (v == 0) index[pairs[n + b]] = s;
 }

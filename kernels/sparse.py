@@ -77,17 +77,18 @@ def integrate_blocks(
                 slot = -1
                 if col_ok and rk >= 0 and bk < nbk[2]:
                     slot = index[colbase + bk]
+                if slot >= 0:
+                    seen[slot] = wp.uint8(1)  # once per block a thread touches, not per voxel
             if slot < 0:
                 err[0] = 1
             else:
                 update_voxel(P, slot * B3 + within + rk - bk * B, vc, grid, bright, count)
-                seen[slot] = wp.uint8(1)
 
 
 @wp.kernel
 def init_blocks(
-    slots: wp.array(dtype=int),
-    lins: wp.array(dtype=int),
+    pairs: wp.array(dtype=int),
+    n: int,
     B3: int,
     visible: int,
     unknown: float,
@@ -97,12 +98,13 @@ def init_blocks(
     count: wp.array(dtype=wp.uint8),
     seen: wp.array(dtype=wp.uint8),
 ):
-    """One thread per voxel of each listed block: slot ``slots[b]`` becomes never observed
-    (``unknown`` = +inf, no evidence) and ``index[lins[b]] = slots[b]`` (-1: freed)."""
+    """One thread per voxel of each of ``n`` listed blocks (``pairs``: n slots, then n index
+    entries): slot ``pairs[b]`` becomes never observed (``unknown`` = +inf, no evidence) and
+    ``index[pairs[n + b]] = pairs[b]`` (slot -1: the block is freed)."""
     tid = wp.tid()
     b = tid // B3
     v = tid - b * B3
-    s = slots[b]
+    s = pairs[b]
     if s >= 0:
         a = s * B3 + v
         grid[a] = unknown
@@ -112,4 +114,4 @@ def init_blocks(
         if v == 0:
             seen[s] = wp.uint8(0)
     if v == 0:
-        index[lins[b]] = s
+        index[pairs[n + b]] = s

@@ -1,0 +1,248 @@
+"""Sparse vs dense maps: memory and images per second on the tank and survey pings.
+
+    python -m bench.sparse [--backends warp-cpu,opencl-cpu] [--section cpu] [--out bench/results/sparse.json]
+
+Pings: the tank's (``bench/results/tmp/tank_pings.npz``, :mod:`bench.tank`; 40 pings, uint8)
+and the survey scene's (``--survey-pings``, rendered once by ``--render-survey`` from
+``gpumap.sim.scenes.survey_scene``: 200 pings of a lawnmower over 50 x 20 m, uint8). Each row
+maps a fresh map from every ping of a set in a back-to-back stream (images uint8, one
+``synchronize`` at the end; ``--passes`` streams, the best reported; a warm-up pass first,
+not timed) and reports images per second, the map's memory (dense: the grid's value and
+evidence arrays; sparse: :meth:`SparseMinMaxMapper.memory_stats`) and whether the sparse
+map's values equal the dense map's bit for bit (where the dense grid is small enough to run).
+The sparse map is bounded by the scene's grid (as ``gpumap demo --sparse`` maps it) unless
+the row says ``unbounded``. Results are merged into ``--out`` under ``--section``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import gpumap
+from gpumap.sparse import SparseMinMaxMapper, SparseSpec
+
+TMP = Path("bench/results/tmp")
+
+
+def _load(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    with np.load(path, allow_pickle=False) as z:  # bench.tank's names, or (imgs, T)
+        return (z["images"], z["poses"]) if "images" in z.files else (z["imgs"], z["T"])
+
+
+def render_survey(path: Path, voxel_size_m: float = 0.05) -> Path:
+    """Render the survey scene's pings (uint8, as bench.tank quantizes) to ``path``."""
+    from gpumap.sim.scenes import make_scene
+    from gpumap.sim.sonar import SonarSimulator
+
+    scene = make_scene("survey", voxel_size_m=voxel_size_m)
+    imgs = []
+    with SonarSimulator(scene, seed=0, **scene.sonar_params) as sim:
+        for k, T in enumerate(scene.T_W_S):
+            imgs.append(np.round(sim.ping(T, k).image * 255.0).astype(np.uint8))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(
+        path,
+        images=np.array(imgs),
+        poses=np.asarray(scene.T_W_S),
+        meta=np.array(json.dumps({"scene": "survey", "seed": 0})),
+    )
+    return path
+
+
+def _stream(m, images, poses, passes: int) -> tuple[float, float]:
+    """(best images/s over ``passes`` fresh-map streams, seconds of the last); a warm-up first."""
+    best, last = 0.0, 0.0
+    for p in range(passes + 1):
+        m.reset()
+        m.synchronize()
+        t0 = time.perf_counter()
+        for img, T in zip(images, poses, strict=True):
+            m.integrate(img, T)
+        m.synchronize()
+        last = time.perf_counter() - t0
+        if p > 0:
+            best = max(best, len(images) / last)
+    return best, last
+
+
+def _row(scene: str, kind: str, backend: str, voxel: float, ips: float, n: int, extra: dict) -> dict:
+    r = {
+        "scene": scene,
+        "map": kind,
+        "backend": backend,
+        "voxel_size_m": voxel,
+        "pings": n,
+        "images_per_s": round(ips, 1),
+    }
+    r.update(extra)
+    print(json.dumps(r), flush=True)
+    return r
+
+
+def run_scene(
+    name: str,
+    grid: gpumap.GridSpec,
+    spec: gpumap.SonarSpec,
+    images,
+    poses,
+    backends,
+    passes: int,
+    dense: bool,
+    unbounded: bool,
+) -> list[dict]:
+    rows = []
+    v = grid.voxel_size_m
+    bounded = SparseSpec(v, (grid.min_corner_m, grid.max_corner_m))
+    for be in backends:
+        ref = None
+        if dense:
+            d = gpumap.MinMaxMapper(spec, grid, backend=be)
+            ips, _ = _stream(d, images, poses, passes)
+            ref = d.raw_values()
+            rows.append(
+                _row(
+                    name,
+                    "dense",
+                    be,
+                    v,
+                    ips,
+                    len(images),
+                    {
+                        "grid_shape": list(grid.shape),
+                        "dense_bytes": grid.n_voxels * 9,
+                        "observed_voxels": int(np.isfinite(ref).sum()),
+                        "device": d.device,
+                    },
+                )
+            )
+            del d
+        for label, sp in (
+            ("sparse", bounded),
+            ("sparse-unbounded", SparseSpec(v, origin_m=grid.min_corner_m)),
+        ):
+            if label == "sparse-unbounded" and not unbounded:
+                continue
+            m = SparseMinMaxMapper(spec, sp, backend=be)
+            ips, _ = _stream(m, images, poses, passes)
+            st = m.memory_stats()
+            extra = {
+                k: st[k]
+                for k in (
+                    "blocks",
+                    "observed_voxels",
+                    "block_bytes",
+                    "observed_bytes",
+                    "block_over_observed",
+                    "pool_bytes",
+                    "index_bytes",
+                    "total_bytes",
+                    "dense_bytes",
+                )
+            }
+            extra["dense_grid_bytes"] = grid.n_voxels * 9
+            extra["total_over_dense_grid"] = round(st["total_bytes"] / (grid.n_voxels * 9), 4)
+            extra["device"] = m.device
+            if ref is not None and label == "sparse":
+                extra["identical_to_dense"] = bool(np.array_equal(m.raw_values(), ref))
+            rows.append(_row(name, label, be, v, ips, len(images), extra))
+            del m
+        ref = None
+    return rows
+
+
+def _machine() -> dict:
+    out = {
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "backends": gpumap.available_backends(),
+    }
+    try:
+        out["affinity_cpus"] = len(os.sched_getaffinity(0))
+        with open("/proc/cpuinfo") as f:
+            out["cpu_model"] = next(ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.sparse", description=__doc__.splitlines()[0])
+    p.add_argument("--backends", default="warp-cpu,opencl-cpu")
+    p.add_argument("--tank-pings", type=Path, default=TMP / "tank_pings.npz")
+    p.add_argument("--survey-pings", type=Path, default=TMP / "survey_pings.npz")
+    p.add_argument("--render-survey", action="store_true", help="render the survey pings first")
+    p.add_argument("--tank-voxels", default="0.03,0.02,0.01")
+    p.add_argument("--survey-voxels", default="0.05,0.02", help="dense rows only at 5 cm and coarser")
+    p.add_argument("--passes", type=int, default=2)
+    p.add_argument("--section", default="cpu")
+    p.add_argument("--out", type=Path, default=Path("bench/results/sparse.json"))
+    args = p.parse_args(argv)
+    backends = [b for b in args.backends.split(",") if b]
+    rows = []
+    t0 = time.time()
+    def scene_of(name: str, v: float, path: Path) -> tuple[gpumap.GridSpec, gpumap.SonarSpec]:
+        """The scene's grid and sonar: from the ping file when it carries them (machines without
+        trimesh), else from the scene."""
+        with np.load(path, allow_pickle=False) as z:
+            if "grid_min" in z.files:
+                spec = gpumap.SonarSpec.from_dict(json.loads(str(z["spec"])))
+                return gpumap.GridSpec(tuple(z["grid_min"]), tuple(z["grid_max"]), v), spec
+        from gpumap.sim.scenes import make_scene
+
+        sc = make_scene(name, voxel_size_m=v)
+        return sc.grid, sc.sonar_spec
+
+    if args.tank_pings.is_file() and args.tank_voxels:
+        images, poses = _load(args.tank_pings)
+        for v in (float(x) for x in args.tank_voxels.split(",") if x):
+            grid, spec = scene_of("tank", v, args.tank_pings)
+            rows += run_scene("tank", grid, spec, images, poses, backends, args.passes, True, False)
+    if args.render_survey:
+        render_survey(args.survey_pings)
+    if args.survey_pings.is_file():
+        images, poses = _load(args.survey_pings)
+        for v in (float(x) for x in args.survey_voxels.split(",") if x):
+            grid, spec = scene_of("survey", v, args.survey_pings)
+            dense = grid.n_voxels * 9 < 1.5e9
+            rows += run_scene(
+                "survey",
+                grid,
+                spec,
+                images,
+                poses,
+                backends,
+                args.passes if dense else 1,
+                dense,
+                v >= 0.05,
+            )
+    doc = json.loads(args.out.read_text()) if args.out.is_file() else {}
+    doc["schema"] = "gpumap-bench-sparse/1"
+    doc["note"] = (
+        "images_per_s: best of --passes back-to-back streams over every ping of the set into a fresh map "
+        "(uint8 images, one synchronize at the end, warm-up pass untimed); bytes: dense = grid voxels x 9 "
+        "(float32 min_all + float32 bright + uint8 count, the visible rule); sparse: memory_stats() after "
+        "the stream (block_bytes = blocks x 512 voxels x 9; total = pool incl. spare slots + coarse index)"
+    )
+    doc[args.section] = {
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "machine": _machine(),
+        "argv": argv if argv is not None else sys.argv[1:],
+        "duration_s": round(time.time() - t0, 1),
+        "rows": rows,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(doc, indent=1) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
