@@ -291,6 +291,7 @@ def _view_recording(path: Path, a: argparse.Namespace) -> Any:
     threading.Thread(target=_play, daemon=True).start()
     show(len(pings) - 1)
     v.n_pings = len(pings)
+    v.frame_content()
     return v
 
 
