@@ -267,6 +267,18 @@ def table_rows(n_bins: int, win: int) -> np.ndarray:
 
 #: Pings a GPU folds per launch (more are split); buffers grow to the largest batch seen.
 BATCH_MAX = 64
+#: Pings whose boxes hold more voxels than this on average go one launch each: at that size
+#: a launch's fixed cost is small, and one launch per ping ran faster on an H100 (5 mm, tank).
+BATCH_BOX_VOXELS_MAX = 16_000_000
+
+
+def _fold_in_batches(params: np.ndarray, n_threads: np.ndarray) -> bool:
+    """Whether the batch kernels pay off for these pings (see BATCH_BOX_VOXELS_MAX)."""
+    live = n_threads > 0
+    if not live.any():
+        return False
+    vol = np.prod(params["box_n"][live].astype(np.float64), axis=1)
+    return float(vol.mean()) <= BATCH_BOX_VOXELS_MAX
 
 
 def _union_groups(params: np.ndarray, n_threads: np.ndarray, slack: float = 2.0) -> list[tuple[int, int]]:
@@ -483,7 +495,7 @@ class WarpBackend(Backend):
 
     # ------------------------------------------------------------------ batches (CUDA)
     def integrate_batch(self, params, images, method, n_threads):
-        if not self.batch_kernels or method != "gather":
+        if not self.batch_kernels or method != "gather" or not _fold_in_batches(params, n_threads):
             return super().integrate_batch(params, images, method, n_threads)
         _check_rule(params[0, ...], self.visible)
         params["chunk"] = self.chunk
@@ -791,7 +803,7 @@ class OpenCLBackend(Backend):
 
     # ------------------------------------------------------------------ batches (GPUs)
     def integrate_batch(self, params, images, method, n_threads):
-        if not self.batch_kernels or method != "gather":
+        if not self.batch_kernels or method != "gather" or not _fold_in_batches(params, n_threads):
             return super().integrate_batch(params, images, method, n_threads)
         _check_rule(params[0, ...], self.visible)
         params["chunk"] = self.chunk
