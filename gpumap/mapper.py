@@ -5,8 +5,11 @@ from __future__ import annotations
 import json
 import logging
 import os
+import struct
 import threading
+import tokenize
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -638,9 +641,11 @@ class MinMaxMapper:
                 for name in names:
                     with zf.open(f"{name}.npy") as f:
                         arrays[name] = np.lib.format.read_array(f, allow_pickle=False)
-        except (OSError, EOFError, zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError) as e:
+        except (OSError, EOFError, zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError,
+                zlib.error, tokenize.TokenError, SyntaxError, NotImplementedError, struct.error) as e:
+            # damaged deflate data, a damaged .npy header dict, an unknown zip compression
             raise ValueError(
-                f"Expected a gpumap map file (.npz) at {path}, but it cannot be read: {e}"
+                f"Expected a gpumap map file (.npz) at {path}, but it cannot be read: {e!r}"
             ) from e
         _check_map_values(arrays, opts, path)
         m = cls(spec, grid, backend=backend, **opts)

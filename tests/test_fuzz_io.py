@@ -955,11 +955,6 @@ def test_open_recording_on_any_bytes(runner, magic, name, body) -> None:
     _check(runner, f"any {name}", "any", {name: magic + body})
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "known bug on the mapper side (gpumap/mapper.py, not this suite's to fix): MinMaxMapper.load "
-    "lets tokenize.TokenError/SyntaxError (a damaged .npy header dict), zlib.error (damaged deflate "
-    "data) and NotImplementedError (an unknown zip compression method) escape instead of its "
-    "ValueError; strict: once load catches them this test passes and the marker must go"))
 @_fuzz_settings(200)
 @given(member=st.integers(0, 10), muts=MUTATIONS, stored=st.booleans())
 def test_fuzz_saved_map(runner, seeds, member, muts, stored) -> None:
