@@ -341,6 +341,9 @@ class WarpBackend(Backend):
         self.events = []
         self._batch = None  # GPU batch buffers, allocated on the first batch
         self._pool = None
+        # the visible rule's first bright bin per beam: a thread per cell on GPUs (512 serial
+        # scans of a beam leave a GPU idle), per beam on CPUs; tests may set it on CPUs
+        self.first_bright_cells = self.dev.is_cuda
         # fold a batch in a few launches (GPUs); CPUs loop over integrate (tests may set it
         # on warp-cpu to run the batch kernels there)
         self.batch_kernels = self.dev.is_cuda
@@ -454,7 +457,14 @@ class WarpBackend(Backend):
         self._P_addr = ctypes.addressof(P._ctype)
         rec = {"device": self.dev, "record_cmd": True}
         table = []
-        if int(params["rule"]) == 1:
+        if int(params["rule"]) == 1 and self.first_bright_cells:  # GPUs: a thread per cell
+            nb, nj = int(params["n_bins"]), int(params["n_beams"])
+            table += [
+                wp.launch(k.first_bright_init, dim=nj, inputs=[P, self.first_bright], **rec),
+                wp.launch(k.find_first_bright_cells, dim=(nb, nj), inputs=[P, self.image, self.first_bright],
+                          **rec),
+            ]
+        elif int(params["rule"]) == 1:  # CPUs: a thread per beam, stopping at the first return
             table.append(
                 wp.launch(
                     k.find_first_bright,
@@ -730,6 +740,8 @@ class OpenCLBackend(Backend):
         self.k_u8 = k("convert_u8")
         self.k_template = k("integrate_template")
         self.k_first = k("find_first_bright")
+        self.k_first_init, self.k_first_cells = k("first_bright_init"), k("find_first_bright_cells")
+        self.first_bright_cells = self.is_gpu  # as for Warp: a work-item per cell on GPUs
         if self.is_gpu:  # one work-item per cell
             self.k_window, self.k_levels = k("build_bin_window_cells"), k("build_beam_levels_cells")
         else:  # one per beam, then per row: fewest operations
@@ -763,7 +775,12 @@ class OpenCLBackend(Backend):
         if method == "gather" and not n_threads:
             return
         flag = np.int32(self.use_table)
-        if int(params["rule"]) == 1:
+        if int(params["rule"]) == 1 and self.first_bright_cells:
+            gs = -(-self.n_beams // self.wg) * self.wg
+            self.k_first_init(self.queue, (gs,), (self.wg,), P, self.first_bright)
+            gs = -(-(self.n_bins * self.n_beams) // self.wg) * self.wg
+            self.k_first_cells(self.queue, (gs,), (self.wg,), P, image_buf, self.first_bright)
+        elif int(params["rule"]) == 1:
             gs = -(-self.n_beams // 16) * 16
             self.k_first(self.queue, (gs,), (16,), P, image_buf, self.first_bright)
         if self.use_table:

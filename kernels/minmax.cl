@@ -4,6 +4,9 @@
 // count]. (Warp tells "no table" by an empty array; OpenCL, which has no empty buffers, by the extra
 // use_table flag after the table.) PingParams matches gpumap.geometry.PING_DTYPE field for field.
 
+// No FMA contraction: every device then rounds as the NumPy oracle does, bit for bit.
+#pragma OPENCL FP_CONTRACT OFF
+
 typedef struct {
     float A[9];      // rotation of T_S_W, row-major
     float b[3];      // translation of T_S_W
@@ -150,6 +153,23 @@ __kernel void find_first_bright(const PingParams P, __global const float *image,
         if (image[(size_t)i * P.n_beams + j] >= P.thr) { f = i; break; }
     }
     first_bright[j] = f;
+}
+
+// One work-item per beam: no bright bin yet (n_bins); find_first_bright_cells lowers it.
+__kernel void first_bright_init(const PingParams P, __global int *first_bright)
+{
+    int j = get_global_id(0);
+    if (j < P.n_beams) first_bright[j] = P.n_bins;
+}
+
+// GPU twin of find_first_bright: one work-item per cell, an atomic min per bright cell (the
+// minimum is the same in any order: deterministic).
+__kernel void find_first_bright_cells(const PingParams P, __global const float *image,
+                                      __global int *first_bright)
+{
+    int c = get_global_id(0);
+    if (c >= P.n_bins * P.n_beams) return;
+    if (image[c] >= P.thr) atomic_min(first_bright + c % P.n_beams, c / P.n_beams);
 }
 
 // Fold one view (value v, clear) into voxel idx: the plain min, and for the visible rule the

@@ -14,6 +14,9 @@ parameters, the image, the tangents of the beam edges, the beam look-up table, t
 
 import warp as wp
 
+# No FMA contraction on GPUs: every backend then rounds as the NumPy oracle does, bit for bit.
+wp.set_module_options({"fuse_fp": False})
+
 
 @wp.struct
 class PingParams:
@@ -159,6 +162,22 @@ def find_first_bright(P: PingParams, image: wp.array2d(dtype=float), first_brigh
     """One thread per beam j: the first bin whose intensity is >= thr (n_bins if none)."""
     j = wp.tid()
     first_bright[j] = first_bright_bin(P, image, j)
+
+
+@wp.kernel
+def first_bright_init(P: PingParams, first_bright: wp.array(dtype=int)):
+    """One thread per beam: no bright bin yet (n_bins); find_first_bright_cells lowers it."""
+    j = wp.tid()
+    first_bright[j] = P.n_bins
+
+
+@wp.kernel
+def find_first_bright_cells(P: PingParams, image: wp.array2d(dtype=float), first_bright: wp.array(dtype=int)):
+    """GPU twin of find_first_bright: one thread per cell, an atomic min per bright cell (the
+    minimum is the same in any order: deterministic)."""
+    i, j = wp.tid()
+    if image[i, j] >= P.thr:
+        wp.atomic_min(first_bright, j, i)
 
 
 @wp.func
