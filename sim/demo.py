@@ -231,32 +231,42 @@ def _dvl_rays_S(T_W_S: np.ndarray, T_S_D: np.ndarray, rays_D: np.ndarray) -> tup
 
 def _ekf_poses(scene: Scene, pings: list[Ping], U: np.ndarray, sigma: float,
                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """EKF poses from odometry, the (range, azimuth) features and, in the tank, the DVL.
+    """EKF poses from odometry, the (range, azimuth) features and, in the tank and the survey, the DVL.
 
     The tank's DVL (four A50 beams, wrist mount of :func:`~.scenes.mounts`) is simulated at
     the true pose with ``DVL_RANGE_SIGMA_M`` noise and fused as ranges to the floor plane
     ``z = TANK["floor_z_m"]`` (-0.42 m, the sand's mean level), each beam with variance
     ``DVL_RANGE_SIGMA_M^2 + (SAND_ROUGHNESS_M / cos(incidence))^2``. Beams hitting an object
-    on the sand fail the filter's gate; those with no return (NaN) are skipped. Returns the
+    on the sand fail the filter's gate; those with no return (NaN) are skipped. The survey's
+    downward DVL (:func:`~.scenes.survey_mounts`) is fused the same way against the plane
+    ``z = SURVEY["floor_z_m"]`` (-4 m) with the seabed's RMS height about it in place of
+    ``SAND_ROUGHNESS_M`` (:func:`_seabed_roughness`: its undulation, ~0.12 m). Returns the
     poses (n, 4, 4) and their covariances (n, 6, 6).
     """
     from gpumap.ekf import SonarEKF
 
     from .dvl import DVLSimulator
-    from .scenes import TANK, mounts
+    from .scenes import SURVEY, TANK, mounts, survey_mounts
 
     Q = np.eye(6) * sigma**2
     # Iterated feature updates (3 passes): with the DVL holding the tilt, relinearising the
     # features' returns lowers the map's FN in the tank (0.198 -> 0.190 at 0.005 noise).
     ekf = SonarEKF(scene.T_W_S[0], np.eye(6) * 1e-8, range_sigma_m=RANGE_SIGMA_M,
                    bearing_sigma_rad=BEARING_SIGMA_RAD, vfov_rad=scene.sonar_spec.vfov_rad, iterations=3)
-    dvl = DVLSimulator(scene) if scene.name == "tank" else None
+    dvl = DVLSimulator(scene) if scene.name in ("tank", "survey") else None
     if dvl is not None:
         from gpumap.lie import se3_inverse
 
-        T_wrist_S, T_wrist_D = mounts()
-        T_S_D = se3_inverse(T_wrist_S) @ T_wrist_D
-        floor_n, floor_d = np.array([0.0, 0.0, 1.0]), float(TANK["floor_z_m"])
+        floor_n = np.array([0.0, 0.0, 1.0])
+        if scene.name == "tank":
+            T_wrist_S, T_wrist_D = mounts()
+            T_S_D = se3_inverse(T_wrist_S) @ T_wrist_D
+            floor_d, roughness = float(TANK["floor_z_m"]), SAND_ROUGHNESS_M
+        else:  # the survey vehicle's downward DVL over the seabed's mean level
+            T_V_S, T_V_D = survey_mounts()
+            T_S_D = se3_inverse(T_V_S) @ T_V_D
+            floor_d = float(SURVEY["floor_z_m"])
+            roughness = _seabed_roughness(scene, floor_d)
     out = np.zeros((len(pings), 4, 4))
     covs = np.zeros((len(pings), 6, 6))
     for k, p in enumerate(pings):
@@ -268,7 +278,7 @@ def _ekf_poses(scene: Scene, pings: list[Ping], U: np.ndarray, sigma: float,
             o, u = _dvl_rays_S(ekf.pose, T_S_D, dvl._rays_D)
             cos_inc = np.abs((u @ ekf.pose[:3, :3].T)[:, 2])
             for j in np.flatnonzero(np.isfinite(r) & (cos_inc > 0.1)):
-                s_j = math.hypot(DVL_RANGE_SIGMA_M, SAND_ROUGHNESS_M / cos_inc[j])
+                s_j = math.hypot(DVL_RANGE_SIGMA_M, roughness / cos_inc[j])
                 ekf.update_plane_ranges(o[j:j + 1], u[j:j + 1], r[j:j + 1], floor_n, floor_d, s_j)
         if len(p.feature_ids):
             r = p.feature_ranges_m + rng.normal(0, RANGE_SIGMA_M, len(p.feature_ids))
@@ -277,6 +287,15 @@ def _ekf_poses(scene: Scene, pings: list[Ping], U: np.ndarray, sigma: float,
         out[k] = ekf.pose
         covs[k] = ekf.pose_cov
     return out, covs
+
+
+def _seabed_roughness(scene: Scene, z0: float, step_m: float = 0.1) -> float:
+    """RMS height (metres) of ``scene.seabed_z_m`` about the level ``z0`` over the grid's plan area."""
+    g = scene.grid
+    x = np.arange(g.min_corner_m[0], g.max_corner_m[0], step_m)
+    y = np.arange(g.min_corner_m[1], g.max_corner_m[1], step_m)
+    X, Y = np.meshgrid(x, y, indexing="ij")
+    return float(np.sqrt(np.mean((scene.seabed_z_m(X, Y) - z0) ** 2)))
 
 
 def _pose_error(T_est: np.ndarray, T_true: np.ndarray) -> dict:
