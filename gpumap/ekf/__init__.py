@@ -60,10 +60,13 @@ Kalman Filter by Using Acoustic Camera Images" (Section 3), with these changes:
 
 Conventions
 -----------
-State order: pose error ``(rho (m), phi (rad))`` then landmarks ``(x, y, z)`` in world
-metres, in the order of :attr:`SonarEKF.landmark_ids`. The pose error is a right
-perturbation on SE(3): ``T_W_S = T_hat @ Exp(delta)``, ``delta = (rho, phi)``
+Outputs (:attr:`SonarEKF.covariance`): pose error ``(rho (m), phi (rad))`` then landmarks
+``(x, y, z)`` in world metres, in the order of :attr:`SonarEKF.landmark_ids`. The pose error
+is a right perturbation on SE(3): ``T_W_S = T_hat @ Exp(delta)``, ``delta = (rho, phi)``
 (:mod:`gpumap.lie`); ``pose_cov0``, ``motion_cov`` and :attr:`SonarEKF.pose_cov` all use it.
+The filter's own state (:attr:`SonarEKF.state_covariance`): the pose error in the gauge's
+frame, each feature's anchored ``(r, az, el)``, then the gauge's error (only when
+``pose_cov0`` is not zero).
 
 Measurement of feature ``l_W`` from pose ``T_W_S``: ``p = T_W_S^-1 l_W`` in the sonar frame
 (x forward, y left, z up); ``r = |p|``, ``azimuth = atan2(p_y, p_x)``.

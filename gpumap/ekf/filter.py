@@ -573,8 +573,9 @@ class SonarEKF:
             nu, Hp, Hs, ok, hee = _linearize(T, S[slots], Ra, ta, meas, bool(np.any(ve2)))
             degenerate = [id_list[known[j]] for j in np.flatnonzero(~ok)]
             sel = np.flatnonzero(ok)
-            nu, Hp, Hs, hee, slots = nu[sel], Hp[sel], Hs[sel], hee[sel], slots[sel]
-            meas, Ra, ta, ve, ve2 = meas[sel], Ra[sel], ta[sel], ve[sel], ve2[sel]
+            if degenerate:
+                nu, Hp, Hs, hee, slots = nu[sel], Hp[sel], Hs[sel], hee[sel], slots[sel]
+                meas, Ra, ta, ve, ve2 = meas[sel], Ra[sel], ta[sel], ve[sel], ve2[sel]
             e = 6 + 3 * slots + 2
             uncertain = ve > self.init_elevation_sigma_rad**2
             r_var = np.array([self.range_sigma_m**2, self.bearing_sigma_rad**2])
@@ -618,17 +619,21 @@ class SonarEKF:
                 if np.any(shift[kk]):
                     dx0 = np.zeros(P.shape[0])
                     dx0[e[kk]] = shift[kk]
-                lin = (nu[kk], Hp[kk], Hs[kk], hee[kk])
-                dx, g, _, nis = _iterate(T, P, ret.take(kk), lin, passes if np.any(uncertain[kk])
-                                         else self.iterations, own, dx0)
+                if kk.size == len(slots):  # all gated in: reuse the gate's products
+                    sub, lin, pre = ret, (nu, Hp, Hs, hee), (nu_e, Rb, HP)
+                else:
+                    sub, lin, pre = ret.take(kk), (nu[kk], Hp[kk], Hs[kk], hee[kk]), None
+                dx, g, _, nis = _iterate(T, P, sub, lin, passes if np.any(uncertain[kk])
+                                         else self.iterations, own, dx0, pre)
                 T, P = _apply(T, P, dx, g)
                 if self._ng:
                     G, P = _inject_gauge(G, P, dx[-6:])
                 S = S + dx[6 : P.shape[0] - self._ng].reshape(-1, 3)
                 S[:, 1] = wrap_angle(S[:, 1])
                 accepted = [id_list[known[sel[j]]] for j in keep]
-                innov = np.concatenate([[len(kk), nis], (nu_e[kk].T @ nu_e[kk]).ravel(),
-                                        Sb[kk].sum(axis=0).ravel()])
+                if self.nis_window:
+                    innov = np.concatenate([[len(kk), nis], (nu_e[kk].T @ nu_e[kk]).ravel(),
+                                            Sb[kk].sum(axis=0).ravel()])
 
         new_ids: list[int] = []
         index = dict(self._index)

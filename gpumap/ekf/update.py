@@ -88,6 +88,8 @@ class _Returns:
         """
         Rb = np.zeros((nu.shape[0], 2, 2))
         Rb[:, 0, 0], Rb[:, 1, 1] = self.r_var[0], self.r_var[1]
+        if not np.any(self.ve):
+            return nu, Rb
         Rb += (0.5 * self.ve**2)[:, None, None] * hee[:, :, None] * hee[:, None, :]
         return nu - 0.5 * self.ve[:, None] * hee, Rb
 
@@ -99,17 +101,18 @@ def _gain(
     slots: np.ndarray,
     Rb: np.ndarray,
     own_only: np.ndarray | None = None,
+    HP: np.ndarray | None = None,
 ) -> _Gain:
     """Kalman gain of ``a`` returns with block-sparse ``H`` (pose block + each return's feature).
 
     ``Rb (a, 2, 2)`` are the returns' measurement covariances. ``own_only`` (a,) bool marks
     returns whose gain is cut to their own feature's three states (Schmidt-Kalman "consider"
     update: the rest of the state is not corrected by them; the Joseph form keeps the
-    covariance right for this suboptimal gain).
+    covariance right for this suboptimal gain). ``HP``: :func:`_hp`, if the caller has it.
     """
     a = Hp.shape[0]
     N = P.shape[0]
-    HPf = _hp(P, Hp, Hs, slots).reshape(2 * a, N)
+    HPf = (_hp(P, Hp, Hs, slots) if HP is None else HP).reshape(2 * a, N)
     Hpf = Hp.reshape(2 * a, 6)
     cols = (6 + 3 * slots[:, None] + np.arange(3)[None]).reshape(-1)  # (3a,)
     S = HPf[:, :6] @ Hpf.T
@@ -135,6 +138,7 @@ def _iterate(
     iterations: int,
     own_only: np.ndarray | None = None,
     dx0: np.ndarray | None = None,
+    pre: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, _Gain, float, float]:
     """Iterated (Gauss-Newton) EKF solve of ``a`` returns; the first pass is the plain EKF.
 
@@ -145,7 +149,8 @@ def _iterate(
     state stays in the prior's tangent space. ``dx0`` starts the passes there instead of at
     the prior (a start elsewhere on the elevation arc; the prior's own linearisation is then
     only a fallback). It stops when the step stops changing, after ``iterations`` passes, or
-    when a relinearisation would be degenerate (then it keeps the last good pass).
+    when a relinearisation would be degenerate (then it keeps the last good pass). ``pre``:
+    ``ret.terms(nu, hee)`` and :func:`_hp` at the prior, if the caller has them.
 
     Returns
     -------
@@ -158,8 +163,8 @@ def _iterate(
         minimum of the linearised MAP cost: the nonlinear NIS at convergence).
     """
     nu, Hp, Hs, hee = lin
-    nu_e, Rb = ret.terms(nu, hee)
-    g = _gain(P, Hp, Hs, ret.slots, Rb, own_only)
+    nu_e, Rb, HP = (*ret.terms(nu, hee), None) if pre is None else pre
+    g = _gain(P, Hp, Hs, ret.slots, Rb, own_only, HP)
     nu_f = nu_e.reshape(-1)
     nis0 = nis = g.nis(nu_f)
     dx = g.KT.T @ nu_f
