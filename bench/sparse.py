@@ -57,15 +57,20 @@ def render_survey(path: Path, voxel_size_m: float = 0.05) -> Path:
     return path
 
 
-def _stream(m, images, poses, passes: int) -> tuple[float, float]:
-    """(best images/s over ``passes`` fresh-map streams, seconds of the last); a warm-up first."""
+def _stream(m, images, poses, passes: int, batch: int = 1) -> tuple[float, float]:
+    """(best images/s over ``passes`` fresh-map streams, seconds of the last); a warm-up first.
+    ``batch`` > 1: ``integrate_batch`` of that many pings at a time."""
     best, last = 0.0, 0.0
     for p in range(passes + 1):
         m.reset()
         m.synchronize()
         t0 = time.perf_counter()
-        for img, T in zip(images, poses, strict=True):
-            m.integrate(img, T)
+        if batch > 1:
+            for k in range(0, len(images), batch):
+                m.integrate_batch(images[k : k + batch], poses[k : k + batch])
+        else:
+            for img, T in zip(images, poses, strict=True):
+                m.integrate(img, T)
         m.synchronize()
         last = time.perf_counter() - t0
         if p > 0:
@@ -97,6 +102,7 @@ def run_scene(
     passes: int,
     dense: bool,
     unbounded: bool,
+    batches: tuple[int, ...] = (1,),
 ) -> list[dict]:
     rows = []
     v = grid.voxel_size_m
@@ -105,6 +111,7 @@ def run_scene(
         ref = None
         if dense:
             d = gpumap.MinMaxMapper(spec, grid, backend=be)
+            by_b = {b: round(_stream(d, images, poses, passes, b)[0], 1) for b in batches if b > 1}
             ips, _ = _stream(d, images, poses, passes)
             ref = d.raw_values()
             rows.append(
@@ -120,6 +127,7 @@ def run_scene(
                         "dense_bytes": grid.n_voxels * 9,
                         "observed_voxels": int(np.isfinite(ref).sum()),
                         "device": d.device,
+                        "images_per_s_batch": by_b,
                     },
                 )
             )
@@ -131,6 +139,7 @@ def run_scene(
             if label == "sparse-unbounded" and not unbounded:
                 continue
             m = SparseMinMaxMapper(spec, sp, backend=be)
+            by_b = {b: round(_stream(m, images, poses, passes, b)[0], 1) for b in batches if b > 1}
             ips, _ = _stream(m, images, poses, passes)
             st = m.memory_stats()
             extra = {
@@ -150,6 +159,7 @@ def run_scene(
             extra["dense_grid_bytes"] = grid.n_voxels * 9
             extra["total_over_dense_grid"] = round(st["total_bytes"] / (grid.n_voxels * 9), 4)
             extra["device"] = m.device
+            extra["images_per_s_batch"] = by_b
             if ref is not None and label == "sparse":
                 extra["identical_to_dense"] = bool(np.array_equal(m.raw_values(), ref))
             rows.append(_row(name, label, be, v, ips, len(images), extra))
@@ -182,12 +192,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tank-voxels", default="0.03,0.02,0.01")
     p.add_argument("--survey-voxels", default="0.05,0.02", help="dense rows only at 5 cm and coarser")
     p.add_argument("--passes", type=int, default=2)
+    p.add_argument("--batch", default="1", help="also time integrate_batch of these sizes (e.g. 1,8)")
     p.add_argument("--section", default="cpu")
     p.add_argument("--out", type=Path, default=Path("bench/results/sparse.json"))
     args = p.parse_args(argv)
     backends = [b for b in args.backends.split(",") if b]
+    batches = tuple(int(b) for b in args.batch.split(",") if b)
     rows = []
     t0 = time.time()
+
     def scene_of(name: str, v: float, path: Path) -> tuple[gpumap.GridSpec, gpumap.SonarSpec]:
         """The scene's grid and sonar: from the ping file when it carries them (machines without
         trimesh), else from the scene."""
@@ -204,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
         images, poses = _load(args.tank_pings)
         for v in (float(x) for x in args.tank_voxels.split(",") if x):
             grid, spec = scene_of("tank", v, args.tank_pings)
-            rows += run_scene("tank", grid, spec, images, poses, backends, args.passes, True, False)
+            rows += run_scene("tank", grid, spec, images, poses, backends, args.passes, True, False, batches)
     if args.render_survey:
         render_survey(args.survey_pings)
     if args.survey_pings.is_file():
@@ -222,11 +235,13 @@ def main(argv: list[str] | None = None) -> int:
                 args.passes if dense else 1,
                 dense,
                 v >= 0.05,
+                batches,
             )
     doc = json.loads(args.out.read_text()) if args.out.is_file() else {}
     doc["schema"] = "gpumap-bench-sparse/1"
     doc["note"] = (
-        "images_per_s: best of --passes back-to-back streams over every ping of the set into a fresh map "
+        "images_per_s: integrate() per ping, images_per_s_batch: integrate_batch() of B pings at a time; "
+        "best of --passes back-to-back streams over every ping of the set into a fresh map "
         "(uint8 images, one synchronize at the end, warm-up pass untimed); bytes: dense = grid voxels x 9 "
         "(float32 min_all + float32 bright + uint8 count, the visible rule); sparse: memory_stats() after "
         "the stream (block_bytes = blocks x 512 voxels x 9; total = pool incl. spare slots + coarse index)"

@@ -64,6 +64,7 @@ from gpumap.atomic import atomic_write
 from gpumap.backends import AUTO_ORDER, BACKENDS, CPU_CHUNK, GPU_CHUNK, N_SLOTS, U8_SCALE, table_size
 from gpumap.errors import BackendUnavailableError, check_finite_scalar, check_pose
 from gpumap.geometry import (
+    MAX_TABLE_LEVELS,
     PING_DTYPE,
     RULES,
     beam_lut,
@@ -389,6 +390,14 @@ class _WarpBackend(_Backend):
             )
         self.istage, self.ievents, self.islot, self.ipairs = [None] * N_SLOTS, [None] * N_SLOTS, 0, None
         self.image_np = None if self.dev.is_cuda else self.image.numpy()
+        if not self.dev.is_cuda:  # CPUs: the max table in NumPy, the gather on two threads
+            from gpumap.backends import CPU_THREADS, _cpu_pool
+
+            nl = min(n_beams.bit_length(), MAX_TABLE_LEVELS)
+            self.table_np = self.table.numpy()[: nl * n_bins * n_beams].reshape(nl, n_bins, n_beams)
+            self.table_u8 = np.empty(self.table_np.shape, np.uint8)
+            self._rows = {}
+            self._pool = _cpu_pool() if CPU_THREADS > 1 else None
         self._P = None
         self._cmds = None
         self._gather = None
@@ -500,7 +509,9 @@ class _WarpBackend(_Backend):
         params["chunk"] = self.chunk
         if self._P is None:
             self._P = _params_struct(k, params)
+            self._P2 = _params_struct(k, params)  # CPUs: the second half of the box's rows
             self._P_addr = ctypes.addressof(self._P._ctype)
+            self._P2_addr = ctypes.addressof(self._P2._ctype)
             P = self._P
             rec = {"device": self.dev, "record_cmd": True}
             cmds = []
@@ -513,52 +524,76 @@ class _WarpBackend(_Backend):
                         **rec,
                     )
                 )
-            if self.dev.is_cuda:
+            if self.dev.is_cuda:  # one thread per cell; CPUs build the table in NumPy (build_table_host)
                 cells = (self.n_bins, self.n_beams)
                 cmds += [
                     wp.launch(k.build_bin_window_cells, dim=cells, inputs=[P, self.image, self.table], **rec),
                     wp.launch(k.build_beam_levels_cells, dim=cells, inputs=[P, self.table], **rec),
                 ]
-            else:
-                cmds += [
-                    wp.launch(
-                        k.build_bin_window, dim=self.n_beams, inputs=[P, self.image, self.table], **rec
-                    ),
-                    wp.launch(k.build_beam_levels, dim=self.n_bins, inputs=[P, self.table], **rec),
-                ]
             self._cmds = cmds
         ctypes.memmove(self._P_addr, params.ctypes.data, PING_DTYPE.itemsize)
         key = (tuple(int(x) for x in ilo), tuple(int(x) for x in nbk))
         if self._gather is None or self._gather[0] != key:
-            cmd = wp.launch(
-                self.ks.integrate_blocks,
-                dim=1,
-                inputs=[
-                    self._P,
-                    self.image,
-                    self.edges,
-                    self.lut,
-                    self.table,
-                    self.first_bright,
-                    self.index,
-                    wp.vec3i(*key[0]),
-                    wp.vec3i(*key[1]),
-                    self.B,
-                    self.grid,
-                    self.bright,
-                    self.count,
-                    self.seen,
-                    self.err,
-                ],
-                device=self.dev,
-                record_cmd=True,
-            )
-            self._gather = (key, cmd)
+
+            def rec_gather(P):
+                return wp.launch(
+                    self.ks.integrate_blocks,
+                    dim=1,
+                    inputs=[
+                        P,
+                        self.image,
+                        self.edges,
+                        self.lut,
+                        self.table,
+                        self.first_bright,
+                        self.index,
+                        wp.vec3i(*key[0]),
+                        wp.vec3i(*key[1]),
+                        self.B,
+                        self.grid,
+                        self.bright,
+                        self.count,
+                        self.seen,
+                        self.err,
+                    ],
+                    device=self.dev,
+                    record_cmd=True,
+                )
+
+            self._gather = (key, rec_gather(self._P), None if self.dev.is_cuda else rec_gather(self._P2))
         for cmd in self._cmds:
             cmd.launch()
-        cmd = self._gather[1]
-        cmd.set_dim(n_cols * -(-int(params["box_n"][2]) // self.chunk))
-        cmd.launch()
+        if not self.dev.is_cuda:
+            from gpumap.backends import build_table_host, table_rows
+
+            win = int(params["win"])
+            rows = self._rows.get(win)
+            if rows is None:
+                rows = self._rows[win] = table_rows(self.n_bins, win)
+            src = image if image.dtype == np.uint8 else self.image_np
+            build_table_host(src, win, self.table_np.shape[0], self.table_np, rows, self.table_u8, self._pool)
+        _, cmd, cmd2 = self._gather
+        n_chunks = -(-int(params["box_n"][2]) // self.chunk)
+        n0 = int(params["box_n"][0])
+        if cmd2 is None or self._pool is None or n0 < 2 or n_cols < 64:
+            cmd.set_dim(n_cols * n_chunks)
+            cmd.launch()
+            return
+        # CPUs: two halves of the box's rows, one per core (each owns its voxels; Warp's CPU
+        # kernels are serial and a launch releases the GIL)
+        half = n0 // 2
+        cols = n_cols // n0
+        ctypes.memmove(self._P2_addr, params.ctypes.data, PING_DTYPE.itemsize)
+        self._P._ctype.box_n[0] = half
+        self._P2._ctype.box_lo[0] = int(params["box_lo"][0]) + half
+        self._P2._ctype.box_n[0] = n0 - half
+        cmd.set_dim(half * cols * n_chunks)
+        cmd2.set_dim((n0 - half) * cols * n_chunks)
+        fut = self._pool.submit(cmd2.launch)
+        try:
+            cmd.launch()
+        finally:
+            fut.result()
 
     def read(self):
         g = self.grid.numpy().copy()
@@ -651,7 +686,15 @@ class _OpenCLBackend(_Backend):
         self.host_u8 = [np.empty((n_bins, n_beams), np.uint8) for _ in range(N_SLOTS)]
         self.uploads = [None] * N_SLOTS
         self.slot = 0
-        self.table = self._buf(4 * table_size(spec))
+        # CPUs: the max table built in NumPy straight into the mapped buffer (as the dense backend)
+        flags = self.mf.READ_WRITE | (0 if d.type & cl.device_type.GPU else self.mf.ALLOC_HOST_PTR)
+        self.table = cl.Buffer(self.ctx, flags, size=4 * table_size(spec))
+        self.n_levels = min(n_beams.bit_length(), MAX_TABLE_LEVELS)
+        self.table_u8 = np.empty((self.n_levels, n_bins, n_beams), np.uint8)
+        self._rows = {}
+        from gpumap.backends import CPU_THREADS, _cpu_pool
+
+        self._pool = _cpu_pool() if CPU_THREADS > 1 else None
         self.chunk = GPU_CHUNK if self.is_gpu else CPU_CHUNK
         k = functools.partial(cl.Kernel, prg)
         self.k_gather, self.k_init, self.k_u8, self.k_first = (
@@ -767,10 +810,21 @@ class _OpenCLBackend(_Backend):
             self.k_window(self.queue, (gs,), (self.wg,), P, image_buf, self.table)
             self.k_levels(self.queue, (gs,), (self.wg,), P, self.table)
         else:
-            gs = -(-self.n_beams // 16) * 16
-            self.k_window(self.queue, (gs,), (16,), P, image_buf, self.table)
-            gs = -(-self.n_bins // 16) * 16
-            self.k_levels(self.queue, (gs,), (16,), P, self.table)
+            from gpumap.backends import build_table_host, table_rows
+
+            win = int(params["win"])
+            rows = self._rows.get(win)
+            if rows is None:
+                rows = self._rows[win] = table_rows(self.n_bins, win)
+            shape = (self.n_levels, self.n_bins, self.n_beams)
+            # in order: the map waits for the previous ping's kernels, which read the table
+            tab, _ = cl.enqueue_map_buffer(
+                self.queue, self.table, cl.map_flags.WRITE_INVALIDATE_REGION, 0, shape, np.float32
+            )
+            try:
+                build_table_host(image, win, self.n_levels, tab, rows, self.table_u8, self._pool)
+            finally:
+                tab.base.release(self.queue)
         n = n_cols * -(-int(params["box_n"][2]) // self.chunk)
         gs = -(-n // self.wg) * self.wg
         i32 = np.int32
@@ -930,7 +984,6 @@ class SparseMinMaxMapper:
         o = sparse.origin
         self._params = static_params(spec, GridSpec(o, tuple(x + B * s for x in o), s), shadow, rule, thr)
         self._rho0, self._near0 = float(self._params["rho"]), float(self._params["near"])
-        self._pad = 0.0
         self._fov_pts_S = spec.fov_corners_S()
         self._staging = np.empty(spec.image_shape, dtype=np.float32)
         self._lock = threading.RLock()
@@ -1021,28 +1074,86 @@ class SparseMinMaxMapper:
         where the ping can observe a voxel. Raises ``ValueError``/``TypeError`` on bad input and
         :class:`MapMemoryError` when the blocks would pass ``max_bytes`` (``evict=None``) or
         the device's memory, in every case before the map changes."""
-        from gpumap.mapper import MinMaxMapper, _check_pose_cov
+        from gpumap.mapper import MinMaxMapper
 
         T = check_pose(T_W_S, "T_W_S")
         with self._lock:
             img = MinMaxMapper._check_image(self, image)
-            pad = 0.0
-            if pose_cov is not None:
-                C = _check_pose_cov(pose_cov)
-                k = check_finite_scalar(pose_sigmas, "pose_sigmas")
-                if k < 0:
-                    raise ValueError(f"Expected pose_sigmas >= 0, but got {k}")
-                pad = pose_pad_m(C, self.spec.range_max_m, k)
-            p = self._params
-            if pad != self._pad:
+            self._integrate_many([img], [T], [self._pad_of(pose_cov, pose_sigmas)])
+
+    def integrate_batch(
+        self,
+        images: np.ndarray,
+        T_W_S: np.ndarray,
+        pose_cov: np.ndarray | None = None,
+        pose_sigmas: float = 2.0,
+    ) -> None:
+        """Fuse B pings: the map of B calls of :meth:`integrate`, bit for bit (see
+        :meth:`gpumap.MinMaxMapper.integrate_batch` for the arguments), with the host's block
+        test vectorised over the batch and the new blocks of all B pings allocated at once.
+        Every ping's image, pose and covariance is checked, and every block allocated, before
+        any ping is applied: on bad input (``ValueError``/``TypeError`` naming the ping) or a
+        :class:`MapMemoryError` the map is unchanged."""
+        from gpumap.mapper import MinMaxMapper
+
+        if not isinstance(images, np.ndarray) or images.ndim != 3:
+            raise ValueError(f"Expected images of shape (B, n_bins, n_beams), but got {np.shape(images)}")
+        Ts = np.asarray(T_W_S)
+        if Ts.shape != (images.shape[0], 4, 4):
+            raise ValueError(f"Expected T_W_S of shape ({images.shape[0]}, 4, 4), but got {Ts.shape}")
+        covs = [None] * len(Ts)
+        if pose_cov is not None:
+            C = np.asarray(pose_cov)
+            covs = [C] * len(Ts) if C.shape == (6, 6) else list(C)
+            if len(covs) != len(Ts):
+                raise ValueError(f"Expected pose_cov of shape (6, 6) or ({len(Ts)}, 6, 6), but got {C.shape}")
+        with self._lock:
+            poses, pads = [], []
+            for k in range(len(Ts)):
+                try:
+                    poses.append(check_pose(Ts[k], "T_W_S"))
+                    MinMaxMapper._check_image(self, images[k])
+                    pads.append(self._pad_of(covs[k], pose_sigmas))
+                except (ValueError, TypeError) as e:
+                    raise type(e)(f"ping {k} of the batch: {e}") from e
+            self._integrate_many(images, poses, pads, recheck=True)
+
+    def _pad_of(self, pose_cov, pose_sigmas: float) -> float:
+        from gpumap.mapper import _check_pose_cov
+
+        if pose_cov is None:
+            return 0.0
+        C = _check_pose_cov(pose_cov)
+        k = check_finite_scalar(pose_sigmas, "pose_sigmas")
+        if k < 0:
+            raise ValueError(f"Expected pose_sigmas >= 0, but got {k}")
+        return pose_pad_m(C, self.spec.range_max_m, k)
+
+    def _integrate_many(self, imgs, Ts: list, pads: list, recheck: bool = False) -> None:
+        """Allocate the blocks of every ping, then apply them in order (checked input)."""
+        from gpumap.mapper import MinMaxMapper
+
+        ps, ncols = [], []
+        for T, pad in zip(Ts, pads, strict=True):
+            p = self._params.copy()
+            if pad:
                 set_footprint_pad(p, self._rho0, self._near0, pad)
-                self._pad = pad
-            n_cols = self._fill_ping(p, T)
-            if n_cols:
-                self._ensure_box(p)
-                self._allocate(self._candidate_lins(p, T), T[:3, 3])
-                ilo = self._lo_b * self.B
-                self._backend.integrate(p, img, n_cols, ilo, np.asarray(self._index.shape))
+            ncols.append(self._fill_ping(p, T))  # raises on a pose too far out, before any change
+            ps.append(p)
+        live = [k for k in range(len(ps)) if ncols[k]]
+        if live:
+            lo = np.array([ps[k]["box_lo"] for k in live], np.int64)
+            hi = lo + np.array([ps[k]["box_n"] for k in live], np.int64) - 1
+            if self._dims is None:  # the kernel reads the index over the whole box
+                self._ensure_index(lo.min(axis=0) // self.B, hi.max(axis=0) // self.B)
+            Tl = np.stack([Ts[k] for k in live])
+            self._allocate(self._candidate_lins(lo, hi, Tl), Tl[-1, :3, 3])
+        ilo = self._lo_b * self.B
+        nbk = np.asarray(self._index.shape)
+        for k, p in enumerate(ps):
+            if ncols[k]:
+                img = MinMaxMapper._check_image(self, imgs[k]) if recheck else imgs[k]
+                self._backend.integrate(p, img, ncols[k], ilo, nbk)
             self.n_integrated += 1
 
     def _fill_ping(self, p: np.ndarray, T: np.ndarray) -> int:
@@ -1075,58 +1186,80 @@ class SparseMinMaxMapper:
         n = p["box_n"]
         return int(n[0]) * int(n[1]) if n[2] > 0 else 0
 
-    def _candidate_lins(self, p: np.ndarray, T: np.ndarray) -> np.ndarray:
-        """Index entries (int64, into the flattened coarse index) of the blocks that may hold a
-        voxel centre this ping observes: per block column of the ping's box, the z-range that
-        the field of view's range sphere, azimuth half-planes, elevation slab and ``x > 0``
-        allow anywhere in the column (float64, padded against float32 rounding), as blocks.
-        The index must already cover the ping's box."""
+    def _candidate_lins(self, lo: np.ndarray, hi: np.ndarray, Ts: np.ndarray) -> np.ndarray:
+        """Index entries (int64, into the flattened coarse index; repeats across pings) of the
+        blocks that may hold a voxel centre one of the pings observes: per block column of a
+        ping's voxel box (``lo``..``hi``, (P, 3) each), the z-range that its field of view's
+        range sphere, azimuth half-planes, elevation slab and ``x > 0`` allow anywhere in the
+        column (float64, padded against float32 rounding), as blocks. Vectorised over the P
+        pings on the block columns of their union box. The index must cover every box."""
         B, s = self.B, self.sparse.voxel_size_m
         o = self._origin
-        lo = p["box_lo"].astype(np.int64)
-        hi = lo + p["box_n"].astype(np.int64) - 1
-        b0, b1 = lo // B, hi // B
-        bx = np.arange(b0[0], b1[0] + 1)
-        by = np.arange(b0[1], b1[1] + 1)
-        cx = (o[0] + (bx + 0.5) * (B * s))[:, None]
-        cy = (o[1] + (by + 0.5) * (B * s))[None, :]
-        t = T[:3, 3]
-        A = T[:3, :3].T
-        bb = -(A @ t)
+        b0, b1 = lo // B, hi // B  # (P, 3)
+        bx = np.arange(b0[:, 0].min(), b1[:, 0].max() + 1)
+        by = np.arange(b0[:, 1].min(), b1[:, 1].max() + 1)
+        cx = (o[0] + (bx + 0.5) * (B * s))[None, :, None]  # (1, nx, 1)
+        cy = (o[1] + (by + 0.5) * (B * s))[None, None, :]  # (1, 1, ny)
+        t = Ts[:, :3, 3]  # (P, 3)
+        A = np.transpose(Ts[:, :3, :3], (0, 2, 1))  # rotation of T_S_W
+        bb = -np.einsum("pij,pj->pi", A, t)
         rmax = self.spec.range_max_m
-        pad = 1e-4 * (1.0 + rmax + float(np.abs(t).max())) + 0.01 * s
+        pad = 1e-4 * (1.0 + rmax + np.abs(t).max(axis=1)) + 0.01 * s  # (P,)
         hd = B * s / math.sqrt(2.0) + pad  # the column's voxel centres lie within hd of (cx, cy)
-        dmin = np.maximum(np.hypot(cx - t[0], cy - t[1]) - hd, 0.0)
-        q = (rmax + pad) ** 2 - dmin * dmin
+        t3 = t[:, :, None, None]
+        dmin = np.maximum(np.hypot(cx - t3[:, 0], cy - t3[:, 1]) - hd[:, None, None], 0.0)
+        q = ((rmax + pad) ** 2)[:, None, None] - dmin * dmin
         ok = q > 0
         w = np.sqrt(np.maximum(q, 0.0))
-        z0, z1 = t[2] - w, t[2] + w
-        wd = p["wedge"].astype(np.float64)
-        slab = float(p["slab"])
+        z0, z1 = t3[:, 2] - w, t3[:, 2] + w
+        wd = self._params["wedge"].astype(np.float64)
+        slab = float(self._params["slab"])
         # g . w + g0 >= 0 for some w in the column at height z: alpha(column) + beta z >= 0
-        G = np.stack([wd[0] * A[0] + wd[1] * A[1], wd[2] * A[0] + wd[3] * A[1], -A[2], A[2], A[0]])
-        g0 = np.array(
-            [wd[0] * bb[0] + wd[1] * bb[1], wd[2] * bb[0] + wd[3] * bb[1], slab - bb[2], slab + bb[2], bb[0]]
+        G = np.stack(
+            [
+                wd[0] * A[:, 0] + wd[1] * A[:, 1],
+                wd[2] * A[:, 0] + wd[3] * A[:, 1],
+                -A[:, 2],
+                A[:, 2],
+                A[:, 0],
+            ],
+            axis=1,
+        )  # (P, 5, 3)
+        g0 = np.stack(
+            [
+                wd[0] * bb[:, 0] + wd[1] * bb[:, 1],
+                wd[2] * bb[:, 0] + wd[3] * bb[:, 1],
+                slab - bb[:, 2],
+                slab + bb[:, 2],
+                bb[:, 0],
+            ],
+            axis=1,
+        )  # (P, 5)
+        base = g0 + hd[:, None] * np.hypot(G[..., 0], G[..., 1]) + pad[:, None]
+        alpha = (
+            base[..., None, None] + G[..., 0, None, None] * cx[:, None] + G[..., 1, None, None] * cy[:, None]
         )
-        base = g0 + hd * np.hypot(G[:, 0], G[:, 1]) + pad
-        alpha = base[:, None, None] + G[:, 0, None, None] * cx[None] + G[:, 1, None, None] * cy[None]
-        beta = G[:, 2]
+        beta = G[..., 2]  # (P, 5)
         up, down = beta > 1e-12, beta < -1e-12
-        if up.any():
-            z0 = np.maximum(z0, (-alpha[up] / beta[up, None, None]).max(axis=0))
-        if down.any():
-            z1 = np.minimum(z1, (-alpha[down] / beta[down, None, None]).min(axis=0))
         level = ~(up | down)
+        zc = -alpha / np.where(level, 1.0, beta)[..., None, None]
+        z0 = np.maximum(z0, np.where(up[..., None, None], zc, -np.inf).max(axis=1))
+        z1 = np.minimum(z1, np.where(down[..., None, None], zc, np.inf).min(axis=1))
         if level.any():
-            ok &= (alpha[level] >= 0).all(axis=0)
-        k0 = np.maximum(np.floor((z0 - o[2]) / s - 0.5).astype(np.int64) - 1, lo[2])
-        k1 = np.minimum(np.ceil((z1 - o[2]) / s - 0.5).astype(np.int64) + 1, hi[2])
+            ok &= np.where(level[..., None, None], alpha >= 0, True).all(axis=1)
+        # the ping's own box: columns outside it and voxels above or below it hold nothing
+        ok &= ((bx[None, :] >= b0[:, 0, None]) & (bx[None, :] <= b1[:, 0, None]))[:, :, None]
+        ok &= ((by[None, :] >= b0[:, 1, None]) & (by[None, :] <= b1[:, 1, None]))[:, None, :]
+        k0 = np.maximum(np.floor((z0 - o[2]) / s - 0.5).astype(np.int64) - 1, lo[:, 2, None, None])
+        k1 = np.minimum(np.ceil((z1 - o[2]) / s - 0.5).astype(np.int64) + 1, hi[:, 2, None, None])
         ok &= k0 <= k1
         bz0 = k0 // B
         n = np.where(ok, k1 // B - bz0 + 1, 0).ravel()
         nb = self._index.shape
         lb = self._lo_b
-        col = (((bx - lb[0])[:, None] * nb[1] + (by - lb[1])[None, :]) * nb[2] + (bz0 - lb[2])).ravel()
+        col = (
+            (((bx - lb[0])[:, None] * nb[1] + (by - lb[1])[None, :]) * nb[2])[None] + (bz0 - lb[2])
+        ).ravel()
         return np.repeat(col - (np.cumsum(n) - n), n) + np.arange(int(n.sum()))
 
     def _unravel(self, lins: np.ndarray) -> np.ndarray:
@@ -1170,33 +1303,24 @@ class SparseMinMaxMapper:
         nb = self._index.shape
         return (r[:, 0] * nb[1] + r[:, 1]) * nb[2] + r[:, 2]
 
-    def _ensure_box(self, p: np.ndarray) -> None:
-        """An unbounded map's index grows to cover the ping's box (the kernel reads it there)."""
-        if self._dims is None:
-            lo = p["box_lo"].astype(np.int64)
-            hi = lo + p["box_n"].astype(np.int64) - 1
-            self._ensure_index(lo // self.B, hi // self.B)
-
     def _allocate(self, lins: np.ndarray, sonar_t: np.ndarray) -> None:
-        """Give every candidate block (index entries ``lins``) without one a slot (growing,
-        reclaiming or evicting)."""
+        """Give every candidate block (index entries ``lins``, repeats allowed) without one a
+        slot (growing, reclaiming or evicting)."""
         if len(lins) == 0:
             return
         flat = self._index.reshape(-1)
-        new = flat[lins] < 0
-        n_new = int(np.count_nonzero(new))
+        new_lins = np.unique(lins[flat[lins] < 0])
+        if len(new_lins) > len(self._free):
+            self._reclaim()
+            new_lins = np.unique(lins[flat[lins] < 0])
+            if len(new_lins) > len(self._free):
+                self._grow(len(new_lins) - len(self._free), lins, sonar_t)
+        n_new = len(new_lins)
         if n_new == 0:
             return
-        if n_new > len(self._free):
-            self._reclaim()
-            new = flat[lins] < 0
-            n_new = int(np.count_nonzero(new))
-            if n_new > len(self._free):
-                self._grow(n_new - len(self._free), lins, sonar_t)
         k = len(self._free) - n_new
         slots = self._free[k:][::-1]
         self._free = self._free[:k]
-        new_lins = lins[new]
         flat[new_lins] = slots
         self._coords[slots] = self._unravel(new_lins)
         self._used[slots] = True

@@ -381,3 +381,30 @@ def test_rotated_sonar_far_from_origin_equals_dense():
     d = _dense("numpy", pings, grid=grid)
     u = _sparse("numpy", pings, SparseSpec(0.05, origin_m=grid.min_corner_m))
     _assert_same(u, d)
+
+
+def test_integrate_batch_is_the_map_of_single_pings_and_checks_first(backend):
+    pings = _random_pings(4, 18)
+    one = _sparse(backend, pings, UNBOUNDED)
+    m = _sparse(backend, [], UNBOUNDED)
+    imgs = np.stack([img for img, _ in pings])
+    Ts = np.stack([T for _, T in pings])
+    m.integrate_batch(imgs, Ts)
+    np.testing.assert_array_equal(m.raw_values(), one.raw_values())
+    assert m.n_integrated == 4
+    bad = imgs.copy()
+    bad[2, 0, 0] = np.nan
+    before = m.raw_values()
+    with pytest.raises(ValueError, match="ping 2"):
+        m.integrate_batch(bad, Ts)
+    np.testing.assert_array_equal(m.raw_values(), before)
+    assert m.n_integrated == 4
+    # a batch that passes the cap changes nothing (its blocks are allocated before any ping)
+    far = Ts.copy()
+    far[:, 0, 3] += np.arange(4) * 2.0 + 5.0
+    capped = _sparse(backend, pings, UNBOUNDED, max_bytes=one.memory_stats()["total_bytes"])
+    before = capped.raw_values()
+    with pytest.raises(MapMemoryError):
+        capped.integrate_batch(imgs, far)
+    np.testing.assert_array_equal(capped.raw_values(), before)
+    assert capped.n_integrated == 4
