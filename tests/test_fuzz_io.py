@@ -28,9 +28,9 @@ messages, PLY round trips, any bytes under any name) know their answers independ
 
 Budget: ``derandomize=True`` (a fixed seed per test, no example database), a fixed
 ``max_examples`` per test (``GPUMAP_FUZZ_EXAMPLES`` scales them for longer local runs;
-default 1.0 = about 3,200 cases: 57 s wall on 2 cores shared with other jobs (load 6-7),
-21 s of CPU). The tests on mutated real files skip, with the reason, when ../shared/data
-is absent; the others run anyway.
+default 1.0 = about 3,400 cases: 57-92 s wall on 2 cores shared with other jobs (load
+6-7), 22 s of CPU; 8x = 27,000 cases and 20x found nothing). The tests on mutated real
+files skip, with the reason, when ../shared/data is absent; the others run anyway.
 """
 
 from __future__ import annotations
