@@ -17,7 +17,13 @@ import numpy as np
 from gpumap.atomic import atomic_write
 from gpumap.backends import AUTO_ORDER, BACKENDS, Backend, GridTooLargeError, make_backend
 from gpumap.backends import available_backends as _available
-from gpumap.errors import BackendUnavailableError, check_finite_scalar, check_pose
+from gpumap.errors import (
+    BackendUnavailableError,
+    FormatError,
+    LimitError,
+    check_finite_scalar,
+    check_pose,
+)
 from gpumap.geometry import RULES, make_template_S, pose_pad_m, static_params
 from gpumap.spec import GridSpec, SonarSpec
 
@@ -598,15 +604,16 @@ class MinMaxMapper:
         grid, and each member's declared size against what its compressed bytes can hold
         (deflate inflates at most ~1,000 : 1), so a small file cannot make it allocate
         gigabytes. Then the values: finite in [0, 1] or ``+inf`` (never observed), and for the
-        visible rule consistent with its state. Raises ``ValueError`` saying what was
-        expected and what came.
+        visible rule consistent with its state. Raises :class:`~gpumap.errors.FormatError` (a
+        ``ValueError``; :class:`~gpumap.errors.LimitError` when the map would not fit in
+        memory) saying what was expected and what came.
         """
         path = Path(path)
         try:
             with zipfile.ZipFile(path) as zf:
                 members = {i.filename: i for i in zf.infolist()}
                 if "meta.npy" not in members or "values.npy" not in members:
-                    raise ValueError(
+                    raise FormatError(
                         f"Expected a gpumap map file with 'meta' and 'values', but {path} has "
                         f"{sorted(n.removesuffix('.npy') for n in members)}"
                     )
@@ -614,7 +621,7 @@ class MinMaxMapper:
                     n: _npy_header(zf, info, path) for n, info in members.items() if n.endswith(".npy")
                 }
                 if members["meta.npy"].file_size > _META_MAX_BYTES:
-                    raise ValueError(
+                    raise FormatError(
                         f"Expected map metadata under {_META_MAX_BYTES} bytes in {path}, "
                         f"but it declares {members['meta.npy'].file_size}"
                     )
@@ -626,14 +633,14 @@ class MinMaxMapper:
                     dt = np.uint8 if name == "count" else np.float32
                     shape, dtype = headers.get(f"{name}.npy", (None, None))
                     if shape != grid.shape or dtype != np.dtype(dt):
-                        raise ValueError(
+                        raise FormatError(
                             f"Expected '{name}' of shape {grid.shape} {np.dtype(dt)} in {path}, "
                             f"but got {'nothing' if shape is None else f'{shape} {dtype}'}"
                         )
                 need = sum(int(np.prod(grid.shape)) * (1 if n == "count" else 4) for n in names)
                 free = _free_memory_bytes("numpy")
                 if free is not None and 2 * need > free:
-                    raise ValueError(
+                    raise LimitError(
                         f"Expected a map that fits in memory, but {path} holds {need / 2**30:.2f} GiB "
                         f"(twice that while loading) and {free / 2**30:.2f} GiB are free"
                     )
@@ -644,7 +651,7 @@ class MinMaxMapper:
         except (OSError, EOFError, zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError,
                 zlib.error, tokenize.TokenError, SyntaxError, NotImplementedError, struct.error) as e:
             # damaged deflate data, a damaged .npy header dict, an unknown zip compression
-            raise ValueError(
+            raise FormatError(
                 f"Expected a gpumap map file (.npz) at {path}, but it cannot be read: {e!r}"
             ) from e
         _check_map_values(arrays, opts, path)
@@ -673,17 +680,17 @@ def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path) -> tuple
         elif version in ((2, 0), (3, 0)):
             shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
         else:
-            raise ValueError(f"Expected .npy version 1-3 for {info.filename} in {path}, but got {version}")
+            raise FormatError(f"Expected .npy version 1-3 for {info.filename} in {path}, but got {version}")
         header_bytes = f.tell()
     data_bytes = -1 if dtype.hasobject else int(np.prod(shape, dtype=object)) * dtype.itemsize
     if data_bytes < 0 or fortran or info.file_size != header_bytes + data_bytes:
-        raise ValueError(
+        raise FormatError(
             f"Expected {info.filename} in {path} to hold its declared {shape} {dtype} array "
             f"({header_bytes + max(data_bytes, 0)} bytes, C order), but the archive says {info.file_size}"
         )
     bomb = info.file_size > _DEFLATE_MAX_RATIO * info.compress_size + 4096
     if info.compress_type != zipfile.ZIP_STORED and bomb:
-        raise ValueError(
+        raise FormatError(
             f"Expected {info.filename} in {path} to inflate at most {_DEFLATE_MAX_RATIO}:1, but it declares "
             f"{info.file_size} bytes from {info.compress_size}: refused before inflating"
         )
@@ -693,23 +700,23 @@ def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path) -> tuple
 def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec, dict, int]:
     """The specs, the constructor options and the ping count of a map file's metadata."""
     if not isinstance(meta, dict):
-        raise ValueError(f"Expected a JSON object as map metadata in {path}, but got {type(meta).__name__}")
+        raise FormatError(f"Expected a JSON object as map metadata in {path}, but got {type(meta).__name__}")
     if meta.get("format") != FILE_FORMAT:
-        raise ValueError(f"Expected format {FILE_FORMAT!r} in {path}, but got {meta.get('format')!r}")
+        raise FormatError(f"Expected format {FILE_FORMAT!r} in {path}, but got {meta.get('format')!r}")
     if meta.get("version") not in (1, FILE_VERSION):
-        raise ValueError(
+        raise FormatError(
             f"Expected file version 1 or {FILE_VERSION} in {path}, but got {meta.get('version')!r}"
         )
     try:
         spec = SonarSpec.from_dict(meta["spec"])
         grid = GridSpec.from_dict(meta["grid"])
     except (KeyError, TypeError, ValueError, OverflowError) as e:
-        raise ValueError(
+        raise FormatError(
             f"Expected a sonar spec and a grid spec in the metadata of {path}, but: {e!r}"
         ) from e
     n = meta.get("n_integrated")
     if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-        raise ValueError(f"Expected a non-negative integer n_integrated in {path}, but got {n!r}")
+        raise FormatError(f"Expected a non-negative integer n_integrated in {path}, but got {n!r}")
     rule = meta.get("rule", "plain")  # version 1 maps are plain min-max
     opts = {
         "method": meta.get("method"),
@@ -719,13 +726,13 @@ def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec, dict, in
         "carve_views": meta.get("carve_views", 2),
     }
     if opts["method"] not in METHODS or rule not in RULES:
-        raise ValueError(
+        raise FormatError(
             f"Expected method in {METHODS} and rule in {RULES} in {path}, but got "
             f"{opts['method']!r} and {rule!r}"
         )
     for key in ("shadow_m", "threshold"):
         if isinstance(opts[key], bool) or not isinstance(opts[key], (int, float)):
-            raise ValueError(f"Expected a number for {key} in {path}, but got {opts[key]!r}")
+            raise FormatError(f"Expected a number for {key} in {path}, but got {opts[key]!r}")
     return spec, grid, opts, n
 
 
@@ -739,7 +746,7 @@ def _check_map_values(arrays: dict[str, np.ndarray], opts: dict, path: Path) -> 
         bad = ~(fin | (a == np.inf)) | (fin & ((a < 0) | (a > 1)))
         if bad.any():
             i = np.unravel_index(int(np.argmax(bad)), a.shape)
-            raise ValueError(
+            raise FormatError(
                 f"Expected '{name}' in [0, 1] or +inf (never observed) in {path}, but got {a[i]} at "
                 f"{tuple(int(x) for x in i)} and {int(bad.sum()) - 1} more"
             )
@@ -748,10 +755,10 @@ def _check_map_values(arrays: dict[str, np.ndarray], opts: dict, path: Path) -> 
 
         unseen = np.isinf(arrays["min_all"])
         if np.any(unseen & (np.isfinite(arrays["bright"]) | (arrays["count"] > 0))):
-            raise ValueError(f"Expected no evidence on never-observed voxels in {path}, but some have it")
+            raise FormatError(f"Expected no evidence on never-observed voxels in {path}, but some have it")
         cv = opts["carve_views"]
         if isinstance(cv, bool) or not isinstance(cv, int) or not 1 <= cv <= 255:
-            raise ValueError(f"Expected carve_views in 1..255 in {path}, but got {cv!r}")
+            raise FormatError(f"Expected carve_views in 1..255 in {path}, but got {cv!r}")
         if not np.array_equal(visible_values(arrays["min_all"], arrays["bright"], arrays["count"], cv),
                               arrays["values"]):
-            raise ValueError(f"Expected 'values' in {path} to follow from its state, but they disagree")
+            raise FormatError(f"Expected 'values' in {path} to follow from its state, but they disagree")

@@ -218,3 +218,28 @@ def test_saved_map_gets_normal_file_permissions(tmp_path):
         assert stat.S_IMODE(p.stat().st_mode) == 0o640
     finally:
         os.umask(old)
+
+
+def test_load_errors_are_gpumap_format_errors(tmp_path):
+    """A damaged map file ends in gpumap's reader error family (FormatError, a ValueError)."""
+    from gpumap.errors import FormatError
+
+    p = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy").save(tmp_path / "m.npz")
+    with zipfile.ZipFile(p) as z:
+        members = {n: z.read(n) for n in z.namelist()}
+    import io
+
+    meta = json.loads(str(np.load(io.BytesIO(members["meta.npy"]))))
+    meta["format"] = "not-gpumap"
+    buf = io.BytesIO()
+    np.save(buf, np.array(json.dumps(meta)))
+    members["meta.npy"] = buf.getvalue()
+    bad = tmp_path / "bad.npz"
+    with zipfile.ZipFile(bad, "w") as z:
+        for n, data in members.items():
+            z.writestr(n, data)
+    with pytest.raises(FormatError, match="Expected format"):
+        gpumap.MinMaxMapper.load(bad)
+    (tmp_path / "junk.npz").write_bytes(b"PK\x03\x04" + b"\0" * 40)
+    with pytest.raises(FormatError, match="cannot be read"):
+        gpumap.MinMaxMapper.load(tmp_path / "junk.npz")
