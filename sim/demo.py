@@ -230,7 +230,7 @@ def _dvl_rays_S(T_W_S: np.ndarray, T_S_D: np.ndarray, rays_D: np.ndarray) -> tup
 
 
 def _ekf_poses(scene: Scene, pings: list[Ping], U: np.ndarray, sigma: float,
-               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+               rng: np.random.Generator, landmarks_out: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """EKF poses from odometry, the (range, azimuth) features and, in the tank and the survey, the DVL.
 
     The tank's DVL (four A50 beams, wrist mount of :func:`~.scenes.mounts`) is simulated at
@@ -241,7 +241,8 @@ def _ekf_poses(scene: Scene, pings: list[Ping], U: np.ndarray, sigma: float,
     downward DVL (:func:`~.scenes.survey_mounts`) is fused the same way against the plane
     ``z = SURVEY["floor_z_m"]`` (-4 m) with the seabed's RMS height about it in place of
     ``SAND_ROUGHNESS_M`` (:func:`_seabed_roughness`: its undulation, ~0.12 m). Returns the
-    poses (n, 4, 4) and their covariances (n, 6, 6).
+    poses (n, 4, 4) and their covariances (n, 6, 6); a ``landmarks_out`` dict
+    also gets the final features: ``points`` (m, 3) world metres, ``covs`` (m, 3, 3).
     """
     from gpumap.ekf import SonarEKF
 
@@ -286,6 +287,11 @@ def _ekf_poses(scene: Scene, pings: list[Ping], U: np.ndarray, sigma: float,
             ekf.update(p.feature_ids, r, b)
         out[k] = ekf.pose
         covs[k] = ekf.pose_cov
+    if landmarks_out is not None:  # the final features in the world and their covariances (live view)
+        ids = ekf.landmark_ids
+        world = ekf.landmarks
+        landmarks_out["points"] = np.array([world[i] for i in ids]).reshape(-1, 3)
+        landmarks_out["covs"] = np.array([ekf.landmark_cov(i) for i in ids]).reshape(-1, 3, 3)
     return out, covs
 
 
@@ -407,7 +413,8 @@ def run_demo(args: argparse.Namespace) -> dict:
         rows["odometry"] = {**_final_eval(m_odo, scene, truth, seen_each, args.threshold, detectable),
                             **_pose_error(T_odo, T_true)}
         try:
-            T_ekf, C_ekf = _ekf_poses(scene, pings, U, float(args.pose_noise), rng)
+            landmarks: dict | None = {} if session is not None else None
+            T_ekf, C_ekf = _ekf_poses(scene, pings, U, float(args.pose_noise), rng, landmarks_out=landmarks)
         except ImportError as e:  # the EKF module is optional for the demo
             rows["ekf"] = {"error": f"gpumap.ekf unavailable: {e}"}
         else:
@@ -428,6 +435,8 @@ def run_demo(args: argparse.Namespace) -> dict:
             session.add_path("odometry", T_odo[:, :3, 3], (140, 140, 140))
             if "error" not in rows["ekf"]:
                 session.add_path("ekf", T_ekf[:, :3, 3], (40, 90, 230))
+                if landmarks and len(landmarks["points"]):
+                    session.add_landmarks(landmarks["points"][:200], landmarks["covs"][:200])
     if session is not None:
         session.finish(mapper)
 

@@ -302,3 +302,22 @@ def test_view_saved_map_in_chromium(tmp_path):
     assert errors == [], errors
     differs, coloured = _map_pixels(png)
     assert differs > 0.03 and coloured > 2000, (differs, coloured)
+
+
+def test_demo_record_with_pose_noise_keeps_paths_and_landmarks(tmp_path):
+    """No viewer needed to record; the EKF rows add the three paths and the landmarks with covariances."""
+    from gpumap.sim.demo import main
+
+    rec_path = tmp_path / "pn.gpumap-rec"
+    assert main(["--voxel-size", "0.1", "--pings", "5", "--backend", "numpy", "--no-progress",
+                 "--pose-noise", "0.005", "--out", str(tmp_path / "out"), "--record", str(rec_path)]) == 0
+    rec = read_recording(rec_path)
+    assert rec.n_pings == 5
+    poses = np.array([p.T_W_S for p in rec.pings()])
+    np.testing.assert_allclose(rec.extras["path_true"], poses[:, :3, 3])  # the true poses were mapped
+    for name in ("path_odometry", "path_ekf"):
+        assert rec.extras[name].shape == (5, 3)
+    pts, covs = rec.extras["landmarks"], rec.extras["landmark_covs"]
+    assert len(pts) > 0 and covs.shape == (len(pts), 3, 3)
+    np.testing.assert_allclose(covs, covs.transpose(0, 2, 1), atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(covs) > 0)

@@ -134,8 +134,10 @@ class FanRenderer:
         self.lut = colormap_u8("copper")
 
     def __call__(self, image_u8: np.ndarray) -> np.ndarray:
-        rgb = self.lut[image_u8[self.b, self.j]]
-        a = np.where(self.ok, 255, 0).astype(np.uint8)
+        v = image_u8[self.b, self.j]
+        rgb = self.lut[v]
+        # dark water is see-through in the 3-D view (the voxels behind the fan stay visible)
+        a = np.where(self.ok, 70 + (v.astype(np.uint16) * 185) // 255, 0).astype(np.uint8)
         return np.concatenate([rgb, a[..., None]], -1)
 
 
@@ -212,6 +214,7 @@ class MapViewer:
         sc.set_up_direction("+z")
         sc.add_line_segments("/grid_box", _box_segments(lo, hi), colors=(150, 150, 150), line_width=1.0)
         sc.add_frame("/world", axes_length=0.2, axes_radius=0.006)
+        self._map_root = sc.add_frame("/map", show_axes=False)  # the voxel blocks hang below it
         self._sonar = sc.add_frame("/sonar", axes_length=0.15, axes_radius=0.006, visible=False)
         sc.add_line_segments("/sonar/fov", _fov_segments(spec), colors=(255, 200, 40), line_width=2.0)
         x0, x1, y0, y1 = self._fan.extent_m
@@ -234,6 +237,12 @@ class MapViewer:
         self._status = gui.add_markdown(f"**{title}**  \nwaiting for the first ping")
         self._color = gui.add_dropdown("colour voxels by", ("value", "height"), initial_value=color_by)
         self._color.on_update(lambda _e: self._recolour())
+        self._show = gui.add_checkbox("show voxels", True)
+
+        @self._show.on_update
+        def _(_e) -> None:  # hide the map to see what it hides: EKF landmarks, the truth's objects
+            self._map_root.visible = bool(self._show.value)
+
         blank = np.zeros((spec.n_bins // 4 or 1, spec.n_beams // 4 or 1, 3), np.uint8)
         self._polar_gui = gui.add_image(blank, label="ping (polar: range up, beams across)", format="jpeg")
         self._fan_gui = gui.add_image(
