@@ -454,14 +454,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if cmd == "info":
             return info(rest)
-        if cmd == "bench" and "" not in sys.path and "." not in sys.path:
-            sys.path.insert(0, "")  # bench/ lives in the source checkout, next to pyproject.toml
         try:
             mod = importlib.import_module(COMMANDS[cmd][0])
         except ModuleNotFoundError as e:
-            if cmd == "bench" and (e.name or "").split(".")[0] == "bench":
-                print("gpumap bench: error: it runs from a source checkout: cd to it and run "
-                      "`python -m bench`", file=sys.stderr)
+            if cmd == "bench" and (e.name or "").startswith("gpumap.bench"):
+                print("gpumap bench: error: this gpumap was installed without its benchmark "
+                      "(gpumap.bench): reinstall it (pip install gpumap, or pip install -e . in a "
+                      "checkout, where `python -m bench` also runs it)", file=sys.stderr)
                 return 2
             raise
         if cmd == "bench":
