@@ -173,6 +173,7 @@ def _machine() -> dict:
         "platform": platform.platform(),
         "cpu_count": os.cpu_count(),
         "backends": gpumap.available_backends(),
+        "load_avg": list(os.getloadavg()),
     }
     try:
         out["affinity_cpus"] = len(os.sched_getaffinity(0))

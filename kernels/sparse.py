@@ -14,6 +14,10 @@ their slots into the index (slot -1 frees a block).
 import warp as wp
 from gpumap.kernels.minmax import PingParams, column_range, update_voxel, voxel_centre, voxel_ping_value
 
+# As minmax: no FMA contraction, so the per-voxel arithmetic (compiled into this module) rounds
+# exactly as the dense kernels' and the NumPy oracle's.
+wp.set_module_options({"fuse_fp": False})
+
 
 @wp.kernel
 def integrate_blocks(

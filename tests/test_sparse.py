@@ -408,3 +408,12 @@ def test_integrate_batch_is_the_map_of_single_pings_and_checks_first(backend):
         capped.integrate_batch(imgs, far)
     np.testing.assert_array_equal(capped.raw_values(), before)
     assert capped.n_integrated == 4
+
+
+def test_sparse_kernels_round_as_the_dense_ones():
+    """The sparse module compiles minmax's per-voxel code: it must not contract to FMA where
+    minmax does not (GPUs would then round a few voxels differently from the dense grid)."""
+    wp = pytest.importorskip("warp")
+    from gpumap.kernels import minmax, sparse
+
+    assert wp.get_module_options(sparse)["fuse_fp"] == wp.get_module_options(minmax)["fuse_fp"]
