@@ -101,42 +101,58 @@ def _best(results: list[dict], gpu: bool, voxel: float, key: str) -> tuple[float
 
 
 def _targets(results: list[dict]) -> list[str]:
-    L = ["| target | measured | met |", "|---|---|---|"]
+    """One line per target of issue #13, with the value of every run (file) that measured it:
+    on a shared machine the runs differ, and the table shows each rather than the best."""
+    L = ["| target | measured (each run) | met |", "|---|---|---|"]
 
-    def line(name: str, value: float | None, goal: float, fmt: str, row: dict | None,
+    def line(name: str, goal: float, fmt: str, per_run: list[tuple[str, float, dict]],
              le: bool = False) -> None:
-        if value is None:
+        if not per_run:
             L.append(f"| {name} | not measured | – |")
             return
-        ok = value <= goal if le else value >= goal
-        who = f" ({row['backend']}, {row['rule']})" if row else ""
-        L.append(f"| {name} | {format(value, fmt)}{who} | {'yes' if ok else '**no**'} |")
+        ok = [v <= goal if le else v >= goal for _, v, _ in per_run]
+        vals = "; ".join(f"{format(v, fmt)} ({r['backend']}, {r['rule']}; `{f}`)" for f, v, r in per_run)
+        met = "yes" if all(ok) else "**no**" if not any(ok) else f"in {sum(ok)} of {len(ok)} runs"
+        L.append(f"| {name} | {vals} | {met} |")
 
-    ratio, rrow = None, None
+    def each(gpu: bool, voxel: float, key: str) -> list[tuple[str, float, dict]]:
+        out = []
+        for res in results:
+            v, r = _best([res], gpu, voxel, key)
+            if v is not None:
+                out.append((res["_file"], v, r))
+        return out
+
+    ratios = []
     for res in results:
         for o in res.get("oasis_public", []):
             if "error" in o or abs(o["voxel_m"] - 0.05) > 0.002:
                 continue
             same = [r for r in res["rows"] if "error" not in r and abs(r["voxel_m"] - o["voxel_m"]) < 1e-9]
             if same:
-                rrow = max(same, key=lambda r: r["img_per_s"])
-                ratio = rrow["img_per_s"] / o["img_per_s"]
-    line("2-core CPU, 5 cm: >= 50x the public OASIS code (same run)", ratio, 50, ".0f", rrow)
-    v, r = _best(results, False, 0.0302, "img_per_s")
-    line("2-core CPU, 3 cm: >= 150 img/s", v, 150, ".0f", r)
-    v, r = _best(results, False, 0.01, "img_per_s")
-    line("2-core CPU, 1 cm: >= 15 img/s", v, 15, ".1f", r)
-    v, r = _best(results, True, 0.01, "img_per_s_batched")
-    line("H100, 1 cm, batched, upload included: >= 20,000 img/s", v, 20000, ".0f", r)
-    v, r = _best(results, True, 0.005, "img_per_s_batched")
-    v2, r2 = _best(results, True, 0.005, "img_per_s")
-    if v2 is not None and (v is None or v2 > v):
-        v, r = v2, r2
-    line("H100, 5 mm: >= 5,000 img/s (batched or sequential)", v, 5000, ".0f", r)
-    p99 = [(x["latency"]["p99_ms"], x) for res in results for x in res["rows"]
-           if "error" not in x and x["backend"] in GPU_BACKENDS and abs(x["voxel_m"] - 0.01) < 1e-9]
-    best = min(p99, key=lambda t: t[0], default=(None, None))
-    line("H100, 1 cm, sequential latency p99 <= 1 ms", best[0], 1.0, ".2f", best[1], le=True)
+                best = max(same, key=lambda r: r["img_per_s"])
+                ratios.append((res["_file"], best["img_per_s"] / o["img_per_s"], best))
+    line("2-core CPU, 5 cm: >= 50x the public OASIS code (same run)", 50, ".0f", ratios)
+    line("2-core CPU, 3 cm: >= 150 img/s", 150, ".0f", each(False, 0.0302, "img_per_s"))
+    line("2-core CPU, 1 cm: >= 15 img/s", 15, ".1f", each(False, 0.01, "img_per_s"))
+    line("H100, 1 cm, batched, upload included: >= 20,000 img/s", 20000, ".0f",
+         each(True, 0.01, "img_per_s_batched"))
+    fine = []
+    for res in results:
+        cands = [(k, *_best([res], True, 0.005, k)) for k in ("img_per_s_batched", "img_per_s")]
+        cands = [c for c in cands if c[1] is not None]
+        if cands:
+            _, v, r = max(cands, key=lambda c: c[1])
+            fine.append((res["_file"], v, r))
+    line("H100, 5 mm: >= 5,000 img/s (batched or sequential)", 5000, ".0f", fine)
+    p99 = []
+    for res in results:
+        rows = [x for x in res["rows"]
+                if "error" not in x and x["backend"] in GPU_BACKENDS and abs(x["voxel_m"] - 0.01) < 1e-9]
+        if rows:
+            x = min(rows, key=lambda x: x["latency"]["p99_ms"])
+            p99.append((res["_file"], x["latency"]["p99_ms"], x))
+    line("H100, 1 cm, sequential latency p99 <= 1 ms", 1.0, ".2f", p99, le=True)
     return L
 
 
