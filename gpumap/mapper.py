@@ -222,7 +222,6 @@ class MinMaxMapper:
         self.shadow_m = shadow
         self._params = static_params(spec, grid, shadow, rule, thr)
         self._rho0, self._near0 = float(self._params["rho"]), float(self._params["near"])
-        self._pad = 0.0
         self._fov_pts_S = spec.fov_corners_S()
         self._template = make_template_S(spec, grid.voxel_size_m) if method == "template" else None
         if self._template is not None:
