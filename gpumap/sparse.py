@@ -920,7 +920,7 @@ class SparseMinMaxMapper:
         with the map unchanged; ``"farthest"`` frees the blocks farthest from the sonar (block
         centre to the sonar's position) that the ping does not reach, which become unknown.
     initial_blocks : int
-        Pool slots allocated up front (default 1,024).
+        Pool slots allocated up front (default 64; the pool grows by 1.5x as needed).
     """
 
     def __init__(
@@ -936,7 +936,7 @@ class SparseMinMaxMapper:
         carve_views: int = 2,
         max_bytes: int | None = None,
         evict: str | None = None,
-        initial_blocks: int = 1024,
+        initial_blocks: int = 64,
     ) -> None:
         if not isinstance(spec, SonarSpec):
             raise TypeError(f"Expected a gpumap.SonarSpec for 'spec', but got {type(spec).__name__}")
