@@ -15,6 +15,12 @@ at about z = -0.3 m over a 3 x 3 m patch, grid ``GridSpec((-1.6, -1.6, -0.5), (1
 0.5), s)``. The sonar circles the objects from five stations (pitch and roll sweeps at
 each), so that every object's far side is in the acoustic shadow in some views and faces
 the sonar in others: the scene for measuring the shadow problem of min-max mapping.
+
+World frame of the ``survey`` scene: z up, z = 0 at the sea surface; a 50 x 20 m seabed
+(``[-25, 25] x [-10, 10]``) about 4 m down, grid ``GridSpec((-25, -10, -4.6), (25, 10,
+-1.6), s)`` (the seabed band, 5 cm in the demo). A vehicle flies a lawnmower at 1.5 m depth
+with the sonar pitched 30 deg down and a downward DVL: the scene for large, mostly empty
+maps (:func:`survey_scene`).
 """
 
 from __future__ import annotations
