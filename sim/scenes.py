@@ -891,19 +891,14 @@ def box_scene(
     return Scene("boxes", objs, grid, spec, T, T, np.zeros(0, np.int64), np.zeros((0, 3)))
 
 
-def _prism(**kw) -> Scene:
-    from .prism import prism_scene  # owned elsewhere; imported on first use
-
-    return prism_scene(**kw)
-
-
 SCENES: dict[str, Callable[..., Scene]] = {
-    "tank": tank_scene, "circle": circle_scene, "prism": _prism, "survey": survey_scene,
+    "tank": tank_scene, "circle": circle_scene, "survey": survey_scene,
 }
 
 
 def make_scene(name: str, **kw) -> Scene:
-    """Build a registered scene by name (``tank``, ``circle``, ``prism``, ``survey``)."""
+    """Build a registered scene by name (``tank``, ``circle``, ``survey``; the EKF-only prism
+    case lives in :mod:`gpumap.sim.prism`, it renders no scene)."""
     if name not in SCENES:
         raise ValueError(f"Expected a scene name in {sorted(SCENES)}, but got {name!r}")
     return SCENES[name](**kw)

@@ -189,6 +189,30 @@ def colour_voxels(
     return matplotlib.colormaps[cmap](t)[..., :3].astype(np.float32)
 
 
+PICTURE_MAX_VOXELS = 4_000_000
+"""Grids larger than this are drawn from voxels merged f x f x f (the smallest f that fits)."""
+
+
+def _picture_factor(n_voxels: int) -> int:
+    return max(1, int(np.ceil((n_voxels / PICTURE_MAX_VOXELS) ** (1 / 3) - 1e-9)))
+
+
+def _blocks(a: np.ndarray, f: int, fill) -> np.ndarray:
+    """``a`` padded with ``fill`` to multiples of ``f`` and viewed as (X, f, Y, f, Z, f)."""
+    pad = [(0, -n % f) for n in a.shape]
+    a = np.pad(a, pad, constant_values=fill)
+    X, Y, Z = (n // f for n in a.shape)
+    return a.reshape(X, f, Y, f, Z, f)
+
+
+def _block_any(a: np.ndarray, f: int) -> np.ndarray:
+    return a if f == 1 else _blocks(a, f, False).any(axis=(1, 3, 5))
+
+
+def _block_max(a: np.ndarray, f: int) -> np.ndarray:
+    return a if f == 1 else _blocks(a, f, np.iinfo(a.dtype).min).max(axis=(1, 3, 5))
+
+
 def grid_origin(grid: Any) -> np.ndarray:
     return np.asarray(grid.min_corner_m, np.float64) + 0.5 * grid.voxel_size_m
 
@@ -237,12 +261,18 @@ def demo_pictures(
         lo, hi = np.asarray(grid.min_corner_m), np.asarray(grid.max_corner_m)
     zlo, zhi = float(lo[2]), float(hi[2])
     eye, target = _camera_for(lo, hi)
-    col_map = colour_voxels(values, occ, "height", zlo, zhi, z0_m=o[2], voxel_m=vs)
+    # large maps (the survey) are drawn from coarser voxels, each occupied if any of its
+    # fine voxels is: the picture keeps every surface, its memory stays bounded
+    f = _picture_factor(occ.size)
+    r_occ, r_tsurf, r_label = _block_any(occ, f), _block_any(tsurf, f), _block_max(truth.label, f)
+    r_vs, r_o = vs * f, o + 0.5 * (f - 1) * vs
+    col_map = colour_voxels(None, r_occ, "height", zlo, zhi, z0_m=r_o[2], voxel_m=r_vs)
     tab = matplotlib.colormaps["tab10"](np.arange(10))[:, :3].astype(np.float32)
-    col_truth = tab[np.clip(truth.label, 0, None) % 10]
+    col_truth = tab[np.clip(r_label, 0, None) % 10]
     size = (900, 640)
-    img_map = render_voxels([exposed_faces_mesh(occ, col_map, o, vs)], eye, target, size)
-    img_truth = render_voxels([exposed_faces_mesh(tsurf, col_truth, o, vs)], eye, target, size)
+    img_map = render_voxels([exposed_faces_mesh(r_occ, col_map, r_o, r_vs)], eye, target, size)
+    img_truth = render_voxels([exposed_faces_mesh(r_tsurf, col_truth, r_o, r_vs)], eye, target, size)
+    del col_map, col_truth
 
     fig = plt.figure(figsize=(13, 5.4), dpi=90)
     gs = fig.add_gridspec(1, 3, width_ratios=(1, 1, 0.035), wspace=0.03)
