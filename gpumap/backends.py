@@ -382,28 +382,9 @@ class WarpBackend(Backend):
         wp.load_module(minmax, device=self.dev)  # compile (or load from cache) now, not on ping 1
 
     def integrate(self, params, image, method, n_threads):
-        wp = self.wp
         _check_rule(params, self.visible)
-        if self.staging:
-            s = self.slot
-            if self.events[s] is not None:
-                wp.synchronize_event(self.events[s])
-            if image.dtype == np.uint8:
-                np.copyto(self.staging_u8_np[s], image)
-                wp.copy(self.image_u8, self.staging_u8[s])
-                self.events[s] = wp.record_event()
-                self.cmd_u8.launch()
-            else:
-                np.copyto(self.staging_np[s], image)
-                wp.copy(self.image, self.staging[s])
-                self.events[s] = wp.record_event()
-            self.slot = (s + 1) % N_SLOTS
-        elif method == "gather" and not n_threads:
-            return
-        elif image.dtype == np.uint8:
-            np.multiply(image, U8_SCALE, out=self.image_np)
-        else:
-            np.copyto(self.image_np, image)
+        if self.staging or not (method == "gather" and not n_threads):
+            warp_upload_image(self, image)
         if method == "gather" and not n_threads:
             return
         params["chunk"] = self.chunk
@@ -414,12 +395,7 @@ class WarpBackend(Backend):
         for cmd in self._cmds["table"]:
             cmd.launch()
         if not self.dev.is_cuda and self.use_table:
-            win = int(params["win"])
-            rows = self._rows.get(win)
-            if rows is None:
-                rows = self._rows[win] = table_rows(self.n_bins, win)
-            src = image if image.dtype == np.uint8 else self.image_np
-            build_table_host(src, win, self.table_np.shape[0], self.table_np, rows, self.table_u8, self._pool)
+            warp_host_table(self, params, image)
         cmd = self._cmds[method]
         if method != "gather":
             cmd.launch()
@@ -430,18 +406,7 @@ class WarpBackend(Backend):
             cmd.set_dim(n_threads * n_chunks)
             cmd.launch()
             return
-        # two halves of the box's rows, one per core
-        half = n0 // 2
-        cols = n_threads // n0
-        ctypes.memmove(self._P2_addr, params.ctypes.data, PING_DTYPE.itemsize)
-        self._P._ctype.box_n[0] = half
-        self._P2._ctype.box_lo[0] = int(params["box_lo"][0]) + half
-        self._P2._ctype.box_n[0] = n0 - half
-        cmd.set_dim(half * cols * n_chunks)
-        self._cmd2.set_dim((n0 - half) * cols * n_chunks)
-        fut = self._pool.submit(self._cmd2.launch)
-        cmd.launch()
-        fut.result()
+        warp_launch_halves(self, params, cmd, self._cmd2, n_threads, n_chunks)
 
     def _record(self, params):
         """Record every launch once (``record_cmd``); a ping then only swaps the parameters.
@@ -789,7 +754,7 @@ class OpenCLBackend(Backend):
                 self.k_window(self.queue, (gs,), (self.wg,), P, image_buf, self.table)
                 self.k_levels(self.queue, (gs,), (self.wg,), P, self.table)
             else:  # CPUs: whole-image NumPy passes into the mapped table (no copy)
-                self._host_table(params, image)
+                opencl_host_table(self, params, image)
         args = (P, image_buf, self.edges, self.lut, self.table, flag, self.first_bright)
         if method == "gather":
             n_threads *= -(-int(params["box_n"][2]) // self.chunk)
@@ -801,22 +766,6 @@ class OpenCLBackend(Backend):
             gs = -(-self.n_points // self.wg) * self.wg
             self.k_template(self.queue, (gs,), (self.wg,), *args, self.template, self.grid)
         self.queue.flush()
-
-    def _host_table(self, params, image) -> None:
-        cl = self.cl
-        win = int(params["win"])
-        rows = self._rows.get(win)
-        if rows is None:
-            rows = self._rows[win] = table_rows(self.n_bins, win)
-        shape = (self.n_levels, self.n_bins, self.n_beams)
-        # in order: the map waits for the previous ping's kernels, which read the table
-        tab, _ = cl.enqueue_map_buffer(
-            self.queue, self.table, cl.map_flags.WRITE_INVALIDATE_REGION, 0, shape, np.float32
-        )
-        try:
-            build_table_host(image, win, self.n_levels, tab, rows, self.table_u8, self._pool)
-        finally:
-            tab.base.release(self.queue)
 
     # ------------------------------------------------------------------ batches (GPUs)
     def integrate_batch(self, params, images, method, n_threads):
@@ -983,3 +932,79 @@ def available_backends() -> list[str]:
     if os.environ.get("GPUMAP_DEBUG"):
         log.debug("available backends: %s", out)
     return out
+
+
+def opencl_host_table(b, params, image) -> None:
+    """CPU OpenCL devices: build ping ``params``' max table of ``image`` with whole-image NumPy
+    passes straight into ``b.table`` mapped on the host (no copy); ``b`` is a dense or a sparse
+    OpenCL backend."""
+    cl = b.cl
+    win = int(params["win"])
+    rows = b._rows.get(win)
+    if rows is None:
+        rows = b._rows[win] = table_rows(b.n_bins, win)
+    shape = (b.n_levels, b.n_bins, b.n_beams)
+    # in order: the map waits for the previous ping's kernels, which read the table
+    tab, _ = cl.enqueue_map_buffer(
+        b.queue, b.table, cl.map_flags.WRITE_INVALIDATE_REGION, 0, shape, np.float32
+    )
+    try:
+        build_table_host(image, win, b.n_levels, tab, rows, b.table_u8, b._pool)
+    finally:
+        tab.base.release(b.queue)
+
+
+def warp_upload_image(b, image) -> None:
+    """Put ``image`` where ``b``'s kernels read it: on GPUs through a pinned staging slot (uint8
+    widened on the device), on CPUs into the kernels' float32 image; ``b`` is a dense or a
+    sparse Warp backend."""
+    wp = b.wp
+    if b.staging:
+        s = b.slot
+        if b.events[s] is not None:
+            wp.synchronize_event(b.events[s])
+        if image.dtype == np.uint8:
+            np.copyto(b.staging_u8_np[s], image)
+            wp.copy(b.image_u8, b.staging_u8[s])
+            b.events[s] = wp.record_event()
+            b.cmd_u8.launch()
+        else:
+            np.copyto(b.staging_np[s], image)
+            wp.copy(b.image, b.staging[s])
+            b.events[s] = wp.record_event()
+        b.slot = (s + 1) % N_SLOTS
+    elif image.dtype == np.uint8:
+        np.multiply(image, U8_SCALE, out=b.image_np)
+    else:
+        np.copyto(b.image_np, image)
+
+
+def warp_host_table(b, params, image) -> None:
+    """Warp on a CPU: ping ``params``' max table of ``image`` into ``b.table_np`` (NumPy passes,
+    uint8 images read directly); ``b`` is a dense or a sparse Warp backend."""
+    win = int(params["win"])
+    rows = b._rows.get(win)
+    if rows is None:
+        rows = b._rows[win] = table_rows(b.n_bins, win)
+    src = image if image.dtype == np.uint8 else b.image_np
+    build_table_host(src, win, b.table_np.shape[0], b.table_np, rows, b.table_u8, b._pool)
+
+
+def warp_launch_halves(b, params, cmd, cmd2, n_threads: int, n_chunks: int) -> None:
+    """Warp on a CPU: launch a gather over the box's rows in two halves, one per core (each
+    owns its voxels; Warp's CPU kernels are serial and a launch releases the GIL). ``cmd`` and
+    ``cmd2`` are recorded on ``b._P`` and ``b._P2``; ``n_threads`` is the box's column count."""
+    n0 = int(params["box_n"][0])
+    half = n0 // 2
+    cols = n_threads // n0
+    ctypes.memmove(b._P2_addr, params.ctypes.data, PING_DTYPE.itemsize)
+    b._P._ctype.box_n[0] = half
+    b._P2._ctype.box_lo[0] = int(params["box_lo"][0]) + half
+    b._P2._ctype.box_n[0] = n0 - half
+    cmd.set_dim(half * cols * n_chunks)
+    cmd2.set_dim((n0 - half) * cols * n_chunks)
+    fut = b._pool.submit(cmd2.launch)
+    try:
+        cmd.launch()
+    finally:
+        fut.result()

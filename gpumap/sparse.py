@@ -61,7 +61,19 @@ from pathlib import Path
 import numpy as np
 
 from gpumap.atomic import atomic_write
-from gpumap.backends import AUTO_ORDER, BACKENDS, CPU_CHUNK, GPU_CHUNK, N_SLOTS, U8_SCALE, table_size
+from gpumap.backends import (
+    AUTO_ORDER,
+    BACKENDS,
+    CPU_CHUNK,
+    GPU_CHUNK,
+    N_SLOTS,
+    U8_SCALE,
+    opencl_host_table,
+    table_size,
+    warp_host_table,
+    warp_launch_halves,
+    warp_upload_image,
+)
 from gpumap.errors import BackendUnavailableError, check_finite_scalar, check_pose
 from gpumap.geometry import (
     MAX_TABLE_LEVELS,
@@ -483,30 +495,9 @@ class _WarpBackend(_Backend):
         cmd.set_dim(n * self.B3)
         cmd.launch()
 
-    def _upload_image(self, image):
-        wp = self.wp
-        if self.staging:
-            s = self.slot
-            if self.events[s] is not None:
-                wp.synchronize_event(self.events[s])
-            if image.dtype == np.uint8:
-                np.copyto(self.staging_u8_np[s], image)
-                wp.copy(self.image_u8, self.staging_u8[s])
-                self.events[s] = wp.record_event()
-                self.cmd_u8.launch()
-            else:
-                np.copyto(self.staging_np[s], image)
-                wp.copy(self.image, self.staging[s])
-                self.events[s] = wp.record_event()
-            self.slot = (s + 1) % N_SLOTS
-        elif image.dtype == np.uint8:
-            np.multiply(image, U8_SCALE, out=self.image_np)
-        else:
-            np.copyto(self.image_np, image)
-
     def integrate(self, params, image, n_cols, ilo, nbk):
         wp, k = self.wp, self.k
-        self._upload_image(image)
+        warp_upload_image(self, image)
         params["chunk"] = self.chunk
         if self._P is None:
             self._P = _params_struct(k, params)
@@ -565,14 +556,7 @@ class _WarpBackend(_Backend):
         for cmd in self._cmds:
             cmd.launch()
         if not self.dev.is_cuda:
-            from gpumap.backends import build_table_host, table_rows
-
-            win = int(params["win"])
-            rows = self._rows.get(win)
-            if rows is None:
-                rows = self._rows[win] = table_rows(self.n_bins, win)
-            src = image if image.dtype == np.uint8 else self.image_np
-            build_table_host(src, win, self.table_np.shape[0], self.table_np, rows, self.table_u8, self._pool)
+            warp_host_table(self, params, image)
         _, cmd, cmd2 = self._gather
         n_chunks = -(-int(params["box_n"][2]) // self.chunk)
         n0 = int(params["box_n"][0])
@@ -582,19 +566,7 @@ class _WarpBackend(_Backend):
             return
         # CPUs: two halves of the box's rows, one per core (each owns its voxels; Warp's CPU
         # kernels are serial and a launch releases the GIL)
-        half = n0 // 2
-        cols = n_cols // n0
-        ctypes.memmove(self._P2_addr, params.ctypes.data, PING_DTYPE.itemsize)
-        self._P._ctype.box_n[0] = half
-        self._P2._ctype.box_lo[0] = int(params["box_lo"][0]) + half
-        self._P2._ctype.box_n[0] = n0 - half
-        cmd.set_dim(half * cols * n_chunks)
-        cmd2.set_dim((n0 - half) * cols * n_chunks)
-        fut = self._pool.submit(cmd2.launch)
-        try:
-            cmd.launch()
-        finally:
-            fut.result()
+        warp_launch_halves(self, params, cmd, cmd2, n_cols, n_chunks)
 
     def read(self):
         g = self.grid.numpy().copy()
@@ -811,21 +783,7 @@ class _OpenCLBackend(_Backend):
             self.k_window(self.queue, (gs,), (self.wg,), P, image_buf, self.table)
             self.k_levels(self.queue, (gs,), (self.wg,), P, self.table)
         else:
-            from gpumap.backends import build_table_host, table_rows
-
-            win = int(params["win"])
-            rows = self._rows.get(win)
-            if rows is None:
-                rows = self._rows[win] = table_rows(self.n_bins, win)
-            shape = (self.n_levels, self.n_bins, self.n_beams)
-            # in order: the map waits for the previous ping's kernels, which read the table
-            tab, _ = cl.enqueue_map_buffer(
-                self.queue, self.table, cl.map_flags.WRITE_INVALIDATE_REGION, 0, shape, np.float32
-            )
-            try:
-                build_table_host(image, win, self.n_levels, tab, rows, self.table_u8, self._pool)
-            finally:
-                tab.base.release(self.queue)
+            opencl_host_table(self, params, image)
         n = n_cols * -(-int(params["box_n"][2]) // self.chunk)
         gs = -(-n // self.wg) * self.wg
         i32 = np.int32
