@@ -11,6 +11,7 @@ __all__ = [
     "FormatError",
     "LimitError",
     "MissingFileError",
+    "check_carve_views",
     "check_finite_scalar",
     "check_pose",
 ]
@@ -71,6 +72,13 @@ class MissingFileError(FormatError, FileNotFoundError):
 
     Both a :class:`FormatError` and a ``FileNotFoundError``.
     """
+
+
+def check_carve_views(n: object) -> int:
+    """``n`` as an int if it is an integer in 1..255 (the visible rule's carve_views), else raise."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= 255:
+        raise ValueError(f"Expected carve_views to be an integer in 1..255, but got {n!r}")
+    return int(n)
 
 
 def check_finite_scalar(value: object, name: str) -> float:

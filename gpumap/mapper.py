@@ -21,6 +21,7 @@ from gpumap.errors import (
     BackendUnavailableError,
     FormatError,
     LimitError,
+    check_carve_views,
     check_finite_scalar,
     check_pose,
 )
@@ -520,9 +521,7 @@ class MinMaxMapper:
 
     @carve_views.setter
     def carve_views(self, n: int) -> None:
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= 255:
-            raise ValueError(f"Expected carve_views to be an integer in 1..255, but got {n!r}")
-        self._carve_views = int(n)
+        self._carve_views = check_carve_views(n)
 
     def evidence(self) -> dict[str, np.ndarray]:
         """The visible rule's per-voxel state, (nx, ny, nz) copies: ``min_all`` float32 (min over

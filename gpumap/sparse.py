@@ -74,7 +74,7 @@ from gpumap.backends import (
     warp_launch_halves,
     warp_upload_image,
 )
-from gpumap.errors import BackendUnavailableError, check_finite_scalar, check_pose
+from gpumap.errors import BackendUnavailableError, check_carve_views, check_finite_scalar, check_pose
 from gpumap.geometry import (
     MAX_TABLE_LEVELS,
     PING_DTYPE,
@@ -1017,9 +1017,7 @@ class SparseMinMaxMapper:
 
     @carve_views.setter
     def carve_views(self, n: int) -> None:
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= 255:
-            raise ValueError(f"Expected carve_views to be an integer in 1..255, but got {n!r}")
-        self._carve_views = int(n)
+        self._carve_views = check_carve_views(n)
 
     # ------------------------------------------------------------------ integrate
     def integrate(
