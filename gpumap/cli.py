@@ -391,11 +391,16 @@ def info(argv: list[str] | None = None) -> int:
 
     spec = gpumap.SonarSpec.uniform(n_beams=4, n_bins=4)
     print(f"gpumap {gpumap.__version__}")
-    names = gpumap.available_backends()
-    for name in names:
-        b = make_backend(name, spec, 1, None)
-        print(f"  {name:<11} {b.device}")
-    print(f"auto picks: {names[0]}")
+    works = []
+    for name in gpumap.available_backends():
+        try:
+            b = make_backend(name, spec, 1, None)
+        except gpumap.BackendUnavailableError as e:  # a device is there, but it cannot run gpumap
+            print(f"  {name:<11} cannot run: {_one_line(e)}")
+            continue
+        works.append(b.name)
+        print(f"  {b.name:<11} {b.device}")
+    print(f"auto picks: {works[0]}")
     return 0
 
 

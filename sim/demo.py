@@ -56,12 +56,17 @@ DEFAULT_VOXEL_M = {"survey": 0.05}
 
 def _parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog="gpumap demo", description=__doc__.splitlines()[0])
-    p.add_argument("--scene", default="tank", choices=sorted(SCENES))
+    p.add_argument("--scene", default="tank", choices=sorted(SCENES),
+                   help="simulated scene: tank (the paper's), circle (four objects seen from five sides) "
+                        "or survey (a long seabed strip); default tank")
     p.add_argument("--voxel-size", type=positive_float, default=None,
                    help="voxel edge, metres (default: 0.03; 0.05 for the survey scene)")
     p.add_argument("--backend", type=backend_name, default="auto",
-                   help="auto|numpy|warp-cpu|warp-cuda|opencl")
-    p.add_argument("--method", default="gather", choices=["gather", "template"])
+                   help="where to map: auto (the fastest here, named in the output), numpy, warp-cpu, "
+                        "warp-cuda, opencl, opencl-gpu or opencl-cpu (see gpumap info)")
+    p.add_argument("--method", default="gather", choices=["gather", "template"],
+                   help="gather (every voxel in the field of view, the default) or template (the "
+                        "paper's voxel template; leaves holes, plain rule only)")
     p.add_argument("--out", type=output_dir, default="demo_out",
                    help="output folder; its files are replaced as one set")
     p.add_argument("--pose-noise", type=nonnegative_float, default=None, metavar="SIGMA",
@@ -77,11 +82,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--shadow-m", type=nonnegative_float, default=0.0, metavar="M",
                    help="acoustic-shadow allowance (metres): returns also count up to M behind them; "
                         "0 = the paper's min-max")
-    p.add_argument("--seed", type=nonnegative_int, default=0)
+    p.add_argument("--seed", type=nonnegative_int, default=0,
+                   help="random seed of the simulated sonar noise and odometry (default 0)")
     p.add_argument("--sparse", action="store_true",
                    help="map into gpumap.SparseMinMaxMapper (blocks only where pings look, bounded by the "
                         "scene's grid; the same values as the dense grid) and report its memory")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     from gpumap.viewer.cli import add_view_args
 
     add_view_args(p)

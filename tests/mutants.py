@@ -14,6 +14,7 @@ that backend's code (``gpumap/reference.py`` for ``numpy``, ``kernels/minmax.py`
 there with ``GPUMAP_TEST_BACKENDS=<backend>``, so only that backend's tests run and a test
 that compares a backend with the (unmutated) reference cannot be what kills a ``numpy``
 mutant. A mutant survives when those tests pass. The checkout itself is never modified.
+The unmutated copy runs the same tests first on each backend and must pass them (else exit 2).
 Exit status 0 when every mutant died on every backend tried, 1 otherwise.
 """
 
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -141,22 +143,26 @@ def apply(text: str, edits: list[tuple[str, str]], where: str) -> str:
     return text
 
 
-def run_one(m: Mutant, backend: str, timeout_s: float, verbose: bool) -> tuple[str, float, str]:
-    """('killed' | 'survived' | 'error', seconds, last lines of pytest's output)."""
+def run_one(m: Mutant | None, backend: str, timeout_s: float, verbose: bool, tests: tuple[str, ...],
+            pytest_args: list[str]) -> tuple[str, float, str]:
+    """('killed' | 'survived' | 'error', seconds, last lines of pytest's output); ``m`` None runs
+    the unmutated copy (the baseline, which must survive)."""
     rel = FILES[backend]
-    with tempfile.TemporaryDirectory(prefix=f"mutant-{m.name}-") as tmp:
+    with tempfile.TemporaryDirectory(prefix=f"mutant-{m.name if m else 'baseline'}-") as tmp:
         dst = Path(tmp)
         _layout(dst)
-        target = dst / _installed_path(rel)
-        target.write_text(apply(target.read_text(), m.edits[backend], rel))
-        env = dict(os.environ, GPUMAP_TEST_BACKENDS=backend, PYTHONPATH=str(dst), PYTHONDONTWRITEBYTECODE="1")
+        if m is not None:
+            target = dst / _installed_path(rel)
+            target.write_text(apply(target.read_text(), m.edits[backend], rel))
+        path = os.pathsep.join(p for p in (str(dst), os.environ.get("PYTHONPATH", "")) if p)
+        env = dict(os.environ, GPUMAP_TEST_BACKENDS=backend, PYTHONPATH=path, PYTHONDONTWRITEBYTECODE="1")
         env.pop("CI", None)  # the backend check of CI is not what this run is about
         probe = "import gpumap.kernels as k, gpumap.reference as r; print(k.__path__[0], r.__file__)"
         where = subprocess.run([sys.executable, "-c", probe], cwd=dst, env=env, capture_output=True,
                                text=True)
         if not all(w.startswith(str(dst)) for w in where.stdout.split()) or where.returncode:
             raise SystemExit(f"the copy in {dst} is not what imports: {where.stdout}{where.stderr}")
-        cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *m.tests]
+        cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *pytest_args, *tests]
         t0 = time.perf_counter()
         try:
             r = subprocess.run(cmd, cwd=dst, env=env, capture_output=True, text=True, timeout=timeout_s)
@@ -180,6 +186,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--list", action="store_true", help="list the mutants and exit")
     ap.add_argument("--timeout", type=float, default=600.0, help="seconds allowed per mutant and backend")
     ap.add_argument("-v", "--verbose", action="store_true", help="show the end of each pytest run")
+    ap.add_argument("--pytest-args", default="",
+                    help="more pytest arguments, one string, e.g. \"-k 'not box'\" where pyrender is missing")
     a = ap.parse_args(argv)
     chosen = [m for m in MUTANTS if a.only is None or m.name in a.only]
     if a.only and len(chosen) != len(a.only):
@@ -188,10 +196,20 @@ def main(argv: list[str] | None = None) -> int:
         for m in chosen:
             print(f"{m.name}: {m.what} (tests: {', '.join(m.tests)})")
         return 0
+    extra = shlex.split(a.pytest_args)
     survived = 0
+    # the unmutated copy must pass the same tests on each backend, or a kill means nothing
+    for b in a.backends:
+        tests = tuple(sorted({t for m in chosen for t in m.tests}))
+        status, dt, tail = run_one(None, b, a.timeout, a.verbose, tests, extra)
+        print(f"{'(baseline: no mutant)':26s} {b:11s} {'passes' if status == 'survived' else status:8s} "
+              f"{dt:6.1f} s  {tail if a.verbose else tail[:90]}", flush=True)
+        if status != "survived":
+            print(f"the tests fail on {b} without any mutant: fix that first")
+            return 2
     for m in chosen:
         for b in a.backends:
-            status, dt, tail = run_one(m, b, a.timeout, a.verbose)
+            status, dt, tail = run_one(m, b, a.timeout, a.verbose, m.tests, extra)
             survived += status != "killed"
             shown = tail if a.verbose else tail[:90]
             print(f"{m.name:26s} {b:11s} {status:8s} {dt:6.1f} s  {shown}", flush=True)

@@ -128,7 +128,7 @@ def test_replay_record_holds_every_ping(tmp_path):
     from gpumap.replay import main
 
     rec_path = tmp_path / "tank.gpumap-rec"
-    assert main([str(DATA / "oasis_tank"), "--voxel-size", "0.08", "--max-frames", "12", "--quiet",
+    assert main([str(DATA / "oasis_tank"), "--voxel-size", "0.08", "--max-frames", "12", "--no-progress",
                  "--no-pictures", "--out", str(tmp_path / "out"), "--record", str(rec_path),
                  "--view-every", "5"]) == 0
     rec = read_recording(rec_path)
