@@ -39,7 +39,7 @@ import numpy as np
 import gpumap
 
 from .common import CpuShare, compact, load_average, machine_info
-from .speed import CACHE, OASIS_RES_M, Frames, _import_oasis, load_frames, oasis_grid, oasis_mapper
+from .speed import CACHE, OASIS_RES_M, Frames, _import_oasis, load_frames, oasis_frame_ms, oasis_grid
 
 SCHEMA = "gpumap-peer-ratio/1"
 
@@ -89,18 +89,7 @@ def time_gpumap(fr: Frames, backend: str, rule: str, voxel_m: float, n: int) -> 
 
 def time_oasis_pass(cls, fr: Frames, downsample: int, n: int) -> float:
     """Mean ms per frame of the public ``update_voxel_grid`` over frames 1..n (frame 0 warms up)."""
-    from PIL import Image
-
-    fans = [np.array(Image.open(p).convert("L")) for p in fr.pngs[: n + 1]]
-    g = oasis_mapper(cls, downsample)
-    g.update_voxel_grid(fans[0], fr.poses[0])
-    g = oasis_mapper(cls, downsample)
-    ms = []
-    for k in range(1, n + 1):
-        t = time.perf_counter()
-        g.update_voxel_grid(fans[k], fr.poses[k])
-        ms.append(1e3 * (time.perf_counter() - t))
-    return float(np.mean(ms))
+    return float(np.mean(oasis_frame_ms(cls, fr, downsample, n)[0]))
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -62,6 +62,12 @@ COMMANDS = {
 
 
 # ------------------------------------------------------------------------------ parsing
+#: Help lines of the options several subcommands share (one wording everywhere).
+BACKEND_HELP = ("where to map: auto (the fastest here, named in the output), numpy, warp-cpu, warp-cuda, "
+                "opencl, opencl-gpu or opencl-cpu (see gpumap info)")
+METHOD_HELP = ("gather (every voxel in the field of view, the default) or template (the paper's voxel "
+               "template; leaves holes, plain rule only)")
+
 def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 

@@ -35,6 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from gpumap.cli import (
+    BACKEND_HELP,
+    METHOD_HELP,
     ArgumentParser,
     backend_name,
     error_line,
@@ -616,11 +618,9 @@ def _parser() -> ArgumentParser:
     ap.add_argument("path", help="recording: Oculus .raw/.oculus, ARIS .aris, fan folder, ROS bag")
     ap.add_argument("--voxel-size", type=positive_float, default=0.05, help="metres (default 0.05)")
     ap.add_argument("--backend", type=backend_name, default="auto",
-                    help="where to map: auto (the fastest here, named in summary.json), numpy, warp-cpu, "
-                         "warp-cuda, opencl, opencl-gpu or opencl-cpu (see gpumap info)")
+                    help=BACKEND_HELP)
     ap.add_argument("--method", default="gather", choices=["gather", "template"],
-                    help="gather (every voxel in the field of view, the default) or template (the "
-                         "paper's voxel template; leaves holes, plain rule only)")
+                    help=METHOD_HELP)
     ap.add_argument("--out", type=output_dir, default="replay_out",
                     help="output folder (default replay_out); its files are replaced as one set")
     ap.add_argument("--grid", type=grid_box, default="auto",

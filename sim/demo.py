@@ -28,6 +28,8 @@ import numpy as np
 
 import gpumap
 from gpumap.cli import (
+    BACKEND_HELP,
+    METHOD_HELP,
     ArgumentParser,
     backend_name,
     error_line,
@@ -62,11 +64,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--voxel-size", type=positive_float, default=None,
                    help="voxel edge, metres (default: 0.03; 0.05 for the survey scene)")
     p.add_argument("--backend", type=backend_name, default="auto",
-                   help="where to map: auto (the fastest here, named in the output), numpy, warp-cpu, "
-                        "warp-cuda, opencl, opencl-gpu or opencl-cpu (see gpumap info)")
+                   help=BACKEND_HELP)
     p.add_argument("--method", default="gather", choices=["gather", "template"],
-                   help="gather (every voxel in the field of view, the default) or template (the "
-                        "paper's voxel template; leaves holes, plain rule only)")
+                   help=METHOD_HELP)
     p.add_argument("--out", type=output_dir, default="demo_out",
                    help="output folder; its files are replaced as one set")
     p.add_argument("--pose-noise", type=nonnegative_float, default=None, metavar="SIGMA",
