@@ -60,7 +60,8 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="gpumap bench", description=__doc__.splitlines()[0])
     p.add_argument("--voxel", type=float, nargs="+", default=None, help="voxel sizes, metres")
     p.add_argument("--backend", nargs="+", default=None, help="default: every available backend")
-    p.add_argument("--method", nargs="+", default=list(METHODS), choices=METHODS)
+    p.add_argument("--method", nargs="+", default=list(METHODS), choices=METHODS,
+                   help="mapping methods to time (default: all)")
     p.add_argument("--pings", type=int, default=None, help="pings along the tank trajectory (default all 40)")
     p.add_argument("--pings-from", type=Path, default=None, help="load pings saved by --save-pings")
     p.add_argument("--save-pings", type=Path, default=None, help="write the simulated pings (.npz)")
@@ -70,8 +71,10 @@ def _parser() -> argparse.ArgumentParser:
         help="warp-cuda / opencl-gpu rows at 3, 1, 0.5 cm only; no baselines",
     )
     p.add_argument("--quick", action="store_true", help="5 and 3 cm, 16 pings, no scaling section")
-    p.add_argument("--no-baselines", action="store_true")
-    p.add_argument("--no-scaling", action="store_true")
+    p.add_argument("--no-baselines", action="store_true",
+                   help="skip the baselines (the paper in NumPy, OASIS hit ratio, OctoMap)")
+    p.add_argument("--no-scaling", action="store_true",
+                   help="skip the scaling section (rate against grid size)")
     p.add_argument(
         "--numpy-cap",
         type=int,
@@ -89,10 +92,11 @@ def _parser() -> argparse.ArgumentParser:
         default=0.0,
         help="gpumap's shadow_m (a return also counts this far behind it; 0 = the paper)",
     )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=Path("bench/results"))
+    p.add_argument("--seed", type=int, default=0, help="random seed of the simulated pings (default 0)")
+    p.add_argument("--out", type=Path, default=Path("bench/results"),
+                   help="folder for the results (JSON, plots); default bench/results")
     p.add_argument("--tag", default=None, help="result file stem (default: from the machine)")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
 
 

@@ -278,15 +278,13 @@ def oasis_mapper(cls, downsample: int):
     return g
 
 
-def time_oasis(src: Path, fr: Frames, downsample: int, n: int) -> dict[str, Any]:
-    """ms per frame of the public ``update_voxel_grid`` on the first ``n`` frames (1 warm-up)."""
+def oasis_frame_ms(cls, fr: Frames, downsample: int, n: int):
+    """Times of the public ``update_voxel_grid``, ms, for frames 1..n into a fresh grid (frame 0
+    warms up another one first); returns (the times, that grid)."""
     from PIL import Image
 
-    cls = _import_oasis(src)
-    t0 = time.perf_counter()
-    g = oasis_mapper(cls, downsample)
-    setup_s = time.perf_counter() - t0
     fans = [np.array(Image.open(p).convert("L")) for p in fr.pngs[: n + 1]]
+    g = oasis_mapper(cls, downsample)
     g.update_voxel_grid(fans[0], fr.poses[0])
     g = oasis_mapper(cls, downsample)
     ms = []
@@ -294,6 +292,16 @@ def time_oasis(src: Path, fr: Frames, downsample: int, n: int) -> dict[str, Any]
         t = time.perf_counter()
         g.update_voxel_grid(fans[k], fr.poses[k])
         ms.append(1e3 * (time.perf_counter() - t))
+    return ms, g
+
+
+def time_oasis(src: Path, fr: Frames, downsample: int, n: int) -> dict[str, Any]:
+    """ms per frame of the public ``update_voxel_grid`` on the first ``n`` frames (1 warm-up)."""
+    cls = _import_oasis(src)
+    t0 = time.perf_counter()
+    oasis_mapper(cls, downsample)
+    setup_s = time.perf_counter() - t0
+    ms, g = oasis_frame_ms(cls, fr, downsample, n)
     return {"downsample": downsample, "voxel_m": downsample * OASIS_RES_M, "setup_s": setup_s,
             "template_points": int(g.voxel_template.shape[1]), "latency": _pct(ms),
             "img_per_s": 1e3 / float(np.mean(ms)),

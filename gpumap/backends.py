@@ -10,10 +10,12 @@ the device is allocated once, in the constructor; programs are compiled once per
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
 import logging
 import os
+import sys
 import threading
 from importlib import resources
 
@@ -180,10 +182,45 @@ def _warp():
         raise BackendUnavailableError(f"warp-lang cannot be imported: {e!r}") from e
     wp.config.log_level = wp.LOG_WARNING  # no banner on import
     wp.config.enable_backward = False  # no adjoints: halves compile time
-    wp.init()
+    # Without a CUDA driver Warp's native code prints "Could not find or load the NVIDIA CUDA
+    # driver" on stderr at init, on every command of a CPU machine: keep it quiet there (asking
+    # for warp-cuda by name still says why it cannot run, see WarpBackend).
+    with _native_stderr_quiet(not cuda_driver_loadable()):
+        wp.init()
     from gpumap.kernels import minmax
 
     return wp, minmax
+
+
+@functools.cache
+def cuda_driver_loadable() -> bool:
+    """Whether the NVIDIA CUDA driver library can be loaded here (Warp needs it for warp-cuda)."""
+    for name in ("nvcuda.dll",) if os.name == "nt" else ("libcuda.so.1", "libcuda.so"):
+        try:
+            ctypes.CDLL(name)
+            return True
+        except OSError:
+            continue
+    return False
+
+
+@contextlib.contextmanager
+def _native_stderr_quiet(quiet: bool):
+    """Send what native code writes to file descriptor 2 to /dev/null while inside (if ``quiet``)."""
+    if not quiet:
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            try:
+                yield
+            finally:
+                os.dup2(saved, 2)
+    finally:
+        os.close(saved)
 
 
 def _warp_params(minmax, p: np.ndarray):
@@ -308,7 +345,8 @@ class WarpBackend(Backend):
         n_bins, n_beams = spec.image_shape
         wp, minmax = _warp()
         if device == "cuda" and not wp.is_cuda_available():
-            raise BackendUnavailableError("warp-cuda needs a CUDA device, and Warp finds none here")
+            why = "" if cuda_driver_loadable() else " (the NVIDIA CUDA driver, libcuda, cannot be loaded)"
+            raise BackendUnavailableError(f"warp-cuda needs a CUDA device, and Warp finds none here{why}")
         self.wp, self.k = wp, minmax
         self.dev = wp.get_device("cuda:0" if device == "cuda" else "cpu")
         self.name = f"warp-{device}"
@@ -625,7 +663,13 @@ def _opencl_context(device):
             try:
                 prg = cl.Program(ctx, src).build(options=["-cl-fp32-correctly-rounded-divide-sqrt"])
             except cl.Error:
-                prg = cl.Program(ctx, src).build()
+                try:
+                    prg = cl.Program(ctx, src).build()
+                except cl.Error as e:  # a driver that cannot compile for its own device
+                    raise BackendUnavailableError(
+                        f"OpenCL cannot build gpumap's kernels for {device.name.strip()}: "
+                        f"{' '.join(str(e).split())[:300]}"
+                    ) from e
             _CL_SHARED[key] = (ctx, prg)
         return _CL_SHARED[key]
 
@@ -651,9 +695,10 @@ class OpenCLBackend(Backend):
         self.ctx, prg = _opencl_context(d)
         self._cl_device = d
         self.queue = cl.CommandQueue(self.ctx)
-        self.name = "opencl"
-        self.device = f"{d.platform.name.strip()}: {d.name.strip()}"
         self.is_gpu = bool(d.type & cl.device_type.GPU)
+        # named as gpumap info and backend= name it: the device it runs on, not how it was asked for
+        self.name = "opencl-gpu" if self.is_gpu else "opencl-cpu"
+        self.device = f"{d.platform.name.strip()}: {d.name.strip()}"
         mf = cl.mem_flags
         self.grid = cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * n_voxels)
         cl.enqueue_fill_buffer(self.queue, self.grid, np.float32(np.inf), 0, 4 * n_voxels)

@@ -62,6 +62,12 @@ COMMANDS = {
 
 
 # ------------------------------------------------------------------------------ parsing
+#: Help lines of the options several subcommands share (one wording everywhere).
+BACKEND_HELP = ("where to map: auto (the fastest here, named in the output), numpy, warp-cpu, warp-cuda, "
+                "opencl, opencl-gpu or opencl-cpu (see gpumap info)")
+METHOD_HELP = ("gather (every voxel in the field of view, the default) or template (the paper's voxel "
+               "template; leaves holes, plain rule only)")
+
 def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
@@ -391,11 +397,16 @@ def info(argv: list[str] | None = None) -> int:
 
     spec = gpumap.SonarSpec.uniform(n_beams=4, n_bins=4)
     print(f"gpumap {gpumap.__version__}")
-    names = gpumap.available_backends()
-    for name in names:
-        b = make_backend(name, spec, 1, None)
-        print(f"  {name:<11} {b.device}")
-    print(f"auto picks: {names[0]}")
+    works = []
+    for name in gpumap.available_backends():
+        try:
+            b = make_backend(name, spec, 1, None)
+        except gpumap.BackendUnavailableError as e:  # a device is there, but it cannot run gpumap
+            print(f"  {name:<11} cannot run: {_one_line(e)}")
+            continue
+        works.append(b.name)
+        print(f"  {b.name:<11} {b.device}")
+    print(f"auto picks: {works[0]}")
     return 0
 
 

@@ -269,7 +269,8 @@ class MinMaxMapper:
     # ------------------------------------------------------------------ properties
     @property
     def backend(self) -> str:
-        """The backend in use, e.g. ``"warp-cuda"``, ``"opencl"``, ``"numpy"``."""
+        """The backend in use, as ``gpumap info`` names it: ``"warp-cuda"``, ``"warp-cpu"``,
+        ``"opencl-gpu"``, ``"opencl-cpu"`` or ``"numpy"`` (``"auto"`` and ``"opencl"`` resolve to one)."""
         return self._backend.name
 
     @property

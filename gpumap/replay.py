@@ -35,6 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from gpumap.cli import (
+    BACKEND_HELP,
+    METHOD_HELP,
     ArgumentParser,
     backend_name,
     error_line,
@@ -615,8 +617,10 @@ def _parser() -> ArgumentParser:
     ap = ArgumentParser(prog="gpumap replay", description=__doc__.splitlines()[0])
     ap.add_argument("path", help="recording: Oculus .raw/.oculus, ARIS .aris, fan folder, ROS bag")
     ap.add_argument("--voxel-size", type=positive_float, default=0.05, help="metres (default 0.05)")
-    ap.add_argument("--backend", type=backend_name, default="auto")
-    ap.add_argument("--method", default="gather", choices=["gather", "template"])
+    ap.add_argument("--backend", type=backend_name, default="auto",
+                    help=BACKEND_HELP)
+    ap.add_argument("--method", default="gather", choices=["gather", "template"],
+                    help=METHOD_HELP)
     ap.add_argument("--out", type=output_dir, default="replay_out",
                     help="output folder (default replay_out); its files are replaced as one set")
     ap.add_argument("--grid", type=grid_box, default="auto",
@@ -640,12 +644,16 @@ def _parser() -> ArgumentParser:
     ap.add_argument("--static", action="store_true",
                     help="map every ping at one fixed (identity) pose: for pose-less recordings")
     ap.add_argument("--stride", type=positive_int, default=1, help="use every N-th frame")
-    ap.add_argument("--max-frames", type=positive_int, default=None)
+    ap.add_argument("--max-frames", type=positive_int, default=None,
+                    help="stop after this many frames (after --stride); default all")
     ap.add_argument("--vfov-deg", type=vfov_deg, default=None, help="vertical aperture override")
     ap.add_argument("--flip-lr", action="store_true", help="fan folders: mirror columns")
     ap.add_argument("--flip-ud", action="store_true", help="fan folders: mirror rows")
-    ap.add_argument("--no-pictures", action="store_true")
-    ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    ap.add_argument("--no-pictures", action="store_true",
+                    help="write the map and summary only, not views.png and floor_slice.png")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    # the old spelling, still accepted (not shown): one spelling for the same idea across commands
+    ap.add_argument("--quiet", dest="no_progress", action="store_true", help=argparse.SUPPRESS)
     from gpumap.viewer.cli import add_view_args
 
     add_view_args(ap)
@@ -764,7 +772,7 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
     rule = a.rule or ("visible" if a.method == "gather" else "plain")
     replay_kw = dict(voxel_size_m=a.voxel_size, backend=a.backend, method=a.method,
                      static=a.static, stride=stride, max_frames=a.max_frames,
-                     progress=not a.quiet, threshold=mapper_thr)
+                     progress=not a.no_progress, threshold=mapper_thr)
     positions: list = []
     replay_kw["on_ping"] = _view_hook(a, mapper_thr)
     if a.compare_rules:

@@ -637,9 +637,10 @@ class _OpenCLBackend(_Backend):
         self.cl, self.d = cl, d
         self.ctx, prg = _cl_program(d)
         self.queue = cl.CommandQueue(self.ctx)
-        self.name = "opencl"
-        self.device = f"{d.platform.name.strip()}: {d.name.strip()}"
         self.is_gpu = bool(d.type & cl.device_type.GPU)
+        # named as gpumap info and backend= name it: the device it runs on, not how it was asked for
+        self.name = "opencl-gpu" if self.is_gpu else "opencl-cpu"
+        self.device = f"{d.platform.name.strip()}: {d.name.strip()}"
         self.B, self.B3, self.visible = B, B**3, visible
         n_bins, n_beams = spec.image_shape
         self.n_bins, self.n_beams = n_bins, n_beams
@@ -1003,7 +1004,8 @@ class SparseMinMaxMapper:
 
     @property
     def backend(self) -> str:
-        """The backend in use, e.g. ``"warp-cuda"``, ``"opencl"``, ``"numpy"``."""
+        """The backend in use, as ``gpumap info`` names it: ``"warp-cuda"``, ``"warp-cpu"``,
+        ``"opencl-gpu"``, ``"opencl-cpu"`` or ``"numpy"`` (``"auto"`` and ``"opencl"`` resolve to one)."""
         return self._backend.name
 
     @property

@@ -28,6 +28,8 @@ import numpy as np
 
 import gpumap
 from gpumap.cli import (
+    BACKEND_HELP,
+    METHOD_HELP,
     ArgumentParser,
     backend_name,
     error_line,
@@ -56,12 +58,15 @@ DEFAULT_VOXEL_M = {"survey": 0.05}
 
 def _parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog="gpumap demo", description=__doc__.splitlines()[0])
-    p.add_argument("--scene", default="tank", choices=sorted(SCENES))
+    p.add_argument("--scene", default="tank", choices=sorted(SCENES),
+                   help="simulated scene: tank (the paper's), circle (four objects seen from five sides) "
+                        "or survey (a long seabed strip); default tank")
     p.add_argument("--voxel-size", type=positive_float, default=None,
                    help="voxel edge, metres (default: 0.03; 0.05 for the survey scene)")
     p.add_argument("--backend", type=backend_name, default="auto",
-                   help="auto|numpy|warp-cpu|warp-cuda|opencl")
-    p.add_argument("--method", default="gather", choices=["gather", "template"])
+                   help=BACKEND_HELP)
+    p.add_argument("--method", default="gather", choices=["gather", "template"],
+                   help=METHOD_HELP)
     p.add_argument("--out", type=output_dir, default="demo_out",
                    help="output folder; its files are replaced as one set")
     p.add_argument("--pose-noise", type=nonnegative_float, default=None, metavar="SIGMA",
@@ -77,11 +82,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--shadow-m", type=nonnegative_float, default=0.0, metavar="M",
                    help="acoustic-shadow allowance (metres): returns also count up to M behind them; "
                         "0 = the paper's min-max")
-    p.add_argument("--seed", type=nonnegative_int, default=0)
+    p.add_argument("--seed", type=nonnegative_int, default=0,
+                   help="random seed of the simulated sonar noise and odometry (default 0)")
     p.add_argument("--sparse", action="store_true",
                    help="map into gpumap.SparseMinMaxMapper (blocks only where pings look, bounded by the "
                         "scene's grid; the same values as the dense grid) and report its memory")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     from gpumap.viewer.cli import add_view_args
 
     add_view_args(p)
@@ -312,12 +318,14 @@ def _pose_error(T_est: np.ndarray, T_true: np.ndarray) -> dict:
             "rotation_error_mean_deg": float(ang.mean())}
 
 
+#: The scores metrics.json keeps (its glossary: README, "What the demo's numbers mean"; the
+#: definitions: gpumap.sim.metrics). One row per rule and per pose source holds them too.
 _SUMMARY_KEYS = (
-    "false_negative_rate_detectable", "false_negative_rate_objects_detectable", "miss_rate",
-    "miss_rate_objects", "observed_surface_fraction", "false_negative_rate", "false_negative_rate_objects",
-    "false_negative_rate_all", "false_positive_rate", "false_positive_rate_far", "free_carved_fraction",
-    "pipe_found",
+    "miss_rate", "miss_rate_objects", "false_negative_rate_detectable", "false_positive_rate_far",
+    "free_carved_fraction", "observed_surface_fraction", "pipe_found",
 )
+#: ... and for the main map also these
+_DETAIL_KEYS = ("miss_rate_by_object", "height_error_m")
 
 
 def _summary(ev: dict) -> dict:
@@ -396,7 +404,7 @@ def run_demo(args: argparse.Namespace) -> dict:
         "ms_per_image": 1e3 * float(np.mean(times[1:] if len(times) > 1 else times)),
         "ms_per_image_first": 1e3 * times[0],
         "sim_ms_per_image": 1e3 * sim_s / len(pings),
-        **{k: final[k] for k in final if k not in ("threshold", "pings")},
+        **{k: final[k] for k in _SUMMARY_KEYS + _DETAIL_KEYS},
         "height_error_first_view_m": history[0]["height_error_m"],
         "rules": rules,
         "memory": _memory_report(mapper, scene),
@@ -440,7 +448,7 @@ def run_demo(args: argparse.Namespace) -> dict:
     if session is not None:
         session.finish(mapper)
 
-    _figures(out, scene, truth, mapper, sample, history, args.threshold)
+    _figures(out, scene, truth, mapper, sample, history, args.threshold, detectable)
     metrics["demo_s"] = time.perf_counter() - t_start
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_jsonable))
     return metrics
@@ -484,7 +492,7 @@ def _jsonable(o):
 
 
 def _figures(out: Path, scene: Scene, truth: Truth, mapper, sample: Ping, history: list[dict],
-             threshold: float) -> None:
+             threshold: float, detectable: np.ndarray) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -510,14 +518,17 @@ def _figures(out: Path, scene: Scene, truth: Truth, mapper, sample: Ping, histor
     # and false negatives / positives per object (gpumap.viewer.render).
     from gpumap.viewer.render import demo_pictures
 
-    demo_pictures(out, scene.grid, mapper.values(), truth, threshold, mapper.rule, title=f"{scene.name}: ")
+    demo_pictures(out, scene.grid, mapper.values(), truth, threshold, mapper.rule, title=f"{scene.name}: ",
+                  detectable=detectable)
 
     # Error by view count.
     k = np.array([h.get("pings", i + 1) for i, h in enumerate(history)])
     fig, ax = plt.subplots(1, 2, figsize=(12, 4.5))
-    for key in ("false_negative_rate", "false_negative_rate_objects", "false_positive_rate",
-                "free_carved_fraction"):
-        ax[0].plot(k, [h[key] for h in history], label=key)
+    for key, words in (("miss_rate", "missed: detectable surface not called occupied"),
+                       ("miss_rate_objects", "missed, small objects only"),
+                       ("false_positive_rate_far", "phantom: water > 1 voxel from a surface called occupied"),
+                       ("free_carved_fraction", "water called free (carved)")):
+        ax[0].plot(k, [h[key] for h in history], label=words)
     ax[0].set(xlabel="pings integrated", ylabel="rate", ylim=(0, 1), title="occupancy errors")
     ax[0].legend(fontsize=8)
     for name in history[-1]["height_error_m"]:
@@ -564,11 +575,16 @@ def main(argv: list[str] | None = None) -> int:
         raise
     print(json.dumps({k: m[k] for k in ("scene", "backend", "rule", "voxel_size_m", "images", "ms_per_image",
                                          "demo_s")}, indent=1))
-    print(f"{'rule':8s} {'FN det':>7s} {'FN obj':>7s} {'miss':>6s} {'FP far':>7s} {'carved':>7s} pipe")
+    head = ("rule", "missed", "obj missed", "seen free", "phantom", "water free")
+    print(f"{head[0]:8s} " + " ".join(f"{h:>10s}" for h in head[1:]) + " pipe found")
     for name, row in m["rules"].items():
-        print(f"{name:8s} {row['false_negative_rate_detectable']:7.3f} "
-              f"{row['false_negative_rate_objects_detectable']:7.3f} {row['miss_rate']:6.3f} "
-              f"{row['false_positive_rate_far']:7.3f} {row['free_carved_fraction']:7.3f} {row['pipe_found']}")
+        print(f"{name:8s} {row['miss_rate']:10.1%} {row['miss_rate_objects']:10.1%} "
+              f"{row['false_negative_rate_detectable']:10.1%} {row['false_positive_rate_far']:10.1%} "
+              f"{row['free_carved_fraction']:10.1%} {row['pipe_found']}")
+    print("missed: surface voxels some ping could detect that the map does not call occupied (free or "
+          "unknown); obj missed: the same for the small objects; seen free: detectable surface the map "
+          "observed and calls free; phantom: water more than one voxel from a surface called occupied; "
+          "water free: water voxels called free (metrics.json; README: what the numbers mean)")
     if "memory" in m:
         mem = m["memory"]
         dense = [f"dense grid {mem['dense_grid_bytes'] / 2**20:.1f} MiB"]
@@ -579,9 +595,10 @@ def main(argv: list[str] | None = None) -> int:
               f"{mem['observed_bytes'] / 2**20:.1f} MiB; " + "; ".join(dense))
     if "pose_noise" in m:
         for name, row in m["pose_noise"]["rows"].items():
-            print(f"{name:9s} FN det {row.get('false_negative_rate_detectable', float('nan')):.3f} "
-                  f"FP far {row.get('false_positive_rate_far', float('nan')):.3f} "
+            print(f"{name:9s} missed {row.get('miss_rate', float('nan')):.3f} "
+                  f"phantom {row.get('false_positive_rate_far', float('nan')):.3f} "
                   f"pose err {row.get('translation_error_mean_m', float('nan')):.3f} m")
+    print(f"wrote {', '.join(OUTPUTS)} to {Path(out).resolve()}")
     for s in sessions:
         s.serve()
     return 0

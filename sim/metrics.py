@@ -35,20 +35,24 @@ acoustic shadow in another view carving it):
   called occupied (unknown counts as missed, so a map that leaves obstacles unknown
   cannot score well); ``miss_rate_objects`` restricted to the small objects.
 - **observed surface fraction**: of the seen voxels, the fraction the map observed.
+- **miss rate by object**: the miss rate of each named part of the truth (sand, walls, each
+  object) on its own (:func:`miss_by_object`; the demo's ``errors_by_object.png`` draws it).
+- **phantom voxels** (:func:`phantom_far`): the voxels the false-positive rate (far) counts,
+  free voxels more than one voxel from any occupied one that the map calls occupied.
 
 :func:`fn_fp_curve` sweeps the threshold over a fixed map for an FN-vs-FP plot.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy import ndimage
 
 from .truth import Truth, ground_truth_masks
 
-__all__ = ["Evaluation", "evaluate", "fn_fp_curve", "ground_truth_masks"]
+__all__ = ["Evaluation", "evaluate", "fn_fp_curve", "ground_truth_masks", "miss_by_object", "phantom_far"]
 
 
 @dataclass
@@ -73,6 +77,7 @@ class Evaluation:
     miss_rate: float = float("nan")
     miss_rate_objects: float = float("nan")
     observed_surface_fraction: float = float("nan")
+    miss_rate_by_object: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -143,7 +148,7 @@ def evaluate(
     small = truth.objects_mask(objects)
     fn_obj = _rate(free_map, T & seen & obs & small)
     fp = _rate(occ_map, ~T & obs)
-    fp_far = _rate(occ_map, ~near & obs)
+    fp_far = _rate(occ_map, ~near & obs)  # = phantom_far(...).sum() / (~near & obs).sum()
     water = ~T & _water_mask(truth)
     carved = _rate(free_map, water)
     fn_det = _rate(free_map, T & det & obs)
@@ -163,8 +168,36 @@ def evaluate(
     if "pipe" in truth.names:
         seg = _pipe_segments(occ_map, truth.mask("pipe") & seen & obs)
         pipe_found = bool(seg >= 0.8) if np.isfinite(seg) else False
+    by_object = {n: m / d for n, (m, d) in miss_by_object(v, truth, threshold, det).items()}
     return Evaluation(threshold, float(obs.mean()), fn, fn_all, fn_obj, fp, fp_far, carved, heights, recall,
-                      pipe_found, seg, fn_det, fn_obj_det, miss, miss_obj, obs_surface)
+                      pipe_found, seg, fn_det, fn_obj_det, miss, miss_obj, obs_surface, by_object)
+
+
+def miss_by_object(
+    values: np.ndarray, truth: Truth, threshold: float, detectable: np.ndarray
+) -> dict[str, tuple[int, int]]:
+    """The miss rate's counts per named part of the truth: name -> (missed, detectable).
+
+    ``detectable`` (nx, ny, nz) bool as in :func:`evaluate`; a detectable occupied voxel of the
+    part is missed when the map does not call it occupied (free, or never observed). Parts
+    with no detectable voxel are left out.
+    """
+    _, occ_map, _ = _maps(np.asarray(values), threshold)
+    out = {}
+    for i, name in enumerate(truth.names):
+        d = truth.occupied & detectable & (truth.label == i)
+        n = int(d.sum())
+        if n:
+            out[name] = (int((d & ~occ_map).sum()), n)
+    return out
+
+
+def phantom_far(values: np.ndarray, truth: Truth, threshold: float) -> np.ndarray:
+    """(nx, ny, nz) bool: the voxels the false-positive rate (far) counts as wrong, free voxels
+    more than one voxel from any occupied one that the map calls occupied."""
+    _, occ_map, _ = _maps(np.asarray(values), threshold)
+    near = ndimage.binary_dilation(truth.occupied, structure=np.ones((3, 3, 3), bool))
+    return occ_map & ~near
 
 
 def fn_fp_curve(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -26,17 +27,40 @@ needs_data = pytest.mark.skipif(
 
 ALL_BACKENDS = ("numpy", "warp-cpu", "warp-cuda", "opencl-cpu", "opencl-gpu")
 _AVAILABLE = gpumap.available_backends()
+#: GPUMAP_TEST_BACKENDS="numpy,warp-cpu" runs the per-backend tests on those only (tests/mutants.py)
+_ONLY = [b for b in os.environ.get("GPUMAP_TEST_BACKENDS", "").split(",") if b]
+#: CI runs on a CPU machine that must have every CPU backend: a missing one fails the run (see
+#: tests/test_backends_present.py) instead of skipping its tests. GPUMAP_REQUIRE_BACKENDS overrides.
+_CI_BACKENDS = "numpy,warp-cpu,opencl-cpu" if os.environ.get("CI") else ""
+REQUIRED_BACKENDS = [b for b in os.environ.get("GPUMAP_REQUIRE_BACKENDS", _CI_BACKENDS).split(",") if b]
 
 
 def pytest_report_header(config):
-    return f"gpumap backends on this machine: {', '.join(_AVAILABLE)}"
+    head = f"gpumap backends on this machine: {', '.join(_AVAILABLE)}"
+    if _ONLY:
+        head += f"; tests run on {', '.join(_ONLY)} only (GPUMAP_TEST_BACKENDS)"
+    if REQUIRED_BACKENDS:
+        head += f"; required: {', '.join(REQUIRED_BACKENDS)}"
+    return head
 
 
 @pytest.fixture(params=ALL_BACKENDS)
 def backend(request) -> str:
-    if request.param not in _AVAILABLE:
-        pytest.skip(f"backend {request.param} is not available on this machine")
-    return request.param
+    return _check(request.param)
+
+
+@pytest.fixture(params=[b for b in ALL_BACKENDS if b != "numpy"])
+def other_backend(request) -> str:
+    """Every backend but numpy, the reference: for comparisons with gpumap.reference."""
+    return _check(request.param)
+
+
+def _check(name: str) -> str:
+    if _ONLY and name not in _ONLY:
+        pytest.skip(f"backend {name} is not in GPUMAP_TEST_BACKENDS")
+    if name not in _AVAILABLE:
+        pytest.skip(f"backend {name} is not available on this machine")
+    return name
 
 
 def rot_y(angle_rad: float) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import shutil
@@ -180,7 +181,7 @@ def test_corrupt_recording_is_one_format_error_line(tmp_path, capsys) -> None:
     p = tmp_path / "bad.raw"
     p.write_bytes(encode_simple_ping(np.zeros((10, 4), np.uint8), [-10, 0, 5, 10], 0.01)[:-3])
     out = tmp_path / "o"
-    rc, err = _run(["replay", str(p), "--static", "--quiet", "--out", str(out)], capsys)
+    rc, err = _run(["replay", str(p), "--static", "--no-progress", "--out", str(out)], capsys)
     assert rc == 2 and len(err) == 1 and "format error" in err[0], err
     assert not out.exists()
 
@@ -208,7 +209,7 @@ def test_output_set_refuses_a_file(tmp_path) -> None:
 
 
 # ------------------------------------------------------------------ replay outputs as a set
-SMALL = ["--stride", "20", "--max-frames", "3", "--voxel-size", "0.1", "--backend", "numpy", "--quiet"]
+SMALL = ["--stride", "20", "--max-frames", "3", "--voxel-size", "0.1", "--backend", "numpy", "--no-progress"]
 
 
 def _snapshot(d: Path) -> dict[str, bytes]:
@@ -341,3 +342,66 @@ def test_interrupted_demo_leaves_the_previous_outputs(tmp_path, monkeypatch, cap
     assert gpumap.sim.demo.main(["--out", str(out), "--no-progress"]) == 0
     assert _snapshot(out) == new
     capsys.readouterr()
+
+
+def _parsers():
+    import gpumap.bench.__main__ as bench
+
+    import gpumap.io.octomap
+    import gpumap.viewer.cli
+
+    return {"demo": gpumap.sim.demo._parser(), "replay": gpumap.replay._parser(),
+            "view": gpumap.viewer.cli._parser(), "export": gpumap.io.octomap._export_parser(),
+            "bench": bench._parser()}
+
+
+def test_every_option_has_a_plain_help_line() -> None:
+    """Each option of each subcommand says what it does, in plain words (no reST backticks), and
+    the same idea has one spelling: --no-progress turns progress bars off everywhere."""
+    parsers = _parsers()
+    assert set(parsers) | {"info"} == set(cli.COMMANDS)
+    missing, rst = [], []
+    for verb, p in parsers.items():
+        for act in p._actions:
+            if act.help == argparse.SUPPRESS or isinstance(act, argparse._HelpAction):
+                continue
+            name = f"gpumap {verb} {'/'.join(act.option_strings) or act.dest}"
+            if not (act.help or "").strip():
+                missing.append(name)
+            if "`" in (act.help or ""):
+                rst.append(name)
+        opts = {o for a in p._actions if a.help != argparse.SUPPRESS for o in a.option_strings}
+        assert "--quiet" not in opts, f"gpumap {verb}: progress bars go off with --no-progress"
+        if verb in ("demo", "replay", "bench"):
+            assert "--no-progress" in opts, verb
+    assert not missing, f"options without help: {missing}"
+    assert not rst, f"help with reStructuredText backticks: {rst}"
+
+
+def test_view_offers_only_what_applies_to_a_saved_map() -> None:
+    opts = {o for a in _parsers()["view"]._actions for o in a.option_strings}
+    assert {"--view-host", "--view-port", "--view-hold", "--threshold"} <= opts
+    assert not opts & {"--view", "--view-every", "--record"}, opts
+
+
+def test_info_names_backends_as_mappers_do_and_no_cuda_warning_on_a_cpu_machine(capsys) -> None:
+    """gpumap info lists each backend under the name MinMaxMapper(...).backend reports; without a
+    CUDA driver, Warp's 'could not find the NVIDIA CUDA driver' line is not printed (a fresh process)."""
+    import gpumap
+    from gpumap.backends import cuda_driver_loadable
+
+    assert cli.main(["info"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    listed = [ln.split()[0] for ln in out if ln.startswith("  ") and "cannot run" not in ln]
+    assert listed and out[-1] == f"auto picks: {listed[0]}"
+    spec = gpumap.SonarSpec.uniform(n_beams=4, n_bins=4)
+    grid = gpumap.GridSpec((0, 0, 0), (1, 1, 1), 0.5)
+    for name in listed:
+        assert gpumap.MinMaxMapper(spec, grid, backend=name).backend == name
+    assert gpumap.MinMaxMapper(spec, grid).backend == listed[0]
+    if cuda_driver_loadable():
+        pytest.skip("this machine has a CUDA driver: Warp has nothing to warn about")
+    r = subprocess.run([sys.executable, "-m", "gpumap.cli", "info"], capture_output=True, text=True,
+                       cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "CUDA driver" not in r.stderr + r.stdout, r.stderr

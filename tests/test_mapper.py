@@ -61,9 +61,7 @@ def integrate(backend, pings, method="gather", spec=SPEC, grid=GRID):
 
 def test_auto_picks_first_available_backend():
     m = gpumap.MinMaxMapper(SPEC, GRID)
-    assert m.backend == available_backends()[0].replace("opencl-gpu", "opencl").replace(
-        "opencl-cpu", "opencl"
-    )
+    assert m.backend == available_backends()[0]  # named as gpumap info names it
 
 
 def test_observed_set_is_the_field_of_view(backend):
@@ -106,7 +104,9 @@ def test_conservative_and_tight_against_supersampled_cubes(backend, seed):
         val = np.where(ok & (bi >= 0) & (bj >= 0), img[np.maximum(bi, 0), np.maximum(bj, 0)], 0.0)
         brute = np.maximum(brute, val)
     assert np.all(v[obs] >= brute.astype(np.float32)), "footprint misses cells the cube touches"
-    assert (v[obs] > brute).mean() < 0.5  # and the footprint is not trivially everything
+    # How far beyond the cube the footprint may reach is bounded below (the bounding sphere plus
+    # one cell, float64): the fraction above the cube's own max is reported, not bounded.
+    print(f"ping value above the cube's max: {(v[obs] > brute).mean():.1%} of {obs.size} voxels")
     b0, b1, j0, j1 = sphere_footprint(SPEC, p, math.sqrt(3) / 2 * s)
     b0, j0 = np.maximum(b0 - 1, 0), np.maximum(j0 - 1, 0)
     b1, j1 = np.minimum(b1 + 1, SPEC.n_bins - 1), np.minimum(j1 + 1, SPEC.n_beams - 1)
@@ -146,28 +146,23 @@ def test_single_bright_cell_lights_exactly_the_touching_voxels(backend, cell, sh
 
 
 @pytest.mark.parametrize("footprint_max", ["table", "loop"])
-def test_backends_agree_with_numpy_reference(backend, footprint_max):
+def test_backends_agree_with_numpy_reference(other_backend, footprint_max):
+    """Bit for bit: the kernels do the reference's float32 arithmetic in the same order (no FMA
+    contraction), so every observed set and every value is the same (the plain rule here; the
+    visible rule's evidence is compared in test_visibility)."""
     imgs = [(RNG.random(SPEC.image_shape) ** 4).astype(np.float32) for _ in range(3)]
     poses = [T_A, T_B, pose(rot_z(0.3) @ rot_y(0.05), (-0.05, 0.1, 0.0))]
     for method in ("gather", "template"):
-        ref = integrate("numpy", zip(imgs, poses, strict=True), method).raw_values()
-        m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, method=method, footprint_max=footprint_max)
-        m_ref = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", method=method, shadow_m=0.05)
-        m_sh = gpumap.MinMaxMapper(
-            SPEC, GRID, backend=backend, method=method, footprint_max=footprint_max, shadow_m=0.05
-        )
-        for img, T in zip(imgs, poses, strict=True):
-            m_ref.integrate(img, T)
-            m_sh.integrate(img, T)
-        np.testing.assert_array_equal(m_sh.raw_values(), m_ref.raw_values())
-        for img, T in zip(imgs, poses, strict=True):
-            m.integrate(img, T)
-        got = m.raw_values()
-        same_obs = np.isfinite(ref) == np.isfinite(got)
-        assert same_obs.mean() > 1 - 1e-4
-        both = np.isfinite(ref) & np.isfinite(got)
-        # identical arithmetic; a transcendental's last bit may move a footprint edge, rarely
-        assert (np.abs(ref[both] - got[both]) > 1e-6).mean() < 1e-4
+        for shadow_m in (0.0, 0.05):
+            ref = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", method=method, rule="plain",
+                                      shadow_m=shadow_m)
+            m = gpumap.MinMaxMapper(SPEC, GRID, backend=other_backend, method=method, rule="plain",
+                                    footprint_max=footprint_max, shadow_m=shadow_m)
+            for img, T in zip(imgs, poses, strict=True):
+                ref.integrate(img, T)
+                m.integrate(img, T)
+            assert np.isfinite(ref.raw_values()).sum() > 1000
+            np.testing.assert_array_equal(m.raw_values(), ref.raw_values(), err_msg=f"{method} {shadow_m}")
 
 
 def test_template_method_matches_gather_where_it_lands_and_report_holes(backend):
@@ -214,20 +209,47 @@ def test_plane_of_returns_is_kept_and_space_in_front_is_carved_over_two_views(ba
     on_plane = obs & (np.abs(c[..., 0] - D) <= s / 2)
     assert on_plane.sum() > 50
     assert np.all(v[on_plane] == 1.0), "a voxel on the plane was called free (false negative)"
-    # In front of the plane by more than the footprint plus a bin, after both views: free.
-    both = np.ones_like(obs)
-    for T in views:
-        one = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")
-        one.integrate(np.zeros(SPEC.image_shape, np.float32), T)
-        both &= one.observed()
-    front = both & (c[..., 0] < D - (math.sqrt(3) / 2 * s + SPEC.bin_size_m)) & (c[..., 0] > 0.3)
-    assert front.sum() > 100
-    single = integrate(backend, pings[:1]).values()
-    carved_one = (single[front] == 0).mean()
-    carved_two = (v[front] == 0).mean()
-    print(f"carved in front of the plane: {carved_one:.1%} after one view, {carved_two:.1%} after two")
-    assert carved_two > 0.98
-    assert carved_two > carved_one  # the second view removes elevation "stretch"
+    # In front of the plane, after both views: free exactly where a float64 footprint says a view
+    # was dark (no plane cell in the footprint) and clear (none nearer in its beams), a voxel
+    # either way within 1e-4 m of a footprint edge aside.
+    front = obs & (c[..., 0] < D - (math.sqrt(3) / 2 * s + SPEC.bin_size_m)) & (c[..., 0] > 0.3)
+    front = front.ravel()
+    carved_by = []
+    unsure = np.zeros(front.shape, bool)
+    for img, T in pings:
+        p = centres_S(T)[front]
+        seen = np.zeros(front.shape, bool)
+        seen[front] = SPEC.in_fov(p)
+        ways = []
+        for eps in (-1e-4, 1e-4):
+            dark_clear = np.zeros(front.shape, bool)
+            dark_clear[front] = _dark_and_clear(img, p, math.sqrt(3) / 2 * s + eps) & seen[front]
+            ways.append(dark_clear)
+        unsure |= ways[0] != ways[1]
+        carved_by.append(ways[0])
+    sure = front & ~unsure
+    want_one, want_two = carved_by[0][sure], carved_by[0][sure] | carved_by[1][sure]
+    single = integrate(backend, pings[:1]).values().ravel()[sure]
+    carved_one, carved_two = single == 0, v.ravel()[sure] == 0
+    print(f"carved in front of the plane: {carved_one.mean():.1%} after one view, {carved_two.mean():.1%} "
+          f"after two ({sure.sum()} voxels, {(front & unsure).sum()} on a footprint edge left out)")
+    assert sure.sum() > 100 and (front & unsure).sum() < 0.05 * front.sum()
+    np.testing.assert_array_equal(carved_one, want_one)
+    np.testing.assert_array_equal(carved_two, want_two)
+    assert carved_two.sum() > carved_one.sum()  # the second view removes elevation "stretch"
+
+
+def _dark_and_clear(img, p_S, rho):
+    """float64: the footprint of spheres of radius rho at p_S (window of the mapper's height from
+    the first bin, the sphere's beams) holds no lit cell, and no lit cell lies nearer in its beams."""
+    win = math.floor(2 * rho / SPEC.bin_size_m) + 2
+    r = np.linalg.norm(p_S, axis=1)
+    b0 = np.floor((r - rho - SPEC.range_min_m) / SPEC.bin_size_m).astype(int)
+    _, _, j0, j1 = sphere_footprint(SPEC, p_S, rho)
+    out = np.empty(len(p_S), bool)
+    for n, (a, c, d) in enumerate(zip(b0, j0, j1, strict=True)):
+        out[n] = not img[: max(a + win, 0), c : d + 1].any()
+    return out
 
 
 def test_shadow_keeps_the_far_side_of_a_thin_return(backend):
@@ -341,8 +363,10 @@ def test_bad_specs_are_refused_with_the_reason():
         gpumap.GridSpec((1, 0, 0), (0, 1, 1), 0.1)
     with pytest.raises(ValueError, match="voxel_size_m > 0"):
         gpumap.GridSpec((0, 0, 0), (1, 1, 1), 0.0)
-    with pytest.raises(ValueError, match=r"GiB"):
-        gpumap.GridSpec((0, 0, 0), (100, 100, 100), 0.01)  # 1e9... too many voxels
+    # 1e12 voxels: 9 bytes each under the default (visible) rule, 4 under the plain one
+    with pytest.raises(ValueError, match=r"8381\.9 GiB with the default visible rule's 9 bytes per voxel, "
+                                         r"3725\.3 GiB with the plain rule's 4"):
+        gpumap.GridSpec((0, 0, 0), (100, 100, 100), 0.01)
     with pytest.raises(ValueError, match="backend"):
         gpumap.MinMaxMapper(SPEC, GRID, backend="cuda")
     with pytest.raises(ValueError, match="method"):
@@ -376,13 +400,21 @@ def test_opencl_refuses_a_grid_beyond_its_largest_buffer():
         gpumap.MinMaxMapper(SPEC, grid, backend="opencl-cpu")
 
 
-def test_named_backend_never_falls_back():
-    have = available_backends()
-    for name in ("warp-cuda", "opencl-gpu"):
-        if name in have:
-            continue
-        with pytest.raises(gpumap.BackendUnavailableError):
+def test_named_backend_never_falls_back(monkeypatch):
+    """With Warp and OpenCL made unavailable (on any machine, GPUs or not), each backend named
+    raises with its reason, while ``auto`` falls back to numpy."""
+    from gpumap import backends
+
+    def no_warp():
+        raise gpumap.BackendUnavailableError("warp-lang cannot be imported: test")
+
+    monkeypatch.setattr(backends, "_warp", no_warp)
+    monkeypatch.setattr(backends, "opencl_devices", lambda kind: [])
+    for name in ("warp-cuda", "warp-cpu", "opencl", "opencl-gpu", "opencl-cpu"):
+        why = "warp-lang cannot" if "warp" in name else "(?i)opencl"
+        with pytest.raises(gpumap.BackendUnavailableError, match=why):
             gpumap.MinMaxMapper(SPEC, GRID, backend=name)
+    assert gpumap.MinMaxMapper(SPEC, GRID, backend="auto").backend == "numpy"
 
 
 # ------------------------------------------------------------------ persistence

@@ -114,3 +114,24 @@ def test_miss_rate_bounds_the_false_negative_rate():
     n = (occupied & detectable).sum()
     called = (occupied & detectable & (np.nan_to_num(values, nan=-1) >= 0.4)).sum()
     assert ev.miss_rate == (n - called) / n
+
+
+def test_per_object_misses_and_phantoms_add_up_to_the_rates(case):
+    """The picture's per-object counts (errors_by_object.png) are the rates' own: hand counts,
+    and summed over objects they give miss_rate and the false-positive rate (far)."""
+    from gpumap.sim.metrics import miss_by_object, phantom_far
+
+    truth, values, seen, detectable = case
+    ev = evaluate(values, truth, 0.1, seen, detectable=detectable)
+    per = miss_by_object(values, truth, 0.1, detectable)
+    # sand: detectable {0}, occupied -> 0 missed; rock: detectable {3, 4}: free and unknown
+    assert per == {"sand": (0, 1), "rock": (2, 2)}
+    assert ev.miss_rate_by_object == {"sand": 0.0, "rock": 1.0}
+    assert sum(m for m, _ in per.values()) / sum(d for _, d in per.values()) == ev.miss_rate
+    # a phantom far from every surface: water voxel 7 called occupied
+    far_values = values.copy()
+    far_values[7] = 0.5
+    ph = phantom_far(far_values, truth, 0.1)
+    assert ph.ravel().tolist() == [False] * 7 + [True]
+    # the rate's denominator: observed voxels more than one voxel from the truth, here {7} alone
+    assert evaluate(far_values, truth, 0.1, seen, detectable=detectable).false_positive_rate_far == ph.sum()

@@ -21,7 +21,7 @@ from gpumap.replay import auto_grid, main, otsu_threshold, run_replay, run_rule_
 @needs_data
 def test_replay_oasis_writes_map_ply_pictures(tmp_path: Path, capsys) -> None:
     out = tmp_path / "out"
-    rc = main([str(DATA / "oasis_tank"), "--stride", "4", "--out", str(out), "--quiet",
+    rc = main([str(DATA / "oasis_tank"), "--stride", "4", "--out", str(out), "--no-progress",
                "--voxel-size", "0.08", "--threshold", "0.4", "--backend", "numpy"])
     assert rc == 0
     text = capsys.readouterr().out
@@ -46,7 +46,7 @@ def _meta(path: Path) -> dict:
 
 @needs_data
 def test_replay_rule_and_threshold_reach_the_mapper(tmp_path: Path) -> None:
-    common = [str(DATA / "oasis_tank"), "--stride", "12", "--quiet", "--no-pictures",
+    common = [str(DATA / "oasis_tank"), "--stride", "12", "--no-progress", "--no-pictures",
               "--voxel-size", "0.1", "--backend", "numpy"]
     for extra, rule, thr in (([], "visible", 0.4), (["--rule", "plain"], "plain", 0.4),
                              (["--rule", "visible", "--threshold", "0.3"], "visible", 0.3)):
@@ -72,14 +72,14 @@ def test_replay_rejects_bad_rule_settings(tmp_path: Path, capsys) -> None:
     out = str(tmp_path / "o")
     # flags that do not go together are refused while parsing, before the recording is read
     with pytest.raises(SystemExit) as e:
-        main([str(bag), "--out", out, "--quiet", "--method", "template", "--rule", "visible"])
+        main([str(bag), "--out", out, "--no-progress", "--method", "template", "--rule", "visible"])
     assert e.value.code == 2 and "rule='plain'" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:
-        main([str(bag), "--out", out, "--quiet", "--threshold", "abc"])
+        main([str(bag), "--out", out, "--no-progress", "--threshold", "abc"])
     assert e.value.code == 2 and "--threshold" in capsys.readouterr().err
     assert not Path(out).exists()
     # the template method alone picks the plain rule
-    assert main([str(bag), "--out", out, "--quiet", "--no-pictures", "--method", "template",
+    assert main([str(bag), "--out", out, "--no-progress", "--no-pictures", "--method", "template",
                  "--backend", "numpy"]) == 0
     assert _meta(Path(out) / "map.npz")["rule"] == "plain"
 
@@ -122,7 +122,7 @@ def test_rules_on_real_frames_observe_alike_and_plain_occupied_stays_occupied(tm
 @needs_data
 def test_replay_compare_rules_writes_picture_and_figures(tmp_path: Path, capsys) -> None:
     out = tmp_path / "out"
-    assert main([str(DATA / "oasis_tank"), "--stride", "6", "--out", str(out), "--quiet",
+    assert main([str(DATA / "oasis_tank"), "--stride", "6", "--out", str(out), "--no-progress",
                  "--voxel-size", "0.1", "--backend", "numpy", "--compare-rules"]) == 0
     assert "rules: visible" in capsys.readouterr().out
     s = json.loads((out / "summary.json").read_text())
@@ -138,9 +138,9 @@ def test_replay_compare_rules_writes_picture_and_figures(tmp_path: Path, capsys)
 @needs_data
 def test_replay_refuses_recordings_without_poses(tmp_path: Path, capsys) -> None:
     path = DATA / "oculus" / "three_pings_8bit.raw"
-    assert main([str(path), "--out", str(tmp_path / "a"), "--quiet"]) == 2
+    assert main([str(path), "--out", str(tmp_path / "a"), "--no-progress"]) == 2
     assert "mapping needs a pose" in capsys.readouterr().err
-    assert main([str(path), "--static", "--out", str(tmp_path / "b"), "--quiet",
+    assert main([str(path), "--static", "--out", str(tmp_path / "b"), "--no-progress",
                  "--no-pictures", "--voxel-size", "0.05", "--backend", "numpy"]) == 0
     s = json.loads((tmp_path / "b" / "summary.json").read_text())
     assert s["frames"] == 3 and s["observed_voxels"] > 0
@@ -149,7 +149,7 @@ def test_replay_refuses_recordings_without_poses(tmp_path: Path, capsys) -> None
 def test_replay_reports_format_errors(tmp_path: Path, capsys) -> None:
     p = tmp_path / "bad.raw"
     p.write_bytes(encode_simple_ping(np.zeros((10, 4), np.uint8), [-10, 0, 5, 10], 0.01)[:-3])
-    assert main([str(p), "--static", "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert main([str(p), "--static", "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "format error" in err and "byte" in err
 
@@ -307,7 +307,7 @@ def test_replay_on_a_ros2_bag(tmp_path: Path) -> None:
     bag = tmp_path / "bag2"
     _write_ros2_psi(bag, n=3)
     out = tmp_path / "out"
-    assert main([str(bag), "--out", str(out), "--quiet", "--no-pictures",
+    assert main([str(bag), "--out", str(out), "--no-progress", "--no-pictures",
                  "--voxel-size", "0.05", "--backend", "numpy"]) == 0
     s = json.loads((out / "summary.json").read_text())
     assert s["frames"] == 3 and s["backend"] == "numpy"

@@ -264,7 +264,7 @@ def test_demo_survey_reports_memory_and_sparse_maps_the_same(tmp_path):
     # the same pings into either storage: the same observed voxels and the same scores
     assert 0 < md["observed_voxels"] == ms["observed_voxels"] < 250 * 100 * 15
     assert ms["map_bytes"] == ms["sparse"]["total_bytes"]
-    for key in ("false_negative_rate_detectable", "false_positive_rate_far", "miss_rate", "observed_fraction",
-                "free_carved_fraction"):
+    for key in ("false_negative_rate_detectable", "false_positive_rate_far", "miss_rate",
+                "miss_rate_by_object", "observed_surface_fraction", "free_carved_fraction"):
         assert d[key] == s[key], key
     assert d["rules"]["plain"]["miss_rate"] == s["rules"]["plain"]["miss_rate"]

@@ -128,7 +128,7 @@ def test_replay_record_holds_every_ping(tmp_path):
     from gpumap.replay import main
 
     rec_path = tmp_path / "tank.gpumap-rec"
-    assert main([str(DATA / "oasis_tank"), "--voxel-size", "0.08", "--max-frames", "12", "--quiet",
+    assert main([str(DATA / "oasis_tank"), "--voxel-size", "0.08", "--max-frames", "12", "--no-progress",
                  "--no-pictures", "--out", str(tmp_path / "out"), "--record", str(rec_path),
                  "--view-every", "5"]) == 0
     rec = read_recording(rec_path)
@@ -321,3 +321,23 @@ def test_demo_record_with_pose_noise_keeps_paths_and_landmarks(tmp_path):
     assert len(pts) > 0 and covs.shape == (len(pts), 3, 3)
     np.testing.assert_allclose(covs, covs.transpose(0, 2, 1), atol=1e-12)
     assert np.all(np.linalg.eigvalsh(covs) > 0)
+
+
+@needs_viser
+def test_saved_map_view_shows_no_empty_ping_panels(tmp_path):
+    """gpumap view MAP.npz: a saved map has no ping, so the view has no polar / fan image panels
+    (a recording's view keeps them)."""
+    import gpumap
+    from gpumap.viewer.cli import _parser, _view_map
+
+    spec = gpumap.SonarSpec.uniform(hfov_deg=60, vfov_deg=12, n_beams=16, n_bins=20, range_min_m=0.1,
+                                    range_max_m=1.0)
+    m = gpumap.MinMaxMapper(spec, gpumap.GridSpec((0.0, -0.5, -0.2), (1.0, 0.5, 0.2), 0.1), backend="numpy")
+    m.integrate(np.full(spec.image_shape, 0.5, np.float32), np.eye(4))
+    path = m.save(tmp_path / "map.npz")
+    v = _view_map(path, _parser().parse_args([str(path), "--view-port", "0"]))
+    try:
+        assert v._polar_gui is None and v._fan_gui is None
+        assert np.count_nonzero(v._q) > 0  # the map itself is shown
+    finally:
+        v.close()

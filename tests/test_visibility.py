@@ -31,26 +31,137 @@ def _run(backend, pings, rule="visible"):
 
 
 def _random_pings(n, seed):
+    """Pings whose views reach every branch of the visible rule (counted by _fold_views).
+
+    Per beam: water up to a first return (none in some beams), then one to three return cells
+    (a third of them exactly at the threshold), then shadow and now and then a further return.
+    Water and shadow are dark, per beam either very dark (below threshold / 2) or speckle
+    between threshold / 2 and the threshold; a few cells lie exactly at threshold / 2.
+    No cell at or above the threshold lies in the last ``win`` bins (see _fold_views).
+    """
     rng = np.random.default_rng(seed)
     out = []
     nb, nj = SPEC.image_shape
+    thr, half = np.float32(THR), np.float32(THR) * np.float32(0.5)
+    last = nb - _win()  # returns only in bins [0, last)
     for _ in range(n):
-        # per beam, dark water (0 to 0.09) up to a random first return (none in some beams),
-        # then returns and shadows mixed
-        first = rng.integers(5, nb + 20, nj)
-        after = np.arange(nb)[:, None] >= first[None, :]
-        img = np.where(after, rng.random((nb, nj)) ** 3, 0.09 * rng.random((nb, nj))).astype(np.float32)
+        very_dark = rng.random(nj) < 0.6
+        u = rng.random((nb, nj))
+        img = np.where(very_dark[None, :], half * u, half + (thr - half) * u)
+        img[rng.random((nb, nj)) < 0.05] = half
+        img = img.astype(np.float32)
+        for j in range(nj):
+            f = int(rng.integers(3, 2 * last))
+            while f < last:
+                length = int(rng.integers(1, 4))
+                value = thr if rng.random() < 1 / 3 else np.float32(rng.uniform(THR, 1.0))
+                img[f : min(f + length, last), j] = value
+                f += length + int(rng.integers(4, last))
         T = pose(rot_z(rng.uniform(-0.3, 0.3)) @ rot_y(rng.uniform(-0.2, 0.2)), rng.uniform(-0.1, 0.1, 3))
         out.append((img, T))
     return out
 
 
-def test_backends_agree_bitwise_with_the_reference(backend):
-    pings = _random_pings(5, 3)
-    ref, got = _run("numpy", pings).evidence(), _run(backend, pings).evidence()
+def _win() -> int:
+    return int(_mapper("numpy")._params["win"])
+
+
+def _fold_views(pings):
+    """The visible rule's evidence from its definition, view by view, and how often each branch ran.
+
+    Independent of the rule's code: a view's value v is the single-ping map of the plain rule
+    (the footprint max, itself checked against brute force in test_mapper). Its clearness comes
+    from the same plain footprint max over ``X``, the image's running max along range shifted
+    down by ``win`` bins: over the footprint's rows ``[b0, b0 + win - 1]`` that max is ``X``'s
+    last row, i.e. the image's max over bins ``[0, b0)`` of the footprint's beams, exactly the
+    cells that block the view (the window is never clipped at the last bin for a bright cell:
+    _random_pings keeps the last ``win`` bins dark). Shifting by ``win + 1`` finds the views
+    blocked only by a return in bin ``b0 - 1``, the edge of the blocking test.
+    """
+    thr, half = np.float32(THR), np.float32(THR) * np.float32(0.5)
+    win = _win()
+    n = GRID.n_voxels
+    min_all = np.full(n, np.inf, np.float32)
+    bright = np.full(n, np.inf, np.float32)
+    count = np.zeros(n, np.int64)
+    branches = ("bright", "at_threshold", "clear_very_dark", "at_half", "clear_dark", "blocked_dark",
+                "blocked_at_b0_minus_1")
+    hits = dict.fromkeys(branches, 0)
+
+    def plain_value(img, T):
+        m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain", threshold=THR)
+        m.integrate(img, T)
+        return m.raw_values().ravel()
+
+    def shifted_running_max(img, k):
+        x = np.zeros_like(img)
+        x[k:] = np.maximum.accumulate(img, axis=0)[:-k]
+        return x
+
+    for img, T in pings:
+        v = plain_value(img, T)
+        seen = np.isfinite(v)
+        clear = plain_value(shifted_running_max(img, win), T) < thr
+        clear_but_last = plain_value(shifted_running_max(img, win + 1), T) < thr
+        lit = seen & (v >= thr)
+        dark = seen & ~lit
+        min_all[seen] = np.minimum(min_all[seen], v[seen])
+        bright[lit] = np.minimum(bright[lit], v[lit])
+        count[dark & clear] += np.where(v[dark & clear] < half, 2, 1)
+        hits["bright"] += lit.sum()
+        hits["at_threshold"] += (seen & (v == thr)).sum()
+        hits["clear_very_dark"] += (dark & clear & (v < half)).sum()
+        hits["at_half"] += (dark & clear & (v == half)).sum()
+        hits["clear_dark"] += (dark & clear & (v >= half)).sum()
+        hits["blocked_dark"] += (dark & ~clear).sum()
+        hits["blocked_at_b0_minus_1"] += (dark & ~clear & clear_but_last).sum()
+    ev = {"min_all": min_all, "bright": bright, "count": np.minimum(count, 255).astype(np.uint8)}
+    return {k: a.reshape(GRID.shape) for k, a in ev.items()}, hits
+
+
+@pytest.fixture(scope="module")
+def branch_pings():
+    pings = _random_pings(8, 3)
+    return pings, *_fold_views(pings)
+
+
+def test_random_views_reach_every_branch_of_the_rule(branch_pings):
+    """The inputs of the comparisons below exercise each branch many times (counts printed)."""
+    _, _, hits = branch_pings
+    print("views per branch:", hits)
+    assert min(hits.values()) >= 50, hits
+
+
+def test_rule_matches_its_definition_view_by_view(backend, branch_pings):
+    """Every backend's evidence equals the rule folded view by view (_fold_views), exactly."""
+    pings, want, _ = branch_pings
+    got = _run(backend, pings).evidence()
+    for k in ("min_all", "bright", "count"):
+        np.testing.assert_array_equal(got[k], want[k], err_msg=k)
+    assert want["count"].max() >= 4 and np.isfinite(want["bright"]).sum() > 100
+
+
+def test_backends_agree_bitwise_with_the_reference(other_backend, branch_pings):
+    pings = branch_pings[0]
+    ref, got = _run("numpy", pings).evidence(), _run(other_backend, pings).evidence()
     for k in ("min_all", "bright", "count"):
         np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
-    assert ref["count"].max() >= 2 and np.isfinite(ref["bright"]).sum() > 100  # both paths exercised
+
+
+def test_count_saturates_at_255(backend):
+    """130 very dark clear views of a voxel seen bright: the count stops at 255 (uint8), not wraps."""
+    spec = gpumap.SonarSpec.uniform(hfov_deg=20, vfov_deg=10, n_beams=8, n_bins=20, range_min_m=0.1,
+                                    range_max_m=1.0)
+    grid = gpumap.GridSpec((0.3, -0.1, -0.05), (0.7, 0.1, 0.05), 0.05)
+    m = gpumap.MinMaxMapper(spec, grid, backend=backend, threshold=THR)
+    m.integrate(np.full(spec.image_shape, 0.5, np.float32), np.eye(4))
+    dark = np.zeros(spec.image_shape, np.float32)
+    for _ in range(130):
+        m.integrate(dark, np.eye(4))
+    count = m.evidence()["count"]
+    seen = np.isfinite(m.evidence()["bright"])
+    assert seen.sum() > 10
+    np.testing.assert_array_equal(count[seen], 255)
 
 
 def test_order_of_pings_does_not_change_the_map(backend):

@@ -38,16 +38,20 @@ def _seconds(text: str) -> float:
     return nonnegative_float(text)
 
 
-def add_view_args(p: argparse.ArgumentParser, record: bool = True) -> None:
-    """Add ``--view``, ``--view-host``, ``--view-port``, ``--view-every``, ``--view-hold``, ``--record``."""
+def add_view_args(p: argparse.ArgumentParser, record: bool = True, live: bool = True) -> None:
+    """Add ``--view``, ``--view-host``, ``--view-port``, ``--view-every``, ``--view-hold``, ``--record``
+    (``live=False``, for ``gpumap view``: only the address and ``--view-hold``; it always serves,
+    and a saved map or a recording has no pings arriving to refresh on)."""
     from gpumap.cli import output_file, positive_int
 
-    g = p.add_argument_group("live view (optional extra: pip install 'gpumap[viewer]')")
-    g.add_argument(
-        "--view",
-        action="store_true",
-        help="serve a live 3-D view of the map as it grows (open the printed address in a browser)",
-    )
+    extra = "(optional extra: pip install 'gpumap[viewer]')"
+    g = p.add_argument_group(f"live view {extra}" if live else f"view {extra}")
+    if live:
+        g.add_argument(
+            "--view",
+            action="store_true",
+            help="serve a live 3-D view of the map as it grows (open the printed address in a browser)",
+        )
     g.add_argument(
         "--view-host",
         default="127.0.0.1",
@@ -56,13 +60,14 @@ def add_view_args(p: argparse.ArgumentParser, record: bool = True) -> None:
         "another machine, e.g. the ship's laptop, connect)",
     )
     g.add_argument("--view-port", type=_port, default=8080, metavar="PORT", help="default 8080")
-    g.add_argument(
-        "--view-every",
-        type=positive_int,
-        default=10,
-        metavar="N",
-        help="refresh the map's voxels at most every N pings (and at most twice a second)",
-    )
+    if live:
+        g.add_argument(
+            "--view-every",
+            type=positive_int,
+            default=10,
+            metavar="N",
+            help="refresh the map's voxels at most every N pings (and at most twice a second)",
+        )
     g.add_argument(
         "--view-hold",
         type=_seconds,
@@ -192,7 +197,7 @@ class Session:
 
 # ---------------------------------------------------------------------- gpumap view
 def _parser() -> argparse.ArgumentParser:
-    from gpumap.cli import ArgumentParser, existing_file
+    from gpumap.cli import ArgumentParser, existing_file, unit_interval
 
     p = ArgumentParser(
         prog="gpumap view",
@@ -201,11 +206,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("path", type=existing_file, help="map.npz (gpumap demo/replay) or a recording")
     p.add_argument(
         "--threshold",
-        type=float,
+        type=unit_interval,
         default=None,
         help="occupied if value >= this (default: the map's own threshold)",
     )
-    add_view_args(p, record=False)
+    add_view_args(p, record=False, live=False)
     return p
 
 
@@ -215,7 +220,8 @@ def _view_map(path: Path, a: argparse.Namespace) -> Any:
 
     m = MinMaxMapper.load(path, backend="numpy")
     thr = float(m.threshold if a.threshold is None else a.threshold)
-    v = MapViewer(m.spec, m.grid, thr, host=a.view_host, port=a.view_port, title=f"gpumap view {path.name}")
+    v = MapViewer(m.spec, m.grid, thr, host=a.view_host, port=a.view_port, title=f"gpumap view {path.name}",
+                  show_pings=False)  # a saved map holds no ping: no empty image panels
     v.set_values(m.values())
     v.n_pings = int(m.n_integrated)
     v.finish()

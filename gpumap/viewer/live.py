@@ -166,6 +166,9 @@ class MapViewer:
         ... and at most this often (wall time); images, pose and trajectory at most every
         ``pose_interval_s``.
     color_by : {"value", "height"}
+    show_pings : bool
+        Side panels for the current ping's polar and fan images (False for a saved map, which
+        has no pings to show).
     budget : float
         Largest share of the wall time that viewing may take (see the module doc).
     """
@@ -184,6 +187,7 @@ class MapViewer:
         pose_interval_s: float = 0.1,
         color_by: str = "height",
         budget: float = 0.05,
+        show_pings: bool = True,
     ) -> None:
         viser = require_viser()
         self.spec, self.grid, self.threshold = spec, grid, float(threshold)
@@ -243,13 +247,17 @@ class MapViewer:
         def _(_e) -> None:  # hide the map to see what it hides: EKF landmarks, the truth's objects
             self._map_root.visible = bool(self._show.value)
 
-        blank = np.zeros((spec.n_bins // 4 or 1, spec.n_beams // 4 or 1, 3), np.uint8)
-        self._polar_gui = gui.add_image(blank, label="ping (polar: range up, beams across)", format="jpeg")
-        self._fan_gui = gui.add_image(
-            self._fan(np.zeros((spec.n_bins, spec.n_beams), np.uint8))[..., :3],
-            label="ping (fan)",
-            format="jpeg",
-        )
+        self._polar_gui = self._fan_gui = None
+        if show_pings:
+            blank = np.zeros((spec.n_bins // 4 or 1, spec.n_beams // 4 or 1, 3), np.uint8)
+            self._polar_gui = gui.add_image(
+                blank, label="ping (polar: range up, beams across)", format="jpeg"
+            )
+            self._fan_gui = gui.add_image(
+                self._fan(np.zeros((spec.n_bins, spec.n_beams), np.uint8))[..., :3],
+                label="ping (fan)",
+                format="jpeg",
+            )
 
     # ------------------------------------------------------------------ the map
     @property
@@ -345,9 +353,10 @@ class MapViewer:
                 )
             else:
                 self._fan_node.image = fan
-            step = max(1, u8.shape[0] // 200)  # the panel shows ~300 px: no need for every bin
-            self._polar_gui.image = self._lut_img[u8[::-step, ::step]]  # far range at the top
-            self._fan_gui.image = fan[..., :3]
+            if self._polar_gui is not None:
+                step = max(1, u8.shape[0] // 200)  # the panel shows ~300 px: no need for every bin
+                self._polar_gui.image = self._lut_img[u8[::-step, ::step]]  # far range at the top
+                self._fan_gui.image = fan[..., :3]
             if len(self._positions) >= 2:
                 p = np.asarray(self._positions, np.float32)
                 segs = np.stack([p[:-1], p[1:]], 1)

@@ -229,17 +229,22 @@ def _camera_for(
 
 
 def demo_pictures(
-    out: Any, grid: Any, values: np.ndarray, truth: Any, threshold: float, rule: str, title: str = ""
+    out: Any, grid: Any, values: np.ndarray, truth: Any, threshold: float, rule: str, title: str = "",
+    detectable: np.ndarray | None = None,
 ) -> list[str]:
     """Write ``map_vs_truth.png``, ``height_map.png`` and ``errors_by_object.png`` into ``out``.
 
     The map and the truth are drawn from one viewpoint over the voxels the pings observed:
     the map's occupied voxels (shaded boxes, coloured by height), the truth's surface
-    voxels coloured by object. Per object: the share of its observed surface voxels the map
-    calls free (FN) and the free voxels the map calls occupied whose nearest true surface
-    is that object's (FP).
+    voxels coloured by object. Per object, with the definitions of ``metrics.json``
+    (:mod:`gpumap.sim.metrics`): the miss rate (of its voxels some ping could detect,
+    ``detectable`` (nx, ny, nz) bool, default every surface voxel, the share the map does not
+    call occupied) and the phantom voxels (more than one voxel from any true surface, called
+    occupied) whose nearest true surface is that object's.
     """
     import matplotlib
+
+    from gpumap.sim.metrics import miss_by_object, phantom_far
 
     matplotlib.use("Agg")
     from pathlib import Path
@@ -333,18 +338,15 @@ def demo_pictures(
     fig.savefig(out / "height_map.png", bbox_inches="tight")
     plt.close(fig)
 
-    # FN / FP per object
-    free_true = ~truth.occupied
-    fp = seen & occ & free_true
+    # misses and phantoms per object, as metrics.json counts them
+    det = truth.surface if detectable is None else np.asarray(detectable).reshape(truth.surface.shape)
+    fp = phantom_far(values, truth, threshold)
     _, near = ndimage.distance_transform_edt(~truth.surface, return_indices=True)
     fp_label = truth.label[tuple(n[fp] for n in near)]
-    rows = []
-    for i, n in enumerate(names):
-        obj = tsurf & (truth.label == i)
-        if not obj.any():
-            continue
-        fn = int(np.sum(obj & ~occ))
-        rows.append((n, 100.0 * fn / int(obj.sum()), int(obj.sum()), int(np.sum(fp_label == i))))
+    rows = [
+        (n, 100.0 * missed / of, of, int(np.sum(fp_label == names.index(n))))
+        for n, (missed, of) in miss_by_object(values, truth, threshold, det).items()
+    ]
     fig, axs = plt.subplots(1, 2, figsize=(12, 4.2), dpi=90)
     y = np.arange(len(rows))
     colours = [tab[names.index(r[0]) % 10] for r in rows]
@@ -355,8 +357,9 @@ def demo_pictures(
         yticks=y,
         yticklabels=[r[0] for r in rows],
         xlim=(0, 110),
-        xlabel="observed surface voxels the map calls free (%)",
-        title="false negatives (missed)",
+        xlabel="% of the surface voxels some ping could detect\n"
+        "that the map does not call occupied (free or unknown)",
+        title="missed (metrics.json: miss_rate_by_object)",
     )
     axs[0].invert_yaxis()
     axs[1].barh(y, [r[3] for r in rows], color=colours)
@@ -365,8 +368,9 @@ def demo_pictures(
     axs[1].set(
         yticks=y,
         yticklabels=[],
-        xlabel="free voxels the map calls occupied, by nearest object",
-        title="false positives (phantom)",
+        xlabel="voxels called occupied more than one voxel from any\n"
+        "true surface, counted by the nearest object",
+        title="phantom voxels (metrics.json: false_positive_rate_far)",
     )
     axs[1].invert_yaxis()
     fig.suptitle(f"{title}errors per object ({rule} rule, value >= {threshold:g})", fontsize=11)

@@ -1,0 +1,168 @@
+"""``python -m bench.readme``: the README's figures, written from the results files.
+
+Every number the README quotes sits between ``<!-- begin:readme-NAME -->`` and
+``<!-- end:readme-NAME -->`` markers and is rendered here from a file under ``bench/results``
+that a benchmark wrote (each row names its file), so a figure cannot drift from its
+measurement: rerun the benchmark, then this (``--check`` only compares, exit 1 when the README
+is stale; ``tests/test_readme.py`` runs that check).
+
+    python -m bench.readme            # rewrite the marked blocks of README.md
+    python -m bench.readme --check    # exit 1 if a block differs from what the files give
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
+
+
+def _load(name: str) -> dict[str, Any] | None:
+    p = RESULTS / name
+    return json.loads(p.read_text()) if p.is_file() else None
+
+
+def _n(x: float) -> str:
+    return f"{x:,.0f}" if x >= 100 else f"{x:.3g}"
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.1f} %"
+
+
+def _bench_rate(d: dict, backend: str, voxel_m: float) -> float | None:
+    for r in d["rows"]:
+        if (r.get("kind") == "gpumap" and r["backend"] == backend and r["method"] == "gather"
+                and r["shadow_m"] == 0 and abs(r["voxel_size_m"] - voxel_m) < 1e-9):
+            return r["images_per_s"]
+    return None
+
+
+def summary_rows() -> list[tuple[str, str, str]]:
+    """(what, figure, results file) for the README's summary table."""
+    rows: list[tuple[str, str, str]] = []
+    cpu = _load("cpu_amd-epyc_2c.json")
+    if cpu:
+        a, b = _bench_rate(cpu, "opencl-cpu", 0.03), _bench_rate(cpu, "warp-cpu", 0.03)
+        c, d = _bench_rate(cpu, "opencl-cpu", 0.01), _bench_rate(cpu, "warp-cpu", 0.01)
+        # the speed sweep ran before the visible rule existed: its rows are the plain rule's
+        rows.append(("Simulated tank pings mapped per second, plain rule, 2-core CPU "
+                     "(opencl-cpu / warp-cpu), 3 cm",
+                     f"{_n(a)} / {_n(b)}", "cpu_amd-epyc_2c.json"))
+        rows.append(("... the same at 1 cm", f"{_n(c)} / {_n(d)}", "cpu_amd-epyc_2c.json"))
+    gpu = _load("gpu_nvidia-h100-80gb-hbm3.json")
+    if gpu:
+        rows.append(("... on an H100 (warp-cuda), 3 cm / 1 cm",
+                     f"{_n(_bench_rate(gpu, 'warp-cuda', 0.03))} / {_n(_bench_rate(gpu, 'warp-cuda', 0.01))}",
+                     "gpu_nvidia-h100-80gb-hbm3.json"))
+    sp = _load("speed_gpu_nvidia-h100-80gb-hbm3.json")
+    if sp:
+        r = next(r for r in sp["rows"] if r["backend"] == "warp-cuda" and r["voxel_m"] == 0.01
+                 and r["rule"] == "visible")
+        rows.append(("Real tank frames, H100 warp-cuda, 1 cm, default rule: p99 latency per frame",
+                     f"{r['latency']['p99_ms']:.2f} ms", "speed_gpu_nvidia-h100-80gb-hbm3.json"))
+    vis = _load("visibility.json")
+    if vis:
+        by = {r["rule"]: r for r in vis["rows"] if r["scene"] == "tank" and r["voxel_size_m"] == 0.03}
+        if {"visible", "plain"} <= set(by):
+            v, p = by["visible"], by["plain"]
+            rows.append(("Simulated tank, 3 cm: missed (visible rule / paper's plain rule)",
+                         f"{_pct(v['miss_rate'])} / {_pct(p['miss_rate'])}", "visibility.json"))
+            rows.append(("... missed of the small objects",
+                         f"{_pct(v['miss_rate_objects'])} / {_pct(p['miss_rate_objects'])}",
+                         "visibility.json"))
+            rows.append(("... phantom: water more than a voxel from a surface called occupied",
+                         f"{_pct(v['false_positive_rate_far'])} / {_pct(p['false_positive_rate_far'])}",
+                         "visibility.json"))
+    rr = _load("rules_real_tank.json")
+    if rr:
+        c = rr["rule_comparison"]["rules"]
+        rows.append(("Real tank, 5 cm: occupied voxels (visible / plain rule), same observed voxels",
+                     f"{c['visible']['occupied_voxels']:,} / {c['plain']['occupied_voxels']:,}",
+                     "rules_real_tank.json"))
+    peers = sorted(RESULTS.glob("peer_ratio_*.json"))
+    valid = [json.loads(p.read_text()) | {"_file": p.name} for p in peers]
+    valid = [d for d in valid if d.get("valid")]
+    if valid:
+        d = valid[-1]
+        st = d["setup"]
+        rows.append((f"Speed against the public OASIS code, same real frames, {st['voxel_m'] * 100:.1f} cm, "
+                     f"idle machine ({st['backend']}, {st['rule']} rule)",
+                     f"{d['ratio_median']:.0f}x ({d['ratio_min']:.0f}-{d['ratio_max']:.0f}x over "
+                     f"{len(d['ratio_per_repeat'])} repeats)", d["_file"]))
+    else:
+        rows.append(("Speed against the public OASIS code, same real frames, 5 cm",
+                     "not yet measured on an idle machine (python -m bench.peer_ratio)", "peer_ratio_*.json"))
+    return rows
+
+
+def summary_block() -> str:
+    lines = ["| what | figure | results file (bench/results/) |", "|---|---|---|"]
+    lines += [f"| {w} | {f} | `{s}` |" for w, f, s in summary_rows()]
+    return "\n".join(lines)
+
+
+def rules_real_block() -> str:
+    d = _load("rules_real_tank.json")
+    if d is None:
+        return "(run `python -m bench.rules_real` to measure this)"
+    c = d["rule_comparison"]
+    w = c["where"]
+    vo = w["fraction_vs_floor_0.25m"]["visible_only"]
+    rng = w["range_from_sonar_m"]
+    vis, pl = c["rules"]["visible"], c["rules"]["plain"]
+    same = "exactly the same" if c["observed_equal"] else "not the same"
+    return (
+        f"The two maps observe {same} {vis['observed_voxels']:,} voxels; the plain rule calls "
+        f"{pl['occupied_voxels']:,} occupied, the visible rule {vis['occupied_voxels']:,}, and "
+        f"{c['plain_only']:,} voxels are occupied under the plain rule but free under the visible one "
+        f"(by construction a visible value is never below the plain one). The {c['visible_only']:,} voxels "
+        f"only the visible rule keeps lie further from the sonar (median {rng['visible_only'][1]:.2f} m "
+        f"against {rng['both'][1]:.2f} m) and low: {100 * vo['at']:.0f} % at the tank floor, which the plain "
+        f"rule erases wherever one grazing view was dark, {100 * vo['below']:.0f} % below it (shadow that no "
+        f"view saw clearly) and {100 * vo['above']:.0f} % above it (the elevation stretch that only a clear "
+        f"view can carve). Threshold {c['threshold']:g}; from `bench/results/rules_real_tank.json` "
+        f"(`python -m bench.rules_real`)."
+    )
+
+
+BLOCKS = {"readme-summary": summary_block, "readme-rules-real": rules_real_block}
+
+
+def render(text: str) -> str:
+    """``text`` with every known marked block rendered anew from the results files."""
+    for name, make in BLOCKS.items():
+        pat = re.compile(rf"(<!-- begin:{name} -->\n)(?:.*?\n)?(<!-- end:{name} -->)", re.S)
+        if not pat.search(text):
+            raise ValueError(f"Expected a <!-- begin:{name} --> ... <!-- end:{name} --> block in the README")
+        text = pat.sub(lambda m, make=make: m.group(1) + make() + "\n" + m.group(2), text)
+    return text
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m bench.readme", description=__doc__.splitlines()[0])
+    ap.add_argument("--readme", type=Path, default=ROOT / "README.md", help="the file to update")
+    ap.add_argument("--check", action="store_true", help="only compare; exit 1 when a block is stale")
+    a = ap.parse_args(argv)
+    old = a.readme.read_text()
+    new = render(old)
+    if a.check:
+        if new != old:
+            print(f"{a.readme}: figures differ from bench/results (run python -m bench.readme)",
+                  file=sys.stderr)
+            return 1
+        return 0
+    if new != old:
+        a.readme.write_text(new)
+        print(f"updated {a.readme}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

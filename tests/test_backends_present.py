@@ -1,0 +1,41 @@
+"""CI must not pass by skipping: every CPU backend it is meant to test is present and works.
+
+On a machine without, say, PoCL, every ``opencl-cpu`` test skips and the run stays green. When
+``CI`` is set (``.ci/run`` sets it) these tests require numpy, warp-cpu and opencl-cpu
+(``GPUMAP_REQUIRE_BACKENDS=a,b`` names others; empty outside CI, where nothing is required).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import _AVAILABLE, REQUIRED_BACKENDS
+
+import gpumap
+from gpumap.backends import BACKENDS
+
+
+def test_required_backends_are_named_correctly():
+    unknown = set(REQUIRED_BACKENDS) - set(BACKENDS)
+    assert not unknown, f"GPUMAP_REQUIRE_BACKENDS names unknown backends {sorted(unknown)}"
+
+
+@pytest.mark.parametrize("name", REQUIRED_BACKENDS or [pytest.param(None, marks=pytest.mark.skip(
+    reason="no backend required here (set CI or GPUMAP_REQUIRE_BACKENDS)"))])
+def test_required_backend_is_present_and_maps(name):
+    assert name in _AVAILABLE, (
+        f"backend {name} is required here but unavailable (this machine has {', '.join(_AVAILABLE)}): "
+        "its tests would all skip"
+    )
+    # present is not enough: it must build its kernels and map a ping as the reference does
+    spec = gpumap.SonarSpec.uniform(hfov_deg=60, vfov_deg=12, n_beams=16, n_bins=20, range_min_m=0.1,
+                                    range_max_m=1.0)
+    grid = gpumap.GridSpec((0.0, -0.5, -0.2), (1.0, 0.5, 0.2), 0.1)
+    img = np.random.default_rng(0).random(spec.image_shape).astype(np.float32)
+    got = gpumap.MinMaxMapper(spec, grid, backend=name)
+    ref = gpumap.MinMaxMapper(spec, grid, backend="numpy")
+    for m in (got, ref):
+        m.integrate(img, np.eye(4))
+    assert got.backend == name
+    assert np.isfinite(ref.raw_values()).sum() > 10
+    np.testing.assert_array_equal(got.raw_values(), ref.raw_values())
