@@ -674,17 +674,33 @@ def _opencl_context(device):
         return _CL_SHARED[key]
 
 
+def usable_opencl_device(kind: str):
+    """The first OpenCL device of ``kind`` ('gpu', 'cpu' or 'any', GPUs first) that builds gpumap's
+    kernels. A machine can list several platforms for one device (PoCL from ``pyopencl[pocl]`` and
+    the distribution's PoCL, say) of which only some compile for this processor: each is tried in
+    order, and the error names every device that failed and why."""
+    devs = opencl_devices(kind)
+    if not devs:
+        raise BackendUnavailableError(
+            f"opencl{'' if kind == 'any' else '-' + kind} needs an OpenCL "
+            f"{'device' if kind == 'any' else kind.upper() + ' device'}, and pyopencl finds none"
+        )
+    reasons = []
+    for d in devs:
+        try:
+            _opencl_context(d)
+        except BackendUnavailableError as e:
+            reasons.append(str(e))
+            continue
+        return d
+    raise BackendUnavailableError("; ".join(reasons))
+
+
 class OpenCLBackend(Backend):
     def __init__(self, spec, n_voxels, template_S, use_table=None, kind="any", *, visible=False):
         n_bins, n_beams = spec.image_shape
         cl = _opencl()
-        devs = opencl_devices(kind)
-        if not devs:
-            raise BackendUnavailableError(
-                f"opencl{'' if kind == 'any' else '-' + kind} needs an OpenCL "
-                f"{'device' if kind == 'any' else kind.upper() + ' device'}, and pyopencl finds none"
-            )
-        d = devs[0]
+        d = usable_opencl_device(kind)
         need = 4 * n_voxels
         if need > d.max_mem_alloc_size:
             raise GridTooLargeError(
@@ -964,7 +980,7 @@ def available_backends() -> list[str]:
                 wp, _ = _warp()
                 ok = wp.is_cuda_available()
             elif name.startswith("opencl"):
-                ok = bool(opencl_devices(name.split("-")[1]))
+                ok = usable_opencl_device(name.split("-")[1]) is not None
             elif name == "warp-cpu":
                 _warp()
                 ok = True

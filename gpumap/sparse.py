@@ -624,16 +624,10 @@ def _cl_program(device):
 
 class _OpenCLBackend(_Backend):
     def __init__(self, spec: SonarSpec, visible: bool, B: int, cap: int, kind: str) -> None:
-        from gpumap.backends import _opencl, opencl_devices
+        from gpumap.backends import _opencl, usable_opencl_device
 
         cl = _opencl()
-        devs = opencl_devices(kind)
-        if not devs:
-            raise BackendUnavailableError(
-                f"opencl{'' if kind == 'any' else '-' + kind} needs an OpenCL "
-                f"{'device' if kind == 'any' else kind.upper() + ' device'}, and pyopencl finds none"
-            )
-        d = devs[0]
+        d = usable_opencl_device(kind)
         self.cl, self.d = cl, d
         self.ctx, prg = _cl_program(d)
         self.queue = cl.CommandQueue(self.ctx)

@@ -39,3 +39,27 @@ def test_required_backend_is_present_and_maps(name):
     assert got.backend == name
     assert np.isfinite(ref.raw_values()).sum() > 10
     np.testing.assert_array_equal(got.raw_values(), ref.raw_values())
+
+
+def test_opencl_takes_the_first_device_that_builds(monkeypatch):
+    """Two platforms for one CPU, the first unable to compile (bundled PoCL on a processor its LLVM
+    does not know): the backend must skip it, and fail with every reason when none builds."""
+    from gpumap import backends
+    from gpumap.errors import BackendUnavailableError
+
+    broken, good = object(), object()
+    monkeypatch.setattr(backends, "opencl_devices", lambda kind: [broken, good])
+
+    def fake_context(d):
+        if d is broken:
+            raise BackendUnavailableError("OpenCL cannot build gpumap's kernels for broken")
+        return ("ctx", "prg")
+
+    monkeypatch.setattr(backends, "_opencl_context", fake_context)
+    assert backends.usable_opencl_device("cpu") is good
+    monkeypatch.setattr(backends, "opencl_devices", lambda kind: [broken, broken])
+    with pytest.raises(BackendUnavailableError, match="broken; OpenCL cannot build"):
+        backends.usable_opencl_device("cpu")
+    monkeypatch.setattr(backends, "opencl_devices", lambda kind: [])
+    with pytest.raises(BackendUnavailableError, match="finds none"):
+        backends.usable_opencl_device("cpu")
