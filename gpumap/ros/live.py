@@ -195,6 +195,7 @@ class LiveMapper:
         self._cond = threading.Condition()
         self._map_lock = threading.Lock()  # integrate / reset / save / reads of the map
         self._pending: collections.deque[QueuedPing] = collections.deque()
+        self._in_flight = 0  # pings taken from the queue, in the mapper now
         self._last_ping_ns: int | None = None
         self._stop = False
         self._thread: threading.Thread | None = None
@@ -236,6 +237,11 @@ class LiveMapper:
         self.skipped[reason] += 1  # caller holds self._cond
         self._once(f"skipped.{reason}", f"skipped the ping stamped {p.stamp_ns * 1e-9:.6f} s ({reason})")
 
+    def count_received(self) -> None:
+        """Count an image message that reached the node (before any check)."""
+        with self._cond:
+            self.received += 1
+
     def add_pose(self, stamp_ns: int, T_W_S: np.ndarray) -> bool:
         """Buffer a checked pose; False if its stamp is not after the newest (counted)."""
         with self._cond:
@@ -260,7 +266,6 @@ class LiveMapper:
             return False
         dropped = None
         with self._cond:
-            self.received += 1
             if self._last_ping_ns is not None and stamp_ns <= self._last_ping_ns:
                 last = self._last_ping_ns
                 ok = False
@@ -384,8 +389,11 @@ class LiveMapper:
                                 wait = max(0.0, self._last_pub + self.publish_period_s - self._clock())
                             self._cond.wait(min(wait, 0.05) if self._pending else wait)
                             continue
+                    self._in_flight = len(ready)
                 if ready:
                     self._integrate(ready)
+                    with self._cond:
+                        self._in_flight = 0
                 if self._unpublished and self._clock() - self._last_pub >= self.publish_period_s:
                     self._publish()
             if self._unpublished:
@@ -412,9 +420,10 @@ class LiveMapper:
             return self.mapper.values()
 
     def stats(self, window_s: float = 5.0) -> dict:
-        """Counters and rates: ``received``, ``integrated``, ``queue``, ``rejected``/``skipped``/
-        ``dropped`` by reason, ``ping_rate_hz`` (integrated over the last ``window_s``),
-        ``latency_p50_ms``/``latency_p99_ms`` (arrival to published map), ``poses``."""
+        """Counters and rates: ``received`` (image messages that reached the node), ``integrated``,
+        ``queue`` (waiting or being integrated), ``rejected``/``skipped``/``dropped`` by reason,
+        ``ping_rate_hz`` (integrated over the last ``window_s``), ``latency_p50_ms`` and
+        ``latency_p99_ms`` (arrival to published map), ``poses``."""
         now = self._clock()
         with self._cond:
             lat = np.array(self.latencies_s, dtype=np.float64)
@@ -422,7 +431,7 @@ class LiveMapper:
             out = {
                 "received": self.received,
                 "integrated": self.integrated,
-                "queue": len(self._pending),
+                "queue": len(self._pending) + self._in_flight,
                 "poses": len(self.poses),
                 "rejected": dict(self.rejected),
                 "skipped": dict(self.skipped),

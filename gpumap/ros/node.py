@@ -246,7 +246,8 @@ def make_node(node_name: str = NODE_NAME, context=None):
         def _now_ns(self) -> int:
             return self.get_clock().now().nanoseconds
 
-        def _on_image(self, msg, info=None) -> None:
+        def _on_image(self, msg, info) -> None:  # two arguments: rclpy passes the message info
+            self.live.count_received()
             seq = info.get("publication_sequence_number") if info else None
             if seq:
                 gid = bytes(info["publisher_gid"]["data"])
@@ -348,7 +349,7 @@ def make_node(node_name: str = NODE_NAME, context=None):
             DiagnosticArray, DiagnosticStatus, KeyValue = self._diag_types
             s = self.diagnostics()
             st = DiagnosticStatus()
-            st.name = f"{self.get_name()}: mapper"
+            st.name = f"{self.get_fully_qualified_name()}: mapper"
             st.hardware_id = f"{s['backend']} ({s['device']})"
             lost = sum(s["dropped"].values()) + sum(s["skipped"].values())
             st.level = DiagnosticStatus.WARN if lost or self.live.error else DiagnosticStatus.OK
