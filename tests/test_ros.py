@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import DATA, needs_data
 
 import gpumap
 from gpumap.ros.live import LiveMapper, PoseBuffer
@@ -39,9 +40,7 @@ except ImportError as e:  # pragma: no cover - depends on the install
 
 needs_ros = pytest.mark.skipif(not HAVE_ROS, reason=WHY)
 
-TANK = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "oasis_tank"
-if not TANK.is_dir():
-    TANK = Path("/work/shared/data/oasis_tank")
+TANK = None if DATA is None else DATA / "oasis_tank"
 
 
 def _rot_z(a: float) -> np.ndarray:
@@ -413,6 +412,7 @@ NODE_TEST_ARGS = ("-p", "diagnostics_period_s:=0.2", "-p", "publish_period_s:=0.
 
 
 @needs_ros
+@needs_data
 def test_real_tank_over_dds_equals_the_offline_map(ros_session, tmp_path):
     """Node and ros-play as two processes: 123 real tank pings at 40 Hz, cloud == offline map."""
     from gpumap.ros.play import open_playable, write_params

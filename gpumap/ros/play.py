@@ -3,7 +3,8 @@
 Usage::
 
     gpumap ros-play RECORDING [--rate 1] [--hz 10] [--encoding auto] [--stride N]
-                    [--max-frames N] [--static] [--write-params FILE [--voxel-size M]]
+                    [--max-frames N] [--static] [--preload]
+                    [--write-params FILE [--voxel-size M]]
                     [--ros-args ...]
 
 Reads the recording with gpumap's own readers (``gpumap.io.open_recording``: the OASIS fan
@@ -194,6 +195,9 @@ def _parser():
     p.add_argument("--stride", type=positive_int, default=1, help="publish every N-th ping")
     p.add_argument("--max-frames", type=positive_int, default=None, help="publish at most N pings")
     p.add_argument("--static", action="store_true", help="publish pings without a pose at the identity pose")
+    p.add_argument("--preload", action="store_true",
+                   help="read and convert every ping before playing (memory: all images), so that reading "
+                   "the recording does not limit the rate")
     p.add_argument("--wait-subscribers", type=nonnegative_float, default=10.0, metavar="S",
                    help="wait up to S seconds for a subscriber on both topics before playing (default 10)")
     p.add_argument("--write-params", type=output_file, default=None, metavar="FILE",
@@ -285,11 +289,12 @@ def main(argv: list[str] | None = None) -> int:
         else:
             time.sleep(0.3)  # both ends of the match settle before the first best-effort image
         clock = node.get_clock()
-        t0_wall = time.monotonic()
         t0_rec = None
         n = 0
         period = 1.0 / (a.hz * a.rate)
-        for fr in tqdm(play.frames(), total=play.count, unit="ping", disable=a.no_progress, desc="ros-play"):
+        frames = list(play.frames()) if a.preload else play.frames()
+        t0_wall = time.monotonic()
+        for fr in tqdm(frames, total=play.count, unit="ping", disable=a.no_progress, desc="ros-play"):
             if fr.t_s is not None and t0_rec is None:
                 t0_rec = fr.t_s
             due = t0_wall + ((fr.t_s - t0_rec) / a.rate if fr.t_s is not None and t0_rec is not None
@@ -302,8 +307,8 @@ def main(argv: list[str] | None = None) -> int:
             pub_pose.publish(_pose_msg(a.pose_type, fr.T_W_S, stamp, a.world_frame, a.sonar_frame))
             pub_img.publish(image_msg(fr.image, now_ns, a.sonar_frame, a.encoding))
             n += 1
-        time.sleep(0.5)  # let the last messages leave before the publishers go
         dt = time.monotonic() - t0_wall
+        time.sleep(0.5)  # let the last messages leave before the publishers go
         print(f"gpumap ros-play: published {n} pings in {dt:.2f} s ({n / max(dt, 1e-9):.1f} /s); left out "
               f"{play.skipped}", file=sys.stderr)
     finally:
