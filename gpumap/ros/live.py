@@ -152,7 +152,10 @@ class LiveMapper:
     pose_buffer : int
         Poses kept.
     publish_period_s : float
-        ``on_publish`` runs at most this often (and once this long after the last change).
+        ``on_publish`` runs at most this often (and once this long after the last change). 0
+        (default): after every batch, so latency is one batch's work, and a busy worker, whose
+        batches grow, publishes less often. A period phase-locks with a steady ping rate: at 10 Hz
+        and 0.1 s each ping may wait most of a period for its slot.
     on_publish : callable, optional
         ``on_publish(newest_stamp_ns)`` on the worker thread after pings were integrated;
         read the map there (``mapper.values()``).
@@ -171,7 +174,7 @@ class LiveMapper:
         pose_wait_s: float = 0.5,
         max_pose_gap_s: float = 0.5,
         pose_buffer: int = 2000,
-        publish_period_s: float = 0.1,
+        publish_period_s: float = 0.0,
         on_publish: Callable[[int], None] | None = None,
         log: Callable[[str], None] | None = None,
         clock: Callable[[], float] = time.monotonic,

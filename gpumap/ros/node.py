@@ -103,7 +103,8 @@ PARAMETERS: dict[str, tuple[object, str]] = {
     "pose_buffer": (2000, "poses kept for interpolation"),
     "max_future_s": (1.0, "a stamp later than the node's clock by more than this is refused, seconds"),
     "image_queue_depth": (10, "sensor-data QoS history depth of the image subscription"),
-    "publish_period_s": (0.1, "the map outputs are published at most this often, seconds"),
+    "publish_period_s": (0.0, "the map outputs are published at most this often, seconds (0: after every "
+                         "batch the worker maps: a busy node publishes less often, a lone ping at once)"),
     "markers_period_s": (1.0, "the RViz markers are published at most this often (only changed blocks), "
                          "seconds"),
     "diagnostics_period_s": (1.0, "period of /diagnostics, seconds"),
