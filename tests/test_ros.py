@@ -515,7 +515,9 @@ def test_bad_input_on_the_wire_is_counted_and_leaves_the_map_alone(ros_session, 
     frames = list(play.frames())[:7]
     params = write_params(tmp_path / "sim.yaml", play, voxel_size_m=None, threshold=0.4, backend="numpy",
                           world_frame="map", pose_type="pose_stamped")
-    node = ros_session("node", "ros", "--params-file", str(params), "--ros-args", *NODE_TEST_ARGS)
+    saved = tmp_path / "map.npz"
+    node = ros_session("node", "ros", "--params-file", str(params), "--ros-args", *NODE_TEST_ARGS,
+                       "-p", f"save_path:={saved}")
     probe = ros_session.probe()
     n = probe.node
     pub_img = n.create_publisher(Image, "sonar/image",
@@ -610,3 +612,38 @@ def test_bad_input_on_the_wire_is_counted_and_leaves_the_map_alone(ros_session, 
     assert n_flood >= 1 and node.poll() is None
     ref = _offline(play, play.grid, frames + [frames[0]] * n_flood)
     _assert_cloud_is_map(probe.clouds[-1], ref, 0.4)
+    assert probe.call("save_map") == (True, str(saved))  # the service writes the same map
+    assert np.array_equal(gpumap.MinMaxMapper.load(saved, backend="numpy").raw_values(), ref.raw_values())
+
+
+@needs_ros
+@needs_data
+def test_a_cartesian_fan_on_the_wire_maps_as_the_fan_reader_reads_it():
+    """image_layout: fan with the OASIS geometry: the node queues the polar image the fan reader
+    makes from the same picture (mono8 fan on the wire, converted on arrival)."""
+    import rclpy
+
+    from gpumap.io import open_recording
+    from gpumap.io.fan import OASIS_SPEC, read_grey_png
+    from gpumap.ros.convert import image_msg
+    from gpumap.ros.node import make_node
+
+    first = next(iter(open_recording(TANK)))
+    fan_u8 = np.rint(read_grey_png(first.meta["file"]) * 255).astype(np.uint8)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN, args=[
+        "x", "--ros-args", "-p", "image_layout:=fan", "-p", "backend:=numpy", "-p", "n_bins:=398",
+        "-p", "hfov_deg:=130.0", "-p", "n_beams:=512", "-r", f"__ns:=/fan{os.getpid()}"])
+    try:
+        node = make_node(context=ctx)
+        assert node.spec == OASIS_SPEC
+        node._on_image(image_msg(fan_u8, node.get_clock().now().nanoseconds, "sonar"), {})
+        queued = node.live._pending[0].image
+        assert queued.dtype == np.float32 and np.array_equal(queued, first.image)
+        small = image_msg(fan_u8[:-1], node.get_clock().now().nanoseconds + 1, "sonar")
+        node._on_image(small, {})
+        assert node.live.rejected == {"image_size": 1}
+        node.live.stop(drain=False)
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
