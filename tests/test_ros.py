@@ -647,3 +647,23 @@ def test_a_cartesian_fan_on_the_wire_maps_as_the_fan_reader_reads_it():
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
+
+
+def test_callbacks_never_wait_for_the_mapper():
+    """add_ping/add_pose return at once while the mapper is busy (here: its lock is held)."""
+    imgs, Ts = _small_pings(4)
+    m = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy")
+    live = LiveMapper(m, queue_size=8)
+    live.start()
+    with live._map_lock:  # the worker is stuck in the mapper
+        live.add_pose(0, Ts[0])
+        live.add_ping(0, imgs[0])
+        time.sleep(0.2)  # the worker has taken ping 0 and waits for the mapper
+        t0 = time.perf_counter()
+        for k in range(1, 4):
+            live.add_pose(k, Ts[k])
+            assert live.add_ping(k, imgs[k])
+        assert time.perf_counter() - t0 < 0.05
+        assert live.integrated == 0 and live.stats()["queue"] == 4
+    live.stop(drain=True)
+    assert live.integrated == 4

@@ -375,7 +375,7 @@ def make_node(node_name: str = NODE_NAME, context=None):
             self.live.stop(drain=True)
             if save if save is not None else bool(self.p["save_on_exit"]):
                 path = self.live.save(str(self.p["save_path"]))
-                self.get_logger().info(f"map saved to {path}")
+                print(f"gpumap ros: map saved to {path}", file=sys.stderr)  # ROS logging may be down
 
     return GpumapNode()
 

@@ -264,12 +264,14 @@ def main(argv: list[str] | None = None) -> int:
     from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Odometry
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import Image
     from tqdm import tqdm
 
     from gpumap.ros.convert import image_msg, stamp_of
 
-    rclpy.init(args=["gpumap_ros_play", *ros_args])
+    # Ctrl-C is a KeyboardInterrupt here (gpumap's one line, exit 130), not a shutdown behind our back
+    rclpy.init(args=["gpumap_ros_play", *ros_args], signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("gpumap_ros_play")
     try:
         sensor = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT,
