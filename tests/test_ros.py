@@ -490,6 +490,7 @@ def test_simulated_run_and_a_player_that_dies(ros_session, tmp_path, sim_recordi
     _assert_cloud_is_map(probe.clouds[-1], _offline(play, play.grid, frames[:k]), 0.4)
 
     assert probe.call("reset") == (True, "map reset: every voxel unknown")
+    probe.spin_until(lambda: probe.clouds[-1].width == 0, 10, "the empty cloud after the reset")
     player = ros_session("play", "ros-play", str(sim_recording), "--hz", "20", "--pose-type", "odometry",
                          "--no-progress")
     player.wait(60)

@@ -330,6 +330,7 @@ def make_node(node_name: str = NODE_NAME, context=None):
                 self.blocks.reset()
                 self._marker_subs = 0
                 self._markers_stale = None
+            self._publish_map(self._now_ns())  # subscribers see the empty map at once
             response.success, response.message = True, "map reset: every voxel unknown"
             return response
 
