@@ -56,6 +56,8 @@ COMMANDS = {
     "replay": ("gpumap.replay", "map a real recording (Oculus, ARIS, fan images + poses, ROS bag)"),
     "view": ("gpumap.viewer.cli", "serve a saved map or a recording in the browser view ([viewer] extra)"),
     "export": ("gpumap.io.octomap", "write a saved map as OctoMap .bt (RViz, octovis) or .ply"),
+    "ros": ("gpumap.ros.node", "a ROS 2 node that maps live sonar pings ([ros] extra)"),
+    "ros-play": ("gpumap.ros.play", "publish a recording as the ROS 2 node's sonar topics ([ros] extra)"),
     "bench": ("gpumap.bench.__main__", "speed against error sweep on this machine (results in --out)"),
     "info": ("gpumap.cli", "list the backends this machine can run"),
 }

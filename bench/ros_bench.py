@@ -1,0 +1,235 @@
+"""The ROS 2 node's rates over Fast DDS: ``python -m bench.ros_bench`` -> ``bench/results/ros.json``.
+
+For each voxel size, ``gpumap ros`` and ``gpumap ros-play`` run as two processes (as a user
+runs them, defaults everywhere except the grid, which ``ros-play --write-params`` sizes for
+the recording) on the real OASIS tank (123 pings, 32FC1 398 x 512). Each play rate gets a fresh
+node; a listener in this process records the node's ``/diagnostics`` and, for every ping, when
+the first cloud holding it arrived (``sonar/pose`` carries the ping's stamp: the wall clock when
+``ros-play`` sent it), so latency = cloud received - ping sent, across both processes and the
+middleware. A rate is *sustained* when every ping was mapped: none dropped, skipped or lost.
+
+The recording has no times; ``ros-play`` plays it at its default 10 Hz for the latency
+figures ("the recorded rate"), then faster. On a shared machine every rate here is loaded:
+``load_avg`` is recorded with each run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _tank() -> Path:
+    """``shared/data/oasis_tank`` beside the checkout (as CI has it) or above it."""
+    for up in Path(__file__).resolve().parents:
+        for cand in (up / "shared" / "data" / "oasis_tank", up.parent / "shared" / "data" / "oasis_tank"):
+            if (cand / "sonar_poses.csv").is_file():
+                return cand
+    raise SystemExit("bench.ros_bench: shared/data/oasis_tank not found beside the checkout")
+
+
+TANK = _tank()
+OUT = Path(__file__).resolve().parent / "results" / "ros.json"
+
+
+def _cpu() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor()
+
+
+class Listener:
+    """Reads one node's diagnostics, clouds (receipt time, stamp) and ping stamps (from sonar/pose)."""
+
+    def __init__(self, ns: str, domain: int) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseStamped
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import PointCloud2
+
+        from gpumap.ros.convert import stamp_ns
+
+        self._stamp = stamp_ns
+        self.ns = ns
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx, domain_id=domain)
+        self.node = rclpy.create_node("bench_listener", namespace=ns, context=self.ctx)
+        self.ex = SingleThreadedExecutor(context=self.ctx)
+        self.ex.add_node(self.node)
+        self.diag: dict | None = None
+        self.clouds: list[tuple[int, int]] = []  # (received ns, stamp ns)
+        self.pings: list[int] = []
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.node.create_subscription(PointCloud2, f"{ns}/gpumap/occupied_cloud", self._on_cloud, latched)
+        self.node.create_subscription(PoseStamped, f"{ns}/sonar/pose",
+                                      lambda m: self.pings.append(stamp_ns(m.header.stamp)), 200)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
+
+    def _on_cloud(self, msg) -> None:
+        self.clouds.append((time.time_ns(), self._stamp(msg.header.stamp)))
+
+    def _on_diag(self, msg) -> None:
+        for st in msg.status:
+            if st.name == f"{self.ns}/gpumap: mapper":
+                self.diag = {kv.key: kv.value for kv in st.values}
+
+    def spin(self, seconds: float, until=None) -> bool:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.ex.spin_once(timeout_sec=0.02)
+            if until is not None and until():
+                return True
+        return False
+
+    def count(self, key: str) -> int:
+        return int((self.diag or {}).get(key, 0))
+
+    def latencies_ms(self) -> np.ndarray:
+        """Per ping: first cloud whose stamp reaches the ping's, received - sent."""
+        if not self.clouds:
+            return np.array([])
+        rec = np.array(self.clouds, dtype=np.int64)
+        rec = rec[np.argsort(rec[:, 0], kind="stable")]
+        out = []
+        for t in self.pings:
+            hit = np.flatnonzero(rec[:, 1] >= t)
+            if hit.size:
+                out.append((rec[hit[0], 0] - t) * 1e-6)
+        return np.array(out)
+
+    def close(self) -> None:
+        import rclpy
+
+        self.ex.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.ctx)
+
+
+def run_once(params: Path, hz: float, domain: int, n_pings: int, tmp: Path) -> dict:
+    """One fresh node, one play of the tank at ``hz``; what the node and the listener saw."""
+    ns = f"/bench{os.getpid()}_{int(hz)}_{time.monotonic_ns() % 10**6}"
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONUNBUFFERED="1")
+    base = [sys.executable, "-m", "gpumap.cli"]
+    ros = ["--ros-args", "-r", f"__ns:={ns}", "-p", "diagnostics_period_s:=0.25"]
+    nlog = open(tmp / "node.log", "w")  # noqa: SIM115
+    node = subprocess.Popen([*base, "ros", "--params-file", str(params), *ros], stdout=nlog,
+                            stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    lis = Listener(ns, domain)
+    try:
+        if not lis.spin(90, lambda: lis.diag is not None):
+            raise RuntimeError(f"the node did not start: {(tmp / 'node.log').read_text()[-2000:]}")
+        load0 = os.getloadavg()
+        play = subprocess.Popen([*base, "ros-play", str(TANK), "--hz", str(hz), "--no-progress", "--preload",
+                                 "--ros-args", "-r", f"__ns:={ns}"], stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, env=env, text=True, start_new_session=True)
+        while play.poll() is None:
+            lis.spin(0.1)
+        played = play.stdout.read()
+        m = re.search(r"published (\d+) pings in ([\d.]+) s", played)
+        lis.spin(30, lambda: lis.count("queue") == 0 and lis.count("pings_integrated")
+                 + sum(int(v) for k, v in (lis.diag or {}).items() if k.startswith(("dropped", "skipped")))
+                 >= lis.count("pings_received"))
+        lis.spin(1.0)
+        d = dict(lis.diag or {})
+        lat = lis.latencies_ms()
+        lost = {k: int(v) for k, v in d.items() if k.startswith(("dropped.", "skipped.", "rejected."))}
+        integrated = int(d.get("pings_integrated", 0))
+        return {
+            "requested_hz": hz,
+            "published": int(m.group(1)) if m else None,
+            "play_seconds": float(m.group(2)) if m else None,
+            "achieved_hz": round(int(m.group(1)) / float(m.group(2)), 1) if m else None,
+            "integrated": integrated,
+            "lost": lost,
+            "sustained": integrated == n_pings and not lost,
+            "latency_ms_p50": round(float(np.percentile(lat, 50)), 1) if lat.size else None,
+            "latency_ms_p99": round(float(np.percentile(lat, 99)), 1) if lat.size else None,
+            "latency_pings": int(lat.size),
+            "node_latency_ms_p50": float(d.get("latency_p50_ms", "nan")),
+            "node_latency_ms_p99": float(d.get("latency_p99_ms", "nan")),
+            "backend": d.get("backend"),
+            "load_avg": [round(x, 2) for x in (*load0, *os.getloadavg())],
+        }
+    finally:
+        lis.close()
+        if node.poll() is None:
+            node.send_signal(signal.SIGINT)
+            try:
+                node.wait(30)
+            except subprocess.TimeoutExpired:
+                node.kill()
+        nlog.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m bench.ros_bench", description=__doc__.splitlines()[0])
+    ap.add_argument("--voxel-sizes", type=float, nargs="+", default=[0.05, 0.03], help="voxel edges, metres")
+    ap.add_argument("--rates", type=float, nargs="+", default=[10, 20, 40, 80, 160, 320],
+                    help="play rates to try, pings per second (10: the latency figures)")
+    ap.add_argument("--backend", default="auto", help="the node's backend (default auto)")
+    ap.add_argument("--out", type=Path, default=OUT, help="results file (JSON)")
+    ap.add_argument("--note", default="", help="a remark stored with the results")
+    a = ap.parse_args(argv)
+    from gpumap.ros import use_gpumap_fastdds_profile
+    from gpumap.ros.play import open_playable, write_params
+
+    use_gpumap_fastdds_profile()
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    domain = 101 - os.getpid() % 50
+    play = open_playable(TANK)
+    n = play.count
+    res: dict = {"what": "gpumap ros + gpumap ros-play over Fast DDS on loopback, real OASIS tank (123 "
+                         "pings, 32FC1 398 x 512), one fresh node per run; latency = first cloud holding "
+                         "the ping received by a third process - ping sent by ros-play",
+                 "cpu": _cpu(), "n_cpus": os.cpu_count(), "note": a.note,
+                 "loaded": "shared machine: other engineers' jobs ran beside it (load_avg per run: 1, 5, "
+                           "15 min before the play, then after)",
+                 "runs": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for vs in a.voxel_sizes:
+            params = write_params(tmp / f"tank_{vs}.yaml", play, voxel_size_m=vs, threshold=0.4,
+                                  backend=a.backend, world_frame="map", pose_type="pose_stamped")
+            rows = []
+            fails = 0
+            for hz in a.rates:
+                r = run_once(params, hz, domain, n, tmp)
+                print(json.dumps({"voxel_size_m": vs, **r}), flush=True)
+                rows.append(r)
+                fails = 0 if r["sustained"] else fails + 1
+                if fails >= 2:
+                    break
+            ok = [r["achieved_hz"] for r in rows if r["sustained"]]
+            rec = next((r for r in rows if r["requested_hz"] == 10), None)
+            res["runs"][f"{vs}"] = {
+                "rows": rows,
+                "max_sustained_achieved_hz": max(ok) if ok else None,
+                "latency_at_10hz_ms": None if rec is None else [rec["latency_ms_p50"], rec["latency_ms_p99"]],
+            }
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    a.out.write_text(json.dumps(res, indent=1) + "\n")
+    print(f"wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,443 @@
+"""``gpumap ros``: a ROS 2 node that maps live sonar pings (needs the ``[ros]`` extra).
+
+Usage::
+
+    gpumap ros [--params-file FILE] [--ros-args ...]
+
+Everything after ``--ros-args`` goes to ROS as usual (``-p name:=value``, ``-r from:=to``,
+``--params-file``, ``--log-level``); ``--params-file FILE`` before it is short for
+``--ros-args --params-file FILE``. The node is named ``gpumap``.
+
+Subscribes (relative names: remap them with ``-r``):
+
+- ``sonar/image`` (``sensor_msgs/Image``, sensor-data QoS: best effort): the polar image
+  ``(n_bins, n_beams)`` (rows = range bins, ascending; columns = beams in ascending azimuth),
+  ``mono8``, ``mono16`` or ``32FC1`` (in [0, 1]); with ``image_layout: fan`` a Cartesian fan
+  picture whose geometry the ``fan_*`` parameters name, converted to polar on arrival.
+- ``sonar/pose`` (``geometry_msgs/PoseStamped``, or ``nav_msgs/Odometry`` with
+  ``pose_type: odometry``; reliable): ``T_W_S``, the sonar's pose in ``world_frame``.
+
+Publishes (in ``world_frame``): ``~/occupied_cloud`` (``sensor_msgs/PointCloud2``, fields
+x, y, z, value: every voxel with value >= ``threshold``), ``~/occupied_markers``
+(``visualization_msgs/MarkerArray``, a cube list per 16^3-voxel block, only changed blocks;
+all of them again when a new subscriber appears), ``~/projected_map``
+(``nav_msgs/OccupancyGrid``: 100 where a voxel in ``band_z_m`` is occupied, 0 observed, -1
+unknown), all three reliable and transient-local (a late subscriber gets the latest); the
+cloud's stamp is the newest ping in it. ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``,
+every ``diagnostics_period_s``): ping rate, latency p50/p99 (arrival to published cloud),
+queue, received/integrated, rejected, skipped and dropped by reason, backend, map memory.
+
+Services (``std_srvs/Trigger``): ``~/save_map`` writes ``save_path`` atomically (the same
+``.npz`` as ``gpumap replay``; ``MinMaxMapper.load`` reads it), ``~/reset`` forgets the map.
+Ctrl-C (or SIGTERM) drains the queue, saves when ``save_on_exit`` is true, and exits 0.
+
+Parameters (``ros2 param``-style, from ``--params-file`` YAML or ``-p``); the sonar comes from
+``sonar_spec_file`` (a JSON or YAML file with ``SonarSpec.to_dict()``'s keys, as
+``gpumap ros-play --write-params`` also writes inline) or from ``range_min_m``,
+``range_max_m``, ``n_bins``, ``vfov_deg`` and ``bearings_deg`` (or ``hfov_deg`` + ``n_beams``
+for evenly spaced beams). See :data:`PARAMETERS` for every name, default and meaning.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from gpumap.ros import require_ros, use_gpumap_fastdds_profile
+from gpumap.ros.convert import (
+    BadMessage,
+    MarkerBlocks,
+    cloud_msg,
+    image_from_msg,
+    occupancy_grid_msg,
+    pose_from_msg,
+    project_obstacles,
+    stamp_ns,
+)
+from gpumap.ros.live import LiveMapper
+from gpumap.spec import GridSpec, SonarSpec
+
+__all__ = ["NODE_NAME", "PARAMETERS", "main", "make_node", "sonar_spec_from_params"]
+
+NODE_NAME = "gpumap"
+
+#: name -> (default, description). Lists of floats default to the empty list where "unset".
+PARAMETERS: dict[str, tuple[object, str]] = {
+    "world_frame": ("map", "frame of the poses and of every map output"),
+    "pose_type": ("pose_stamped", "pose topic type: pose_stamped (geometry_msgs/PoseStamped) or odometry "
+                  "(nav_msgs/Odometry)"),
+    "image_layout": ("polar", "polar (n_bins x n_beams) or fan (a Cartesian fan picture, see fan_*)"),
+    "fan_rows": (398, "fan picture height, pixels"),
+    "fan_cols": (722, "fan picture width, pixels"),
+    "fan_pixel_m": (2.0 / 398, "fan pixel edge, metres"),
+    "fan_apex_row": (397.0, "row of the sonar in the fan picture"),
+    "fan_apex_col": (361.0, "column of the sonar in the fan picture"),
+    "fan_flip_lr": (False, "fan columns run right to left"),
+    "fan_flip_ud": (False, "fan rows are mirrored"),
+    "sonar_spec_file": ("", "JSON or YAML with range_min_m, range_max_m, n_bins, bearings_rad, vfov_rad "
+                        "(overrides the sonar parameters below)"),
+    "range_min_m": (0.1, "near edge of the first range bin, metres"),
+    "range_max_m": (2.0, "far edge of the last range bin, metres"),
+    "n_bins": (400, "range bins (image rows)"),
+    "vfov_deg": (20.0, "vertical aperture, degrees"),
+    "bearings_deg": ([], "beam azimuths, ascending, degrees (unset: hfov_deg and n_beams, evenly spaced)"),
+    "hfov_deg": (130.0, "horizontal aperture for evenly spaced beams, degrees"),
+    "n_beams": (512, "beams (image columns) for evenly spaced beams"),
+    "grid_min_m": ([-2.0, -2.0, -1.0], "grid box lower corner x, y, z in world_frame, metres"),
+    "grid_max_m": ([2.0, 2.0, 1.0], "grid box upper corner x, y, z in world_frame, metres"),
+    "voxel_size_m": (0.05, "voxel edge, metres"),
+    "backend": ("auto", "mapper backend: auto or a name of gpumap info (never falls back when named)"),
+    "rule": ("visible", "how views combine: visible or plain"),
+    "threshold": (0.4, "occupied from this value on; also the mapper's bright threshold (as gpumap replay)"),
+    "carve_views": (2, "visible rule: clear dark views that carve a voxel once seen bright"),
+    "queue_size": (32, "pings held at most; a new ping finding it full drops the oldest (counted)"),
+    "max_batch": (16, "pings per integrate_batch call at most"),
+    "pose_wait_s": (0.5, "how long a ping newer than every pose waits for one, seconds"),
+    "max_pose_gap_s": (0.5, "poses further apart than this do not bracket a ping, seconds"),
+    "pose_buffer": (2000, "poses kept for interpolation"),
+    "max_future_s": (1.0, "a stamp later than the node's clock by more than this is refused, seconds"),
+    "image_queue_depth": (10, "sensor-data QoS history depth of the image subscription"),
+    "publish_period_s": (0.0, "the map outputs are published at most this often, seconds (0: after every "
+                         "batch the worker maps: a busy node publishes less often, a lone ping at once)"),
+    "markers_period_s": (1.0, "the RViz markers are published at most this often (only changed blocks), "
+                         "seconds"),
+    "diagnostics_period_s": (1.0, "period of /diagnostics, seconds"),
+    "band_z_m": ([], "height band [z_min, z_max] of the obstacle projection, metres (unset: the whole grid)"),
+    "save_path": ("gpumap_map.npz", "where ~/save_map (and save_on_exit) writes the map"),
+    "save_on_exit": (False, "save the map to save_path when the node stops"),
+}
+
+
+def sonar_spec_from_params(p: dict) -> SonarSpec:
+    """The sonar geometry from the node's parameter values (``sonar_spec_file`` first)."""
+    f = str(p["sonar_spec_file"])
+    if f:
+        text = Path(f).read_text()
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError:
+            import yaml
+
+            d = yaml.safe_load(text)
+        try:
+            return SonarSpec.from_dict(d)
+        except (KeyError, TypeError) as e:
+            raise ValueError(f"Expected {f} to hold range_min_m, range_max_m, n_bins, bearings_rad and "
+                             f"vfov_rad, but reading it failed: {e!r}") from None
+    bearings = list(p["bearings_deg"])
+    if bearings:
+        b = np.deg2rad(np.asarray(bearings, dtype=np.float64))
+        return SonarSpec(float(p["range_min_m"]), float(p["range_max_m"]), int(p["n_bins"]), b,
+                         math.radians(float(p["vfov_deg"])))
+    return SonarSpec.uniform(hfov_deg=float(p["hfov_deg"]), vfov_deg=float(p["vfov_deg"]),
+                             n_beams=int(p["n_beams"]), n_bins=int(p["n_bins"]),
+                             range_min_m=float(p["range_min_m"]), range_max_m=float(p["range_max_m"]))
+
+
+def _choice(p: dict, name: str, allowed: tuple[str, ...]) -> str:
+    v = str(p[name])
+    if v not in allowed:
+        raise ValueError(f"Expected parameter {name} to be one of {', '.join(allowed)}, but got {v!r}")
+    return v
+
+
+def make_node(node_name: str = NODE_NAME, context=None):
+    """Create the mapping node (rclpy must be initialised); raises ValueError on bad parameters."""
+    require_ros()
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import OccupancyGrid, Odometry
+    from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.node import Node
+    from rclpy.qos import (
+        DurabilityPolicy,
+        HistoryPolicy,
+        QoSProfile,
+        ReliabilityPolicy,
+    )
+    from sensor_msgs.msg import Image, PointCloud2
+    from std_srvs.srv import Trigger
+    from visualization_msgs.msg import MarkerArray
+
+    import gpumap
+    from gpumap.io.fan import FanGeometry, fan_to_polar
+
+    class GpumapNode(Node):
+        def __init__(self) -> None:
+            super().__init__(node_name, context=context)
+            for name, (default, desc) in PARAMETERS.items():
+                # dynamic typing: YAML's 1 and 1.0, [1, 2] and [1.0, 2.0] are both accepted (checked below)
+                self.declare_parameter(name, default,
+                                       ParameterDescriptor(description=desc, dynamic_typing=True))
+            p = {name: self.get_parameter(name).value for name in PARAMETERS}
+            self.p = p
+            self.world_frame = str(p["world_frame"])
+            pose_type = _choice(p, "pose_type", ("pose_stamped", "odometry"))
+            self.layout = _choice(p, "image_layout", ("polar", "fan"))
+            self.spec = sonar_spec_from_params(p)
+            lo, hi = list(p["grid_min_m"]), list(p["grid_max_m"])
+            if len(lo) != 3 or len(hi) != 3:
+                raise ValueError(f"Expected grid_min_m and grid_max_m of 3 numbers each, but got {lo} and "
+                                 f"{hi}")
+            self.grid = GridSpec(tuple(lo), tuple(hi), float(p["voxel_size_m"]))
+            band = list(p["band_z_m"])
+            if band and (len(band) != 2 or not band[0] <= band[1]):
+                raise ValueError(f"Expected band_z_m as [z_min, z_max] with z_min <= z_max, but got {band}")
+            self.band = (float(band[0]), float(band[1])) if band else None
+            self.threshold = float(p["threshold"])
+            self.max_future_ns = int(float(p["max_future_s"]) * 1e9)
+            if self.layout == "fan":
+                self.geom = FanGeometry(int(p["fan_rows"]), int(p["fan_cols"]), float(p["fan_pixel_m"]),
+                                        float(p["fan_apex_row"]), float(p["fan_apex_col"]),
+                                        bool(p["fan_flip_lr"]), bool(p["fan_flip_ud"]))
+                self.in_shape = (self.geom.n_rows, self.geom.n_cols)
+            else:
+                self.in_shape = self.spec.image_shape
+            self.mapper = gpumap.MinMaxMapper(self.spec, self.grid, backend=str(p["backend"]),
+                                              rule=_choice(p, "rule", ("visible", "plain")),
+                                              threshold=self.threshold, carve_views=int(p["carve_views"]))
+            self.map_bytes = self.grid.n_voxels * (9 if self.mapper.rule == "visible" else 4)
+            log = self.get_logger()
+            self.live = LiveMapper(
+                self.mapper, queue_size=int(p["queue_size"]), max_batch=int(p["max_batch"]),
+                pose_wait_s=float(p["pose_wait_s"]), max_pose_gap_s=float(p["max_pose_gap_s"]),
+                pose_buffer=int(p["pose_buffer"]), publish_period_s=float(p["publish_period_s"]),
+                on_publish=self._publish_map, log=log.warning)
+            self.blocks = MarkerBlocks(self.grid, self.threshold)
+            self._marker_subs = 0
+            self._markers_at = -math.inf
+            self._markers_stale: tuple[int, np.ndarray] | None = None
+            self.markers_period_s = float(p["markers_period_s"])
+            self._publish_lock = threading.Lock()
+
+            latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
+            self.pub_cloud = self.create_publisher(PointCloud2, "~/occupied_cloud", latched)
+            self.pub_markers = self.create_publisher(MarkerArray, "~/occupied_markers", latched)
+            self.pub_grid = self.create_publisher(OccupancyGrid, "~/projected_map", latched)
+            self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+            self._diag_types = (DiagnosticArray, DiagnosticStatus, KeyValue)
+
+            sensor = QoSProfile(depth=int(p["image_queue_depth"]), reliability=ReliabilityPolicy.BEST_EFFORT,
+                                durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+            # images lost before this node are found from the gaps in each publisher's sequence
+            # numbers (the transport's, the subscription queue's overflow, ...): counted, never silent
+            self._last_seq: dict[bytes, int] = {}
+            self.sub_image = self.create_subscription(Image, "sonar/image", self._on_image, sensor)
+            pose_qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                                  durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+            self.sub_pose = self.create_subscription(Odometry if pose_type == "odometry" else PoseStamped,
+                                                     "sonar/pose", self._on_pose, pose_qos)
+            self.srv_save = self.create_service(Trigger, "~/save_map", self._on_save)
+            self.srv_reset = self.create_service(Trigger, "~/reset", self._on_reset)
+            self.timer_diag = self.create_timer(float(p["diagnostics_period_s"]), self._publish_diagnostics)
+            self.live.start()
+            log.info(f"mapping {self.spec.image_shape} {self.layout} images on {self.sub_image.topic_name} "
+                     f"with poses on {self.sub_pose.topic_name} into a {self.grid.shape} grid of "
+                     f"{self.grid.voxel_size_m} m ({self.mapper.backend} on {self.mapper.device}); "
+                     f"cloud on {self.pub_cloud.topic_name}")
+
+        # ------------------------------------------------------------ callbacks: never block
+        def _now_ns(self) -> int:
+            return self.get_clock().now().nanoseconds
+
+        def _on_image(self, msg, info) -> None:  # two arguments: rclpy passes the message info
+            self.live.count_received()
+            seq = info.get("publication_sequence_number") if info else None
+            if seq:
+                gid = bytes(info["publisher_gid"]["data"])
+                last = self._last_seq.get(gid)
+                self._last_seq[gid] = max(seq, last or 0)
+                if last is not None and seq > last + 1:
+                    self.live.drop("middleware_lost", seq - last - 1,
+                                   "images published but never delivered to this node (a gap in the "
+                                   "publisher's sequence numbers: the transport or the subscription queue "
+                                   "lost them)")
+            t = stamp_ns(msg.header.stamp)
+            if t > self._now_ns() + self.max_future_ns:
+                self.live.reject("image_from_future", f"image stamped {t * 1e-9:.3f} s, more than "
+                                 f"{self.max_future_ns * 1e-9} s after the node's clock")
+                return
+            try:
+                img = image_from_msg(msg, self.in_shape)
+                if self.layout == "fan":
+                    if img.dtype == np.uint8:
+                        img = img.astype(np.float32) / np.float32(255.0)
+                    img = np.clip(fan_to_polar(img, self.spec, self.geom), 0.0, 1.0)
+            except BadMessage as e:
+                self.live.reject(e.reason, str(e))
+                return
+            self.live.add_ping(t, img)
+
+        def _on_pose(self, msg) -> None:
+            try:
+                t, T = pose_from_msg(msg, self.world_frame)
+            except BadMessage as e:
+                self.live.reject(e.reason, str(e))
+                return
+            if t > self._now_ns() + self.max_future_ns:
+                self.live.reject("pose_from_future", f"pose stamped {t * 1e-9:.3f} s, more than "
+                                 f"{self.max_future_ns * 1e-9} s after the node's clock")
+                return
+            self.live.add_pose(t, T)
+
+        # ------------------------------------------------------------ worker thread
+        def _publish_map(self, newest_ns: int) -> None:
+            with self._publish_lock:
+                values = self.live.values()
+                occ = np.isfinite(values) & (values >= np.float32(self.threshold))
+                idx = np.argwhere(occ)
+                self.pub_cloud.publish(cloud_msg(self.grid.centers(idx), values[occ], newest_ns,
+                                                 self.world_frame))
+                subs = self.pub_markers.get_subscription_count()
+                full = subs > self._marker_subs
+                now = time.monotonic()
+                self._markers_stale = (newest_ns, values)
+                if subs and (full or now - self._markers_at >= self.markers_period_s):
+                    self._publish_markers(subs, full)
+                cells = project_obstacles(values, self.grid, self.threshold, self.band)
+                self.pub_grid.publish(occupancy_grid_msg(cells, self.grid, self.band, newest_ns,
+                                                         self.world_frame))
+
+        def _publish_markers(self, subs: int, full: bool) -> None:
+            # one Point per voxel in Python: the costly output, so at most every markers_period_s
+            # (and once more, from the diagnostics timer, when the map has stopped changing)
+            newest_ns, values = self._markers_stale
+            self._markers_stale = None
+            self._marker_subs, self._markers_at = subs, time.monotonic()
+            changed = self.blocks.update(values, full=full)
+            if changed:
+                self.pub_markers.publish(self.blocks.msg(changed, newest_ns, self.world_frame))
+
+        # ------------------------------------------------------------ services, diagnostics
+        def _on_save(self, request, response):
+            try:
+                path = self.live.save(str(self.p["save_path"]))
+                response.success, response.message = True, str(path)
+            except (OSError, ValueError) as e:
+                response.success, response.message = False, f"saving failed: {e}"
+            return response
+
+        def _on_reset(self, request, response):
+            with self._publish_lock:
+                self.live.reset()
+                self.blocks.reset()
+                self._marker_subs = 0
+                self._markers_stale = None
+            self._publish_map(self._now_ns())  # subscribers see the empty map at once
+            response.success, response.message = True, "map reset: every voxel unknown"
+            return response
+
+        def diagnostics(self) -> dict:
+            s = self.live.stats()
+            s.update(backend=self.mapper.backend, device=self.mapper.device, map_bytes=self.map_bytes,
+                     grid_shape=list(self.grid.shape), voxel_size_m=self.grid.voxel_size_m,
+                     threshold=self.threshold)
+            return s
+
+        def _publish_diagnostics(self) -> None:
+            stale = self._markers_stale is not None
+            if stale and time.monotonic() - self._markers_at >= self.markers_period_s:
+                with self._publish_lock:
+                    subs = self.pub_markers.get_subscription_count()
+                    if self._markers_stale is not None and subs:
+                        self._publish_markers(subs, subs > self._marker_subs)
+            DiagnosticArray, DiagnosticStatus, KeyValue = self._diag_types
+            s = self.diagnostics()
+            st = DiagnosticStatus()
+            st.name = f"{self.get_fully_qualified_name()}: mapper"
+            st.hardware_id = f"{s['backend']} ({s['device']})"
+            lost = sum(s["dropped"].values()) + sum(s["skipped"].values())
+            st.level = DiagnosticStatus.WARN if lost or self.live.error else DiagnosticStatus.OK
+            st.message = ("worker stopped: " + repr(self.live.error)) if self.live.error else (
+                f"{s['integrated']} pings mapped, {lost} dropped or skipped, {sum(s['rejected'].values())} "
+                "messages rejected")
+            kv = [("pings_received", s["received"]), ("pings_integrated", s["integrated"]),
+                  ("ping_rate_hz", f"{s['ping_rate_hz']:.2f}"),
+                  ("latency_p50_ms", f"{s['latency_p50_ms']:.2f}"),
+                  ("latency_p99_ms", f"{s['latency_p99_ms']:.2f}"), ("queue", s["queue"]),
+                  ("poses_buffered", s["poses"]), ("backend", s["backend"]), ("map_bytes", s["map_bytes"])]
+            for kind in ("rejected", "skipped", "dropped"):
+                kv += [(f"{kind}.{k}", v) for k, v in sorted(s[kind].items())]
+            st.values = [KeyValue(key=k, value=str(v)) for k, v in kv]
+            arr = DiagnosticArray()
+            arr.header.stamp = self.get_clock().now().to_msg()
+            arr.status = [st]
+            self.pub_diag.publish(arr)
+
+        def shutdown(self, save: bool | None = None) -> None:
+            """Drain the queue, publish the last map, save when asked."""
+            self.live.stop(drain=True)
+            if save if save is not None else bool(self.p["save_on_exit"]):
+                path = self.live.save(str(self.p["save_path"]))
+                print(f"gpumap ros: map saved to {path}", file=sys.stderr)  # ROS logging may be down
+
+    return GpumapNode()
+
+
+def _split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
+    if "--ros-args" in argv:
+        i = argv.index("--ros-args")
+        return argv[:i], argv[i:]
+    return argv, []
+
+
+def _parser():
+    from gpumap.cli import ArgumentParser, existing_file
+
+    p = ArgumentParser(prog="gpumap ros", description=(
+        "A ROS 2 node (named gpumap) that maps live sonar pings: subscribes sonar/image and sonar/pose, "
+        "publishes ~/occupied_cloud, ~/occupied_markers, ~/projected_map and /diagnostics, serves "
+        "~/save_map and ~/reset. Parameters go after --ros-args as in any ROS 2 node "
+        "(-p name:=value, --params-file FILE); gpumap ros --list-params prints them all."))
+    p.add_argument("--params-file", type=existing_file, default=None, metavar="FILE",
+                   help="YAML parameter file, the same as --ros-args --params-file FILE")
+    p.add_argument("--list-params", action="store_true",
+                   help="print every parameter with its default and exit")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``gpumap ros``: run the node until Ctrl-C or SIGTERM."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ours, ros_args = _split_ros_args(argv)
+    a = _parser().parse_args(ours)
+    if a.list_params:
+        for name, (default, desc) in PARAMETERS.items():
+            print(f"{name} (default {default!r}): {desc}")
+        return 0
+    try:
+        require_ros()
+    except ImportError as e:
+        print(f"gpumap ros: error: {e}", file=sys.stderr)
+        return 2
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    if a.params_file is not None:
+        ros_args = (ros_args or ["--ros-args"]) + ["--params-file", str(a.params_file)]
+    use_gpumap_fastdds_profile()
+    rclpy.init(args=["gpumap_ros", *ros_args])
+    node = None
+    try:
+        node = make_node()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            t0 = time.monotonic()
+            node.shutdown()
+            s = node.diagnostics()
+            print(f"gpumap ros: stopped after {s['integrated']} pings mapped; rejected {s['rejected']}, "
+                  f"skipped {s['skipped']}, dropped {s['dropped']} (shutdown {time.monotonic() - t0:.2f} s)",
+                  file=sys.stderr)
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
