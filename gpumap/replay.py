@@ -646,9 +646,11 @@ def _parser() -> ArgumentParser:
     ap.add_argument("--flip-ud", action="store_true", help="fan folders: mirror rows")
     ap.add_argument("--no-pictures", action="store_true")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    from gpumap.ekf_replay import add_ekf_args
     from gpumap.viewer.cli import add_view_args
 
     add_view_args(ap)
+    add_ekf_args(ap)
     return ap
 
 
@@ -740,6 +742,10 @@ def _view_hook(a: argparse.Namespace, threshold: float):
 
 def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpec]:
     """Map the recording of parsed flags ``a``; write the output set; ``(summary, grid)``."""
+    if a.ekf:  # odometry + EKF on the pings, three maps (gpumap.ekf_replay)
+        from gpumap.ekf_replay import replay_with_ekf
+
+        return replay_with_ekf(a, grid)
     from gpumap.io import open_recording
 
     kwargs: dict = {}

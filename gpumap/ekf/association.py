@@ -13,11 +13,17 @@ of unlabelled ``(range, azimuth)`` returns with covariances) and :class:`~gpumap
   *joint* innovation, with the cross-covariances of pose and features, passes the chi-square
   gate of ``2k`` dof, the smallest joint NIS breaking ties. Clusters above ``max_cluster``
   tracks fall back to the optimal assignment of the pairwise distances.
+- **Ambiguity**: a pair is not taken when the track's gate holds another unclaimed return, or
+  the return lies in the gate of another unpaired track, less than ``ambiguity_margin``
+  farther (squared Mahalanobis distance) than the chosen pairing; such a track is neither hit
+  nor missed at this ping, and the doubtful returns start nothing.
 - **Tentative tracks** hold returns not explained by any confirmed track. A return is a
-  repeat of a tentative track when it lies near that track's last return moved into the
-  current sonar frame: the old return's elevation is unknown, so its elevation arc is sampled
-  (``arc_samples`` points over the aperture) and the nearest point counts, with the covariance
-  of both returns, of the motion since (the odometry's, summed) and of the arc's sampling step.
+  repeat of a tentative track when it lies near the track's first return moved into the
+  current sonar frame: that return's elevation is unknown, so its elevation arc is sampled
+  (``arc_samples`` points over the aperture) and the nearest sample still consistent counts,
+  with the covariance of both returns, of the motion since (the odometry's, summed) and of
+  the arc's sampling step; each hit keeps only the samples it passes (a coarse triangulation).
+  Pairs are the optimal assignment of these distances, under the same ambiguity rule.
   A tentative track seen ``confirm_hits`` times, with at most ``max_gap - 1`` pings between hits,
   becomes confirmed: it joins the EKF (initialised from its latest return) under its id.
   One return alone never starts a feature.
@@ -87,6 +93,7 @@ class Track:
     R: np.ndarray | None = None
     T_W_S: np.ndarray | None = None
     Q_since: np.ndarray | None = None
+    el_ok: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -149,6 +156,10 @@ class FeatureTracker:
         Largest cluster (tracks) solved by joint compatibility; larger ones by assignment.
     max_features : int, default 60
         Most confirmed tracks kept in the EKF; past it the one unseen longest is forgotten.
+    ambiguity_margin : float, default 4.0
+        A track whose gate holds another unclaimed return less than this much farther
+        (squared Mahalanobis distance) than its chosen one is left unpaired this ping (neither
+        hit nor miss): ambiguous returns are not guessed.
     first_id : int, default 0
         The first track id.
     """
@@ -165,6 +176,7 @@ class FeatureTracker:
         arc_samples: int = 15,
         max_cluster: int = 6,
         max_features: int = 60,
+        ambiguity_margin: float = 4.0,
         first_id: int = 0,
     ) -> None:
         if not isinstance(ekf, SonarEKF):
@@ -190,6 +202,10 @@ class FeatureTracker:
         self.arc_samples = int(arc_samples)
         self.max_cluster = int(max_cluster)
         self.max_features = int(max_features)
+        am = check_finite_scalar(ambiguity_margin, "ambiguity_margin")
+        if am < 0:
+            raise ValueError(f"Expected ambiguity_margin >= 0, but got {am}")
+        self.ambiguity_margin = am
         self._next_id = int(first_id)
         self._ping = -1
         self.tracks: dict[int, Track] = {}
@@ -330,8 +346,24 @@ class FeatureTracker:
                 pairs += [(tq_l[a], mj_l[b]) for a, b in zip(r, c, strict=True) if sub[a, b] < big]
         return pairs
 
+    def _unambiguous(self, pairs: list[tuple[int, int]], D: np.ndarray) -> tuple[list, set]:
+        """The pairs no other unclaimed return or unpaired track nearly explains; the others' returns."""
+        pj = {j for _, j in pairs}
+        pq = {q for q, _ in pairs}
+        keep, doubt = [], set()
+        for q, j in pairs:
+            lim = D[q, j] + self.ambiguity_margin
+            row = [j2 for j2 in np.flatnonzero(D[q] < lim) if j2 != j and j2 not in pj]
+            col = [q2 for q2 in np.flatnonzero(D[:, j] < lim) if q2 != q and q2 not in pq]
+            if row or col:
+                doubt.add(j)
+                doubt.update(int(x) for x in row)
+            else:
+                keep.append((q, j))
+        return keep, doubt
+
     def _tentative_d2(self, tr: Track, T_now: np.ndarray, meas: PointMeasurements) -> np.ndarray:
-        """(m,) least squared Mahalanobis distance of each return to the track's moved arc."""
+        """(n, m) squared Mahalanobis distance of each return to each sample of the track's moved arc."""
         n = self.arc_samples
         vf = self.spec.vfov_rad
         els = np.linspace(-0.5 * vf, 0.5 * vf, n)
@@ -350,7 +382,7 @@ class FeatureTracker:
         S = S0[:, None] + meas.covs[None]
         a, b, d = S[..., 0, 0], S[..., 0, 1], S[..., 1, 1]
         d2 = (d * nu[..., 0] ** 2 - 2 * b * nu[..., 0] * nu[..., 1] + a * nu[..., 1] ** 2) / (a * d - b * b)
-        return d2.min(axis=0)
+        return np.where(tr.el_ok[:, None], d2, np.inf)
 
     # ------------------------------------------------------------------ the step
     def step(self, meas: PointMeasurements, motion_cov: np.ndarray | None = None) -> TrackerStep:
@@ -385,7 +417,14 @@ class FeatureTracker:
         pairs: list[tuple[int, int]] = []
         if ids and m:
             D, nu = self._gated(ids, z_hat, Hc, C, meas)
-            pairs = self._assign_confirmed(D, Hc, C, nu, meas)
+            pairs, doubt = self._unambiguous(self._assign_confirmed(D, Hc, C, nu, meas), D)
+            paired = {q for q, _ in pairs}
+            dl = np.zeros(m, bool)
+            dl[list(doubt)] = True
+            # unpaired tracks whose gate holds a doubtful return: ambiguous, not missed
+            unsure = {ids[q] for q in range(len(ids)) if q not in paired and np.any(np.isfinite(D[q]) & dl)}
+        else:
+            doubt, unsure = set(), set()
         confirmed_hits: dict[int, int] = {}
         refused: dict[int, float] = {}
         if pairs:
@@ -401,6 +440,8 @@ class FeatureTracker:
                     refused[i] = float(res.rejected.get(i, math.nan))
         for i in ids:
             tr = self.tracks[i]
+            if i in unsure and i not in confirmed_hits and i not in refused:
+                continue  # ambiguous this ping: neither hit nor miss
             if i in confirmed_hits:
                 tr.hits += 1
                 tr.misses = 0
@@ -420,7 +461,7 @@ class FeatureTracker:
         T_now = self.ekf.pose
         free = np.flatnonzero(labels < 0)
         # returns paired with a confirmed track but refused by the EKF start nothing
-        used_by_refused = {j for q, j in pairs if ids[q] in refused}
+        used_by_refused = {j for q, j in pairs if ids[q] in refused} | doubt
         free = np.array([j for j in free if j not in used_by_refused], dtype=np.int64)
         tent = [t for t in self.tracks.values() if t.status == "tentative"]
         for t in tent:
@@ -428,13 +469,17 @@ class FeatureTracker:
         tentative_hits: dict[int, int] = {}
         if tent and free.size:
             sub = meas.take(free)
-            Dt = np.stack([self._tentative_d2(t, T_now, sub) for t in tent])
+            Dn = [self._tentative_d2(t, T_now, sub) for t in tent]  # each (n, m_free)
+            Dt = np.stack([d.min(axis=0) for d in Dn])
             big = 1e9
             cost = np.where(Dt <= self._gate, Dt, big)
             r, c = linear_sum_assignment(cost)
-            for a, b in zip(r, c, strict=True):
-                if cost[a, b] < big:
-                    tentative_hits[tent[a].id] = int(free[b])
+            tp, tdoubt = self._unambiguous([(int(a), int(b)) for a, b in zip(r, c, strict=True)
+                                            if cost[a, b] < big], np.where(cost < big, Dt, np.inf))
+            used_by_refused |= {int(free[b]) for b in tdoubt}
+            for a, b in tp:
+                tentative_hits[tent[a].id] = int(free[b])
+                tent[a].el_ok = tent[a].el_ok & (Dn[a][:, b] <= self._gate)
         confirmed_now = []
         for t in tent:
             if t.id in tentative_hits:
@@ -442,16 +487,12 @@ class FeatureTracker:
                 t.hits += 1
                 t.last_seen = ping
                 t.returns.append((ping, j))
-                t.z = np.array([meas.ranges_m[j], meas.bearings_rad[j]])
-                t.R = meas.covs[j].copy()
-                t.T_W_S = T_now.copy()
-                t.Q_since = np.zeros((6, 6))
                 labels[j] = t.id
                 if t.hits >= self.confirm_hits:
                     confirmed_now.append(t)
             elif ping - t.last_seen >= self.max_gap:
                 t.status, t.ended_at = "dropped", ping
-                t.z = t.R = t.T_W_S = t.Q_since = None
+                t.z = t.R = t.T_W_S = t.Q_since = t.el_ok = None
         if confirmed_now:
             idc = np.array([t.id for t in confirmed_now], dtype=np.int64)
             js = np.array([tentative_hits[t.id] for t in confirmed_now])
@@ -466,7 +507,7 @@ class FeatureTracker:
                 continue
             t = Track(self._new_id(), "tentative", ping, ping, returns=[(ping, int(j))],
                       z=np.array([meas.ranges_m[j], meas.bearings_rad[j]]), R=meas.covs[j].copy(),
-                      T_W_S=T_now.copy(), Q_since=np.zeros((6, 6)))
+                      T_W_S=T_now.copy(), Q_since=np.zeros((6, 6)), el_ok=np.ones(self.arc_samples, bool))
             self.tracks[t.id] = t
             labels[j] = t.id
             started.append(t.id)
