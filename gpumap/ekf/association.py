@@ -148,7 +148,7 @@ class FeatureTracker:
         Returns needed before a tentative track becomes a feature (>= 2).
     max_gap : int, default 2
         A tentative track must be seen again within this many pings.
-    max_misses : int, default 3
+    max_misses : int, default 5
         Consecutive expected-but-missed pings that end a confirmed track.
     arc_samples : int, default 15
         Elevation samples of a tentative track's arc.
@@ -172,7 +172,7 @@ class FeatureTracker:
         gate_prob: float = 0.999,
         confirm_hits: int = 3,
         max_gap: int = 2,
-        max_misses: int = 3,
+        max_misses: int = 5,
         arc_samples: int = 15,
         max_cluster: int = 6,
         max_features: int = 60,
