@@ -42,16 +42,18 @@ def test_point_at_known_range_azimuth_is_found_within_a_cell():
     spec = _uneven_spec()
     det = PointDetector(spec)
     rng = np.random.default_rng(3)
-    # off-grid positions, one where the beams are widest apart (|u| near 1)
-    truth = [(0.731, -0.62), (1.2437, 0.0513), (1.618, 0.801)]
+    # 0.4 cell off a cell's centre in range and in beam (the nearest centre is 0.4 cell away),
+    # one where the beams are widest apart
+    cells = [(130, 40), (240, 128), (330, 230)]
+    truth = [(spec.range_min_m + (i + 0.9) * spec.bin_size_m,
+              float(np.interp(j + 0.4, np.arange(spec.n_beams), spec.bearings_rad))) for i, j in cells]
     m = det.detect(_blob_image(spec, truth, rng))
     assert len(m) == 3
     step = np.gradient(spec.bearings_rad)
-    for r, az in truth:
+    for (r, az), (_, j) in zip(truth, cells, strict=True):
         k = int(np.argmin(np.hypot(m.ranges_m - r, m.bearings_rad - az)))
-        j = int(np.argmin(np.abs(spec.bearings_rad - az)))
-        assert abs(m.ranges_m[k] - r) < 0.5 * spec.bin_size_m  # sub-cell: within half a cell
-        assert abs(m.bearings_rad[k] - az) < 0.5 * step[j]
+        assert abs(m.ranges_m[k] - r) < 0.2 * spec.bin_size_m  # sub-cell: well within the cell
+        assert abs(m.bearings_rad[k] - az) < 0.2 * step[j]
         # the stated covariance covers the error (2-dof chi-square 99.9 %)
         e = np.array([m.ranges_m[k] - r, m.bearings_rad[k] - az])
         assert e @ np.linalg.solve(m.covs[k], e) < 13.8
