@@ -216,7 +216,7 @@ def _real(path: str, seeds: int, progress: bool) -> list[dict]:
             s = res["summary"]
             rows.append({"noise": noise, "seed": seed, **{k: s[k] for k in (
                 "pose_error", "ratio_ekf_to_odometry", "map_vs_recorded", "measurements", "tracks",
-                "ms_per_ping", "frames")}})
+                "track_consistency_recorded_poses", "recorded_step_median", "ms_per_ping", "frames")}})
             if progress:
                 r = s["ratio_ekf_to_odometry"]
                 print(f"real tank noise {noise} seed {seed}: EKF/odometry position {r['position_mean']:.2f}, "
@@ -291,6 +291,9 @@ def main(argv: list[str] | None = None) -> int:
                                            lambda r: r["map_vs_recorded"]["ekf"]["disagree"]),
             "ms_per_ping": _summarise([r for r in rows if r["noise"] == noise],
                                       lambda r: r["ms_per_ping"]["total_mean"]),
+            "track_consistency": _summarise(
+                [r for r in rows if r["noise"] == noise],
+                lambda r: r["track_consistency_recorded_poses"]["consistent_fraction"]),
         } for noise in NOISES}}
     out["loadavg_end"] = list(os.getloadavg())
     out["seconds"] = time.time() - t_start

@@ -156,6 +156,29 @@ def test_two_crossing_tracks_keep_their_ids():
         assert np.linalg.norm(ekf.landmarks[t.id] - L[next(iter(owner[t.id]))]) < 0.05
 
 
+def test_track_consistency_sees_a_swapped_return():
+    from types import SimpleNamespace
+
+    from gpumap.ekf_replay import track_consistency
+
+    spec, L, T = _heave_scene()
+    tr, ekf, steps, truth_of = _run_tracker(spec, L, T)
+    meas = [PointMeasurements.from_arrays(*_observe(T[k], L, list(truth_of[k]), np.random.default_rng(k),
+                                                    0.003, math.radians(0.2)).T,
+                                          np.tile(np.diag([0.003**2, math.radians(0.2) ** 2]), (3, 1, 1)))
+            for k in range(len(T))]
+    loop = SimpleNamespace(tracker=tr, measurements=meas)
+    c = track_consistency(loop, T)
+    assert c["tracks"] == 3 and c["consistent_fraction"] >= 0.97
+    # one track's late returns taken from the other point: caught
+    t = next(t for t in tr.tracks.values()
+             if t.confirmed_at is not None and truth_of[t.returns[0][0]][t.returns[0][1]] == 1)
+    other = {k: list(truth_of[k]).index(2) for k in range(len(T))}
+    t.returns = [(k, j if k < 20 else other[k]) for k, j in t.returns]
+    c2 = track_consistency(loop, T)
+    assert c2["consistent_fraction"] < c["consistent_fraction"] - 0.05 and c2["tracks_all_consistent"] < 1
+
+
 def test_a_spurious_return_does_not_start_a_track():
     spec, L, T = _heave_scene(12)
     L = {1: L[1]}
