@@ -232,6 +232,103 @@ def _summarise(rows: list[dict], keyf) -> dict:
     return {"mean": float(np.mean(vals)), "min": float(np.min(vals)), "max": float(np.max(vals))}
 
 
+BEGIN, END = "<!-- begin:frontend -->", "<!-- end:frontend -->"
+
+
+def markdown(d: dict) -> str:
+    """The BENCHMARKS.md block of a ``frontend.json``."""
+    def pc(x):
+        return "–" if x is None else f"{100 * x:.1f} %"
+
+    def mm(x):
+        return "–" if x is None else f"{x['mean']:.2f} ({x['min']:.2f}–{x['max']:.2f})"
+
+    L = ["## The EKF on real pings: front-end, association, loop (issue #23)", "",
+         f"Written by `python -m bench.frontend` into `bench/results/frontend.json` ({d['date']}, "
+         f"{d['seconds']:.0f} s; command `{d['command']}`). Drift model: {d['drift_model']}. "
+         "Times are host CPU on the shared 2-core machine, loaded (load average "
+         f"{d['loadavg_start'][0]:.1f} at the start, {d['loadavg_end'][0]:.1f} at the end).", "",
+         "**Simulator, returns without ids** (the features' true range and azimuth with the demo's "
+         "noise, shuffled, through `FeatureTracker`; the same EKF given the true ids as reference; both "
+         "with the scene's DVL as in `gpumap demo`). Precision/recall *all*: every return a confirmed "
+         "track took, tentative ones included, against the true feature that made most of that "
+         "track's returns; *fused*: only returns fused into the EKF. Ratios: tracker EKF over true-id "
+         "EKF (mean position error, mean heading error; feature error over the tracker's live "
+         "features and the true-id EKF's estimates of the same features); mean (min–max) over seeds.", "",
+         "| scene, drift | precision all | recall all | precision fused | recall fused | position | heading "
+         "| features |",
+         "|---|---|---|---|---|---|---|---|"]
+    for v in d["sim"].values():
+        sm = v["summary"]
+        L.append(f"| {v['scene']}, {v['noise']} | {pc(sm['precision_all']['mean'])} "
+                 f"| {pc(sm['recall_all']['mean'])} "
+                 f"| {pc(sm['precision_fused']['mean'])} | {pc(sm['recall_fused']['mean'])} "
+                 f"| {mm(sm['pose_ratio_tracker_to_true_ids'])} "
+                 f"| {mm(sm['heading_ratio_tracker_to_true_ids'])} "
+                 f"| {mm(sm['feature_ratio_tracker_to_true_ids'])} |")
+    L += ["", "**Detector on the simulated images** (`PointDetector` defaults): a true visible feature "
+          "counts as found when a return lies within 2 cells of it; NEES of those returns against "
+          "the true feature with the stated covariance (2 dof: mean 2 if right).", "",
+          "| scene | visible features | found | returns | near a feature | NEES mean "
+          "| ms per ping (mean, p95) |",
+          "|---|---|---|---|---|---|---|"]
+    for name, v in d["sim_detector"].items():
+        ne = "–" if v["nees_mean_2dof"] is None else f"{v['nees_mean_2dof']:.1f}"
+        L.append(f"| {name} | {v['visible_features']} | {pc(v['found_fraction'])} | {v['detections']} "
+                 f"| {pc(v['near_a_feature_fraction'])} | {ne} | {v['ms_per_ping_mean']:.1f}, "
+                 f"{v['ms_per_ping_p95']:.1f} |")
+    L += ["", "**Real tank** (`gpumap replay ../shared/data/oasis_tank --ekf`, 123 frames, 5 cm, "
+          "`warp-cpu`): EKF error over odometry error against the arm's poses (mean over the run), "
+          "voxels where the map disagrees with the recorded-pose map (occupied >= 0.4 in exactly one; "
+          "unknown counts as not occupied), share of the tracks' returns consistent with one fixed "
+          "point seen from the recorded poses, front-end + association + EKF ms per ping; mean "
+          "(min–max) over seeds.", "",
+          "| drift | position EKF/odometry | heading EKF/odometry | disagreeing voxels, odometry map | "
+          "disagreeing voxels, EKF map | returns consistent | ms per ping |",
+          "|---|---|---|---|---|---|---|"]
+    for noise, v in d["real_tank"]["summary"].items():
+        L.append(f"| {noise} | {mm(v['position_ratio'])} | {mm(v['heading_ratio'])} "
+                 f"| {v['map_disagree_odometry']['mean']:.0f} | {v['map_disagree_ekf']['mean']:.0f} "
+                 f"| {mm(v.get('track_consistency'))} | {mm(v['ms_per_ping'])} |")
+    r0 = d["real_tank"]["runs"][0]
+    st = r0.get("recorded_step_median")
+    if st:
+        L += ["", f"The tank's frames are every 10th of the recording: the arm moves a median "
+              f"{100 * st['translation_m']:.1f} cm and {st['rotation_deg']:.0f} deg between them, and "
+              f"the detector finds {r0['measurements']['per_ping_mean']:.1f} compact returns per ping."]
+    L += ["", "What these say. In the simulator the tracker alone is measured on the features' own "
+          "returns: the detector finds few of the scene's listed features in the rendered images (they "
+          "are corners and tops on larger surfaces, not compact echoes), so a detector-driven simulated "
+          "run would not test association against known ids. At the demo's 0.005 drift association "
+          "is near perfect; the tracker's EKF loses to the true-id EKF mainly through the returns it "
+          "does not fuse (the two of each tentative track, the ambiguous ones, and features "
+          "re-started after a track ends). At 0.02 the tank's close feature pairs (a basket corner's "
+          "top and foot, the rock's extremes) fall in each other's gates and are confused. On the "
+          "real tank few returns repeat as one fixed scatterer, so the EKF gets little and stays near "
+          "odometry at 0.005, and at 0.02 its wider gates let wrong returns in. Tried and not kept: "
+          "confirming tracks after 2 returns or ending them after 8 misses (better in the simulator, "
+          "worse than odometry on the real tank); a wider covariance floor for the returns (no gain); "
+          "two whole-ping registrations against the EKF-pose map, an ICP in polar coordinates (each "
+          "bright cell matched to the map voxel of its azimuth bin nearest in range) and a direct "
+          "alignment (the pose that puts the map's occupied voxels on bright cells): started from the "
+          "arm's pose moved by a few centimetres and degrees, both ended further from it in most "
+          "pings, because the min-max map's elevation stretch lets many poses explain a ping and "
+          "neither scores voxels predicted bright where the ping is dark. Next: the floor's and walls' "
+          "leading edges as plane ranges fused like the DVL (height, pitch and roll from the floor, "
+          "heading from a wall), and a registration that scores dark cells too."]
+    return "\n".join(L)
+
+
+def write_block(path: Path, text: str) -> None:
+    """Replace (or append) this bench's block of ``path`` between ``BEGIN`` and ``END``."""
+    old = path.read_text() if path.exists() else ""
+    block = f"{BEGIN}\n{text.rstrip()}\n{END}\n"
+    i, j = old.find(BEGIN), old.find(END)
+    new = old[:i] + block + old[j + len(END):].lstrip("\n") if i >= 0 and j > i else \
+        old.rstrip("\n") + "\n\n" + block
+    path.write_text(new)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.frontend", description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=5, help="drift seeds per scene and noise level (default 5)")
@@ -242,7 +339,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", nargs="+", default=["tank", "survey"],
                     help="simulated scenes (default tank survey)")
     ap.add_argument("--no-progress", action="store_true", help="no progress lines")
+    ap.add_argument("--benchmarks", type=Path, default=None,
+                    help="also write the results as a block of this Markdown file (BENCHMARKS.md)")
+    ap.add_argument("--markdown-only", action="store_true",
+                    help="only rewrite the --benchmarks block from OUT/frontend.json, running nothing")
     a = ap.parse_args(argv)
+    if a.markdown_only:
+        if a.benchmarks is None:
+            ap.error("argument --markdown-only: Expected --benchmarks FILE with it, but got none")
+        write_block(a.benchmarks, markdown(json.loads((a.out / "frontend.json").read_text())))
+        return 0
     if a.data is None:
         a.data = next((str(c / "oasis_tank") for up in Path(__file__).resolve().parents
                        for c in (up / "shared" / "data", up.parent / "shared" / "data")
@@ -250,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
     warnings.simplefilter("ignore", RuntimeWarning)  # the EKF's NIS monitor; its figures are kept below
     t_start = time.time()
     cmd = "python -m bench.frontend " + " ".join(argv if argv is not None else sys.argv[1:])
-    out: dict = {"command": cmd,
+    out: dict = {"schema": "gpumap-frontend/1", "command": cmd,
                  "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "loadavg_start": list(os.getloadavg()),
                  "drift_model": "per step U_k = T_{k-1}^-1 T_k Exp(w), w ~ N(0, s^2 I6): s m on each "
                                 "translation axis and s rad on each rotation axis",
@@ -301,6 +407,8 @@ def main(argv: list[str] | None = None) -> int:
     tmp = a.out / "frontend.json.tmp"
     tmp.write_text(json.dumps(out, indent=1, default=float))
     os.replace(tmp, a.out / "frontend.json")
+    if a.benchmarks is not None:
+        write_block(a.benchmarks, markdown(out))
     print(f"wrote {a.out / 'frontend.json'} in {out['seconds']:.0f} s")
     return 0
 

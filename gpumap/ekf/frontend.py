@@ -213,11 +213,21 @@ class PointDetector:
         mu = ndimage.uniform_filter(s, size=bg, mode="reflect")
         m2 = ndimage.uniform_filter(s * s, size=bg, mode="reflect")
         sd = np.sqrt(np.maximum(m2 - mu * mu, 1e-12))
-        peak = s == ndimage.maximum_filter(s, size=self.nms_cells, mode="nearest")
         z = (s - mu) / sd
-        cand = peak & (z >= self.k_sigma) & (s >= self.min_intensity)
-        ii, jj = np.nonzero(cand)
+        ii, jj = np.nonzero((z >= self.k_sigma) & (s >= self.min_intensity))
         nb, nbeam = s.shape
+        # non-maximum suppression at the candidates only (the same as comparing with a maximum
+        # filter over nms_cells with edge replication, at a fraction of its cost)
+        hb, hj = self.nms_cells[0] // 2, self.nms_cells[1] // 2
+        ob = np.arange(-hb, self.nms_cells[0] - hb)
+        oj = np.arange(-hj, self.nms_cells[1] - hj)
+        peak = np.ones(ii.size, bool)
+        for a in range(0, ii.size, 4096):
+            ci, cj = ii[a:a + 4096], jj[a:a + 4096]
+            bi = np.clip(ci[:, None, None] + ob[None, :, None], 0, nb - 1)
+            bj = np.clip(cj[:, None, None] + oj[None, None, :], 0, nbeam - 1)
+            peak[a:a + 4096] = s[bi, bj].reshape(ci.size, -1).max(axis=1) <= s[ci, cj]
+        ii, jj = ii[peak], jj[peak]
         # not on the image's edge (the parabola needs both neighbours)
         ok = (ii > 0) & (ii < nb - 1) & (jj > 0) & (jj < nbeam - 1)
         ii, jj = ii[ok], jj[ok]
