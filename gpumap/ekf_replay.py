@@ -341,6 +341,11 @@ def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
     if a.static:
         raise ValueError("Expected a recording with poses for --ekf (they are its reference), but got "
                          "--static")
+    other = [f for f, on in (("--compare-rules", a.compare_rules), ("--view", getattr(a, "view", False)),
+                             ("--record", getattr(a, "record", None) is not None)) if on]
+    if other:
+        raise ValueError(f"Expected --ekf alone (it makes three maps of its own), but got it with "
+                         f"{' and '.join(other)}")
     rec = open_recording(a.path)
     thr = DEFAULT_THRESHOLD if a.threshold == "auto" else float(a.threshold)
     t0 = time.perf_counter()
