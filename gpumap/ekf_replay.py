@@ -42,11 +42,11 @@ def add_ekf_args(ap: argparse.ArgumentParser) -> None:
                          "drift (--odometry-noise), point returns found in the images and "
                          "associated; map with the EKF's poses and compare with the recorded-pose "
                          "map (writes ekf_paths.png, ekf_measurements.png, an 'ekf' summary section)")
-    ap.add_argument("--odometry-noise", type=nonnegative_float, nargs=2, default=(0.005, 0.02),
+    ap.add_argument("--odometry-noise", type=nonnegative_float, nargs=2, default=(0.005, 0.005),
                     metavar=("TRANS_M", "ROT_RAD"),
                     help="with --ekf: standard deviation of each odometry step's error per "
                          "translation axis (metres) and per rotation axis (radians) (default "
-                         "0.005 0.02)")
+                         "0.005 0.005, the demo's --pose-noise 0.005)")
     ap.add_argument("--seed", type=nonnegative_int, default=0,
                     help="with --ekf: seed of the odometry drift (default 0)")
 
@@ -144,7 +144,7 @@ def _map(spec, grid, images, poses, backend, threshold, rule):
     return m
 
 
-def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0.02), seed: int = 0,
+def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0.005), seed: int = 0,
                    voxel_size_m: float = 0.05, grid=None, backend: str = "auto",
                    threshold: float = 0.4, rule: str | None = None, stride: int = 1,
                    max_frames: int | None = None, progress: bool = True, detector=None,
