@@ -313,9 +313,12 @@ def markdown(d: dict) -> str:
           "alignment (the pose that puts the map's occupied voxels on bright cells): started from the "
           "arm's pose moved by a few centimetres and degrees, both ended further from it in most "
           "pings, because the min-max map's elevation stretch lets many poses explain a ping and "
-          "neither scores voxels predicted bright where the ping is dark. Next: the floor's and walls' "
-          "leading edges as plane ranges fused like the DVL (height, pitch and roll from the floor, "
-          "heading from a wall), and a registration that scores dark cells too."]
+          "neither scores voxels predicted bright where the ping is dark. A probe of plane ranges: "
+          "each beam's first echo, put on the aperture's lowest ray at the arm's pose, does not fit one "
+          "level floor (the implied heights spread by tens of centimetres within a ping), so fusing "
+          "the floor like the DVL needs a model of where in the aperture the first echo comes from, "
+          "and heading would need a wall besides. Next: that plane model, and a registration that "
+          "scores dark cells too."]
     return "\n".join(L)
 
 
