@@ -654,9 +654,11 @@ def _parser() -> ArgumentParser:
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     # the old spelling, still accepted (not shown): one spelling for the same idea across commands
     ap.add_argument("--quiet", dest="no_progress", action="store_true", help=argparse.SUPPRESS)
+    from gpumap.ekf_replay import add_ekf_args
     from gpumap.viewer.cli import add_view_args
 
     add_view_args(ap)
+    add_ekf_args(ap)
     return ap
 
 
@@ -748,6 +750,10 @@ def _view_hook(a: argparse.Namespace, threshold: float):
 
 def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpec]:
     """Map the recording of parsed flags ``a``; write the output set; ``(summary, grid)``."""
+    if a.ekf:  # odometry + EKF on the pings, three maps (gpumap.ekf_replay)
+        from gpumap.ekf_replay import replay_with_ekf
+
+        return replay_with_ekf(a, grid)
     from gpumap.io import open_recording
 
     kwargs: dict = {}

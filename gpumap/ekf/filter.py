@@ -519,7 +519,8 @@ class SonarEKF:
 
     @_blas_limited
     def update(
-        self, ids: Iterable[int] | np.ndarray, ranges_m: np.ndarray, bearings_rad: np.ndarray
+        self, ids: Iterable[int] | np.ndarray, ranges_m: np.ndarray, bearings_rad: np.ndarray,
+        covs: np.ndarray | None = None,
     ) -> UpdateResult:
         """Fuse one ping's feature returns; add features seen for the first time.
 
@@ -535,6 +536,10 @@ class SonarEKF:
             Measured ranges, metres, > 0.
         bearings_rad : (m,) float
             Measured azimuths ``atan2(y, x)`` in the sonar frame, radians (any branch).
+        covs : (m, 2, 2) float, optional
+            Each return's own covariance of ``(range m, azimuth rad)`` (e.g. from
+            :class:`gpumap.ekf.frontend.PointDetector`); default: ``diag(range_sigma_m^2,
+            bearing_sigma_rad^2)`` for every return.
 
         Returns
         -------
@@ -546,6 +551,13 @@ class SonarEKF:
         brg = _check_vector(bearings_rad, m, "bearings_rad")
         if np.any(rng_m <= 0):
             raise ValueError(f"Expected ranges_m > 0, but got minimum {float(rng_m.min())}")
+        if covs is not None:
+            covs = _real_array(covs, "covs")
+            if covs.shape != (m, 2, 2):
+                raise ValueError(f"Expected shape ({m}, 2, 2) for 'covs', but got {covs.shape}")
+            covs = np.stack([_check_cov(c, 2, "covs") for c in covs]) if m else covs.reshape(0, 2, 2)
+            if m and not np.all(np.linalg.eigvalsh(covs)[:, 0] > 0):
+                raise ValueError("Expected positive definite 2x2 blocks in 'covs', but got a singular one")
 
         known = [k for k in range(m) if id_list[k] in self._index]
         new = [k for k in range(m) if id_list[k] not in self._index]
@@ -579,6 +591,8 @@ class SonarEKF:
             e = 6 + 3 * slots + 2
             uncertain = ve > self.init_elevation_sigma_rad**2
             r_var = np.array([self.range_sigma_m**2, self.bearing_sigma_rad**2])
+            if covs is not None:
+                r_var = covs[known][sel] if degenerate else covs[known]
             ret = _Returns(S[slots], Ra, ta, slots, meas, r_var, ve2)
             nu_e, Rb = ret.terms(nu, hee)
             # Per-return gate on the 2x2 marginal innovation covariance. A return of a feature
@@ -640,7 +654,8 @@ class SonarEKF:
         ids_order = list(self._ids)
         Ra, ta = self._Ra, self._ta
         Nz = np.diag([self.range_sigma_m**2, self.bearing_sigma_rad**2, self.elevation_var_rad2])
-        inits = [(k, np.array([rng_m[k], float(wrap_angle(brg[k])), 0.0]), Nz) for k in new]
+        inits = [(k, np.array([rng_m[k], float(wrap_angle(brg[k])), 0.0]), Nz if covs is None else
+                  np.block([[covs[k], np.zeros((2, 1))], [np.zeros((1, 2)), Nz[2:, 2:]]])) for k in new]
         if inits:
             Nn = P.shape[0]
             n_new = len(inits)

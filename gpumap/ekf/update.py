@@ -62,7 +62,8 @@ class _Gain:
 class _Returns:
     """What an update needs of ``a`` returns besides the state: their features' anchored
     coordinates ``S (a, 3)``, anchors ``Ra (a, 3, 3)``, ``ta (a, 3)``, state slots ``(a,)``,
-    measurements ``(a, 2)``, the noise variances ``r_var (2,)`` and, for the second-order
+    measurements ``(a, 2)``, the noise variances ``r_var (2,)`` (or each return's own
+    covariance, ``(a, 2, 2)``) and, for the second-order
     elevation term, each feature's prior elevation variance ``ve (a,)`` (zeros: first order).
     """
 
@@ -76,7 +77,7 @@ class _Returns:
 
     def take(self, sel: np.ndarray) -> _Returns:
         return _Returns(self.S[sel], self.Ra[sel], self.ta[sel], self.slots[sel], self.meas[sel],
-                        self.r_var, self.ve[sel])
+                        self.r_var[sel] if self.r_var.ndim == 3 else self.r_var, self.ve[sel])
 
     def terms(self, nu: np.ndarray, hee: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Second-order innovations and measurement covariance blocks ``(a, 2)``, ``(a, 2, 2)``.
@@ -86,8 +87,11 @@ class _Returns:
         elevation direction is curved enough to matter: at ``e = 0`` the range has no
         first-order sensitivity to it, only this one).
         """
-        Rb = np.zeros((nu.shape[0], 2, 2))
-        Rb[:, 0, 0], Rb[:, 1, 1] = self.r_var[0], self.r_var[1]
+        if self.r_var.ndim == 3:
+            Rb = self.r_var.copy()
+        else:
+            Rb = np.zeros((nu.shape[0], 2, 2))
+            Rb[:, 0, 0], Rb[:, 1, 1] = self.r_var[0], self.r_var[1]
         if not np.any(self.ve):
             return nu, Rb
         Rb += (0.5 * self.ve**2)[:, None, None] * hee[:, :, None] * hee[:, None, :]
