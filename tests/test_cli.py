@@ -348,11 +348,13 @@ def _parsers():
     import gpumap.bench.__main__ as bench
 
     import gpumap.io.octomap
+    import gpumap.ros.node
+    import gpumap.ros.play
     import gpumap.viewer.cli
 
     return {"demo": gpumap.sim.demo._parser(), "replay": gpumap.replay._parser(),
             "view": gpumap.viewer.cli._parser(), "export": gpumap.io.octomap._export_parser(),
-            "bench": bench._parser()}
+            "bench": bench._parser(), "ros": gpumap.ros.node._parser(), "ros-play": gpumap.ros.play._parser()}
 
 
 def test_every_option_has_a_plain_help_line() -> None:
