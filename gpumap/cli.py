@@ -55,7 +55,7 @@ COMMANDS = {
     "demo": ("gpumap.sim.demo", "simulate the tank scene, map it, and score the map against truth"),
     "replay": ("gpumap.replay", "map a real recording (Oculus, ARIS, fan images + poses, ROS bag)"),
     "view": ("gpumap.viewer.cli", "serve a saved map or a recording in the browser view ([viewer] extra)"),
-    "export": ("gpumap.io.octomap", "write a saved map as OctoMap .bt (RViz, octovis) or .ply"),
+    "export": ("gpumap.export_cli", "write a saved map as OctoMap .bt (RViz, octovis) or .ply"),
     "bench": ("gpumap.bench.__main__", "speed against error sweep on this machine (results in --out)"),
     "info": ("gpumap.cli", "list the backends this machine can run"),
 }
