@@ -1,0 +1,344 @@
+"""Map a recording in Dask workers and merge their maps: ``gpumap replay RECORDING --workers N``.
+
+How the work is split: by pings. The client reads the recording once (the readers are
+sequential streams) and hands the pings, in batches of :data:`BATCH`, to N workers in turn
+(batch ``b`` to worker ``b mod N``); each worker keeps one mapper (a Dask *actor*: its map
+stays in the worker between batches, on the worker's own backend) and integrates its
+batches as they come, while the client reads the next ones. At the end every worker sends
+its map's state (:class:`gpumap.merge.MapState`) and the client merges them
+(:func:`gpumap.merge.merge_maps`). Every update is a min or a saturating count, so the merged
+map equals the map of one process, bit for bit, whatever the split (:mod:`gpumap.merge`).
+
+Why pings and not space: a worker's map over a sub-box of the grid would compute its voxel
+centres from another origin, whose float32 rounding differs from the whole grid's, so tiles
+would not be bit for bit the one-process map; splitting by pings needs no such care, and
+the map's state is what travels (at most one grid per worker; a sparse map sends only its
+observed blocks).
+
+What it costs: every worker holds a whole map (dense) or the blocks its pings reached
+(``sparse=True``), and sends it once at the end; the client sends every ping once. The
+workers need gpumap installed, not the recording. Any Dask cluster works
+(``scheduler="tcp://host:8786"``); without one, a :class:`distributed.LocalCluster` of N
+single-threaded worker processes is started and closed again.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import deque
+
+import numpy as np
+
+from gpumap.spec import GridSpec, SonarSpec
+
+__all__ = ["BATCH", "add_worker_args", "check_worker_args", "run_replay_workers"]
+
+log = logging.getLogger("gpumap")
+
+#: Pings per batch sent to a worker (as :func:`gpumap.replay.run_replay` batches them).
+BATCH = 32
+#: Batches a worker may have queued before the client waits for it (bounds the memory in flight).
+QUEUED = 2
+
+
+class MapperActor:
+    """One worker's mapper (a Dask actor): integrates the batches it is sent, returns its state."""
+
+    def __init__(self, spec: dict, grid: dict, options: dict, sparse: bool) -> None:
+        from gpumap.mapper import MinMaxMapper
+        from gpumap.sparse import SparseMinMaxMapper, SparseSpec
+
+        t0 = time.perf_counter()
+        s, g = SonarSpec.from_dict(spec), GridSpec.from_dict(grid)
+        if sparse:
+            o = {k: v for k, v in options.items() if k != "method"}
+            box = SparseSpec(g.voxel_size_m, (g.min_corner_m, g.max_corner_m))
+            self.mapper = SparseMinMaxMapper(s, box, **o)
+        else:
+            self.mapper = MinMaxMapper(s, g, **options)
+        self.seconds_setup = time.perf_counter() - t0
+        self.seconds_integrate = 0.0
+        self.frames = 0
+
+    def info(self) -> dict:
+        return {"backend": self.mapper.backend, "device": self.mapper.device,
+                "seconds_setup": self.seconds_setup}
+
+    def integrate_batch(self, images: np.ndarray, poses: np.ndarray) -> int:
+        t0 = time.perf_counter()
+        self.mapper.integrate_batch(images, poses)
+        self.seconds_integrate += time.perf_counter() - t0
+        self.frames += len(images)
+        return self.frames
+
+    def state(self):
+        from gpumap.merge import map_state
+
+        t0 = time.perf_counter()
+        st = map_state(self.mapper)  # waits for the device
+        self.seconds_integrate += time.perf_counter() - t0
+        return st, {"frames": self.frames, "seconds_integrate": self.seconds_integrate}
+
+
+def _grid_of(recording, voxel_size_m: float, static: bool, stride: int, max_frames: int | None,
+             frames) -> GridSpec:
+    """The grid every worker maps into, sized as :func:`gpumap.replay.run_replay` sizes it (the
+    box of every selected field of view, from the recording's cheap pose list when it has one),
+    so that the merged map is the one-process map on the same grid."""
+    from gpumap.replay import auto_grid
+
+    if static:
+        return auto_grid(next(iter(recording)).spec, [np.eye(4)], voxel_size_m)
+    poses, spec0 = [], None
+    cheap = recording.poses()
+    if cheap is not None:
+        poses = [T for T in cheap[::stride][:max_frames] if T is not None]
+        spec0 = next(iter(recording)).spec
+    for fr in ([] if cheap is not None else frames()):
+        spec0 = spec0 or fr.spec
+        if fr.T_W_S is not None and fr.spec == spec0:
+            poses.append(fr.T_W_S)
+    if spec0 is None or not poses:
+        raise ValueError(f"Expected at least one posed frame in {recording.path}, but got none")
+    return auto_grid(spec0, poses, voxel_size_m)
+
+
+def _client(workers: int, scheduler: str | None, processes: bool):
+    """(client, cluster or None): a client of the scheduler at ``scheduler`` or of a new
+    LocalCluster of ``workers`` single-threaded workers."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as e:
+        raise ImportError(
+            "Expected Dask distributed for --workers, but it is not installed: "
+            "pip install 'gpumap[workers]'"
+        ) from e
+    if scheduler is not None:
+        client = Client(scheduler, timeout="30s")
+        try:
+            client.wait_for_workers(workers, timeout=60)
+        except Exception as e:
+            n = len(client.scheduler_info()["workers"])
+            client.close()
+            raise ValueError(
+                f"Expected {workers} workers at the scheduler {scheduler}, but {n} came within 60 s"
+            ) from e
+        return client, None
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
+                           dashboard_address=None, silence_logs=logging.ERROR)
+    return Client(cluster), cluster
+
+
+def run_replay_workers(
+    recording,
+    *,
+    workers: int,
+    scheduler: str | None = None,
+    voxel_size_m: float = 0.05,
+    backend: str = "auto",
+    method: str = "gather",
+    grid: GridSpec | None = None,
+    static: bool = False,
+    stride: int = 1,
+    max_frames: int | None = None,
+    progress: bool = True,
+    rule: str | None = None,
+    threshold: float = 0.4,
+    positions: list | None = None,
+    sparse: bool = False,
+    processes: bool = True,
+    client=None,
+) -> tuple[object, dict]:
+    """:func:`gpumap.replay.run_replay` in ``workers`` Dask workers: the same map, bit for bit.
+
+    Parameters
+    ----------
+    recording : gpumap.io.Recording
+        Read here, by the client; the workers get the pings.
+    workers : int
+        Workers to map in (each one mapper on ``backend``, one batch at a time).
+    scheduler : str, optional
+        Address of a running Dask scheduler (e.g. ``"tcp://10.0.0.5:8786"``); its first
+        ``workers`` workers are used. None: a LocalCluster of ``workers`` processes
+        (``processes=False``: threads of this process, for tests).
+    sparse : bool
+        Workers keep :class:`gpumap.SparseMinMaxMapper` maps bounded by the grid (each sends
+        only the blocks its pings observed); the result is then a sparse map.
+    client : distributed.Client, optional
+        Use this client (and its cluster) instead; left open.
+    Other parameters: as :func:`gpumap.replay.run_replay` (``grid`` None: sized from every
+    selected pose, before mapping).
+
+    Returns
+    -------
+    mapper : MinMaxMapper or SparseMinMaxMapper
+        The merged map, on the NumPy backend (it is read and written, not integrated).
+    stats : dict
+        ``run_replay``'s keys, plus ``workers``, ``scheduler``, ``seconds_cluster`` (starting
+        the cluster or connecting), ``seconds_map`` (reading and mapping, until every worker
+        is done), ``seconds_gather`` (the workers' states to the client), ``seconds_merge``,
+        ``per_worker`` (frames, backend, setup and integrate seconds) and
+        ``seconds_wall`` (everything, the cluster included).
+    """
+    from tqdm import tqdm
+
+    from gpumap.merge import merge_maps
+
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+        raise ValueError(f"Expected workers to be a positive integer, but got {workers!r}")
+    if not recording.has_poses and not static:
+        raise ValueError(
+            f"Expected a recording with sonar poses, but {recording.path} ({recording.kind}) has "
+            "none: mapping needs a pose per ping. Pass --static to map every ping at one fixed "
+            "pose (identity)."
+        )
+    if sparse and method != "gather":
+        raise ValueError(f"Expected method='gather' with sparse=True, but got {method!r}")
+    stride = max(1, int(stride))
+    eye = np.eye(4)
+
+    def frames():
+        k = 0
+        for i, fr in enumerate(recording):
+            if i % stride:
+                continue
+            if max_frames is not None and k >= max_frames:
+                return
+            k += 1
+            yield fr
+
+    t_wall = time.perf_counter()
+    if grid is None:
+        grid = _grid_of(recording, voxel_size_m, static, stride, max_frames, frames)
+    rule = rule or ("visible" if method == "gather" else "plain")
+    options = {"backend": backend, "method": method, "rule": rule, "threshold": threshold}
+    t0 = time.perf_counter()
+    own = client is None
+    cluster = None
+    if own:
+        client, cluster = _client(int(workers), scheduler, processes)
+    seconds_cluster = time.perf_counter() - t0
+    try:
+        addrs = sorted(client.scheduler_info()["workers"])[: int(workers)]
+        if len(addrs) < workers:
+            raise ValueError(f"Expected {workers} Dask workers, but the cluster has {len(addrs)}")
+        total = recording.count()
+        if total is not None:
+            total = min(math.ceil(total / stride), max_frames or total)
+        stats = {"frames": 0, "skipped_no_pose": 0, "skipped_spec": 0}
+        actors: list = []
+        pending: list[deque] = [deque() for _ in addrs]
+        spec = None
+        batch: list = []
+        n_batches = 0
+        t_map = time.perf_counter()
+        t_setup = 0.0
+
+        def send() -> None:
+            nonlocal n_batches
+            w = n_batches % len(actors)
+            q = pending[w]
+            while len(q) >= QUEUED:
+                q.popleft().result()
+            images, poses = np.stack([b[0] for b in batch]), np.stack([b[1] for b in batch])
+            q.append(actors[w].integrate_batch(images, poses))
+            n_batches += 1
+            batch.clear()
+
+        for fr in tqdm(frames(), total=total, unit="img", disable=not progress, desc=f"replay x{len(addrs)}"):
+            if spec is None:
+                ts = time.perf_counter()
+                spec = fr.spec
+                futs = [client.submit(MapperActor, spec.to_dict(), grid.to_dict(), options, sparse,
+                                      workers=[a], allow_other_workers=False, actor=True, pure=False)
+                        for a in addrs]
+                actors = [f.result() for f in futs]
+                infos = [a.info().result() for a in actors]  # a backend that cannot run raises here
+                t_setup = time.perf_counter() - ts
+            if fr.spec != spec:
+                stats["skipped_spec"] += 1
+                continue
+            T = eye if static else fr.T_W_S
+            if T is None:
+                stats["skipped_no_pose"] += 1
+                continue
+            if batch and fr.image.dtype != batch[0][0].dtype:
+                send()
+            batch.append((np.array(fr.image), np.asarray(T, np.float64)))
+            if len(batch) == BATCH:
+                send()
+            stats["frames"] += 1
+            if positions is not None:
+                positions.append(np.asarray(T, dtype=np.float64)[:3, 3].copy())
+        if spec is None:
+            raise ValueError(f"Expected frames in {recording.path}, but it has none")
+        if batch:
+            send()
+        for q in pending:
+            while q:
+                q.popleft().result()
+        seconds_map = time.perf_counter() - t_map - t_setup
+        t1 = time.perf_counter()
+        results = [a.state().result() for a in actors]
+        seconds_gather = time.perf_counter() - t1
+        t2 = time.perf_counter()
+        mapper = merge_maps([st for st, _ in results], backend="numpy")
+        seconds_merge = time.perf_counter() - t2
+    finally:
+        if own:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    n = stats["frames"]
+    t_total = seconds_map + seconds_gather + seconds_merge
+    per = [{**info, **extra} for info, (_, extra) in zip(infos, results, strict=True)]
+    stats.update(
+        seconds_setup=t_setup,
+        seconds_total=t_total,
+        seconds_integrate=max(p["seconds_integrate"] for p in per),
+        images_per_s=n / t_total if n else 0.0,
+        integrate_per_s=n / max(p["seconds_integrate"] for p in per) if n else 0.0,
+        backend=infos[0]["backend"],
+        rule=rule,
+        mapper_threshold=float(threshold),
+        grid=grid.to_dict(),
+        grid_shape=list(grid.shape),
+        workers=len(addrs),
+        scheduler=scheduler or "LocalCluster",
+        seconds_cluster=seconds_cluster,
+        seconds_map=seconds_map,
+        seconds_gather=seconds_gather,
+        seconds_merge=seconds_merge,
+        seconds_wall=time.perf_counter() - t_wall,
+        per_worker=per,
+    )
+    return mapper, stats
+
+
+# ------------------------------------------------------------------------------ gpumap replay's flags
+def add_worker_args(ap) -> None:
+    """``--workers`` and ``--scheduler`` on ``gpumap replay``'s parser."""
+    from gpumap.cli import positive_int
+
+    ap.add_argument("--workers", type=positive_int, default=None,
+                    help="map in N Dask workers (one mapper each, pings split among them in batches "
+                         "of 32) and merge their maps: the same map as one process, bit for bit "
+                         "(needs the workers extra: pip install 'gpumap[workers]')")
+    ap.add_argument("--scheduler", default=None,
+                    help="address of a running Dask scheduler (e.g. tcp://10.0.0.5:8786) whose "
+                         "workers map; default: start N local worker processes (needs --workers)")
+
+
+def check_worker_args(ap, a) -> None:
+    """Refuse flag combinations the worker run does not support (exit 2, before any work)."""
+    if a.scheduler is not None and not a.workers:
+        ap.error("argument --scheduler: Expected --workers N with it, but --workers is missing")
+    if a.workers:
+        for flag, on in (("--view", getattr(a, "view", False)),
+                         ("--record", getattr(a, "record", None) is not None),
+                         ("--compare-rules", a.compare_rules)):
+            if on:
+                ap.error(f"argument --workers: Expected no {flag} with it (the workers' maps are only "
+                         f"whole once merged), but got {flag}")

@@ -1,0 +1,109 @@
+"""Workers (Dask): a recording mapped in N workers and merged is the one-process map, bit for bit.
+
+Reference: :func:`gpumap.replay.run_replay` in this process on the same frames and grid (itself
+tested against the NumPy oracle); the cluster is a threads-only LocalCluster (fast to start).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import DATA, needs_data
+
+pytest.importorskip("distributed")
+
+from distributed import Client, LocalCluster  # noqa: E402
+
+import gpumap  # noqa: E402
+from gpumap.replay import main, run_replay  # noqa: E402
+from gpumap.workers import run_replay_workers  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with LocalCluster(n_workers=3, threads_per_worker=1, processes=False, dashboard_address=None) as c:
+        with Client(c) as client:
+            yield c, client
+
+
+def _everything(m) -> dict:
+    out = {"values": m.raw_values(), "n": m.n_integrated}
+    if m.rule == "visible":
+        out.update(m.evidence())
+    return out
+
+
+def _assert_same(a, b) -> None:
+    ea, eb = _everything(a), _everything(b)
+    assert ea.keys() == eb.keys()
+    for k in ea:
+        np.testing.assert_array_equal(ea[k], eb[k], err_msg=k)
+
+
+def _tank(stride: int):
+    from gpumap.io import open_fan_folder
+
+    return open_fan_folder(DATA / "oasis_tank", stride=stride)
+
+
+@needs_data
+@pytest.mark.parametrize("backend", ["numpy", "warp-cpu"])
+@pytest.mark.parametrize("rule", ["visible", "plain"])
+def test_workers_equal_one_process_on_real_frames(cluster, backend, rule):
+    if backend not in gpumap.available_backends():
+        pytest.skip(f"{backend} is not available here")
+    _, client = cluster
+    rec = _tank(3)
+    kw = dict(voxel_size_m=0.06, backend=backend, rule=rule, progress=False)
+    one, s1 = run_replay(rec, **kw)
+    assert one.observed().sum() > 10_000
+    pos: list = []
+    for n in (2, 3):
+        got, s = run_replay_workers(rec, workers=n, client=client, positions=pos if n == 2 else None, **kw)
+        assert got.grid == one.grid and s["frames"] == s1["frames"] == 41
+        assert s["workers"] == n and sum(p["frames"] for p in s["per_worker"]) == 41
+        # batches of 32 go round-robin: with 41 frames every worker of 2 maps some
+        assert all(p["frames"] > 0 for p in s["per_worker"][:2])
+        _assert_same(got, one)
+    assert len(pos) == 41
+
+
+@needs_data
+def test_sparse_workers_equal_the_dense_one_process_map(cluster):
+    _, client = cluster
+    rec = _tank(4)
+    one, _ = run_replay(rec, voxel_size_m=0.06, backend="numpy", progress=False)
+    got, s = run_replay_workers(rec, workers=2, client=client, voxel_size_m=0.06, backend="numpy",
+                                progress=False, sparse=True)
+    assert isinstance(got, gpumap.SparseMinMaxMapper) and got.grid == one.grid
+    _assert_same(got, one)
+
+
+@needs_data
+def test_replay_cli_workers_writes_the_same_map(cluster, tmp_path: Path):
+    c, _ = cluster
+    common = [str(DATA / "oasis_tank"), "--stride", "6", "--quiet", "--no-pictures",
+              "--voxel-size", "0.08", "--backend", "numpy"]
+    assert main([*common, "--out", str(tmp_path / "one")]) == 0
+    assert main([*common, "--out", str(tmp_path / "w"), "--workers", "2",
+                 "--scheduler", c.scheduler_address]) == 0
+    a = gpumap.load_map(tmp_path / "one" / "map.npz", backend="numpy")
+    b = gpumap.load_map(tmp_path / "w" / "map.npz", backend="numpy")
+    _assert_same(b, a)
+    s = json.loads((tmp_path / "w" / "summary.json").read_text())
+    assert s["workers"] == 2 and s["frames"] == 21 and s["scheduler"] == c.scheduler_address
+    assert (tmp_path / "w" / "occupied.ply").read_bytes() == (tmp_path / "one" / "occupied.ply").read_bytes()
+
+
+def test_worker_flags_are_checked_before_any_work(tmp_path: Path, capsys):
+    out = str(tmp_path / "o")
+    for argv, word in ((["--scheduler", "tcp://127.0.0.1:1"], "--workers"),
+                       (["--workers", "2", "--compare-rules"], "--compare-rules"),
+                       (["--workers", "0"], "--workers")):
+        with pytest.raises(SystemExit) as e:
+            main(["missing_recording", "--out", out, *argv])
+        assert e.value.code == 2 and word in capsys.readouterr().err
+    assert not Path(out).exists()
