@@ -329,6 +329,26 @@ def merge_maps(maps, backend: str = "auto", **kw):
     for s in states[1:]:
         _same(states[0].kind, states[0].options, s)
     out = new_like(states[0], backend=backend, **kw)
+    if states[0].kind == "sparse":
+        for s in states:
+            merge_into(out, s)
+        return out
+    # dense: combine the arrays here (in place, one pass per map), then write the map once
     for s in states:
-        merge_into(out, s)
+        _check_arrays(s, out)
+    visible = out.rule == "visible"
+    acc = {k: v.copy() for k, v in states[0].arrays.items()}
+    for s in states[1:]:
+        np.minimum(acc["min_all"], s.arrays["min_all"], out=acc["min_all"])
+        if visible:
+            np.minimum(acc["bright"], s.arrays["bright"], out=acc["bright"])
+            c = acc["count"].astype(np.uint16)
+            c += s.arrays["count"]
+            np.minimum(c, _COUNT_MAX, out=c)
+            acc["count"] = c.astype(np.uint8)
+    with out._lock:
+        if visible:
+            out._backend.write_evidence(acc["bright"], acc["count"])
+        out._backend.write(acc["min_all"])
+        out.n_integrated = sum(int(s.n_integrated) for s in states)
     return out

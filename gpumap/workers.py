@@ -46,11 +46,15 @@ QUEUED = 2
 class MapperActor:
     """One worker's mapper (a Dask actor): integrates the batches it is sent, returns its state."""
 
-    def __init__(self, spec: dict, grid: dict, options: dict, sparse: bool) -> None:
+    def __init__(self, spec: dict, grid: dict, options: dict, sparse: bool, cpu_threads: int | None) -> None:
         from gpumap.mapper import MinMaxMapper
         from gpumap.sparse import SparseMinMaxMapper, SparseSpec
 
         t0 = time.perf_counter()
+        if cpu_threads is not None:  # this worker process's CPU backends split gathers this many ways
+            import gpumap.backends
+
+            gpumap.backends.CPU_THREADS = int(cpu_threads)
         s, g = SonarSpec.from_dict(spec), GridSpec.from_dict(grid)
         if sparse:
             o = {k: v for k, v in options.items() if k != "method"}
@@ -67,6 +71,8 @@ class MapperActor:
                 "seconds_setup": self.seconds_setup}
 
     def integrate_batch(self, images: np.ndarray, poses: np.ndarray) -> int:
+        """Integrate a batch: float32 frames, or uint8 ones that are exactly the frames x 255 (the
+        mapper scales uint8 by the same float32 1/255, so the map is the same bit for bit)."""
         t0 = time.perf_counter()
         self.mapper.integrate_batch(images, poses)
         self.seconds_integrate += time.perf_counter() - t0
@@ -80,6 +86,20 @@ class MapperActor:
         st = map_state(self.mapper)  # waits for the device
         self.seconds_integrate += time.perf_counter() - t0
         return st, {"frames": self.frames, "seconds_integrate": self.seconds_integrate}
+
+
+def _compact(images: np.ndarray) -> np.ndarray:
+    """``images`` as uint8 when that is lossless for the mapper (every value is a byte times
+    the mapper's float32 1/255, as the 8-bit sonars' frames are): a quarter of the bytes to send."""
+    from gpumap.backends import U8_SCALE
+
+    if images.dtype != np.float32:
+        return images
+    b = np.rint(images * np.float32(255.0))
+    if not (b.min() >= 0 and b.max() <= 255):
+        return images
+    u8 = b.astype(np.uint8)
+    return u8 if np.array_equal(np.multiply(u8, U8_SCALE, dtype=np.float32), images) else images
 
 
 def _grid_of(recording, voxel_size_m: float, static: bool, stride: int, max_frames: int | None,
@@ -150,6 +170,7 @@ def run_replay_workers(
     sparse: bool = False,
     processes: bool = True,
     client=None,
+    cpu_threads: int | None = None,
 ) -> tuple[object, dict]:
     """:func:`gpumap.replay.run_replay` in ``workers`` Dask workers: the same map, bit for bit.
 
@@ -168,6 +189,9 @@ def run_replay_workers(
         only the blocks its pings observed); the result is then a sparse map.
     client : distributed.Client, optional
         Use this client (and its cluster) instead; left open.
+    cpu_threads : int, optional
+        Threads each worker's CPU backend splits a gather into (``gpumap.backends.CPU_THREADS``,
+        set in the worker process: use it with worker processes only). None: the default (2).
     Other parameters: as :func:`gpumap.replay.run_replay` (``grid`` None: sized from every
     selected pose, before mapping).
 
@@ -242,7 +266,7 @@ def run_replay_workers(
             q = pending[w]
             while len(q) >= QUEUED:
                 q.popleft().result()
-            images, poses = np.stack([b[0] for b in batch]), np.stack([b[1] for b in batch])
+            images, poses = _compact(np.stack([b[0] for b in batch])), np.stack([b[1] for b in batch])
             q.append(actors[w].integrate_batch(images, poses))
             n_batches += 1
             batch.clear()
@@ -251,9 +275,9 @@ def run_replay_workers(
             if spec is None:
                 ts = time.perf_counter()
                 spec = fr.spec
-                futs = [client.submit(MapperActor, spec.to_dict(), grid.to_dict(), options, sparse,
-                                      workers=[a], allow_other_workers=False, actor=True, pure=False)
-                        for a in addrs]
+                args = (spec.to_dict(), grid.to_dict(), options, sparse, cpu_threads)
+                futs = [client.submit(MapperActor, *args, workers=[a], allow_other_workers=False,
+                                      actor=True, pure=False) for a in addrs]
                 actors = [f.result() for f in futs]
                 infos = [a.info().result() for a in actors]  # a backend that cannot run raises here
                 t_setup = time.perf_counter() - ts
@@ -281,7 +305,8 @@ def run_replay_workers(
                 q.popleft().result()
         seconds_map = time.perf_counter() - t_map - t_setup
         t1 = time.perf_counter()
-        results = [a.state().result() for a in actors]
+        futs = [a.state() for a in actors]  # every worker packs and sends at once
+        results = [f.result() for f in futs]
         seconds_gather = time.perf_counter() - t1
         t2 = time.perf_counter()
         mapper = merge_maps([st for st, _ in results], backend="numpy")

@@ -107,3 +107,31 @@ def test_worker_flags_are_checked_before_any_work(tmp_path: Path, capsys):
             main(["missing_recording", "--out", out, *argv])
         assert e.value.code == 2 and word in capsys.readouterr().err
     assert not Path(out).exists()
+
+
+def test_simulated_byte_frames_travel_as_uint8_and_map_the_same(cluster):
+    """Frames that are bytes / 255 (8-bit sonars) are sent as uint8; the map is still the same."""
+    from test_mapper import SPEC
+    from test_visibility import _random_pings
+
+    from gpumap.backends import U8_SCALE
+    from gpumap.io import Recording, SonarFrame
+    from gpumap.workers import _compact
+
+    _, client = cluster
+    frames = []
+    for k, (img, T) in enumerate(_random_pings(70, 5)):  # dark water, then returns and shadows
+        b = np.rint(img * 255).astype(np.uint8)
+        frames.append(SonarFrame(np.multiply(b, U8_SCALE, dtype=np.float32), SPEC, float(k), T))
+    imgs = np.stack([f.image for f in frames])
+    assert _compact(imgs).dtype == np.uint8
+    nudged = imgs.copy()
+    nudged[0, 0, 0] = np.nextafter(nudged[0, 0, 0], np.float32(1))  # no longer a byte / 255
+    assert _compact(nudged).dtype == np.float32
+    rec = Recording("sim", "sim", lambda: iter(frames), True, count=lambda: len(frames))
+    one, _ = run_replay(rec, voxel_size_m=0.07, backend="numpy", progress=False, threshold=0.1)
+    got, s = run_replay_workers(rec, workers=3, client=client, voxel_size_m=0.07, backend="numpy",
+                                progress=False, threshold=0.1)
+    assert [p["frames"] for p in s["per_worker"]] == [32, 32, 6]
+    assert one.evidence()["count"].max() >= 2
+    _assert_same(got, one)
