@@ -1,7 +1,8 @@
 """Worker overhead: the survey mapped by one process against N Dask workers on the same cores.
 
     python -m bench.workers [--backend warp-cpu] [--voxel 0.05] [--workers 2] [--reps 3]
-                            [--sparse] [--out bench/results/workers.json]
+                            [--sparse] [--worker-threads N] [--section NAME]
+                            [--out bench/results/workers.json]
 
 Pings: the survey scene's 200 (``bench/results/tmp/survey_pings.npz``, rendered first if
 missing, as ``python -m bench.sparse --render-survey`` renders them), fed as a recording of
@@ -77,6 +78,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=2, help="Dask worker processes (default 2)")
     p.add_argument("--reps", type=int, default=3, help="repetitions of the pair (default 3)")
     p.add_argument("--sparse", action="store_true", help="workers keep sparse maps (and so does 'one')")
+    p.add_argument("--worker-threads", type=int, default=None,
+                   help="threads each worker's CPU backend splits a gather into (default: as one process, 2)")
+    p.add_argument("--section", default="dense", help="name of this run's section in --out")
     p.add_argument("--pings", type=Path, default=TMP / "survey_pings.npz", help="survey pings (.npz)")
     p.add_argument("--out", type=Path, default=Path("bench/results/workers.json"))
     args = p.parse_args(argv)
@@ -110,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
             wall_one = time.perf_counter() - t0
             load1 = _load()
             t0 = time.perf_counter()
-            got, sw = run_replay_workers(rec, workers=args.workers, client=client, sparse=args.sparse, **kw)
+            got, sw = run_replay_workers(rec, workers=args.workers, client=client, sparse=args.sparse,
+                                         cpu_threads=args.worker_threads, **kw)
             wall_w = time.perf_counter() - t0
             load2 = _load()
             row = {
@@ -147,8 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     warm = [r for r in rows if not r["cold_workers"]] or rows
     one_med = statistics.median(r["one_wall_s"] for r in warm)
     w_med = statistics.median(r["workers_wall_s"] for r in warm)
-    doc = {
-        "schema": "gpumap-bench-workers/1",
+    sec = {
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "command": "python -m bench.workers " + " ".join(argv if argv is not None else sys.argv[1:]),
         "scene": "survey (200 pings, 50 x 20 m lawnmower)",
@@ -157,6 +161,7 @@ def main(argv: list[str] | None = None) -> int:
         "map": "sparse (bounded)" if args.sparse else "dense",
         "backend": args.backend,
         "workers": args.workers,
+        "worker_threads": args.worker_threads or "default (2)",
         "cpu_count": os.cpu_count(),
         "machine": {"platform": platform.platform(), "python": platform.python_version()},
         "seconds_cluster_start": round(seconds_cluster, 3),
@@ -178,9 +183,12 @@ def main(argv: list[str] | None = None) -> int:
             "bitwise_equal": rows[0].get("bitwise_equal"),
         },
     }
+    doc = json.loads(args.out.read_text()) if args.out.is_file() else {}
+    doc["schema"] = "gpumap-bench-workers/1"
+    doc[args.section] = sec
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=1) + "\n")
-    print(json.dumps(doc["summary"]))
+    print(json.dumps(sec["summary"]))
     print(f"wrote {args.out}")
     return 0
 
