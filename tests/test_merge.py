@@ -212,3 +212,19 @@ def test_sparse_merge_over_max_bytes_raises_unchanged():
     with pytest.raises(MapMemoryError, match="never evicts"):
         capped.merge(b)
     _assert_same(_state(capped), before)
+
+
+def test_merge_command_writes_the_map_of_all_pings(tmp_path, capsys):
+    import json
+
+    from gpumap.cli import main
+
+    pings = _random_pings(5, 8)
+    parts = [_dense("numpy", pings[:3]).save(tmp_path / "a.npz"),
+             _dense("numpy", pings[3:]).save(tmp_path / "b.npz")]
+    assert main(["merge", str(tmp_path / "m.npz"), *map(str, parts)]) == 0
+    assert json.loads(capsys.readouterr().out)["pings"] == 5
+    _assert_same(_state(load_map(tmp_path / "m.npz", backend="numpy")), _state(_dense("numpy", pings)))
+    other = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain").save(tmp_path / "p.npz")
+    assert main(["merge", str(tmp_path / "x.npz"), str(parts[0]), str(other)]) == 2
+    assert "same rule" in capsys.readouterr().err and not (tmp_path / "x.npz").exists()
