@@ -1,7 +1,7 @@
 """Worker overhead: the survey mapped by one process against N Dask workers on the same cores.
 
     python -m bench.workers [--backend warp-cpu] [--voxel 0.05] [--workers 2] [--reps 3]
-                            [--sparse] [--worker-threads N] [--section NAME]
+                            [--sparse] [--worker-threads N] [--passes K] [--section NAME]
                             [--out bench/results/workers.json]
 
 Pings: the survey scene's 200 (``bench/results/tmp/survey_pings.npz``, rendered first if
@@ -40,8 +40,8 @@ import numpy as np
 TMP = Path("bench/results/tmp")
 
 
-def survey_recording(path: Path, voxel_size_m: float):
-    """(Recording of the survey pings as float32 frames, the scene's grid)."""
+def survey_recording(path: Path, voxel_size_m: float, passes: int = 1):
+    """(Recording of the survey pings as float32 frames, ``passes`` times over, the scene's grid)."""
     import gpumap
     from gpumap.backends import U8_SCALE
     from gpumap.io import Recording, SonarFrame
@@ -59,11 +59,12 @@ def survey_recording(path: Path, voxel_size_m: float):
     assert images.dtype == np.uint8 and isinstance(grid, gpumap.GridSpec)
 
     def frames():
-        for img, T in zip(images, poses, strict=True):
-            yield SonarFrame(np.multiply(img, U8_SCALE, dtype=np.float32), spec, None, T)
+        for _ in range(passes):
+            for img, T in zip(images, poses, strict=True):
+                yield SonarFrame(np.multiply(img, U8_SCALE, dtype=np.float32), spec, None, T)
 
-    rec = Recording(str(path), "survey-arrays", frames, True, count=lambda: len(images),
-                    poses=lambda: list(poses))
+    rec = Recording(str(path), "survey-arrays", frames, True, count=lambda: passes * len(images),
+                    poses=lambda: passes * list(poses))
     return rec, grid
 
 
@@ -81,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--worker-threads", type=int, default=None,
                    help="threads each worker's CPU backend splits a gather into (default: as one process, 2)")
     p.add_argument("--section", default="dense", help="name of this run's section in --out")
+    p.add_argument("--passes", type=int, default=1,
+                   help="feed the survey's pings this many times (a resurvey of the same area: more "
+                        "pings for the same map size)")
     p.add_argument("--pings", type=Path, default=TMP / "survey_pings.npz", help="survey pings (.npz)")
     p.add_argument("--out", type=Path, default=Path("bench/results/workers.json"))
     args = p.parse_args(argv)
@@ -91,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     from gpumap.sparse import SparseMinMaxMapper, SparseSpec
     from gpumap.workers import run_replay_workers
 
-    rec, grid = survey_recording(args.pings, args.voxel)
+    rec, grid = survey_recording(args.pings, args.voxel, args.passes)
     kw = dict(backend=args.backend, grid=grid, progress=False)
     cls = None
     if args.sparse:
@@ -103,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.time()
     tc = time.perf_counter()
     cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.ERROR)
+                           dashboard_address=None, silence_logs=logging.CRITICAL)
     client = Client(cluster)
     seconds_cluster = time.perf_counter() - tc
     try:
@@ -156,6 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "command": "python -m bench.workers " + " ".join(argv if argv is not None else sys.argv[1:]),
         "scene": "survey (200 pings, 50 x 20 m lawnmower)",
+        "passes": args.passes,
         "voxel_size_m": args.voxel,
         "grid_shape": list(grid.shape),
         "map": "sparse (bounded)" if args.sparse else "dense",

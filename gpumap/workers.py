@@ -147,7 +147,7 @@ def _client(workers: int, scheduler: str | None, processes: bool):
             ) from e
         return client, None
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
-                           dashboard_address=None, silence_logs=logging.ERROR)
+                           dashboard_address=None, silence_logs=logging.CRITICAL)
     return Client(cluster), cluster
 
 
