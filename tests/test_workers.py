@@ -133,5 +133,29 @@ def test_simulated_byte_frames_travel_as_uint8_and_map_the_same(cluster):
     got, s = run_replay_workers(rec, workers=3, client=client, voxel_size_m=0.07, backend="numpy",
                                 progress=False, threshold=0.1)
     assert [p["frames"] for p in s["per_worker"]] == [32, 32, 6]
+    # the maps of byte pings travel packed (uint8 + a bit per voxel for unknown)
+    assert all(p["state_mb"] < 0.4 * p["state_mb_unpacked"] for p in s["per_worker"])
     assert one.evidence()["count"].max() >= 2
     _assert_same(got, one)
+
+
+def test_state_packing_is_exact_or_not_used():
+    from gpumap.merge import MapState
+    from gpumap.workers import _pack, _unpack
+
+    rng = np.random.default_rng(0)
+    b = rng.integers(0, 256, (40, 512)).astype(np.uint8)
+    byte = np.multiply(b, np.float32(1 / 255), dtype=np.float32)
+    byte[rng.random(byte.shape) < 0.3] = np.inf
+    other = byte.copy()
+    other[3, 7] = np.float32(0.3)  # 0.3 is no byte / 255
+    count = rng.integers(0, 256, byte.shape).astype(np.uint8)
+    st = MapState("sparse", {}, 7, {"min_all": byte, "bright": other, "count": count})
+    packed = _pack(st)
+    kinds = {k: a[0] for k, a in packed[3].items()}
+    assert kinds == {"min_all": "u8", "bright": "raw", "count": "raw"}
+    back = _unpack(packed)
+    assert back.n_integrated == 7
+    for k in st.arrays:
+        assert back.arrays[k].dtype == st.arrays[k].dtype and back.arrays[k].shape == st.arrays[k].shape
+        assert back.arrays[k].tobytes() == st.arrays[k].tobytes(), k
