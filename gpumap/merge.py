@@ -316,39 +316,45 @@ def new_like(state: MapState, backend: str = "auto", **kw):
 
 def merge_maps(maps, backend: str = "auto", **kw):
     """A new mapper holding the merge of ``maps`` (mappers, :class:`MapState` objects or map
-    files, all of the same kind and options), on ``backend``; ``maps`` are left as they were.
+    files, all of the same kind and options; any iterable: one map is held at a time beside
+    the result), on ``backend``; ``maps`` are left as they were.
 
     Equal bit for bit to one mapper that integrated every ping of every map (see the module
-    docstring). Raises ``ValueError`` for an empty list or maps that differ, and what
+    docstring). Raises ``ValueError`` for no maps or maps that differ, and what
     :func:`merge_into` raises.
     """
-    maps = list(maps)
-    if not maps:
-        raise ValueError("Expected at least one map to merge, but got none")
-    states = [_as_state(m) for m in maps]
-    for s in states[1:]:
-        _same(states[0].kind, states[0].options, s)
-    out = new_like(states[0], backend=backend, **kw)
-    if states[0].kind == "sparse":
-        for s in states:
-            merge_into(out, s)
+    it = iter(maps)
+    try:
+        first = _as_state(next(it))
+    except StopIteration:
+        raise ValueError("Expected at least one map to merge, but got none") from None
+    out = new_like(first, backend=backend, **kw)
+    if first.kind == "sparse":
+        merge_into(out, first)
+        for m in it:
+            merge_into(out, m)
         return out
     # dense: combine the arrays here (in place, one pass per map), then write the map once
-    for s in states:
-        _check_arrays(s, out)
+    _check_arrays(first, out)
     visible = out.rule == "visible"
-    acc = {k: v.copy() for k, v in states[0].arrays.items()}
-    for s in states[1:]:
-        np.minimum(acc["min_all"], s.arrays["min_all"], out=acc["min_all"])
+    acc = {k: v.copy() for k, v in first.arrays.items()}
+    n = int(first.n_integrated)
+    for m in it:
+        st = _as_state(m)
+        _same(first.kind, first.options, st)
+        _check_arrays(st, out)
+        np.minimum(acc["min_all"], st.arrays["min_all"], out=acc["min_all"])
         if visible:
-            np.minimum(acc["bright"], s.arrays["bright"], out=acc["bright"])
+            np.minimum(acc["bright"], st.arrays["bright"], out=acc["bright"])
             c = acc["count"].astype(np.uint16)
-            c += s.arrays["count"]
+            c += st.arrays["count"]
             np.minimum(c, _COUNT_MAX, out=c)
             acc["count"] = c.astype(np.uint8)
+        n += int(st.n_integrated)
+        del st
     with out._lock:
         if visible:
             out._backend.write_evidence(acc["bright"], acc["count"])
         out._backend.write(acc["min_all"])
-        out.n_integrated = sum(int(s.n_integrated) for s in states)
+        out.n_integrated = n
     return out

@@ -79,15 +79,17 @@ class MapperActor:
         self.frames += len(images)
         return self.frames
 
-    def state(self):
-        """The map's state, its float arrays packed to bytes where that is lossless (:func:`_pack`)."""
+    def state(self, pack: bool):
+        """The map's state; ``pack``: its float arrays packed to bytes where that is lossless
+        (:func:`_pack`: a third of the bytes to send, for about ten passes over the arrays)."""
         from gpumap.merge import map_state
 
         t0 = time.perf_counter()
         st = map_state(self.mapper)  # waits for the device
         self.seconds_integrate += time.perf_counter() - t0
         t1 = time.perf_counter()
-        packed = _pack(st)
+        packed = _pack(st) if pack else (st.kind, st.options, st.n_integrated,
+                                          {k: ("raw", v) for k, v in st.arrays.items()})
         info = {"frames": self.frames, "seconds_integrate": self.seconds_integrate,
                 "seconds_pack": time.perf_counter() - t1, "state_mb": _nbytes(packed) / 1e6,
                 "state_mb_unpacked": sum(a.nbytes for a in st.arrays.values()) / 1e6}
@@ -222,6 +224,7 @@ def run_replay_workers(
     processes: bool = True,
     client=None,
     cpu_threads: int | None = None,
+    pack: bool | None = None,
 ) -> tuple[object, dict]:
     """:func:`gpumap.replay.run_replay` in ``workers`` Dask workers: the same map, bit for bit.
 
@@ -243,6 +246,11 @@ def run_replay_workers(
     cpu_threads : int, optional
         Threads each worker's CPU backend splits a gather into (``gpumap.backends.CPU_THREADS``,
         set in the worker process: use it with worker processes only). None: the default (2).
+    pack : bool, optional
+        Workers send their maps packed where that is lossless (maps of 8-bit pings: 3.3 bytes
+        a voxel instead of 9, at the cost of a few passes over the arrays in each worker).
+        None: only with ``scheduler`` (a cluster across a network; on one host, sending is
+        cheaper than packing).
     Other parameters: as :func:`gpumap.replay.run_replay` (``grid`` None: sized from every
     selected pose, before mapping).
 
@@ -356,11 +364,13 @@ def run_replay_workers(
                 q.popleft().result()
         seconds_map = time.perf_counter() - t_map - t_setup
         t1 = time.perf_counter()
-        futs = [a.state() for a in actors]  # every worker packs and sends at once
+        if pack is None:  # a network between the workers and here: send a third of the bytes
+            pack = own and scheduler is not None
+        futs = [a.state(bool(pack)) for a in actors]  # every worker sends at once
         results = [f.result() for f in futs]
         seconds_gather = time.perf_counter() - t1
         t2 = time.perf_counter()
-        mapper = merge_maps([_unpack(st) for st, _ in results], backend="numpy")
+        mapper = merge_maps((_unpack(st) for st, _ in results), backend="numpy")  # one unpacked at a time
         seconds_merge = time.perf_counter() - t2
     finally:
         if own:

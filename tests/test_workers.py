@@ -131,7 +131,7 @@ def test_simulated_byte_frames_travel_as_uint8_and_map_the_same(cluster):
     rec = Recording("sim", "sim", lambda: iter(frames), True, count=lambda: len(frames))
     one, _ = run_replay(rec, voxel_size_m=0.07, backend="numpy", progress=False, threshold=0.1)
     got, s = run_replay_workers(rec, workers=3, client=client, voxel_size_m=0.07, backend="numpy",
-                                progress=False, threshold=0.1)
+                                progress=False, threshold=0.1, pack=True)
     assert [p["frames"] for p in s["per_worker"]] == [32, 32, 6]
     # the maps of byte pings travel packed (uint8 + a bit per voxel for unknown)
     assert all(p["state_mb"] < 0.4 * p["state_mb_unpacked"] for p in s["per_worker"])
