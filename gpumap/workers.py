@@ -188,6 +188,9 @@ def _client(workers: int, scheduler: str | None, processes: bool):
             "Expected Dask distributed for --workers, but it is not installed: "
             "pip install 'gpumap[workers]'"
         ) from e
+    # Dask's own start/stop chatter (INFO) is not the user's business; its warnings still show
+    for name in ("distributed", "tornado"):
+        logging.getLogger(name).setLevel(logging.WARNING)
     if scheduler is not None:
         client = Client(scheduler, timeout="30s")
         try:
@@ -200,7 +203,7 @@ def _client(workers: int, scheduler: str | None, processes: bool):
             ) from e
         return client, None
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
-                           dashboard_address=None, silence_logs=logging.CRITICAL)
+                           scheduler_kwargs={"dashboard": False}, silence_logs=logging.CRITICAL)
     return Client(cluster), cluster
 
 
@@ -370,7 +373,13 @@ def run_replay_workers(
         results = [f.result() for f in futs]
         seconds_gather = time.perf_counter() - t1
         t2 = time.perf_counter()
-        mapper = merge_maps((_unpack(st) for st, _ in results), backend="numpy")  # one unpacked at a time
+        quiet = logging.getLogger("gpumap")  # the merged map's NumPy backend is no news to the user
+        level = quiet.level
+        quiet.setLevel(logging.WARNING)
+        try:
+            mapper = merge_maps((_unpack(st) for st, _ in results), backend="numpy")  # one at a time
+        finally:
+            quiet.setLevel(level)
         seconds_merge = time.perf_counter() - t2
     finally:
         if own:
