@@ -80,16 +80,17 @@ class MapperActor:
         return self.frames
 
     def state(self, pack: bool):
-        """The map's state; ``pack``: its float arrays packed to bytes where that is lossless
-        (:func:`_pack`: a third of the bytes to send, for about ten passes over the arrays)."""
+        """The map's state for the wire (:func:`_pack`): a dense map's observed box only, and
+        with ``pack`` its float arrays as bytes where that is lossless (a third of the bytes
+        to send, for about ten passes over the arrays)."""
         from gpumap.merge import map_state
 
         t0 = time.perf_counter()
         st = map_state(self.mapper)  # waits for the device
         self.seconds_integrate += time.perf_counter() - t0
         t1 = time.perf_counter()
-        packed = _pack(st) if pack else (st.kind, st.options, st.n_integrated,
-                                          {k: ("raw", v) for k, v in st.arrays.items()})
+        shape = self.mapper.grid.shape if st.kind == "dense" else None
+        packed = _pack(st, pack, shape)
         info = {"frames": self.frames, "seconds_integrate": self.seconds_integrate,
                 "seconds_pack": time.perf_counter() - t1, "state_mb": _nbytes(packed) / 1e6,
                 "state_mb_unpacked": sum(a.nbytes for a in st.arrays.values()) / 1e6}
@@ -110,16 +111,31 @@ def _compact(images: np.ndarray) -> np.ndarray:
     return u8 if np.array_equal(np.multiply(u8, U8_SCALE, dtype=np.float32), images) else images
 
 
-def _pack(st) -> tuple:
-    """A :class:`~gpumap.merge.MapState` for the wire: each float array whose finite values are all
-    bytes times the mapper's float32 1/255 (always so for 8-bit pings: a ping's value is the
-    max of image cells, the map's the min of those) travels as uint8 plus a bit per voxel for
-    ``+inf``, 1.1 bytes instead of 4; others as they are. :func:`_unpack` restores it exactly."""
+def _pack(st, pack: bool = True, shape: tuple | None = None) -> tuple:
+    """A :class:`~gpumap.merge.MapState` for the wire; :func:`_unpack` restores it exactly.
+
+    ``shape`` (a dense map's grid shape): only the box of the observed voxels travels (outside
+    it the state is the empty one: ``+inf``, ``+inf``, 0). ``pack``: each float array whose
+    finite values are all bytes times the mapper's float32 1/255 (always so for 8-bit pings:
+    a ping's value is the max of image cells, the map's the min of those) travels as uint8 plus
+    a bit per voxel for ``+inf``, 1.1 bytes instead of 4; others as they are.
+    """
     from gpumap.backends import U8_SCALE
 
+    crop = None
+    src = st.arrays
+    if shape is not None and st.kind == "dense":
+        fin = np.isfinite(src["min_all"]).reshape(shape)
+        spans = []
+        for ax in range(3):
+            hit = np.flatnonzero(fin.any(axis=tuple(a for a in range(3) if a != ax)))
+            spans.append((int(hit[0]), int(hit[-1]) + 1) if hit.size else (0, 0))
+        box = tuple(slice(a, b) for a, b in spans)
+        crop = (spans, tuple(shape))
+        src = {k: np.ascontiguousarray(v.reshape(shape)[box]) for k, v in src.items()}
     arrays: dict = {}
-    for k, v in st.arrays.items():
-        if v.dtype != np.float32:
+    for k, v in src.items():
+        if not pack or v.dtype != np.float32:
             arrays[k] = ("raw", v)
             continue
         fin = np.isfinite(v)
@@ -130,23 +146,28 @@ def _pack(st) -> tuple:
             arrays[k] = ("u8", u8, np.packbits(fin.ravel()))
         else:
             arrays[k] = ("raw", v)
-    return st.kind, st.options, st.n_integrated, arrays
+    return st.kind, st.options, st.n_integrated, arrays, crop
 
 
 def _unpack(packed: tuple):
     from gpumap.backends import U8_SCALE
     from gpumap.merge import MapState
 
-    kind, options, n, arrays = packed
+    kind, options, n, arrays, crop = packed
     out = {}
     for k, a in arrays.items():
         if a[0] == "raw":
-            out[k] = a[1]
-            continue
-        u8, bits = a[1], a[2]
-        v = np.multiply(u8, U8_SCALE, dtype=np.float32)
-        fin = np.unpackbits(bits, count=u8.size).view(bool).reshape(u8.shape)
-        v[~fin] = np.inf
+            v = a[1]
+        else:
+            u8, bits = a[1], a[2]
+            v = np.multiply(u8, U8_SCALE, dtype=np.float32)
+            fin = np.unpackbits(bits, count=u8.size).view(bool).reshape(u8.shape)
+            v[~fin] = np.inf
+        if crop is not None:
+            spans, shape = crop
+            full = np.zeros(shape, np.uint8) if v.dtype == np.uint8 else np.full(shape, np.inf, np.float32)
+            full[tuple(slice(a, b) for a, b in spans)] = v
+            v = full.reshape(-1)
         out[k] = v
     return MapState(kind, options, n, out)
 
@@ -155,27 +176,36 @@ def _nbytes(packed: tuple) -> int:
     return sum(x.nbytes for a in packed[3].values() for x in a[1:])
 
 
-def _grid_of(recording, voxel_size_m: float, static: bool, stride: int, max_frames: int | None,
-             frames) -> GridSpec:
-    """The grid every worker maps into, sized as :func:`gpumap.replay.run_replay` sizes it (the
-    box of every selected field of view, from the recording's cheap pose list when it has one),
-    so that the merged map is the one-process map on the same grid."""
-    from gpumap.replay import auto_grid
-
-    if static:
-        return auto_grid(next(iter(recording)).spec, [np.eye(4)], voxel_size_m)
-    poses, spec0 = [], None
+def _poses_of(recording, stride: int, max_frames: int | None, frames) -> tuple[SonarSpec, list]:
+    """(the first frame's sonar, ``T_W_S`` or None of every selected frame, in order): from the
+    recording's cheap pose list when it has one, else from one pass over the frames (frames of
+    another sonar than the first count as None)."""
     cheap = recording.poses()
     if cheap is not None:
-        poses = [T for T in cheap[::stride][:max_frames] if T is not None]
-        spec0 = next(iter(recording)).spec
-    for fr in ([] if cheap is not None else frames()):
+        return next(iter(recording)).spec, list(cheap[::stride][:max_frames])
+    poses, spec0 = [], None
+    for fr in frames():
         spec0 = spec0 or fr.spec
-        if fr.T_W_S is not None and fr.spec == spec0:
-            poses.append(fr.T_W_S)
-    if spec0 is None or not poses:
-        raise ValueError(f"Expected at least one posed frame in {recording.path}, but got none")
-    return auto_grid(spec0, poses, voxel_size_m)
+        poses.append(fr.T_W_S if fr.spec == spec0 else None)
+    if spec0 is None:
+        raise ValueError(f"Expected frames in {recording.path}, but it has none")
+    return spec0, poses
+
+
+def _space_owners(spec: SonarSpec, poses: list, grid: GridSpec, n: int) -> np.ndarray:
+    """Worker of each selected frame for the space split: frames ranked by where their field of
+    view's middle (half the range along the boresight) lies along the grid's longer horizontal
+    axis, cut into ``n`` runs of equal counts; frames without a pose go to worker 0."""
+    axis = 0 if grid.shape[0] >= grid.shape[1] else 1
+    mid = 0.5 * (spec.range_min_m + spec.range_max_m)
+    key = np.full(len(poses), -np.inf)
+    for i, T in enumerate(poses):
+        if T is not None:
+            T = np.asarray(T, np.float64)
+            key[i] = T[axis, 3] + mid * T[axis, 0]
+    owners = np.empty(len(poses), np.int64)
+    owners[np.argsort(key, kind="stable")] = np.arange(len(poses)) * n // max(1, len(poses))
+    return owners
 
 
 def _client(workers: int, scheduler: str | None, processes: bool):
@@ -228,6 +258,7 @@ def run_replay_workers(
     client=None,
     cpu_threads: int | None = None,
     pack: bool | None = None,
+    split: str = "space",
 ) -> tuple[object, dict]:
     """:func:`gpumap.replay.run_replay` in ``workers`` Dask workers: the same map, bit for bit.
 
@@ -241,6 +272,15 @@ def run_replay_workers(
         Address of a running Dask scheduler (e.g. ``"tcp://10.0.0.5:8786"``); its first
         ``workers`` workers are used. None: a LocalCluster of ``workers`` processes
         (``processes=False``: threads of this process, for tests).
+    split : str
+        ``"space"`` (default): each worker gets the pings that look at its part of the grid
+        (pings ranked by where their field of view's middle lies along the grid's longer
+        horizontal axis, cut into runs of equal counts), so that the workers' maps barely
+        overlap and little more than one map's worth travels back; ``"pings"``: batches of
+        :data:`BATCH` to each worker in turn (every worker's map spans the whole survey, but
+        the work stays even however the sonar moves). Needs every ping's pose first (the
+        recording's pose list, or one more pass over a recording without one); ``static``
+        runs split by pings.
     sparse : bool
         Workers keep :class:`gpumap.SparseMinMaxMapper` maps bounded by the grid (each sends
         only the blocks its pings observed); the result is then a sparse map.
@@ -295,9 +335,26 @@ def run_replay_workers(
             k += 1
             yield fr
 
+    if split not in ("space", "pings"):
+        raise ValueError(f"Expected split to be 'space' or 'pings', but got {split!r}")
     t_wall = time.perf_counter()
-    if grid is None:
-        grid = _grid_of(recording, voxel_size_m, static, stride, max_frames, frames)
+    owners = None
+    if static:
+        if grid is None:
+            from gpumap.replay import auto_grid
+
+            grid = auto_grid(next(iter(recording)).spec, [eye], voxel_size_m)
+    elif grid is None or split == "space":
+        spec0, sel = _poses_of(recording, stride, max_frames, frames)
+        if grid is None:  # as run_replay sizes it: the box of every selected field of view
+            from gpumap.replay import auto_grid
+
+            posed = [T for T in sel if T is not None]
+            if not posed:
+                raise ValueError(f"Expected at least one posed frame in {recording.path}, but got none")
+            grid = auto_grid(spec0, posed, voxel_size_m)
+        if split == "space":
+            owners = _space_owners(spec0, sel, grid, int(workers))
     rule = rule or ("visible" if method == "gather" else "plain")
     options = {"backend": backend, "method": method, "rule": rule, "threshold": threshold}
     t0 = time.perf_counter()
@@ -317,23 +374,21 @@ def run_replay_workers(
         actors: list = []
         pending: list[deque] = [deque() for _ in addrs]
         spec = None
-        batch: list = []
-        n_batches = 0
+        batches: list[list] = [[] for _ in addrs]
         t_map = time.perf_counter()
         t_setup = 0.0
 
-        def send() -> None:
-            nonlocal n_batches
-            w = n_batches % len(actors)
-            q = pending[w]
+        def send(w: int) -> None:
+            batch, q = batches[w], pending[w]
             while len(q) >= QUEUED:
                 q.popleft().result()
             images, poses = _compact(np.stack([b[0] for b in batch])), np.stack([b[1] for b in batch])
             q.append(actors[w].integrate_batch(images, poses))
-            n_batches += 1
             batch.clear()
 
-        for fr in tqdm(frames(), total=total, unit="img", disable=not progress, desc=f"replay x{len(addrs)}"):
+        frame_iter = tqdm(frames(), total=total, unit="img", disable=not progress,
+                          desc=f"replay x{len(addrs)}")
+        for i, fr in enumerate(frame_iter):
             if spec is None:
                 ts = time.perf_counter()
                 spec = fr.spec
@@ -350,18 +405,25 @@ def run_replay_workers(
             if T is None:
                 stats["skipped_no_pose"] += 1
                 continue
+            # space: the worker of the frame's place; pings: BATCH frames to each worker in turn
+            if owners is not None:
+                w = int(owners[i]) if i < len(owners) else 0  # a frame the pose list missed
+            else:
+                w = (stats["frames"] // BATCH) % len(actors)
+            batch = batches[w]
             if batch and fr.image.dtype != batch[0][0].dtype:
-                send()
+                send(w)
             batch.append((np.array(fr.image), np.asarray(T, np.float64)))
             if len(batch) == BATCH:
-                send()
+                send(w)
             stats["frames"] += 1
             if positions is not None:
                 positions.append(np.asarray(T, dtype=np.float64)[:3, 3].copy())
         if spec is None:
             raise ValueError(f"Expected frames in {recording.path}, but it has none")
-        if batch:
-            send()
+        for w, batch in enumerate(batches):
+            if batch:
+                send(w)
         for q in pending:
             while q:
                 q.popleft().result()
@@ -401,6 +463,7 @@ def run_replay_workers(
         grid=grid.to_dict(),
         grid_shape=list(grid.shape),
         workers=len(addrs),
+        split="space" if owners is not None else "pings",
         scheduler=scheduler or "LocalCluster",
         seconds_cluster=seconds_cluster,
         seconds_map=seconds_map,

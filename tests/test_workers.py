@@ -62,12 +62,14 @@ def test_workers_equal_one_process_on_real_frames(cluster, backend, rule):
     one, s1 = run_replay(rec, **kw)
     assert one.observed().sum() > 10_000
     pos: list = []
-    for n in (2, 3):
-        got, s = run_replay_workers(rec, workers=n, client=client, positions=pos if n == 2 else None, **kw)
+    for n, split in ((2, "space"), (3, "pings")):
+        got, s = run_replay_workers(rec, workers=n, client=client, positions=pos if n == 2 else None,
+                                    split=split, **kw)
         assert got.grid == one.grid and s["frames"] == s1["frames"] == 41
-        assert s["workers"] == n and sum(p["frames"] for p in s["per_worker"]) == 41
-        # batches of 32 go round-robin: with 41 frames every worker of 2 maps some
-        assert all(p["frames"] > 0 for p in s["per_worker"][:2])
+        assert s["workers"] == n and s["split"] == split
+        # space: equal shares by place; pings: batches of 32 in turn
+        want = [21, 20] if split == "space" else [32, 9, 0]
+        assert sorted((p["frames"] for p in s["per_worker"]), reverse=True) == want
         _assert_same(got, one)
     assert len(pos) == 41
 
@@ -132,7 +134,7 @@ def test_simulated_byte_frames_travel_as_uint8_and_map_the_same(cluster):
     rec = Recording("sim", "sim", lambda: iter(frames), True, count=lambda: len(frames))
     one, _ = run_replay(rec, voxel_size_m=0.07, backend="numpy", progress=False, threshold=0.1)
     got, s = run_replay_workers(rec, workers=3, client=client, voxel_size_m=0.07, backend="numpy",
-                                progress=False, threshold=0.1, pack=True)
+                                progress=False, threshold=0.1, pack=True, split="pings")
     assert [p["frames"] for p in s["per_worker"]] == [32, 32, 6]
     # the maps of byte pings travel packed (uint8 + a bit per voxel for unknown)
     assert all(p["state_mb"] < 0.4 * p["state_mb_unpacked"] for p in s["per_worker"])
@@ -155,8 +157,20 @@ def test_state_packing_is_exact_or_not_used():
     packed = _pack(st)
     kinds = {k: a[0] for k, a in packed[3].items()}
     assert kinds == {"min_all": "u8", "bright": "raw", "count": "raw"}
-    back = _unpack(packed)
-    assert back.n_integrated == 7
-    for k in st.arrays:
-        assert back.arrays[k].dtype == st.arrays[k].dtype and back.arrays[k].shape == st.arrays[k].shape
-        assert back.arrays[k].tobytes() == st.arrays[k].tobytes(), k
+    # a dense map sends only the box of its observed voxels (here [:, 5:17, 36:64])
+    shape = (8, 40, 64)
+    dense = {k: np.full(shape, np.inf, np.float32) for k in ("min_all", "bright")}
+    dense["count"] = np.zeros(shape, np.uint8)
+    for k in ("min_all", "bright"):
+        dense[k][:, 5:17, 36:] = byte.ravel()[: 8 * 12 * 28].reshape(8, 12, 28)
+    dense["count"][2, 5:17, 36:] = 3
+    dense["min_all"][2, 5:17, 36:] = 0.0  # counted voxels are observed
+    dst = MapState("dense", {}, 2, {k: v.ravel() for k, v in dense.items()})
+    cropped = _pack(dst, pack=False, shape=shape)
+    assert cropped[4][0] == [(0, 8), (5, 17), (36, 64)]
+    for ref, wire in ((st, packed), (dst, cropped), (dst, _pack(dst, True, shape))):
+        back = _unpack(wire)
+        assert back.n_integrated == ref.n_integrated
+        for k in ref.arrays:
+            assert back.arrays[k].dtype == ref.arrays[k].dtype and back.arrays[k].shape == ref.arrays[k].shape
+            assert back.arrays[k].tobytes() == ref.arrays[k].tobytes(), k
