@@ -1,7 +1,8 @@
 """Worker overhead: the survey mapped by one process against N Dask workers on the same cores.
 
     python -m bench.workers [--backend warp-cpu] [--voxel 0.05] [--workers 2] [--reps 3]
-                            [--sparse] [--worker-threads N] [--passes K] [--section NAME]
+                            [--sparse] [--worker-threads N] [--passes K] [--split space|pings]
+                            [--section NAME]
                             [--out bench/results/workers.json]
 
 Pings: the survey scene's 200 (``bench/results/tmp/survey_pings.npz``, rendered first if
@@ -82,6 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--worker-threads", type=int, default=None,
                    help="threads each worker's CPU backend splits a gather into (default: as one process, 2)")
     p.add_argument("--section", default="dense", help="name of this run's section in --out")
+    p.add_argument("--split", default="space", choices=["space", "pings"],
+                   help="how pings are shared among the workers (run_replay_workers' split)")
     p.add_argument("--passes", type=int, default=1,
                    help="feed the survey's pings this many times (a resurvey of the same area: more "
                         "pings for the same map size)")
@@ -119,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
             load1 = _load()
             t0 = time.perf_counter()
             got, sw = run_replay_workers(rec, workers=args.workers, client=client, sparse=args.sparse,
-                                         cpu_threads=args.worker_threads, **kw)
+                                         cpu_threads=args.worker_threads, split=args.split, **kw)
             wall_w = time.perf_counter() - t0
             load2 = _load()
             row = {
@@ -167,6 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         "backend": args.backend,
         "workers": args.workers,
         "worker_threads": args.worker_threads or "default (2)",
+        "split": args.split,
         "cpu_count": os.cpu_count(),
         "machine": {"platform": platform.platform(), "python": platform.python_version()},
         "seconds_cluster_start": round(seconds_cluster, 3),

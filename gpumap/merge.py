@@ -65,12 +65,17 @@ class MapState:
         ``min_all`` float32 (``+inf`` never observed), and for the visible rule ``bright``
         float32 and ``count`` uint8: dense ``(n_voxels,)`` in C order; sparse ``(n, B^3)``
         per block, with ``blocks`` ``(n, 3)`` int64 block coordinates (lexicographic order).
+    box : tuple or None
+        Dense only: ``((i0, i1), (j0, j1), (k0, k1))``, the arrays cover just this box of the
+        grid (C order, ``(i1 - i0) (j1 - j0) (k1 - k0)`` voxels); outside it the state is the
+        empty one (never observed). None: the whole grid.
     """
 
     kind: str
     options: dict
     n_integrated: int
     arrays: dict = field(repr=False)
+    box: tuple | None = None
 
 
 def _options(mapper) -> tuple[str, dict]:
@@ -139,14 +144,32 @@ def _as_state(other, backend: str = "numpy") -> MapState:
     return map_state(other)
 
 
-def _combine(a: dict, b: dict, visible: bool) -> dict:
-    """The merged state of two sets of voxels (same layout): mins and a saturating sum."""
-    out = {"min_all": np.minimum(a["min_all"], b["min_all"])}
+def _combine_into(acc: dict, b: dict, visible: bool) -> None:
+    """``acc`` (arrays or views, e.g. a box of the grid) becomes the merge of itself and ``b``
+    (the same voxels, any shape of the same size), in place."""
+    shape = acc["min_all"].shape
+    np.minimum(acc["min_all"], b["min_all"].reshape(shape), out=acc["min_all"])
     if visible:
-        out["bright"] = np.minimum(a["bright"], b["bright"])
-        s = a["count"].astype(np.uint16) + b["count"].astype(np.uint16)
-        out["count"] = np.minimum(s, _COUNT_MAX).astype(np.uint8)
+        np.minimum(acc["bright"], b["bright"].reshape(shape), out=acc["bright"])
+        c = acc["count"].astype(np.uint16)
+        c += b["count"].reshape(shape)
+        np.minimum(c, _COUNT_MAX, out=c)
+        acc["count"][...] = c
+
+
+def _empty_dense(n: int, visible: bool) -> dict:
+    out = {"min_all": np.full(n, np.inf, np.float32)}
+    if visible:
+        out["bright"], out["count"] = np.full(n, np.inf, np.float32), np.zeros(n, np.uint8)
     return out
+
+
+def _box_views(full: dict, shape: tuple, box: tuple | None) -> dict:
+    """Views of the (n_voxels,) arrays ``full`` on ``box`` of a grid of ``shape`` (all if None)."""
+    if box is None:
+        return full
+    sl = tuple(slice(a, b) for a, b in box)
+    return {k: v.reshape(shape)[sl] for k, v in full.items()}
 
 
 def merge_into(mapper, other) -> None:
@@ -178,6 +201,14 @@ def _check_arrays(st: MapState, mapper) -> None:
     names = ("min_all", "bright", "count") if st.options["rule"] == "visible" else ("min_all",)
     if st.kind == "dense":
         n = mapper.grid.n_voxels
+        if st.box is not None:
+            box = st.box
+            ok = len(box) == 3 and all(
+                0 <= int(a) <= int(b) <= d for (a, b), d in zip(box, mapper.grid.shape, strict=True)
+            )
+            if not ok:
+                raise ValueError(f"Expected a box inside the grid {mapper.grid.shape}, but got {box!r}")
+            n = int(np.prod([b - a for a, b in box]))
         want = {k: ((n,), np.uint8 if k == "count" else np.float32) for k in names}
     else:
         m = len(st.arrays.get("blocks", ()))
@@ -199,13 +230,13 @@ def _check_arrays(st: MapState, mapper) -> None:
 def _merge_dense(mapper, st: MapState, visible: bool) -> None:
     with mapper._lock:
         mapper.synchronize()
-        mine = {"min_all": mapper._backend.read()}
+        mine = {"min_all": mapper._backend.read()}  # copies: combined in place below
         if visible:
             mine["bright"], mine["count"] = mapper._backend.read_evidence()
-        new = _combine(mine, st.arrays, visible)
+        _combine_into(_box_views(mine, mapper.grid.shape, st.box), st.arrays, visible)
         if visible:
-            mapper._backend.write_evidence(new["bright"], new["count"])
-        mapper._backend.write(new["min_all"])
+            mapper._backend.write_evidence(mine["bright"], mine["count"])
+        mapper._backend.write(mine["min_all"])
         mapper.n_integrated += int(st.n_integrated)
 
 
@@ -250,8 +281,8 @@ def _merge_sparse(mapper, st: MapState, visible: bool) -> None:
             mine = {"min_all": g[addr]}
             if visible:
                 mine["bright"], mine["count"] = b[addr], c[addr]
-            out = _combine(mine, st.arrays, visible)
-            mapper._backend.write_blocks(slots, out["min_all"], out.get("bright"), out.get("count"))
+            _combine_into(mine, st.arrays, visible)  # mine: copies (fancy indexing)
+            mapper._backend.write_blocks(slots, mine["min_all"], mine.get("bright"), mine.get("count"))
         mapper.n_integrated += int(st.n_integrated)
 
 
@@ -334,24 +365,19 @@ def merge_maps(maps, backend: str = "auto", **kw):
         for m in it:
             merge_into(out, m)
         return out
-    # dense: combine the arrays here (in place, one pass per map), then write the map once
-    _check_arrays(first, out)
+    # dense: combine the arrays here (in place, one pass per map over its box), write the map once
     visible = out.rule == "visible"
-    acc = {k: v.copy() for k, v in first.arrays.items()}
-    n = int(first.n_integrated)
-    for m in it:
-        st = _as_state(m)
+    shape = out.grid.shape
+    acc = _empty_dense(out.grid.n_voxels, visible)
+    n = 0
+    st = first
+    while st is not None:
         _same(first.kind, first.options, st)
         _check_arrays(st, out)
-        np.minimum(acc["min_all"], st.arrays["min_all"], out=acc["min_all"])
-        if visible:
-            np.minimum(acc["bright"], st.arrays["bright"], out=acc["bright"])
-            c = acc["count"].astype(np.uint16)
-            c += st.arrays["count"]
-            np.minimum(c, _COUNT_MAX, out=c)
-            acc["count"] = c.astype(np.uint8)
+        _combine_into(_box_views(acc, shape, st.box), st.arrays, visible)
         n += int(st.n_integrated)
-        del st
+        nxt = next(it, None)
+        st = None if nxt is None else _as_state(nxt)
     with out._lock:
         if visible:
             out._backend.write_evidence(acc["bright"], acc["count"])

@@ -1,22 +1,28 @@
 """Map a recording in Dask workers and merge their maps: ``gpumap replay RECORDING --workers N``.
 
-How the work is split: by pings. The client reads the recording once (the readers are
-sequential streams) and hands the pings, in batches of :data:`BATCH`, to N workers in turn
-(batch ``b`` to worker ``b mod N``); each worker keeps one mapper (a Dask *actor*: its map
-stays in the worker between batches, on the worker's own backend) and integrates its
-batches as they come, while the client reads the next ones. At the end every worker sends
-its map's state (:class:`gpumap.merge.MapState`) and the client merges them
-(:func:`gpumap.merge.merge_maps`). Every update is a min or a saturating count, so the merged
-map equals the map of one process, bit for bit, whatever the split (:mod:`gpumap.merge`).
+How the work is split: by pings, grouped by place. The client reads the recording once (the
+readers are sequential streams) and hands each ping to one of N workers, in batches of
+:data:`BATCH`; each worker keeps one mapper (a Dask *actor*: its map stays in the worker
+between batches, on the worker's own backend) and integrates its batches as they come,
+while the client reads the next ones. At the end every worker sends its map's state
+(:class:`gpumap.merge.MapState`) and the client merges them (:func:`gpumap.merge.merge_maps`).
+Every update is a min or a saturating count, so the merged map equals the map of one
+process, bit for bit, whatever the split (:mod:`gpumap.merge`).
 
-Why pings and not space: a worker's map over a sub-box of the grid would compute its voxel
-centres from another origin, whose float32 rounding differs from the whole grid's, so tiles
-would not be bit for bit the one-process map; splitting by pings needs no such care, and
-the map's state is what travels (at most one grid per worker; a sparse map sends only its
-observed blocks).
+Which worker gets a ping (``split``): ``"space"`` (default) ranks the pings by where their
+field of view's middle lies along the grid's longer horizontal axis and cuts the ranking
+into N runs of equal counts, so each worker maps one stretch of the survey and the workers'
+maps overlap only at the seams: a dense map sends only the box of its observed voxels and a
+sparse map only its blocks, about one map's worth in all. ``"pings"`` sends batches to each
+worker in turn: the work stays even however the sonar moves, but every worker's map spans
+the whole survey and N whole maps travel back.
 
-What it costs: every worker holds a whole map (dense) or the blocks its pings reached
-(``sparse=True``), and sends it once at the end; the client sends every ping once. The
+Why not tiles of the grid (each worker a sub-grid): a sub-grid's voxel centres, computed
+from its own origin in float32, round differently from the whole grid's, so tiles would not
+give the one-process map bit for bit; every worker here maps on the whole grid's lattice.
+
+What it costs: the client sends every ping once, and each worker's map comes back once (a
+fixed cost per run that mapping must outweigh; ``bench/workers.py`` measures it). The
 workers need gpumap installed, not the recording. Any Dask cluster works
 (``scheduler="tcp://host:8786"``); without one, a :class:`distributed.LocalCluster` of N
 single-threaded worker processes is started and closed again.
@@ -163,13 +169,8 @@ def _unpack(packed: tuple):
             v = np.multiply(u8, U8_SCALE, dtype=np.float32)
             fin = np.unpackbits(bits, count=u8.size).view(bool).reshape(u8.shape)
             v[~fin] = np.inf
-        if crop is not None:
-            spans, shape = crop
-            full = np.zeros(shape, np.uint8) if v.dtype == np.uint8 else np.full(shape, np.inf, np.float32)
-            full[tuple(slice(a, b) for a, b in spans)] = v
-            v = full.reshape(-1)
-        out[k] = v
-    return MapState(kind, options, n, out)
+        out[k] = v.reshape(-1) if crop is not None else v  # a dense box travels as (nx, ny, nz)
+    return MapState(kind, options, n, out, None if crop is None else tuple(tuple(x) for x in crop[0]))
 
 
 def _nbytes(packed: tuple) -> int:

@@ -195,6 +195,22 @@ def test_mismatches_are_refused_and_leave_the_map_unchanged():
     with pytest.raises(ValueError, match="'count' of shape"):
         m.merge(bad)
     _assert_same(_state(m), before)
+    # a state that covers a box of the grid: merged where it says, refused outside the grid
+    sl = (slice(2, 9), slice(0, GRID.shape[1]), slice(3, 11))
+    inside = {k: np.ascontiguousarray(v.reshape(GRID.shape)[sl]).ravel() for k, v in st.arrays.items()}
+    boxed = MapState(st.kind, st.options, st.n_integrated, inside, ((2, 9), (0, GRID.shape[1]), (3, 11)))
+    full = {k: v.reshape(GRID.shape).copy() for k, v in st.arrays.items()}
+    for k, v in full.items():  # the same state with everything outside the box emptied
+        keep = v[sl].copy()
+        v[...] = 0 if k == "count" else np.inf
+        v[sl] = keep
+    ref = merge_maps([map_state(m), MapState(st.kind, st.options, st.n_integrated,
+                                             {k: v.ravel() for k, v in full.items()})], backend="numpy")
+    _assert_same(_state(merge_maps([map_state(m), boxed], backend="numpy")), _state(ref))
+    assert np.isfinite(full["min_all"]).any() and not np.array_equal(full["min_all"], st.arrays["min_all"])
+    with pytest.raises(ValueError, match="box inside the grid"):
+        m.merge(MapState(st.kind, st.options, 1, boxed.arrays, ((2, 9), (0, GRID.shape[1] + 1), (3, 11))))
+    _assert_same(_state(m), before)
     with pytest.raises(ValueError, match="at least one"):
         merge_maps([])
 
