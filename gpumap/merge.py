@@ -199,6 +199,8 @@ def merge_into(mapper, other) -> None:
 def _check_arrays(st: MapState, mapper) -> None:
     """The state's arrays have the shapes and dtypes its options say (a MapState built by hand)."""
     names = ("min_all", "bright", "count") if st.options["rule"] == "visible" else ("min_all",)
+    if st.kind == "sparse" and st.box is not None:
+        raise ValueError(f"Expected no box with a sparse map's state (blocks say where), but got {st.box!r}")
     if st.kind == "dense":
         n = mapper.grid.n_voxels
         if st.box is not None:
@@ -225,6 +227,34 @@ def _check_arrays(st: MapState, mapper) -> None:
     n = st.n_integrated
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
         raise ValueError(f"Expected a non-negative ping count in the map to merge, but got {n!r}")
+
+
+def _union_blocks(first: MapState, rest, like) -> MapState:
+    """One sparse state holding the merge of ``first`` and the maps in ``rest`` (checked
+    against ``first`` and ``like``, the mapper they go into): the union of their blocks, each
+    block's arrays combined as :func:`_combine_into` combines voxels."""
+    states = [first]
+    for m in rest:
+        st = _as_state(m)
+        _same(first.kind, first.options, st)
+        states.append(st)
+    for st in states:
+        _check_arrays(st, like)
+    visible = first.options["rule"] == "visible"
+    coords, inverse = np.unique(np.concatenate([st.arrays["blocks"] for st in states]), axis=0,
+                                return_inverse=True)
+    inverse = inverse.reshape(-1)
+    acc = {k: v.reshape(len(coords), -1) for k, v in _empty_dense(len(coords) * like.B3, visible).items()}
+    start = 0
+    for st in states:
+        rows = inverse[start : start + len(st.arrays["blocks"])]  # distinct within one map
+        start += len(rows)
+        part = {k: acc[k][rows] for k in acc}
+        _combine_into(part, st.arrays, visible)
+        for k in acc:
+            acc[k][rows] = part[k]
+    return MapState(first.kind, first.options, sum(int(st.n_integrated) for st in states),
+                    {"blocks": coords.astype(np.int64), **acc})
 
 
 def _merge_dense(mapper, st: MapState, visible: bool) -> None:
@@ -361,9 +391,7 @@ def merge_maps(maps, backend: str = "auto", **kw):
         raise ValueError("Expected at least one map to merge, but got none") from None
     out = new_like(first, backend=backend, **kw)
     if first.kind == "sparse":
-        merge_into(out, first)
-        for m in it:
-            merge_into(out, m)
+        merge_into(out, _union_blocks(first, it, out))  # the blocks merged here, written once
         return out
     # dense: combine the arrays here (in place, one pass per map over its box), write the map once
     visible = out.rule == "visible"
