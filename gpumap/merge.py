@@ -306,12 +306,15 @@ def _merge_sparse(mapper, st: MapState, visible: bool) -> None:
                 mapper._used[slots_new] = True
                 mapper._backend.set_blocks(slots_new.astype(np.int32), lins[new].astype(np.int32))
             slots = flat[lins].astype(np.int64)
-            g, b, c = mapper._backend.read()
-            addr = slots[:, None] * B3 + np.arange(B3)
-            mine = {"min_all": g[addr]}
-            if visible:
-                mine["bright"], mine["count"] = b[addr], c[addr]
-            _combine_into(mine, st.arrays, visible)  # mine: copies (fancy indexing)
+            if n_new == len(coords):  # every block is new (empty): the merge is the other's arrays
+                mine = st.arrays
+            else:
+                g, b, c = mapper._backend.read()
+                addr = slots[:, None] * B3 + np.arange(B3)
+                mine = {"min_all": g[addr]}
+                if visible:
+                    mine["bright"], mine["count"] = b[addr], c[addr]
+                _combine_into(mine, st.arrays, visible)  # mine: copies (fancy indexing)
             mapper._backend.write_blocks(slots, mine["min_all"], mine.get("bright"), mine.get("count"))
         mapper.n_integrated += int(st.n_integrated)
 
