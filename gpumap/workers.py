@@ -30,6 +30,7 @@ single-threaded worker processes is started and closed again.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import time
@@ -315,26 +316,17 @@ def run_replay_workers(
 
     if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ValueError(f"Expected workers to be a positive integer, but got {workers!r}")
-    if not recording.has_poses and not static:
-        raise ValueError(
-            f"Expected a recording with sonar poses, but {recording.path} ({recording.kind}) has "
-            "none: mapping needs a pose per ping. Pass --static to map every ping at one fixed "
-            "pose (identity)."
-        )
+    if not (recording.has_poses or static):
+        raise ValueError(f"Expected sonar poses in {recording.path} ({recording.kind}) to map it, but it has "
+                         "none (--static maps every ping at the identity pose)")
     if sparse and method != "gather":
         raise ValueError(f"Expected method='gather' with sparse=True, but got {method!r}")
     stride = max(1, int(stride))
     eye = np.eye(4)
 
-    def frames():
-        k = 0
-        for i, fr in enumerate(recording):
-            if i % stride:
-                continue
-            if max_frames is not None and k >= max_frames:
-                return
-            k += 1
-            yield fr
+    def frames():  # every stride-th frame, at most max_frames of them (as run_replay selects)
+        stop = None if max_frames is None else max_frames * stride
+        return itertools.islice(iter(recording), 0, stop, stride)
 
     if split not in ("space", "pings"):
         raise ValueError(f"Expected split to be 'space' or 'pings', but got {split!r}")
