@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.time()
     tc = time.perf_counter()
     cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
-                           scheduler_kwargs={"dashboard": False}, silence_logs=logging.CRITICAL)
+                           dashboard_address=":0", silence_logs=logging.CRITICAL)
     client = Client(cluster)
     seconds_cluster = time.perf_counter() - tc
     try:

@@ -235,7 +235,7 @@ def _client(workers: int, scheduler: str | None, processes: bool):
             ) from e
         return client, None
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
-                           scheduler_kwargs={"dashboard": False}, silence_logs=logging.CRITICAL)
+                           dashboard_address=":0", silence_logs=logging.CRITICAL)
     return Client(cluster), cluster
 
 

@@ -25,7 +25,7 @@ from gpumap.workers import run_replay_workers  # noqa: E402
 @pytest.fixture(scope="module")
 def cluster():
     with LocalCluster(n_workers=3, threads_per_worker=1, processes=False,
-                      scheduler_kwargs={"dashboard": False}) as c:
+                      dashboard_address=":0") as c:
         with Client(c) as client:
             yield c, client
 
