@@ -244,3 +244,20 @@ def test_merge_command_writes_the_map_of_all_pings(tmp_path, capsys):
     other = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain").save(tmp_path / "p.npz")
     assert main(["merge", str(tmp_path / "x.npz"), str(parts[0]), str(other)]) == 2
     assert "same rule" in capsys.readouterr().err and not (tmp_path / "x.npz").exists()
+
+
+def test_export_reads_sparse_map_files_too(tmp_path, capsys):
+    import json
+
+    from gpumap.cli import main
+    from gpumap.io import read_ply
+
+    m = _sparse("numpy", _random_pings(3, 1))
+    path = m.save(tmp_path / "s.npz")
+    assert main(["export", str(path), str(tmp_path / "s.ply")]) == 0
+    info = json.loads(capsys.readouterr().out)
+    pts = m.occupied_points(0.1)
+    assert info["occupied_cells"] == len(pts) > 100
+    ply = read_ply(tmp_path / "s.ply")
+    got = np.stack([ply["x"], ply["y"], ply["z"]], axis=1).astype(np.float64)
+    np.testing.assert_allclose(np.sort(got, axis=0), np.sort(pts, axis=0), atol=1e-5)
