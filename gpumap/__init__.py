@@ -14,7 +14,7 @@ from gpumap.sparse import MapMemoryError, SparseMinMaxMapper, SparseSpec
 from gpumap.spec import GridSpec, SonarSpec
 
 __all__ = ["BackendUnavailableError", "GridSpec", "MapMemoryError", "MinMaxMapper", "SonarSpec",
-           "SparseMinMaxMapper", "SparseSpec", "available_backends"]
+           "SparseMinMaxMapper", "SparseSpec", "available_backends", "load_map", "merge_maps"]
 __version__ = "0.1.0"
 
 
@@ -23,4 +23,8 @@ def __getattr__(name: str):  # lazy: importing gpumap must not import warp or py
         from gpumap import mapper
 
         return getattr(mapper, name)
+    if name in ("merge_maps", "load_map"):
+        from gpumap import merge
+
+        return getattr(merge, name)
     raise AttributeError(f"module 'gpumap' has no attribute {name!r}")

@@ -557,6 +557,14 @@ class MinMaxMapper:
                 self._backend.write_evidence(*_evidence_empty(self.grid.n_voxels))
             self.n_integrated = 0
 
+    def merge(self, other) -> None:
+        """Add the pings of ``other`` (a map of the same grid and options built from other pings:
+        a mapper, a :class:`gpumap.merge.MapState` or a map file) to this map, in place; the result
+        equals one mapper that integrated all of them, bit for bit (:mod:`gpumap.merge`)."""
+        from gpumap.merge import merge_into
+
+        merge_into(self, other)
+
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | os.PathLike) -> Path:
         """Write the map to ``path`` (.npz), atomically: a crash leaves the old file intact.

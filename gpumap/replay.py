@@ -655,6 +655,9 @@ def _parser() -> ArgumentParser:
     # the old spelling, still accepted (not shown): one spelling for the same idea across commands
     ap.add_argument("--quiet", dest="no_progress", action="store_true", help=argparse.SUPPRESS)
     from gpumap.ekf_replay import add_ekf_args
+    from gpumap.workers import add_worker_args
+
+    add_worker_args(ap)
     from gpumap.viewer.cli import add_view_args
 
     add_view_args(ap)
@@ -669,6 +672,9 @@ def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]
     from gpumap.viewer.cli import check_view_args
 
     check_view_args(ap, a)
+    from gpumap.workers import check_worker_args
+
+    check_worker_args(ap, a)
     if a.method == "template" and a.rule == "visible":
         ap.error("argument --rule: Expected rule='plain' with --method template (the template "
                  "method's duplicate points cannot count views once), but got --rule visible")
@@ -786,6 +792,12 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
         order = (rule, *[r for r in RULES if r != rule])
         runs = replay_rules(rec, rules=order, grid=grid, positions=positions, **replay_kw)
         mapper, stats = runs[rule]
+    elif a.workers:  # gpumap.workers: the same map, mapped in Dask workers and merged
+        from gpumap.workers import run_replay_workers
+
+        replay_kw.pop("on_ping")
+        mapper, stats = run_replay_workers(rec, workers=a.workers, scheduler=a.scheduler, grid=grid,
+                                           rule=a.rule, positions=positions, **replay_kw)
     else:
         mapper, stats = run_replay(rec, grid=grid, rule=a.rule, positions=positions, **replay_kw)
     for s in getattr(a, "view_sessions", ()):

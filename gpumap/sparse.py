@@ -1564,6 +1564,13 @@ class SparseMinMaxMapper:
             self._free_slots(np.flatnonzero(self._used))
             self.n_integrated = 0
 
+    def merge(self, other) -> None:
+        """Add the pings of ``other`` (a sparse map of the same spec and options) to this map, in
+        place, bit for bit as one mapper of all the pings; never evicts (:mod:`gpumap.merge`)."""
+        from gpumap.merge import merge_into
+
+        merge_into(self, other)
+
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | os.PathLike) -> Path:
         """Write the map to ``path`` (.npz) atomically; lossless.

@@ -347,13 +347,15 @@ def test_interrupted_demo_leaves_the_previous_outputs(tmp_path, monkeypatch, cap
 def _parsers():
     import gpumap.bench.__main__ as bench
 
-    import gpumap.io.octomap
+    import gpumap.export_cli
+    import gpumap.merge_cli
     import gpumap.ros.node
     import gpumap.ros.play
     import gpumap.viewer.cli
 
     return {"demo": gpumap.sim.demo._parser(), "replay": gpumap.replay._parser(),
-            "view": gpumap.viewer.cli._parser(), "export": gpumap.io.octomap._export_parser(),
+            "view": gpumap.viewer.cli._parser(), "export": gpumap.export_cli._parser(),
+            "merge": gpumap.merge_cli._parser(),
             "bench": bench._parser(), "ros": gpumap.ros.node._parser(), "ros-play": gpumap.ros.play._parser()}
 
 

@@ -1,0 +1,496 @@
+"""Map a recording in Dask workers and merge their maps: ``gpumap replay RECORDING --workers N``.
+
+How the work is split: by pings, grouped by place. The client reads the recording once (the
+readers are sequential streams) and hands each ping to one of N workers, in batches of
+:data:`BATCH`; each worker keeps one mapper (a Dask *actor*: its map stays in the worker
+between batches, on the worker's own backend) and integrates its batches as they come,
+while the client reads the next ones. At the end every worker sends its map's state
+(:class:`gpumap.merge.MapState`) and the client merges them (:func:`gpumap.merge.merge_maps`).
+Every update is a min or a saturating count, so the merged map equals the map of one
+process, bit for bit, whatever the split (:mod:`gpumap.merge`).
+
+Which worker gets a ping (``split``): ``"space"`` (default) ranks the pings by where their
+field of view's middle lies along the grid's longer horizontal axis and cuts the ranking
+into N runs of equal counts, so each worker maps one stretch of the survey and the workers'
+maps overlap only at the seams: a dense map sends only the box of its observed voxels and a
+sparse map only its blocks, about one map's worth in all. ``"pings"`` sends batches to each
+worker in turn: the work stays even however the sonar moves, but every worker's map spans
+the whole survey and N whole maps travel back.
+
+Why not tiles of the grid (each worker a sub-grid): a sub-grid's voxel centres, computed
+from its own origin in float32, round differently from the whole grid's, so tiles would not
+give the one-process map bit for bit; every worker here maps on the whole grid's lattice.
+
+What it costs: the client sends every ping once, and each worker's map comes back once (a
+fixed cost per run that mapping must outweigh; ``bench/workers.py`` measures it). The
+workers need gpumap installed, not the recording. Any Dask cluster works
+(``scheduler="tcp://host:8786"``); without one, a :class:`distributed.LocalCluster` of N
+single-threaded worker processes is started and closed again.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+import time
+from collections import deque
+
+import numpy as np
+
+from gpumap.spec import GridSpec, SonarSpec
+
+__all__ = ["BATCH", "add_worker_args", "check_worker_args", "run_replay_workers"]
+
+log = logging.getLogger("gpumap")
+
+#: Pings per batch sent to a worker (as :func:`gpumap.replay.run_replay` batches them).
+BATCH = 32
+#: Batches a worker may have queued before the client waits for it (bounds the memory in flight).
+QUEUED = 2
+
+
+class MapperActor:
+    """One worker's mapper (a Dask actor): integrates the batches it is sent, returns its state."""
+
+    def __init__(self, spec: dict, grid: dict, options: dict, sparse: bool, cpu_threads: int | None) -> None:
+        from gpumap.mapper import MinMaxMapper
+        from gpumap.sparse import SparseMinMaxMapper, SparseSpec
+
+        t0 = time.perf_counter()
+        if cpu_threads is not None:  # this worker process's CPU backends split gathers this many ways
+            import gpumap.backends
+
+            gpumap.backends.CPU_THREADS = int(cpu_threads)
+        s, g = SonarSpec.from_dict(spec), GridSpec.from_dict(grid)
+        if sparse:
+            o = {k: v for k, v in options.items() if k != "method"}
+            box = SparseSpec(g.voxel_size_m, (g.min_corner_m, g.max_corner_m))
+            self.mapper = SparseMinMaxMapper(s, box, **o)
+        else:
+            self.mapper = MinMaxMapper(s, g, **options)
+        self.seconds_setup = time.perf_counter() - t0
+        self.seconds_integrate = 0.0
+        self.frames = 0
+
+    def info(self) -> dict:
+        return {"backend": self.mapper.backend, "device": self.mapper.device,
+                "seconds_setup": self.seconds_setup}
+
+    def integrate_batch(self, images: np.ndarray, poses: np.ndarray) -> int:
+        """Integrate a batch: float32 frames, or uint8 ones that are exactly the frames x 255 (the
+        mapper scales uint8 by the same float32 1/255, so the map is the same bit for bit)."""
+        t0 = time.perf_counter()
+        self.mapper.integrate_batch(images, poses)
+        self.seconds_integrate += time.perf_counter() - t0
+        self.frames += len(images)
+        return self.frames
+
+    def state(self, pack: bool):
+        """The map's state for the wire (:func:`_pack`): a dense map's observed box only, and
+        with ``pack`` its float arrays as bytes where that is lossless (a third of the bytes
+        to send, for about ten passes over the arrays)."""
+        from gpumap.merge import map_state
+
+        t0 = time.perf_counter()
+        st = map_state(self.mapper)  # waits for the device
+        self.seconds_integrate += time.perf_counter() - t0
+        t1 = time.perf_counter()
+        shape = self.mapper.grid.shape if st.kind == "dense" else None
+        packed = _pack(st, pack, shape)
+        info = {"frames": self.frames, "seconds_integrate": self.seconds_integrate,
+                "seconds_pack": time.perf_counter() - t1, "state_mb": _nbytes(packed) / 1e6,
+                "state_mb_unpacked": sum(a.nbytes for a in st.arrays.values()) / 1e6}
+        return packed, info
+
+
+def _compact(images: np.ndarray) -> np.ndarray:
+    """``images`` as uint8 when that is lossless for the mapper (every value is a byte times
+    the mapper's float32 1/255, as the 8-bit sonars' frames are): a quarter of the bytes to send."""
+    from gpumap.backends import U8_SCALE
+
+    if images.dtype != np.float32:
+        return images
+    b = np.rint(images * np.float32(255.0))
+    if not (b.min() >= 0 and b.max() <= 255):
+        return images
+    u8 = b.astype(np.uint8)
+    return u8 if np.array_equal(np.multiply(u8, U8_SCALE, dtype=np.float32), images) else images
+
+
+def _pack(st, pack: bool = True, shape: tuple | None = None) -> tuple:
+    """A :class:`~gpumap.merge.MapState` for the wire; :func:`_unpack` restores it exactly.
+
+    ``shape`` (a dense map's grid shape): only the box of the observed voxels travels (outside
+    it the state is the empty one: ``+inf``, ``+inf``, 0). ``pack``: each float array whose
+    finite values are all bytes times the mapper's float32 1/255 (always so for 8-bit pings:
+    a ping's value is the max of image cells, the map's the min of those) travels as uint8 plus
+    a bit per voxel for ``+inf``, 1.1 bytes instead of 4; others as they are.
+    """
+    from gpumap.backends import U8_SCALE
+
+    crop = None
+    src = st.arrays
+    if shape is not None and st.kind == "dense":
+        fin = np.isfinite(src["min_all"]).reshape(shape)
+        spans = []
+        for ax in range(3):
+            hit = np.flatnonzero(fin.any(axis=tuple(a for a in range(3) if a != ax)))
+            spans.append((int(hit[0]), int(hit[-1]) + 1) if hit.size else (0, 0))
+        box = tuple(slice(a, b) for a, b in spans)
+        crop = (spans, tuple(shape))
+        src = {k: np.ascontiguousarray(v.reshape(shape)[box]) for k, v in src.items()}
+    arrays: dict = {}
+    for k, v in src.items():
+        if not pack or v.dtype != np.float32:
+            arrays[k] = ("raw", v)
+            continue
+        fin = np.isfinite(v)
+        b = np.rint(np.where(fin, v, np.float32(0.0)) * np.float32(255.0))
+        ok = bool(b.min(initial=0) >= 0 and b.max(initial=0) <= 255)
+        u8 = b.astype(np.uint8) if ok else None
+        if ok and np.array_equal(np.where(fin, np.multiply(u8, U8_SCALE, dtype=np.float32), v), v):
+            arrays[k] = ("u8", u8, np.packbits(fin.ravel()))
+        else:
+            arrays[k] = ("raw", v)
+    return st.kind, st.options, st.n_integrated, arrays, crop
+
+
+def _unpack(packed: tuple):
+    from gpumap.backends import U8_SCALE
+    from gpumap.merge import MapState
+
+    kind, options, n, arrays, crop = packed
+    out = {}
+    for k, a in arrays.items():
+        if a[0] == "raw":
+            v = a[1]
+        else:
+            u8, bits = a[1], a[2]
+            v = np.multiply(u8, U8_SCALE, dtype=np.float32)
+            fin = np.unpackbits(bits, count=u8.size).view(bool).reshape(u8.shape)
+            v[~fin] = np.inf
+        out[k] = v.reshape(-1) if crop is not None else v  # a dense box travels as (nx, ny, nz)
+    return MapState(kind, options, n, out, None if crop is None else tuple(tuple(x) for x in crop[0]))
+
+
+def _nbytes(packed: tuple) -> int:
+    return sum(x.nbytes for a in packed[3].values() for x in a[1:])
+
+
+def _poses_of(recording, stride: int, max_frames: int | None, frames) -> tuple[SonarSpec, list]:
+    """(the first frame's sonar, ``T_W_S`` or None of every selected frame, in order): from the
+    recording's cheap pose list when it has one, else from one pass over the frames (frames of
+    another sonar than the first count as None)."""
+    cheap = recording.poses()
+    if cheap is not None:
+        return next(iter(recording)).spec, list(cheap[::stride][:max_frames])
+    poses, spec0 = [], None
+    for fr in frames():
+        spec0 = spec0 or fr.spec
+        poses.append(fr.T_W_S if fr.spec == spec0 else None)
+    if spec0 is None:
+        raise ValueError(f"Expected frames in {recording.path}, but it has none")
+    return spec0, poses
+
+
+def _space_owners(spec: SonarSpec, poses: list, grid: GridSpec, n: int) -> np.ndarray:
+    """Worker of each selected frame for the space split: frames ranked by where their field of
+    view's middle (half the range along the boresight) lies along the grid's longer horizontal
+    axis, cut into ``n`` runs of equal counts; frames without a pose go to worker 0."""
+    axis = 0 if grid.shape[0] >= grid.shape[1] else 1
+    mid = 0.5 * (spec.range_min_m + spec.range_max_m)
+    key = np.full(len(poses), -np.inf)
+    for i, T in enumerate(poses):
+        if T is not None:
+            T = np.asarray(T, np.float64)
+            key[i] = T[axis, 3] + mid * T[axis, 0]
+    owners = np.empty(len(poses), np.int64)
+    owners[np.argsort(key, kind="stable")] = np.arange(len(poses)) * n // max(1, len(poses))
+    return owners
+
+
+def _client(workers: int, scheduler: str | None, processes: bool):
+    """(client, cluster or None): a client of the scheduler at ``scheduler`` or of a new
+    LocalCluster of ``workers`` single-threaded workers."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as e:
+        raise ImportError(
+            "Expected Dask distributed for --workers, but it is not installed: "
+            "pip install 'gpumap[workers]'"
+        ) from e
+    # Dask's own start/stop chatter (INFO) is not the user's business; its warnings still show
+    for name in ("distributed", "tornado"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    if scheduler is not None:
+        client = Client(scheduler, timeout="30s")
+        try:
+            client.wait_for_workers(workers, timeout=60)
+        except Exception as e:
+            n = len(client.scheduler_info()["workers"])
+            client.close()
+            raise ValueError(
+                f"Expected {workers} workers at the scheduler {scheduler}, but {n} came within 60 s"
+            ) from e
+        return client, None
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
+                           dashboard_address=":0", silence_logs=logging.CRITICAL)
+    return Client(cluster), cluster
+
+
+def run_replay_workers(
+    recording,
+    *,
+    workers: int,
+    scheduler: str | None = None,
+    voxel_size_m: float = 0.05,
+    backend: str = "auto",
+    method: str = "gather",
+    grid: GridSpec | None = None,
+    static: bool = False,
+    stride: int = 1,
+    max_frames: int | None = None,
+    progress: bool = True,
+    rule: str | None = None,
+    threshold: float = 0.4,
+    positions: list | None = None,
+    sparse: bool = False,
+    processes: bool = True,
+    client=None,
+    cpu_threads: int | None = None,
+    pack: bool | None = None,
+    split: str = "space",
+) -> tuple[object, dict]:
+    """:func:`gpumap.replay.run_replay` in ``workers`` Dask workers: the same map, bit for bit.
+
+    Parameters
+    ----------
+    recording : gpumap.io.Recording
+        Read here, by the client; the workers get the pings.
+    workers : int
+        Workers to map in (each one mapper on ``backend``, one batch at a time).
+    scheduler : str, optional
+        Address of a running Dask scheduler (e.g. ``"tcp://10.0.0.5:8786"``); its first
+        ``workers`` workers are used. None: a LocalCluster of ``workers`` processes
+        (``processes=False``: threads of this process, for tests).
+    split : str
+        ``"space"`` (default): each worker gets the pings that look at its part of the grid
+        (pings ranked by where their field of view's middle lies along the grid's longer
+        horizontal axis, cut into runs of equal counts), so that the workers' maps barely
+        overlap and little more than one map's worth travels back; ``"pings"``: batches of
+        :data:`BATCH` to each worker in turn (every worker's map spans the whole survey, but
+        the work stays even however the sonar moves). Needs every ping's pose first (the
+        recording's pose list, or one more pass over a recording without one); ``static``
+        runs split by pings.
+    sparse : bool
+        Workers keep :class:`gpumap.SparseMinMaxMapper` maps bounded by the grid (each sends
+        only the blocks its pings observed); the result is then a sparse map.
+    client : distributed.Client, optional
+        Use this client (and its cluster) instead; left open.
+    cpu_threads : int, optional
+        Threads each worker's CPU backend splits a gather into (``gpumap.backends.CPU_THREADS``,
+        set in the worker process: use it with worker processes only). None: the default (2).
+    pack : bool, optional
+        Workers send their maps packed where that is lossless (maps of 8-bit pings: 3.3 bytes
+        a voxel instead of 9, at the cost of a few passes over the arrays in each worker).
+        None: only with ``scheduler`` (a cluster across a network; on one host, sending is
+        cheaper than packing).
+    Other parameters: as :func:`gpumap.replay.run_replay` (``grid`` None: sized from every
+    selected pose, before mapping).
+
+    Returns
+    -------
+    mapper : MinMaxMapper or SparseMinMaxMapper
+        The merged map, on the NumPy backend (it is read and written, not integrated).
+    stats : dict
+        ``run_replay``'s keys, plus ``workers``, ``scheduler``, ``seconds_cluster`` (starting
+        the cluster or connecting), ``seconds_map`` (reading and mapping, until every worker
+        is done), ``seconds_gather`` (the workers' states to the client), ``seconds_merge``,
+        ``per_worker`` (frames, backend, setup and integrate seconds) and
+        ``seconds_wall`` (everything, the cluster included).
+    """
+    from tqdm import tqdm
+
+    from gpumap.merge import merge_maps
+
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+        raise ValueError(f"Expected workers to be a positive integer, but got {workers!r}")
+    if not (recording.has_poses or static):
+        raise ValueError(f"Expected sonar poses in {recording.path} ({recording.kind}) to map it, but it has "
+                         "none (--static maps every ping at the identity pose)")
+    if sparse and method != "gather":
+        raise ValueError(f"Expected method='gather' with sparse=True, but got {method!r}")
+    stride = max(1, int(stride))
+    eye = np.eye(4)
+
+    def frames():  # every stride-th frame, at most max_frames of them (as run_replay selects)
+        stop = None if max_frames is None else max_frames * stride
+        return itertools.islice(iter(recording), 0, stop, stride)
+
+    if split not in ("space", "pings"):
+        raise ValueError(f"Expected split to be 'space' or 'pings', but got {split!r}")
+    t_wall = time.perf_counter()
+    owners = None
+    if static:
+        if grid is None:
+            from gpumap.replay import auto_grid
+
+            grid = auto_grid(next(iter(recording)).spec, [eye], voxel_size_m)
+    elif grid is None or split == "space":
+        spec0, sel = _poses_of(recording, stride, max_frames, frames)
+        if grid is None:  # as run_replay sizes it: the box of every selected field of view
+            from gpumap.replay import auto_grid
+
+            posed = [T for T in sel if T is not None]
+            if not posed:
+                raise ValueError(f"Expected at least one posed frame in {recording.path}, but got none")
+            grid = auto_grid(spec0, posed, voxel_size_m)
+        if split == "space":
+            owners = _space_owners(spec0, sel, grid, int(workers))
+    rule = rule or ("visible" if method == "gather" else "plain")
+    options = {"backend": backend, "method": method, "rule": rule, "threshold": threshold}
+    t0 = time.perf_counter()
+    own = client is None
+    cluster = None
+    if own:
+        client, cluster = _client(int(workers), scheduler, processes)
+    seconds_cluster = time.perf_counter() - t0
+    try:
+        addrs = sorted(client.scheduler_info()["workers"])[: int(workers)]
+        if len(addrs) < workers:
+            raise ValueError(f"Expected {workers} Dask workers, but the cluster has {len(addrs)}")
+        total = recording.count()
+        if total is not None:
+            total = min(math.ceil(total / stride), max_frames or total)
+        stats = {"frames": 0, "skipped_no_pose": 0, "skipped_spec": 0}
+        actors: list = []
+        pending: list[deque] = [deque() for _ in addrs]
+        spec = None
+        batches: list[list] = [[] for _ in addrs]
+        t_map = time.perf_counter()
+        t_setup = 0.0
+
+        def send(w: int) -> None:
+            batch, q = batches[w], pending[w]
+            while len(q) >= QUEUED:
+                q.popleft().result()
+            images, poses = _compact(np.stack([b[0] for b in batch])), np.stack([b[1] for b in batch])
+            q.append(actors[w].integrate_batch(images, poses))
+            batch.clear()
+
+        frame_iter = tqdm(frames(), total=total, unit="img", disable=not progress,
+                          desc=f"replay x{len(addrs)}")
+        for i, fr in enumerate(frame_iter):
+            if spec is None:
+                ts = time.perf_counter()
+                spec = fr.spec
+                args = (spec.to_dict(), grid.to_dict(), options, sparse, cpu_threads)
+                futs = [client.submit(MapperActor, *args, workers=[a], allow_other_workers=False,
+                                      actor=True, pure=False) for a in addrs]
+                actors = [f.result() for f in futs]
+                infos = [a.info().result() for a in actors]  # a backend that cannot run raises here
+                t_setup = time.perf_counter() - ts
+            if fr.spec != spec:
+                stats["skipped_spec"] += 1
+                continue
+            T = eye if static else fr.T_W_S
+            if T is None:
+                stats["skipped_no_pose"] += 1
+                continue
+            # space: the worker of the frame's place; pings: BATCH frames to each worker in turn
+            if owners is not None:
+                w = int(owners[i]) if i < len(owners) else 0  # a frame the pose list missed
+            else:
+                w = (stats["frames"] // BATCH) % len(actors)
+            batch = batches[w]
+            if batch and fr.image.dtype != batch[0][0].dtype:
+                send(w)
+            batch.append((np.array(fr.image), np.asarray(T, np.float64)))
+            if len(batch) == BATCH:
+                send(w)
+            stats["frames"] += 1
+            if positions is not None:
+                positions.append(np.asarray(T, dtype=np.float64)[:3, 3].copy())
+        if spec is None:
+            raise ValueError(f"Expected frames in {recording.path}, but it has none")
+        for w, batch in enumerate(batches):
+            if batch:
+                send(w)
+        for q in pending:
+            while q:
+                q.popleft().result()
+        seconds_map = time.perf_counter() - t_map - t_setup
+        t1 = time.perf_counter()
+        if pack is None:  # a network between the workers and here: send a third of the bytes
+            pack = own and scheduler is not None
+        futs = [a.state(bool(pack)) for a in actors]  # every worker sends at once
+        results = [f.result() for f in futs]
+        seconds_gather = time.perf_counter() - t1
+        t2 = time.perf_counter()
+        quiet = logging.getLogger("gpumap")  # the merged map's NumPy backend is no news to the user
+        level = quiet.level
+        quiet.setLevel(logging.WARNING)
+        try:
+            mapper = merge_maps((_unpack(st) for st, _ in results), backend="numpy")  # one at a time
+        finally:
+            quiet.setLevel(level)
+        seconds_merge = time.perf_counter() - t2
+    finally:
+        if own:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    n = stats["frames"]
+    t_total = seconds_map + seconds_gather + seconds_merge
+    per = [{**info, **extra} for info, (_, extra) in zip(infos, results, strict=True)]
+    stats.update(
+        seconds_setup=t_setup,
+        seconds_total=t_total,
+        seconds_integrate=max(p["seconds_integrate"] for p in per),
+        images_per_s=n / t_total if n else 0.0,
+        integrate_per_s=n / max(p["seconds_integrate"] for p in per) if n else 0.0,
+        backend=infos[0]["backend"],
+        rule=rule,
+        mapper_threshold=float(threshold),
+        grid=grid.to_dict(),
+        grid_shape=list(grid.shape),
+        workers=len(addrs),
+        split="space" if owners is not None else "pings",
+        scheduler=scheduler or "LocalCluster",
+        seconds_cluster=seconds_cluster,
+        seconds_map=seconds_map,
+        seconds_gather=seconds_gather,
+        seconds_merge=seconds_merge,
+        seconds_wall=time.perf_counter() - t_wall,
+        per_worker=per,
+    )
+    return mapper, stats
+
+
+# ------------------------------------------------------------------------------ gpumap replay's flags
+def add_worker_args(ap) -> None:
+    """``--workers`` and ``--scheduler`` on ``gpumap replay``'s parser."""
+    from gpumap.cli import positive_int
+
+    ap.add_argument("--workers", type=positive_int, default=None,
+                    help="map in N Dask workers (one mapper each, pings split among them in batches "
+                         "of 32) and merge their maps: the same map as one process, bit for bit "
+                         "(needs the workers extra: pip install 'gpumap[workers]')")
+    ap.add_argument("--scheduler", default=None,
+                    help="address of a running Dask scheduler (e.g. tcp://10.0.0.5:8786) whose "
+                         "workers map; default: start N local worker processes (needs --workers)")
+
+
+def check_worker_args(ap, a) -> None:
+    """Refuse flag combinations the worker run does not support (exit 2, before any work)."""
+    if a.scheduler is not None and not a.workers:
+        ap.error("argument --scheduler: Expected --workers N with it, but --workers is missing")
+    if a.workers:
+        for flag, on in (("--view", getattr(a, "view", False)),
+                         ("--record", getattr(a, "record", None) is not None),
+                         ("--compare-rules", a.compare_rules),
+                         ("--ekf", getattr(a, "ekf", False))):
+            if on:
+                ap.error(f"argument --workers: Expected no {flag} with it (the workers' maps are only "
+                         f"whole once merged), but got {flag}")

@@ -1,0 +1,263 @@
+"""merge: maps built from disjoint sets of pings combine into the map of all the pings, bit for bit.
+
+Reference: one mapper of the same kind and backend that integrated every ping (itself tested
+against the NumPy oracle and brute force elsewhere); splits are random, of simulated pings
+(random returns and shadows, test_visibility) and of the real OASIS tank frames.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import DATA, needs_data, pose, rot_y
+from test_mapper import GRID, SPEC
+from test_visibility import _random_pings
+
+import gpumap
+from gpumap import MapMemoryError, SparseMinMaxMapper, SparseSpec
+from gpumap.merge import MapState, load_map, map_state, merge_maps
+
+S = GRID.voxel_size_m
+BOUNDED = SparseSpec(S, (GRID.min_corner_m, GRID.max_corner_m))
+UNBOUNDED = SparseSpec(S, origin_m=GRID.min_corner_m)
+
+
+def _dense(backend, pings, rule="visible", spec=SPEC, grid=GRID, **kw):
+    m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule=rule, threshold=0.1, **kw)
+    for img, T in pings:
+        m.integrate(img, T)
+    return m
+
+
+def _sparse(backend, pings, sparse=BOUNDED, rule="visible", spec=SPEC, **kw):
+    m = SparseMinMaxMapper(spec, sparse, backend=backend, rule=rule, threshold=0.1, initial_blocks=2, **kw)
+    for img, T in pings:
+        m.integrate(img, T)
+    return m
+
+
+def _split(n: int, parts: int, rng) -> list[np.ndarray]:
+    """A random partition of range(n) into ``parts`` non-empty sets (each kept in order)."""
+    lab = np.concatenate([np.arange(parts), rng.integers(0, parts, n - parts)])
+    rng.shuffle(lab)
+    return [np.flatnonzero(lab == k) for k in range(parts)]
+
+
+def _state(m) -> dict:
+    """Everything a map says: values, observed, the visible rule's evidence, the ping count."""
+    out = {"values": m.raw_values(), "observed": m.observed(), "n": m.n_integrated}
+    if m.rule == "visible":
+        out.update(m.evidence())
+    if isinstance(m, SparseMinMaxMapper):
+        m.memory_stats()
+        out["blocks"] = sorted(tuple(c) for c in m._coords[m._used])
+    return out
+
+
+def _assert_same(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        if isinstance(a[k], np.ndarray):
+            assert a[k].dtype == b[k].dtype, k
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        else:
+            assert a[k] == b[k], k
+
+
+# ------------------------------------------------------------------------------ exact merges
+@pytest.mark.parametrize("rule", ["visible", "plain"])
+def test_dense_random_splits_equal_one_mapper(backend, rule):
+    rng = np.random.default_rng(7)
+    pings = _random_pings(8, 11)
+    ref = _state(_dense(backend, pings, rule))
+    assert ref["observed"].sum() > 1000
+    if rule == "visible":  # both evidence paths exercised, or the test proves little
+        assert ref["count"].max() >= 2 and np.isfinite(ref["bright"]).sum() > 100
+    for parts in (2, 3):
+        idx = _split(len(pings), parts, rng)
+        maps = [_dense(backend, [pings[i] for i in ix], rule) for ix in idx]
+        first = maps[0]
+        for m in maps[1:]:
+            first.merge(m)
+        _assert_same(_state(first), ref)
+        # merge_maps leaves its inputs alone and gives the same map
+        maps2 = [_dense(backend, [pings[i] for i in ix], rule) for ix in idx]
+        before = _state(maps2[1])
+        _assert_same(_state(merge_maps(maps2, backend=backend)), ref)
+        _assert_same(_state(maps2[1]), before)
+
+
+@pytest.mark.parametrize("rule", ["visible", "plain"])
+@pytest.mark.parametrize("space", ["bounded", "unbounded"])
+def test_sparse_random_splits_equal_one_mapper(backend, rule, space):
+    rng = np.random.default_rng(3)
+    sp = BOUNDED if space == "bounded" else UNBOUNDED
+    pings = _random_pings(7, 5)
+    one = _sparse(backend, pings, sp, rule)
+    ref = _state(one)
+    idx = _split(len(pings), 3, rng)
+    maps = [_sparse(backend, [pings[i] for i in ix], sp, rule) for ix in idx]
+    # parts cover different blocks: the merge both adds blocks and combines shared ones
+    blocks = [set(_state(m)["blocks"]) for m in maps]
+    assert blocks[0] != blocks[1] and blocks[0] & blocks[1]
+    maps[1].merge(maps[0])
+    maps[1].merge(maps[2])
+    _assert_same(_state(maps[1]), ref)
+    maps[1].check()
+    # and it equals the dense map where both have voxels (bounded: everywhere)
+    if space == "bounded":
+        np.testing.assert_array_equal(maps[1].raw_values(), _dense(backend, pings, rule).raw_values())
+
+
+def test_count_saturates_as_one_mapper_does():
+    """140 clear dark views (2 each) saturate the count at 255; two halves of 70 must too."""
+    dark = np.full(SPEC.image_shape, 0.01, np.float32)
+    T = pose(rot_y(0.1), (0.0, 0.0, 0.0))
+    pings = [(dark, T)] * 140
+    one = _dense("numpy", pings)
+    assert one.evidence()["count"].max() == 255
+    a, b = _dense("numpy", pings[:70]), _dense("numpy", pings[70:])
+    assert a.evidence()["count"].max() == 140
+    a.merge(b)
+    _assert_same(_state(a), _state(one))
+
+
+def test_files_and_states_merge_too(tmp_path):
+    pings = _random_pings(6, 2)
+    ref = _state(_dense("numpy", pings))
+    p1 = _dense("numpy", pings[:2]).save(tmp_path / "a.npz")
+    p2 = _dense("numpy", pings[2:4]).save(tmp_path / "b.npz")
+    st = map_state(_dense("numpy", pings[4:]))
+    m = merge_maps([p1, p2, st], backend="numpy")
+    _assert_same(_state(m), ref)
+    sp = _sparse("numpy", pings[:3]).save(tmp_path / "s.npz")
+    assert isinstance(load_map(sp, backend="numpy"), SparseMinMaxMapper)
+    assert isinstance(load_map(p1, backend="numpy"), gpumap.MinMaxMapper)
+    s = load_map(sp, backend="numpy")
+    s.merge(_sparse("numpy", pings[3:]))
+    _assert_same(_state(s), _state(_sparse("numpy", pings)))
+
+
+@needs_data
+@pytest.mark.parametrize("kind", ["dense-visible", "dense-plain", "sparse-visible"])
+def test_real_tank_pings_random_split(backend, kind):
+    from gpumap.io import open_fan_folder
+    from gpumap.replay import auto_grid
+
+    frames = list(open_fan_folder(DATA / "oasis_tank", stride=4))
+    pings = [(f.image, f.T_W_S) for f in frames]
+    spec = frames[0].spec
+    grid = auto_grid(spec, [T for _, T in pings], 0.06)
+    rule = kind.split("-")[1]
+
+    def make(ps):
+        if kind.startswith("sparse"):
+            m = SparseMinMaxMapper(spec, SparseSpec(0.06, origin_m=grid.min_corner_m), backend=backend,
+                                   rule=rule, threshold=0.4)
+        else:
+            m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule=rule, threshold=0.4)
+        m.integrate_batch(np.stack([p[0] for p in ps]), np.stack([p[1] for p in ps]))
+        return m
+
+    ref = _state(make(pings))
+    assert ref["observed"].sum() > 10_000
+    idx = _split(len(pings), 3, np.random.default_rng(1))
+    merged = merge_maps([map_state(make([pings[i] for i in ix])) for ix in idx], backend=backend)
+    _assert_same(_state(merged), ref)
+
+
+# ------------------------------------------------------------------------------ refusals
+def test_mismatches_are_refused_and_leave_the_map_unchanged():
+    pings = _random_pings(3, 1)
+    m = _dense("numpy", pings[:2])
+    before = _state(m)
+    other_grid = gpumap.GridSpec(GRID.min_corner_m, GRID.max_corner_m, 0.08)
+    cases = [
+        (_dense("numpy", pings[2:], rule="plain"), "rule"),
+        (_dense("numpy", pings[2:], grid=other_grid), "grid"),
+        (gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.2), "threshold"),
+        (gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.1, carve_views=3), "carve_views"),
+        (gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.1, shadow_m=0.02), "shadow_m"),
+        (gpumap.MinMaxMapper(gpumap.SonarSpec(0.15, 1.4, 60, SPEC.bearings_rad, SPEC.vfov_rad), GRID,
+                             backend="numpy", threshold=0.1), "spec"),
+        (_sparse("numpy", pings[2:]), "kind"),
+    ]
+    for other, word in cases:
+        with pytest.raises(ValueError, match=word):
+            m.merge(other)
+        _assert_same(_state(m), before)
+    with pytest.raises(ValueError, match="itself"):
+        m.merge(m)
+    with pytest.raises(TypeError, match="MinMaxMapper"):
+        m.merge(42)
+    st = map_state(_dense("numpy", pings[2:]))
+    bad = MapState(st.kind, st.options, st.n_integrated, {**st.arrays, "count": st.arrays["count"][:-1]})
+    with pytest.raises(ValueError, match="'count' of shape"):
+        m.merge(bad)
+    _assert_same(_state(m), before)
+    # a state that covers a box of the grid: merged where it says, refused outside the grid
+    sl = (slice(2, 9), slice(0, GRID.shape[1]), slice(3, 11))
+    inside = {k: np.ascontiguousarray(v.reshape(GRID.shape)[sl]).ravel() for k, v in st.arrays.items()}
+    boxed = MapState(st.kind, st.options, st.n_integrated, inside, ((2, 9), (0, GRID.shape[1]), (3, 11)))
+    full = {k: v.reshape(GRID.shape).copy() for k, v in st.arrays.items()}
+    for k, v in full.items():  # the same state with everything outside the box emptied
+        keep = v[sl].copy()
+        v[...] = 0 if k == "count" else np.inf
+        v[sl] = keep
+    ref = merge_maps([map_state(m), MapState(st.kind, st.options, st.n_integrated,
+                                             {k: v.ravel() for k, v in full.items()})], backend="numpy")
+    _assert_same(_state(merge_maps([map_state(m), boxed], backend="numpy")), _state(ref))
+    assert np.isfinite(full["min_all"]).any() and not np.array_equal(full["min_all"], st.arrays["min_all"])
+    with pytest.raises(ValueError, match="box inside the grid"):
+        m.merge(MapState(st.kind, st.options, 1, boxed.arrays, ((2, 9), (0, GRID.shape[1] + 1), (3, 11))))
+    _assert_same(_state(m), before)
+    with pytest.raises(ValueError, match="at least one"):
+        merge_maps([])
+
+
+def test_sparse_merge_over_max_bytes_raises_unchanged():
+    pings = _random_pings(4, 9)
+    a = _sparse("numpy", pings[:1])
+    b = _sparse("numpy", pings[1:])
+    na, nb = len(_state(a)["blocks"]), len(_state(b)["blocks"])
+    capped = SparseMinMaxMapper(SPEC, BOUNDED, backend="numpy", threshold=0.1, initial_blocks=1,
+                                max_bytes=a._index.nbytes + (na + 1) * a._block_bytes, evict="farthest")
+    capped.merge(a)  # fits
+    before = _state(capped)
+    assert nb > 1
+    with pytest.raises(MapMemoryError, match="never evicts"):
+        capped.merge(b)
+    _assert_same(_state(capped), before)
+
+
+def test_merge_command_writes_the_map_of_all_pings(tmp_path, capsys):
+    import json
+
+    from gpumap.cli import main
+
+    pings = _random_pings(5, 8)
+    parts = [_dense("numpy", pings[:3]).save(tmp_path / "a.npz"),
+             _dense("numpy", pings[3:]).save(tmp_path / "b.npz")]
+    assert main(["merge", str(tmp_path / "m.npz"), *map(str, parts)]) == 0
+    assert json.loads(capsys.readouterr().out)["pings"] == 5
+    _assert_same(_state(load_map(tmp_path / "m.npz", backend="numpy")), _state(_dense("numpy", pings)))
+    other = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain").save(tmp_path / "p.npz")
+    assert main(["merge", str(tmp_path / "x.npz"), str(parts[0]), str(other)]) == 2
+    assert "same rule" in capsys.readouterr().err and not (tmp_path / "x.npz").exists()
+
+
+def test_export_reads_sparse_map_files_too(tmp_path, capsys):
+    import json
+
+    from gpumap.cli import main
+    from gpumap.io import read_ply
+
+    m = _sparse("numpy", _random_pings(3, 1))
+    path = m.save(tmp_path / "s.npz")
+    assert main(["export", str(path), str(tmp_path / "s.ply")]) == 0
+    info = json.loads(capsys.readouterr().out)
+    pts = m.occupied_points(0.1)
+    assert info["occupied_cells"] == len(pts) > 100
+    ply = read_ply(tmp_path / "s.ply")
+    got = np.stack([ply["x"], ply["y"], ply["z"]], axis=1).astype(np.float64)
+    np.testing.assert_allclose(np.sort(got, axis=0), np.sort(pts, axis=0), atol=1e-5)

@@ -1,0 +1,184 @@
+"""Workers (Dask): a recording mapped in N workers and merged is the one-process map, bit for bit.
+
+Reference: :func:`gpumap.replay.run_replay` in this process on the same frames and grid (itself
+tested against the NumPy oracle); the cluster is a threads-only LocalCluster (fast to start).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import DATA, needs_data
+
+pytest.importorskip("distributed")
+
+from distributed import Client, LocalCluster  # noqa: E402
+
+import gpumap  # noqa: E402
+from gpumap.replay import main, run_replay  # noqa: E402
+from gpumap.workers import run_replay_workers  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with LocalCluster(n_workers=3, threads_per_worker=1, processes=False,
+                      dashboard_address=":0") as c:
+        with Client(c) as client:
+            yield c, client
+
+
+def _everything(m) -> dict:
+    out = {"values": m.raw_values(), "n": m.n_integrated}
+    if m.rule == "visible":
+        out.update(m.evidence())
+    return out
+
+
+def _assert_same(a, b) -> None:
+    ea, eb = _everything(a), _everything(b)
+    assert ea.keys() == eb.keys()
+    for k in ea:
+        np.testing.assert_array_equal(ea[k], eb[k], err_msg=k)
+
+
+def _tank(stride: int):
+    from gpumap.io import open_fan_folder
+
+    return open_fan_folder(DATA / "oasis_tank", stride=stride)
+
+
+@needs_data
+@pytest.mark.parametrize("backend", ["numpy", "warp-cpu"])
+@pytest.mark.parametrize("rule", ["visible", "plain"])
+def test_workers_equal_one_process_on_real_frames(cluster, backend, rule):
+    if backend not in gpumap.available_backends():
+        pytest.skip(f"{backend} is not available here")
+    _, client = cluster
+    rec = _tank(3)
+    kw = dict(voxel_size_m=0.06, backend=backend, rule=rule, progress=False)
+    one, s1 = run_replay(rec, **kw)
+    assert one.observed().sum() > 10_000
+    pos: list = []
+    for n, split in ((2, "space"), (3, "pings")):
+        got, s = run_replay_workers(rec, workers=n, client=client, positions=pos if n == 2 else None,
+                                    split=split, **kw)
+        assert got.grid == one.grid and s["frames"] == s1["frames"] == 41
+        assert s["workers"] == n and s["split"] == split
+        # space: equal shares by place; pings: batches of 32 in turn
+        want = [21, 20] if split == "space" else [32, 9, 0]
+        assert sorted((p["frames"] for p in s["per_worker"]), reverse=True) == want
+        _assert_same(got, one)
+    assert len(pos) == 41
+
+
+@needs_data
+def test_sparse_workers_equal_the_dense_one_process_map(cluster):
+    _, client = cluster
+    rec = _tank(4)
+    one, _ = run_replay(rec, voxel_size_m=0.06, backend="numpy", progress=False)
+    got, s = run_replay_workers(rec, workers=2, client=client, voxel_size_m=0.06, backend="numpy",
+                                progress=False, sparse=True)
+    assert isinstance(got, gpumap.SparseMinMaxMapper) and got.grid == one.grid
+    _assert_same(got, one)
+
+
+@needs_data
+def test_replay_cli_workers_writes_the_same_map(cluster, tmp_path: Path):
+    c, _ = cluster
+    common = [str(DATA / "oasis_tank"), "--stride", "6", "--quiet", "--no-pictures",
+              "--voxel-size", "0.08", "--backend", "numpy"]
+    assert main([*common, "--out", str(tmp_path / "one")]) == 0
+    assert main([*common, "--out", str(tmp_path / "w"), "--workers", "2",
+                 "--scheduler", c.scheduler_address]) == 0
+    a = gpumap.load_map(tmp_path / "one" / "map.npz", backend="numpy")
+    b = gpumap.load_map(tmp_path / "w" / "map.npz", backend="numpy")
+    _assert_same(b, a)
+    s = json.loads((tmp_path / "w" / "summary.json").read_text())
+    assert s["workers"] == 2 and s["frames"] == 21 and s["scheduler"] == c.scheduler_address
+    assert (tmp_path / "w" / "occupied.ply").read_bytes() == (tmp_path / "one" / "occupied.ply").read_bytes()
+
+
+def test_worker_flags_are_checked_before_any_work(tmp_path: Path, capsys):
+    out = str(tmp_path / "o")
+    for argv, word in ((["--scheduler", "tcp://127.0.0.1:1"], "--workers"),
+                       (["--workers", "2", "--compare-rules"], "--compare-rules"),
+                       (["--workers", "2", "--ekf"], "--ekf"),
+                       (["--workers", "0"], "--workers")):
+        with pytest.raises(SystemExit) as e:
+            main(["missing_recording", "--out", out, *argv])
+        assert e.value.code == 2 and word in capsys.readouterr().err
+    assert not Path(out).exists()
+
+
+def test_simulated_byte_frames_travel_as_uint8_and_map_the_same(cluster):
+    """Frames that are bytes / 255 (8-bit sonars) are sent as uint8; the map is still the same."""
+    from test_mapper import SPEC
+    from test_visibility import _random_pings
+
+    from gpumap.backends import U8_SCALE
+    from gpumap.io import Recording, SonarFrame
+    from gpumap.workers import _compact
+
+    _, client = cluster
+    frames = []
+    for k, (img, T) in enumerate(_random_pings(70, 5)):  # dark water, then returns and shadows
+        b = np.rint(img * 255).astype(np.uint8)
+        frames.append(SonarFrame(np.multiply(b, U8_SCALE, dtype=np.float32), SPEC, float(k), T))
+    imgs = np.stack([f.image for f in frames])
+    assert _compact(imgs).dtype == np.uint8
+    nudged = imgs.copy()
+    nudged[0, 0, 0] = np.nextafter(nudged[0, 0, 0], np.float32(1))  # no longer a byte / 255
+    assert _compact(nudged).dtype == np.float32
+    rec = Recording("sim", "sim", lambda: iter(frames), True, count=lambda: len(frames))
+    one, _ = run_replay(rec, voxel_size_m=0.07, backend="numpy", progress=False, threshold=0.1)
+    got, s = run_replay_workers(rec, workers=3, client=client, voxel_size_m=0.07, backend="numpy",
+                                progress=False, threshold=0.1, pack=True, split="pings")
+    assert [p["frames"] for p in s["per_worker"]] == [32, 32, 6]
+    # the maps of byte pings travel packed (uint8 + a bit per voxel for unknown)
+    assert all(p["state_mb"] < 0.4 * p["state_mb_unpacked"] for p in s["per_worker"])
+    assert one.evidence()["count"].max() >= 2
+    _assert_same(got, one)
+
+
+def test_state_packing_is_exact_or_not_used():
+    from gpumap.merge import MapState
+    from gpumap.workers import _pack, _unpack
+
+    rng = np.random.default_rng(0)
+    b = rng.integers(0, 256, (40, 512)).astype(np.uint8)
+    byte = np.multiply(b, np.float32(1 / 255), dtype=np.float32)
+    byte[rng.random(byte.shape) < 0.3] = np.inf
+    other = byte.copy()
+    other[3, 7] = np.float32(0.3)  # 0.3 is no byte / 255
+    count = rng.integers(0, 256, byte.shape).astype(np.uint8)
+    st = MapState("sparse", {}, 7, {"min_all": byte, "bright": other, "count": count})
+    packed = _pack(st)
+    kinds = {k: a[0] for k, a in packed[3].items()}
+    assert kinds == {"min_all": "u8", "bright": "raw", "count": "raw"}
+    # a dense map sends only the box of its observed voxels (here [:, 5:17, 36:64])
+    shape = (8, 40, 64)
+    dense = {k: np.full(shape, np.inf, np.float32) for k in ("min_all", "bright")}
+    dense["count"] = np.zeros(shape, np.uint8)
+    for k in ("min_all", "bright"):
+        dense[k][:, 5:17, 36:] = byte.ravel()[: 8 * 12 * 28].reshape(8, 12, 28)
+    dense["count"][2, 5:17, 36:] = 3
+    dense["min_all"][2, 5:17, 36:] = 0.0  # counted voxels are observed
+    dst = MapState("dense", {}, 2, {k: v.ravel() for k, v in dense.items()})
+    cropped = _pack(dst, pack=False, shape=shape)
+    assert cropped[4][0] == [(0, 8), (5, 17), (36, 64)]
+    for ref, wire in ((st, packed), (dst, cropped), (dst, _pack(dst, True, shape))):
+        back = _unpack(wire)
+        assert back.n_integrated == ref.n_integrated
+        if back.box is not None:  # the box's arrays, placed into the grid as merge_maps does
+            sl = tuple(slice(a, b) for a, b in back.box)
+            full = {k: np.full(shape, 0 if k == "count" else np.inf, ref.arrays[k].dtype) for k in ref.arrays}
+            for k in full:
+                full[k][sl] = back.arrays[k].reshape(full[k][sl].shape)
+            flat = {k: v.ravel() for k, v in full.items()}
+            back = MapState(back.kind, back.options, back.n_integrated, flat)
+        for k in ref.arrays:
+            assert back.arrays[k].dtype == ref.arrays[k].dtype and back.arrays[k].shape == ref.arrays[k].shape
+            assert back.arrays[k].tobytes() == ref.arrays[k].tobytes(), k
