@@ -56,6 +56,7 @@ COMMANDS = {
     "replay": ("gpumap.replay", "map a real recording (Oculus, ARIS, fan images + poses, ROS bag)"),
     "view": ("gpumap.viewer.cli", "serve a saved map or a recording in the browser view ([viewer] extra)"),
     "export": ("gpumap.io.octomap", "write a saved map as OctoMap .bt (RViz, octovis) or .ply"),
+    "refine": ("gpumap.refine_cli", "refine a recording's visible map so rendered pings match the measured"),
     "bench": ("gpumap.bench.__main__", "speed against error sweep on this machine (results in --out)"),
     "info": ("gpumap.cli", "list the backends this machine can run"),
 }

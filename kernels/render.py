@@ -166,20 +166,21 @@ def image_loss(
     energy: wp.array3d(dtype=wp.float32),
     measured: wp.array3d(dtype=wp.float32),
     weight: wp.array3d(dtype=wp.float32),
-    log_gain: wp.array(dtype=wp.float32),
-    floor: wp.array(dtype=wp.float32),
+    display: wp.array(dtype=wp.float32),
     huber_delta: float,
     scale: float,
+    power: float,
     predicted: wp.array3d(dtype=wp.float32),
     loss: wp.array(dtype=wp.float32),
 ):
-    """predicted = floor + (1 - floor)(1 - exp(-exp(log_gain) E));
-    loss += scale * weight * huber(predicted - measured)."""
+    """predicted = floor + (1 - floor)(1 - exp(-exp(log_gain) E)), ``display = (log_gain, floor)``;
+    loss += scale * weight * huber((predicted + 1e-3)^power - (measured + 1e-3)^power)
+    (``power`` 0.5 compares square roots: a dim echo weighs nearly as much as a bright one)."""
     p, i, j = wp.tid()
-    f = floor[0]
-    pred = f + (1.0 - f) * (1.0 - wp.exp(-wp.exp(log_gain[0]) * energy[p, i, j]))
+    f = display[1]
+    pred = f + (1.0 - f) * (1.0 - wp.exp(-wp.exp(display[0]) * energy[p, i, j]))
     predicted[p, i, j] = pred
-    r = wp.abs(pred - measured[p, i, j])
+    r = wp.abs(wp.pow(pred + 1.0e-3, power) - wp.pow(measured[p, i, j] + 1.0e-3, power))
     h = float(0.0)
     if r <= huber_delta:
         h = 0.5 * r * r
@@ -193,9 +194,11 @@ def smoothness(
     field: wp.array3d(dtype=wp.float32),
     active: wp.array3d(dtype=wp.uint8),
     scale: float,
+    sparsity: float,
     loss: wp.array(dtype=wp.float32),
 ):
-    """loss += scale * sum over the +x, +y, +z neighbours of (f_v - f_n)^2, for pairs with an active voxel."""
+    """loss += scale * sum over the +x, +y, +z neighbours of (f_v - f_n)^2, for pairs of active voxels
+    (a fixed voxel does not pull its free neighbours towards its value), + sparsity * f_v per active voxel."""
     i, j, k = wp.tid()
     nx = field.shape[0]
     ny = field.shape[1]
@@ -204,18 +207,22 @@ def smoothness(
     act = active[i, j, k] != wp.uint8(0)
     total = float(0.0)
     if i + 1 < nx:
-        if act or active[i + 1, j, k] != wp.uint8(0):
+        if act and active[i + 1, j, k] != wp.uint8(0):
             dx = v - field[i + 1, j, k]
             total = total + dx * dx
     if j + 1 < ny:
-        if act or active[i, j + 1, k] != wp.uint8(0):
+        if act and active[i, j + 1, k] != wp.uint8(0):
             dy = v - field[i, j + 1, k]
             total = total + dy * dy
     if k + 1 < nz:
-        if act or active[i, j, k + 1] != wp.uint8(0):
+        if act and active[i, j, k + 1] != wp.uint8(0):
             dz = v - field[i, j, k + 1]
             total = total + dz * dz
-    wp.atomic_add(loss, 0, scale * total)
+    if act:
+        total = total * scale + sparsity * v
+    else:
+        total = total * scale
+    wp.atomic_add(loss, 0, total)
 
 
 @wp.kernel(enable_backward=False)

@@ -57,8 +57,7 @@ def _loss_and_grads(r: PingRenderer, occ, refl, T, meas, log_gain=None, floor=0.
     dev = r.device
     o = wp.array(occ, dtype=wp.float32, requires_grad=True, device=dev)
     q = wp.array(refl, dtype=wp.float32, requires_grad=True, device=dev)
-    lg = wp.array([log_gain], dtype=wp.float32, requires_grad=True, device=dev)
-    fl = wp.array([floor], dtype=wp.float32, requires_grad=True, device=dev)
+    disp = wp.array([log_gain, floor], dtype=wp.float32, requires_grad=True, device=dev)
     R, t = r._pose_arrays(T[None])
     tape = wp.Tape()
     E = r.record_energy(tape, o, q, R, t, 1)
@@ -67,10 +66,10 @@ def _loss_and_grads(r: PingRenderer, occ, refl, T, meas, log_gain=None, floor=0.
     m = wp.array(meas, dtype=wp.float32, device=dev)
     with tape:
         wp.launch(kr.image_loss, dim=E.shape, device=dev,
-                  inputs=[E, m, wp.ones(E.shape, dtype=wp.float32, device=dev), lg, fl, 0.1, 1.0],
+                  inputs=[E, m, wp.ones(E.shape, dtype=wp.float32, device=dev), disp, 0.1, 1.0, 1.0],
                   outputs=[pred, loss])
     tape.backward(loss)
-    return float(loss.numpy()[0]), o.grad.numpy(), q.grad.numpy(), float(lg.grad.numpy()[0])
+    return float(loss.numpy()[0]), o.grad.numpy(), q.grad.numpy(), float(disp.grad.numpy()[0])
 
 
 @pytest.mark.parametrize("device", _devices())
