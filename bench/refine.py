@@ -35,6 +35,15 @@ import gpumap
 from .common import load_average, machine_info
 
 SIM_THRESHOLD = 0.1
+BAND_VOXELS = 1  # RefineResult.banded: the visible voxels within one voxel of a refined surface
+SCORE_KEYS = (
+    "false_negative_rate_detectable",
+    "false_negative_rate_objects_detectable",
+    "false_positive_rate_far",
+    "free_carved_fraction",
+    "pipe_found",
+    "height_error_m",
+)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -53,8 +62,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--sparsity", type=float, default=None, help="override the refine sparsity weight")
     p.add_argument("--smoothness", type=float, default=None, help="override the refine smoothness weight")
     p.add_argument("--power", type=float, default=None, help="override the refine loss power")
-    p.add_argument("--save-maps", type=Path, default=None,
-                   help="also write each simulated scene's maps (npz: plain, visible, refined) here")
+    p.add_argument(
+        "--save-maps",
+        type=Path,
+        default=None,
+        help="also write each simulated scene's maps (npz: plain, visible, refined) here",
+    )
     p.add_argument(
         "--cache",
         type=Path,
@@ -69,7 +82,46 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", type=Path, default=Path("bench/results/refine.json"))
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument(
+        "--rescore-maps",
+        type=Path,
+        default=None,
+        help="no mapping: score the maps a --save-maps run wrote (refined at several cuts, banded "
+        "by 0-3 voxels) and add them to the matching rows of --out as 'truth_frontier'",
+    )
     return p
+
+
+def rescore(a: argparse.Namespace) -> int:
+    """The FN-FP frontier of saved maps, added to the rows of ``a.out`` (same case and voxel size)."""
+    from gpumap.sim.metrics import evaluate
+    from scipy import ndimage
+
+    res = json.loads(a.out.read_text())
+    for row in res["rows"]:
+        f = a.rescore_maps / f"{row['case']}_{row['voxel_size_m']:g}.npz"
+        if row["case"] == "oasis" or not f.exists():
+            continue
+        c = sim_case(row["case"], row["voxel_size_m"], a.cache, False)
+        z = np.load(f)
+        obs = np.isfinite(z["visible"])
+        vis = np.nan_to_num(z["visible"], nan=-1.0) >= c["threshold"]
+        ref = np.nan_to_num(z["refined"], nan=0.0)
+
+        def score(mask: np.ndarray) -> dict:
+            v = np.where(obs, mask.astype(np.float32), np.nan)
+            ev = evaluate(v, c["truth"], 0.5, c["seen"], row["voxel_size_m"], detectable=c["det"]).to_dict()
+            return {k: ev[k] for k in SCORE_KEYS if k != "height_error_m"}
+
+        fr = [{"kind": "refined", "cut": t, **score(ref >= t)} for t in (0.05, 0.1, 0.2, 0.3, 0.5, 0.7)]
+        for b in (0, 1, 2, 3):
+            occ = ref >= 0.5
+            if b:
+                occ = ndimage.binary_dilation(occ, structure=np.ones((3, 3, 3), bool), iterations=b)
+            fr.append({"kind": "refined_band", "band_voxels": b, **score(occ & vis)})
+        row["truth_frontier"] = fr
+    a.out.write_text(json.dumps(res, indent=1, default=float))
+    return 0
 
 
 # ---------------------------------------------------------------------- inputs
@@ -163,8 +215,15 @@ def truth_scores(c: dict, maps: dict, voxel: float) -> dict:
     from gpumap.refine import OCCUPIED_LEVEL
 
     rows = {}
+    maps = dict(maps)
+    vis = maps["visible"]["values"]
+    band = maps["refined"]["result"].banded(vis, c["threshold"], BAND_VOXELS)
+    maps["refined_band"] = {
+        "values": np.where(np.isnan(vis), np.nan, band.astype(np.float32)),
+        "seconds": maps["refined"]["seconds"],
+    }
     for name, mp in maps.items():
-        thr = OCCUPIED_LEVEL if name == "refined" else c["threshold"]
+        thr = OCCUPIED_LEVEL if name.startswith("refined") else c["threshold"]
         ev = evaluate(mp["values"], c["truth"], thr, c["seen"], voxel, detectable=c["det"]).to_dict()
         rows[name] = {
             k: ev[k]
@@ -191,9 +250,17 @@ def heldout(c: dict, k: int, backend: str, device: str, overrides: dict) -> dict
     r = PingRenderer(c["spec"], c["grid"], device=device)
     measured = r.coarsen(c["images"][test])
     res = maps["refined"]["result"]
-    out = {"pings_train": int((~test).sum()), "pings_test": int(test.sum()), "device": res.stats["device"],
-           "refine_seconds": res.stats["seconds"], "render_cells": res.stats["render_cells"],
-           "map_seconds": {k: maps[k]["seconds"] for k in ("plain", "visible")}}
+    out = {
+        "pings_train": int((~test).sum()),
+        "pings_test": int(test.sum()),
+        "device": res.stats["device"],
+        "refine_seconds": res.stats["seconds"],
+        "render_cells": res.stats["render_cells"],
+        "map_seconds": {k: maps[k]["seconds"] for k in ("plain", "visible")},
+    }
+    vis = maps["visible"]["values"]
+    band = res.banded(vis, c["threshold"], BAND_VOXELS)
+    maps["refined_band"] = {"values": np.where(np.isnan(vis), np.nan, band.astype(np.float32))}
     for name, mp in maps.items():
         if name == "refined":
             occ = np.nan_to_num(res.occupancy, nan=0.0)
@@ -202,7 +269,8 @@ def heldout(c: dict, k: int, backend: str, device: str, overrides: dict) -> dict
                 r, occ, c["poses"][test], reflectivity=res.reflectivity, gain=res.gain, floor=res.floor
             )
         else:
-            occ = (np.nan_to_num(mp["values"], nan=-1.0) >= c["threshold"]).astype(np.float32)
+            thr = OCCUPIED_LEVEL if name == "refined_band" else c["threshold"]
+            occ = (np.nan_to_num(mp["values"], nan=-1.0) >= thr).astype(np.float32)
             pred, _, _ = render_map(
                 r, occ, c["poses"][test], train_images=c["images"][~test], train_poses=c["poses"][~test]
             )
@@ -218,6 +286,8 @@ def heldout(c: dict, k: int, backend: str, device: str, overrides: dict) -> dict
 
 def main(argv: list[str] | None = None) -> int:
     a = _parser().parse_args(argv)
+    if a.rescore_maps is not None:
+        return rescore(a)
     names = ("iterations", "sparsity", "smoothness", "power")
     overrides = {k: getattr(a, k) for k in names if getattr(a, k) is not None}
     rows = []
@@ -241,9 +311,14 @@ def main(argv: list[str] | None = None) -> int:
                 row["options"], row["model"] = res.stats["options"], res.stats["model"]
                 if a.save_maps is not None:
                     a.save_maps.mkdir(parents=True, exist_ok=True)
-                    np.savez_compressed(a.save_maps / f"{case}_{v:g}.npz", plain=maps["plain"]["values"],
-                                        visible=maps["visible"]["values"], refined=res.occupancy,
-                                        confidence=res.confidence, raised=res.raised)
+                    np.savez_compressed(
+                        a.save_maps / f"{case}_{v:g}.npz",
+                        plain=maps["plain"]["values"],
+                        visible=maps["visible"]["values"],
+                        refined=res.occupancy,
+                        confidence=res.confidence,
+                        raised=res.raised,
+                    )
                 del maps
             row["heldout"] = heldout(c, a.holdout_every, a.backend, a.device, overrides)
             row["device"] = row["heldout"].get("device") or (row.get("refine_stats") or {}).get("device")

@@ -83,6 +83,14 @@ def test_refine_removes_phantoms_and_keeps_the_hard_constraints(scene) -> None:
     # the frontier, not a target: on this self-rendered scene about 30 % of the surface voxels
     # facing the water end below OCCUPIED_LEVEL (the far, grazing floor: see the report)
     assert fn_ref <= 0.35, (fn_ref, fn_vis)
+    # banded: the visible voxels within a voxel of a refined surface keep the surfaces whole
+    band = res.banded(before, 0.1, 1)
+    vis_occ = np.nan_to_num(before, nan=-1) >= 0.1
+    assert not np.any(band & ~vis_occ) and np.all(band[res.occupied() & vis_occ])
+    fp_band, fn_band = _fp_fn(np.where(np.isnan(before), np.nan, band - 0.5), truth)
+    assert fp_band < 0.8 * fp_vis and fn_band <= fn_vis + 0.05, (fp_band, fn_band, fp_vis, fn_vis)
+    with pytest.raises(ValueError, match="band_voxels"):
+        res.banded(before, 0.1, -1)
     # first constraint: carved voxels (count >= carve_views) and unobserved ones are never occupied
     ev = m.evidence()
     carved = np.isfinite(before) & (ev["count"] >= m.carve_views)
