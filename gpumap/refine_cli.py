@@ -32,12 +32,23 @@ from gpumap.cli import (
 OUTPUTS = ("refined.npz", "refine.json")
 
 
+def _device(text: str) -> str:
+    """``auto``, ``cpu``, ``cuda`` or ``cuda:N`` (checked before any work)."""
+    import argparse
+
+    if text in ("auto", "cpu", "cuda") or (text.startswith("cuda:") and text[5:].isdigit()):
+        return text
+    raise argparse.ArgumentTypeError(f"Expected auto, cpu, cuda or cuda:N, but got {text!r}")
+
+
 def _parser() -> ArgumentParser:
     from gpumap.refine import RefineOptions
     from gpumap.replay import DEFAULT_THRESHOLD
 
     d = RefineOptions()
-    ap = ArgumentParser(prog="gpumap refine", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="gpumap refine",
+                        description="map a recording with the visible rule, then refine "
+                        "the map so that pings rendered from it match the measured ones")
     ap.add_argument("path", help="recording with poses: Oculus .raw/.oculus, ARIS .aris, fan folder, ROS bag")
     ap.add_argument("--voxel-size", type=positive_float, default=0.05, help="metres (default 0.05)")
     ap.add_argument(
@@ -50,6 +61,7 @@ def _parser() -> ArgumentParser:
     ap.add_argument(
         "--device",
         default="auto",
+        type=_device,
         help="where the refinement runs: auto (CUDA if Warp finds it, else CPU), cpu, cuda, cuda:N",
     )
     ap.add_argument("--stride", type=positive_int, default=1, help="use every N-th frame")
