@@ -96,7 +96,7 @@ class RefineOptions:
 
     iterations: int = 300
     pings_per_step: int = 8
-    learning_rate: float = 0.04
+    learning_rate: float = 0.08
     huber_delta: float = 0.1
     smoothness: float = 0.0
     init_occupancy: float = 0.5
