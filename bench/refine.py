@@ -108,9 +108,9 @@ def rescore(a: argparse.Namespace) -> int:
         vis = np.nan_to_num(z["visible"], nan=-1.0) >= c["threshold"]
         ref = np.nan_to_num(z["refined"], nan=0.0)
 
-        def score(mask: np.ndarray) -> dict:
+        def score(mask: np.ndarray, c=c, obs=obs, voxel=row["voxel_size_m"]) -> dict:
             v = np.where(obs, mask.astype(np.float32), np.nan)
-            ev = evaluate(v, c["truth"], 0.5, c["seen"], row["voxel_size_m"], detectable=c["det"]).to_dict()
+            ev = evaluate(v, c["truth"], 0.5, c["seen"], voxel, detectable=c["det"]).to_dict()
             return {k: ev[k] for k in SCORE_KEYS if k != "height_error_m"}
 
         fr = [{"kind": "refined", "cut": t, **score(ref >= t)} for t in (0.05, 0.1, 0.2, 0.3, 0.5, 0.7)]

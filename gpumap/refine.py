@@ -343,7 +343,6 @@ def _views_and_raise(
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """(views per voxel, voxels raised, cells with no movable voxel) of the second hard constraint."""
     flat_occ = occ.reshape(-1)  # modified in place (a view of occ)
-    idx_all = np.flatnonzero(np.ones(grid.n_voxels, bool))
     centres = grid.centers(np.argwhere(np.ones(grid.shape, bool)))
     views = np.zeros(grid.n_voxels, np.int32)
     raised = np.zeros(grid.n_voxels, bool)
@@ -400,7 +399,6 @@ def _views_and_raise(
         up = vsel[first]
         flat_occ[up] = np.float32(OCCUPIED_LEVEL)
         raised[up] = True
-    del idx_all
     return views.reshape(grid.shape), raised.reshape(grid.shape), unexplained
 
 
