@@ -59,6 +59,7 @@ COMMANDS = {
     "merge": ("gpumap.merge_cli", "merge saved maps of one grid built from different pings into one"),
     "ros": ("gpumap.ros.node", "a ROS 2 node that maps live sonar pings ([ros] extra)"),
     "ros-play": ("gpumap.ros.play", "publish a recording as the ROS 2 node's sonar topics ([ros] extra)"),
+    "refine": ("gpumap.refine_cli", "refine a recording's visible map so rendered pings match the measured"),
     "bench": ("gpumap.bench.__main__", "speed against error sweep on this machine (results in --out)"),
     "info": ("gpumap.cli", "list the backends this machine can run"),
 }

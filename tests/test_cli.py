@@ -349,13 +349,14 @@ def _parsers():
 
     import gpumap.export_cli
     import gpumap.merge_cli
+    import gpumap.refine_cli
     import gpumap.ros.node
     import gpumap.ros.play
     import gpumap.viewer.cli
 
     return {"demo": gpumap.sim.demo._parser(), "replay": gpumap.replay._parser(),
             "view": gpumap.viewer.cli._parser(), "export": gpumap.export_cli._parser(),
-            "merge": gpumap.merge_cli._parser(),
+            "merge": gpumap.merge_cli._parser(), "refine": gpumap.refine_cli._parser(),
             "bench": bench._parser(), "ros": gpumap.ros.node._parser(), "ros-play": gpumap.ros.play._parser()}
 
 
