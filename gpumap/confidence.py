@@ -150,18 +150,26 @@ def confirm_ping(
     if not cand.any():
         return np.zeros(0, np.int64)
     r, h2, t = r[cand], h2[cand], t[cand]
-    w = _F(tube_m)
-    b0 = np.clip(np.floor((r - w - rmin) * inv_dr), 0, n_bins - 1).astype(np.int64)
-    b1 = np.clip(np.floor((r + w - rmin) * inv_dr), 0, n_bins - 1).astype(np.int64)
-    q = h2 - w * w
-    narrow = q > 0
-    u = w / np.sqrt(np.where(narrow, q, _F(1)))
-    d0 = _F(1) + t * u
-    d1 = _F(1) - t * u
-    ok0 = narrow & (d0 > 0)
-    ok1 = narrow & (d1 > 0)
-    j0 = np.where(ok0, beam_index_lo((t - u) / np.where(ok0, d0, _F(1)), edges), 0)
-    j1 = np.where(ok1, beam_index_lo((t + u) / np.where(ok1, d1, _F(1)), edges), n_beams - 1)
+
+    def cells(w):
+        """Bins and beams within ``w`` of each candidate's range and azimuth arc."""
+        b0 = np.clip(np.floor((r - w - rmin) * inv_dr), 0, n_bins - 1).astype(np.int64)
+        b1 = np.clip(np.floor((r + w - rmin) * inv_dr), 0, n_bins - 1).astype(np.int64)
+        q = h2 - w * w
+        narrow = q > 0
+        u = w / np.sqrt(np.where(narrow, q, _F(1)))
+        d0 = _F(1) + t * u
+        d1 = _F(1) - t * u
+        ok0 = narrow & (d0 > 0)
+        ok1 = narrow & (d1 > 0)
+        j0 = np.where(ok0, beam_index_lo((t - u) / np.where(ok0, d0, _F(1)), edges), 0)
+        j1 = np.where(ok1, beam_index_lo((t + u) / np.where(ok1, d1, _F(1)), edges), n_beams - 1)
+        return b0, b1, j0, j1
+
+    # the echo: a bright cell within tube_m of the centre; who could have made it: any voxel
+    # holding a point there, its centre up to rho (half the cube's diagonal) further
+    lit = _rect(S_lit, *cells(_F(tube_m))) > 0
+    b0, b1, j0, j1 = cells(_F(tube_m) + rho)
     # the rivals within one voxel of the candidate (itself included) that sit in its tube
     nb = np.asarray(params["box_n"], np.int64)
     loc = idx - params["box_lo"].astype(np.int64)
@@ -173,5 +181,5 @@ def confirm_ping(
         k = np.where(inside, (q[:, 0] * nb[1] + q[:, 1]) * nb[2] + q[:, 2], 0)
         hit = inside & rivals[k] & (cb[k] >= b0) & (cb[k] <= b1) & (cj[k] >= j0) & (cj[k] <= j1)
         own += hit
-    alone = (_rect(S_riv, b0, b1, j0, j1) == own) & (_rect(S_lit, b0, b1, j0, j1) > 0)
+    alone = (_rect(S_riv, b0, b1, j0, j1) == own) & lit
     return np.sort(flat[cand][alone])
