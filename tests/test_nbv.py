@@ -209,3 +209,11 @@ def test_bad_input_raises_and_changes_nothing():
     with pytest.raises(TypeError, match="confidence"):
         gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", confidence="yes")
     np.testing.assert_array_equal(m.confidence(), before)
+
+
+def test_sparse_mapper_says_it_has_no_confidence_layer():
+    m = gpumap.SparseMinMaxMapper(SPEC, gpumap.SparseSpec(0.05), backend="numpy")
+    with pytest.raises(NotImplementedError, match="MinMaxMapper"):
+        m.confidence()
+    with pytest.raises(NotImplementedError, match="MinMaxMapper"):
+        m.view_gain(np.eye(4)[None])

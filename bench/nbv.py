@@ -1,0 +1,134 @@
+"""Next best views: planned vs evenly spread rolled vs random views, and the view gain's speed.
+
+    python -m bench.nbv [--scenes tank,circle,survey] [--plan 10] [--section cpu]
+                        [--out bench/results/nbv.json]
+    python -m bench.nbv --speed-only --section gpu      # view_gain timing only (needs the saved map)
+
+Quality (``quality`` block, per scene): the scene's trajectory pings at true poses, then
+``--plan`` views three ways (:mod:`gpumap.sim.plan_demo`: planned, evenly spread rolled, random),
+with FP far, FN (objects, detectable), the worst object top after every ping, and the
+confidence layer's split of the final maps. Voxel edge: 3 cm (tank, circle), 10 cm (survey:
+the planner's three arms on the 24 M-voxel 5 cm grid take too long for this bench).
+
+Speed (``speed`` block, under ``--section``): ``view_gain`` of 10,000 candidates (around the
+tank trajectory's poses, :func:`gpumap.nbv.candidate_poses` within the demo's wrist limits) on
+the tank map at 3 cm after its 40 pings (saved by the quality run to
+``bench/results/tmp/nbv_tank_map.npz``), on every backend here; best of ``--repeat`` calls after
+one warm-up call, the load average beside it, and whether the gains equal the NumPy
+reference's exactly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+import gpumap
+
+TMP = Path("bench/results/tmp")
+MAP = TMP / "nbv_tank_map.npz"
+VOXEL_M = {"tank": 0.03, "circle": 0.03, "survey": 0.10}
+N_CANDIDATES = 10_000
+
+
+def quality(scene_name: str, n_plan: int, backend: str, out_dir: Path, quiet: bool) -> dict:
+    from gpumap.sim.plan_demo import run_plan
+    from gpumap.sim.scenes import make_scene
+    from gpumap.sim.sonar import SonarSimulator
+    from gpumap.sim.truth import occupancy
+
+    scene = make_scene(scene_name, voxel_size_m=VOXEL_M[scene_name], seed=0)
+    truth = occupancy(scene, seed=0)
+    with SonarSimulator(scene, seed=0, **scene.sonar_params) as sim:
+        pings = [sim.ping(T, k) for k, T in enumerate(scene.T_W_S)]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if scene_name == "tank":  # the map the speed rows score candidates on
+        m = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, confidence=True)
+        m.integrate_batch(np.stack([p.image for p in pings]), scene.T_W_S)
+        TMP.mkdir(parents=True, exist_ok=True)
+        m.save(MAP)
+        np.save(TMP / "nbv_tank_poses.npy", scene.T_W_S)
+    res = run_plan(scene, pings, scene.T_W_S, truth, n_plan, backend, 0.1, 0, quiet, out_dir)
+    res["voxel_size_m"] = VOXEL_M[scene_name]
+    res["trajectory_pings"] = len(pings)
+    return res
+
+
+def speed(repeat: int) -> dict:
+    from gpumap.nbv import _fov, candidate_poses, gain_points, poses_to_rows, view_gain_reference
+
+    poses = np.load(TMP / "nbv_tank_poses.npy")
+    per = -(-N_CANDIDATES // len(poses))
+    # candidate_poses' default offsets are the demo's wrist limits (gpumap.sim.plan_demo.WRIST_LIMITS)
+    C = np.concatenate([candidate_poses(T, per, seed=k) for k, T in enumerate(poses)])
+    C = C[:N_CANDIDATES]
+    ref = None
+    rows = {}
+    for b in gpumap.available_backends():
+        try:
+            m = gpumap.MinMaxMapper.load(MAP, backend=b)
+        except Exception as e:  # a backend listed but unable to build here: say so
+            rows[b] = {"error": repr(e)[:300]}
+            continue
+        m.view_gain(C[:16])
+        best = np.inf
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            g = m.view_gain(C)
+            best = min(best, time.perf_counter() - t0)
+        if ref is None:
+            pts = gain_points(m.raw_values(), m.confidence() == 3, m.threshold, m.grid)
+            s, u = view_gain_reference(poses_to_rows(C), pts, _fov(m._params))
+            ref = s + 1.0 * u
+            n_points = int(pts.points.shape[0])
+        rows[b] = {"device": m.device, "seconds": best, "candidates_per_s": N_CANDIDATES / best,
+                   "equal_to_reference": bool(np.array_equal(g, ref)),
+                   "loadavg": list(os.getloadavg())}
+        print(f"{b:12s} {best:.3f} s for {N_CANDIDATES} candidates  equal={rows[b]['equal_to_reference']}  "
+              f"load {os.getloadavg()}", flush=True)
+    return {"candidates": N_CANDIDATES, "points": n_points, "map": str(MAP), "machine": platform.node(),
+            "cpus": os.cpu_count(), "rows": rows}
+
+
+def _merge(path: Path, key: str, section: str, value: dict) -> None:
+    data = json.loads(path.read_text()) if path.exists() else {}
+    data.setdefault(key, {})[section] = value
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.nbv", description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", default="tank,circle,survey",
+                   help="comma-separated scenes for the quality rows")
+    p.add_argument("--plan", type=int, default=10, help="views added by each arm")
+    p.add_argument("--backend", default="warp-cpu", help="backend of the quality rows")
+    p.add_argument("--section", default="cpu", help="key of the speed rows in the results file")
+    p.add_argument("--repeat", type=int, default=3, help="timed view_gain calls per backend (best kept)")
+    p.add_argument("--speed-only", action="store_true", help="only the view_gain timing")
+    p.add_argument("--out", default="bench/results/nbv.json", help="results file (merged)")
+    p.add_argument("--pictures", default="bench/results/tmp/nbv", help="folder for the quality pictures")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    a = p.parse_args(argv)
+    out = Path(a.out)
+    if not a.speed_only:
+        for s in a.scenes.split(","):
+            t0 = time.perf_counter()
+            res = quality(s, a.plan, a.backend, Path(a.pictures) / s, a.no_progress)
+            res["loadavg"] = list(os.getloadavg())
+            _merge(out, "quality", s, res)
+            fin = {k: v["curve"][-1] for k, v in res["arms"].items()}
+            print(s, f"{time.perf_counter() - t0:.0f} s",
+                  {k: round(v["false_positive_rate_far"], 3) for k, v in fin.items()}, flush=True)
+    _merge(out, "speed", a.section, speed(a.repeat))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
