@@ -37,7 +37,8 @@ VOXEL_M = {"tank": 0.03, "circle": 0.03, "survey": 0.10}
 N_CANDIDATES = 10_000
 
 
-def quality(scene_name: str, n_plan: int, backend: str, out_dir: Path, quiet: bool) -> dict:
+def quality(scene_name: str, n_plan: int, backend: str, out_dir: Path, quiet: bool,
+            unknown_weight: float) -> dict:
     from gpumap.sim.plan_demo import run_plan
     from gpumap.sim.scenes import make_scene
     from gpumap.sim.sonar import SonarSimulator
@@ -54,7 +55,7 @@ def quality(scene_name: str, n_plan: int, backend: str, out_dir: Path, quiet: bo
         TMP.mkdir(parents=True, exist_ok=True)
         m.save(MAP)
         np.save(TMP / "nbv_tank_poses.npy", scene.T_W_S)
-    res = run_plan(scene, pings, scene.T_W_S, truth, n_plan, backend, 0.1, 0, quiet, out_dir)
+    res = run_plan(scene, pings, scene.T_W_S, truth, n_plan, backend, 0.1, 0, quiet, out_dir, unknown_weight)
     res["voxel_size_m"] = VOXEL_M[scene_name]
     res["trajectory_pings"] = len(pings)
     return res
@@ -109,6 +110,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="comma-separated scenes for the quality rows")
     p.add_argument("--plan", type=int, default=10, help="views added by each arm")
     p.add_argument("--backend", default="warp-cpu", help="backend of the quality rows")
+    p.add_argument("--unknown-weight", type=float, default=1.0,
+                   help="weight of a never-observed voxel in the planner's gain (the demo's is 1)")
     p.add_argument("--section", default="cpu", help="key of the speed rows in the results file")
     p.add_argument("--repeat", type=int, default=3, help="timed view_gain calls per backend (best kept)")
     p.add_argument("--speed-only", action="store_true", help="only the view_gain timing")
@@ -120,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     if not a.speed_only:
         for s in a.scenes.split(","):
             t0 = time.perf_counter()
-            res = quality(s, a.plan, a.backend, Path(a.pictures) / s, a.no_progress)
+            res = quality(s, a.plan, a.backend, Path(a.pictures) / s, a.no_progress, a.unknown_weight)
             res["loadavg"] = list(os.getloadavg())
             _merge(out, "quality", s, res)
             fin = {k: v["curve"][-1] for k, v in res["arms"].items()}

@@ -8,18 +8,19 @@ Definitions (``thr`` the mapper's threshold, ``s`` its voxel edge, map values as
   have made an echo; a voxel the map calls free (value ``< thr``) could not.
 - **rival** of a ping: a not-known-free voxel (after the ping's update) that could lie in the
   ping's field of view: range in ``[r_min - rho, r_max + rho)``, azimuth within the fan's
-  outer beam edges, and its bounding sphere (radius ``rho``, the footprint radius) reaching into
-  the vertical aperture. Its *centre cell* is the image cell (range bin, beam) of its centre,
-  clipped to the image.
-- **tube** of a voxel in a ping: the image cells within ``tube_m`` of its centre's range and
-  azimuth arc (bins holding ``[r - tube_m, r + tube_m]``, beams holding azimuths
-  ``theta -+ asin(tube_m / h)``, ``h`` the horizontal distance, all of them when
-  ``h <= tube_m``). A tube runs along the whole elevation arc: every voxel whose centre cell
-  lies in it sits on (nearly) the same (range, azimuth), at another elevation.
-- a ping **confirms** a voxel when the ping observes it bright (its ping value, the
-  footprint maximum, is ``>= thr``), the map calls it occupied after the ping, some cell of
-  its tube is ``>= thr``, and it is the only rival whose centre cell lies in its tube: no other
-  voxel the map does not know free could have made that echo, at any elevation.
+  outer beam edges, and its bounding sphere (radius ``rho``, half the cube's diagonal) reaching
+  into the vertical aperture widened by :data:`APERTURE_MARGIN`. Its *centre cell* is the
+  image cell (range bin, beam) of its centre, clipped to the image.
+- **cells within w** of a voxel in a ping: the image cells holding ranges
+  ``[r - w, r + w]`` and azimuths ``theta -+ asin(w / h)`` (``h`` the horizontal distance; every
+  beam when ``h <= w``). They run along the whole elevation arc.
+- a ping **confirms** a voxel when the ping observes it bright (its ping value, the footprint
+  maximum, is ``>= thr``), the map calls it occupied after the ping, some cell within
+  ``tube_m`` of it is ``>= thr`` (the echo: :data:`TUBE_VOXELS`, half a voxel), and every rival
+  whose centre cell lies within ``tube_m + rho`` of it (any voxel holding a point of that
+  echo's cells) is the voxel itself or one of its 26 neighbours (the same surface, at the
+  map's resolution): no other voxel the map does not know free could have made the echo, at
+  any elevation.
 - a voxel is **confirmed** when it is occupied now and some ping confirmed it (the flag is
   sticky: it records that a view once resolved the voxel's elevation; a confirmed voxel that
   later views carve is free, whatever its flag). Occupied voxels that are not confirmed are
@@ -49,12 +50,15 @@ __all__ = ["APERTURE_MARGIN", "TUBE_VOXELS", "confirm_ping"]
 
 _F = np.float32
 
-#: Rivals are sought beyond the nominal vertical aperture by this fraction of it: the
-#: aperture is the beam's -3 dB width and a real beam still hears weaker echoes past it.
+#: Rivals are sought beyond the nominal vertical aperture by this fraction of it (the aperture
+#: is the beam's -3 dB width; a real beam still hears weaker echoes past it). 0: the mapper's
+#: own sensor model. Measured (bench/results/nbv.json, README): with 0 the simulator's echoes
+#: from just below the aperture's lower edge (its rays reach 1.5 times the half aperture) make
+#: most of the false confirmations; 0.25 or more leaves almost nothing confirmed on any scene.
 APERTURE_MARGIN = 0.0
 
-#: Tube half-width in voxel edges: half a voxel, so the tube is one voxel wide (the elevation
-#: arc through the voxel's centre, at the map's resolution).
+#: Half-width of the cells that must hold the echo, in voxel edges: half a voxel (the
+#: elevation arc through the voxel's centre, at the map's resolution).
 TUBE_VOXELS = 0.5
 
 

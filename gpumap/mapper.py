@@ -571,7 +571,7 @@ class MinMaxMapper:
     # ------------------------------------------------------------------ confidence and view gain
     def _confirm(self, T: np.ndarray, pad: float, img: np.ndarray) -> None:
         """The confidence pass of one ping, after its update (see :mod:`gpumap.confidence`)."""
-        from gpumap.confidence import APERTURE_MARGIN, confirm_ping
+        from gpumap.confidence import APERTURE_MARGIN, TUBE_VOXELS, confirm_ping
         from gpumap.geometry import beam_tan_edges
 
         if img.dtype == np.uint8:
@@ -595,7 +595,7 @@ class MinMaxMapper:
             from gpumap.reference import visible_values
 
             values = visible_values(values, *self._backend.read_evidence(), self.carve_views)
-        flat = confirm_ping(params[0], img, edges, values, half, float(params[0]["rho"]))
+        flat = confirm_ping(params[0], img, edges, values, half, TUBE_VOXELS * self.grid.voxel_size_m)
         self._confirmed[flat] = 1
 
     def confidence(self) -> np.ndarray:

@@ -173,7 +173,7 @@ def view_gain_reference(
 
 
 # ------------------------------------------------------------------ device runners
-_CL_PROGRAMS: dict[int, object] = {}
+_CL_PROGRAMS: dict[int, object] = {}  # context -> the built kernel
 _CL_LOCK = threading.Lock()
 
 
@@ -230,8 +230,10 @@ class GainRunner:
                     prg = cl.Program(b.ctx, src).build(options=["-cl-fp32-correctly-rounded-divide-sqrt"])
                 except cl.Error:
                     prg = cl.Program(b.ctx, src).build()
-                _CL_PROGRAMS[key] = prg
-            prg = _CL_PROGRAMS[key]
+                _CL_PROGRAMS[key] = cl.Kernel(prg, "view_gain")
+                _CL_PROGRAMS[key].set_scalar_arg_dtypes(
+                    [None] * 4 + [np.float32] * 5 + [np.int32] * 2 + [None] * 2)
+            k = _CL_PROGRAMS[key]
         K, M = rows.shape[0], pts.points.shape[0]
         tile = GPU_TILE if b.is_gpu else max(256, -(-M // 8))
         n_tiles = -(-M // tile)
@@ -244,10 +246,9 @@ class GainRunner:
         out = np.zeros(K, np.int32)
         settle = cl.Buffer(b.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=out)
         unknown = cl.Buffer(b.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=out)
-        k = prg.view_gain
-        k.set_scalar_arg_dtypes([None] * 4 + [np.float32] * 5 + [np.int32] * 2 + [None] * 2)
-        k(q, (K, n_tiles), None, buf(rows), buf(pts.points), buf(pts.pairs), buf(pts.weight),
-          *fov, M, tile, settle, unknown)
+        with _CL_LOCK:  # a kernel object's arguments are shared state: set and enqueue as one
+            k(q, (K, n_tiles), None, buf(rows), buf(pts.points), buf(pts.pairs), buf(pts.weight),
+              *fov, M, tile, settle, unknown)
         s = np.empty(K, np.int32)
         u = np.empty(K, np.int32)
         cl.enqueue_copy(q, s, settle)

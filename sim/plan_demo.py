@@ -74,11 +74,15 @@ def _candidates(T_traj: np.ndarray, step: int, seed: int) -> np.ndarray:
     return np.concatenate(out)[:CANDIDATES]
 
 
-def _score(mapper, truth: Truth, pings: list[Ping], grid, threshold: float) -> dict:
+def _score(mapper, truth: Truth, pings: list[Ping], grid, threshold: float, far: np.ndarray) -> dict:
     seen, det = ground_truth_masks(pings, grid, threshold)
-    ev = evaluate(mapper.values(), truth, threshold, seen, grid.voxel_size_m, detectable=det).to_dict()
+    v = mapper.values()
+    ev = evaluate(v, truth, threshold, seen, grid.voxel_size_m, detectable=det).to_dict()
     tops = [h for h in ev["height_error_m"].values() if np.isfinite(h)]
     return {"pings": len(pings), "false_positive_rate_far": ev["false_positive_rate_far"],
+            # the same voxels as a count: a view that only adds observed free water lowers the
+            # rate, not this
+            "false_positive_far_voxels": int(np.count_nonzero(far & (np.nan_to_num(v, nan=-1) >= threshold))),
             "false_negative_rate_objects_detectable": ev["false_negative_rate_objects_detectable"],
             "false_negative_rate_detectable": ev["false_negative_rate_detectable"],
             "worst_object_top_m": max(tops) if tops else float("nan"),
@@ -107,10 +111,13 @@ def confidence_report(mapper, truth: Truth) -> dict:
 
 
 def run_plan(scene: Scene, pings: list[Ping], T_traj: np.ndarray, truth: Truth, n_plan: int, backend: str,
-             threshold: float, seed: int, quiet: bool, out: Path) -> dict:
+             threshold: float, seed: int, quiet: bool, out: Path,
+             unknown_weight: float = UNKNOWN_WEIGHT) -> dict:
     """Run the three arms; write the pictures into ``out``; return the ``plan`` block of metrics.json."""
+    from scipy import ndimage
     from tqdm import tqdm
 
+    far = ~ndimage.binary_dilation(truth.occupied, structure=np.ones((3, 3, 3), bool))
     t0 = time.perf_counter()
     images = np.stack([p.image for p in pings])
     arms: dict[str, dict] = {}
@@ -120,7 +127,7 @@ def run_plan(scene: Scene, pings: list[Ping], T_traj: np.ndarray, truth: Truth, 
                                     confidence=True)
             m.integrate_batch(images, T_traj)
             all_pings = list(pings)
-            curve = [_score(m, truth, all_pings, scene.grid, threshold)]
+            curve = [_score(m, truth, all_pings, scene.grid, threshold, far)]
             poses, gains = [], []
             if arm == "rolled":
                 sel = np.linspace(0, len(T_traj) - 1, n_plan).round().astype(int) if n_plan else []
@@ -135,7 +142,7 @@ def run_plan(scene: Scene, pings: list[Ping], T_traj: np.ndarray, truth: Truth, 
             for i in tqdm(range(n_plan), disable=quiet, desc=f"plan ({arm})", unit="view"):
                 if arm == "planned":
                     C = _candidates(T_traj, i, seed)
-                    g = m.view_gain(C, unknown_weight=UNKNOWN_WEIGHT)
+                    g = m.view_gain(C, unknown_weight=unknown_weight)
                     k = int(np.argmax(g))
                     T = C[k]
                     gains.append(float(g[k]))
@@ -145,14 +152,14 @@ def run_plan(scene: Scene, pings: list[Ping], T_traj: np.ndarray, truth: Truth, 
                 m.integrate(p.image, T)
                 all_pings.append(p)
                 poses.append(T)
-                curve.append(_score(m, truth, all_pings, scene.grid, threshold))
+                curve.append(_score(m, truth, all_pings, scene.grid, threshold, far))
             arms[arm] = {"curve": curve, "poses": [T.tolist() for T in poses], "gains": gains,
                          "confidence": confidence_report(m, truth)}
             if arm == "planned":
                 planned_mapper = m
     _pictures(out, scene, truth, planned_mapper, T_traj, arms, threshold)
     return {"n_plan": n_plan, "candidates_per_view": CANDIDATES, "wrist_limits": {
-        k: list(v) for k, v in WRIST_LIMITS.items()}, "roll_deg": ROLL_DEG, "unknown_weight": UNKNOWN_WEIGHT,
+        k: list(v) for k, v in WRIST_LIMITS.items()}, "roll_deg": ROLL_DEG, "unknown_weight": unknown_weight,
         "arms": arms, "plan_s": time.perf_counter() - t0}
 
 
