@@ -104,6 +104,69 @@ def speed(repeat: int) -> dict:
             "cpus": os.cpu_count(), "rows": rows}
 
 
+BEGIN, END = "<!-- begin:nbv -->", "<!-- end:nbv -->"
+
+
+def markdown(data: dict) -> str:
+    """The BENCHMARKS.md block of a results file (every figure read from it)."""
+    out = [BEGIN, "## Next best views and the confidence layer (issue 20)", "",
+           "From `bench/results/nbv.json` (`python -m bench.nbv`; true poses, threshold 0.1, the "
+           "visible rule). After the trajectory, 10 views per arm; last row of each curve. FP far "
+           "voxels: occupied voxels more than a voxel from any surface (the rate's numerator: a "
+           "view that only adds observed water lowers the rate, not this count). Confidence: of "
+           "the far occupied voxels, the share that is unconfirmed; of the confirmed voxels, the "
+           "share that is far.", ""]
+    for key, title in (("quality", "planner gain as the demo runs it (unknown_weight 1)"),
+                       ("quality_unknown_weight_0",
+                        "planner gain on unconfirmed voxels only (unknown_weight 0)")):
+        if key not in data:
+            continue
+        out += [f"**{title}**", "",
+                "| scene | voxel | pings | arm | FP far | FP far voxels | FN objects | worst top | confirmed "
+                "(far) | far occupied unconfirmed |", "|---|---|---|---|---|---|---|---|---|---|"]
+        for scene, q in data[key].items():
+            c0 = q["arms"]["planned"]["curve"][0]
+            out.append(f"| {scene} | {100 * q['voxel_size_m']:g} cm | {c0['pings']} | trajectory | "
+                       f"{100 * c0['false_positive_rate_far']:.1f} % | "
+                       f"{c0.get('false_positive_far_voxels', '–')} | "
+                       f"{100 * c0['false_negative_rate_objects_detectable']:.1f} % | "
+                       f"{c0['worst_object_top_m']:+.3f} m | | |")
+            for arm, r in q["arms"].items():
+                c = r["curve"][-1]
+                cf = r["confidence"]
+                out.append(f"| | | {c['pings']} | {arm} | {100 * c['false_positive_rate_far']:.1f} % | "
+                           f"{c.get('false_positive_far_voxels', '–')} | "
+                           f"{100 * c['false_negative_rate_objects_detectable']:.1f} % | "
+                           f"{c['worst_object_top_m']:+.3f} m | {cf['confirmed_voxels']} "
+                           f"({100 * cf['confirmed_far_fraction']:.1f} %) | "
+                           f"{100 * cf['far_occupied_unconfirmed_fraction']:.1f} % |")
+        out.append("")
+    out += ["**view_gain, 10,000 candidates, tank map at 3 cm** (best of repeated calls; load average "
+            "of the machine beside it; equal: the gains equal the NumPy reference's exactly)", "",
+            "| run | backend | device | seconds | equal | load (1, 5, 15 min) |", "|---|---|---|---|---|---|"]
+    for sec, sp in data.get("speed", {}).items():
+        for b, r in sp["rows"].items():
+            if "seconds" not in r:
+                out.append(f"| {sec} | {b} | – | could not run: {r.get('error', '')[:80]} | | |")
+                continue
+            la = ", ".join(f"{x:.1f}" for x in r["loadavg"])
+            out.append(f"| {sec} | {b} | {r['device']} | {r['seconds']:.3f} | {r['equal_to_reference']} "
+                       f"| {la} |")
+    out += ["", END]
+    return "\n".join(out)
+
+
+def write_markdown(data: dict, path: Path = Path("BENCHMARKS.md")) -> None:
+    """Put (or replace) the block between the nbv markers in ``path``."""
+    old = path.read_text() if path.exists() else ""
+    block = markdown(data)
+    if BEGIN in old and END in old:
+        new = old[: old.index(BEGIN)] + block + old[old.index(END) + len(END):]
+    else:
+        new = old.rstrip("\n") + "\n\n" + block + "\n"
+    path.write_text(new)
+
+
 def _merge(path: Path, key: str, section: str, value: dict) -> None:
     data = json.loads(path.read_text()) if path.exists() else {}
     data.setdefault(key, {})[section] = value
@@ -125,8 +188,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="bench/results/nbv.json", help="results file (merged)")
     p.add_argument("--pictures", default="bench/results/tmp/nbv", help="folder for the quality pictures")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--markdown", action="store_true",
+                   help="only rewrite the nbv block of BENCHMARKS.md from --out")
     a = p.parse_args(argv)
     out = Path(a.out)
+    if a.markdown:
+        write_markdown(json.loads(out.read_text()))
+        return 0
     if not a.speed_only:
         for s in a.scenes.split(","):
             t0 = time.perf_counter()
