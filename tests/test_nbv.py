@@ -217,3 +217,24 @@ def test_sparse_mapper_says_it_has_no_confidence_layer():
         m.confidence()
     with pytest.raises(NotImplementedError, match="MinMaxMapper"):
         m.view_gain(np.eye(4)[None])
+
+
+def test_demo_plan_writes_three_arms(tmp_path):
+    """``gpumap demo --plan`` end to end on a coarse grid: three arms, one curve row per ping."""
+    import json
+
+    from gpumap.sim.demo import main
+
+    out = tmp_path / "demo"
+    rc = main(["--voxel-size", "0.06", "--pings", "5", "--backend", "numpy", "--out", str(out),
+               "--no-progress", "--plan", "2"])
+    assert rc == 0
+    for name in ("plan_curves.png", "plan_confidence.png", "plan_poses.png"):
+        assert (out / name).stat().st_size > 0, name
+    plan = json.loads((out / "metrics.json").read_text())["plan"]
+    assert set(plan["arms"]) == {"planned", "rolled", "random"}
+    for rec in plan["arms"].values():
+        assert [c["pings"] for c in rec["curve"]] == [5, 6, 7]
+        assert len(rec["poses"]) == 2
+        assert rec["curve"][0] == plan["arms"]["planned"]["curve"][0]  # the same start
+    assert len(plan["arms"]["planned"]["gains"]) == 2 and min(plan["arms"]["planned"]["gains"]) > 0
