@@ -90,6 +90,7 @@ def confirm_ping(
     values: np.ndarray,
     rival_half_vfov_rad: float,
     tube_m: float,
+    arcs: np.ndarray | None = None,
 ) -> np.ndarray:
     """Flat indices of the voxels one ping confirms (see the module docstring).
 
@@ -105,7 +106,10 @@ def confirm_ping(
         Elevation (radians, either side of the boresight plane) within which a voxel's bounding
         sphere makes it a rival: ``(1 + APERTURE_MARGIN)`` times half the vertical aperture.
     tube_m : float
-        Tube half-width, metres.
+        Half-width of the cells that must hold the echo, metres.
+    arcs : (n,) uint16, optional
+        Updated in place: each voxel the ping observes gets the bit of its elevation arc's
+        direction in this ping (:func:`gpumap.nbv.arc_bits`, the view gain's).
 
     Returns
     -------
@@ -150,6 +154,12 @@ def confirm_ping(
     count = np.bincount(cb[rivals] * n_beams + cj[rivals], minlength=n_bins * n_beams)
     S_riv = _prefix(count.reshape(n_bins, n_beams))
     S_lit = _prefix((image >= thr).astype(np.int64))
+    if arcs is not None:
+        from gpumap.nbv import arc_bits
+
+        seen = v >= 0
+        np.bitwise_or.at(arcs, flat[seen], (np.uint16(1) << arc_bits(
+            A, x[seen], y[seen], z[seen], h2[seen]).astype(np.uint16)).astype(np.uint16))
     cand = (v >= thr) & (vals >= thr)
     if not cand.any():
         return np.zeros(0, np.int64)

@@ -243,6 +243,8 @@ class MinMaxMapper:
         if not isinstance(confidence, (bool, np.bool_)):
             raise TypeError(f"Expected a bool for 'confidence', but got {type(confidence).__name__}")
         self._confirmed = np.zeros(grid.n_voxels, np.uint8) if confidence else None
+        # the elevation-arc directions (gpumap.nbv.PAIR_STEPS bits) each voxel was observed along
+        self._arcs = np.zeros(grid.n_voxels, np.uint16) if confidence else None
         self._gain_runner = None
         log.info("gpumap: backend %s on %s", self._backend.name, self._backend.device)
 
@@ -595,7 +597,8 @@ class MinMaxMapper:
             from gpumap.reference import visible_values
 
             values = visible_values(values, *self._backend.read_evidence(), self.carve_views)
-        flat = confirm_ping(params[0], img, edges, values, half, TUBE_VOXELS * self.grid.voxel_size_m)
+        flat = confirm_ping(params[0], img, edges, values, half, TUBE_VOXELS * self.grid.voxel_size_m,
+                            self._arcs)
         self._confirmed[flat] = 1
 
     def confidence(self) -> np.ndarray:
@@ -617,9 +620,11 @@ class MinMaxMapper:
         """(K,) float64 gain of each candidate sonar pose ((K, 4, 4) float), from the map alone.
 
         ``gain = settle + unknown_weight * unknown``: ``settle`` counts the unconfirmed occupied
-        voxels the candidate observes with both neighbours along its elevation arc known free (a
-        bright echo would confirm them, a dark clear view carve them); ``unknown`` the
-        never-observed voxels in blocks of 4^3 whose centre it observes (see :mod:`gpumap.nbv`).
+        voxels the candidate observes along an elevation arc that could settle them: both
+        neighbours along the arc known free (a bright echo would confirm them, a dark clear view
+        carve them), or, next to free space, an arc direction no ping has observed them along;
+        ``unknown`` the never-observed voxels in blocks of 4^3 whose centre it observes (exact
+        rules in :mod:`gpumap.nbv`).
         Runs on the mapper's backend; every backend gives the NumPy reference's gains exactly.
         Needs ``confidence=True``. Raises on bad poses, with the map unchanged.
         """
@@ -638,7 +643,7 @@ class MinMaxMapper:
         Ts = _check_poses(Ts)
         with self._lock:
             pts = gain_points(self.raw_values(), self._confirmed.reshape(self.grid.shape) == 1,
-                              self.threshold, self.grid)
+                              self.threshold, self.grid, self._arcs)
             if self._gain_runner is None:
                 self._gain_runner = GainRunner(self._backend)
             settle, unknown = self._gain_runner(poses_to_rows(Ts), pts, _fov(self._params))
@@ -649,6 +654,7 @@ class MinMaxMapper:
         with self._lock:
             if self._confirmed is not None:
                 self._confirmed[:] = 0
+                self._arcs[:] = 0
             self._backend.write(np.full(self.grid.n_voxels, np.inf, dtype=np.float32))
             if self.rule == "visible":
                 self._backend.write_evidence(*_evidence_empty(self.grid.n_voxels))
@@ -660,8 +666,10 @@ class MinMaxMapper:
 
         Lossless: ``values``, the float32 map as :meth:`raw_values` gives it (``+inf``
         unknown); for the visible rule its state (``min_all`` and ``bright`` float32,
-        ``count`` uint8); both specs, the method, rule, threshold and the ping count, under a
-        format name and version checked by :meth:`load`.
+        ``count`` uint8); with the confidence layer ``confirmed`` uint8 and ``arcs`` uint16
+        (the elevation-arc directions each voxel was observed along); both specs, the method,
+        rule, threshold and the ping count, under a format name and version checked by
+        :meth:`load`.
         """
         path = Path(path)
         if path.suffix != ".npz":
@@ -674,6 +682,7 @@ class MinMaxMapper:
                 arrays.update(min_all=ev["min_all"], bright=ev["bright"], count=ev["count"])
             if self._confirmed is not None:
                 arrays["confirmed"] = self._confirmed.reshape(self.grid.shape).copy()
+                arrays["arcs"] = self._arcs.reshape(self.grid.shape).copy()
             n_integrated = self.n_integrated
         meta = {
             "format": FILE_FORMAT,
@@ -729,17 +738,18 @@ class MinMaxMapper:
                 spec, grid, opts, n_integrated = _check_meta(meta, path)
                 names = ("values", "min_all", "bright", "count") if opts["rule"] == "visible" else ("values",)
                 if opts["confidence"]:
-                    names = (*names, "confirmed")
+                    names = (*names, "confirmed", "arcs")
                 for name in names:
-                    dt = np.uint8 if name in ("count", "confirmed") else np.float32
+                    dt = {"count": np.uint8, "confirmed": np.uint8, "arcs": np.uint16}.get(
+                        name, np.float32)
                     shape, dtype = headers.get(f"{name}.npy", (None, None))
                     if shape != grid.shape or dtype != np.dtype(dt):
                         raise FormatError(
                             f"Expected '{name}' of shape {grid.shape} {np.dtype(dt)} in {path}, "
                             f"but got {'nothing' if shape is None else f'{shape} {dtype}'}"
                         )
-                one_byte = ("count", "confirmed")
-                need = sum(int(np.prod(grid.shape)) * (1 if n in one_byte else 4) for n in names)
+                size = {"count": 1, "confirmed": 1, "arcs": 2}
+                need = sum(int(np.prod(grid.shape)) * size.get(n, 4) for n in names)
                 free = _free_memory_bytes("numpy")
                 if free is not None and 2 * need > free:
                     raise LimitError(
@@ -765,6 +775,7 @@ class MinMaxMapper:
             m._backend.write(arrays["values"].ravel())
         if opts["confidence"]:
             m._confirmed[:] = arrays["confirmed"].ravel()
+            m._arcs[:] = arrays["arcs"].ravel()
         m.n_integrated = n_integrated
         return m
 
@@ -859,6 +870,8 @@ def _check_map_values(arrays: dict[str, np.ndarray], opts: dict, path: Path) -> 
             )
     if "confirmed" in arrays and np.any(arrays["confirmed"] > 1):
         raise FormatError(f"Expected 'confirmed' flags of 0 or 1 in {path}, but some are larger")
+    if "arcs" in arrays and np.any(arrays["arcs"] >= 1 << 13):
+        raise FormatError(f"Expected 13-bit 'arcs' masks in {path}, but some have higher bits")
     if opts["rule"] == "visible":
         from gpumap.reference import visible_values
 

@@ -7,14 +7,16 @@ taken), from the map alone:
 
 - ``settle``: the *unconfirmed* occupied voxels (:mod:`gpumap.confidence`) the candidate
   observes (centre in its field of view, as :meth:`~gpumap.MinMaxMapper.integrate` decides it)
-  whose two neighbours along the candidate's elevation arc are both known free (map value
-  ``< thr``; outside the grid is not). The arc's direction at the voxel is the derivative of
-  the sonar-frame point with respect to elevation, ``(-x z, -y z, x^2 + y^2)`` in the sonar
-  frame, taken to the world; the neighbours are the voxel plus and minus the grid step nearest
-  to it (per axis the sign of the component where it exceeds half the direction's length).
-  Such a view sees the voxel with free voxels on both sides along its arc: a bright echo
-  there confirms it, a dark clear view carves it. Voxels whose arc neighbours are occupied or
-  unknown are not counted: the view cannot tell them apart.
+  along an elevation arc that could settle them: the arc's direction at the voxel is the
+  derivative of the sonar-frame point with respect to elevation, ``(-x z, -y z, x^2 + y^2)`` in
+  the sonar frame, taken to the world and rounded to the nearest of the 13 neighbour pairs
+  (per axis the sign of the component where it exceeds half the direction's length). The
+  voxel counts when (a) both its neighbours of that pair are known free (map value ``< thr``;
+  outside the grid is not): a bright echo confirms it, a dark clear view carves it; or (b) it
+  touches known-free space (one of its 26 neighbours is free) and no ping so far observed it
+  along that pair's direction: the new arc crosses the old ones, whose stretch it can carve.
+  Each ping's arc direction at every voxel it observes is recorded by the mapper's confidence
+  pass (a 13-bit mask per voxel). Voxels no view can settle (neither) are not counted.
 - ``unknown``: the never-observed voxels whose block of ``BLOCK`` x ``BLOCK`` x ``BLOCK`` voxels
   has its centre in the candidate's field of view (each block counts its unknown voxels):
   what the view would observe for the first time, at block resolution.
@@ -69,8 +71,9 @@ class ViewGainPoints:
     ----------
     points : (M, 3) float32 world centres, metres: first the unconfirmed occupied voxels that
         some view could settle, then the blocks holding unknown voxels.
-    pairs : (M,) int32: for a voxel, bit ``b`` set when both neighbours ``+-PAIR_STEPS[b]`` are
-        known free (map value below the threshold; outside the grid is not); -1 for a block.
+    pairs : (M,) int32: for a voxel, bit ``b`` set when a view whose elevation arc at the voxel
+        runs along ``+-PAIR_STEPS[b]`` would settle it (both those neighbours known free, or a
+        direction no ping has observed it along while it touches free space); -1 for a block.
     weight : (M,) int32: 1 for a voxel, the unknown voxels of a block.
     """
 
@@ -78,9 +81,28 @@ class ViewGainPoints:
         self.points, self.pairs, self.weight = points, pairs, weight
 
 
-def gain_points(raw_values: np.ndarray, confirmed: np.ndarray, threshold: float, grid) -> ViewGainPoints:
+def arc_bits(A: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, h2: np.ndarray) -> np.ndarray:
+    """(m,) int64 pair bit (0..12) of the elevation arc's direction at sonar-frame points
+    ``x, y, z`` (float32, ``h2 = x^2 + y^2``) of a ping whose ``A`` (3, 3) float32 maps world
+    to sonar: the kernels' arithmetic, in the same float32 order."""
+    ex, ey, ez = -(x * z), -(y * z), h2
+    wx = A[0, 0] * ex + A[1, 0] * ey + A[2, 0] * ez
+    wy = A[0, 1] * ex + A[1, 1] * ey + A[2, 1] * ez
+    wz = A[0, 2] * ex + A[1, 2] * ey + A[2, 2] * ez
+    n2 = wx * wx + wy * wy + wz * wz
+
+    def step(d):
+        return np.where(_F(4) * d * d > n2, np.where(d > 0, 1, -1), 0)
+
+    m = (step(wx) + 1) * 9 + (step(wy) + 1) * 3 + (step(wz) + 1)
+    return np.maximum(m, 26 - m) - 14
+
+
+def gain_points(raw_values: np.ndarray, confirmed: np.ndarray, threshold: float, grid,
+                arcs: np.ndarray | None = None) -> ViewGainPoints:
     """The points the gain tests, from the map's raw values ((nx, ny, nz) float32, ``+inf``
-    unknown), the confirmed flags ((nx, ny, nz) bool) and the threshold."""
+    unknown), the confirmed flags ((nx, ny, nz) bool), the threshold and the arc directions each
+    voxel was observed along ((n,) uint16 bit masks, None: none recorded)."""
     v = raw_values
     thr = np.float32(threshold)
     occ = np.isfinite(v) & (v >= thr)
@@ -88,10 +110,15 @@ def gain_points(raw_values: np.ndarray, confirmed: np.ndarray, threshold: float,
     unc = occ & ~confirmed
     n = v.shape
     mask = np.zeros(n, np.int32)
+    touches = np.zeros(n, bool)
     for b, (si, sj, sk) in enumerate(PAIR_STEPS):
         fwd = free[1 + si: 1 + si + n[0], 1 + sj: 1 + sj + n[1], 1 + sk: 1 + sk + n[2]]
         bwd = free[1 - si: 1 - si + n[0], 1 - sj: 1 - sj + n[1], 1 - sk: 1 - sk + n[2]]
         mask |= (fwd & bwd).astype(np.int32) << b
+        touches |= fwd | bwd
+    if arcs is not None:  # directions no view has used at the voxel, where it touches free space
+        new = (~arcs.reshape(n).astype(np.int32)) & 0x1FFF
+        mask = np.where(touches, mask | new, mask)
     # a voxel with no free pair can be settled by no view: it adds nothing to any gain
     ii = np.argwhere(unc & (mask != 0))
     p_unc = grid.min_corner_m + (ii + 0.5) * grid.voxel_size_m

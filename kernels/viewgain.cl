@@ -1,7 +1,8 @@
 // View gain of candidate sonar poses in OpenCL C 1.2 (device code only; twin: viewgain.py).
 // One work-item per (candidate, tile of points); same arguments in the same order as the Warp
-// kernel: candidate poses (K, 12) (rows of A = R_S_W, then b), points (M, 3), pair masks (bit b:
-// both neighbours of pair b known free; -1: a block of unknown voxels), weights, the field of view
+// kernel: candidate poses (K, 12) (rows of A = R_S_W, then b), points (M, 3), pair masks (bit b: a
+// view whose elevation arc runs along neighbour pair b would settle the voxel; -1: a block of
+// unknown voxels), weights, the field of view
 // (r_min, r_max, tan^2 half aperture, fan edge tangents), the point count (Warp reads it from the
 // array), the tile length, and the int32 totals (settle, unknown), added atomically.
 

@@ -2,14 +2,15 @@
 
 ``view_gain`` runs one thread per (candidate, tile of points). Each point is a voxel centre
 (world frame) with a weight: an *unconfirmed* occupied voxel (its pair mask ``>= 0``: bit ``b``
-set when both neighbours of the pair ``b`` are known free, see ``pair_bit``) counts towards the
-candidate's ``settle`` total when the candidate observes it and the neighbour pair along the
-candidate's elevation arc is free; a block of *unknown* voxels (mask ``-1``) counts its weight
-towards ``unknown`` when the candidate observes its centre. Totals are int32 atomics: exact and
-independent of the order in which threads finish. Arguments, in order: candidate poses (K, 12)
-(rows of ``A = R_S_W``, then ``b``), points, their pair masks, their weights, the field of view
-(r_min, r_max, tan^2 of half the vertical aperture, tangents of the fan's edges), the tile
-length, and the outputs (settle, unknown).
+set when a view whose elevation arc at the voxel runs along the neighbour pair ``b`` would
+settle it, see ``pair_bit`` and ``gpumap.nbv``) counts towards the candidate's ``settle`` total
+when the candidate observes it and its bit of the candidate's arc direction is set; a block of
+*unknown* voxels (mask ``-1``) counts its weight towards ``unknown`` when the candidate observes
+its centre. Totals are int32 atomics: exact and independent of the order in which threads
+finish. Arguments, in order: candidate poses (K, 12) (rows of ``A = R_S_W``, then ``b``),
+points, their pair masks, their weights, the field of view (r_min, r_max, tan^2 of half the
+vertical aperture, tangents of the fan's edges), the tile length, and the outputs (settle,
+unknown).
 """
 
 import warp as wp

@@ -96,14 +96,20 @@ def _state_mapper(backend: str, values: np.ndarray) -> gpumap.MinMaxMapper:
     return m
 
 
+def _bit(step) -> int:
+    return int(np.flatnonzero((PAIR_STEPS == step).all(1) | (PAIR_STEPS == -np.array(step)).all(1))[0])
+
+
 def test_gain_counts_a_voxel_whose_arc_neighbours_are_free():
-    """One unconfirmed voxel in a column of occupied ones, free on its other sides. Seen level,
-    its elevation arc runs along the column (neighbours occupied): no gain. Rolled 90 deg, the arc
-    runs across it, through free voxels: the view would settle it (gain 1)."""
+    """Rule (a). One unconfirmed voxel in a column of occupied ones, free on its other sides,
+    every arc direction already used (rule (b) off). Seen level, its elevation arc runs along the
+    column (neighbours occupied): no gain. Rolled 90 deg, the arc runs across it, through free
+    voxels: the view would settle it (gain 1 per observed voxel of the column)."""
     v = np.full(GRID.shape, np.float32(0.0))
     i, j, k = _target_index()
     v[i, j, :] = 0.5  # a vertical column of occupied voxels through the target
     m = _state_mapper("numpy", v)
+    m._arcs[:] = (1 << 13) - 1
     cand = np.stack([_look_at_target(), _look_at_target(math.pi / 2), _look_at_target(math.pi / 4)])
     g = m.view_gain(cand, unknown_weight=0.0)
     n_col = GRID.shape[2]
@@ -116,6 +122,39 @@ def test_gain_counts_a_voxel_whose_arc_neighbours_are_free():
     assert g[1] == SPEC.in_fov(p_S).sum() > 0
     # at 45 deg the nearest grid step of the arc is diagonal (y, z): across the column, free
     assert g[2] > 0
+
+
+def test_gain_counts_a_new_arc_direction_next_to_free_space():
+    """Rule (b). A wall facing the sonar (the plane x = const, occupied), free in front and behind:
+    no arc along the wall has free neighbours (rule (a) never holds). Observed so far only along
+    vertical arcs, the level view (vertical arcs) adds nothing, the rolled one (horizontal arcs,
+    a new direction) counts every wall voxel it observes; once that direction is recorded too,
+    nothing."""
+    v = np.full(GRID.shape, np.float32(0.0))
+    i, _, _ = _target_index()
+    v[i, :, :] = 0.5
+    m = _state_mapper("numpy", v)
+    m._arcs[:] = 1 << _bit((0, 0, 1))
+    cand = np.stack([_look_at_target(), _look_at_target(math.pi / 2)])
+    g = m.view_gain(cand, unknown_weight=0.0)
+    idx = np.argwhere(v > 0.1)
+    c = np.asarray(GRID.min_corner_m) + (idx + 0.5) * GRID.voxel_size_m
+    T = cand[1]
+    seen = SPEC.in_fov((c - T[:3, 3]) @ T[:3, :3])
+    assert g[0] == 0 and g[1] == seen.sum() > 10
+    m._arcs[:] |= 1 << _bit((0, 1, 0))
+    assert m.view_gain(cand[1:], unknown_weight=0.0)[0] < 0.1 * seen.sum()  # only arcs off the y step
+
+
+def test_confidence_pass_records_the_arc_directions():
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", confidence=True)
+    f = np.ravel_multi_index(_target_index(), GRID.shape)
+    T1 = _look_at_target()
+    m.integrate(_echo_image(T1), T1)
+    assert m._arcs[f] == 1 << _bit((0, 0, 1))  # level: the arc is vertical
+    T2 = _look_at_target(math.pi / 2)
+    m.integrate(_echo_image(T2), T2)
+    assert m._arcs[f] == (1 << _bit((0, 0, 1))) | (1 << _bit((0, 1, 0)))  # rolled: horizontal
 
 
 def test_gain_counts_unknown_blocks():
@@ -144,7 +183,7 @@ def test_view_gain_matches_reference_on_every_backend(backend):
         m.integrate(img, T)
     Ts = np.concatenate([candidate_poses(_look_at_target(), 150, seed=s) for s in range(2)])
     g = m.view_gain(Ts, unknown_weight=0.5)
-    pts = gain_points(m.raw_values(), m.confidence() == 3, m.threshold, GRID)
+    pts = gain_points(m.raw_values(), m.confidence() == 3, m.threshold, GRID, m._arcs)
     settle, unknown = view_gain_reference(poses_to_rows(Ts), pts, _fov(m._params))
     assert (settle > 0).any() and (unknown > 0).any()
     np.testing.assert_array_equal(g, settle + 0.5 * unknown)
@@ -183,6 +222,8 @@ def test_confidence_saved_and_loaded(tmp_path):
     p = m.save(tmp_path / "m.npz")
     back = gpumap.MinMaxMapper.load(p, backend="numpy")
     np.testing.assert_array_equal(back.confidence(), m.confidence())
+    np.testing.assert_array_equal(back._arcs, m._arcs)
+    assert m._arcs.any()
     # a map without the layer still saves and loads without it
     n = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")
     n.integrate(_echo_image(T), T)
