@@ -91,7 +91,7 @@ def speed(repeat: int) -> dict:
             g = m.view_gain(C)
             best = min(best, time.perf_counter() - t0)
         if ref is None:
-            pts = gain_points(m.raw_values(), m.confidence() == 3, m.threshold, m.grid)
+            pts = gain_points(m.raw_values(), m.confidence() == 3, m.threshold, m.grid, m._arcs)
             s, u = view_gain_reference(poses_to_rows(C), pts, _fov(m._params))
             ref = s + 1.0 * u
             n_points = int(pts.points.shape[0])
@@ -116,9 +116,9 @@ def markdown(data: dict) -> str:
            "view that only adds observed water lowers the rate, not this count). Confidence: of "
            "the far occupied voxels, the share that is unconfirmed; of the confirmed voxels, the "
            "share that is far.", ""]
-    for key, title in (("quality", "planner gain as the demo runs it (unknown_weight 1)"),
-                       ("quality_unknown_weight_0",
-                        "planner gain on unconfirmed voxels only (unknown_weight 0)")):
+    for key, title in (("quality", "planner gain as the demo runs it (unknown_weight 0)"),
+                       ("quality_unknown_weight_1",
+                        "planner gain counting never-observed voxels too (unknown_weight 1)")):
         if key not in data:
             continue
         out += [f"**{title}**", "",
@@ -180,8 +180,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="comma-separated scenes for the quality rows")
     p.add_argument("--plan", type=int, default=10, help="views added by each arm")
     p.add_argument("--backend", default="warp-cpu", help="backend of the quality rows")
-    p.add_argument("--unknown-weight", type=float, default=1.0,
-                   help="weight of a never-observed voxel in the planner's gain (the demo's is 1)")
+    p.add_argument("--unknown-weight", type=float, default=0.0,
+                   help="weight of a never-observed voxel in the planner's gain (the demo's is 0)")
     p.add_argument("--section", default="cpu", help="key of the speed rows in the results file")
     p.add_argument("--repeat", type=int, default=3, help="timed view_gain calls per backend (best kept)")
     p.add_argument("--speed-only", action="store_true", help="only the view_gain timing")

@@ -52,9 +52,9 @@ _F = np.float32
 
 #: Rivals are sought beyond the nominal vertical aperture by this fraction of it (the aperture
 #: is the beam's -3 dB width; a real beam still hears weaker echoes past it). 0: the mapper's
-#: own sensor model. Measured (bench/results/nbv.json, README): with 0 the simulator's echoes
-#: from just below the aperture's lower edge (its rays reach 1.5 times the half aperture) make
-#: most of the false confirmations; 0.25 or more leaves almost nothing confirmed on any scene.
+#: own sensor model. Seen on the simulated tank and circle (issue 20): with 0 the simulator's
+#: echoes from just below the aperture's lower edge (its rays reach 1.5 times the half aperture)
+#: make most of the false confirmations; 0.25 or more left almost nothing confirmed on either.
 APERTURE_MARGIN = 0.0
 
 #: Half-width of the cells that must hold the echo, in voxel edges: half a voxel (the

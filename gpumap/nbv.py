@@ -350,12 +350,14 @@ def plan_views(
     candidates: Callable[[int], np.ndarray],
     take_ping: Callable[[np.ndarray], np.ndarray],
     n_views: int,
-    unknown_weight: float = 1.0,
+    unknown_weight: float = 0.0,
 ) -> list[dict]:
     """Greedy next-best-view loop: ``n_views`` times, score ``candidates(i)`` ((K, 4, 4) poses),
     take the best, get its ping from ``take_ping(T_W_S)`` and integrate it into ``mapper`` (a
     :class:`gpumap.MinMaxMapper` with ``confidence=True``). Returns one record per view: ``T_W_S``,
-    ``gain`` and the index of the chosen candidate."""
+    ``gain`` and the index of the chosen candidate. ``unknown_weight`` (default 0: resolve what
+    the map holds; views that look at unseen volume add new stretch, see ``bench/results/nbv.json``)
+    is passed to :meth:`~gpumap.MinMaxMapper.view_gain`."""
     out = []
     for i in range(n_views):
         Ts = candidates(i)
