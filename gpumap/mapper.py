@@ -35,7 +35,8 @@ log = logging.getLogger("gpumap")
 METHODS = ("gather", "template")
 _ONE_BITS = np.uint32(0x3F800000)  # the bits of float32 1.0
 FILE_FORMAT = "gpumap.MinMaxMapper"
-FILE_VERSION = 2  # 2: the visible rule's evidence (bright, count) and the rule; 1 still loads
+FILE_VERSION = 3  # 3: the optional confidence layer (confirmed); 2: the visible rule's evidence
+# (bright, count) and the rule; 1 and 2 still load
 
 
 def available_backends() -> list[str]:
@@ -170,6 +171,11 @@ class MinMaxMapper:
         one speckle-dark view; 1 carves more water and more weak surfaces (fewer false
         positives, more false negatives); larger is more conservative. Read-time only: it
         may be changed between pings (:attr:`carve_views`), in 1..255.
+    confidence : bool
+        Keep the confidence layer (:mod:`gpumap.confidence`): after each ping a separate pass
+        marks the occupied voxels that view confirmed (resolved in elevation), read with
+        :meth:`confidence`; :meth:`view_gain` scores candidate poses against it. Costs a byte
+        per voxel on the host and one read of the map per ping. Default False.
     """
 
     def __init__(
@@ -184,6 +190,7 @@ class MinMaxMapper:
         rule: str | None = None,
         threshold: float = 0.1,
         carve_views: int = 2,
+        confidence: bool = False,
     ) -> None:
         if not isinstance(spec, SonarSpec):
             raise TypeError(f"Expected a gpumap.SonarSpec for 'spec', but got {type(spec).__name__}")
@@ -233,6 +240,12 @@ class MinMaxMapper:
         # would have made).
         self._lock = threading.RLock()
         self._backend = self._make_backend(backend)
+        if not isinstance(confidence, (bool, np.bool_)):
+            raise TypeError(f"Expected a bool for 'confidence', but got {type(confidence).__name__}")
+        self._confirmed = np.zeros(grid.n_voxels, np.uint8) if confidence else None
+        # the elevation-arc directions (gpumap.nbv.PAIR_STEPS bits) each voxel was observed along
+        self._arcs = np.zeros(grid.n_voxels, np.uint16) if confidence else None
+        self._gain_runner = None
         log.info("gpumap: backend %s on %s", self._backend.name, self._backend.device)
 
     def _make_backend(self, backend: str) -> Backend:
@@ -353,6 +366,8 @@ class MinMaxMapper:
                 pads[0] = self._pose_pad(_check_pose_cov(pose_cov), pose_sigmas)
             params, n_threads = self._ping_params(T[None], pads)
             self._backend.integrate(params[0, ...], img, self.method, int(n_threads[0]))
+            if self._confirmed is not None:
+                self._confirm(T, pads[0], img)
             self.n_integrated += 1  # under the lock
 
     def _pose_pad(self, C: np.ndarray, pose_sigmas: float) -> float:
@@ -450,6 +465,13 @@ class MinMaxMapper:
         if B == 0:
             return
         with self._lock:
+            if self._confirmed is not None:  # the layer follows the pings in order: one at a time
+                for b in range(B):
+                    params, n_threads = self._ping_params(Ts[b:b + 1], pads[b:b + 1])
+                    self._backend.integrate(params[0, ...], imgs[b], self.method, int(n_threads[0]))
+                    self._confirm(Ts[b], pads[b], imgs[b])
+                    self.n_integrated += 1
+                return
             params, n_threads = self._ping_params(Ts, pads)
             self._backend.integrate_batch(params, imgs, self.method, n_threads)
             self.n_integrated += B
@@ -549,9 +571,91 @@ class MinMaxMapper:
         idx = np.argwhere(np.isfinite(v) & (v >= np.float32(threshold)))
         return self.grid.centers(idx)
 
+    # ------------------------------------------------------------------ confidence and view gain
+    def _confirm(self, T: np.ndarray, pad: float, img: np.ndarray) -> None:
+        """The confidence pass of one ping, after its update (see :mod:`gpumap.confidence`)."""
+        from gpumap.confidence import APERTURE_MARGIN, TUBE_VOXELS, confirm_ping
+        from gpumap.geometry import beam_tan_edges
+
+        if img.dtype == np.uint8:
+            from gpumap.backends import U8_SCALE
+
+            img = img.astype(np.float32) * U8_SCALE
+        if not hasattr(self, "_conf_static"):
+            sp = self.spec
+            half = min(0.5 * sp.vfov_rad * (1.0 + APERTURE_MARGIN), 0.49 * np.pi)
+            wide = SonarSpec(sp.range_min_m, sp.range_max_m, sp.n_bins, sp.bearings_rad, 2.0 * half)
+            self._conf_static = (beam_tan_edges(sp), half, wide.fov_corners_S())
+        edges, half, pts = self._conf_static
+        keep = self._fov_pts_S
+        self._fov_pts_S = pts  # the box that holds the rivals (the widened aperture)
+        try:
+            params, _ = self._ping_params(T[None], np.array([pad]))
+        finally:
+            self._fov_pts_S = keep
+        values = self._backend.read()
+        if self.rule == "visible":
+            from gpumap.reference import visible_values
+
+            values = visible_values(values, *self._backend.read_evidence(), self.carve_views)
+        flat = confirm_ping(params[0], img, edges, values, half, TUBE_VOXELS * self.grid.voxel_size_m,
+                            self._arcs)
+        self._confirmed[flat] = 1
+
+    def confidence(self) -> np.ndarray:
+        """(nx, ny, nz) uint8 state of each voxel: 0 unknown, 1 free, 2 occupied and unconfirmed
+        (only consistent with the pings: the elevation stretch lives here), 3 occupied and
+        confirmed (some view resolved it in elevation; see :mod:`gpumap.confidence` for the exact
+        rule). Occupied means a value ``>= threshold``; confidence never changes a value, so it
+        never turns an occupied voxel free. Needs ``confidence=True``."""
+        if self._confirmed is None:
+            raise ValueError("Expected a mapper made with confidence=True for confidence(), but it has none")
+        with self._lock:
+            v = self.raw_values().ravel()
+            conf = self._confirmed.copy()
+        out = np.where(np.isinf(v), 0, np.where(v < np.float32(self.threshold), 1, 2)).astype(np.uint8)
+        out[(out == 2) & (conf == 1)] = 3
+        return out.reshape(self.grid.shape)
+
+    def view_gain(self, T_W_S_candidates: np.ndarray, unknown_weight: float = 1.0) -> np.ndarray:
+        """(K,) float64 gain of each candidate sonar pose ((K, 4, 4) float), from the map alone.
+
+        ``gain = settle + unknown_weight * unknown``: ``settle`` counts the unconfirmed occupied
+        voxels the candidate observes along an elevation arc that could settle them: both
+        neighbours along the arc known free (a bright echo would confirm them, a dark clear view
+        carve them), or, next to free space, an arc direction no ping has observed them along;
+        ``unknown`` the never-observed voxels in blocks of 4^3 whose centre it observes (exact
+        rules in :mod:`gpumap.nbv`).
+        Runs on the mapper's backend; every backend gives the NumPy reference's gains exactly.
+        Needs ``confidence=True``. Raises on bad poses, with the map unchanged.
+        """
+        from gpumap.nbv import GainRunner, _fov, gain_points, poses_to_rows
+
+        if self._confirmed is None:
+            raise ValueError("Expected a mapper made with confidence=True for view_gain(), but it has none")
+        w = check_finite_scalar(unknown_weight, "unknown_weight")
+        if w < 0:
+            raise ValueError(f"Expected unknown_weight >= 0, but got {w}")
+        if isinstance(T_W_S_candidates, np.ma.MaskedArray):
+            raise TypeError("Expected a plain array for 'T_W_S_candidates', but got a masked array")
+        Ts = np.asarray(T_W_S_candidates)
+        if Ts.ndim != 3 or Ts.shape[1:] != (4, 4):
+            raise ValueError(f"Expected T_W_S_candidates of shape (K, 4, 4), but got {Ts.shape}")
+        Ts = _check_poses(Ts)
+        with self._lock:
+            pts = gain_points(self.raw_values(), self._confirmed.reshape(self.grid.shape) == 1,
+                              self.threshold, self.grid, self._arcs)
+            if self._gain_runner is None:
+                self._gain_runner = GainRunner(self._backend)
+            settle, unknown = self._gain_runner(poses_to_rows(Ts), pts, _fov(self._params))
+        return settle.astype(np.float64) + w * unknown.astype(np.float64)
+
     def reset(self) -> None:
         """Forget every ping: all voxels unknown again."""
         with self._lock:
+            if self._confirmed is not None:
+                self._confirmed[:] = 0
+                self._arcs[:] = 0
             self._backend.write(np.full(self.grid.n_voxels, np.inf, dtype=np.float32))
             if self.rule == "visible":
                 self._backend.write_evidence(*_evidence_empty(self.grid.n_voxels))
@@ -571,8 +675,10 @@ class MinMaxMapper:
 
         Lossless: ``values``, the float32 map as :meth:`raw_values` gives it (``+inf``
         unknown); for the visible rule its state (``min_all`` and ``bright`` float32,
-        ``count`` uint8); both specs, the method, rule, threshold and the ping count, under a
-        format name and version checked by :meth:`load`.
+        ``count`` uint8); with the confidence layer ``confirmed`` uint8 and ``arcs`` uint16
+        (the elevation-arc directions each voxel was observed along); both specs, the method,
+        rule, threshold and the ping count, under a format name and version checked by
+        :meth:`load`.
         """
         path = Path(path)
         if path.suffix != ".npz":
@@ -583,6 +689,9 @@ class MinMaxMapper:
             if self.rule == "visible":
                 ev = self.evidence()
                 arrays.update(min_all=ev["min_all"], bright=ev["bright"], count=ev["count"])
+            if self._confirmed is not None:
+                arrays["confirmed"] = self._confirmed.reshape(self.grid.shape).copy()
+                arrays["arcs"] = self._arcs.reshape(self.grid.shape).copy()
             n_integrated = self.n_integrated
         meta = {
             "format": FILE_FORMAT,
@@ -596,6 +705,7 @@ class MinMaxMapper:
             "carve_views": self.carve_views,
             "n_integrated": n_integrated,
             "backend": self.backend,
+            "confidence": self._confirmed is not None,
         }
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_write(path) as f:
@@ -636,15 +746,19 @@ class MinMaxMapper:
                     meta = json.loads(str(np.lib.format.read_array(f, allow_pickle=False)))
                 spec, grid, opts, n_integrated = _check_meta(meta, path)
                 names = ("values", "min_all", "bright", "count") if opts["rule"] == "visible" else ("values",)
+                if opts["confidence"]:
+                    names = (*names, "confirmed", "arcs")
                 for name in names:
-                    dt = np.uint8 if name == "count" else np.float32
+                    dt = {"count": np.uint8, "confirmed": np.uint8, "arcs": np.uint16}.get(
+                        name, np.float32)
                     shape, dtype = headers.get(f"{name}.npy", (None, None))
                     if shape != grid.shape or dtype != np.dtype(dt):
                         raise FormatError(
                             f"Expected '{name}' of shape {grid.shape} {np.dtype(dt)} in {path}, "
                             f"but got {'nothing' if shape is None else f'{shape} {dtype}'}"
                         )
-                need = sum(int(np.prod(grid.shape)) * (1 if n == "count" else 4) for n in names)
+                size = {"count": 1, "confirmed": 1, "arcs": 2}
+                need = sum(int(np.prod(grid.shape)) * size.get(n, 4) for n in names)
                 free = _free_memory_bytes("numpy")
                 if free is not None and 2 * need > free:
                     raise LimitError(
@@ -668,6 +782,9 @@ class MinMaxMapper:
             m._backend.write(arrays["min_all"].ravel())
         else:
             m._backend.write(arrays["values"].ravel())
+        if opts["confidence"]:
+            m._confirmed[:] = arrays["confirmed"].ravel()
+            m._arcs[:] = arrays["arcs"].ravel()
         m.n_integrated = n_integrated
         return m
 
@@ -710,9 +827,9 @@ def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec, dict, in
         raise FormatError(f"Expected a JSON object as map metadata in {path}, but got {type(meta).__name__}")
     if meta.get("format") != FILE_FORMAT:
         raise FormatError(f"Expected format {FILE_FORMAT!r} in {path}, but got {meta.get('format')!r}")
-    if meta.get("version") not in (1, FILE_VERSION):
+    if meta.get("version") not in (1, 2, FILE_VERSION):
         raise FormatError(
-            f"Expected file version 1 or {FILE_VERSION} in {path}, but got {meta.get('version')!r}"
+            f"Expected file version 1, 2 or {FILE_VERSION} in {path}, but got {meta.get('version')!r}"
         )
     try:
         spec = SonarSpec.from_dict(meta["spec"])
@@ -731,12 +848,15 @@ def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec, dict, in
         "rule": rule,
         "threshold": meta.get("threshold", 0.1),
         "carve_views": meta.get("carve_views", 2),
+        "confidence": meta.get("confidence", False),  # versions 1 and 2 have no confidence layer
     }
     if opts["method"] not in METHODS or rule not in RULES:
         raise FormatError(
             f"Expected method in {METHODS} and rule in {RULES} in {path}, but got "
             f"{opts['method']!r} and {rule!r}"
         )
+    if not isinstance(opts["confidence"], bool):
+        raise FormatError(f"Expected a bool for confidence in {path}, but got {opts['confidence']!r}")
     for key in ("shadow_m", "threshold"):
         if isinstance(opts[key], bool) or not isinstance(opts[key], (int, float)):
             raise FormatError(f"Expected a number for {key} in {path}, but got {opts[key]!r}")
@@ -757,6 +877,10 @@ def _check_map_values(arrays: dict[str, np.ndarray], opts: dict, path: Path) -> 
                 f"Expected '{name}' in [0, 1] or +inf (never observed) in {path}, but got {a[i]} at "
                 f"{tuple(int(x) for x in i)} and {int(bad.sum()) - 1} more"
             )
+    if "confirmed" in arrays and np.any(arrays["confirmed"] > 1):
+        raise FormatError(f"Expected 'confirmed' flags of 0 or 1 in {path}, but some are larger")
+    if "arcs" in arrays and np.any(arrays["arcs"] >= 1 << 13):
+        raise FormatError(f"Expected 13-bit 'arcs' masks in {path}, but some have higher bits")
     if opts["rule"] == "visible":
         from gpumap.reference import visible_values
 

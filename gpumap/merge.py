@@ -99,6 +99,7 @@ def _options(mapper) -> tuple[str, dict]:
         "rule": mapper.rule,
         "threshold": float(mapper.threshold),
         "carve_views": int(mapper.carve_views),
+        "confidence": getattr(mapper, "_confirmed", None) is not None,
     }
 
 
@@ -187,6 +188,12 @@ def merge_into(mapper, other) -> None:
         )
     kind, opts = _options(mapper)
     st = _as_state(other)
+    if opts["confidence"] or st.options.get("confidence"):
+        raise ValueError(
+            "Expected maps without the confidence layer to merge, but got one made with confidence=True: "
+            "a voxel is confirmed against what was known free when its ping came, so the layer depends "
+            "on the order of the pings and merged maps could not hold it exactly"
+        )
     _same(kind, opts, st)
     visible = opts["rule"] == "visible"
     _check_arrays(st, mapper)

@@ -1454,6 +1454,20 @@ class SparseMinMaxMapper:
         v[np.isinf(v)] = np.nan
         return v
 
+    def confidence(self) -> np.ndarray:
+        """Not yet on sparse maps: the confidence layer lives on :class:`gpumap.MinMaxMapper`."""
+        raise NotImplementedError(
+            "Expected a dense gpumap.MinMaxMapper(confidence=True) for confidence(); the sparse mapper "
+            "has no confidence layer yet"
+        )
+
+    def view_gain(self, T_W_S_candidates: np.ndarray, unknown_weight: float = 1.0) -> np.ndarray:
+        """Not yet on sparse maps: see :meth:`gpumap.MinMaxMapper.view_gain`."""
+        raise NotImplementedError(
+            "Expected a dense gpumap.MinMaxMapper(confidence=True) for view_gain(); the sparse mapper "
+            "has no confidence layer yet"
+        )
+
     def observed(self) -> np.ndarray:
         """(nx, ny, nz) bool over :attr:`grid`: voxels seen by at least one ping."""
         return np.isfinite(self.raw_values())

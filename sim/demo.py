@@ -87,6 +87,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--sparse", action="store_true",
                    help="map into gpumap.SparseMinMaxMapper (blocks only where pings look, bounded by the "
                         "scene's grid; the same values as the dense grid) and report its memory")
+    p.add_argument("--plan", type=nonnegative_int, default=0, metavar="N",
+                   help="after the trajectory, add N planned next best views and, for comparison, N evenly "
+                        "spread rolled views and N random ones; writes their curves (plan block of "
+                        "metrics.json) and pictures of the confidence layer and the chosen poses")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     from gpumap.viewer.cli import add_view_args
 
@@ -449,6 +453,11 @@ def run_demo(args: argparse.Namespace) -> dict:
         session.finish(mapper)
 
     _figures(out, scene, truth, mapper, sample, history, args.threshold, detectable)
+    if getattr(args, "plan", 0):
+        from .plan_demo import run_plan
+
+        metrics["plan"] = run_plan(scene, pings, T_true, truth, args.plan, args.backend, args.threshold,
+                                   args.seed, quiet, out)
     metrics["demo_s"] = time.perf_counter() - t_start
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_jsonable))
     return metrics
@@ -544,7 +553,8 @@ def _figures(out: Path, scene: Scene, truth: Truth, mapper, sample: Ping, histor
 
 #: Every file ``gpumap demo`` writes into ``--out``: one run's set replaces the last one's.
 OUTPUTS = ("metrics.json", "map.npz", "sonar_image.png", "map_vs_truth.png", "error_by_views.png",
-           "height_map.png", "errors_by_object.png")
+           "height_map.png", "errors_by_object.png", "plan_curves.png", "plan_confidence.png",
+           "plan_poses.png")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -598,7 +608,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name:9s} missed {row.get('miss_rate', float('nan')):.3f} "
                   f"phantom {row.get('false_positive_rate_far', float('nan')):.3f} "
                   f"pose err {row.get('translation_error_mean_m', float('nan')):.3f} m")
-    print(f"wrote {', '.join(OUTPUTS)} to {Path(out).resolve()}")
+    if "plan" in m:
+        from .plan_demo import print_plan
+
+        print_plan(m["plan"])
+    written = [n for n in OUTPUTS if (Path(out) / n).exists()]
+    print(f"wrote {', '.join(written)} to {Path(out).resolve()}")
     for s in sessions:
         s.serve()
     return 0

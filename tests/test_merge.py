@@ -261,3 +261,23 @@ def test_export_reads_sparse_map_files_too(tmp_path, capsys):
     ply = read_ply(tmp_path / "s.ply")
     got = np.stack([ply["x"], ply["y"], ply["z"]], axis=1).astype(np.float64)
     np.testing.assert_allclose(np.sort(got, axis=0), np.sort(pts, axis=0), atol=1e-5)
+
+
+def test_maps_with_the_confidence_layer_are_refused_unchanged():
+    """The confidence layer depends on ping order (gpumap.confidence): no merge can be exact."""
+    spec = gpumap.SonarSpec.uniform(hfov_deg=60, vfov_deg=12, n_beams=16, n_bins=20, range_min_m=0.1,
+                                    range_max_m=1.0)
+    grid = gpumap.GridSpec((0.0, -0.5, -0.2), (1.0, 0.5, 0.2), 0.1)
+    img = np.random.default_rng(3).random(spec.image_shape).astype(np.float32)
+    a = gpumap.MinMaxMapper(spec, grid, backend="numpy", confidence=True)
+    b = gpumap.MinMaxMapper(spec, grid, backend="numpy", confidence=True)
+    plain_b = gpumap.MinMaxMapper(spec, grid, backend="numpy")
+    for m in (a, b, plain_b):
+        m.integrate(img, np.eye(4))
+    before = a.raw_values().copy()
+    for other in (b, plain_b):
+        with pytest.raises(ValueError, match="confidence layer"):
+            a.merge(other)
+    with pytest.raises(ValueError, match="confidence layer"):
+        plain_b.merge(b)
+    np.testing.assert_array_equal(a.raw_values(), before)

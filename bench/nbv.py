@@ -1,0 +1,212 @@
+"""Next best views: planned vs evenly spread rolled vs random views, and the view gain's speed.
+
+    python -m bench.nbv [--scenes tank,circle,survey] [--plan 10] [--section cpu]
+                        [--out bench/results/nbv.json]
+    python -m bench.nbv --speed-only --section gpu      # view_gain timing only (needs the saved map)
+
+Quality (``quality`` block, per scene): the scene's trajectory pings at true poses, then
+``--plan`` views three ways (:mod:`gpumap.sim.plan_demo`: planned, evenly spread rolled, random),
+with FP far, FN (objects, detectable), the worst object top after every ping, and the
+confidence layer's split of the final maps. Voxel edge: 3 cm (tank, circle), 10 cm (survey,
+and 45 of its pings spread evenly over the lawnmower: the three arms' host confidence passes on
+the 24 M-voxel 5 cm grid with every ping take too long for this bench).
+
+Speed (``speed`` block, under ``--section``): ``view_gain`` of 10,000 candidates (around the
+tank trajectory's poses, :func:`gpumap.nbv.candidate_poses` within the demo's wrist limits) on
+the tank map at 3 cm after its 40 pings (saved by the quality run to
+``bench/results/tmp/nbv_tank_map.npz``), on every backend here; best of ``--repeat`` calls after
+one warm-up call, the load average beside it, and whether the gains equal the NumPy
+reference's exactly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+import gpumap
+
+TMP = Path("bench/results/tmp")
+MAP = TMP / "nbv_tank_map.npz"
+VOXEL_M = {"tank": 0.03, "circle": 0.03, "survey": 0.10}
+#: Trajectory pings used (evenly spaced, as ``gpumap demo --pings``); None: all.
+PINGS = {"survey": 45}
+N_CANDIDATES = 10_000
+
+
+def quality(scene_name: str, n_plan: int, backend: str, out_dir: Path, quiet: bool,
+            unknown_weight: float) -> dict:
+    from gpumap.sim.plan_demo import run_plan
+    from gpumap.sim.scenes import make_scene
+    from gpumap.sim.sonar import SonarSimulator
+    from gpumap.sim.truth import occupancy
+
+    scene = make_scene(scene_name, voxel_size_m=VOXEL_M[scene_name], seed=0)
+    truth = occupancy(scene, seed=0)
+    sel = np.arange(len(scene.T_W_S))
+    if PINGS.get(scene_name):
+        sel = np.unique(np.linspace(0, len(sel) - 1, PINGS[scene_name]).round().astype(int))
+    T_traj = scene.T_W_S[sel]
+    with SonarSimulator(scene, seed=0, **scene.sonar_params) as sim:
+        pings = [sim.ping(scene.T_W_S[k], int(k)) for k in sel]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if scene_name == "tank":  # the map the speed rows score candidates on
+        m = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, confidence=True)
+        m.integrate_batch(np.stack([p.image for p in pings]), scene.T_W_S)
+        TMP.mkdir(parents=True, exist_ok=True)
+        m.save(MAP)
+        np.save(TMP / "nbv_tank_poses.npy", scene.T_W_S)
+    res = run_plan(scene, pings, T_traj, truth, n_plan, backend, 0.1, 0, quiet, out_dir, unknown_weight)
+    res["voxel_size_m"] = VOXEL_M[scene_name]
+    res["trajectory_pings"] = len(pings)
+    return res
+
+
+def speed(repeat: int) -> dict:
+    from gpumap.nbv import _fov, candidate_poses, gain_points, poses_to_rows, view_gain_reference
+
+    poses = np.load(TMP / "nbv_tank_poses.npy")
+    per = -(-N_CANDIDATES // len(poses))
+    # candidate_poses' default offsets are the demo's wrist limits (gpumap.sim.plan_demo.WRIST_LIMITS)
+    C = np.concatenate([candidate_poses(T, per, seed=k) for k, T in enumerate(poses)])
+    C = C[:N_CANDIDATES]
+    ref = None
+    rows = {}
+    for b in gpumap.available_backends():
+        try:
+            m = gpumap.MinMaxMapper.load(MAP, backend=b)
+        except Exception as e:  # a backend listed but unable to build here: say so
+            rows[b] = {"error": repr(e)[:300]}
+            continue
+        m.view_gain(C[:16])
+        best = np.inf
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            g = m.view_gain(C)
+            best = min(best, time.perf_counter() - t0)
+        if ref is None:
+            pts = gain_points(m.raw_values(), m.confidence() == 3, m.threshold, m.grid, m._arcs)
+            s, u = view_gain_reference(poses_to_rows(C), pts, _fov(m._params))
+            ref = s + 1.0 * u
+            n_points = int(pts.points.shape[0])
+        rows[b] = {"device": m.device, "seconds": best, "candidates_per_s": N_CANDIDATES / best,
+                   "equal_to_reference": bool(np.array_equal(g, ref)),
+                   "loadavg": list(os.getloadavg())}
+        print(f"{b:12s} {best:.3f} s for {N_CANDIDATES} candidates  equal={rows[b]['equal_to_reference']}  "
+              f"load {os.getloadavg()}", flush=True)
+    return {"candidates": N_CANDIDATES, "points": n_points, "map": str(MAP), "machine": platform.node(),
+            "cpus": os.cpu_count(), "rows": rows}
+
+
+BEGIN, END = "<!-- begin:nbv -->", "<!-- end:nbv -->"
+
+
+def markdown(data: dict) -> str:
+    """The BENCHMARKS.md block of a results file (every figure read from it)."""
+    out = [BEGIN, "## Next best views and the confidence layer (issue 20)", "",
+           "From `bench/results/nbv.json` (`python -m bench.nbv`; true poses, threshold 0.1, the "
+           "visible rule). After the trajectory, 10 views per arm; last row of each curve. FP far "
+           "voxels: occupied voxels more than a voxel from any surface (the rate's numerator: a "
+           "view that only adds observed water lowers the rate, not this count). Confidence: of "
+           "the far occupied voxels, the share that is unconfirmed; of the confirmed voxels, the "
+           "share that is far.", ""]
+    for key, title in (("quality", "planner gain as the demo runs it (unknown_weight 0)"),
+                       ("quality_unknown_weight_1",
+                        "planner gain counting never-observed voxels too (unknown_weight 1)")):
+        if key not in data:
+            continue
+        out += [f"**{title}**", "",
+                "| scene | voxel | pings | arm | FP far | FP far voxels | FN objects | worst top | confirmed "
+                "(far) | far occupied unconfirmed |", "|---|---|---|---|---|---|---|---|---|---|"]
+        for scene, q in data[key].items():
+            c0 = q["arms"]["planned"]["curve"][0]
+            out.append(f"| {scene} | {100 * q['voxel_size_m']:g} cm | {c0['pings']} | trajectory | "
+                       f"{100 * c0['false_positive_rate_far']:.1f} % | "
+                       f"{c0.get('false_positive_far_voxels', '–')} | "
+                       f"{100 * c0['false_negative_rate_objects_detectable']:.1f} % | "
+                       f"{c0['worst_object_top_m']:+.3f} m | | |")
+            for arm, r in q["arms"].items():
+                c = r["curve"][-1]
+                cf = r["confidence"]
+                out.append(f"| | | {c['pings']} | {arm} | {100 * c['false_positive_rate_far']:.1f} % | "
+                           f"{c.get('false_positive_far_voxels', '–')} | "
+                           f"{100 * c['false_negative_rate_objects_detectable']:.1f} % | "
+                           f"{c['worst_object_top_m']:+.3f} m | {cf['confirmed_voxels']} "
+                           f"({100 * cf['confirmed_far_fraction']:.1f} %) | "
+                           f"{100 * cf['far_occupied_unconfirmed_fraction']:.1f} % |")
+        out.append("")
+    out += ["**view_gain, 10,000 candidates, tank map at 3 cm** (best of repeated calls; load average "
+            "of the machine beside it; equal: the gains equal the NumPy reference's exactly)", "",
+            "| run | backend | device | seconds | equal | load (1, 5, 15 min) |", "|---|---|---|---|---|---|"]
+    for sec, sp in data.get("speed", {}).items():
+        for b, r in sp["rows"].items():
+            if "seconds" not in r:
+                out.append(f"| {sec} | {b} | – | could not run: {r.get('error', '')[:80]} | | |")
+                continue
+            la = ", ".join(f"{x:.1f}" for x in r["loadavg"])
+            out.append(f"| {sec} | {b} | {r['device']} | {r['seconds']:.3f} | {r['equal_to_reference']} "
+                       f"| {la} |")
+    out += ["", END]
+    return "\n".join(out)
+
+
+def write_markdown(data: dict, path: Path = Path("BENCHMARKS.md")) -> None:
+    """Put (or replace) the block between the nbv markers in ``path``."""
+    old = path.read_text() if path.exists() else ""
+    block = markdown(data)
+    if BEGIN in old and END in old:
+        new = old[: old.index(BEGIN)] + block + old[old.index(END) + len(END):]
+    else:
+        new = old.rstrip("\n") + "\n\n" + block + "\n"
+    path.write_text(new)
+
+
+def _merge(path: Path, key: str, section: str, value: dict) -> None:
+    data = json.loads(path.read_text()) if path.exists() else {}
+    data.setdefault(key, {})[section] = value
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.nbv", description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", default="tank,circle,survey",
+                   help="comma-separated scenes for the quality rows")
+    p.add_argument("--plan", type=int, default=10, help="views added by each arm")
+    p.add_argument("--backend", default="warp-cpu", help="backend of the quality rows")
+    p.add_argument("--unknown-weight", type=float, default=0.0,
+                   help="weight of a never-observed voxel in the planner's gain (the demo's is 0)")
+    p.add_argument("--section", default="cpu", help="key of the speed rows in the results file")
+    p.add_argument("--repeat", type=int, default=3, help="timed view_gain calls per backend (best kept)")
+    p.add_argument("--speed-only", action="store_true", help="only the view_gain timing")
+    p.add_argument("--out", default="bench/results/nbv.json", help="results file (merged)")
+    p.add_argument("--pictures", default="bench/results/tmp/nbv", help="folder for the quality pictures")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--markdown", action="store_true",
+                   help="only rewrite the nbv block of BENCHMARKS.md from --out")
+    a = p.parse_args(argv)
+    out = Path(a.out)
+    if a.markdown:
+        write_markdown(json.loads(out.read_text()))
+        return 0
+    if not a.speed_only:
+        for s in a.scenes.split(","):
+            t0 = time.perf_counter()
+            res = quality(s, a.plan, a.backend, Path(a.pictures) / s, a.no_progress, a.unknown_weight)
+            res["loadavg"] = list(os.getloadavg())
+            _merge(out, "quality", s, res)
+            fin = {k: v["curve"][-1] for k, v in res["arms"].items()}
+            print(s, f"{time.perf_counter() - t0:.0f} s",
+                  {k: round(v["false_positive_rate_far"], 3) for k, v in fin.items()}, flush=True)
+    _merge(out, "speed", a.section, speed(a.repeat))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,199 @@
+"""The confidence layer: occupied voxels that some view *confirmed*, apart from those that are
+only *consistent* with the pings (the elevation stretch).
+
+Definitions (``thr`` the mapper's threshold, ``s`` its voxel edge, map values as
+:meth:`gpumap.MinMaxMapper.raw_values` gives them, ``+inf`` unknown):
+
+- **not known free**: a voxel whose map value is ``>= thr`` or unknown. Only these could
+  have made an echo; a voxel the map calls free (value ``< thr``) could not.
+- **rival** of a ping: a not-known-free voxel (after the ping's update) that could lie in the
+  ping's field of view: range in ``[r_min - rho, r_max + rho)``, azimuth within the fan's
+  outer beam edges, and its bounding sphere (radius ``rho``, half the cube's diagonal) reaching
+  into the vertical aperture widened by :data:`APERTURE_MARGIN`. Its *centre cell* is the
+  image cell (range bin, beam) of its centre, clipped to the image.
+- **cells within w** of a voxel in a ping: the image cells holding ranges
+  ``[r - w, r + w]`` and azimuths ``theta -+ asin(w / h)`` (``h`` the horizontal distance; every
+  beam when ``h <= w``). They run along the whole elevation arc.
+- a ping **confirms** a voxel when the ping observes it bright (its ping value, the footprint
+  maximum, is ``>= thr``), the map calls it occupied after the ping, some cell within
+  ``tube_m`` of it is ``>= thr`` (the echo: :data:`TUBE_VOXELS`, half a voxel), and every rival
+  whose centre cell lies within ``tube_m + rho`` of it (any voxel holding a point of that
+  echo's cells) is the voxel itself or one of its 26 neighbours (the same surface, at the
+  map's resolution): no other voxel the map does not know free could have made the echo, at
+  any elevation.
+- a voxel is **confirmed** when it is occupied now and some ping confirmed it (the flag is
+  sticky: it records that a view once resolved the voxel's elevation; a confirmed voxel that
+  later views carve is free, whatever its flag). Occupied voxels that are not confirmed are
+  **unconfirmed**: consistent with every ping, but no view told them apart from the other
+  voxels of their elevation arcs.
+
+Confidence only labels occupied voxels: it never changes a map value, so it never turns an
+occupied voxel free (a planner may treat unconfirmed voxels as soft obstacles and confirmed
+ones as hard; both stay obstacles).
+
+The pass is judged against the map as it stands when the ping is integrated (later pings
+that carve a rival do not confirm a voxel after the fact: a new view must), so unlike the
+map values the layer depends on the order of the pings; :meth:`~gpumap.MinMaxMapper.integrate_batch`
+applies its pings in order and gives the layer of the same sequence of ``integrate`` calls.
+
+:func:`confirm_ping` is the plain NumPy pass (the reference); it is also what the mapper
+runs, on the host, on every backend (the map values are read back once per ping).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gpumap.reference import beam_index_lo, voxel_ping_values
+
+__all__ = ["APERTURE_MARGIN", "TUBE_VOXELS", "confirm_ping"]
+
+_F = np.float32
+
+#: Rivals are sought beyond the nominal vertical aperture by this fraction of it (the aperture
+#: is the beam's -3 dB width; a real beam still hears weaker echoes past it). 0: the mapper's
+#: own sensor model. Seen on the simulated tank and circle (issue 20): with 0 the simulator's
+#: echoes from just below the aperture's lower edge (its rays reach 1.5 times the half aperture)
+#: make most of the false confirmations; 0.25 or more left almost nothing confirmed on either.
+APERTURE_MARGIN = 0.0
+
+#: Half-width of the cells that must hold the echo, in voxel edges: half a voxel (the
+#: elevation arc through the voxel's centre, at the map's resolution).
+TUBE_VOXELS = 0.5
+
+
+def _box_indices(params: np.ndarray) -> np.ndarray:
+    lo = params["box_lo"].astype(np.int64)
+    n = params["box_n"].astype(np.int64)
+    if n.prod() == 0:
+        return np.zeros((0, 3), np.int64)
+    g = np.meshgrid(*(np.arange(n[a]) + lo[a] for a in range(3)), indexing="ij")
+    return np.stack([x.ravel() for x in g], -1)
+
+
+def _prefix(a: np.ndarray) -> np.ndarray:
+    """(n+1, m+1) int64 summed-area table of a 2-D array (a zero row and column first)."""
+    S = np.zeros((a.shape[0] + 1, a.shape[1] + 1), np.int64)
+    S[1:, 1:] = a.cumsum(0).cumsum(1)
+    return S
+
+
+def _rect(S: np.ndarray, b0, b1, j0, j1) -> np.ndarray:
+    """Sum over rows b0..b1 and columns j0..j1 (inclusive) from a summed-area table."""
+    return S[b1 + 1, j1 + 1] - S[b0, j1 + 1] - S[b1 + 1, j0] + S[b0, j0]
+
+
+def confirm_ping(
+    params: np.ndarray,
+    image: np.ndarray,
+    edges: np.ndarray,
+    values: np.ndarray,
+    rival_half_vfov_rad: float,
+    tube_m: float,
+    arcs: np.ndarray | None = None,
+) -> np.ndarray:
+    """Flat indices of the voxels one ping confirms (see the module docstring).
+
+    Parameters
+    ----------
+    params : PING_DTYPE record of the ping (:mod:`gpumap.geometry`), per-ping fields filled.
+    image : (n_bins, n_beams) float32 in [0, 1]
+        The ping's image.
+    edges : (n_beams + 1,) float32 tangents of the beam-cell edges.
+    values : (n,) float32
+        The map values after the ping's update (``+inf`` unknown), flat C order.
+    rival_half_vfov_rad : float
+        Elevation (radians, either side of the boresight plane) within which a voxel's bounding
+        sphere makes it a rival: ``(1 + APERTURE_MARGIN)`` times half the vertical aperture.
+    tube_m : float
+        Half-width of the cells that must hold the echo, metres.
+    arcs : (n,) uint16, optional
+        Updated in place: each voxel the ping observes gets the bit of its elevation arc's
+        direction in this ping (:func:`gpumap.nbv.arc_bits`, the view gain's).
+
+    Returns
+    -------
+    (m,) int64 flat voxel indices, ascending.
+    """
+    idx = _box_indices(params)
+    if idx.shape[0] == 0:
+        return np.zeros(0, np.int64)
+    dims = params["dims"].astype(np.int64)
+    flat = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
+    c = params["origin"] + (idx.astype(_F) + _F(0.5)) * params["voxel"]
+    v = voxel_ping_values(params, image, edges, c)  # -1 where not observed
+    A = params["A"].reshape(3, 3)
+    b = params["b"]
+    x = A[0, 0] * c[:, 0] + A[0, 1] * c[:, 1] + A[0, 2] * c[:, 2] + b[0]
+    y = A[1, 0] * c[:, 0] + A[1, 1] * c[:, 1] + A[1, 2] * c[:, 2] + b[1]
+    z = A[2, 0] * c[:, 0] + A[2, 1] * c[:, 1] + A[2, 2] * c[:, 2] + b[2]
+    h2 = x * x + y * y
+    h = np.sqrt(h2)
+    r = np.sqrt(h2 + z * z)
+    rho = params["rho"]
+    rmin = params["rmin"]
+    pos = x > 0
+    t = y / np.where(pos, x, _F(1))
+    cos_hv, sin_hv = _F(np.cos(rival_half_vfov_rad)), _F(np.sin(rival_half_vfov_rad))
+    vals = values[flat]
+    thr = params["thr"]
+    rivals = (
+        pos
+        & (r >= rmin - rho)
+        & (r < params["rmax"] + rho)
+        & (t >= params["tan_lo"])
+        & (t <= params["tan_hi"])
+        & (np.abs(z) * cos_hv - h * sin_hv <= rho)
+        & (vals >= thr)
+    )
+    n_bins = int(params["n_bins"])
+    n_beams = int(params["n_beams"])
+    inv_dr = params["inv_dr"]
+    cb = np.clip(np.floor((r - rmin) * inv_dr), 0, n_bins - 1).astype(np.int64)
+    cj = beam_index_lo(t, edges)
+    count = np.bincount(cb[rivals] * n_beams + cj[rivals], minlength=n_bins * n_beams)
+    S_riv = _prefix(count.reshape(n_bins, n_beams))
+    S_lit = _prefix((image >= thr).astype(np.int64))
+    if arcs is not None:
+        from gpumap.nbv import arc_bits
+
+        seen = v >= 0
+        np.bitwise_or.at(arcs, flat[seen], (np.uint16(1) << arc_bits(
+            A, x[seen], y[seen], z[seen], h2[seen]).astype(np.uint16)).astype(np.uint16))
+    cand = (v >= thr) & (vals >= thr)
+    if not cand.any():
+        return np.zeros(0, np.int64)
+    r, h2, t = r[cand], h2[cand], t[cand]
+
+    def cells(w):
+        """Bins and beams within ``w`` of each candidate's range and azimuth arc."""
+        b0 = np.clip(np.floor((r - w - rmin) * inv_dr), 0, n_bins - 1).astype(np.int64)
+        b1 = np.clip(np.floor((r + w - rmin) * inv_dr), 0, n_bins - 1).astype(np.int64)
+        q = h2 - w * w
+        narrow = q > 0
+        u = w / np.sqrt(np.where(narrow, q, _F(1)))
+        d0 = _F(1) + t * u
+        d1 = _F(1) - t * u
+        ok0 = narrow & (d0 > 0)
+        ok1 = narrow & (d1 > 0)
+        j0 = np.where(ok0, beam_index_lo((t - u) / np.where(ok0, d0, _F(1)), edges), 0)
+        j1 = np.where(ok1, beam_index_lo((t + u) / np.where(ok1, d1, _F(1)), edges), n_beams - 1)
+        return b0, b1, j0, j1
+
+    # the echo: a bright cell within tube_m of the centre; who could have made it: any voxel
+    # holding a point there, its centre up to rho (half the cube's diagonal) further
+    lit = _rect(S_lit, *cells(_F(tube_m))) > 0
+    b0, b1, j0, j1 = cells(_F(tube_m) + rho)
+    # the rivals within one voxel of the candidate (itself included) that sit in its tube
+    nb = np.asarray(params["box_n"], np.int64)
+    loc = idx - params["box_lo"].astype(np.int64)
+    ci = np.flatnonzero(cand)
+    own = np.zeros(ci.size, np.int64)
+    for off in np.ndindex(3, 3, 3):
+        q = loc[ci] + (np.array(off) - 1)
+        inside = np.all((q >= 0) & (q < nb), axis=1)
+        k = np.where(inside, (q[:, 0] * nb[1] + q[:, 1]) * nb[2] + q[:, 2], 0)
+        hit = inside & rivals[k] & (cb[k] >= b0) & (cb[k] <= b1) & (cj[k] >= j0) & (cj[k] <= j1)
+        own += hit
+    alone = (_rect(S_riv, b0, b1, j0, j1) == own) & lit
+    return np.sort(flat[cand][alone])
