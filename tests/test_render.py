@@ -72,8 +72,12 @@ def _loss_and_grads(r: PingRenderer, occ, refl, T, meas, log_gain=None, floor=0.
     return float(loss.numpy()[0]), o.grad.numpy(), q.grad.numpy(), float(disp.grad.numpy()[0])
 
 
-@pytest.mark.parametrize("device", _devices())
-def test_gradients_match_finite_differences(device: str) -> None:
+def test_gradients_match_finite_differences() -> None:
+    """On Warp's CPU device, where the float atomics that sum the loss run in a fixed order; on a
+    GPU their order changes from launch to launch, which moves the loss by more than a central
+    difference with eps = 1e-3 can resolve (measured on an H100: 7 % off on one voxel). There the
+    next test holds the gradients to the CPU's."""
+    device = "cpu"
     spec, grid, occ, refl, rng = _small_case(0.1)
     r = PingRenderer(spec, grid, device=device)
     T = _pose(0.3, 0.3)
@@ -101,6 +105,27 @@ def test_gradients_match_finite_differences(device: str) -> None:
         assert gq[i] == pytest.approx(fdq, rel=0.03, abs=3e-3), (i, gq[i], fdq)
     fdl = (f(occ, refl, math.log(200.0) + eps) - f(occ, refl, math.log(200.0) - eps)) / (2 * eps)
     assert gl == pytest.approx(fdl, rel=0.03)
+
+
+@pytest.mark.skipif("cuda:0" not in _devices(), reason="no CUDA device for Warp here")
+def test_cuda_loss_and_gradients_equal_the_cpu_ones() -> None:
+    """The GPU's tape gives the loss and gradients of the CPU's (checked against finite differences
+    above), up to the order of float atomic adds."""
+    spec, grid, occ, refl, rng = _small_case(0.1)
+    T = _pose(0.3, 0.3)
+    meas = None
+    out = {}
+    for device in ("cpu", "cuda:0"):
+        r = PingRenderer(spec, grid, device=device)
+        if meas is None:
+            meas = (0.5 * rng.random((1, *r.image_shape))).astype(np.float32)
+        out[device] = _loss_and_grads(r, occ, refl, T, meas)
+    (Lc, goc, gqc, glc), (Lg, gog, gqg, glg) = out["cpu"], out["cuda:0"]
+    assert Lg == pytest.approx(Lc, rel=1e-4)
+    assert np.abs(goc).max() > 0.1
+    for a, b in ((gog, goc), (gqg, gqc)):
+        np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-4 * float(np.abs(b).max()))
+    assert glg == pytest.approx(glc, rel=1e-3)
 
 
 def test_renders_the_simulators_ping() -> None:
