@@ -133,7 +133,18 @@ def _same(kind: str, opts: dict, other: MapState) -> None:
     for key in ("spec", "grid", "sparse", "method", "shadow_m", "rule", "threshold", "carve_views"):
         a, b = opts.get(key), other.options.get(key)
         if a != b:
-            raise ValueError(f"Expected maps with the same {key} to merge, but got {a!r} and {b!r}")
+            if isinstance(a, dict) and isinstance(b, dict):  # name the field inside (spec.n_bins, ...)
+                sub = next(k for k in (*a, *(k for k in b if k not in a)) if a.get(k) != b.get(k))
+                key, a, b = f"{key}.{sub}", a.get(sub), b.get(sub)
+            raise ValueError(f"Expected maps with the same {key} to merge, "
+                             f"but got {_short(a)} and {_short(b)}")
+
+
+def _short(value) -> str:
+    """``repr(value)``, but a long table as its length and ends (an error stays one readable line)."""
+    if isinstance(value, (list, tuple)) and len(value) > 6:
+        return f"{len(value)} values from {value[0]!r} to {value[-1]!r}"
+    return repr(value)
 
 
 def _as_state(other, backend: str = "numpy") -> MapState:
