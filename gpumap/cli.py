@@ -236,7 +236,7 @@ def output_file(text: str) -> Path:
     p = Path(text)
     if p.is_dir():
         raise argparse.ArgumentTypeError(f"Expected a file, but {text!r} is a folder")
-    _writable_ancestor(p if p.exists() else p.parent)
+    _writable_ancestor(p.parent)  # an existing file is replaced: what counts is its folder
     return p
 
 

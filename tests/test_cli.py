@@ -383,6 +383,18 @@ def test_every_option_has_a_plain_help_line() -> None:
     assert not rst, f"help with reStructuredText backticks: {rst}"
 
 
+def test_an_output_file_that_exists_is_replaced_not_refused(tmp_path) -> None:
+    """gpumap export/merge run twice onto one name, --record or --write-params onto an old file:
+    the file is replaced; refused only where its folder cannot hold it."""
+    f = tmp_path / "map.bt"
+    f.write_bytes(b"old")
+    assert cli.output_file(str(f)) == f
+    with pytest.raises(argparse.ArgumentTypeError, match="is a file"):
+        cli.output_file(str(f / "inside.bt"))
+    with pytest.raises(argparse.ArgumentTypeError, match="is a folder"):
+        cli.output_file(str(tmp_path))
+
+
 def test_view_offers_only_what_applies_to_a_saved_map() -> None:
     opts = {o for a in _parsers()["view"]._actions for o in a.option_strings}
     assert {"--view-host", "--view-port", "--view-hold", "--threshold"} <= opts
