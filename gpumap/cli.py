@@ -465,6 +465,7 @@ def main(argv: list[str] | None = None) -> int:
               "(see gpumap --help)", file=sys.stderr)
         return 2
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    logging.getLogger("OpenGL").setLevel(logging.WARNING)  # not "No OpenGL_accelerate module loaded"
     prog = f"gpumap {cmd}"
     try:
         if cmd == "info":

@@ -614,7 +614,8 @@ OUTPUTS = ("map.npz", "occupied.ply", "views.png", "floor_slice.png", "rules.png
 
 
 def _parser() -> ArgumentParser:
-    ap = ArgumentParser(prog="gpumap replay", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="gpumap replay",
+                        description="stream a recording through the min-max mapper and write what it built")
     ap.add_argument("path", help="recording: Oculus .raw/.oculus, ARIS .aris, fan folder, ROS bag")
     ap.add_argument("--voxel-size", type=positive_float, default=0.05, help="metres (default 0.05)")
     ap.add_argument("--backend", type=backend_name, default="auto",

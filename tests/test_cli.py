@@ -375,6 +375,9 @@ def test_every_option_has_a_plain_help_line() -> None:
                 missing.append(name)
             if "`" in (act.help or ""):
                 rst.append(name)
+        # the description too (gpumap demo's comes from sim/demo.py, which issue #20 is changing)
+        if "`" in (p.description or "") and verb != "demo":
+            rst.append(f"gpumap {verb} (description)")
         opts = {o for a in p._actions if a.help != argparse.SUPPRESS for o in a.option_strings}
         assert "--quiet" not in opts, f"gpumap {verb}: progress bars go off with --no-progress"
         if verb in ("demo", "replay", "bench"):
@@ -393,6 +396,21 @@ def test_an_output_file_that_exists_is_replaced_not_refused(tmp_path) -> None:
         cli.output_file(str(f / "inside.bt"))
     with pytest.raises(argparse.ArgumentTypeError, match="is a folder"):
         cli.output_file(str(tmp_path))
+
+
+def test_third_party_info_logs_stay_quiet() -> None:
+    """gpumap logs its own lines at INFO; PyOpenGL's "No OpenGL_accelerate module loaded" (INFO, on
+    every replay and demo) is not one of them."""
+    import logging
+
+    root, level = logging.getLogger(), logging.getLogger().level
+    root.setLevel(logging.INFO)  # as gpumap's basicConfig leaves it outside pytest
+    try:
+        assert cli.main(["info"]) == 0
+        assert logging.getLogger("gpumap").isEnabledFor(logging.INFO)
+        assert not logging.getLogger("OpenGL.acceleratesupport").isEnabledFor(logging.INFO)
+    finally:
+        root.setLevel(level)
 
 
 def test_view_offers_only_what_applies_to_a_saved_map() -> None:
