@@ -225,17 +225,7 @@ def truth_scores(c: dict, maps: dict, voxel: float) -> dict:
     for name, mp in maps.items():
         thr = OCCUPIED_LEVEL if name.startswith("refined") else c["threshold"]
         ev = evaluate(mp["values"], c["truth"], thr, c["seen"], voxel, detectable=c["det"]).to_dict()
-        rows[name] = {
-            k: ev[k]
-            for k in (
-                "false_negative_rate_detectable",
-                "false_negative_rate_objects_detectable",
-                "false_positive_rate_far",
-                "free_carved_fraction",
-                "pipe_found",
-                "height_error_m",
-            )
-        }
+        rows[name] = {k: ev[k] for k in SCORE_KEYS}
         rows[name]["seconds"] = mp["seconds"]
     return rows
 
