@@ -417,6 +417,7 @@ def info(argv: list[str] | None = None) -> int:
 #: Stricter ``type=`` for ``bench/__main__.py``'s flags (applied to its parser by option string:
 #: flags it no longer has are skipped), so that ``gpumap bench`` refuses bad values before the sweep.
 _BENCH_TYPES: dict[str, Callable[[str], object]] = {
+    "--voxel-size": positive_float,
     "--voxel": positive_float,
     "--backend": backend_name,
     "--pings": positive_int,

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from gpumap.cli import (
+    BACKEND_HELP,
     ArgumentParser,
     backend_name,
     error_line,
@@ -57,7 +58,8 @@ def _parser() -> ArgumentParser:
         default=DEFAULT_THRESHOLD,
         help=f"the visible mapper's bright threshold, in (0, 1] (default {DEFAULT_THRESHOLD})",
     )
-    ap.add_argument("--backend", type=backend_name, default="auto", help="mapper backend (default auto)")
+    ap.add_argument("--backend", type=backend_name, default="auto",
+                    help=f"the visible map's backend, {BACKEND_HELP}")
     ap.add_argument(
         "--device",
         default="auto",

@@ -380,6 +380,8 @@ def test_every_option_has_a_plain_help_line() -> None:
             rst.append(f"gpumap {verb} (description)")
         opts = {o for a in p._actions if a.help != argparse.SUPPRESS for o in a.option_strings}
         assert "--quiet" not in opts, f"gpumap {verb}: progress bars go off with --no-progress"
+        if any(o.startswith("--voxel") for o in opts):  # one spelling of the voxel edge too
+            assert "--voxel-size" in opts, f"gpumap {verb}: the voxel edge is --voxel-size"
         if verb in ("demo", "replay", "bench"):
             assert "--no-progress" in opts, verb
     assert not missing, f"options without help: {missing}"
