@@ -712,10 +712,17 @@ def main(argv: list[str] | None = None) -> int:
             s.abort()
         raise
     thr = stats["threshold"]
-    print(f"gpumap replay: {stats['frames']} images on {stats['backend']} in "
-          f"{stats['seconds_total']:.2f} s: {stats['images_per_s']:.1f} images/s overall "
-          f"(read + convert + integrate), {stats['integrate_per_s']:.1f} images/s counting only "
-          f"the time spent in integrate() (device kernels overlap the reading); "
+    if stats.get("workers"):  # gpumap.workers: say so, and the wall time with the cluster's start
+        how = (f"{stats['frames']} images in {stats['workers']} Dask workers on {stats['backend']} "
+               f"({stats['split']} split) in {stats['seconds_wall']:.2f} s wall, of which "
+               f"{stats['seconds_cluster']:.2f} s starting the cluster and "
+               f"{stats['seconds_gather'] + stats['seconds_merge']:.2f} s gathering and merging the maps")
+    else:
+        how = (f"{stats['frames']} images on {stats['backend']} in "
+               f"{stats['seconds_total']:.2f} s: {stats['images_per_s']:.1f} images/s overall "
+               f"(read + convert + integrate), {stats['integrate_per_s']:.1f} images/s counting only "
+               f"the time spent in integrate() (device kernels overlap the reading)")
+    print(f"gpumap replay: {how}; "
           f"grid {tuple(stats['grid_shape'])} at {grid_out.voxel_size_m} m; "
           f"{stats['occupied_voxels']} occupied (>= {thr:.3f}, {stats['rule']} rule) of "
           f"{stats['observed_voxels']} observed voxels; wrote {a.out}/")
