@@ -261,6 +261,15 @@ def test_merge_command_writes_the_map_of_all_pings(tmp_path, capsys):
     # run again onto the file it wrote: replaced (it was refused as "a path under a folder")
     assert main(["merge", str(tmp_path / "m.npz"), str(parts[0])]) == 0
     assert json.loads(capsys.readouterr().out)["pings"] == 3
+    # one map twice (by name, or a copy) would count its clear dark views twice: refused
+    import shutil
+
+    shutil.copy(parts[0], tmp_path / "copy.npz")
+    for twice in ([parts[0], parts[1], parts[0]], [parts[0], tmp_path / "copy.npz"]):
+        with pytest.raises(ValueError, match="same map as"):
+            merge_maps(twice, backend="numpy")
+        assert main(["merge", str(tmp_path / "y.npz"), *map(str, twice)]) == 2
+        assert "same map as" in capsys.readouterr().err and not (tmp_path / "y.npz").exists()
     other = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain").save(tmp_path / "p.npz")
     assert main(["merge", str(tmp_path / "x.npz"), str(parts[0]), str(other)]) == 2
     assert "same rule" in capsys.readouterr().err and not (tmp_path / "x.npz").exists()
