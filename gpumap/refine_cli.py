@@ -110,7 +110,8 @@ def load_frames(
         if max_frames is not None and len(images) >= max_frames:
             break
     if not images:
-        raise ValueError(f"Expected posed frames in {path}, but found none")
+        raise ValueError(f"Expected a recording with sonar poses (refine needs one per ping), but {path} "
+                         "has no posed frames")
     return spec, np.stack(images), np.stack(poses)
 
 
@@ -121,6 +122,9 @@ def main(argv: list[str] | None = None) -> int:
     from gpumap.replay import auto_grid
 
     try:
+        from gpumap.render import _init_warp
+
+        _init_warp(a.device)  # a missing CUDA device is said before the frames are read and mapped
         spec, images, poses = load_frames(a.path, a.stride, a.max_frames)
         grid = auto_grid(spec, list(poses), a.voxel_size)
         mapper = gpumap.MinMaxMapper(spec, grid, backend=a.backend, rule="visible", threshold=a.threshold)

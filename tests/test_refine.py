@@ -191,3 +191,18 @@ def test_cli_refines_the_real_tank(tmp_path: Path) -> None:
     s = json.loads((out / "refine.json").read_text())
     assert z["occupancy"].shape == tuple(s["grid_shape"]) and s["frames"] == 11
     assert np.all(np.isnan(z["occupancy"]) == np.isnan(z["visible"]))
+
+
+def test_cli_says_a_missing_cuda_device_before_any_work(tmp_path: Path, capsys) -> None:
+    """--device cuda on a machine without CUDA: refused first (not after reading and mapping the
+    recording, which here does not even exist)."""
+    from gpumap.backends import _warp
+    from gpumap.cli import main
+
+    if _warp()[0].is_cuda_available():
+        pytest.skip("this machine has a CUDA device")
+    assert main(["refine", str(tmp_path / "no_such_recording"), "--device", "cuda", "--no-progress",
+                 "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "CUDA device" in err and "no_such_recording" not in err, err
+
