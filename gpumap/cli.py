@@ -45,6 +45,7 @@ __all__ = [
     "positive_float",
     "positive_int",
     "probability",
+    "refuse_without",
     "threshold_or_auto",
     "unit_interval",
     "user_errors",
@@ -93,6 +94,17 @@ class ArgumentParser(argparse.ArgumentParser):
 
 def _parser_error(parser: argparse.ArgumentParser, message: str) -> NoReturn:
     parser.exit(2, f"{parser.prog}: error: {_one_line(message)} (see {parser.prog} --help)\n")
+
+
+def refuse_without(parser: argparse.ArgumentParser, needed: str, present: bool,
+                   given: dict[str, bool]) -> None:
+    """Exit 2 (one line) for the first flag of ``given`` that is on while ``needed`` is absent: a
+    flag that only works with another is never silently ignored."""
+    if present:
+        return
+    for flag, on in given.items():
+        if on:
+            parser.error(f"argument {flag}: Expected {needed} with it, but {needed} is missing")
 
 
 def _number(text: str) -> float:

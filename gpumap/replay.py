@@ -676,6 +676,9 @@ def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]
     from gpumap.workers import check_worker_args
 
     check_worker_args(ap, a)
+    from gpumap.ekf_replay import check_ekf_args
+
+    check_ekf_args(ap, a)
     if a.method == "template" and a.rule == "visible":
         ap.error("argument --rule: Expected rule='plain' with --method template (the template "
                  "method's duplicate points cannot count views once), but got --rule visible")

@@ -78,6 +78,10 @@ BAD_FLAGS = [
     ("replay", ["--out", f"{A_FILE}/sub"], "--out"),
     ("replay", ["--bogus"], "--bogus"),
     ("replay", ["--voxel", "0.1"], "--voxel"),  # abbreviations are unknown flags too
+    ("replay", ["--seed", "3"], "--seed"),  # flags of --ekf without it: refused, not ignored
+    ("replay", ["--odometry-noise", "0.01", "0.01"], "--odometry-noise"),
+    ("ros-play", ["x", "--voxel-size", "0.1"], "--voxel-size"),  # flags of --write-params without it
+    ("ros-play", ["x", "--backend", "numpy"], "--backend"),
     ("demo", ["--voxel-size", "0"], "--voxel-size"),
     ("demo", ["--voxel-size", "-1"], "--voxel-size"),
     ("demo", ["--pings", "0"], "--pings"),
