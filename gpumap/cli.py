@@ -1,4 +1,4 @@
-"""``gpumap`` command line: ``demo``, ``replay``, ``bench`` and ``info``.
+"""``gpumap`` command line: the subcommands of :data:`COMMANDS` (``gpumap --help`` lists them).
 
 Each subcommand lives with the code it drives and owns its own options; this module only
 dispatches, so ``gpumap demo --help`` shows the demo's own help. It also holds what every
@@ -60,7 +60,7 @@ COMMANDS = {
     "merge": ("gpumap.merge_cli", "merge saved maps of one grid built from different pings into one"),
     "ros": ("gpumap.ros.node", "a ROS 2 node that maps live sonar pings ([ros] extra)"),
     "ros-play": ("gpumap.ros.play", "publish a recording as the ROS 2 node's sonar topics ([ros] extra)"),
-    "refine": ("gpumap.refine_cli", "refine a recording's visible map so rendered pings match the measured"),
+    "refine": ("gpumap.refine_cli", "fit a recording's map so that pings rendered from it match its pings"),
     "bench": ("gpumap.bench.__main__", "speed against error sweep on this machine (results in --out)"),
     "info": ("gpumap.cli", "list the backends this machine can run"),
 }
