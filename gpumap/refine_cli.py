@@ -30,7 +30,7 @@ from gpumap.cli import (
     user_errors,
 )
 
-OUTPUTS = ("refined.npz", "refine.json")
+OUTPUTS = ("refined.npz", "refined.ply", "refine.json")
 
 
 def _device(text: str) -> str:
@@ -159,6 +159,10 @@ def main(argv: list[str] | None = None) -> int:
             min_corner_m=np.asarray(grid.min_corner_m),
             voxel_size_m=np.float64(grid.voxel_size_m),
         )
+        from gpumap.io.ply import write_ply
+
+        occ = res.occupied()  # the refined surface for any point-cloud viewer (gpumap view reads maps only)
+        write_ply(Path(out) / "refined.ply", grid.centers(np.argwhere(occ)), res.confidence[occ])
         (Path(out) / "refine.json").write_text(json.dumps(summary, indent=1, default=float))
     print(
         f"gpumap refine: {len(images)} pings, {summary['visible_occupied']} voxels occupied in the visible "
