@@ -32,7 +32,7 @@ import numpy as np
 
 import gpumap
 
-from .common import load_average, machine_info
+from .common import help_line, load_average, machine_info
 
 SIM_THRESHOLD = 0.1
 BAND_VOXELS = 1  # RefineResult.banded: the visible voxels within one voxel of a refined surface
@@ -47,7 +47,7 @@ SCORE_KEYS = (
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m bench.refine", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m bench.refine", description=help_line(__doc__))
     p.add_argument(
         "--cases",
         nargs="+",

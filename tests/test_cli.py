@@ -446,3 +446,22 @@ def test_info_names_backends_as_mappers_do_and_no_cuda_warning_on_a_cpu_machine(
                        cwd=ROOT, timeout=300)
     assert r.returncode == 0, r.stderr
     assert "CUDA driver" not in r.stderr + r.stdout, r.stderr
+
+
+BENCH_SCRIPTS = ("ekf_bench", "frontend", "mapper_speed", "peer_ratio", "readme", "refine", "report",
+                 "ros_bench", "rules_real", "sim_bench", "sparse", "speed", "viewer_cost", "visibility",
+                 "workers")
+
+
+@pytest.mark.parametrize("name", BENCH_SCRIPTS)
+def test_bench_scripts_help_is_plain_words(name, capsys) -> None:
+    """python -m bench.NAME --help (the README and BENCHMARKS.md tell users to run them): exit 0
+    before any work, no reStructuredText backticks in what it prints."""
+    import importlib
+
+    mod = importlib.import_module(f"bench.{name}")
+    with pytest.raises(SystemExit) as e:
+        mod.main(["--help"])
+    out = capsys.readouterr().out
+    assert e.value.code == 0 and out.startswith("usage:"), out[:200]
+    assert "`" not in out, f"python -m bench.{name} --help: {[ln for ln in out.splitlines() if '`' in ln]}"
