@@ -57,8 +57,10 @@ PROBE_PINGS = 4  # single-ping maps used for voxels-in-view and template holes
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="gpumap bench", description=__doc__.splitlines()[0])
-    p.add_argument("--voxel", type=float, nargs="+", default=None, help="voxel sizes, metres")
+    p = argparse.ArgumentParser(prog="gpumap bench", description="speed against error on the simulated tank, "
+                                "in one run (python -m bench in a checkout)")
+    p.add_argument("--voxel-size", "--voxel", dest="voxel", type=float, nargs="+", default=None,
+                   help="voxel sizes, metres")
     p.add_argument("--backend", nargs="+", default=None, help="default: every available backend")
     p.add_argument("--method", nargs="+", default=list(METHODS), choices=METHODS,
                    help="mapping methods to time (default: all)")

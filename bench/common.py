@@ -39,6 +39,11 @@ TARGETS: list[tuple[str, float, float]] = [
 ]
 
 
+def help_line(doc: str | None) -> str:
+    """A module docstring's first line as a ``--help`` description: plain words, no reST backticks."""
+    return (doc or "").strip().splitlines()[0].replace("``", "") if (doc or "").strip() else ""
+
+
 def slug(text: str) -> str:
     """Lower-case file-name-safe form of ``text``."""
     return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")[:40] or "unknown"

@@ -38,7 +38,7 @@ import numpy as np
 
 import gpumap
 
-from .common import CpuShare, compact, load_average, machine_info
+from .common import CpuShare, compact, help_line, load_average, machine_info
 from .speed import CACHE, OASIS_RES_M, Frames, _import_oasis, load_frames, oasis_frame_ms, oasis_grid
 
 SCHEMA = "gpumap-peer-ratio/1"
@@ -93,7 +93,7 @@ def time_oasis_pass(cls, fr: Frames, downsample: int, n: int) -> float:
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m bench.peer_ratio", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.peer_ratio", description=help_line(__doc__))
     ap.add_argument("--oasis-src", type=Path, required=True,
                     help="checkout of the public OASIS code (chaos-whoi/oasis_iros; opencv and open3d "
                          "importable)")

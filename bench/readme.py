@@ -19,6 +19,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from .common import help_line
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 
@@ -146,7 +148,7 @@ def render(text: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.readme", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.readme", description=help_line(__doc__))
     ap.add_argument("--readme", type=Path, default=ROOT / "README.md", help="the file to update")
     ap.add_argument("--check", action="store_true", help="only compare; exit 1 when a block is stale")
     a = ap.parse_args(argv)

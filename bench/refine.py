@@ -32,7 +32,7 @@ import numpy as np
 
 import gpumap
 
-from .common import load_average, machine_info
+from .common import help_line, load_average, machine_info
 
 SIM_THRESHOLD = 0.1
 BAND_VOXELS = 1  # RefineResult.banded: the visible voxels within one voxel of a refined surface
@@ -47,7 +47,7 @@ SCORE_KEYS = (
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m bench.refine", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m bench.refine", description=help_line(__doc__))
     p.add_argument(
         "--cases",
         nargs="+",
@@ -225,17 +225,7 @@ def truth_scores(c: dict, maps: dict, voxel: float) -> dict:
     for name, mp in maps.items():
         thr = OCCUPIED_LEVEL if name.startswith("refined") else c["threshold"]
         ev = evaluate(mp["values"], c["truth"], thr, c["seen"], voxel, detectable=c["det"]).to_dict()
-        rows[name] = {
-            k: ev[k]
-            for k in (
-                "false_negative_rate_detectable",
-                "false_negative_rate_objects_detectable",
-                "false_positive_rate_far",
-                "free_carved_fraction",
-                "pipe_found",
-                "height_error_m",
-            )
-        }
+        rows[name] = {k: ev[k] for k in SCORE_KEYS}
         rows[name]["seconds"] = mp["seconds"]
     return rows
 

@@ -18,6 +18,7 @@ import argparse
 import os
 from pathlib import Path
 
+from .common import help_line
 from .report_md import keep_foreign_sections
 from .report_plots import _plots
 from .report_speed import load_speed, render_speed
@@ -40,7 +41,7 @@ def render(folder: Path, out: Path) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=help_line(__doc__))
     ap.add_argument("--results", type=Path, default=Path("bench/results"))
     ap.add_argument("--out", type=Path, default=Path("BENCHMARKS.md"))
     a = ap.parse_args(argv)

@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .common import help_line
+
 
 def _tank() -> Path:
     """``shared/data/oasis_tank`` beside the checkout (as CI has it) or above it."""
@@ -181,7 +183,7 @@ def run_once(params: Path, hz: float, domain: int, n_pings: int, tmp: Path) -> d
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.ros_bench", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.ros_bench", description=help_line(__doc__))
     ap.add_argument("--voxel-sizes", type=float, nargs="+", default=[0.05, 0.03], help="voxel edges, metres")
     ap.add_argument("--rates", type=float, nargs="+", default=[10, 20, 40, 80, 160, 320],
                     help="play rates to try, pings per second (10: the latency figures)")

@@ -16,7 +16,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from .common import compact, machine_info
+from .common import compact, help_line, machine_info
 
 SCHEMA = "gpumap-rules-real/1"
 
@@ -28,7 +28,7 @@ def _data_dir() -> Path | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.rules_real", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.rules_real", description=help_line(__doc__))
     ap.add_argument("--data", type=Path, default=None, help="the oasis_tank folder (default: shared/data)")
     ap.add_argument("--voxel-size", type=float, default=0.05, help="metres (default 0.05, as in the README)")
     ap.add_argument("--backend", default="auto", help="gpumap backend (default auto)")

@@ -36,7 +36,7 @@ import numpy as np
 
 import gpumap
 
-from .common import CpuShare, compact, machine_info
+from .common import CpuShare, compact, help_line, machine_info
 
 CACHE = Path("bench/results/tmp/oasis_polar.npz")
 #: The OASIS configuration's grid box (configs/base.yaml of the public code), metres.
@@ -310,7 +310,7 @@ def time_oasis(src: Path, fr: Frames, downsample: int, n: int) -> dict[str, Any]
 
 # ------------------------------------------------------------------------------ the run
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.speed", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.speed", description=help_line(__doc__))
     ap.add_argument("--frames-from", type=Path, default=None, help="cached frames (.npz) of this module")
     ap.add_argument("--gpu", action="store_true", help="GPU backends (warp-cuda, opencl-gpu) at 3, 1, 0.5 cm")
     ap.add_argument("--backend", nargs="+", default=None)

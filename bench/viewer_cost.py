@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from .common import machine_info
+from .common import help_line, machine_info
 
 RESULTS = Path(__file__).resolve().parent / "results" / "viewer_cost.json"
 
@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     from gpumap.viewer.cli import Session
 
     here = Path(__file__).resolve().parent.parent
-    ap = argparse.ArgumentParser(prog="python -m bench.viewer_cost", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.viewer_cost", description=help_line(__doc__))
     ap.add_argument("--data", type=Path, default=here.parent / "shared" / "data" / "oasis_tank")
     ap.add_argument("--voxel-size", type=float, default=0.05)
     ap.add_argument("--repeat", type=int, default=3)

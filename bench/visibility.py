@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 import gpumap
 
-from .common import CpuShare, compact, load_average, machine_info
+from .common import CpuShare, compact, help_line, load_average, machine_info
 
 RULES = ("plain", "visible")
 THRESHOLD = 0.1
@@ -64,7 +64,7 @@ COLUMNS = (
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m bench.visibility", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m bench.visibility", description=help_line(__doc__))
     p.add_argument("--scenes", nargs="+", default=["tank", "circle"])
     p.add_argument("--voxel-sizes", type=float, nargs="+", default=[0.05, 0.03, 0.02, 0.01])
     p.add_argument("--backend", default="opencl", help="gpumap backend (default opencl: PoCL on a CPU)")

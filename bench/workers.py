@@ -1,6 +1,6 @@
 """Worker overhead: the survey mapped by one process against N Dask workers on the same cores.
 
-    python -m bench.workers [--backend warp-cpu] [--voxel 0.05] [--workers 2] [--reps 3]
+    python -m bench.workers [--backend warp-cpu] [--voxel-size 0.05] [--workers 2] [--reps 3]
                             [--sparse] [--worker-threads N] [--passes K] [--split space|pings]
                             [--section NAME]
                             [--out bench/results/workers.json]
@@ -76,7 +76,8 @@ def _load() -> list[float]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m bench.workers", description=__doc__.splitlines()[0])
     p.add_argument("--backend", default="warp-cpu", help="every mapper's backend (default warp-cpu)")
-    p.add_argument("--voxel", type=float, default=0.05, help="voxel size, metres (default 0.05)")
+    p.add_argument("--voxel-size", "--voxel", dest="voxel", type=float, default=0.05,
+                   help="voxel size, metres (default 0.05)")
     p.add_argument("--workers", type=int, default=2, help="Dask worker processes (default 2)")
     p.add_argument("--reps", type=int, default=3, help="repetitions of the pair (default 3)")
     p.add_argument("--sparse", action="store_true", help="workers keep sparse maps (and so does 'one')")

@@ -1,4 +1,4 @@
-"""``gpumap`` command line: ``demo``, ``replay``, ``bench`` and ``info``.
+"""``gpumap`` command line: the subcommands of :data:`COMMANDS` (``gpumap --help`` lists them).
 
 Each subcommand lives with the code it drives and owns its own options; this module only
 dispatches, so ``gpumap demo --help`` shows the demo's own help. It also holds what every
@@ -45,6 +45,7 @@ __all__ = [
     "positive_float",
     "positive_int",
     "probability",
+    "refuse_without",
     "threshold_or_auto",
     "unit_interval",
     "user_errors",
@@ -59,7 +60,7 @@ COMMANDS = {
     "merge": ("gpumap.merge_cli", "merge saved maps of one grid built from different pings into one"),
     "ros": ("gpumap.ros.node", "a ROS 2 node that maps live sonar pings ([ros] extra)"),
     "ros-play": ("gpumap.ros.play", "publish a recording as the ROS 2 node's sonar topics ([ros] extra)"),
-    "refine": ("gpumap.refine_cli", "refine a recording's visible map so rendered pings match the measured"),
+    "refine": ("gpumap.refine_cli", "fit a recording's map so that pings rendered from it match its pings"),
     "bench": ("gpumap.bench.__main__", "speed against error sweep on this machine (results in --out)"),
     "info": ("gpumap.cli", "list the backends this machine can run"),
 }
@@ -93,6 +94,17 @@ class ArgumentParser(argparse.ArgumentParser):
 
 def _parser_error(parser: argparse.ArgumentParser, message: str) -> NoReturn:
     parser.exit(2, f"{parser.prog}: error: {_one_line(message)} (see {parser.prog} --help)\n")
+
+
+def refuse_without(parser: argparse.ArgumentParser, needed: str, present: bool,
+                   given: dict[str, bool]) -> None:
+    """Exit 2 (one line) for the first flag of ``given`` that is on while ``needed`` is absent: a
+    flag that only works with another is never silently ignored."""
+    if present:
+        return
+    for flag, on in given.items():
+        if on:
+            parser.error(f"argument {flag}: Expected {needed} with it, but {needed} is missing")
 
 
 def _number(text: str) -> float:
@@ -236,7 +248,7 @@ def output_file(text: str) -> Path:
     p = Path(text)
     if p.is_dir():
         raise argparse.ArgumentTypeError(f"Expected a file, but {text!r} is a folder")
-    _writable_ancestor(p if p.exists() else p.parent)
+    _writable_ancestor(p.parent)  # an existing file is replaced: what counts is its folder
     return p
 
 
@@ -417,6 +429,7 @@ def info(argv: list[str] | None = None) -> int:
 #: Stricter ``type=`` for ``bench/__main__.py``'s flags (applied to its parser by option string:
 #: flags it no longer has are skipped), so that ``gpumap bench`` refuses bad values before the sweep.
 _BENCH_TYPES: dict[str, Callable[[str], object]] = {
+    "--voxel-size": positive_float,
     "--voxel": positive_float,
     "--backend": backend_name,
     "--pings": positive_int,
@@ -465,6 +478,7 @@ def main(argv: list[str] | None = None) -> int:
               "(see gpumap --help)", file=sys.stderr)
         return 2
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    logging.getLogger("OpenGL").setLevel(logging.WARNING)  # not "No OpenGL_accelerate module loaded"
     prog = f"gpumap {cmd}"
     try:
         if cmd == "info":

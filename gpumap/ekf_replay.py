@@ -26,10 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
-from gpumap.cli import nonnegative_float, nonnegative_int
+from gpumap.cli import nonnegative_float, nonnegative_int, refuse_without
 
-__all__ = ["EKF_OUTPUTS", "add_ekf_args", "compare_maps", "replay_with_ekf", "run_ekf_replay",
-           "track_consistency"]
+__all__ = ["EKF_OUTPUTS", "add_ekf_args", "check_ekf_args", "compare_maps", "replay_with_ekf",
+           "run_ekf_replay", "track_consistency"]
 
 #: Files ``--ekf`` writes besides the replay's own.
 EKF_OUTPUTS = ("ekf_paths.png", "ekf_measurements.png")
@@ -42,13 +42,21 @@ def add_ekf_args(ap: argparse.ArgumentParser) -> None:
                          "drift (--odometry-noise), point returns found in the images and "
                          "associated; map with the EKF's poses and compare with the recorded-pose "
                          "map (writes ekf_paths.png, ekf_measurements.png, an 'ekf' summary section)")
-    ap.add_argument("--odometry-noise", type=nonnegative_float, nargs=2, default=(0.005, 0.005),
+    ap.add_argument("--odometry-noise", type=nonnegative_float, nargs=2, default=None,
                     metavar=("TRANS_M", "ROT_RAD"),
                     help="with --ekf: standard deviation of each odometry step's error per "
                          "translation axis (metres) and per rotation axis (radians) (default "
                          "0.005 0.005, the demo's --pose-noise 0.005)")
-    ap.add_argument("--seed", type=nonnegative_int, default=0,
+    ap.add_argument("--seed", type=nonnegative_int, default=None,
                     help="with --ekf: seed of the odometry drift (default 0)")
+
+
+def check_ekf_args(ap: argparse.ArgumentParser, a: argparse.Namespace) -> None:
+    """--odometry-noise and --seed only with --ekf (exit 2, before any work); fill their defaults."""
+    refuse_without(ap, "--ekf", a.ekf, {"--odometry-noise": a.odometry_noise is not None,
+                                         "--seed": a.seed is not None})
+    a.odometry_noise = (0.005, 0.005) if a.odometry_noise is None else a.odometry_noise
+    a.seed = 0 if a.seed is None else a.seed
 
 
 def compare_maps(ref: np.ndarray, test: np.ndarray, threshold: float) -> dict:

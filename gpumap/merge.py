@@ -134,7 +134,49 @@ def _same(kind: str, opts: dict, other: MapState) -> None:
     for key in ("spec", "grid", "sparse", "method", "shadow_m", "rule", "threshold", "carve_views"):
         a, b = opts.get(key), other.options.get(key)
         if a != b:
-            raise ValueError(f"Expected maps with the same {key} to merge, but got {a!r} and {b!r}")
+            if isinstance(a, dict) and isinstance(b, dict):  # name the field inside (spec.n_bins, ...)
+                sub = next(k for k in (*a, *(k for k in b if k not in a)) if a.get(k) != b.get(k))
+                key, a, b = f"{key}.{sub}", a.get(sub), b.get(sub)
+            raise ValueError(f"Expected maps with the same {key} to merge, "
+                             f"but got {_short(a)} and {_short(b)}")
+
+
+def _short(value) -> str:
+    """``repr(value)``, but a long table as its length and ends (an error stays one readable line)."""
+    if isinstance(value, (list, tuple)) and len(value) > 6:
+        return f"{len(value)} values from {value[0]!r} to {value[-1]!r}"
+    return repr(value)
+
+
+def _distinct_files(maps):
+    """Yield ``maps``; raise ValueError when two of them are one map file (the same path, or the
+    same bytes): a map merged with itself counts its clear dark views twice, a wrong map."""
+    import hashlib
+
+    seen: dict[int, list[Path]] = {}  # file size -> the files of that size so far
+    digests: dict[Path, bytes] = {}
+
+    def digest(path: Path) -> bytes:
+        if path not in digests:
+            h = hashlib.sha256()
+            with open(path, "rb") as f:
+                for chunk in iter(lambda: f.read(1 << 20), b""):
+                    h.update(chunk)
+            digests[path] = h.digest()
+        return digests[path]
+
+    for m in maps:
+        if isinstance(m, (str, os.PathLike)) and Path(m).is_file():
+            p = Path(m).resolve()
+            size = p.stat().st_size
+            for q in seen.get(size, []):
+                if q == p or digest(q) == digest(p):
+                    raise ValueError(
+                        f"Expected map files built from different pings, but {str(m)!r} is the same map as "
+                        f"{str(q)!r} (a map merged with itself counts its clear dark views twice)"
+                    )
+            seen.setdefault(size, []).append(p)
+        yield m
 
 
 def _as_state(other, backend: str = "numpy") -> MapState:
@@ -391,10 +433,10 @@ def merge_maps(maps, backend: str = "auto", **kw):
     the result), on ``backend``; ``maps`` are left as they were.
 
     Equal bit for bit to one mapper that integrated every ping of every map (see the module
-    docstring). Raises ``ValueError`` for no maps or maps that differ, and what
-    :func:`merge_into` raises.
+    docstring). Raises ``ValueError`` for no maps, maps that differ or one map file given twice,
+    and what :func:`merge_into` raises.
     """
-    it = iter(maps)
+    it = _distinct_files(maps)
     try:
         first = _as_state(next(it))
     except StopIteration:

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from gpumap.cli import (
+    BACKEND_HELP,
     ArgumentParser,
     backend_name,
     error_line,
@@ -29,7 +30,7 @@ from gpumap.cli import (
     user_errors,
 )
 
-OUTPUTS = ("refined.npz", "refine.json")
+OUTPUTS = ("refined.npz", "refined.ply", "refine.json")
 
 
 def _device(text: str) -> str:
@@ -57,7 +58,8 @@ def _parser() -> ArgumentParser:
         default=DEFAULT_THRESHOLD,
         help=f"the visible mapper's bright threshold, in (0, 1] (default {DEFAULT_THRESHOLD})",
     )
-    ap.add_argument("--backend", type=backend_name, default="auto", help="mapper backend (default auto)")
+    ap.add_argument("--backend", type=backend_name, default="auto",
+                    help=f"the visible map's backend, {BACKEND_HELP}")
     ap.add_argument(
         "--device",
         default="auto",
@@ -108,7 +110,8 @@ def load_frames(
         if max_frames is not None and len(images) >= max_frames:
             break
     if not images:
-        raise ValueError(f"Expected posed frames in {path}, but found none")
+        raise ValueError(f"Expected a recording with sonar poses (refine needs one per ping), but {path} "
+                         "has no posed frames")
     return spec, np.stack(images), np.stack(poses)
 
 
@@ -119,6 +122,9 @@ def main(argv: list[str] | None = None) -> int:
     from gpumap.replay import auto_grid
 
     try:
+        from gpumap.render import _init_warp
+
+        _init_warp(a.device)  # a missing CUDA device is said before the frames are read and mapped
         spec, images, poses = load_frames(a.path, a.stride, a.max_frames)
         grid = auto_grid(spec, list(poses), a.voxel_size)
         mapper = gpumap.MinMaxMapper(spec, grid, backend=a.backend, rule="visible", threshold=a.threshold)
@@ -153,6 +159,10 @@ def main(argv: list[str] | None = None) -> int:
             min_corner_m=np.asarray(grid.min_corner_m),
             voxel_size_m=np.float64(grid.voxel_size_m),
         )
+        from gpumap.io.ply import write_ply
+
+        occ = res.occupied()  # the refined surface for any point-cloud viewer (gpumap view reads maps only)
+        write_ply(Path(out) / "refined.ply", grid.centers(np.argwhere(occ)), res.confidence[occ])
         (Path(out) / "refine.json").write_text(json.dumps(summary, indent=1, default=float))
     print(
         f"gpumap refine: {len(images)} pings, {summary['visible_occupied']} voxels occupied in the visible "

@@ -614,7 +614,8 @@ OUTPUTS = ("map.npz", "occupied.ply", "views.png", "floor_slice.png", "rules.png
 
 
 def _parser() -> ArgumentParser:
-    ap = ArgumentParser(prog="gpumap replay", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="gpumap replay",
+                        description="stream a recording through the min-max mapper and write what it built")
     ap.add_argument("path", help="recording: Oculus .raw/.oculus, ARIS .aris, fan folder, ROS bag")
     ap.add_argument("--voxel-size", type=positive_float, default=0.05, help="metres (default 0.05)")
     ap.add_argument("--backend", type=backend_name, default="auto",
@@ -675,6 +676,9 @@ def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]
     from gpumap.workers import check_worker_args
 
     check_worker_args(ap, a)
+    from gpumap.ekf_replay import check_ekf_args
+
+    check_ekf_args(ap, a)
     if a.method == "template" and a.rule == "visible":
         ap.error("argument --rule: Expected rule='plain' with --method template (the template "
                  "method's duplicate points cannot count views once), but got --rule visible")
@@ -711,10 +715,17 @@ def main(argv: list[str] | None = None) -> int:
             s.abort()
         raise
     thr = stats["threshold"]
-    print(f"gpumap replay: {stats['frames']} images on {stats['backend']} in "
-          f"{stats['seconds_total']:.2f} s: {stats['images_per_s']:.1f} images/s overall "
-          f"(read + convert + integrate), {stats['integrate_per_s']:.1f} images/s counting only "
-          f"the time spent in integrate() (device kernels overlap the reading); "
+    if stats.get("workers"):  # gpumap.workers: say so, and the wall time with the cluster's start
+        how = (f"{stats['frames']} images in {stats['workers']} Dask workers on {stats['backend']} "
+               f"({stats['split']} split) in {stats['seconds_wall']:.2f} s wall, of which "
+               f"{stats['seconds_cluster']:.2f} s starting the cluster and "
+               f"{stats['seconds_gather'] + stats['seconds_merge']:.2f} s gathering and merging the maps")
+    else:
+        how = (f"{stats['frames']} images on {stats['backend']} in "
+               f"{stats['seconds_total']:.2f} s: {stats['images_per_s']:.1f} images/s overall "
+               f"(read + convert + integrate), {stats['integrate_per_s']:.1f} images/s counting only "
+               f"the time spent in integrate() (device kernels overlap the reading)")
+    print(f"gpumap replay: {how}; "
           f"grid {tuple(stats['grid_shape'])} at {grid_out.voxel_size_m} m; "
           f"{stats['occupied_voxels']} occupied (>= {thr:.3f}, {stats['rule']} rule) of "
           f"{stats['observed_voxels']} observed voxels; wrote {a.out}/")

@@ -215,6 +215,23 @@ def test_mismatches_are_refused_and_leave_the_map_unchanged():
         merge_maps([])
 
 
+def test_a_spec_mismatch_names_the_field_in_one_short_line():
+    """Two sonars that differ in one field: the error names it (spec.n_bins), not the whole spec
+    with its beam table (hundreds of numbers on one line, as gpumap merge printed it)."""
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.1)
+    fewer_bins = gpumap.SonarSpec(SPEC.range_min_m, SPEC.range_max_m, SPEC.n_bins - 1, SPEC.bearings_rad,
+                                  SPEC.vfov_rad)
+    with pytest.raises(ValueError, match=rf"same spec\.n_bins to merge, but got {SPEC.n_bins} and "
+                                         rf"{SPEC.n_bins - 1}$"):
+        m.merge(gpumap.MinMaxMapper(fewer_bins, GRID, backend="numpy", threshold=0.1))
+    bearings = np.asarray(SPEC.bearings_rad, dtype=np.float64).copy()
+    bearings[-1] += 1e-3
+    other_beams = gpumap.SonarSpec(SPEC.range_min_m, SPEC.range_max_m, SPEC.n_bins, bearings, SPEC.vfov_rad)
+    with pytest.raises(ValueError, match=r"spec\.bearings_rad") as e:
+        m.merge(gpumap.MinMaxMapper(other_beams, GRID, backend="numpy", threshold=0.1))
+    assert len(str(e.value)) < 300 and f"{len(bearings)} values" in str(e.value), str(e.value)
+
+
 def test_sparse_merge_over_max_bytes_raises_unchanged():
     pings = _random_pings(4, 9)
     a = _sparse("numpy", pings[:1])
@@ -241,6 +258,18 @@ def test_merge_command_writes_the_map_of_all_pings(tmp_path, capsys):
     assert main(["merge", str(tmp_path / "m.npz"), *map(str, parts)]) == 0
     assert json.loads(capsys.readouterr().out)["pings"] == 5
     _assert_same(_state(load_map(tmp_path / "m.npz", backend="numpy")), _state(_dense("numpy", pings)))
+    # run again onto the file it wrote: replaced (it was refused as "a path under a folder")
+    assert main(["merge", str(tmp_path / "m.npz"), str(parts[0])]) == 0
+    assert json.loads(capsys.readouterr().out)["pings"] == 3
+    # one map twice (by name, or a copy) would count its clear dark views twice: refused
+    import shutil
+
+    shutil.copy(parts[0], tmp_path / "copy.npz")
+    for twice in ([parts[0], parts[1], parts[0]], [parts[0], tmp_path / "copy.npz"]):
+        with pytest.raises(ValueError, match="same map as"):
+            merge_maps(twice, backend="numpy")
+        assert main(["merge", str(tmp_path / "y.npz"), *map(str, twice)]) == 2
+        assert "same map as" in capsys.readouterr().err and not (tmp_path / "y.npz").exists()
     other = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain").save(tmp_path / "p.npz")
     assert main(["merge", str(tmp_path / "x.npz"), str(parts[0]), str(other)]) == 2
     assert "same rule" in capsys.readouterr().err and not (tmp_path / "x.npz").exists()

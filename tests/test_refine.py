@@ -191,3 +191,29 @@ def test_cli_refines_the_real_tank(tmp_path: Path) -> None:
     s = json.loads((out / "refine.json").read_text())
     assert z["occupancy"].shape == tuple(s["grid_shape"]) and s["frames"] == 11
     assert np.all(np.isnan(z["occupancy"]) == np.isnan(z["visible"]))
+    # refined.ply: the refined occupied voxels' centres, their confidence as intensity
+    from gpumap.io import read_ply
+
+    ply = read_ply(out / "refined.ply")
+    occ = np.nan_to_num(z["occupancy"], nan=-1.0) >= 0.5
+    idx = np.argwhere(occ)
+    want = z["min_corner_m"] + (idx + 0.5) * float(z["voxel_size_m"])
+    got = np.stack([ply["x"], ply["y"], ply["z"]], axis=1)
+    assert len(got) == s["refined_occupied"] == occ.sum() > 0
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    np.testing.assert_array_equal(ply["intensity"], z["confidence"][occ].astype(np.float32))
+
+
+def test_cli_says_a_missing_cuda_device_before_any_work(tmp_path: Path, capsys) -> None:
+    """--device cuda on a machine without CUDA: refused first (not after reading and mapping the
+    recording, which here does not even exist)."""
+    from gpumap.backends import _warp
+    from gpumap.cli import main
+
+    if _warp()[0].is_cuda_available():
+        pytest.skip("this machine has a CUDA device")
+    assert main(["refine", str(tmp_path / "no_such_recording"), "--device", "cuda", "--no-progress",
+                 "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "CUDA device" in err and "no_such_recording" not in err, err
+

@@ -86,13 +86,15 @@ def test_sparse_workers_equal_the_dense_one_process_map(cluster):
 
 
 @needs_data
-def test_replay_cli_workers_writes_the_same_map(cluster, tmp_path: Path):
+def test_replay_cli_workers_writes_the_same_map(cluster, tmp_path: Path, capsys):
     c, _ = cluster
-    common = [str(DATA / "oasis_tank"), "--stride", "6", "--quiet", "--no-pictures",
+    common = [str(DATA / "oasis_tank"), "--stride", "6", "--no-progress", "--no-pictures",
               "--voxel-size", "0.08", "--backend", "numpy"]
     assert main([*common, "--out", str(tmp_path / "one")]) == 0
+    capsys.readouterr()
     assert main([*common, "--out", str(tmp_path / "w"), "--workers", "2",
                  "--scheduler", c.scheduler_address]) == 0
+    assert "21 images in 2 Dask workers on numpy" in capsys.readouterr().out  # the line says how it ran
     a = gpumap.load_map(tmp_path / "one" / "map.npz", backend="numpy")
     b = gpumap.load_map(tmp_path / "w" / "map.npz", backend="numpy")
     _assert_same(b, a)

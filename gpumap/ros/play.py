@@ -207,8 +207,8 @@ def _parser():
                    "recording's)")
     p.add_argument("--threshold", type=unit_interval, default=None,
                    help="with --write-params: the node's occupied threshold (default the node's, 0.4)")
-    p.add_argument("--backend", type=backend_name, default="auto",
-                   help="with --write-params: the node's backend")
+    p.add_argument("--backend", type=backend_name, default=None,
+                   help="with --write-params: the node's backend (default auto)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -241,14 +241,20 @@ def main(argv: list[str] | None = None) -> int:
 
     argv = list(sys.argv[1:] if argv is None else argv)
     ours, ros_args = _split_ros_args(argv)
-    a = _parser().parse_args(ours)
+    p = _parser()
+    a = p.parse_args(ours)
+    from gpumap.cli import refuse_without
+
+    refuse_without(p, "--write-params", a.write_params is not None,
+                   {"--voxel-size": a.voxel_size is not None, "--threshold": a.threshold is not None,
+                    "--backend": a.backend is not None})
     play = open_playable(a.recording, static=a.static, stride=a.stride, max_frames=a.max_frames)
     if a.write_params is not None:
         from gpumap.ros.node import PARAMETERS
 
         thr = PARAMETERS["threshold"][0] if a.threshold is None else a.threshold
-        out = write_params(a.write_params, play, voxel_size_m=a.voxel_size, threshold=thr, backend=a.backend,
-                           world_frame=a.world_frame, pose_type=a.pose_type)
+        out = write_params(a.write_params, play, voxel_size_m=a.voxel_size, threshold=thr,
+                           backend=a.backend or "auto", world_frame=a.world_frame, pose_type=a.pose_type)
         print(f"wrote {out} (start the node with: gpumap ros --params-file {out})")
         return 0
 
