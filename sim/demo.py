@@ -57,7 +57,8 @@ DEFAULT_VOXEL_M = {"survey": 0.05}
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = ArgumentParser(prog="gpumap demo", description=__doc__.splitlines()[0])
+    p = ArgumentParser(prog="gpumap demo", description=(
+        "simulate the tank (or --scene), map it with the min-max filter, and score the map against truth"))
     p.add_argument("--scene", default="tank", choices=sorted(SCENES),
                    help="simulated scene: tank (the paper's), circle (four objects seen from five sides) "
                         "or survey (a long seabed strip); default tank")

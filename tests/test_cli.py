@@ -379,8 +379,8 @@ def test_every_option_has_a_plain_help_line() -> None:
                 missing.append(name)
             if "`" in (act.help or ""):
                 rst.append(name)
-        # the description too (gpumap demo's comes from sim/demo.py, which issue #20 is changing)
-        if "`" in (p.description or "") and verb != "demo":
+        # the description too
+        if "`" in (p.description or ""):
             rst.append(f"gpumap {verb} (description)")
         opts = {o for a in p._actions if a.help != argparse.SUPPRESS for o in a.option_strings}
         assert "--quiet" not in opts, f"gpumap {verb}: progress bars go off with --no-progress"
