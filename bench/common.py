@@ -197,6 +197,7 @@ class CpuShare:
         self.others_cores: float | None = None
         self.steal_cores: float | None = None
         self.own_cores: float | None = None
+        self.wall_s: float | None = None
 
     @staticmethod
     def _stat() -> tuple[float, float] | None:
@@ -224,6 +225,7 @@ class CpuShare:
 
     def __exit__(self, *exc: object) -> None:
         wall = time.perf_counter() - self._t0
+        self.wall_s = wall
         s1, own = self._stat(), self._own() - self._o0
         if self._s0 is None or s1 is None or wall <= 0:
             return

@@ -28,3 +28,12 @@ def test_a_loaded_machine_is_refused_before_any_work(monkeypatch, tmp_path, caps
     rc = peer_ratio.main(["--oasis-src", str(tmp_path), "--out", str(tmp_path / "out")])
     assert rc == 3 and "not idle" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_others_are_pooled_over_the_passes_by_wall_time():
+    """One 25 ms pass that caught a shell's 10 ms tick reads ~0.4 cores; pooled with minute-long
+    passes it weighs by its wall time, and a pass without a sample is left out."""
+    passes = [{"others_cores": 0.0, "wall_s": 30.0}, {"others_cores": 0.4, "wall_s": 0.025},
+              {"others_cores": None, "wall_s": 1.0}, {"others_cores": 0.3, "wall_s": 30.0}]
+    assert peer_ratio.pooled_others(passes) == pytest.approx((0.4 * 0.025 + 0.3 * 30.0) / 60.025)
+    assert peer_ratio.pooled_others([{"others_cores": None, "wall_s": 1.0}]) is None
