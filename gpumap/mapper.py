@@ -246,7 +246,9 @@ class MinMaxMapper:
         # the elevation-arc directions (gpumap.nbv.PAIR_STEPS bits) each voxel was observed along
         self._arcs = np.zeros(grid.n_voxels, np.uint16) if confidence else None
         self._gain_runner = None
-        log.info("gpumap: backend %s on %s", self._backend.name, self._backend.device)
+        # auto says what it picked; a backend asked for by name is what the caller already knows
+        (log.info if backend == "auto" else log.debug)(
+            "gpumap: backend %s on %s", self._backend.name, self._backend.device)
 
     def _make_backend(self, backend: str) -> Backend:
         names = AUTO_ORDER if backend == "auto" else (backend,)

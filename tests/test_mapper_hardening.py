@@ -243,3 +243,17 @@ def test_load_errors_are_gpumap_format_errors(tmp_path):
     (tmp_path / "junk.npz").write_bytes(b"PK\x03\x04" + b"\0" * 40)
     with pytest.raises(FormatError, match="cannot be read"):
         gpumap.MinMaxMapper.load(tmp_path / "junk.npz")
+
+
+def test_auto_says_which_backend_it_picked_and_a_named_one_stays_quiet(caplog):
+    import logging
+
+    spec = gpumap.SonarSpec.uniform(n_beams=4, n_bins=4)
+    grid = gpumap.GridSpec((0, 0, 0), (1, 1, 1), 0.5)
+    with caplog.at_level(logging.INFO, logger="gpumap"):
+        m = gpumap.MinMaxMapper(spec, grid, backend="auto")
+    assert f"backend {m.backend} on" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="gpumap"):
+        gpumap.MinMaxMapper(spec, grid, backend="numpy")
+    assert "backend numpy" not in caplog.text
