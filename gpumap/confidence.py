@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpumap.reference import beam_index_lo, voxel_ping_values
+from gpumap.reference import beam_index_lo, beam_span, voxel_ping_values
 
 __all__ = ["APERTURE_MARGIN", "TUBE_VOXELS", "confirm_ping"]
 
@@ -169,15 +169,7 @@ def confirm_ping(
         """Bins and beams within ``w`` of each candidate's range and azimuth arc."""
         b0 = np.clip(np.floor((r - w - rmin) * inv_dr), 0, n_bins - 1).astype(np.int64)
         b1 = np.clip(np.floor((r + w - rmin) * inv_dr), 0, n_bins - 1).astype(np.int64)
-        q = h2 - w * w
-        narrow = q > 0
-        u = w / np.sqrt(np.where(narrow, q, _F(1)))
-        d0 = _F(1) + t * u
-        d1 = _F(1) - t * u
-        ok0 = narrow & (d0 > 0)
-        ok1 = narrow & (d1 > 0)
-        j0 = np.where(ok0, beam_index_lo((t - u) / np.where(ok0, d0, _F(1)), edges), 0)
-        j1 = np.where(ok1, beam_index_lo((t + u) / np.where(ok1, d1, _F(1)), edges), n_beams - 1)
+        j0, j1 = beam_span(t, h2, w, edges, n_beams)
         return b0, b1, j0, j1
 
     # the echo: a bright cell within tube_m of the centre; who could have made it: any voxel

@@ -42,6 +42,26 @@ __all__ = ["beam_index_lo", "integrate_gather", "integrate_template", "visible_v
 _F = np.float32
 
 
+def beam_span(
+    t: np.ndarray, h2: np.ndarray, w, edges: np.ndarray, n_beams: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """First and last beam (inclusive) that a sphere of radius ``w`` spans, for centres at azimuth
+    tangent ``t`` and squared horizontal distance ``h2`` (float32 arrays; ``edges`` as
+    :func:`beam_index_lo` takes them). The sphere spans azimuths theta -+ asin(w / h); in tangents
+    u = tan(asin(w / h)). A sphere that holds the axis, or whose edge passes 90 degrees, reaches
+    the first or last beam."""
+    q = h2 - w * w
+    narrow = q > 0
+    u = w / np.sqrt(np.where(narrow, q, _F(1)))
+    d0 = _F(1) + t * u
+    d1 = _F(1) - t * u
+    ok0 = narrow & (d0 > 0)
+    ok1 = narrow & (d1 > 0)
+    j0 = np.where(ok0, beam_index_lo((t - u) / np.where(ok0, d0, _F(1)), edges), 0)
+    j1 = np.where(ok1, beam_index_lo((t + u) / np.where(ok1, d1, _F(1)), edges), n_beams - 1)
+    return j0, j1
+
+
 def beam_index_lo(t: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """Largest beam ``j`` in ``[0, n_beams - 1]`` with ``edges[j] <= t`` (0 when none)."""
     n_beams = edges.shape[0] - 1
@@ -139,16 +159,7 @@ def voxel_ping_values(
     first = np.floor((r - params["near"] - rmin) * inv_dr).astype(np.int64)  # < 0 near blanking
     b0 = np.maximum(first, 0)
     b1 = np.minimum(first + int(params["win"]) - 1, n_bins - 1)
-    # the sphere spans azimuths theta -+ asin(rho / h); in tangents, u = tan(asin(rho / h))
-    q = h2 - rho * rho
-    narrow = q > 0
-    u = rho / np.sqrt(np.where(narrow, q, _F(1)))
-    d0 = _F(1) + t * u
-    d1 = _F(1) - t * u
-    ok0 = narrow & (d0 > 0)
-    ok1 = narrow & (d1 > 0)
-    j0 = np.where(ok0, beam_index_lo((t - u) / np.where(ok0, d0, _F(1)), edges), 0)
-    j1 = np.where(ok1, beam_index_lo((t + u) / np.where(ok1, d1, _F(1)), edges), n_beams - 1)
+    j0, j1 = beam_span(t, h2, rho, edges, n_beams)
     out[seen] = _RangeMax(image, int(params["win"])).query(b0, b1, j0, j1)
     if not clear:
         return out
