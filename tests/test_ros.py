@@ -224,6 +224,82 @@ def test_obstacle_projection_and_marker_blocks_against_brute_force():
     assert {b for b, _ in changed} == touched and len(touched) <= 2
 
 
+def _assert_cloud_confidence(centres, vals, confirmed, mapper) -> tuple[int, int]:
+    """Brute force, voxel by voxel: the cloud is the occupied set, confirmed == (confidence == 3)."""
+    conf = mapper.confidence()
+    v = mapper.values()
+    grid = mapper.grid
+    got = {}
+    for p, x, c in zip(centres, vals, confirmed, strict=True):
+        ijk = tuple(int(round(q)) for q in (p - np.asarray(grid.min_corner_m)) / grid.voxel_size_m - 0.5)
+        assert ijk not in got
+        assert x == v[ijk]
+        got[ijk] = int(c)
+    nx, ny, nz = grid.shape
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                if conf[i, j, k] >= 2:
+                    assert got.pop((i, j, k)) == (1 if conf[i, j, k] == 3 else 0), (i, j, k)
+    assert not got  # nothing in the cloud that the layer does not call occupied
+    return int((conf == 3).sum()), int((conf == 2).sum())
+
+
+def test_cloud_confirmed_field_is_the_mappers_confidence_layer():
+    """The node's cloud content with confidence on, on the analytic point reflector of
+    test_nbv: a level view (the whole arc unconfirmed), then a rolled one (the echo confirmed)."""
+    from test_nbv import _echo_image, _look_at_target
+
+    from gpumap.ros.convert import occupied_cloud
+
+    m = gpumap.MinMaxMapper(gpumap.SonarSpec.uniform(hfov_deg=60, vfov_deg=20, n_beams=64, n_bins=100,
+                                                     range_min_m=0.1, range_max_m=1.5),
+                            gpumap.GridSpec((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), 0.05),
+                            backend="numpy", confidence=True)
+    seen = []
+    for roll in (0.0, math.pi / 2, math.pi / 4):
+        T = _look_at_target(roll)
+        m.integrate(_echo_image(T), T)
+        centres, vals, confirmed = occupied_cloud(m.values(), m.grid, m.threshold, m.confidence())
+        assert confirmed.dtype == np.uint8
+        seen.append(_assert_cloud_confidence(centres, vals, confirmed, m))
+    assert seen[0][0] == 0 and seen[0][1] >= 5  # one view: the stretch, nothing confirmed
+    assert seen[1][0] >= 1  # rolled: the echo confirmed
+    # without the layer: the same points, no field; a layer that disagrees with the values is refused
+    c2, v2, none = occupied_cloud(m.values(), m.grid, m.threshold)
+    assert none is None and np.array_equal(c2, centres) and np.array_equal(v2, vals)
+    bad = m.confidence()
+    bad[bad >= 2] = 1
+    with pytest.raises(ValueError, match="occupied voxel"):
+        occupied_cloud(m.values(), m.grid, m.threshold, bad)
+
+
+@needs_ros
+def test_cloud_message_with_and_without_the_confirmed_field():
+    from sensor_msgs.msg import PointField
+
+    from gpumap.ros.convert import cloud_confirmed, cloud_msg, cloud_points
+
+    rng = np.random.default_rng(5)
+    pts = rng.normal(size=(7, 3))
+    val = rng.random(7).astype(np.float32)
+    conf = (rng.random(7) < 0.5).astype(np.uint8)
+    m = cloud_msg(pts, val, 3_000_000_001, "map", conf)
+    assert [(f.name, f.offset, f.datatype) for f in m.fields] == [
+        ("x", 0, PointField.FLOAT32), ("y", 4, PointField.FLOAT32), ("z", 8, PointField.FLOAT32),
+        ("value", 12, PointField.FLOAT32), ("confirmed", 16, PointField.UINT8)]
+    assert m.point_step == 20 and m.row_step == 140 and len(m.data) == 140
+    raw = np.frombuffer(bytes(m.data), np.uint8).reshape(7, 20)
+    assert np.array_equal(raw[:, 16], conf) and not raw[:, 17:].any()  # padding zeroed
+    np.testing.assert_array_equal(cloud_points(m), np.column_stack([pts.astype(np.float32), val]))
+    assert np.array_equal(cloud_confirmed(m), conf)
+    plain = cloud_msg(pts, val, 3_000_000_001, "map")
+    assert plain.point_step == 16 and cloud_confirmed(plain) is None
+    np.testing.assert_array_equal(cloud_points(plain), cloud_points(m))
+    with pytest.raises(ValueError, match=r"confirmed of shape \(7,\)"):
+        cloud_msg(pts, val, 0, "map", conf[:-1])
+
+
 # ------------------------------------------------------------------------ over DDS
 def _env(ns_domain: int) -> dict:
     env = dict(os.environ)
