@@ -466,9 +466,9 @@ def _wire_pose(T):
     return transform_from_pose(Point(x=x, y=y, z=z), Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
 
 
-def _offline(play, grid, frames, threshold=0.4, wire=True):
+def _offline(play, grid, frames, threshold=0.4, wire=True, confidence=False):
     """``MinMaxMapper`` on ``frames``: with the poses as the wire carries them, or as recorded."""
-    m = gpumap.MinMaxMapper(play.spec, grid, backend="numpy", threshold=threshold)
+    m = gpumap.MinMaxMapper(play.spec, grid, backend="numpy", threshold=threshold, confidence=confidence)
     for f in frames:
         m.integrate(f.image, _wire_pose(f.T_W_S) if wire else f.T_W_S)
     return m
@@ -576,6 +576,36 @@ def test_simulated_run_and_a_player_that_dies(ros_session, tmp_path, sim_recordi
     probe.spin_for(0.4)
     assert probe.count("dropped.middleware_lost") == 0
     _assert_cloud_is_map(probe.clouds[-1], _offline(play, play.grid, frames), 0.4)
+
+
+@needs_ros
+def test_confidence_on_the_wire_is_the_offline_layer(ros_session, tmp_path, sim_recording):
+    """confidence:=true: the node's cloud carries confirmed, voxel for voxel the offline layer."""
+    from gpumap.ros.convert import cloud_confirmed, cloud_points
+    from gpumap.ros.play import open_playable, write_params
+
+    play = open_playable(sim_recording)
+    params = write_params(tmp_path / "sim.yaml", play, voxel_size_m=None, threshold=0.4, backend="numpy",
+                          world_frame="map", pose_type="pose_stamped")
+    ros_session("node", "ros", "--params-file", str(params), "--ros-args", *NODE_TEST_ARGS,
+                "-p", "confidence:=true")
+    probe = ros_session.probe()
+    probe.spin_until(lambda: probe.diag is not None, 60, "the node's first diagnostics")
+    player = ros_session("play", "ros-play", str(sim_recording), "--hz", "20", "--no-progress")
+    player.wait(60)
+    assert player.returncode == 0
+    frames = list(play.frames())
+    probe.spin_until(lambda: probe.count("pings_integrated") == len(frames) and probe.count("queue") == 0,
+                     60, "every ping mapped")
+    probe.spin_for(0.4)
+    ref = _offline(play, play.grid, frames, confidence=True)
+    msg = probe.clouds[-1]
+    _assert_cloud_is_map(msg, ref, 0.4)
+    conf = cloud_confirmed(msg)
+    assert conf is not None and set(np.unique(conf).tolist()) <= {0, 1}
+    counts = _assert_cloud_confidence(cloud_points(msg)[:, :3].astype(np.float64), cloud_points(msg)[:, 3],
+                                      conf, ref)
+    assert counts[0] > 0 and counts[1] > 0  # both kinds on the wire (139 and 4856 here)
 
 
 @needs_ros
