@@ -450,15 +450,24 @@ def run_demo(args: argparse.Namespace) -> dict:
                 session.add_path("ekf", T_ekf[:, :3, 3], (40, 90, 230))
                 if landmarks and len(landmarks["points"]):
                     session.add_landmarks(landmarks["points"][:200], landmarks["covs"][:200])
-    if session is not None:
+    plan_view = session if getattr(args, "plan", 0) else None  # the planned views go on in the view
+    if session is not None and plan_view is None:
         session.finish(mapper)
 
     _figures(out, scene, truth, mapper, sample, history, args.threshold, detectable)
     if getattr(args, "plan", 0):
         from .plan_demo import run_plan
 
+        last: list = [mapper]
+
+        def on_plan_ping(image, T_W_S, m) -> None:
+            last[0] = m
+            plan_view.ping(image, T_W_S, m)
+
         metrics["plan"] = run_plan(scene, pings, T_true, truth, args.plan, args.backend, args.threshold,
-                                   args.seed, quiet, out)
+                                   args.seed, quiet, out, on_ping=None if plan_view is None else on_plan_ping)
+        if plan_view is not None:  # the planned map, its confidence layer shown (confirmed / unconfirmed)
+            plan_view.finish(last[0])
     metrics["demo_s"] = time.perf_counter() - t_start
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_jsonable))
     return metrics

@@ -114,8 +114,11 @@ def confidence_report(mapper, truth: Truth) -> dict:
 
 def run_plan(scene: Scene, pings: list[Ping], T_traj: np.ndarray, truth: Truth, n_plan: int, backend: str,
              threshold: float, seed: int, quiet: bool, out: Path,
-             unknown_weight: float = UNKNOWN_WEIGHT) -> dict:
-    """Run the three arms; write the pictures into ``out``; return the ``plan`` block of metrics.json."""
+             unknown_weight: float = UNKNOWN_WEIGHT, on_ping=None) -> dict:
+    """Run the three arms; write the pictures into ``out``; return the ``plan`` block of metrics.json.
+
+    ``on_ping(image, T_W_S, mapper)``: called after each planned view is integrated (the live
+    view; the mapper keeps the confidence layer)."""
     from scipy import ndimage
     from tqdm import tqdm
 
@@ -152,6 +155,8 @@ def run_plan(scene: Scene, pings: list[Ping], T_traj: np.ndarray, truth: Truth, 
                     T = fixed[i]
                 p = sim.ping(T, 100_000 * (ARMS.index(arm) + 1) + i)
                 m.integrate(p.image, T)
+                if on_ping is not None and arm == "planned":
+                    on_ping(p.image, T, m)
                 all_pings.append(p)
                 poses.append(T)
                 curve.append(_score(m, truth, all_pings, scene.grid, threshold, far))

@@ -224,6 +224,82 @@ def test_obstacle_projection_and_marker_blocks_against_brute_force():
     assert {b for b, _ in changed} == touched and len(touched) <= 2
 
 
+def _assert_cloud_confidence(centres, vals, confirmed, mapper) -> tuple[int, int]:
+    """Brute force, voxel by voxel: the cloud is the occupied set, confirmed == (confidence == 3)."""
+    conf = mapper.confidence()
+    v = mapper.values()
+    grid = mapper.grid
+    got = {}
+    for p, x, c in zip(centres, vals, confirmed, strict=True):
+        ijk = tuple(int(round(q)) for q in (p - np.asarray(grid.min_corner_m)) / grid.voxel_size_m - 0.5)
+        assert ijk not in got
+        assert x == v[ijk]
+        got[ijk] = int(c)
+    nx, ny, nz = grid.shape
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                if conf[i, j, k] >= 2:
+                    assert got.pop((i, j, k)) == (1 if conf[i, j, k] == 3 else 0), (i, j, k)
+    assert not got  # nothing in the cloud that the layer does not call occupied
+    return int((conf == 3).sum()), int((conf == 2).sum())
+
+
+def test_cloud_confirmed_field_is_the_mappers_confidence_layer():
+    """The node's cloud content with confidence on, on the analytic point reflector of
+    test_nbv: a level view (the whole arc unconfirmed), then a rolled one (the echo confirmed)."""
+    from test_nbv import _echo_image, _look_at_target
+
+    from gpumap.ros.convert import occupied_cloud
+
+    m = gpumap.MinMaxMapper(gpumap.SonarSpec.uniform(hfov_deg=60, vfov_deg=20, n_beams=64, n_bins=100,
+                                                     range_min_m=0.1, range_max_m=1.5),
+                            gpumap.GridSpec((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), 0.05),
+                            backend="numpy", confidence=True)
+    seen = []
+    for roll in (0.0, math.pi / 2, math.pi / 4):
+        T = _look_at_target(roll)
+        m.integrate(_echo_image(T), T)
+        centres, vals, confirmed = occupied_cloud(m.values(), m.grid, m.threshold, m.confidence())
+        assert confirmed.dtype == np.uint8
+        seen.append(_assert_cloud_confidence(centres, vals, confirmed, m))
+    assert seen[0][0] == 0 and seen[0][1] >= 5  # one view: the stretch, nothing confirmed
+    assert seen[1][0] >= 1  # rolled: the echo confirmed
+    # without the layer: the same points, no field; a layer that disagrees with the values is refused
+    c2, v2, none = occupied_cloud(m.values(), m.grid, m.threshold)
+    assert none is None and np.array_equal(c2, centres) and np.array_equal(v2, vals)
+    bad = m.confidence()
+    bad[bad >= 2] = 1
+    with pytest.raises(ValueError, match="occupied voxel"):
+        occupied_cloud(m.values(), m.grid, m.threshold, bad)
+
+
+@needs_ros
+def test_cloud_message_with_and_without_the_confirmed_field():
+    from sensor_msgs.msg import PointField
+
+    from gpumap.ros.convert import cloud_confirmed, cloud_msg, cloud_points
+
+    rng = np.random.default_rng(5)
+    pts = rng.normal(size=(7, 3))
+    val = rng.random(7).astype(np.float32)
+    conf = (rng.random(7) < 0.5).astype(np.uint8)
+    m = cloud_msg(pts, val, 3_000_000_001, "map", conf)
+    assert [(f.name, f.offset, f.datatype) for f in m.fields] == [
+        ("x", 0, PointField.FLOAT32), ("y", 4, PointField.FLOAT32), ("z", 8, PointField.FLOAT32),
+        ("value", 12, PointField.FLOAT32), ("confirmed", 16, PointField.UINT8)]
+    assert m.point_step == 20 and m.row_step == 140 and len(m.data) == 140
+    raw = np.frombuffer(bytes(m.data), np.uint8).reshape(7, 20)
+    assert np.array_equal(raw[:, 16], conf) and not raw[:, 17:].any()  # padding zeroed
+    np.testing.assert_array_equal(cloud_points(m), np.column_stack([pts.astype(np.float32), val]))
+    assert np.array_equal(cloud_confirmed(m), conf)
+    plain = cloud_msg(pts, val, 3_000_000_001, "map")
+    assert plain.point_step == 16 and cloud_confirmed(plain) is None
+    np.testing.assert_array_equal(cloud_points(plain), cloud_points(m))
+    with pytest.raises(ValueError, match=r"confirmed of shape \(7,\)"):
+        cloud_msg(pts, val, 0, "map", conf[:-1])
+
+
 # ------------------------------------------------------------------------ over DDS
 def _env(ns_domain: int) -> dict:
     env = dict(os.environ)
@@ -390,9 +466,9 @@ def _wire_pose(T):
     return transform_from_pose(Point(x=x, y=y, z=z), Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
 
 
-def _offline(play, grid, frames, threshold=0.4, wire=True):
+def _offline(play, grid, frames, threshold=0.4, wire=True, confidence=False):
     """``MinMaxMapper`` on ``frames``: with the poses as the wire carries them, or as recorded."""
-    m = gpumap.MinMaxMapper(play.spec, grid, backend="numpy", threshold=threshold)
+    m = gpumap.MinMaxMapper(play.spec, grid, backend="numpy", threshold=threshold, confidence=confidence)
     for f in frames:
         m.integrate(f.image, _wire_pose(f.T_W_S) if wire else f.T_W_S)
     return m
@@ -500,6 +576,36 @@ def test_simulated_run_and_a_player_that_dies(ros_session, tmp_path, sim_recordi
     probe.spin_for(0.4)
     assert probe.count("dropped.middleware_lost") == 0
     _assert_cloud_is_map(probe.clouds[-1], _offline(play, play.grid, frames), 0.4)
+
+
+@needs_ros
+def test_confidence_on_the_wire_is_the_offline_layer(ros_session, tmp_path, sim_recording):
+    """confidence:=true: the node's cloud carries confirmed, voxel for voxel the offline layer."""
+    from gpumap.ros.convert import cloud_confirmed, cloud_points
+    from gpumap.ros.play import open_playable, write_params
+
+    play = open_playable(sim_recording)
+    params = write_params(tmp_path / "sim.yaml", play, voxel_size_m=None, threshold=0.4, backend="numpy",
+                          world_frame="map", pose_type="pose_stamped")
+    ros_session("node", "ros", "--params-file", str(params), "--ros-args", *NODE_TEST_ARGS,
+                "-p", "confidence:=true")
+    probe = ros_session.probe()
+    probe.spin_until(lambda: probe.diag is not None, 60, "the node's first diagnostics")
+    player = ros_session("play", "ros-play", str(sim_recording), "--hz", "20", "--no-progress")
+    player.wait(60)
+    assert player.returncode == 0
+    frames = list(play.frames())
+    probe.spin_until(lambda: probe.count("pings_integrated") == len(frames) and probe.count("queue") == 0,
+                     60, "every ping mapped")
+    probe.spin_for(0.4)
+    ref = _offline(play, play.grid, frames, confidence=True)
+    msg = probe.clouds[-1]
+    _assert_cloud_is_map(msg, ref, 0.4)
+    conf = cloud_confirmed(msg)
+    assert conf is not None and set(np.unique(conf).tolist()) <= {0, 1}
+    counts = _assert_cloud_confidence(cloud_points(msg)[:, :3].astype(np.float64), cloud_points(msg)[:, 3],
+                                      conf, ref)
+    assert counts[0] > 0 and counts[1] > 0  # both kinds on the wire (139 and 4856 here)
 
 
 @needs_ros

@@ -341,3 +341,101 @@ def test_saved_map_view_shows_no_empty_ping_panels(tmp_path):
         assert np.count_nonzero(v._q) > 0  # the map itself is shown
     finally:
         v.close()
+
+
+# ------------------------------------------------------------------------ the confidence layer
+def _pale(rgb: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint(rgb.astype(np.float64) * 0.3 + 255 * 0.7), 0, 255).astype(np.uint8)
+
+
+def test_confidence_colours_follow_the_layer():
+    from gpumap.viewer.live import confidence_colours
+
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (50, 3)).astype(np.uint8)
+    conf = rng.random(50) < 0.4
+    out, keep = confidence_colours(rgb, conf, "pale")
+    for i in range(50):  # voxel by voxel: confirmed as given, unconfirmed mixed with 70 % white
+        want = rgb[i] if conf[i] else _pale(rgb[i])
+        assert keep[i] and np.array_equal(out[i], want), i
+    out, keep = confidence_colours(rgb, conf, "hidden")
+    assert np.array_equal(keep, conf) and np.array_equal(out[conf], rgb[conf])
+    out, keep = confidence_colours(rgb, conf, "as confirmed")
+    assert keep.all() and np.array_equal(out, rgb)
+    with pytest.raises(ValueError, match="mode one of"):
+        confidence_colours(rgb, conf, "faint")
+
+
+def _drawn(v, grid) -> dict:
+    """{(i, j, k): rgb} of every voxel box the viewer has sent."""
+    out = {}
+    for h in v._blocks.values():
+        pos = np.asarray(h.batched_positions, np.float64)
+        ijk = np.rint((pos - np.asarray(grid.min_corner_m)) / grid.voxel_size_m - 0.5).astype(int)
+        for p, c in zip(ijk, np.asarray(h.batched_colors), strict=True):
+            out[tuple(int(x) for x in p)] = c.astype(np.uint8)
+    return out
+
+
+@needs_viser
+def test_live_view_draws_unconfirmed_voxels_pale_or_hides_them():
+    """The analytic point reflector (test_nbv): a level view leaves the whole arc unconfirmed, a
+    rolled one confirms the echo; what the view sends is checked voxel by voxel against the layer."""
+    import math
+
+    from test_nbv import GRID, SPEC, _echo_image, _look_at_target
+
+    import gpumap
+    from gpumap.viewer.live import MapViewer, colormap_u8
+
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", confidence=True)
+    v = MapViewer(SPEC, GRID, m.threshold, port=_free_port(), show_pings=False)
+    turbo = colormap_u8("turbo")
+    nz = GRID.shape[2]
+
+    def height_rgb(k: int) -> np.ndarray:
+        return turbo[min(255, max(0, int((k + 0.5) / nz * 255)))]
+
+    def check(mode: str) -> tuple[int, int]:
+        conf = m.confidence()
+        got = _drawn(v, GRID)
+        shown = conf == 3 if mode == "hidden" else conf >= 2
+        want = {tuple(int(x) for x in ijk) for ijk in np.argwhere(shown)}
+        assert set(got) == want
+        for ijk, c in got.items():
+            base = height_rgb(ijk[2])
+            assert np.array_equal(c, base if conf[ijk] == 3 or mode == "as confirmed" else _pale(base)), ijk
+        return int((conf == 3).sum()), int((conf == 2).sum())
+
+    try:
+        n = []
+        for roll in (0.0, math.pi / 2, math.pi / 4):
+            T = _look_at_target(roll)
+            m.integrate(_echo_image(T), T)
+            v.ping(_echo_image(T), T, m, force=True)  # only the changed blocks are sent again
+            n.append(check("pale"))
+        assert n[0][0] == 0 and n[0][1] >= 5 and n[1][0] >= 1  # both kinds were drawn
+        for mode in ("hidden", "as confirmed", "pale"):
+            v._unconfirmed.value = mode
+            v._recolour()
+            check(mode)
+    finally:
+        v.close()
+    # a layer that changes while the values do not: the blocks are sent again all the same
+    v = MapViewer(SPEC, GRID, m.threshold, port=_free_port(), show_pings=False)
+    try:
+        values, conf = m.values(), m.confidence()
+        v.set_values(values)  # no layer yet: every occupied voxel in full colour
+        assert all(np.array_equal(c, height_rgb(ijk[2])) for ijk, c in _drawn(v, GRID).items())
+        v.set_values(values, conf)
+        check("pale")
+        flip = conf.copy()
+        flip[conf >= 2] = 5 - conf[conf >= 2]  # confirmed <-> unconfirmed
+        v.set_values(values, flip)
+        got = _drawn(v, GRID)
+        assert set(got) == {tuple(int(x) for x in i) for i in np.argwhere(conf >= 2)}
+        for ijk, c in got.items():
+            base = height_rgb(ijk[2])
+            assert np.array_equal(c, base if flip[ijk] == 3 else _pale(base)), ijk
+    finally:
+        v.close()

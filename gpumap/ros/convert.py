@@ -17,11 +17,13 @@ __all__ = [
     "ENCODINGS",
     "BadMessage",
     "MarkerBlocks",
+    "cloud_confirmed",
     "cloud_msg",
     "cloud_points",
     "image_from_msg",
     "image_msg",
     "occupancy_grid_msg",
+    "occupied_cloud",
     "pose_from_msg",
     "pose_msg_fields",
     "project_obstacles",
@@ -211,10 +213,52 @@ def pose_msg_fields(T_W_S: np.ndarray) -> tuple[tuple[float, ...], tuple[float, 
 
 # ---------------------------------------------------------------------------- map outputs
 _CLOUD_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("value", "<f4")])
+#: With the confidence layer: a uint8 ``confirmed`` after value, padded to 20 bytes (4-byte aligned).
+_CLOUD_CONF_DTYPE = np.dtype({"names": ["x", "y", "z", "value", "confirmed"],
+                              "formats": ["<f4", "<f4", "<f4", "<f4", "u1"],
+                              "offsets": [0, 4, 8, 12, 16], "itemsize": 20})
 
 
-def cloud_msg(points_m: np.ndarray, values: np.ndarray, t_ns: int, frame_id: str):
-    """``sensor_msgs/PointCloud2`` with float32 fields x, y, z (metres) and value, unordered.
+def occupied_cloud(values: np.ndarray, grid: GridSpec, threshold: float,
+                   confidence: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The cloud's content: every voxel with value ``>= threshold``, in C order.
+
+    Parameters
+    ----------
+    values : (nx, ny, nz) float32
+        Map values (NaN or +inf unknown), as ``MinMaxMapper.values()`` gives them.
+    confidence : (nx, ny, nz) uint8, optional
+        ``MinMaxMapper.confidence()`` of the same map (0 unknown, 1 free, 2 occupied
+        unconfirmed, 3 occupied confirmed); its occupied set must be the one of ``values``.
+
+    Returns
+    -------
+    centres_m (N, 3) float64, values (N,) float32, confirmed (N,) uint8 (1 confirmed, 0
+    unconfirmed) or None without ``confidence``.
+    """
+    occ = np.isfinite(values) & (values >= np.float32(threshold))
+    idx = np.argwhere(occ)
+    if confidence is None:
+        return grid.centers(idx), values[occ], None
+    conf = np.asarray(confidence)
+    if conf.shape != values.shape:
+        raise ValueError(f"Expected a confidence layer of shape {values.shape}, but got {conf.shape}")
+    c = conf[occ]
+    if c.size and c.min() < 2:
+        raise ValueError(f"Expected the confidence layer to call every occupied voxel 2 or 3, but "
+                         f"{int((c < 2).sum())} of {c.size} are {sorted(set(c[c < 2].tolist()))}")
+    n_occ_conf = int(np.count_nonzero(conf >= 2))
+    if n_occ_conf != c.size:
+        raise ValueError(f"Expected the confidence layer's occupied voxels to be the {c.size} of the "
+                         f"values, but it has {n_occ_conf}")
+    return grid.centers(idx), values[occ], (c == 3).astype(np.uint8)
+
+
+def cloud_msg(points_m: np.ndarray, values: np.ndarray, t_ns: int, frame_id: str,
+              confirmed: np.ndarray | None = None):
+    """``sensor_msgs/PointCloud2`` with float32 fields x, y, z (metres) and value, unordered;
+    with ``confirmed`` also a uint8 field ``confirmed`` (20 bytes a point).
 
     Parameters
     ----------
@@ -222,36 +266,57 @@ def cloud_msg(points_m: np.ndarray, values: np.ndarray, t_ns: int, frame_id: str
         Voxel centres in ``frame_id``.
     values : (N,) float
         Their min-max values.
+    confirmed : (N,) bool or uint8, optional
+        1 where the confidence layer calls the voxel confirmed, 0 unconfirmed.
     """
     from sensor_msgs.msg import PointCloud2, PointField
 
     n = int(points_m.shape[0])
-    rec = np.empty(n, dtype=_CLOUD_DTYPE)
+    dt = _CLOUD_DTYPE if confirmed is None else _CLOUD_CONF_DTYPE
+    rec = np.zeros(n, dtype=dt)  # zeros: the padding bytes go out as 0, not as leftovers
     for i, name in enumerate("xyz"):
         rec[name] = points_m[:, i]
     rec["value"] = values
+    fields = [PointField(name=nm, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+              for i, nm in enumerate(("x", "y", "z", "value"))]
+    if confirmed is not None:
+        c = np.asarray(confirmed)
+        if c.shape != (n,):
+            raise ValueError(f"Expected confirmed of shape ({n},), but got {c.shape}")
+        rec["confirmed"] = c != 0
+        fields.append(PointField(name="confirmed", offset=16, datatype=PointField.UINT8, count=1))
     m = PointCloud2()
     m.header.stamp = stamp_of(t_ns)
     m.header.frame_id = frame_id
     m.height, m.width = 1, n
-    m.fields = [PointField(name=nm, offset=4 * i, datatype=PointField.FLOAT32, count=1)
-                for i, nm in enumerate(("x", "y", "z", "value"))]
+    m.fields = fields
     m.is_bigendian = False
-    m.point_step = _CLOUD_DTYPE.itemsize
-    m.row_step = _CLOUD_DTYPE.itemsize * n
+    m.point_step = dt.itemsize
+    m.row_step = dt.itemsize * n
     m.is_dense = True
     m.data = array.array("B", rec.tobytes())
     return m
 
 
+def _cloud_rec(msg) -> np.ndarray:
+    names = [f.name for f in msg.fields]
+    for dt in (_CLOUD_DTYPE, _CLOUD_CONF_DTYPE):
+        if names == list(dt.names) and msg.point_step == dt.itemsize:
+            return np.frombuffer(msg.data, dtype=dt)
+    raise ValueError(f"Expected fields x, y, z, value of 16 bytes per point (or x, y, z, value, confirmed "
+                     f"of 20), but got {names} of {msg.point_step}")
+
+
 def cloud_points(msg) -> np.ndarray:
     """(N, 4) float32 (x, y, z, value) of a cloud written by :func:`cloud_msg`."""
-    names = [f.name for f in msg.fields]
-    if names != ["x", "y", "z", "value"] or msg.point_step != _CLOUD_DTYPE.itemsize:
-        raise ValueError(f"Expected fields x, y, z, value of 16 bytes per point, but got {names} of "
-                         f"{msg.point_step}")
-    rec = np.frombuffer(msg.data, dtype=_CLOUD_DTYPE)
+    rec = _cloud_rec(msg)
     return np.stack([rec["x"], rec["y"], rec["z"], rec["value"]], axis=1)
+
+
+def cloud_confirmed(msg) -> np.ndarray | None:
+    """(N,) uint8 ``confirmed`` field of a cloud written by :func:`cloud_msg` (None without it)."""
+    rec = _cloud_rec(msg)
+    return np.array(rec["confirmed"]) if "confirmed" in rec.dtype.names else None
 
 
 def project_obstacles(values: np.ndarray, grid: GridSpec, threshold: float,

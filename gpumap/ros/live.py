@@ -422,6 +422,13 @@ class LiveMapper:
         with self._map_lock:
             return self.mapper.values()
 
+    def values_and_confidence(self, confidence: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """``(mapper.values(), mapper.confidence())`` of the same map, between two integrations;
+        ``(values, None)`` when ``confidence`` is false (the mapper needs ``confidence=True``
+        otherwise)."""
+        with self._map_lock:
+            return self.mapper.values(), (self.mapper.confidence() if confidence else None)
+
     def stats(self, window_s: float = 5.0) -> dict:
         """Counters and rates: ``received`` (image messages that reached the node), ``integrated``,
         ``queue`` (waiting or being integrated), ``rejected``/``skipped``/``dropped`` by reason,

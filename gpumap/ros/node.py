@@ -18,7 +18,9 @@ Subscribes (relative names: remap them with ``-r``):
   ``pose_type: odometry``; reliable): ``T_W_S``, the sonar's pose in ``world_frame``.
 
 Publishes (in ``world_frame``): ``~/occupied_cloud`` (``sensor_msgs/PointCloud2``, fields
-x, y, z, value: every voxel with value >= ``threshold``), ``~/occupied_markers``
+x, y, z, value: every voxel with value >= ``threshold``; with ``confidence: true`` also
+``confirmed``, uint8 at offset 16 of 20-byte points: 1 where some view resolved the voxel in
+elevation, 0 where it is only consistent with the pings, see :mod:`gpumap.confidence`), ``~/occupied_markers``
 (``visualization_msgs/MarkerArray``, a cube list per 16^3-voxel block, only changed blocks;
 all of them again when a new subscriber appears), ``~/projected_map``
 (``nav_msgs/OccupancyGrid``: 100 where a voxel in ``band_z_m`` is occupied, 0 observed, -1
@@ -56,6 +58,7 @@ from gpumap.ros.convert import (
     cloud_msg,
     image_from_msg,
     occupancy_grid_msg,
+    occupied_cloud,
     pose_from_msg,
     project_obstacles,
     stamp_ns,
@@ -96,6 +99,9 @@ PARAMETERS: dict[str, tuple[object, str]] = {
     "rule": ("visible", "how views combine: visible or plain"),
     "threshold": (0.4, "occupied from this value on; also the mapper's bright threshold (as gpumap replay)"),
     "carve_views": (2, "visible rule: clear dark views that carve a voxel once seen bright"),
+    "confidence": (False, "keep the confidence layer (MinMaxMapper(confidence=True)): the cloud gets a uint8 "
+                   "field confirmed, 1 where some view resolved the voxel in elevation, 0 where it is only "
+                   "consistent with the pings (the elevation stretch); costs a pass per ping on the host"),
     "queue_size": (32, "pings held at most; a new ping finding it full drops the oldest (counted)"),
     "max_batch": (16, "pings per integrate_batch call at most"),
     "pose_wait_s": (0.5, "how long a ping newer than every pose waits for one, seconds"),
@@ -144,6 +150,13 @@ def _choice(p: dict, name: str, allowed: tuple[str, ...]) -> str:
     v = str(p[name])
     if v not in allowed:
         raise ValueError(f"Expected parameter {name} to be one of {', '.join(allowed)}, but got {v!r}")
+    return v
+
+
+def _flag(p: dict, name: str) -> bool:
+    v = p[name]
+    if not isinstance(v, bool):
+        raise ValueError(f"Expected parameter {name} to be true or false, but got {v!r}")
     return v
 
 
@@ -201,8 +214,12 @@ def make_node(node_name: str = NODE_NAME, context=None):
                 self.in_shape = self.spec.image_shape
             self.mapper = gpumap.MinMaxMapper(self.spec, self.grid, backend=str(p["backend"]),
                                               rule=_choice(p, "rule", ("visible", "plain")),
-                                              threshold=self.threshold, carve_views=int(p["carve_views"]))
-            self.map_bytes = self.grid.n_voxels * (9 if self.mapper.rule == "visible" else 4)
+                                              threshold=self.threshold, carve_views=int(p["carve_views"]),
+                                              confidence=_flag(p, "confidence"))
+            self.confidence = _flag(p, "confidence")
+            # values (4) [+ evidence (5), visible rule] [+ confirmed (1) and arcs (2), confidence]
+            self.map_bytes = self.grid.n_voxels * ((9 if self.mapper.rule == "visible" else 4)
+                                                   + (3 if self.confidence else 0))
             log = self.get_logger()
             self.live = LiveMapper(
                 self.mapper, queue_size=int(p["queue_size"]), max_batch=int(p["max_batch"]),
@@ -290,11 +307,9 @@ def make_node(node_name: str = NODE_NAME, context=None):
         # ------------------------------------------------------------ worker thread
         def _publish_map(self, newest_ns: int) -> None:
             with self._publish_lock:
-                values = self.live.values()
-                occ = np.isfinite(values) & (values >= np.float32(self.threshold))
-                idx = np.argwhere(occ)
-                self.pub_cloud.publish(cloud_msg(self.grid.centers(idx), values[occ], newest_ns,
-                                                 self.world_frame))
+                values, conf = self.live.values_and_confidence(self.confidence)
+                centres, vals, confirmed = occupied_cloud(values, self.grid, self.threshold, conf)
+                self.pub_cloud.publish(cloud_msg(centres, vals, newest_ns, self.world_frame, confirmed))
                 subs = self.pub_markers.get_subscription_count()
                 full = subs > self._marker_subs
                 now = time.monotonic()

@@ -216,13 +216,14 @@ def _parser() -> argparse.ArgumentParser:
 
 def _view_map(path: Path, a: argparse.Namespace) -> Any:
     from gpumap.mapper import MinMaxMapper
-    from gpumap.viewer.live import MapViewer
+    from gpumap.viewer.live import MapViewer, mapper_confidence
 
     m = MinMaxMapper.load(path, backend="numpy")
     thr = float(m.threshold if a.threshold is None else a.threshold)
     v = MapViewer(m.spec, m.grid, thr, host=a.view_host, port=a.view_port, title=f"gpumap view {path.name}",
                   show_pings=False)  # a saved map holds no ping: no empty image panels
-    v.set_values(m.values())
+    conf = mapper_confidence(m)  # a map saved with its confidence layer: unconfirmed voxels pale
+    v.set_values(m.values(), conf)
     v.n_pings = int(m.n_integrated)
     v.finish()
     slider = v.server.gui.add_slider("occupied from", 0.01, 1.0, 0.01, thr)
@@ -231,7 +232,7 @@ def _view_map(path: Path, a: argparse.Namespace) -> Any:
     def _rethreshold(_e) -> None:
         v.threshold = float(slider.value)
         v.reset_map()
-        v.set_values(values)
+        v.set_values(values, conf)
         v.finish()
 
     slider.on_update(_rethreshold)

@@ -30,9 +30,59 @@ import numpy as np
 from gpumap.viewer import require_viser
 from gpumap.viewer.recording import MapDiff
 
-__all__ = ["MapViewer", "colormap_u8", "rotation_to_wxyz"]
+__all__ = ["UNCONFIRMED_MODES", "MapViewer", "colormap_u8", "confidence_colours", "mapper_confidence",
+           "rotation_to_wxyz"]
 
 BLOCK = 16  # voxels per block edge: the unit of "changed blocks only"
+
+#: How the live view draws occupied voxels that the confidence layer calls unconfirmed.
+UNCONFIRMED_MODES = ("pale", "hidden", "as confirmed")
+#: Share of white mixed into an unconfirmed voxel's colour in the ``"pale"`` mode.
+PALE_MIX = 0.7
+
+
+def confidence_colours(rgb: np.ndarray, confirmed: np.ndarray, mode: str = "pale"
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Colours of occupied voxels given the confidence layer.
+
+    Parameters
+    ----------
+    rgb : (N, 3) uint8
+        The voxels' colours (by value or height).
+    confirmed : (N,) bool
+        True where ``MinMaxMapper.confidence()`` is 3 (confirmed), False where 2 (unconfirmed).
+    mode : one of :data:`UNCONFIRMED_MODES`
+        ``"pale"``: unconfirmed voxels mixed with :data:`PALE_MIX` white, confirmed ones as
+        given; ``"hidden"``: unconfirmed voxels not drawn; ``"as confirmed"``: no difference.
+
+    Returns
+    -------
+    rgb (N, 3) uint8, and keep (N,) bool: the voxels to draw.
+    """
+    c = np.asarray(confirmed, bool)
+    if rgb.shape != (c.size, 3):
+        raise ValueError(f"Expected rgb of shape ({c.size}, 3), but got {rgb.shape}")
+    if mode not in UNCONFIRMED_MODES:
+        raise ValueError(f"Expected mode one of {UNCONFIRMED_MODES}, but got {mode!r}")
+    out = np.array(rgb, np.uint8)
+    keep = np.ones(c.size, bool)
+    if mode == "pale":
+        pale = rgb[~c].astype(np.float32) * (1 - PALE_MIX) + 255.0 * PALE_MIX
+        out[~c] = np.clip(np.rint(pale), 0, 255).astype(np.uint8)
+    elif mode == "hidden":
+        keep = c.copy()
+    return out, keep
+
+
+def mapper_confidence(mapper: Any) -> np.ndarray | None:
+    """``mapper.confidence()`` when the mapper keeps the layer (``confidence=True``), else None."""
+    fn = getattr(mapper, "confidence", None)
+    if fn is None:
+        return None
+    try:
+        return fn()
+    except ValueError:  # made without the layer
+        return None
 
 
 def colormap_u8(name: str, n: int = 256) -> np.ndarray:
@@ -198,6 +248,8 @@ class MapViewer:
         self._lock = threading.RLock()
         self._diff = MapDiff(threshold)
         self._q = np.zeros(grid.n_voxels, np.uint8)  # quantised value of occupied voxels, 0 = not
+        self._conf: np.ndarray | None = None  # (n_voxels,) bool confirmed, once a layer came
+        self._unconfirmed = None  # the GUI dropdown, made with the first layer
         self._blocks: dict[tuple[int, int, int], Any] = {}
         self._positions: list[np.ndarray] = []
         self.budget = float(budget)
@@ -288,6 +340,12 @@ class MapViewer:
         idx = loc + (i0, j0, k0)
         q = sub[tuple(loc.T)]
         flat = np.ravel_multi_index(tuple(idx.T), self.grid.shape)
+        colors = self._colors(flat, q)
+        if self._conf is not None:
+            colors, keep = confidence_colours(colors, self._conf[flat], str(self._unconfirmed.value))
+            idx, colors = idx[keep], colors[keep]
+            if len(idx) == 0:
+                return
         pos = self.grid.centers(idx).astype(np.float32)
         wxyz = np.broadcast_to(np.array([1, 0, 0, 0], np.float32), (len(idx), 4))
         v, f = self._cube
@@ -297,7 +355,7 @@ class MapViewer:
             f,
             wxyz,
             pos,
-            batched_colors=self._colors(flat, q),
+            batched_colors=colors,
             lod="off",
             material="toon5",
             flat_shading=True,
@@ -305,12 +363,15 @@ class MapViewer:
             receive_shadow=False,
         )
 
-    def apply_diff(self, set_idx: np.ndarray, set_val: np.ndarray, clear_idx: np.ndarray) -> int:
-        """Apply a map change (flat indices, uint8 values); re-send the changed blocks; their count."""
+    def apply_diff(self, set_idx: np.ndarray, set_val: np.ndarray, clear_idx: np.ndarray,
+                   touched_idx: np.ndarray | None = None) -> int:
+        """Apply a map change (flat indices, uint8 values); re-send the changed blocks; their count.
+        ``touched_idx``: more voxels whose look changed (their confidence)."""
         with self._lock:
             self._q[clear_idx] = 0
             self._q[set_idx] = set_val
-            changed = np.concatenate([set_idx, clear_idx])
+            extra = [] if touched_idx is None else [np.asarray(touched_idx, set_idx.dtype)]
+            changed = np.concatenate([set_idx, clear_idx, *extra])
             if changed.size == 0:
                 return 0
             ijk = np.stack(np.unravel_index(changed, self.grid.shape), 1) // BLOCK
@@ -320,9 +381,37 @@ class MapViewer:
             self.map_updates += 1
             return len(keys)
 
-    def set_values(self, values: np.ndarray) -> int:
-        """Show the map ``values`` ((nx, ny, nz) float, NaN unknown): only changed blocks are sent."""
-        return self.apply_diff(*self._diff.update(values))
+    def set_values(self, values: np.ndarray, confidence: np.ndarray | None = None) -> int:
+        """Show the map ``values`` ((nx, ny, nz) float, NaN unknown): only changed blocks are sent.
+
+        ``confidence``: the map's layer ((nx, ny, nz) uint8, ``MinMaxMapper.confidence()``);
+        from the first one on, unconfirmed occupied voxels are drawn as the GUI's "unconfirmed
+        occupied voxels" choice says (pale by default), confirmed ones in full colour.
+        """
+        with self._lock:
+            touched = None
+            if confidence is not None:
+                conf = np.asarray(confidence)
+                if conf.shape != tuple(self.grid.shape):
+                    raise ValueError(f"Expected a confidence layer of shape {tuple(self.grid.shape)}, but "
+                                     f"got {conf.shape}")
+                new = conf.ravel() == 3
+                if self._conf is None:
+                    self._add_confidence_gui()
+                    touched = np.flatnonzero(self._q)  # every block shown so far changes look
+                else:
+                    touched = np.flatnonzero(new != self._conf)
+                self._conf = new
+            return self.apply_diff(*self._diff.update(values), touched)
+
+    def _add_confidence_gui(self) -> None:
+        gui = self.server.gui
+        gui.add_markdown("**confidence**: full colour = confirmed (a view resolved the voxel in "
+                         "elevation); pale = unconfirmed (only consistent with the pings: the "
+                         "elevation stretch)")
+        self._unconfirmed = gui.add_dropdown("unconfirmed occupied voxels", UNCONFIRMED_MODES,
+                                             initial_value="pale")
+        self._unconfirmed.on_update(lambda _e: self._recolour())
 
     def reset_map(self) -> None:
         with self._lock:
@@ -333,8 +422,10 @@ class MapViewer:
             self._diff = MapDiff(self.threshold)
 
     def _recolour(self) -> None:
-        with self._lock:
-            for key in list(self._blocks):
+        with self._lock:  # every block with an occupied voxel (a hidden one may have no handle)
+            ijk = np.stack(np.unravel_index(np.flatnonzero(self._q), self.grid.shape), 1) // BLOCK
+            keys = {tuple(int(x) for x in r) for r in np.unique(ijk, axis=0)} | set(self._blocks)
+            for key in keys:
                 self._send_block(key)
 
     # ------------------------------------------------------------------ per ping
@@ -391,17 +482,18 @@ class MapViewer:
             force or (k - self._last_map_ping >= self.map_every and now >= self._next_map)
         ):
             self._last_map_ping = k
-            self.set_values(mapper.values())
+            self.set_values(mapper.values(), mapper_confidence(mapper))
             t = time.perf_counter()
             self.seconds_viewing += t - now
             self._next_map = t + max(self.map_interval_s - (t - now), (t - now) / self.budget)
 
     def finish(self, mapper: Any = None, values: np.ndarray | None = None) -> None:
         """Show the final map and last ping state."""
+        conf = None
         if values is None and mapper is not None:
-            values = mapper.values()
+            values, conf = mapper.values(), mapper_confidence(mapper)
         if values is not None:
-            self.set_values(values)
+            self.set_values(values, conf)
         self.frame_content()
         n_occ = int(np.count_nonzero(self._q))
         self._status.content = (
