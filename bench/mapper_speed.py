@@ -132,7 +132,9 @@ def machine() -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--voxel", type=float, nargs="+", default=[0.05, 0.03, 0.01])
+    ap.add_argument("--voxel-size", "--voxel", dest="voxel", type=float, nargs="+",
+                    default=[0.05, 0.03, 0.01],
+                    help="voxel edges in metres (default 0.05 0.03 0.01)")
     ap.add_argument("--backend", nargs="+", default=None, help="default: every available backend")
     ap.add_argument("--method", nargs="+", default=["gather", "template"])
     ap.add_argument("--images", type=int, default=None, help="pings per row (default scales with voxel size)")

@@ -314,7 +314,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames-from", type=Path, default=None, help="cached frames (.npz) of this module")
     ap.add_argument("--gpu", action="store_true", help="GPU backends (warp-cuda, opencl-gpu) at 3, 1, 0.5 cm")
     ap.add_argument("--backend", nargs="+", default=None)
-    ap.add_argument("--voxel", type=float, nargs="+", default=None)
+    ap.add_argument("--voxel-size", "--voxel", dest="voxel", type=float, nargs="+", default=None,
+                    help="voxel edges in metres (default: each target's)")
     ap.add_argument("--rule", nargs="+", default=["visible", "plain"])
     ap.add_argument("--batch", type=int, default=64, help="frames per integrate_batch call (GPUs)")
     ap.add_argument("--latency-pings", type=int, default=None)

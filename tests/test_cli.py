@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -465,3 +466,5 @@ def test_bench_scripts_help_is_plain_words(name, capsys) -> None:
     out = capsys.readouterr().out
     assert e.value.code == 0 and out.startswith("usage:"), out[:200]
     assert "`" not in out, f"python -m bench.{name} --help: {[ln for ln in out.splitlines() if '`' in ln]}"
+    if re.search(r"--voxel\b(?!-)", out):  # one spelling of the voxel edge, as in gpumap's commands
+        assert "--voxel-size" in out, f"python -m bench.{name}: the voxel edge is --voxel-size"
