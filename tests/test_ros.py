@@ -774,3 +774,40 @@ def test_callbacks_never_wait_for_the_mapper():
         assert live.integrated == 0 and live.stats()["queue"] == 4
     live.stop(drain=True)
     assert live.integrated == 4
+
+
+def test_marker_blocks_carry_the_confidence_layer():
+    """Flags aligned with each block's centres (brute force); a block whose flags alone changed is
+    re-sent; unconfirmed cubes are drawn pale (the live view's PALE_MIX), confirmed ones as before."""
+    from gpumap.ros.convert import MarkerBlocks
+    from gpumap.viewer.live import PALE_MIX
+
+    grid = gpumap.GridSpec((0, 0, 0), (3.7, 2.1, 1.0), 0.1)
+    rng = np.random.default_rng(5)
+    v = rng.random(grid.shape).astype(np.float32)
+    occ = v >= 0.9
+    conf = occ & (rng.random(grid.shape) < 0.5)
+    blocks = MarkerBlocks(grid, 0.9, block=8)
+    first = blocks.update(v, confirmed=conf)
+    want = {tuple(np.round(c, 9)): bool(f)
+            for c, f in zip(grid.centers(np.argwhere(occ)), conf[occ], strict=True)}
+    got = {tuple(np.round(c, 9)): bool(f)
+           for b, pts in first for c, f in zip(pts, blocks.confirmed[b], strict=True)}
+    assert got == want
+    assert blocks.update(v, confirmed=conf) == []
+    conf2 = conf.copy()
+    i, j, k = np.argwhere(occ)[0]
+    conf2[i, j, k] = not conf2[i, j, k]  # only a flag changes
+    changed = blocks.update(v, confirmed=conf2)
+    assert [b for b, _ in changed] == [np.ravel_multi_index((i // 8, j // 8, k // 8), (5, 3, 2))]
+    pytest.importorskip("rclpy")
+    b, pts = changed[0]
+    flags = blocks.confirmed[b]
+    assert flags.any() and not flags.all()
+    mk = blocks.msg(changed, 0, "map").markers[0]
+    plain = MarkerBlocks(grid, 0.9, block=8)
+    plain.update(v)
+    ref = plain.msg([(b, pts)], 0, "map").markers[0]
+    for c, r, f in zip(mk.colors, ref.colors, flags, strict=True):
+        rgb, rgb0 = np.array([c.r, c.g, c.b]), np.array([r.r, r.g, r.b])
+        np.testing.assert_allclose(rgb, rgb0 if f else (1 - PALE_MIX) * rgb0 + PALE_MIX, rtol=1e-6)

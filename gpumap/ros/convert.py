@@ -364,7 +364,9 @@ class MarkerBlocks:
 
     :meth:`update` returns only the blocks whose occupied set changed since the last call
     (an emptied block comes back with no points: delete its marker), as the live view
-    re-sends only changed blocks.
+    re-sends only changed blocks. Given the confidence layer (``confirmed``), a block whose
+    voxels' confirmed flags changed is re-sent too, and :meth:`msg` draws its unconfirmed
+    voxels pale (mixed with :data:`gpumap.viewer.live.PALE_MIX` white, as the live view does).
     """
 
     def __init__(self, grid: GridSpec, threshold: float, block: int = 16) -> None:
@@ -377,19 +379,34 @@ class MarkerBlocks:
                               np.arange(nz) // self.block, indexing="ij")
         self._block_of = np.ravel_multi_index((i, j, k), self._nb).ravel().astype(np.int32)
         self._prev = np.zeros(grid.n_voxels, dtype=bool)
+        self._prev_conf = np.zeros(grid.n_voxels, dtype=bool)
+        #: per block of the last :meth:`update`, the confirmed flag of each returned centre
+        #: (absent without a confidence layer)
+        self.confirmed: dict[int, np.ndarray] = {}
 
     def reset(self) -> None:
         self._prev[:] = False
+        self._prev_conf[:] = False
+        self.confirmed = {}
 
-    def update(self, values: np.ndarray, full: bool = False) -> list[tuple[int, np.ndarray]]:
-        """``[(block_id, centres (M, 3) float64)]`` for every changed block (all with ``full``)."""
+    def update(self, values: np.ndarray, full: bool = False,
+               confirmed: np.ndarray | None = None) -> list[tuple[int, np.ndarray]]:
+        """``[(block_id, centres (M, 3) float64)]`` for every changed block (all with ``full``).
+
+        ``confirmed``: ``MinMaxMapper.confidence() == 3``, any shape of ``values``' size, or None
+        (no layer); with it, :attr:`confirmed` holds each returned block's flags."""
         v = values.ravel()
         occ = np.isfinite(v) & (v >= self.threshold)
+        conf = np.zeros_like(occ) if confirmed is None else np.asarray(confirmed, bool).ravel()
+        if conf.shape != occ.shape:
+            raise ValueError(f"Expected confirmed flags for {occ.size} voxels, but got {conf.size}")
+        conf = conf & occ
         if full:
             blocks = np.unique(np.concatenate([self._block_of[occ], self._block_of[self._prev]]))
         else:
-            blocks = np.unique(self._block_of[occ != self._prev])
-        self._prev = occ
+            blocks = np.unique(self._block_of[(occ != self._prev) | (conf != self._prev_conf)])
+        self._prev, self._prev_conf = occ, conf
+        self.confirmed = {}
         if blocks.size == 0:
             return []
         idx = np.flatnonzero(occ)
@@ -402,15 +419,20 @@ class MarkerBlocks:
         for b, a, c in zip(blocks.tolist(), lo.tolist(), hi.tolist(), strict=True):
             ijk = np.stack(np.unravel_index(idx[a:c], self.grid.shape), axis=1)
             out.append((b, self.grid.centers(ijk)))
+            if confirmed is not None:
+                self.confirmed[b] = conf[idx[a:c]]
         return out
 
     def msg(self, changed: list[tuple[int, np.ndarray]], t_ns: int, frame_id: str, ns: str = "gpumap"):
         """A ``visualization_msgs/MarkerArray``: a CUBE_LIST per changed block (DELETE if empty),
-        coloured by height over the grid's z range."""
+        coloured by height over the grid's z range; with the confidence layer given to
+        :meth:`update`, unconfirmed voxels pale."""
         import matplotlib
         from geometry_msgs.msg import Point
         from std_msgs.msg import ColorRGBA
         from visualization_msgs.msg import Marker, MarkerArray
+
+        from gpumap.viewer.live import PALE_MIX
 
         cmap = matplotlib.colormaps["viridis"]
         z0, z1 = self.grid.min_corner_m[2], self.grid.max_corner_m[2]
@@ -433,6 +455,9 @@ class MarkerBlocks:
             mk.scale.x = mk.scale.y = mk.scale.z = s
             mk.color.a = 1.0
             rgba = cmap(np.clip((pts[:, 2] - z0) / max(z1 - z0, 1e-9), 0, 1))
+            flags = self.confirmed.get(b)
+            if flags is not None:
+                rgba[~flags, :3] = (1 - PALE_MIX) * rgba[~flags, :3] + PALE_MIX
             mk.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in pts]
             mk.colors = [ColorRGBA(r=float(c[0]), g=float(c[1]), b=float(c[2]), a=1.0) for c in rgba]
             arr.markers.append(mk)

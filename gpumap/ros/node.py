@@ -229,7 +229,7 @@ def make_node(node_name: str = NODE_NAME, context=None):
             self.blocks = MarkerBlocks(self.grid, self.threshold)
             self._marker_subs = 0
             self._markers_at = -math.inf
-            self._markers_stale: tuple[int, np.ndarray] | None = None
+            self._markers_stale: tuple[int, np.ndarray, np.ndarray | None] | None = None
             self.markers_period_s = float(p["markers_period_s"])
             self._publish_lock = threading.Lock()
 
@@ -313,7 +313,7 @@ def make_node(node_name: str = NODE_NAME, context=None):
                 subs = self.pub_markers.get_subscription_count()
                 full = subs > self._marker_subs
                 now = time.monotonic()
-                self._markers_stale = (newest_ns, values)
+                self._markers_stale = (newest_ns, values, conf)
                 if subs and (full or now - self._markers_at >= self.markers_period_s):
                     self._publish_markers(subs, full)
                 cells = project_obstacles(values, self.grid, self.threshold, self.band)
@@ -323,10 +323,10 @@ def make_node(node_name: str = NODE_NAME, context=None):
         def _publish_markers(self, subs: int, full: bool) -> None:
             # one Point per voxel in Python: the costly output, so at most every markers_period_s
             # (and once more, from the diagnostics timer, when the map has stopped changing)
-            newest_ns, values = self._markers_stale
+            newest_ns, values, conf = self._markers_stale
             self._markers_stale = None
             self._marker_subs, self._markers_at = subs, time.monotonic()
-            changed = self.blocks.update(values, full=full)
+            changed = self.blocks.update(values, full=full, confirmed=None if conf is None else conf == 3)
             if changed:
                 self.pub_markers.publish(self.blocks.msg(changed, newest_ns, self.world_frame))
 
