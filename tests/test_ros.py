@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import DATA, needs_data
+from conftest import DATA, needs_data, pose, rot_z
 
 import gpumap
 from gpumap.ros.live import LiveMapper, PoseBuffer
@@ -43,35 +43,23 @@ needs_ros = pytest.mark.skipif(not HAVE_ROS, reason=WHY)
 TANK = None if DATA is None else DATA / "oasis_tank"
 
 
-def _rot_z(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-
-
-def _T(R: np.ndarray, p) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = p
-    return T
-
-
 # ------------------------------------------------------------------------ pose buffer
 def test_pose_buffer_interpolates_on_se3_and_reports_why_not():
     buf = PoseBuffer(max_poses=4, max_gap_s=0.5)
     # a pure rotation about z at a constant rate: at 30 % of the way the angle is 30 % of it
-    assert buf.add(0, _T(np.eye(3), [0, 0, 0]))
-    assert buf.add(400_000_000, _T(_rot_z(0.8), [0, 0, 0]))
+    assert buf.add(0, pose(np.eye(3), [0, 0, 0]))
+    assert buf.add(400_000_000, pose(rot_z(0.8), [0, 0, 0]))
     st, T = buf.lookup(120_000_000)
     assert st == "ok"
-    np.testing.assert_allclose(T[:3, :3], _rot_z(0.24), atol=1e-12)
+    np.testing.assert_allclose(T[:3, :3], rot_z(0.24), atol=1e-12)
     np.testing.assert_allclose(T[:3, 3], 0, atol=1e-12)
     # a pure translation: linear in time
-    assert buf.add(800_000_000, _T(_rot_z(0.8), [0.4, -0.2, 0.1]))
+    assert buf.add(800_000_000, pose(rot_z(0.8), [0.4, -0.2, 0.1]))
     st, T = buf.lookup(700_000_000)
     np.testing.assert_allclose(T[:3, 3], [0.3, -0.15, 0.075], atol=1e-12)
-    np.testing.assert_allclose(T[:3, :3], _rot_z(0.8), atol=1e-12)
+    np.testing.assert_allclose(T[:3, :3], rot_z(0.8), atol=1e-12)
     # a stamp that is a pose's own: that pose, bit for bit
-    T8 = _T(_rot_z(0.8), [0.4, -0.2, 0.1])
+    T8 = pose(rot_z(0.8), [0.4, -0.2, 0.1])
     assert np.array_equal(buf.lookup(800_000_000)[1], T8)
     assert buf.lookup(900_000_000) == ("wait", None)  # newer than every pose
     assert not buf.add(800_000_000, T8)  # not after the newest: refused
@@ -91,7 +79,7 @@ SMALL_GRID = gpumap.GridSpec((-0.2, -1.2, -0.5), (1.6, 1.2, 0.5), 0.1)
 def _small_pings(n: int, seed: int = 0):
     rng = np.random.default_rng(seed)
     imgs = (rng.random((n, *SMALL_SPEC.image_shape)) ** 4 * 255).astype(np.uint8)
-    Ts = np.stack([_T(_rot_z(0.1 * k - 0.3), [0.02 * k, 0, 0.05]) for k in range(n)])
+    Ts = np.stack([pose(rot_z(0.1 * k - 0.3), [0.02 * k, 0, 0.05]) for k in range(n)])
     return imgs, Ts
 
 
@@ -181,7 +169,7 @@ def test_pose_messages_round_trip_and_bad_ones_say_why():
     from gpumap.ros.convert import BadMessage, pose_msg_fields, transform_from_pose
 
     for k, R in enumerate(Rotation.random(50, random_state=3).as_matrix()):
-        T = _T(R, [k, -1.5, 0.25])
+        T = pose(R, [k, -1.5, 0.25])
         (x, y, z), q = pose_msg_fields(T)
         np.testing.assert_allclose(np.abs(q), np.abs(Rotation.from_matrix(R).as_quat()), atol=1e-12)
         back = transform_from_pose(Point(x=x, y=y, z=z), Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
@@ -501,14 +489,7 @@ def test_real_tank_over_dds_equals_the_offline_map(ros_session, tmp_path):
     node = ros_session("node", "ros", "--params-file", str(params), "--ros-args", *NODE_TEST_ARGS,
                        "-p", f"save_path:={saved}", "-p", "save_on_exit:=true",
                        "-p", "queue_size:=200")  # the numpy backend maps ~30/s here: queue, drop nothing
-    probe = ros_session.probe()
-    probe.spin_until(lambda: probe.diag is not None, 60, "the node's first diagnostics")
-    player = ros_session("play", "ros-play", str(TANK), "--hz", "25", "--no-progress")
-    player.wait(120)
-    assert player.returncode == 0
-    frames = list(play.frames())
-    probe.spin_until(lambda: probe.count("pings_integrated") == len(frames) and probe.count("queue") == 0,
-                     60, "every ping mapped")
+    probe, frames = _play_all(ros_session, play, TANK, 25, 120)
     probe.spin_for(0.5)  # the last cloud
     assert not any(k.startswith(("dropped", "skipped", "rejected")) for k in probe.diag), probe.diag
     # the recorded poses, not the wire's: the quaternion round trip moves them by ~1e-9 m, and the
@@ -520,6 +501,20 @@ def test_real_tank_over_dds_equals_the_offline_map(ros_session, tmp_path):
     assert _stop(node) == 0  # Ctrl-C: clean exit, map saved on exit
     back = gpumap.MinMaxMapper.load(saved, backend="numpy")
     assert np.array_equal(back.raw_values(), ref.raw_values())
+
+
+def _play_all(ros_session, play, recording: Path, hz: int, timeout_s: float):
+    """Wait for the node's first diagnostics, play ``recording`` at ``hz`` with ros-play, and wait
+    until the node has mapped every one of ``play``'s frames; ``(probe, frames)``."""
+    probe = ros_session.probe()
+    probe.spin_until(lambda: probe.diag is not None, 60, "the node's first diagnostics")
+    player = ros_session("play", "ros-play", str(recording), "--hz", str(hz), "--no-progress")
+    player.wait(timeout_s)
+    assert player.returncode == 0
+    frames = list(play.frames())
+    probe.spin_until(lambda: probe.count("pings_integrated") == len(frames) and probe.count("queue") == 0,
+                     60, "every ping mapped")
+    return probe, frames
 
 
 @pytest.fixture(scope="module")
@@ -589,14 +584,7 @@ def test_confidence_on_the_wire_is_the_offline_layer(ros_session, tmp_path, sim_
                           world_frame="map", pose_type="pose_stamped")
     ros_session("node", "ros", "--params-file", str(params), "--ros-args", *NODE_TEST_ARGS,
                 "-p", "confidence:=true")
-    probe = ros_session.probe()
-    probe.spin_until(lambda: probe.diag is not None, 60, "the node's first diagnostics")
-    player = ros_session("play", "ros-play", str(sim_recording), "--hz", "20", "--no-progress")
-    player.wait(60)
-    assert player.returncode == 0
-    frames = list(play.frames())
-    probe.spin_until(lambda: probe.count("pings_integrated") == len(frames) and probe.count("queue") == 0,
-                     60, "every ping mapped")
+    probe, frames = _play_all(ros_session, play, sim_recording, 20, 60)
     probe.spin_for(0.4)
     ref = _offline(play, play.grid, frames, confidence=True)
     msg = probe.clouds[-1]

@@ -18,7 +18,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["FASTDDS_PROFILE", "ROS_EXTRA_HINT", "require_ros", "use_gpumap_fastdds_profile"]
+__all__ = ["FASTDDS_PROFILE", "ROS_EXTRA_HINT", "require_ros", "start_ros_cli", "use_gpumap_fastdds_profile"]
 
 #: Fast DDS profile for sonar-sized messages (a 32 MiB shared-memory segment; see the file).
 FASTDDS_PROFILE = Path(__file__).with_name("fastdds_shm.xml")
@@ -54,3 +54,18 @@ def use_gpumap_fastdds_profile() -> str | None:
         return None
     os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] = str(FASTDDS_PROFILE)
     return str(FASTDDS_PROFILE)
+
+
+def start_ros_cli(prog: str) -> bool:
+    """For a ROS command line (``gpumap ros``, ``gpumap ros-play``): check the ROS wheels and point
+    Fast DDS at gpumap's profile. False, after a one-line error on stderr, when the wheels are
+    missing (the command then exits 2)."""
+    import sys
+
+    try:
+        require_ros()
+    except ImportError as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return False
+    use_gpumap_fastdds_profile()
+    return True

@@ -51,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpumap.ros import require_ros, use_gpumap_fastdds_profile
+from gpumap.ros import require_ros, start_ros_cli
 from gpumap.ros.convert import (
     BadMessage,
     MarkerBlocks,
@@ -427,17 +427,13 @@ def main(argv: list[str] | None = None) -> int:
         for name, (default, desc) in PARAMETERS.items():
             print(f"{name} (default {default!r}): {desc}")
         return 0
-    try:
-        require_ros()
-    except ImportError as e:
-        print(f"gpumap ros: error: {e}", file=sys.stderr)
+    if not start_ros_cli("gpumap ros"):
         return 2
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
     if a.params_file is not None:
         ros_args = (ros_args or ["--ros-args"]) + ["--params-file", str(a.params_file)]
-    use_gpumap_fastdds_profile()
     rclpy.init(args=["gpumap_ros", *ros_args])
     node = None
     try:

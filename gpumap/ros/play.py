@@ -258,14 +258,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {out} (start the node with: gpumap ros --params-file {out})")
         return 0
 
-    from gpumap.ros import require_ros, use_gpumap_fastdds_profile
+    from gpumap.ros import start_ros_cli
 
-    try:
-        require_ros()
-    except ImportError as e:
-        print(f"gpumap ros-play: error: {e}", file=sys.stderr)
+    if not start_ros_cli("gpumap ros-play"):
         return 2
-    use_gpumap_fastdds_profile()
     import rclpy
     from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Odometry
