@@ -40,28 +40,39 @@ PINGS = {"survey": 45}
 N_CANDIDATES = 10_000
 
 
-def quality(scene_name: str, n_plan: int, backend: str, out_dir: Path, quiet: bool,
-            unknown_weight: float) -> dict:
-    from gpumap.sim.plan_demo import run_plan
+def _simulate(scene_name: str):
+    """The scene and its trajectory pings (every one, or ``PINGS`` evenly spaced)."""
     from gpumap.sim.scenes import make_scene
     from gpumap.sim.sonar import SonarSimulator
-    from gpumap.sim.truth import occupancy
 
     scene = make_scene(scene_name, voxel_size_m=VOXEL_M[scene_name], seed=0)
-    truth = occupancy(scene, seed=0)
     sel = np.arange(len(scene.T_W_S))
     if PINGS.get(scene_name):
         sel = np.unique(np.linspace(0, len(sel) - 1, PINGS[scene_name]).round().astype(int))
-    T_traj = scene.T_W_S[sel]
     with SonarSimulator(scene, seed=0, **scene.sonar_params) as sim:
         pings = [sim.ping(scene.T_W_S[k], int(k)) for k in sel]
+    return scene, scene.T_W_S[sel], pings
+
+
+def _save_speed_map(scene, pings, backend: str) -> None:
+    """The tank map (with its confidence layer) and poses the speed rows score candidates on."""
+    m = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, confidence=True)
+    m.integrate_batch(np.stack([p.image for p in pings]), scene.T_W_S)
+    TMP.mkdir(parents=True, exist_ok=True)
+    m.save(MAP)
+    np.save(TMP / "nbv_tank_poses.npy", scene.T_W_S)
+
+
+def quality(scene_name: str, n_plan: int, backend: str, out_dir: Path, quiet: bool,
+            unknown_weight: float) -> dict:
+    from gpumap.sim.plan_demo import run_plan
+    from gpumap.sim.truth import occupancy
+
+    scene, T_traj, pings = _simulate(scene_name)
+    truth = occupancy(scene, seed=0)
     out_dir.mkdir(parents=True, exist_ok=True)
-    if scene_name == "tank":  # the map the speed rows score candidates on
-        m = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, confidence=True)
-        m.integrate_batch(np.stack([p.image for p in pings]), scene.T_W_S)
-        TMP.mkdir(parents=True, exist_ok=True)
-        m.save(MAP)
-        np.save(TMP / "nbv_tank_poses.npy", scene.T_W_S)
+    if scene_name == "tank":
+        _save_speed_map(scene, pings, backend)
     res = run_plan(scene, pings, T_traj, truth, n_plan, backend, 0.1, 0, quiet, out_dir, unknown_weight)
     res["voxel_size_m"] = VOXEL_M[scene_name]
     res["trajectory_pings"] = len(pings)
@@ -71,6 +82,9 @@ def quality(scene_name: str, n_plan: int, backend: str, out_dir: Path, quiet: bo
 def speed(repeat: int) -> dict:
     from gpumap.nbv import _fov, candidate_poses, gain_points, poses_to_rows, view_gain_reference
 
+    if not (MAP.exists() and (TMP / "nbv_tank_poses.npy").exists()):  # --speed-only on a fresh checkout
+        scene, _, pings = _simulate("tank")
+        _save_speed_map(scene, pings, "auto")
     poses = np.load(TMP / "nbv_tank_poses.npy")
     per = -(-N_CANDIDATES // len(poses))
     # candidate_poses' default offsets are the demo's wrist limits (gpumap.sim.plan_demo.WRIST_LIMITS)
