@@ -685,12 +685,16 @@ def usable_opencl_device(kind: str):
             f"opencl{'' if kind == 'any' else '-' + kind} needs an OpenCL "
             f"{'device' if kind == 'any' else kind.upper() + ' device'}, and pyopencl finds none"
         )
+    cl = _opencl()
     reasons = []
     for d in devs:
         try:
             _opencl_context(d)
         except BackendUnavailableError as e:
             reasons.append(str(e))
+            continue
+        except cl.Error as e:  # no context on this device at all
+            reasons.append(f"OpenCL cannot open {d.name.strip()}: {' '.join(str(e).split())[:300]}")
             continue
         return d
     raise BackendUnavailableError("; ".join(reasons))

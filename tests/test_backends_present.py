@@ -57,6 +57,22 @@ def test_opencl_takes_the_first_device_that_builds(monkeypatch):
 
     monkeypatch.setattr(backends, "_opencl_context", fake_context)
     assert backends.usable_opencl_device("cpu") is good
+    cl = backends._opencl()
+
+    class _Dev:
+        name = "no-context "
+
+    def no_context(d):
+        if isinstance(d, _Dev):
+            raise cl.Error("clCreateContext failed: DEVICE_NOT_AVAILABLE")
+        return fake_context(d)
+
+    monkeypatch.setattr(backends, "_opencl_context", no_context)
+    monkeypatch.setattr(backends, "opencl_devices", lambda kind: [_Dev(), good])
+    assert backends.usable_opencl_device("cpu") is good
+    monkeypatch.setattr(backends, "opencl_devices", lambda kind: [_Dev()])
+    with pytest.raises(BackendUnavailableError, match="cannot open no-context: clCreateContext"):
+        backends.usable_opencl_device("cpu")
     monkeypatch.setattr(backends, "opencl_devices", lambda kind: [broken, broken])
     with pytest.raises(BackendUnavailableError, match="broken; OpenCL cannot build"):
         backends.usable_opencl_device("cpu")
