@@ -10,8 +10,7 @@ The public API::
 """
 
 from gpumap.errors import BackendUnavailableError
-from gpumap.sparse import MapMemoryError, SparseMinMaxMapper, SparseSpec
-from gpumap.spec import GridSpec, SonarSpec
+from gpumap.spec import GridSpec, SonarSpec, SparseSpec
 
 __all__ = ["BackendUnavailableError", "GridSpec", "MapMemoryError", "MinMaxMapper", "SonarSpec",
            "SparseMinMaxMapper", "SparseSpec", "available_backends", "load_map", "merge_maps"]
@@ -19,10 +18,14 @@ __version__ = "0.1.0"
 
 
 def __getattr__(name: str):  # lazy: importing gpumap must not import warp or pyopencl
-    if name in ("MinMaxMapper", "available_backends"):
+    if name in ("MinMaxMapper", "available_backends", "MapMemoryError"):
         from gpumap import mapper
 
         return getattr(mapper, name)
+    if name == "SparseMinMaxMapper":
+        from gpumap import sparse
+
+        return sparse.SparseMinMaxMapper
     if name in ("merge_maps", "load_map"):
         from gpumap import merge
 

@@ -1,6 +1,7 @@
-"""Compute backends: where grid values live and how a ping is applied to them.
+"""Compute backends: where map values live and how a ping is applied to them.
 
-Each backend holds one float32 grid (``+inf`` = unknown) and applies
+Each backend holds one map as a pool of blocks of ``B^3`` voxels and a coarse index over
+them (:class:`Backend`: float32 values, ``+inf`` = unknown) and applies
 ``integrate(params, image, method)`` to it. ``numpy`` is the reference
 (:mod:`gpumap.reference`); ``warp-cpu``/``warp-cuda`` and ``opencl`` run the kernels in
 ``gpumap.kernels`` (``minmax.py`` and its twin ``minmax.cl``). Everything a ping needs on
@@ -80,50 +81,102 @@ def _copy_rows(dst: np.ndarray, src: np.ndarray) -> None:
 
 
 class GridTooLargeError(ValueError):
-    """The grid does not fit in the memory a backend can allocate (the message says how much)."""
+    """The map does not fit in the memory a backend can allocate (the message says how much)."""
 
 
 class Backend:
-    """Owns the grid (and, for the visible rule, its evidence) and the per-ping device buffers
-    of one mapper."""
+    """Owns one mapper's map storage and the per-ping device buffers.
+
+    The map lives in a *pool* of ``cap`` blocks of ``B^3`` voxels (slot ``s`` holds voxels
+    ``[s B^3, (s + 1) B^3)``, local order ``(i, j, k)``, ``k`` fastest): ``grid`` float32
+    (the min over every view, ``+inf`` never observed), and for the visible rule ``bright``
+    float32 and ``count`` uint8, plus a ``seen`` byte per slot. A dense coarse *index* (int32
+    per block of a box, -1 none) maps a block to its slot; the kernels address every voxel
+    through it (:func:`gpumap.kernels.minmax.gather_column`). The host (the mapper) decides
+    which blocks exist: all of a bounded box up front, or those a ping can reach.
+    """
 
     name: str
     device: str
 
-    def __init__(
-        self, spec: SonarSpec, n_voxels: int, template_S: np.ndarray | None, use_table=None, *, visible=False
-    ) -> None:
+    def _setup_pool(self, visible: bool, B: int) -> None:
+        self.visible, self.B, self.B3 = visible, B, B**3
+        self.cap = 0
+        self.blk_lo = np.zeros(3, np.int32)
+        self.blk_n = np.zeros(3, np.int32)
+
+    def _block_params(self, params: np.ndarray) -> None:
+        params["blk_lo"] = self.blk_lo
+        params["blk_n"] = self.blk_n
+        params["blk"] = self.B
+
+    def grow(self, cap: int) -> None:
+        """Make room for ``cap`` slots (new ones never observed), keeping the first ``self.cap``."""
+        raise NotImplementedError
+
+    def set_index(self, index: np.ndarray, lo_voxel: np.ndarray) -> None:
+        """Replace the coarse index with ``index`` ((n0, n1, n2) int32 slots, -1 none) whose first
+        block starts at voxel ``lo_voxel`` ((3,) int)."""
+        self.blk_lo = np.asarray(lo_voxel, np.int32).copy()
+        self.blk_n = np.asarray(index.shape, np.int32)
+        self._upload_index(np.ascontiguousarray(index, np.int32).ravel())
+
+    def _upload_index(self, flat: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def set_blocks(self, slots: np.ndarray, lins: np.ndarray) -> None:
+        """``index[lins] = slots`` ((n,) int32 each); each slot >= 0 becomes a never-observed
+        block (seen 0); slot -1 frees the entry."""
         raise NotImplementedError
 
     def integrate(self, params: np.ndarray, image: np.ndarray, method: str, n_threads: int) -> None:
-        """Apply one ping. ``image`` is (n_bins, n_beams) float32 in [0, 1]."""
+        """Apply one ping. ``image`` is (n_bins, n_beams) uint8 or float32 in [0, 1]."""
         raise NotImplementedError
 
     def integrate_batch(
         self, params: np.ndarray, images: np.ndarray, method: str, n_threads: np.ndarray
     ) -> None:
         """Apply B pings: ``params`` (B,) PING_DTYPE, ``images`` (B, n_bins, n_beams) uint8 or
-        float32, ``n_threads`` (B,) ints. The same grid as B calls of :meth:`integrate` (this
+        float32, ``n_threads`` (B,) ints. The same map as B calls of :meth:`integrate` (this
         default makes them; GPU backends fold the whole batch in a few launches)."""
         for b in range(params.shape[0]):
             self.integrate(params[b, ...], images[b], method, int(n_threads[b]))
 
-    def read(self) -> np.ndarray:
-        """(n_voxels,) float32 copy of the grid, +inf = unknown."""
+    def read(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """Copies of the pool: ``grid`` (cap B^3,) float32, ``bright`` and ``count`` (visible
+        rule; None for the plain rule)."""
         raise NotImplementedError
 
-    def write(self, values: np.ndarray) -> None:
-        """Replace the grid with (n_voxels,) float32 ``values``."""
+    def write(self, grid: np.ndarray, bright: np.ndarray | None, count: np.ndarray | None) -> None:
+        """Replace the whole pool (arrays as :meth:`read` gives them)."""
         raise NotImplementedError
 
-    def read_evidence(self) -> tuple[np.ndarray, np.ndarray]:
-        """Copies of the visible rule's ``bright`` ((n_voxels,) float32, +inf none) and
-        ``count`` ((n_voxels,) uint8)."""
+    def write_blocks(self, slots: np.ndarray, grid, bright, count) -> None:
+        """Blocks ``slots`` take these values ((n, B^3) each) and are marked seen."""
+        g, b, c = self.read()
+        addr = (np.asarray(slots, np.int64)[:, None] * self.B3 + np.arange(self.B3)).ravel()
+        g[addr] = np.asarray(grid).ravel()
+        if self.visible:
+            b[addr] = np.asarray(bright).ravel()
+            c[addr] = np.asarray(count).ravel()
+        seen = self.read_seen()
+        seen[slots] = 1
+        self.write(g, b, c)
+        self._write_seen(seen)
+
+    def read_seen(self) -> np.ndarray:
+        """(cap,) uint8 copy: 1 where a kernel has observed a voxel of the slot's block."""
         raise NotImplementedError
 
-    def write_evidence(self, bright: np.ndarray, count: np.ndarray) -> None:
-        """Replace the visible rule's evidence."""
+    def _write_seen(self, seen: np.ndarray) -> None:
         raise NotImplementedError
+
+    def read_err(self) -> int:
+        """1 if a kernel met an observed voxel without a block (a bug), else 0."""
+        raise NotImplementedError
+
+    def synchronize(self) -> None:
+        pass
 
 
 def _check_rule(params: np.ndarray, visible: bool) -> None:
@@ -133,44 +186,96 @@ def _check_rule(params: np.ndarray, visible: bool) -> None:
         raise ValueError("Expected a backend built with visible=True for rule='visible' parameters")
 
 
-def _evidence_init(n: int) -> tuple[np.ndarray, np.ndarray]:
-    return np.full(n, np.inf, dtype=np.float32), np.zeros(n, dtype=np.uint8)
-
-
 class NumpyBackend(Backend):
+    """The oracle: :mod:`gpumap.reference`'s per-voxel code, addressed through the index as the
+    kernels are."""
+
     name = "numpy"
     device = "cpu (NumPy reference)"
 
-    def __init__(self, spec, n_voxels, template_S, use_table=None, *, visible=False):
+    def __init__(self, spec, template_S, use_table=None, *, visible=False, B=8, cap=0):
+        self._setup_pool(visible, B)
         self.buf = np.empty(spec.image_shape, np.float32)
-        self.grid = np.full(n_voxels, np.inf, dtype=np.float32)
-        self.state = _evidence_init(n_voxels) if visible else None
         self.edges = beam_tan_edges(spec)
         self.template = template_S
+        self.grid = np.empty(0, np.float32)
+        self.bright = np.empty(0, np.float32) if visible else None
+        self.count = np.empty(0, np.uint8) if visible else None
+        self.seen = np.empty(0, np.uint8)
+        self.index = np.empty(0, np.int32)
+        self.err = 0
+        self.grow(cap)
+
+    def grow(self, cap):
+        n = (cap - self.cap) * self.B3
+        self.grid = np.concatenate([self.grid, np.full(n, np.inf, np.float32)])
+        if self.visible:
+            self.bright = np.concatenate([self.bright, np.full(n, np.inf, np.float32)])
+            self.count = np.concatenate([self.count, np.zeros(n, np.uint8)])
+        self.seen = np.concatenate([self.seen, np.zeros(cap - self.cap, np.uint8)])
+        self.cap = cap
+
+    def _upload_index(self, flat):
+        self.index = flat.copy()
+
+    def set_blocks(self, slots, lins):
+        live = slots[slots >= 0].astype(np.int64)
+        a = (live[:, None] * self.B3 + np.arange(self.B3)).ravel()
+        self.grid[a] = np.inf
+        if self.visible:
+            self.bright[a] = np.inf
+            self.count[a] = 0
+        self.seen[live] = 0
+        self.index[lins] = slots
+
+    def _address(self, idx: np.ndarray) -> np.ndarray:
+        """(m, 3) voxel indices -> (m,) pool addresses (-1: no block), marking blocks seen."""
+        B = self.B
+        rel = idx - self.blk_lo.astype(np.int64)
+        b = rel // B
+        inside = np.all((rel >= 0) & (b < self.blk_n), axis=1)
+        slot = np.full(len(idx), -1, np.int64)
+        nb = self.blk_n.astype(np.int64)
+        slot[inside] = self.index[(b[inside, 0] * nb[1] + b[inside, 1]) * nb[2] + b[inside, 2]]
+        ok = slot >= 0
+        w = rel - b * B
+        out = np.where(ok, slot * self.B3 + (w[:, 0] * B + w[:, 1]) * B + w[:, 2], -1)
+        self.seen[slot[ok]] = 1
+        return out
 
     def integrate(self, params, image, method, n_threads):
         from gpumap import reference
 
-        _check_rule(params, self.state is not None)
+        _check_rule(params, self.visible)
         if image.dtype == np.uint8:
             image = np.multiply(image, U8_SCALE, out=self.buf)
+        self._block_params(params)
         if method == "gather":
-            reference.integrate_gather(params, image, self.edges, self.grid, self.state)
+            state = (self.bright, self.count) if self.visible else None
+            if not reference.integrate_gather(params, image, self.edges, self.grid, state, self._address):
+                self.err = 1
         else:
-            reference.integrate_template(params, image, self.edges, self.template, self.grid)
+            reference.integrate_template(params, image, self.edges, self.template, self.grid, self._address)
 
     def read(self):
-        return self.grid.copy()
+        if not self.visible:
+            return self.grid.copy(), None, None
+        return self.grid.copy(), self.bright.copy(), self.count.copy()
 
-    def write(self, values):
-        self.grid[...] = values
+    def write(self, grid, bright, count):
+        self.grid[...] = grid
+        if self.visible:
+            self.bright[...] = bright
+            self.count[...] = count
 
-    def read_evidence(self):
-        return self.state[0].copy(), self.state[1].copy()
+    def read_seen(self):
+        return self.seen.copy()
 
-    def write_evidence(self, bright, count):
-        self.state[0][...] = bright
-        self.state[1][...] = count
+    def _write_seen(self, seen):
+        self.seen[...] = seen
+
+    def read_err(self):
+        return self.err
 
 
 # ----------------------------------------------------------------------------- Warp
@@ -341,24 +446,27 @@ def _union_groups(params: np.ndarray, n_threads: np.ndarray, slack: float = 2.0)
 
 
 class WarpBackend(Backend):
-    def __init__(self, spec, n_voxels, template_S, use_table=None, device="cpu", *, visible=False):
+    def __init__(self, spec, template_S, use_table=None, device="cpu", *, visible=False, B=8, cap=0):
         n_bins, n_beams = spec.image_shape
         wp, minmax = _warp()
         if device == "cuda" and not wp.is_cuda_available():
             why = "" if cuda_driver_loadable() else " (the NVIDIA CUDA driver, libcuda, cannot be loaded)"
             raise BackendUnavailableError(f"warp-cuda needs a CUDA device, and Warp finds none here{why}")
+        self._setup_pool(visible, B)
         self.wp, self.k = wp, minmax
         self.dev = wp.get_device("cuda:0" if device == "cuda" else "cpu")
         self.name = f"warp-{device}"
         self.device = f"{self.dev.alias} ({self.dev.name})"
         self.n_bins, self.n_beams = n_bins, n_beams
         with wp.ScopedDevice(self.dev):
-            self.grid = wp.full(n_voxels, value=np.inf, dtype=float)
-            # the visible rule's evidence (empty for the plain rule: its kernels never touch it)
-            n_ev = n_voxels if visible else 0
-            self.visible = visible
-            self.bright = wp.full(n_ev, value=np.inf, dtype=float)
-            self.count = wp.zeros(n_ev, dtype=wp.uint8)
+            # the pool (grown below) and the index; the visible rule's evidence stays empty for
+            # the plain rule (its kernels never touch it)
+            self.grid = wp.empty(0, dtype=float)
+            self.bright = wp.empty(0, dtype=float)
+            self.count = wp.empty(0, dtype=wp.uint8)
+            self.seen = wp.empty(0, dtype=wp.uint8)
+            self.index = wp.full(1, value=-1, dtype=int)
+            self.err = wp.zeros(1, dtype=int)
             self.first_bright = wp.zeros(n_beams, dtype=int)
             self.edges = wp.array(beam_tan_edges(spec), dtype=float)
             self.lut = wp.array(beam_lut(spec), dtype=int)
@@ -407,7 +515,7 @@ class WarpBackend(Backend):
         else:
             # CPUs: the max table in NumPy (whole-image passes), and the gather split in two
             # halves of the box's rows run on two threads (Warp's CPU kernels are serial; the
-            # launch releases the GIL). Each half owns its voxels: the same grid as one launch.
+            # launch releases the GIL). Each half owns its voxels: the same map as one launch.
             if self.use_table:
                 nl = min(n_beams.bit_length(), MAX_TABLE_LEVELS)
                 self.table_np = self.table.numpy()[: nl * n_bins * n_beams].reshape(nl, n_bins, n_beams)
@@ -416,9 +524,95 @@ class WarpBackend(Backend):
             self._pool = _cpu_pool() if CPU_THREADS > 1 else None
         self.slot = 0
         self._cmds = None
+        self._init_cmd = None
+        self.istage, self.ievents, self.islot, self.ipairs = [None] * N_SLOTS, [None] * N_SLOTS, 0, None
         self.image_np = None if self.dev.is_cuda else self.image.numpy()
+        self.grow(cap)
         wp.load_module(minmax, device=self.dev)  # compile (or load from cache) now, not on ping 1
 
+    # ------------------------------------------------------------------ the pool
+    def grow(self, cap):
+        wp = self.wp
+        n_old = self.cap * self.B3
+        with wp.ScopedDevice(self.dev):
+            names = [("grid", wp.full, np.inf, float), ("seen", wp.zeros, None, wp.uint8)]
+            if self.visible:
+                names += [("bright", wp.full, np.inf, float), ("count", wp.zeros, None, wp.uint8)]
+            for name, make, fill, dt in names:
+                n = cap if name == "seen" else cap * self.B3
+                new = make(n, value=fill, dtype=dt) if fill is not None else make(n, dtype=dt)
+                old_n = self.cap if name == "seen" else n_old
+                if old_n:
+                    wp.copy(new, getattr(self, name), count=old_n)
+                setattr(self, name, new)
+        self.cap = cap
+        self._cmds = self._init_cmd = None  # recorded launches hold the old arrays
+
+    def _upload_index(self, flat):
+        self.index = self.wp.array(flat, dtype=int, device=self.dev)
+        self._cmds = self._init_cmd = None
+
+    def _stage_pairs(self, slots: np.ndarray, lins: np.ndarray):
+        """(slots, lins) as one int32 device array: on CUDA through a ring of pinned buffers
+        (an async copy, refilled only once its last copy is done), so the host never waits."""
+        wp = self.wp
+        n = len(slots)
+        if not self.dev.is_cuda:
+            return wp.array(np.concatenate([slots, lins]).astype(np.int32), dtype=int, device=self.dev)
+        k = self.islot
+        self.islot = (k + 1) % N_SLOTS
+        if self.ievents[k] is not None:
+            wp.synchronize_event(self.ievents[k])
+        if self.istage[k] is None or self.istage[k].shape[0] < 2 * n:
+            self.istage[k] = wp.empty(max(2 * n, 4096), dtype=int, device="cpu", pinned=True)
+        host = self.istage[k].numpy()
+        host[:n] = slots
+        host[n : 2 * n] = lins
+        if self.ipairs is None or self.ipairs.shape[0] < 2 * n:
+            self.ipairs = wp.empty(max(2 * n, 4096), dtype=int, device=self.dev)
+        wp.copy(self.ipairs, self.istage[k], count=2 * n)
+        self.ievents[k] = wp.record_event()
+        return self.ipairs
+
+    def set_blocks(self, slots, lins):
+        n = len(slots)
+        if n == 0:
+            return
+        pairs = self._stage_pairs(slots, lins)
+        if self._init_cmd is None or self._init_cmd[0] is not pairs:
+            args = [pairs, n, self.B3, int(self.visible), float(np.inf), self.index, self.grid, self.bright,
+                    self.count, self.seen]
+            cmd = self.wp.launch(self.k.init_blocks, dim=n * self.B3, inputs=args, device=self.dev,
+                                 record_cmd=True)
+            self._init_cmd = (pairs, cmd)
+        cmd = self._init_cmd[1]
+        cmd.set_param_by_name("n", n)
+        cmd.set_dim(n * self.B3)
+        cmd.launch()
+
+    def read(self):
+        g = self.grid.numpy().copy()
+        if not self.visible:
+            return g, None, None
+        return g, self.bright.numpy().copy(), self.count.numpy().copy()
+
+    def write(self, grid, bright, count):
+        wp, dev = self.wp, self.dev
+        self.grid.assign(wp.array(np.ascontiguousarray(grid, np.float32), dtype=float, device=dev))
+        if self.visible:
+            self.bright.assign(wp.array(np.ascontiguousarray(bright, np.float32), dtype=float, device=dev))
+            self.count.assign(wp.array(np.ascontiguousarray(count, np.uint8), dtype=wp.uint8, device=dev))
+
+    def read_seen(self):
+        return self.seen.numpy().copy()
+
+    def _write_seen(self, seen):
+        self.seen.assign(self.wp.array(seen, dtype=self.wp.uint8, device=self.dev))
+
+    def read_err(self):
+        return int(self.err.numpy()[0])
+
+    # ------------------------------------------------------------------ pings
     def integrate(self, params, image, method, n_threads):
         _check_rule(params, self.visible)
         if self.staging or not (method == "gather" and not n_threads):
@@ -426,6 +620,7 @@ class WarpBackend(Backend):
         if method == "gather" and not n_threads:
             return
         params["chunk"] = self.chunk
+        self._block_params(params)
         if self._cmds is None:
             self._record(params)
         # The recorded launches hold the struct's ctypes memory: refresh it in one copy.
@@ -482,10 +677,8 @@ class WarpBackend(Backend):
                 wp.launch(k.build_bin_window_cells, dim=cells, inputs=[P, self.image, self.table], **rec),
                 wp.launch(k.build_beam_levels_cells, dim=cells, inputs=[P, self.table], **rec),
             ]
-        gather_args = [
-            self.image, self.edges, self.lut, self.table, self.first_bright,
-            self.grid, self.bright, self.count,
-        ]
+        ping_args = [self.image, self.edges, self.lut, self.table, self.first_bright]
+        gather_args = [*ping_args, self.index, self.grid, self.bright, self.count, self.seen, self.err]
         self._cmds = {
             "table": table,
             "gather": wp.launch(k.integrate_gather, dim=1, inputs=[P, *gather_args], **rec),
@@ -494,10 +687,7 @@ class WarpBackend(Backend):
             else wp.launch(
                 k.integrate_template,
                 dim=self.template.shape[0],
-                inputs=[
-                    P, self.image, self.edges, self.lut, self.table, self.first_bright,
-                    self.template, self.grid,
-                ],
+                inputs=[P, *ping_args, self.template, self.index, self.grid],
                 **rec,
             ),
         }
@@ -552,6 +742,7 @@ class WarpBackend(Backend):
     def _launch_batch(self, params, images, n_threads):
         wp, k = self.wp, self.k
         B = params.shape[0]
+        self._block_params(params)
         bb = self._batch_buffers(B)
         s = bb["slot"]
         bb["slot"] = 1 - s
@@ -595,23 +786,10 @@ class WarpBackend(Backend):
             inputs=[
                 P, bb["boxes"], wp.vec3i(*lo.tolist()), wp.vec3i(*n.tolist()), self.chunk, imgs, self.edges,
                 self.lut,
-                tables, fb, self.grid, self.bright, self.count,
+                tables, fb, self.index, self.grid, self.bright, self.count, self.seen, self.err,
             ],
             device=self.dev,
         )
-
-    def read(self):
-        return self.grid.numpy().copy()
-
-    def write(self, values):
-        self.grid.assign(self.wp.array(values, dtype=float, device=self.dev))
-
-    def read_evidence(self):
-        return self.bright.numpy().copy(), self.count.numpy().copy()
-
-    def write_evidence(self, bright, count):
-        self.bright.assign(self.wp.array(bright, dtype=float, device=self.dev))
-        self.count.assign(self.wp.array(count, dtype=self.wp.uint8, device=self.dev))
 
     def synchronize(self) -> None:
         self.wp.synchronize_device(self.dev)
@@ -701,16 +879,11 @@ def usable_opencl_device(kind: str):
 
 
 class OpenCLBackend(Backend):
-    def __init__(self, spec, n_voxels, template_S, use_table=None, kind="any", *, visible=False):
+    def __init__(self, spec, template_S, use_table=None, kind="any", *, visible=False, B=8, cap=0):
         n_bins, n_beams = spec.image_shape
         cl = _opencl()
         d = usable_opencl_device(kind)
-        need = 4 * n_voxels
-        if need > d.max_mem_alloc_size:
-            raise GridTooLargeError(
-                f"Expected a grid that fits in one OpenCL buffer, but {n_voxels} voxels need "
-                f"{need / 2**30:.2f} GiB and {d.name.strip()} allows {d.max_mem_alloc_size / 2**30:.2f} GiB"
-            )
+        self._setup_pool(visible, B)
         self.cl = cl
         self.ctx, prg = _opencl_context(d)
         self._cl_device = d
@@ -719,17 +892,13 @@ class OpenCLBackend(Backend):
         # named as gpumap info and backend= name it: the device it runs on, not how it was asked for
         self.name = "opencl-gpu" if self.is_gpu else "opencl-cpu"
         self.device = f"{d.platform.name.strip()}: {d.name.strip()}"
-        mf = cl.mem_flags
-        self.grid = cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * n_voxels)
-        cl.enqueue_fill_buffer(self.queue, self.grid, np.float32(np.inf), 0, 4 * n_voxels)
-        # the visible rule's evidence (one-element stand-ins for the plain rule: OpenCL has no
-        # empty buffers, and its kernels never touch them)
-        n_ev = n_voxels if visible else 1
-        self.visible = visible
-        self.bright = cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * n_ev)
-        cl.enqueue_fill_buffer(self.queue, self.bright, np.float32(np.inf), 0, 4 * n_ev)
-        self.count = cl.Buffer(self.ctx, mf.READ_WRITE, size=max(4, n_ev))
-        cl.enqueue_fill_buffer(self.queue, self.count, np.uint8(0), 0, max(4, n_ev))
+        mf = self.mf = cl.mem_flags
+        # the pool (grown below; one-element stand-ins for the plain rule's evidence: OpenCL has
+        # no empty buffers, and its kernels never touch them), the index and the error flag
+        self.grid = self.bright = self.count = self.seen = None
+        self.index = self._buf(4)
+        self.err = self._buf(4)
+        cl.enqueue_fill_buffer(self.queue, self.err, np.int32(0), 0, 4)
         self.first_bright = cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * n_beams)
         self.edges = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=beam_tan_edges(spec))
         self.lut = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=beam_lut(spec))
@@ -741,7 +910,6 @@ class OpenCLBackend(Backend):
         self.images_u8 = [cl.Buffer(self.ctx, mf.READ_ONLY, size=n_bins * n_beams) for _ in range(N_SLOTS)]
         self.host_u8 = [np.empty((n_bins, n_beams), np.uint8) for _ in range(N_SLOTS)]
         self.slot = 0
-        self.n_voxels = n_voxels
         self.n_bins = n_bins
         # per-ping max table: two reads per voxel instead of a loop; same answers either way
         self.use_table = True if use_table is None else bool(use_table)
@@ -767,6 +935,7 @@ class OpenCLBackend(Backend):
         # prg.name, which would hand out a new one on every access with a warning)
         k = functools.partial(cl.Kernel, prg)
         self.k_gather = k("integrate_gather")
+        self.k_init = k("init_blocks")
         self.k_u8 = k("convert_u8")
         self.k_template = k("integrate_template")
         self.k_first = k("find_first_bright")
@@ -778,8 +947,97 @@ class OpenCLBackend(Backend):
             self.k_window, self.k_levels = k("build_bin_window"), k("build_beam_levels")
         self.n_beams = n_beams
         self.wg = 128
-        self.queue.finish()
+        self.ihost = [np.empty(4096, np.int32) for _ in range(N_SLOTS)]
+        self.iuploads, self.islot, self.ipairs_n = [None] * N_SLOTS, 0, 4096
+        self.ipairs = self._buf(4 * self.ipairs_n)
+        self.grow(cap)
 
+    # ------------------------------------------------------------------ the pool
+    def _buf(self, nbytes: int):
+        return self.cl.Buffer(self.ctx, self.mf.READ_WRITE, size=max(4, int(nbytes)))
+
+    def grow(self, cap):
+        cl, q = self.cl, self.queue
+        n = cap * self.B3
+        d = self._cl_device
+        if 4 * n > d.max_mem_alloc_size:
+            raise GridTooLargeError(
+                f"Expected a map that fits in one OpenCL buffer, but {cap} blocks of {self.B3} voxels need "
+                f"{4 * n / 2**30:.2f} GiB and {d.name.strip()} allows {d.max_mem_alloc_size / 2**30:.2f} GiB"
+            )
+        n_old = self.cap * self.B3
+        arrays = [("grid", 4, np.float32(np.inf)), ("seen", 1 / self.B3, np.uint8(0))]
+        if self.visible:
+            arrays += [("bright", 4, np.float32(np.inf)), ("count", 1, np.uint8(0))]
+        for name, per, fill in arrays:
+            nb, ob = int(per * n), int(per * n_old)
+            new = self._buf(nb)
+            cl.enqueue_fill_buffer(q, new, fill, 0, -(-max(4, nb) // fill.itemsize) * fill.itemsize)
+            if ob:
+                cl.enqueue_copy(q, new, getattr(self, name), byte_count=ob)
+            setattr(self, name, new)
+        if not self.visible:
+            self.bright, self.count = self._buf(4), self._buf(4)
+        self.cap = cap
+        q.finish()
+
+    def _upload_index(self, flat):
+        self.index = self._buf(flat.nbytes)
+        self.cl.enqueue_copy(self.queue, self.index, flat, is_blocking=True)
+
+    def set_blocks(self, slots, lins):
+        n = len(slots)
+        if n == 0:
+            return
+        # (slots, lins) in one buffer, uploaded without blocking from a ring of host arrays
+        k = self.islot
+        self.islot = (k + 1) % N_SLOTS
+        if self.iuploads[k] is not None:
+            self.iuploads[k].wait()
+        if self.ihost[k].shape[0] < 2 * n:
+            self.ihost[k] = np.empty(max(2 * n, 4096), np.int32)
+        host = self.ihost[k]
+        host[:n] = slots
+        host[n : 2 * n] = lins
+        if self.ipairs_n < 2 * n:
+            self.ipairs_n = max(2 * n, 4096)
+            self.ipairs = self._buf(4 * self.ipairs_n)
+        self.iuploads[k] = self.cl.enqueue_copy(self.queue, self.ipairs, host[: 2 * n], is_blocking=False)
+        gs = -(-(n * self.B3) // self.wg) * self.wg
+        i32 = np.int32
+        self.k_init(self.queue, (gs,), (self.wg,), self.ipairs, i32(n), i32(self.B3), i32(self.visible),
+                    np.float32(np.inf), self.index, self.grid, self.bright, self.count, self.seen)
+
+    def _read(self, buf, n, dt):
+        out = np.empty(n, dt)
+        if n:
+            self.cl.enqueue_copy(self.queue, out, buf, is_blocking=True)
+        return out
+
+    def read(self):
+        n = self.cap * self.B3
+        g = self._read(self.grid, n, np.float32)
+        if not self.visible:
+            return g, None, None
+        return g, self._read(self.bright, n, np.float32), self._read(self.count, n, np.uint8)
+
+    def write(self, grid, bright, count):
+        q = self.queue
+        self.cl.enqueue_copy(q, self.grid, np.ascontiguousarray(grid, np.float32), is_blocking=True)
+        if self.visible:
+            self.cl.enqueue_copy(q, self.bright, np.ascontiguousarray(bright, np.float32), is_blocking=True)
+            self.cl.enqueue_copy(q, self.count, np.ascontiguousarray(count, np.uint8), is_blocking=True)
+
+    def read_seen(self):
+        return self._read(self.seen, self.cap, np.uint8)
+
+    def _write_seen(self, seen):
+        self.cl.enqueue_copy(self.queue, self.seen, np.ascontiguousarray(seen, np.uint8), is_blocking=True)
+
+    def read_err(self):
+        return int(self._read(self.err, 1, np.int32)[0])
+
+    # ------------------------------------------------------------------ pings
     def integrate(self, params, image, method, n_threads):
         cl = self.cl
         _check_rule(params, self.visible)
@@ -801,6 +1059,7 @@ class OpenCLBackend(Backend):
             np.copyto(self.host[s], image)
             self.uploads[s] = cl.enqueue_copy(self.queue, image_buf, self.host[s], is_blocking=False)
         params["chunk"] = self.chunk
+        self._block_params(params)
         P = np.asarray(params, dtype=PING_DTYPE)
         if method == "gather" and not n_threads:
             return
@@ -826,10 +1085,11 @@ class OpenCLBackend(Backend):
             if not n_threads:
                 return
             gs = -(-n_threads // self.wg) * self.wg
-            self.k_gather(self.queue, (gs,), (self.wg,), *args, self.grid, self.bright, self.count)
+            pool = (self.index, self.grid, self.bright, self.count, self.seen, self.err)
+            self.k_gather(self.queue, (gs,), (self.wg,), *args, *pool)
         else:
             gs = -(-self.n_points // self.wg) * self.wg
-            self.k_template(self.queue, (gs,), (self.wg,), *args, self.template, self.grid)
+            self.k_template(self.queue, (gs,), (self.wg,), *args, self.template, self.index, self.grid)
         self.queue.flush()
 
     # ------------------------------------------------------------------ batches (GPUs)
@@ -879,6 +1139,7 @@ class OpenCLBackend(Backend):
     def _launch_batch(self, params, images, n_threads):
         cl = self.cl
         B = params.shape[0]
+        self._block_params(params)
         bb = self._batch_buffers(B)
         s = bb["slot"]
         bb["slot"] = 1 - s
@@ -920,31 +1181,10 @@ class OpenCLBackend(Backend):
         bb["integrate_gather_batch"](
             q, (-(-total // wg) * wg,), (wg,), P, i32(B), *(i32(x) for x in lo), *(i32(x) for x in n),
             i32(self.chunk), i32(plane), stride, bb["images"], self.edges, self.lut, bb["tables"],
-            i32(self.use_table), bb["first_bright"], self.grid, self.bright, self.count,
+            i32(self.use_table), bb["first_bright"], self.index, self.grid, self.bright, self.count,
+            self.seen, self.err,
         )
         q.flush()
-
-    def read(self):
-        out = np.empty(self.n_voxels, dtype=np.float32)
-        self.cl.enqueue_copy(self.queue, out, self.grid, is_blocking=True)
-        return out
-
-    def write(self, values):
-        self.cl.enqueue_copy(
-            self.queue, self.grid, np.ascontiguousarray(values, np.float32), is_blocking=True
-        )
-
-    def read_evidence(self):
-        bright = np.empty(self.n_voxels, dtype=np.float32)
-        count = np.empty(self.n_voxels, dtype=np.uint8)
-        self.cl.enqueue_copy(self.queue, bright, self.bright, is_blocking=True)
-        self.cl.enqueue_copy(self.queue, count, self.count, is_blocking=True)
-        return bright, count
-
-    def write_evidence(self, bright, count):
-        q = self.queue
-        self.cl.enqueue_copy(q, self.bright, np.ascontiguousarray(bright, np.float32), is_blocking=True)
-        self.cl.enqueue_copy(q, self.count, np.ascontiguousarray(count, np.uint8), is_blocking=True)
 
     def synchronize(self) -> None:
         self.queue.finish()
@@ -953,25 +1193,29 @@ class OpenCLBackend(Backend):
 def make_backend(
     name: str,
     spec: SonarSpec,
-    n_voxels: int,
-    template_S: np.ndarray | None,
+    template_S: np.ndarray | None = None,
     use_table: bool | None = None,
+    *,
     visible: bool = False,
+    B: int = 8,
+    cap: int = 0,
 ) -> Backend:
-    """Build the backend called ``name`` (never another one; raises if it cannot run).
+    """Build the backend called ``name`` (never another one; raises if it cannot run) with a pool
+    of ``cap`` blocks of ``B^3`` voxels (grown later with :meth:`Backend.grow`).
 
     ``use_table`` picks how kernels take the max over a footprint: a per-ping max table
     (True), a loop over cells (False), or the faster for the device (None: table on CPUs).
-    ``visible`` allocates the visible rule's per-voxel evidence (5 more bytes per voxel).
+    ``visible`` keeps the visible rule's per-voxel evidence (5 more bytes per voxel).
     """
-    args = (spec, n_voxels, template_S, use_table)
+    args = (spec, template_S, use_table)
+    kw = {"visible": visible, "B": B, "cap": cap}
     if name == "numpy":
-        return NumpyBackend(*args, visible=visible)
+        return NumpyBackend(*args, **kw)
     if name in ("warp-cpu", "warp-cuda"):
-        return WarpBackend(*args, device=name.split("-")[1], visible=visible)
+        return WarpBackend(*args, device=name.split("-")[1], **kw)
     if name in ("opencl", "opencl-gpu", "opencl-cpu"):
         kind = {"opencl": "any", "opencl-gpu": "gpu", "opencl-cpu": "cpu"}[name]
-        return OpenCLBackend(*args, kind=kind, visible=visible)
+        return OpenCLBackend(*args, kind=kind, **kw)
     raise ValueError(f"Expected backend to be 'auto' or one of {BACKENDS}, but got {name!r}")
 
 
@@ -1001,8 +1245,7 @@ def available_backends() -> list[str]:
 
 def opencl_host_table(b, params, image) -> None:
     """CPU OpenCL devices: build ping ``params``' max table of ``image`` with whole-image NumPy
-    passes straight into ``b.table`` mapped on the host (no copy); ``b`` is a dense or a sparse
-    OpenCL backend."""
+    passes straight into ``b.table`` mapped on the host (no copy); ``b`` is an OpenCL backend."""
     cl = b.cl
     win = int(params["win"])
     rows = b._rows.get(win)
@@ -1021,8 +1264,7 @@ def opencl_host_table(b, params, image) -> None:
 
 def warp_upload_image(b, image) -> None:
     """Put ``image`` where ``b``'s kernels read it: on GPUs through a pinned staging slot (uint8
-    widened on the device), on CPUs into the kernels' float32 image; ``b`` is a dense or a
-    sparse Warp backend."""
+    widened on the device), on CPUs into the kernels' float32 image; ``b`` is a Warp backend."""
     wp = b.wp
     if b.staging:
         s = b.slot
@@ -1046,7 +1288,7 @@ def warp_upload_image(b, image) -> None:
 
 def warp_host_table(b, params, image) -> None:
     """Warp on a CPU: ping ``params``' max table of ``image`` into ``b.table_np`` (NumPy passes,
-    uint8 images read directly); ``b`` is a dense or a sparse Warp backend."""
+    uint8 images read directly); ``b`` is a Warp backend."""
     win = int(params["win"])
     rows = b._rows.get(win)
     if rows is None:

@@ -416,7 +416,7 @@ def info(argv: list[str] | None = None) -> int:
     works = []
     for name in gpumap.available_backends():
         try:
-            b = make_backend(name, spec, 1, None)
+            b = make_backend(name, spec)
         except gpumap.BackendUnavailableError as e:  # a device is there, but it cannot run gpumap
             print(f"  {name:<11} cannot run: {_one_line(e)}")
             continue

@@ -64,6 +64,9 @@ PING_DTYPE = np.dtype(
         ("thr", np.float32),  # occupied intensity: a footprint max >= thr is a bright view
         ("thr_dark", np.float32),  # a clear view below this counts twice towards carving (thr / 2)
         ("rule", np.int32),  # 0: the paper's plain min; 1: visibility-aware (see gpumap.mapper)
+        ("blk_lo", np.int32, (3,)),  # voxel index of the block index's first voxel (set by the backend)
+        ("blk_n", np.int32, (3,)),  # the block index's extent, in blocks
+        ("blk", np.int32),  # voxels per block edge (B)
     ]
 )
 

@@ -1,9 +1,40 @@
-"""The min-max occupancy mapper: the public entry point of gpumap."""
+"""The min-max occupancy mapper: the public entry point of gpumap.
+
+One :class:`MinMaxMapper` serves a fixed box and an open world. Its map lives in *blocks* of
+``B^3`` voxels (``B = 8``: 512 voxels) on the backend's device: a *pool* of slots (per voxel
+float32 ``min_all``, and for the visible rule float32 ``bright`` and uint8 ``count``: 9 bytes;
+4 for the plain rule) and a dense coarse *index* of int32 slots, one per block of a box (``-1`` =
+no block; 4 bytes per 512 voxels). Every kernel addresses a voxel through the index: its
+block's slot times ``B^3`` plus its place in the block (an O(1) read: no hash, no probing,
+nothing OpenCL 1.2 lacks), in one kernel family for every storage (``gpumap.kernels.minmax``).
+
+- **A bounded box** (a :class:`~gpumap.GridSpec`): every block of the box is allocated up front
+  and the index is the identity, so a ping costs no block search (the dense grid's speed).
+- **On demand** (a :class:`~gpumap.SparseSpec`, bounded or not, or ``sparse=True``): per ping
+  the host finds, vectorised in NumPy over the (i, j) *block columns* of the ping's box, the
+  z-range of blocks that the field of view can reach (the kernels' ``column_range`` bound,
+  widened to a block column's footprint and padded against float32 rounding, so it is
+  conservative), gives new blocks a slot (the pool grows by 1.5x) and grows an unbounded map's
+  index when pings leave it. The kernels flag any observed voxel that found no block (``err``,
+  :meth:`MinMaxMapper.check`): the tests check it never happens. Each block carries a "seen"
+  byte set by the kernels; before the pool grows, and before reads and saves, blocks no ping
+  observed are freed. ``max_bytes`` bounds the pool plus the index: a ping that needs more
+  raises :class:`MapMemoryError` before it changes the map (``evict=None``), or with
+  ``evict="farthest"`` frees the blocks farthest from the sonar that the ping does not touch.
+
+Both give the same values, bit for bit, wherever both have voxels: the same per-voxel code runs
+on the same voxel centres. Considered and not chosen: Warp's NanoVDB volumes (CUDA only, one
+value type per tree, a tree walk per voxel), and an open-addressing hash on the device (would
+lift the coarse index's one limit, that it spans the box of everything mapped: a 10 km transit
+at 5 cm needs a 2 GB index; not needed for a survey area).
+"""
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
+import math
 import os
 import struct
 import threading
@@ -26,17 +57,30 @@ from gpumap.errors import (
     check_pose,
 )
 from gpumap.geometry import RULES, make_template_S, pose_pad_m, static_params
-from gpumap.spec import GridSpec, SonarSpec
+from gpumap.spec import _MAX_VOXEL_INDEX, GridSpec, SonarSpec, SparseSpec, _vec3
 
-__all__ = ["MinMaxMapper", "available_backends"]
+__all__ = ["MapMemoryError", "MinMaxMapper", "available_backends"]
 
 log = logging.getLogger("gpumap")
 
 METHODS = ("gather", "template")
 _ONE_BITS = np.uint32(0x3F800000)  # the bits of float32 1.0
 FILE_FORMAT = "gpumap.MinMaxMapper"
-FILE_VERSION = 3  # 3: the optional confidence layer (confirmed); 2: the visible rule's evidence
-# (bright, count) and the rule; 1 and 2 still load
+# 4: blocks (``blocks`` and per-block arrays) for every storage; 3: the optional confidence layer
+# (confirmed); 2: the visible rule's evidence (bright, count) and the rule; 1 to 3 are dense
+# arrays over the grid, and still load, as do files of the former SparseMinMaxMapper
+FILE_VERSION = 4
+SPARSE_FILE_FORMAT = "gpumap.SparseMinMaxMapper"  # written until version 4 took its place
+BLOCK = 8  # voxels per block edge of a bounded box (a SparseSpec says its own)
+GROWTH = 1.5  # an on-demand pool grows by this factor (at least to what a ping needs)
+_CANDIDATE_GROUP = 8  # pings per vectorised block test
+_MAX_INDEX_BLOCKS = 2**31 - 1
+_MAX_BOX_VOXELS = 2**31 - 1
+_MAX_POOL_VOXELS = 2**31 - 1  # kernels address the pool with int32
+
+
+class MapMemoryError(GridTooLargeError):
+    """A ping (or a spec) needs more memory than the cap or the device allows; the map is unchanged."""
 
 
 def available_backends() -> list[str]:
@@ -108,12 +152,19 @@ def _evidence_empty(n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.full(n, np.inf, dtype=np.float32), np.zeros(n, dtype=np.uint8)
 
 
-class MinMaxMapper:
-    """Min-max filtering occupancy map (Phung et al.), on a fixed world grid.
+@functools.cache
+def _local(B: int) -> np.ndarray:
+    """(B^3, 3) int64 local voxel offsets of a block, in storage order."""
+    a = np.arange(B**3)
+    return np.stack([a // (B * B), (a // B) % B, a % B], axis=1)
 
-    For each ping, every grid voxel whose centre the sonar sees gets the maximum image
-    intensity over its footprint (the cells its bounding sphere touches: conservative, so
-    a thin bright object is never lost to sampling). Never-observed voxels stay unknown.
+
+class MinMaxMapper:
+    """Min-max filtering occupancy map (Phung et al.), on a bounded grid or an open world.
+
+    For each ping, every voxel whose centre the sonar sees gets the maximum image intensity
+    over its footprint (the cells its bounding sphere touches: conservative, so a thin bright
+    object is never lost to sampling). Never-observed voxels stay unknown.
 
     How views combine (``rule``):
 
@@ -132,12 +183,18 @@ class MinMaxMapper:
     - ``"plain"``: the paper's rule: the minimum over all views. A ping carves voxels in its
       acoustic shadow, so surfaces seen from one side are erased by views from the other.
 
+    Storage (module docstring): blocks of ``B^3`` voxels, all of a bounded box up front, or
+    allocated where pings look; the values are the same either way.
+
     Parameters
     ----------
     spec : SonarSpec
         The sonar's geometry.
-    grid : GridSpec
-        The world grid.
+    grid : GridSpec or SparseSpec
+        The world grid. A :class:`~gpumap.GridSpec` (a bounded box) has every block allocated
+        up front: no per-ping block search, the fastest. A :class:`~gpumap.SparseSpec` (an
+        optional box, a block size and an origin) allocates blocks where pings look, so memory
+        grows with what the sonar has seen (:meth:`memory_stats`).
     backend : str
         ``"auto"`` (fastest that works, in the order warp-cuda, opencl on a GPU, opencl on
         a CPU (PoCL), warp-cpu, numpy; the choice is logged and kept in :attr:`backend`),
@@ -146,7 +203,8 @@ class MinMaxMapper:
         run raises :class:`gpumap.BackendUnavailableError`; it never falls back.
     method : str
         ``"gather"`` (every voxel of the field of view's bounding box, no holes) or
-        ``"template"`` (the paper's six steps on a voxel template: may leave holes).
+        ``"template"`` (the paper's six steps on a voxel template: may leave holes; a
+        bounded GridSpec only).
     shadow_m : float
         Acoustic-shadow allowance, metres (default 0: the paper's min-max). A strong return
         also counts for the voxels up to ``shadow_m`` behind it in its beams, so a ping does
@@ -172,16 +230,32 @@ class MinMaxMapper:
         positives, more false negatives); larger is more conservative. Read-time only: it
         may be changed between pings (:attr:`carve_views`), in 1..255.
     confidence : bool
-        Keep the confidence layer (:mod:`gpumap.confidence`): after each ping a separate pass
-        marks the occupied voxels that view confirmed (resolved in elevation), read with
-        :meth:`confidence`; :meth:`view_gain` scores candidate poses against it. Costs a byte
-        per voxel on the host and one read of the map per ping. Default False.
+        Keep the confidence layer (:mod:`gpumap.confidence`; a bounded GridSpec only): after
+        each ping a separate pass marks the occupied voxels that view confirmed (resolved in
+        elevation), read with :meth:`confidence`; :meth:`view_gain` scores candidate poses
+        against it. Costs a byte per voxel on the host and one read of the map per ping.
+        Default False.
+    sparse : bool or None
+        True: allocate blocks on demand even for a GridSpec (its box bounds the map). None
+        (default): on demand for a SparseSpec, all blocks for a GridSpec.
+    max_bytes : int or None
+        On demand only: cap on the block pool plus the coarse index, bytes (None: what the
+        device allows).
+    evict : None or "farthest"
+        On demand only: what a ping that would pass ``max_bytes`` does. None raises
+        :class:`MapMemoryError` with the map unchanged; ``"farthest"`` frees the blocks
+        farthest from the sonar (block centre to the sonar's position) that the ping does not
+        reach, which become unknown.
+    initial_blocks : int
+        On demand only: pool slots allocated up front (default 64; the pool grows by 1.5x).
     """
+
+    _on_demand = False  # a subclass that only holds maps on demand (gpumap.sparse.SparseMinMaxMapper)
 
     def __init__(
         self,
         spec: SonarSpec,
-        grid: GridSpec,
+        grid: GridSpec | SparseSpec,
         backend: str = "auto",
         method: str = "gather",
         *,
@@ -191,11 +265,25 @@ class MinMaxMapper:
         threshold: float = 0.1,
         carve_views: int = 2,
         confidence: bool = False,
+        sparse: bool | None = None,
+        max_bytes: int | None = None,
+        evict: str | None = None,
+        initial_blocks: int = 64,
     ) -> None:
         if not isinstance(spec, SonarSpec):
             raise TypeError(f"Expected a gpumap.SonarSpec for 'spec', but got {type(spec).__name__}")
-        if not isinstance(grid, GridSpec):
-            raise TypeError(f"Expected a gpumap.GridSpec for 'grid', but got {type(grid).__name__}")
+        if sparse not in (None, True, False):
+            raise TypeError(f"Expected None or a bool for 'sparse', but got {sparse!r}")
+        if isinstance(grid, GridSpec):
+            space = SparseSpec(grid.voxel_size_m, (grid.min_corner_m, grid.max_corner_m)) if sparse else None
+        elif isinstance(grid, SparseSpec):
+            if sparse is False:
+                raise ValueError("Expected sparse=None or True with a SparseSpec (it allocates on demand), "
+                                 "but got sparse=False; pass its box as a GridSpec for a dense map")
+            space = grid
+        else:
+            raise TypeError(
+                f"Expected a gpumap.GridSpec or gpumap.SparseSpec for 'grid', but got {type(grid).__name__}")
         if method not in METHODS:
             raise ValueError(f"Expected method to be one of {METHODS}, but got {method!r}")
         if backend != "auto" and backend not in BACKENDS:
@@ -216,19 +304,53 @@ class MinMaxMapper:
         thr = check_finite_scalar(threshold, "threshold")
         if not 0.0 < thr <= 1.0:
             raise ValueError(f"Expected threshold in (0, 1], but got {thr}")
-        self.rule = rule
-        self.threshold = thr
-        self.carve_views = carve_views
-        self._use_table = None if footprint_max == "auto" else footprint_max == "table"
-        self.spec = spec
-        self.grid = grid
-        self.method = method
-        self.n_integrated = 0
         shadow = check_finite_scalar(shadow_m, "shadow_m")
         if shadow < 0:
             raise ValueError(f"Expected shadow_m >= 0, but got {shadow}")
-        self.shadow_m = shadow
-        self._params = static_params(spec, grid, shadow, rule, thr)
+        if not isinstance(confidence, (bool, np.bool_)):
+            raise TypeError(f"Expected a bool for 'confidence', but got {type(confidence).__name__}")
+        if space is not None and (method != "gather" or confidence):
+            raise ValueError(
+                "Expected method='gather' and no confidence layer on a map that allocates blocks on demand "
+                f"(the template method and the confidence layer need a bounded GridSpec), but got "
+                f"method={method!r}, confidence={bool(confidence)}"
+            )
+        if evict not in (None, "farthest"):
+            raise ValueError(f"Expected evict to be None or 'farthest', but got {evict!r}")
+        if max_bytes is not None and (
+            isinstance(max_bytes, bool) or not isinstance(max_bytes, (int, np.integer)) or max_bytes <= 0
+        ):
+            raise ValueError(f"Expected max_bytes to be a positive integer or None, but got {max_bytes!r}")
+        if isinstance(initial_blocks, bool) or not isinstance(initial_blocks, (int, np.integer)) \
+                or initial_blocks < 1:
+            raise ValueError(f"Expected initial_blocks to be a positive integer, but got {initial_blocks!r}")
+        if space is None and (max_bytes is not None or evict is not None):
+            raise ValueError("Expected max_bytes and evict only with blocks on demand (a SparseSpec or "
+                             "sparse=True): a GridSpec's blocks are all allocated up front")
+        self.spec, self.sparse = spec, space
+        self.method, self.rule, self.threshold, self.shadow_m = method, rule, thr, shadow
+        self.carve_views = carve_views
+        self._use_table = None if footprint_max == "auto" else footprint_max == "table"
+        self.max_bytes = None if max_bytes is None else int(max_bytes)
+        self.evict = evict
+        self.n_integrated = 0
+        self._visible = rule == "visible"
+        B = BLOCK if space is None else space.block
+        self.B, self.B3 = B, B**3
+        self.bytes_per_voxel = 9 if self._visible else 4
+        self._block_bytes = self.B3 * self.bytes_per_voxel + 1  # + the seen byte
+        if space is None:
+            self._grid = grid
+            self._voxel, self._origin = grid.voxel_size_m, np.asarray(grid.min_corner_m, np.float64)
+            self._dims = np.asarray(grid.shape, np.int64)
+            pgrid = grid
+        else:
+            self._grid = None  # the bounds' grid, or the box of the blocks (see the property)
+            self._voxel, self._origin = space.voxel_size_m, np.asarray(space.origin, np.float64)
+            self._dims = None if space.bounds is None else np.asarray(space.shape, np.int64)
+            o, s = space.origin, space.voxel_size_m
+            pgrid = GridSpec(o, tuple(x + B * s for x in o), s)
+        self._params = static_params(spec, pgrid, shadow, rule, thr)
         self._rho0, self._near0 = float(self._params["rho"]), float(self._params["near"])
         self._fov_pts_S = spec.fov_corners_S()
         self._template = make_template_S(spec, grid.voxel_size_m) if method == "template" else None
@@ -239,42 +361,84 @@ class MinMaxMapper:
         # mapper serialize (and, every update being a min or a count, get the map one thread
         # would have made).
         self._lock = threading.RLock()
-        self._backend = self._make_backend(backend)
-        if not isinstance(confidence, (bool, np.bool_)):
-            raise TypeError(f"Expected a bool for 'confidence', but got {type(confidence).__name__}")
-        self._confirmed = np.zeros(grid.n_voxels, np.uint8) if confidence else None
+        # the coarse index: block (lo_b + (a, b, c)) -> slot, -1 none
+        self._lo_b = np.zeros(3, np.int64)
+        nb = np.zeros(3, np.int64) if self._dims is None else -(-self._dims // B)
+        if self._dims is not None:
+            self._check_index_size(nb, "the bounds")
+        n_blocks = int(np.prod(nb))
+        if space is None:  # every block of the box, slot = index entry (the identity)
+            if n_blocks * self.B3 > _MAX_POOL_VOXELS:
+                raise GridTooLargeError(
+                    f"Expected at most {_MAX_POOL_VOXELS} voxels in the grid's blocks, but {grid.shape} "
+                    f"voxels take {n_blocks} blocks of {B}^3"
+                )
+            self._index = np.arange(n_blocks, dtype=np.int32).reshape(tuple(int(x) for x in nb))
+            cap = n_blocks
+            self._coords = self._unravel(np.arange(n_blocks))
+            self._used = np.ones(cap, bool)
+            self._free = np.zeros(0, np.int64)
+        else:
+            self._index = np.full(tuple(int(x) for x in nb), -1, np.int32)
+            cap = int(initial_blocks)
+            if self.max_bytes is not None:
+                cap = max(1, min(cap, (self.max_bytes - self._index.nbytes) // self._block_bytes))
+            self._coords = np.zeros((cap, 3), np.int64)
+            self._used = np.zeros(cap, bool)
+            self._free = np.arange(cap - 1, -1, -1, dtype=np.int64)  # a stack: pop from the end
+        self._backend = self._make_backend(backend, cap)
+        self._backend.set_index(self._index, self._lo_b * B)
+        n_vox = 0 if space is not None or not confidence else grid.n_voxels
+        self._confirmed = np.zeros(n_vox, np.uint8) if confidence else None
         # the elevation-arc directions (gpumap.nbv.PAIR_STEPS bits) each voxel was observed along
-        self._arcs = np.zeros(grid.n_voxels, np.uint16) if confidence else None
+        self._arcs = np.zeros(n_vox, np.uint16) if confidence else None
         self._gain_runner = None
         # auto says what it picked; a backend asked for by name is what the caller already knows
         (log.info if backend == "auto" else log.debug)(
             "gpumap: backend %s on %s", self._backend.name, self._backend.device)
 
-    def _make_backend(self, backend: str) -> Backend:
+    # ------------------------------------------------------------------ setup
+    def _check_index_size(self, nb: np.ndarray, what: str) -> None:
+        n = int(np.prod(nb))
+        need = 4 * n
+        if n > _MAX_INDEX_BLOCKS:
+            raise MapMemoryError(
+                f"Expected at most {_MAX_INDEX_BLOCKS} blocks in the coarse index, but {what} span "
+                f"{tuple(int(x) for x in nb)} blocks of {self.B}^3 voxels"
+            )
+        if self.max_bytes is not None and need + self._block_bytes > self.max_bytes:
+            raise MapMemoryError(
+                f"Expected the coarse index of {what} to fit under max_bytes={self.max_bytes}, but it "
+                f"needs {need} bytes ({tuple(int(x) for x in nb)} blocks) plus at least one block of "
+                f"{self._block_bytes}"
+            )
+        free = _free_memory_bytes("numpy")
+        if free is not None and 2 * need > free:
+            raise MapMemoryError(
+                f"Expected a coarse index that fits in memory, but {what} need {need / 2**30:.2f} GiB "
+                f"(twice that while growing) and {free / 2**30:.2f} GiB are free"
+            )
+
+    def _make_backend(self, backend: str, cap: int) -> Backend:
         names = AUTO_ORDER if backend == "auto" else (backend,)
         errors = []
         for name in names:
-            need = self.grid.nbytes * (9 if self.rule == "visible" else 4) // 4
+            need = cap * self.B3 * self.bytes_per_voxel
             free = _free_memory_bytes(name)
-            if free is not None and need > free:
+            if self.sparse is None and free is not None and need > free:
                 msg = (
                     f"Expected a grid that fits in memory, but {self.grid.shape} voxels at "
                     f"voxel_size_m={self.grid.voxel_size_m} need {need / 2**30:.2f} GiB and "
-                    f"{name} has {free / 2**30:.2f} GiB free"
+                    f"{name} has {free / 2**30:.2f} GiB free ({self.bytes_per_voxel} bytes a voxel, "
+                    f"in blocks of {self.B}^3)"
                 )
                 if backend != "auto":
                     raise ValueError(msg)
                 errors.append(f"{name}: {msg}")
                 continue
             try:
-                return make_backend(
-                    name,
-                    self.spec,
-                    self.grid.n_voxels,
-                    self._template,
-                    self._use_table,
-                    visible=self.rule == "visible",
-                )
+                return make_backend(name, self.spec, self._template, self._use_table, visible=self._visible,
+                                    B=self.B, cap=cap)
             except (BackendUnavailableError, GridTooLargeError) as e:
                 if backend != "auto":
                     raise
@@ -292,6 +456,28 @@ class MinMaxMapper:
     def device(self) -> str:
         """The device the backend runs on, in words."""
         return self._backend.device
+
+    @property
+    def carve_views(self) -> int:
+        """Visible rule: clear dark views that carve a voxel once seen bright (see the class)."""
+        return self._carve_views
+
+    @carve_views.setter
+    def carve_views(self, n: int) -> None:
+        self._carve_views = check_carve_views(n)
+
+    @property
+    def grid(self) -> GridSpec:
+        """The :class:`GridSpec` that :meth:`values` covers: the box, or for an unbounded map the
+        box of its blocks (one voxel at the origin while empty)."""
+        if self._grid is not None:
+            return self._grid
+        if self._dims is not None:
+            return self.sparse.grid
+        with self._lock:
+            self._settle()
+            i0, i1 = self._whole_box()
+        return self._box_grid(i0, i1)
 
     # ------------------------------------------------------------------ update
     def _check_image(self, image: object) -> np.ndarray:
@@ -358,7 +544,9 @@ class MinMaxMapper:
         pose_sigmas : float
             The bound's width in standard deviations (default 2).
 
-        Raises ``ValueError``/``TypeError`` on bad input, leaving the map untouched.
+        Raises ``ValueError``/``TypeError`` on bad input, and on demand :class:`MapMemoryError`
+        when the new blocks would pass ``max_bytes`` (``evict=None``) or the device's memory; in
+        every case before the map changes.
         """
         T = check_pose(T_W_S, "T_W_S")
         pads = np.zeros(1)
@@ -367,6 +555,7 @@ class MinMaxMapper:
             if pose_cov is not None:
                 pads[0] = self._pose_pad(_check_pose_cov(pose_cov), pose_sigmas)
             params, n_threads = self._ping_params(T[None], pads)
+            self._prepare(params, T[None], n_threads)
             self._backend.integrate(params[0, ...], img, self.method, int(n_threads[0]))
             if self._confirmed is not None:
                 self._confirm(T, pads[0], img)
@@ -382,7 +571,9 @@ class MinMaxMapper:
         """(B,) PING_DTYPE records and gather column counts for checked poses ``Ts`` (B, 4, 4)
         and footprint pads (B,) m, in whole-array NumPy (the work of
         :func:`gpumap.geometry.ping_params` and :func:`~gpumap.geometry.set_footprint_pad`,
-        vectorised: one code path for a ping and a batch, so both give the same records)."""
+        vectorised: one code path for a ping and a batch, and for every storage, so all give
+        the same records). An unbounded map's boxes are not clipped; a pose whose box would
+        leave int32 voxel indices raises ``ValueError``."""
         B = Ts.shape[0]
         P = np.empty(B, dtype=self._params.dtype)
         P[...] = self._params
@@ -402,13 +593,24 @@ class MinMaxMapper:
         pts = self._fov_pts_S  # (m, 3): the box, padded by a voxel, holds every visible centre
         W = (pts[None, :, 0:1] * Rt[:, None, 0, :] + pts[None, :, 1:2] * Rt[:, None, 1, :]
              + pts[None, :, 2:3] * Rt[:, None, 2, :])
-        s = self.grid.voxel_size_m
-        lo_m = np.asarray(self.grid.min_corner_m, dtype=np.float64)
-        dims = np.asarray(self.grid.shape)
-        q0 = (W.min(axis=1) + t - lo_m) / s
-        q1 = (W.max(axis=1) + t - lo_m) / s
-        i0 = np.minimum(np.maximum(np.floor(q0).astype(np.int64) - 1, 0), dims)
-        i1 = np.minimum(np.maximum(np.floor(q1).astype(np.int64) + 1, -1), dims - 1)
+        s = self._voxel
+        q0 = (W.min(axis=1) + t - self._origin) / s
+        q1 = (W.max(axis=1) + t - self._origin) / s
+        dims = self._dims
+        if dims is None:
+            far = np.maximum(np.abs(q0).max(axis=1), np.abs(q1).max(axis=1)) > _MAX_VOXEL_INDEX - 2 * self.B
+            if far.any():
+                k = int(np.argmax(far))
+                raise ValueError(
+                    f"Expected a sonar pose within {(_MAX_VOXEL_INDEX - 2 * self.B) * s:.4g} m of the map "
+                    f"origin {tuple(self._origin)} (voxel indices fit in int32), but T_W_S[{k}] puts it at "
+                    f"{t[k].tolist()}"
+                )
+            i0 = np.floor(q0).astype(np.int64) - 1
+            i1 = np.floor(q1).astype(np.int64) + 1
+        else:
+            i0 = np.minimum(np.maximum(np.floor(q0).astype(np.int64) - 1, 0), dims)
+            i1 = np.minimum(np.maximum(np.floor(q1).astype(np.int64) + 1, -1), dims - 1)
         n = np.maximum(i1 - i0 + 1, 0)
         P["box_lo"] = i0
         P["box_n"] = n
@@ -427,7 +629,8 @@ class MinMaxMapper:
         Every update is a minimum or a saturating count, so the order of the pings does not
         matter and the batch is exact for both rules. GPU backends upload the whole batch at
         once and fold it in a few launches (each thread owns its voxels and walks the pings:
-        no atomics); CPU backends apply the pings one after the other.
+        no atomics); CPU backends apply the pings one after the other. On demand, the blocks
+        of all B pings are found (vectorised over the batch) and allocated first.
 
         Parameters
         ----------
@@ -440,8 +643,9 @@ class MinMaxMapper:
         pose_sigmas : float
             The bound's width in standard deviations (default 2).
 
-        Every ping is checked before any is applied: on bad input it raises
-        ``ValueError``/``TypeError`` saying which ping, and the map is left untouched.
+        Every ping is checked, and every block allocated, before any is applied: on bad input
+        it raises ``ValueError``/``TypeError`` saying which ping (or :class:`MapMemoryError`),
+        and the map is left untouched.
         """
         imgs = self._check_images(images)
         B = imgs.shape[0]
@@ -475,6 +679,7 @@ class MinMaxMapper:
                     self.n_integrated += 1
                 return
             params, n_threads = self._ping_params(Ts, pads)
+            self._prepare(params, Ts, n_threads)
             self._backend.integrate_batch(params, imgs, self.method, n_threads)
             self.n_integrated += B
 
@@ -515,65 +720,463 @@ class MinMaxMapper:
         np.add(images, np.float32(0.0), out=out, casting="same_kind")  # -0.0 -> +0.0, float64 -> 32
         return out
 
+    def _prepare(self, params: np.ndarray, Ts: np.ndarray, n_threads: np.ndarray) -> None:
+        """On demand: give every block the pings (records ``params``, poses ``Ts``) may observe a
+        voxel of a slot, before any of them is applied (raises with the map unchanged)."""
+        if self.sparse is None:
+            return
+        live = n_threads > 0
+        if not live.any():
+            return
+        lo = params["box_lo"][live].astype(np.int64)
+        hi = lo + params["box_n"][live].astype(np.int64) - 1
+        if self._dims is None:  # the kernels read the index over the whole box
+            self._ensure_index(lo.min(axis=0) // self.B, hi.max(axis=0) // self.B)
+        Tl = Ts[live]
+        # the block test runs on the union box of a group of pings: small groups keep far-apart
+        # pings from making it walk empty columns
+        g = _CANDIDATE_GROUP
+        lins = [self._candidate_lins(lo[i : i + g], hi[i : i + g], Tl[i : i + g])
+                for i in range(0, len(Tl), g)]
+        self._allocate(np.concatenate(lins), Tl[-1, :3, 3])
+
+    def _candidate_lins(self, lo: np.ndarray, hi: np.ndarray, Ts: np.ndarray) -> np.ndarray:
+        """Index entries (int64, into the flattened coarse index; repeats across pings) of the
+        blocks that may hold a voxel centre one of the pings observes: per block column of a
+        ping's voxel box (``lo``..``hi``, (P, 3) each), the z-range that its field of view's
+        range sphere, azimuth half-planes, elevation slab and ``x > 0`` allow anywhere in the
+        column (float64, padded against float32 rounding), as blocks. Vectorised over the P
+        pings on the block columns of their union box. The index must cover every box."""
+        B, s = self.B, self._voxel
+        o = self._origin
+        b0, b1 = lo // B, hi // B  # (P, 3)
+        bx = np.arange(b0[:, 0].min(), b1[:, 0].max() + 1)
+        by = np.arange(b0[:, 1].min(), b1[:, 1].max() + 1)
+        cx = (o[0] + (bx + 0.5) * (B * s))[None, :, None]  # (1, nx, 1)
+        cy = (o[1] + (by + 0.5) * (B * s))[None, None, :]  # (1, 1, ny)
+        t = Ts[:, :3, 3]  # (P, 3)
+        A = np.transpose(Ts[:, :3, :3], (0, 2, 1))  # rotation of T_S_W
+        bb = -np.einsum("pij,pj->pi", A, t)
+        rmax = self.spec.range_max_m
+        pad = 1e-4 * (1.0 + rmax + np.abs(t).max(axis=1)) + 0.01 * s  # (P,)
+        hd = B * s / math.sqrt(2.0) + pad  # the column's voxel centres lie within hd of (cx, cy)
+        t3 = t[:, :, None, None]
+        dmin = np.maximum(np.hypot(cx - t3[:, 0], cy - t3[:, 1]) - hd[:, None, None], 0.0)
+        q = ((rmax + pad) ** 2)[:, None, None] - dmin * dmin
+        ok = q > 0
+        w = np.sqrt(np.maximum(q, 0.0))
+        z0, z1 = t3[:, 2] - w, t3[:, 2] + w
+        wd = self._params["wedge"].astype(np.float64)
+        slab = float(self._params["slab"])
+        # g . w + g0 >= 0 for some w in the column at height z: alpha(column) + beta z >= 0
+        G = np.stack(
+            [
+                wd[0] * A[:, 0] + wd[1] * A[:, 1],
+                wd[2] * A[:, 0] + wd[3] * A[:, 1],
+                -A[:, 2],
+                A[:, 2],
+                A[:, 0],
+            ],
+            axis=1,
+        )  # (P, 5, 3)
+        g0 = np.stack(
+            [
+                wd[0] * bb[:, 0] + wd[1] * bb[:, 1],
+                wd[2] * bb[:, 0] + wd[3] * bb[:, 1],
+                slab - bb[:, 2],
+                slab + bb[:, 2],
+                bb[:, 0],
+            ],
+            axis=1,
+        )  # (P, 5)
+        base = g0 + hd[:, None] * np.hypot(G[..., 0], G[..., 1]) + pad[:, None]
+        alpha = (
+            base[..., None, None] + G[..., 0, None, None] * cx[:, None] + G[..., 1, None, None] * cy[:, None]
+        )
+        beta = G[..., 2]  # (P, 5)
+        up, down = beta > 1e-12, beta < -1e-12
+        level = ~(up | down)
+        zc = -alpha / np.where(level, 1.0, beta)[..., None, None]
+        z0 = np.maximum(z0, np.where(up[..., None, None], zc, -np.inf).max(axis=1))
+        z1 = np.minimum(z1, np.where(down[..., None, None], zc, np.inf).min(axis=1))
+        if level.any():
+            ok &= np.where(level[..., None, None], alpha >= 0, True).all(axis=1)
+        # the ping's own box: columns outside it and voxels above or below it hold nothing
+        ok &= ((bx[None, :] >= b0[:, 0, None]) & (bx[None, :] <= b1[:, 0, None]))[:, :, None]
+        ok &= ((by[None, :] >= b0[:, 1, None]) & (by[None, :] <= b1[:, 1, None]))[:, None, :]
+        k0 = np.maximum(np.floor((z0 - o[2]) / s - 0.5).astype(np.int64) - 1, lo[:, 2, None, None])
+        k1 = np.minimum(np.ceil((z1 - o[2]) / s - 0.5).astype(np.int64) + 1, hi[:, 2, None, None])
+        ok &= k0 <= k1
+        bz0 = k0 // B
+        n = np.where(ok, k1 // B - bz0 + 1, 0).ravel()
+        nb = self._index.shape
+        lb = self._lo_b
+        col = (
+            (((bx - lb[0])[:, None] * nb[1] + (by - lb[1])[None, :]) * nb[2])[None] + (bz0 - lb[2])
+        ).ravel()
+        return np.repeat(col - (np.cumsum(n) - n), n) + np.arange(int(n.sum()))
+
+    def _unravel(self, lins: np.ndarray) -> np.ndarray:
+        """(m,) index entries -> (m, 3) int64 block coordinates."""
+        nb = self._index.shape
+        return np.stack([lins // (nb[1] * nb[2]), (lins // nb[2]) % nb[1], lins % nb[2]], axis=1) + self._lo_b
+
+    def _ensure_index(self, need_lo: np.ndarray, need_hi: np.ndarray) -> None:
+        """Grow an unbounded map's coarse index to hold blocks need_lo..need_hi (inclusive)."""
+        cur_lo = self._lo_b
+        cur_hi = self._lo_b + np.asarray(self._index.shape) - 1
+        if self._index.size and np.all(need_lo >= cur_lo) and np.all(need_hi <= cur_hi):
+            return
+        if self._index.size == 0:
+            new_lo, new_hi = need_lo - 2, need_hi + 2
+        else:
+            ext = cur_hi - cur_lo + 1
+            margin = np.maximum(4, ext // 2)
+            new_lo = np.where(need_lo < cur_lo, np.minimum(need_lo, cur_lo - margin), cur_lo)
+            new_hi = np.where(need_hi > cur_hi, np.maximum(need_hi, cur_hi + margin), cur_hi)
+        nb = new_hi - new_lo + 1
+        self._check_index_size(nb, "the pings so far")
+        if self.max_bytes is not None:
+            used = self._backend.cap * self._block_bytes + 4 * int(np.prod(nb))
+            if used > self.max_bytes:
+                raise MapMemoryError(
+                    f"Expected the map to stay under max_bytes={self.max_bytes}, but its coarse index must "
+                    f"grow to {tuple(int(x) for x in nb)} blocks ({4 * int(np.prod(nb))} bytes) beside a "
+                    f"pool of {self._backend.cap * self._block_bytes} bytes"
+                )
+        new = np.full(tuple(int(x) for x in nb), -1, np.int32)
+        if self._index.size:
+            a = cur_lo - new_lo
+            e = a + np.asarray(self._index.shape)
+            new[a[0] : e[0], a[1] : e[1], a[2] : e[2]] = self._index
+        self._index, self._lo_b = new, new_lo
+        self._backend.set_index(new, new_lo * self.B)
+
+    def _lins(self, coords: np.ndarray) -> np.ndarray:
+        r = coords - self._lo_b
+        nb = self._index.shape
+        return (r[:, 0] * nb[1] + r[:, 1]) * nb[2] + r[:, 2]
+
+    def _allocate(self, lins: np.ndarray, sonar_t: np.ndarray) -> None:
+        """Give every candidate block (index entries ``lins``, repeats allowed) without one a
+        slot (growing, reclaiming or evicting)."""
+        if len(lins) == 0:
+            return
+        flat = self._index.reshape(-1)
+        new_lins = np.unique(lins[flat[lins] < 0])
+        if len(new_lins) > len(self._free):
+            self._reclaim()
+            new_lins = np.unique(lins[flat[lins] < 0])
+            if len(new_lins) > len(self._free):
+                self._grow(len(new_lins) - len(self._free), lins, sonar_t)
+        n_new = len(new_lins)
+        if n_new == 0:
+            return
+        k = len(self._free) - n_new
+        slots = self._free[k:][::-1]
+        self._free = self._free[:k]
+        flat[new_lins] = slots
+        self._coords[slots] = self._unravel(new_lins)
+        self._used[slots] = True
+        self._backend.set_blocks(slots, new_lins)
+
+    def _grow(self, more: int, keep_lins: np.ndarray, sonar_t: np.ndarray) -> None:
+        cap = self._backend.cap
+        want = max(cap + more, int(math.ceil(cap * GROWTH)))
+        if self.max_bytes is not None:
+            limit = (self.max_bytes - self._index.nbytes) // self._block_bytes
+            if want > limit:
+                want = max(cap + more, limit)
+            if want > limit:
+                if self.evict == "farthest":
+                    self._evict(more - (limit - cap), keep_lins, sonar_t)
+                    if limit > cap:
+                        self._grow_to(limit)
+                    return
+                raise MapMemoryError(
+                    f"Expected the map to stay under max_bytes={self.max_bytes}, but this ping needs "
+                    f"{cap + more} blocks of {self._block_bytes} bytes ({(cap + more) * self._block_bytes} "
+                    f"bytes) plus a {self._index.nbytes}-byte index; the map is unchanged "
+                    f"(raise max_bytes or pass evict='farthest')"
+                )
+        self._grow_to(want)
+
+    def _grow_to(self, cap: int) -> None:
+        old = self._backend.cap
+        if cap <= old:
+            return
+        try:
+            self._backend.grow(cap)
+        except MapMemoryError:
+            raise
+        except Exception as e:  # the device's allocation failed: the old pool is still in place
+            raise MapMemoryError(
+                f"Expected the device to hold {cap} blocks ({cap * self._block_bytes / 2**30:.2f} GiB), "
+                f"but growing the pool failed: {e}"
+            ) from e
+        self._coords = np.concatenate([self._coords, np.zeros((cap - old, 3), np.int64)])
+        self._used = np.concatenate([self._used, np.zeros(cap - old, bool)])
+        self._free = np.concatenate([np.arange(cap - 1, old - 1, -1, dtype=np.int64), self._free])
+
+    def _free_slots(self, slots: np.ndarray) -> None:
+        if len(slots) == 0:
+            return
+        lins = self._lins(self._coords[slots])
+        self._index.reshape(-1)[lins] = -1
+        self._used[slots] = False
+        self._free = np.concatenate([self._free, slots[::-1]])
+        self._backend.set_blocks(np.full(len(slots), -1, np.int32), lins.astype(np.int32))
+
+    def _reclaim(self) -> None:
+        """Free blocks that no ping has observed a voxel of (allocated by the conservative test);
+        a bounded box keeps all of its blocks."""
+        if self.sparse is None:
+            return
+        seen = self._backend.read_seen()
+        dead = np.flatnonzero(self._used & (seen[: len(self._used)] == 0))
+        self._free_slots(dead)
+
+    def _evict(self, n: int, keep_lins: np.ndarray, sonar_t: np.ndarray) -> None:
+        used = np.flatnonzero(self._used)
+        keep = np.isin(self._lins(self._coords[used]), keep_lins)
+        cand = used[~keep]
+        if len(cand) < n:
+            raise MapMemoryError(
+                f"Expected max_bytes={self.max_bytes} to hold at least one ping's blocks, but this ping "
+                f"alone needs {int(keep.sum()) + n} blocks and {len(cand)} others can be evicted"
+            )
+        c = self._origin + (self._coords[cand] + 0.5) * self.B * self._voxel
+        d = np.linalg.norm(c - sonar_t, axis=1)
+        self._free_slots(cand[np.argsort(-d, kind="stable")[:n]])
+
     def synchronize(self) -> None:
-        """Wait until every ping handed to :meth:`integrate` is in the grid (GPU backends run async)."""
-        sync = getattr(self._backend, "synchronize", None)
-        if sync is not None:
-            with self._lock:
-                sync()
-
-    # ------------------------------------------------------------------ results
-    def raw_values(self) -> np.ndarray:
-        """(nx, ny, nz) float32 copy of the map values with ``+inf`` for never observed."""
+        """Wait until every ping handed to :meth:`integrate` is in the map (GPU backends run async)."""
         with self._lock:
-            g = self._backend.read()
-            if self.rule == "visible":
-                from gpumap.reference import visible_values
+            self._backend.synchronize()
 
-                g = visible_values(g, *self._backend.read_evidence(), self.carve_views)
-        return g.reshape(self.grid.shape)
+    def check(self) -> None:
+        """Raise ``RuntimeError`` if a kernel found an observed voxel without a block (a bug:
+        the host's block test must be conservative)."""
+        with self._lock:
+            if self._backend.read_err():
+                raise RuntimeError(
+                    "gpumap: an observed voxel had no block (non-conservative block test)"
+                )
+
+    # ------------------------------------------------------------------ reading
+    def _settle(self) -> None:
+        """Before a read: raise on a kernel error, free blocks no ping has observed."""
+        self.check()
+        self._reclaim()
+
+    def _blocks(self) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Used blocks' coords (n, 3) int64 (lexicographic order) and their (n, B^3) arrays:
+        ``min_all``, ``values`` and for the visible rule ``bright`` and ``count``."""
+        self.check()
+        g, b, c = self._backend.read()
+        B3 = self.B3
+        if self.sparse is None:  # every block, slot = index entry: already in coordinate order
+            coords = self._coords
+            out = {"min_all": g.reshape(-1, B3)}
+            if self._visible:
+                out["bright"], out["count"] = b.reshape(-1, B3), c.reshape(-1, B3)
+        else:
+            used = np.flatnonzero(self._used)
+            coords = self._coords[used]
+            order = np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0]))
+            used, coords = used[order], coords[order]
+            take = (used[:, None] * B3 + np.arange(B3)).reshape(-1)
+            out = {"min_all": g[take].reshape(-1, B3)}
+            if self._visible:
+                out["bright"], out["count"] = b[take].reshape(-1, B3), c[take].reshape(-1, B3)
+        if self._visible:
+            from gpumap.reference import visible_values
+
+            out["values"] = visible_values(out["min_all"], out["bright"], out["count"], self.carve_views)
+        else:
+            out["values"] = out["min_all"]
+        return coords, out
+
+    def _whole_box(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._dims is not None:
+            return np.zeros(3, np.int64), self._dims - 1
+        used = np.flatnonzero(self._used)
+        if len(used) == 0:
+            return np.zeros(3, np.int64), np.zeros(3, np.int64)
+        c = self._coords[used]
+        return c.min(axis=0) * self.B, (c.max(axis=0) + 1) * self.B - 1
+
+    def _box_grid(self, i0: np.ndarray, i1: np.ndarray) -> GridSpec:
+        s = self._voxel
+        return GridSpec(tuple(self._origin + i0 * s), tuple(self._origin + (i1 + 1) * s), s)
+
+    def _dense(self, i0: np.ndarray, i1: np.ndarray, names: tuple[str, ...],
+               blocks: tuple | None = None) -> dict[str, np.ndarray]:
+        """Arrays over voxel indices i0..i1 (inclusive): +inf / 0 where no block (``blocks``:
+        :meth:`_blocks`' result, read here if None)."""
+        shape = tuple(int(x) for x in i1 - i0 + 1)
+        if min(shape) <= 0:
+            return {n: np.zeros((0, 0, 0), np.uint8 if n == "count" else np.float32) for n in names}
+        if int(np.prod(shape)) > _MAX_BOX_VOXELS:
+            raise ValueError(f"Expected a box of at most {_MAX_BOX_VOXELS} voxels, but got {shape}")
+        coords, data = self._blocks() if blocks is None else blocks
+        B = self.B
+        b0, b1 = i0 // B, i1 // B
+        nb = tuple(int(x) for x in b1 - b0 + 1)
+        sel = np.all((coords >= b0) & (coords <= b1), axis=1)
+        r = coords[sel] - b0
+        whole = len(r) == int(np.prod(nb))  # every block of the box, in coordinate order
+        out = {}
+        for n in names:
+            dt, fill = (np.uint8, 0) if n == "count" else (np.float32, np.inf)
+            if whole:
+                V = data[n][sel].reshape(*nb, B, B, B)
+            else:
+                V = np.full((*nb, B, B, B), fill, dt)
+                V[r[:, 0], r[:, 1], r[:, 2]] = data[n][sel].reshape(-1, B, B, B)
+            V = V.transpose(0, 3, 1, 4, 2, 5).reshape(*(x * B for x in nb))
+            a = i0 - b0 * B
+            out[n] = np.ascontiguousarray(
+                V[a[0] : a[0] + shape[0], a[1] : a[1] + shape[1], a[2] : a[2] + shape[2]]
+            )
+        return out
+
+    def _to_pool_order(self, a: np.ndarray, fill) -> np.ndarray:
+        """A bounded box's (nx, ny, nz) array as (n_blocks, B^3) in slot order (``fill`` past the box)."""
+        B = self.B
+        nb = self._index.shape
+        V = np.full(tuple(n * B for n in nb), fill, a.dtype)
+        V[: a.shape[0], : a.shape[1], : a.shape[2]] = a
+        return np.ascontiguousarray(
+            V.reshape(nb[0], B, nb[1], B, nb[2], B).transpose(0, 2, 4, 1, 3, 5)).reshape(-1, self.B3)
+
+    def raw_values(self) -> np.ndarray:
+        """(nx, ny, nz) float32 copy of the map values over :attr:`grid`, ``+inf`` = never observed."""
+        with self._lock:
+            self._settle()
+            return self._dense(*self._whole_box(), ("values",))["values"]
 
     def values(self) -> np.ndarray:
-        """(nx, ny, nz) float32 copy of the grid, ``NaN`` = never observed, else in [0, 1]."""
+        """(nx, ny, nz) float32 copy over :attr:`grid`, ``NaN`` = never observed, else in [0, 1]."""
         v = self.raw_values()
         v[np.isinf(v)] = np.nan
         return v
 
-    @property
-    def carve_views(self) -> int:
-        """Visible rule: clear dark views that carve a voxel once seen bright (see the class)."""
-        return self._carve_views
-
-    @carve_views.setter
-    def carve_views(self, n: int) -> None:
-        self._carve_views = check_carve_views(n)
-
     def evidence(self) -> dict[str, np.ndarray]:
-        """The visible rule's per-voxel state, (nx, ny, nz) copies: ``min_all`` float32 (min over
-        every view, ``+inf`` never observed), ``bright`` float32 (min over bright views, ``+inf``
-        none) and ``count`` uint8 (clear dark evidence). Raises for the plain rule."""
-        if self.rule != "visible":
+        """The visible rule's per-voxel state over :attr:`grid`, (nx, ny, nz) copies: ``min_all``
+        float32 (min over every view, ``+inf`` never observed), ``bright`` float32 (min over bright
+        views, ``+inf`` none) and ``count`` uint8 (clear dark evidence). Raises for the plain rule."""
+        if not self._visible:
             raise ValueError(
                 f"Expected a mapper with rule='visible' for evidence(), but its rule is {self.rule!r}"
             )
         with self._lock:
-            bright, count = self._backend.read_evidence()
-            min_all = self._backend.read()
-        shape = self.grid.shape
-        return {"min_all": min_all.reshape(shape), "bright": bright.reshape(shape),
-                "count": count.reshape(shape)}
+            self._settle()
+            return self._dense(*self._whole_box(), ("min_all", "bright", "count"))
 
     def observed(self) -> np.ndarray:
-        """(nx, ny, nz) bool: voxels seen by at least one ping."""
+        """(nx, ny, nz) bool over :attr:`grid`: voxels seen by at least one ping."""
         return np.isfinite(self.raw_values())
 
-    def occupied_points(self, threshold: float) -> np.ndarray:
-        """(N, 3) float64 world centres (metres) of observed voxels with value >= ``threshold``."""
-        v = self.raw_values()
-        idx = np.argwhere(np.isfinite(v) & (v >= np.float32(threshold)))
-        return self.grid.centers(idx)
+    def values_in_box(self, lo_m, hi_m) -> tuple[GridSpec, np.ndarray]:
+        """Values of the voxels whose centres lie in the world box ``[lo_m, hi_m]`` (metres).
+
+        Returns the box's :class:`GridSpec` (its voxels are the map's) and its (nx, ny, nz)
+        float32 values, ``NaN`` = never observed."""
+        lo, hi = np.asarray(_vec3(lo_m, "lo_m")), np.asarray(_vec3(hi_m, "hi_m"))
+        if np.any(hi < lo):
+            raise ValueError(f"Expected hi_m >= lo_m on every axis, but got {lo.tolist()} and {hi.tolist()}")
+        s = self._voxel
+        i0 = np.ceil((lo - self._origin) / s - 0.5).astype(np.int64)
+        i1 = np.floor((hi - self._origin) / s - 0.5).astype(np.int64)
+        if self._dims is not None:
+            i0, i1 = np.maximum(i0, 0), np.minimum(i1, self._dims - 1)
+        if np.any(i1 < i0):
+            raise ValueError(
+                f"Expected a box holding at least one voxel centre, but {lo.tolist()}-{hi.tolist()} "
+                "holds none (inside the bounds)"
+            )
+        with self._lock:
+            self._settle()
+            v = self._dense(i0, i1, ("values",))["values"]
+        v[np.isinf(v)] = np.nan
+        return self._box_grid(i0, i1), v
+
+    def occupied_points(self, threshold: float, center_m=None, radius_m: float | None = None) -> np.ndarray:
+        """(N, 3) float64 world centres (metres) of observed voxels with value >= ``threshold``,
+        in the grid's order (x index, then y, then z); with ``center_m`` ((3,) point, or a
+        (4, 4) pose whose position is taken) and ``radius_m``, only those within that distance."""
+        thr = np.float32(check_finite_scalar(threshold, "threshold"))
+        with self._lock:
+            self._settle()
+            coords, data = self._blocks()
+        B, s = self.B, self._voxel
+        c = None
+        if center_m is not None or radius_m is not None:
+            if center_m is None or radius_m is None:
+                raise ValueError("Expected center_m and radius_m together, or neither")
+            a = np.asarray(center_m, np.float64)
+            c = np.asarray(check_pose(a, "center_m")[:3, 3] if a.shape == (4, 4) else _vec3(a, "center_m"))
+            r = check_finite_scalar(radius_m, "radius_m")
+            if r < 0:
+                raise ValueError(f"Expected radius_m >= 0, but got {r}")
+            mid = self._origin + (coords + 0.5) * B * s
+            near = np.linalg.norm(mid - c, axis=1) <= r + math.sqrt(3) / 2 * B * s
+            coords, vals = coords[near], data["values"][near]
+        else:
+            vals = data["values"]
+        blk, loc = np.nonzero(np.isfinite(vals) & (vals >= thr))
+        idx = coords[blk] * B + _local(B)[loc]
+        idx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
+        pts = self._origin + (idx + 0.5) * s
+        if c is not None:
+            pts = pts[np.linalg.norm(pts - c, axis=1) <= r]
+        return pts
+
+    def memory_stats(self) -> dict:
+        """Blocks and bytes (on demand, never-observed blocks are freed first).
+
+        ``blocks``; ``observed_voxels``; ``bytes_per_voxel`` (9 visible rule, 4 plain);
+        ``block_bytes`` (blocks x voxels per block x bytes per voxel); ``observed_bytes``
+        (observed voxels x bytes per voxel) and their ratio ``block_over_observed``;
+        ``pool_bytes`` (the allocated pool, spare slots included, +1 byte per slot);
+        ``index_bytes``; ``total_bytes`` (pool + index); ``dense_bytes``: a dense grid over the
+        same box (the bounds, or the box of the blocks) at the same bytes per voxel."""
+        with self._lock:
+            self.synchronize()
+            self._reclaim()
+            coords, data = self._blocks()
+            n_obs = int(np.isfinite(data["min_all"]).sum())
+            i0, i1 = self._whole_box()
+            n = len(coords)
+            bpv = self.bytes_per_voxel
+            cap = self._backend.cap
+            dense = int(np.prod(i1 - i0 + 1)) * bpv if n or self._dims is not None else 0
+            return {
+                "blocks": n,
+                "block_size": self.B,
+                "observed_voxels": n_obs,
+                "bytes_per_voxel": bpv,
+                "block_bytes": n * self.B3 * bpv,
+                "observed_bytes": n_obs * bpv,
+                "block_over_observed": (n * self.B3 / n_obs) if n_obs else None,
+                "pool_blocks": cap,
+                "pool_bytes": cap * self._block_bytes,
+                "index_bytes": int(self._index.nbytes),
+                "total_bytes": cap * self._block_bytes + int(self._index.nbytes),
+                "dense_bytes": dense,
+            }
 
     # ------------------------------------------------------------------ confidence and view gain
+    def _need_confidence(self, what: str) -> None:
+        if self.sparse is not None:
+            raise NotImplementedError(
+                f"Expected a gpumap.MinMaxMapper on a GridSpec with confidence=True for {what}(); a map that "
+                "allocates blocks on demand has no confidence layer yet"
+            )
+        if self._confirmed is None:
+            raise ValueError(f"Expected a mapper made with confidence=True for {what}(), but it has none")
+
     def _confirm(self, T: np.ndarray, pad: float, img: np.ndarray) -> None:
         """The confidence pass of one ping, after its update (see :mod:`gpumap.confidence`)."""
         from gpumap.confidence import APERTURE_MARGIN, TUBE_VOXELS, confirm_ping
@@ -595,11 +1198,7 @@ class MinMaxMapper:
             params, _ = self._ping_params(T[None], np.array([pad]))
         finally:
             self._fov_pts_S = keep
-        values = self._backend.read()
-        if self.rule == "visible":
-            from gpumap.reference import visible_values
-
-            values = visible_values(values, *self._backend.read_evidence(), self.carve_views)
+        values = self.raw_values().ravel()
         flat = confirm_ping(params[0], img, edges, values, half, TUBE_VOXELS * self.grid.voxel_size_m,
                             self._arcs)
         self._confirmed[flat] = 1
@@ -610,8 +1209,7 @@ class MinMaxMapper:
         confirmed (some view resolved it in elevation; see :mod:`gpumap.confidence` for the exact
         rule). Occupied means a value ``>= threshold``; confidence never changes a value, so it
         never turns an occupied voxel free. Needs ``confidence=True``."""
-        if self._confirmed is None:
-            raise ValueError("Expected a mapper made with confidence=True for confidence(), but it has none")
+        self._need_confidence("confidence")
         with self._lock:
             v = self.raw_values().ravel()
             conf = self._confirmed.copy()
@@ -633,8 +1231,7 @@ class MinMaxMapper:
         """
         from gpumap.nbv import GainRunner, _fov, gain_points, poses_to_rows
 
-        if self._confirmed is None:
-            raise ValueError("Expected a mapper made with confidence=True for view_gain(), but it has none")
+        self._need_confidence("view_gain")
         w = check_finite_scalar(unknown_weight, "unknown_weight")
         if w < 0:
             raise ValueError(f"Expected unknown_weight >= 0, but got {w}")
@@ -652,54 +1249,115 @@ class MinMaxMapper:
             settle, unknown = self._gain_runner(poses_to_rows(Ts), pts, _fov(self._params))
         return settle.astype(np.float64) + w * unknown.astype(np.float64)
 
+    # ------------------------------------------------------------------ reset, merge
     def reset(self) -> None:
-        """Forget every ping: all voxels unknown again."""
+        """Forget every ping: all voxels unknown again (on demand: no blocks; the pool keeps its size)."""
         with self._lock:
             if self._confirmed is not None:
                 self._confirmed[:] = 0
                 self._arcs[:] = 0
-            self._backend.write(np.full(self.grid.n_voxels, np.inf, dtype=np.float32))
-            if self.rule == "visible":
-                self._backend.write_evidence(*_evidence_empty(self.grid.n_voxels))
+            if self.sparse is None:  # every block back to never observed, the index unchanged
+                slots = np.arange(self._backend.cap, dtype=np.int32)
+                self._backend.set_blocks(slots, slots)
+            else:
+                self._free_slots(np.flatnonzero(self._used))
             self.n_integrated = 0
 
     def merge(self, other) -> None:
         """Add the pings of ``other`` (a map of the same grid and options built from other pings:
         a mapper, a :class:`gpumap.merge.MapState` or a map file) to this map, in place; the result
-        equals one mapper that integrated all of them, bit for bit (:mod:`gpumap.merge`)."""
+        equals one mapper that integrated all of them, bit for bit (:mod:`gpumap.merge`). Never
+        evicts: past ``max_bytes`` it raises :class:`MapMemoryError` with the map unchanged."""
         from gpumap.merge import merge_into
 
         merge_into(self, other)
+
+    def _put_blocks(self, coords: np.ndarray, arrays: dict, combine: bool) -> None:
+        """Blocks ``coords`` ((n, 3) int64, distinct, inside the bounds) take ``arrays``
+        (``min_all`` and for the visible rule ``bright``, ``count``: (n, B^3) each), merged with
+        what they hold when ``combine`` (:func:`gpumap.merge._combine_into`). Allocates missing
+        blocks (never evicts); raises :class:`MapMemoryError` past ``max_bytes``, unchanged."""
+        from gpumap.merge import _combine_into
+
+        if not len(coords):
+            return
+        self.synchronize()
+        self._settle()
+        if self._dims is None:  # an unbounded map's index must span the blocks
+            self._ensure_index(coords.min(axis=0), coords.max(axis=0))
+        lins = self._lins(coords)
+        flat = self._index.reshape(-1)
+        new = flat[lins] < 0
+        n_new = int(new.sum())
+        short = n_new - len(self._free)
+        if short > 0:
+            cap = self._backend.cap + short
+            if self.max_bytes is not None:
+                need = cap * self._block_bytes + self._index.nbytes
+                if need > self.max_bytes:
+                    raise MapMemoryError(
+                        f"Expected the map to stay under max_bytes={self.max_bytes}, but it needs {cap} "
+                        f"blocks of {self._block_bytes} bytes plus a {self._index.nbytes}-byte index "
+                        f"({need} bytes); the map is unchanged (merge never evicts)"
+                    )
+            self._grow_to(cap)
+        if n_new:
+            k = len(self._free) - n_new
+            slots_new = self._free[k:][::-1]
+            self._free = self._free[:k]
+            flat[lins[new]] = slots_new
+            self._coords[slots_new] = coords[new]
+            self._used[slots_new] = True
+            self._backend.set_blocks(slots_new.astype(np.int32), lins[new].astype(np.int32))
+        slots = flat[lins].astype(np.int64)
+        mine = arrays
+        if combine and n_new < len(coords):
+            g, b, c = self._backend.read()
+            addr = slots[:, None] * self.B3 + np.arange(self.B3)
+            mine = {"min_all": g[addr]}
+            if self._visible:
+                mine["bright"], mine["count"] = b[addr], c[addr]
+            _combine_into(mine, arrays, self._visible)  # mine: copies (fancy indexing)
+        self._backend.write_blocks(slots, mine["min_all"], mine.get("bright"), mine.get("count"))
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | os.PathLike) -> Path:
         """Write the map to ``path`` (.npz), atomically: a crash leaves the old file intact.
 
-        Lossless: ``values``, the float32 map as :meth:`raw_values` gives it (``+inf``
-        unknown); for the visible rule its state (``min_all`` and ``bright`` float32,
-        ``count`` uint8); with the confidence layer ``confirmed`` uint8 and ``arcs`` uint16
-        (the elevation-arc directions each voxel was observed along); both specs, the method,
-        rule, threshold and the ping count, under a format name and version checked by
-        :meth:`load`.
+        Lossless, in blocks (format version 4, for every storage): ``blocks`` (n, 3) int32 block
+        coordinates (lexicographic; only blocks with an observed voxel), ``values`` (n, B, B, B)
+        float32, the map as :meth:`raw_values` gives it (``+inf`` unknown); for the visible rule
+        its state (``min_all`` and ``bright`` float32, ``count`` uint8); with the confidence
+        layer ``confirmed`` uint8 and ``arcs`` uint16; ``meta`` (JSON): the sonar spec, the
+        ``grid`` (a bounded box) or the ``sparse`` spec (on demand), the method, rule,
+        threshold, carve_views, shadow_m and the ping count, under a format name and version
+        checked by :meth:`load`.
         """
         path = Path(path)
         if path.suffix != ".npz":
             path = path.with_suffix(path.suffix + ".npz") if path.suffix else path.with_suffix(".npz")
+        B = self.B
         with self._lock:  # one consistent snapshot, even while other threads integrate
-            # 'values' is the map as values() reads it; the visible rule adds its state
-            arrays = {"values": self.raw_values()}
-            if self.rule == "visible":
-                ev = self.evidence()
-                arrays.update(min_all=ev["min_all"], bright=ev["bright"], count=ev["count"])
+            self.synchronize()
+            self._settle()
+            coords, data = self._blocks()
+            keep = np.isfinite(data["min_all"]).any(axis=1)
+            arrays = {"blocks": coords[keep].astype(np.int32), "values": data["values"][keep]}
+            if self._visible:
+                arrays.update({k: data[k][keep] for k in ("min_all", "bright", "count")})
             if self._confirmed is not None:
-                arrays["confirmed"] = self._confirmed.reshape(self.grid.shape).copy()
-                arrays["arcs"] = self._arcs.reshape(self.grid.shape).copy()
+                shape = self.grid.shape
+                arrays["confirmed"] = self._to_pool_order(self._confirmed.reshape(shape), 0)[keep]
+                arrays["arcs"] = self._to_pool_order(self._arcs.reshape(shape), 0)[keep]
             n_integrated = self.n_integrated
+        arrays = {k: v if k == "blocks" else v.reshape(-1, B, B, B) for k, v in arrays.items()}
         meta = {
             "format": FILE_FORMAT,
             "version": FILE_VERSION,
             "spec": self.spec.to_dict(),
-            "grid": self.grid.to_dict(),
+            "grid": self.grid.to_dict() if self.sparse is None else None,
+            "sparse": None if self.sparse is None else self.sparse.to_dict(),
+            "block": B,
             "method": self.method,
             "shadow_m": self.shadow_m,
             "rule": self.rule,
@@ -715,25 +1373,29 @@ class MinMaxMapper:
         return path
 
     @classmethod
-    def load(cls, path: str | os.PathLike, backend: str = "auto") -> MinMaxMapper:
-        """Read a map written by :meth:`save` onto ``backend``.
+    def load(cls, path: str | os.PathLike, backend: str = "auto", **kw) -> MinMaxMapper:
+        """Read a map written by :meth:`save` (any version, and the former
+        ``SparseMinMaxMapper.save``) onto ``backend``; ``kw``: ``max_bytes``, ``evict`` for a
+        map on demand.
 
         Checked before anything large is read or allocated: the metadata (format, version,
-        every field's type and range), each array's declared shape and dtype against the
-        grid, and each member's declared size against what its compressed bytes can hold
-        (deflate inflates at most ~1,000 : 1), so a small file cannot make it allocate
-        gigabytes. Then the values: finite in [0, 1] or ``+inf`` (never observed), and for the
-        visible rule consistent with its state. Raises :class:`~gpumap.errors.FormatError` (a
-        ``ValueError``; :class:`~gpumap.errors.LimitError` when the map would not fit in
-        memory) saying what was expected and what came.
+        every field's type and range), each array's declared shape and dtype, and each
+        member's declared size against what its compressed bytes can hold (deflate inflates at
+        most ~1,000 : 1), so a small file cannot make it allocate gigabytes. Then the blocks
+        (unique, inside the bounds, each with an observed voxel) and the values: finite in
+        [0, 1] or ``+inf`` (never observed), and for the visible rule consistent with its
+        state. Raises :class:`~gpumap.errors.FormatError` (a ``ValueError``;
+        :class:`~gpumap.errors.LimitError` when the map would not fit in memory) saying what
+        was expected and what came.
         """
         path = Path(path)
         try:
             with zipfile.ZipFile(path) as zf:
                 members = {i.filename: i for i in zf.infolist()}
-                if "meta.npy" not in members or "values.npy" not in members:
+                if "meta.npy" not in members or not {"values.npy", "blocks.npy"} & set(members):
                     raise FormatError(
-                        f"Expected a gpumap map file with 'meta' and 'values', but {path} has "
+                        f"Expected a gpumap map file with 'meta' and 'blocks' (or 'meta' and 'values', "
+                        f"versions 1 to 3), but {path} has "
                         f"{sorted(n.removesuffix('.npy') for n in members)}"
                     )
                 headers = {
@@ -746,21 +1408,37 @@ class MinMaxMapper:
                     )
                 with zf.open("meta.npy") as f:
                     meta = json.loads(str(np.lib.format.read_array(f, allow_pickle=False)))
-                spec, grid, opts, n_integrated = _check_meta(meta, path)
+                spec, space, opts, n_integrated, dense_file = _check_meta(meta, path)
+                if cls._on_demand and not isinstance(space, SparseSpec):
+                    raise FormatError(f"Expected a sparse map file (blocks on demand) for {cls.__name__}, "
+                                      f"but {path} holds a map of a bounded grid: load it with MinMaxMapper")
                 names = ("values", "min_all", "bright", "count") if opts["rule"] == "visible" else ("values",)
                 if opts["confidence"]:
                     names = (*names, "confirmed", "arcs")
-                for name in names:
-                    dt = {"count": np.uint8, "confirmed": np.uint8, "arcs": np.uint16}.get(
-                        name, np.float32)
-                    shape, dtype = headers.get(f"{name}.npy", (None, None))
-                    if shape != grid.shape or dtype != np.dtype(dt):
+                if dense_file:  # versions 1 to 3: arrays over the grid
+                    n_blocks, shape = None, space.shape
+                else:
+                    bshape, bdt = headers.get("blocks.npy", (None, None))
+                    if bshape is None or len(bshape) != 2 or bshape[1] != 3 or bdt != np.dtype(np.int32):
                         raise FormatError(
-                            f"Expected '{name}' of shape {grid.shape} {np.dtype(dt)} in {path}, "
-                            f"but got {'nothing' if shape is None else f'{shape} {dtype}'}"
+                            f"Expected 'blocks' of shape (n, 3) int32 in {path}, but got "
+                            f"{'nothing' if bshape is None else f'{bshape} {bdt}'}"
+                        )
+                    B = space.block if isinstance(space, SparseSpec) else meta.get("block", BLOCK)
+                    if B != BLOCK and isinstance(space, GridSpec):
+                        raise FormatError(f"Expected block {BLOCK} for a grid map in {path}, but got {B!r}")
+                    n_blocks = bshape[0]
+                    shape = (n_blocks, B, B, B)
+                for name in names:
+                    dt = {"count": np.uint8, "confirmed": np.uint8, "arcs": np.uint16}.get(name, np.float32)
+                    got, dtype = headers.get(f"{name}.npy", (None, None))
+                    if got != shape or dtype != np.dtype(dt):
+                        raise FormatError(
+                            f"Expected '{name}' of shape {shape} {np.dtype(dt)} in {path}, "
+                            f"but got {'nothing' if got is None else f'{got} {dtype}'}"
                         )
                 size = {"count": 1, "confirmed": 1, "arcs": 2}
-                need = sum(int(np.prod(grid.shape)) * size.get(n, 4) for n in names)
+                need = sum(int(np.prod(shape)) * size.get(n, 4) for n in names)
                 free = _free_memory_bytes("numpy")
                 if free is not None and 2 * need > free:
                     raise LimitError(
@@ -768,7 +1446,7 @@ class MinMaxMapper:
                         f"(twice that while loading) and {free / 2**30:.2f} GiB are free"
                     )
                 arrays = {}
-                for name in names:
+                for name in (*names, *(() if dense_file else ("blocks",))):
                     with zf.open(f"{name}.npy") as f:
                         arrays[name] = np.lib.format.read_array(f, allow_pickle=False)
         except (OSError, EOFError, zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError,
@@ -777,17 +1455,55 @@ class MinMaxMapper:
             raise FormatError(
                 f"Expected a gpumap map file (.npz) at {path}, but it cannot be read: {e!r}"
             ) from e
-        _check_map_values(arrays, opts, path)
-        m = cls(spec, grid, backend=backend, **opts)
+        if dense_file:
+            _check_map_values(arrays, opts, path)
+            m = cls(spec, space, backend=backend, **opts, **kw)
+            pool = {k: m._to_pool_order(arrays[k], 0 if k == "count" else np.inf).ravel()
+                    for k in (("min_all", "bright", "count") if opts["rule"] == "visible" else ("values",))}
+            with m._lock:
+                grid = pool["min_all"] if opts["rule"] == "visible" else pool["values"]
+                m._backend.write(grid, pool.get("bright"), pool.get("count"))
+                if opts["confidence"]:
+                    m._confirmed[:] = arrays["confirmed"].ravel()
+                    m._arcs[:] = arrays["arcs"].ravel()
+                m.n_integrated = n_integrated
+            return m
+        coords = arrays.pop("blocks").astype(np.int64)
+        n = len(coords)
+        flat = {k: v.reshape(n, B**3) for k, v in arrays.items()}
+        _check_map_values(flat, opts, path)
+        if n and len(np.unique(coords, axis=0)) != n:
+            raise FormatError(f"Expected each block once in {path}, but some repeat")
+        if np.abs(coords).max(initial=0) * B > _MAX_VOXEL_INDEX - 2 * B:
+            raise FormatError(f"Expected block coordinates within +-{_MAX_VOXEL_INDEX // B - 2} in {path}")
+        obs = np.isfinite(flat["min_all" if opts["rule"] == "visible" else "values"])
+        if not obs.any(axis=1).all():
+            raise FormatError(f"Expected every block in {path} to hold an observed voxel, but some hold none")
+        dims = space.shape
+        if dims is not None and n:
+            idx = coords[:, None, :] * B + _local(B)[None]
+            outside = np.any((idx < 0) | (idx >= np.asarray(dims)), axis=2)
+            if np.any(outside & obs) or np.any(coords < 0) or np.any(coords * B >= np.asarray(dims)):
+                raise FormatError(
+                    f"Expected observed voxels only inside the bounds in {path}, but some lie outside"
+                )
+        if isinstance(space, SparseSpec):
+            kw = {"initial_blocks": max(1, n), **kw}
+        m = cls(spec, space, backend=backend, **opts, **kw)
+        src = {"min_all": flat["min_all" if opts["rule"] == "visible" else "values"]}
         if opts["rule"] == "visible":
-            m._backend.write_evidence(arrays["bright"].ravel(), arrays["count"].ravel())
-            m._backend.write(arrays["min_all"].ravel())
-        else:
-            m._backend.write(arrays["values"].ravel())
-        if opts["confidence"]:
-            m._confirmed[:] = arrays["confirmed"].ravel()
-            m._arcs[:] = arrays["arcs"].ravel()
-        m.n_integrated = n_integrated
+            src["bright"], src["count"] = flat["bright"], flat["count"]
+        with m._lock:
+            m._put_blocks(coords, src, combine=False)
+            if opts["confidence"]:
+                for name, target in (("confirmed", m._confirmed), ("arcs", m._arcs)):
+                    full = np.zeros((int(np.prod(m._index.shape)), m.B3), target.dtype)
+                    full[m._lins(coords)] = flat[name]
+                    g = m.grid.shape
+                    V = full.reshape(*m._index.shape, B, B, B).transpose(0, 3, 1, 4, 2, 5)
+                    V = V.reshape(*(x * B for x in m._index.shape))
+                    target[:] = V[: g[0], : g[1], : g[2]].ravel()
+            m.n_integrated = n_integrated
         return m
 
 
@@ -823,22 +1539,28 @@ def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path) -> tuple
     return tuple(shape), dtype
 
 
-def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec, dict, int]:
-    """The specs, the constructor options and the ping count of a map file's metadata."""
+def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec | SparseSpec, dict, int, bool]:
+    """The sonar spec, the grid (a GridSpec, or a SparseSpec for a map on demand), the constructor
+    options, the ping count of a map file's metadata, and whether it holds dense arrays over the
+    grid (versions 1 to 3) rather than blocks."""
     if not isinstance(meta, dict):
         raise FormatError(f"Expected a JSON object as map metadata in {path}, but got {type(meta).__name__}")
-    if meta.get("format") != FILE_FORMAT:
-        raise FormatError(f"Expected format {FILE_FORMAT!r} in {path}, but got {meta.get('format')!r}")
-    if meta.get("version") not in (1, 2, FILE_VERSION):
+    fmt, version = meta.get("format"), meta.get("version")
+    if fmt not in (FILE_FORMAT, SPARSE_FILE_FORMAT):
+        raise FormatError(f"Expected format {FILE_FORMAT!r} in {path}, but got {fmt!r}")
+    if (fmt == FILE_FORMAT and version not in (1, 2, 3, FILE_VERSION)) or (
+            fmt == SPARSE_FILE_FORMAT and version != 1):
         raise FormatError(
-            f"Expected file version 1, 2 or {FILE_VERSION} in {path}, but got {meta.get('version')!r}"
+            f"Expected file version 1 to {FILE_VERSION} in {path} ({fmt}), but got {version!r}"
         )
+    sparse_file = fmt == SPARSE_FILE_FORMAT or (version == FILE_VERSION and meta.get("sparse") is not None)
     try:
         spec = SonarSpec.from_dict(meta["spec"])
-        grid = GridSpec.from_dict(meta["grid"])
-    except (KeyError, TypeError, ValueError, OverflowError) as e:
+        space = SparseSpec.from_dict(meta["sparse"]) if sparse_file else GridSpec.from_dict(meta["grid"])
+    except (KeyError, TypeError, ValueError, OverflowError, IndexError) as e:
         raise FormatError(
-            f"Expected a sonar spec and a grid spec in the metadata of {path}, but: {e!r}"
+            f"Expected a sonar spec and a grid spec (a sparse spec on demand) in the metadata of {path}, "
+            f"but: {e!r}"
         ) from e
     n = meta.get("n_integrated")
     if isinstance(n, bool) or not isinstance(n, int) or n < 0:
@@ -852,17 +1574,21 @@ def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec, dict, in
         "carve_views": meta.get("carve_views", 2),
         "confidence": meta.get("confidence", False),  # versions 1 and 2 have no confidence layer
     }
-    if opts["method"] not in METHODS or rule not in RULES:
+    if opts["method"] not in METHODS or rule not in RULES or (sparse_file and opts["method"] != "gather"):
         raise FormatError(
-            f"Expected method in {METHODS} and rule in {RULES} in {path}, but got "
+            f"Expected method in {METHODS} ('gather' on demand) and rule in {RULES} in {path}, but got "
             f"{opts['method']!r} and {rule!r}"
         )
-    if not isinstance(opts["confidence"], bool):
-        raise FormatError(f"Expected a bool for confidence in {path}, but got {opts['confidence']!r}")
+    if not isinstance(opts["confidence"], bool) or (sparse_file and opts["confidence"]):
+        raise FormatError(f"Expected a bool for confidence (False on demand) in {path}, but got "
+                          f"{opts['confidence']!r}")
     for key in ("shadow_m", "threshold"):
         if isinstance(opts[key], bool) or not isinstance(opts[key], (int, float)):
             raise FormatError(f"Expected a number for {key} in {path}, but got {opts[key]!r}")
-    return spec, grid, opts, n
+    cv = opts["carve_views"]
+    if isinstance(cv, bool) or not isinstance(cv, int) or not 1 <= cv <= 255:
+        raise FormatError(f"Expected carve_views in 1..255 in {path}, but got {cv!r}")
+    return spec, space, opts, n, fmt == FILE_FORMAT and version != FILE_VERSION
 
 
 def _check_map_values(arrays: dict[str, np.ndarray], opts: dict, path: Path) -> None:
@@ -890,8 +1616,6 @@ def _check_map_values(arrays: dict[str, np.ndarray], opts: dict, path: Path) -> 
         if np.any(unseen & (np.isfinite(arrays["bright"]) | (arrays["count"] > 0))):
             raise FormatError(f"Expected no evidence on never-observed voxels in {path}, but some have it")
         cv = opts["carve_views"]
-        if isinstance(cv, bool) or not isinstance(cv, int) or not 1 <= cv <= 255:
-            raise FormatError(f"Expected carve_views in 1..255 in {path}, but got {cv!r}")
         if not np.array_equal(visible_values(arrays["min_all"], arrays["bright"], arrays["count"], cv),
                               arrays["values"]):
             raise FormatError(f"Expected 'values' in {path} to follow from its state, but they disagree")

@@ -15,16 +15,17 @@ Hence ``merge`` is exact, bit for bit, for any split of the pings and either rul
 every ping (in any order; the ping count adds up). Nothing else in the visible rule's state
 depends on the order: ``carve_views`` is applied when the map is read.
 
-What is *not* mergeable exactly: a :class:`~gpumap.SparseMinMaxMapper` that *evicted* blocks
+What is *not* mergeable exactly: a map on demand (:class:`~gpumap.SparseSpec`) that *evicted* blocks
 (``max_bytes`` with ``evict="farthest"``) has forgotten what its pings said about them, and
 which blocks a single mapper would have evicted depends on the order and on where the sonar
 was when the cap was reached; merging such maps combines what each still holds, exactly, but
 is not the map of one run. ``merge`` itself never evicts: a merge that would pass the target's
-``max_bytes`` raises :class:`~gpumap.MapMemoryError` with the map unchanged. The sparse map's
-pool layout (which slot holds which block) depends on the order but is not part of the map:
-reads and files list blocks in coordinate order.
+``max_bytes`` raises :class:`~gpumap.MapMemoryError` with the map unchanged. The pool layout
+(which slot holds which block) depends on the order but is not part of the map: states, reads
+and files list blocks in coordinate order, and only blocks with an observed voxel travel.
 
-Maps merge when they have the same kind (dense or sparse), sonar spec, grid (or sparse spec),
+Maps merge when they have the same kind (dense: a bounded GridSpec; sparse: blocks on demand),
+sonar spec, grid (or sparse spec),
 method, ``shadow_m``, rule, ``threshold`` and ``carve_views``; anything else raises
 ``ValueError`` naming the first field that differs.
 """
@@ -54,43 +55,37 @@ class MapState:
     Parameters
     ----------
     kind : str
-        ``"dense"`` (:class:`~gpumap.MinMaxMapper`) or ``"sparse"`` (:class:`~gpumap.SparseMinMaxMapper`).
+        ``"dense"`` (a bounded :class:`~gpumap.GridSpec`, every block allocated) or ``"sparse"``
+        (blocks on demand, a :class:`~gpumap.SparseSpec`).
     options : dict
         ``spec`` (``SonarSpec.to_dict()``), ``grid`` (``GridSpec.to_dict()``, dense) or
         ``sparse`` (``SparseSpec.to_dict()``), ``method``, ``shadow_m``, ``rule``, ``threshold``,
-        ``carve_views``.
+        ``carve_views``, ``confidence``.
     n_integrated : int
         Pings the map has integrated.
     arrays : dict
-        ``min_all`` float32 (``+inf`` never observed), and for the visible rule ``bright``
-        float32 and ``count`` uint8: dense ``(n_voxels,)`` in C order; sparse ``(n, B^3)``
-        per block, with ``blocks`` ``(n, 3)`` int64 block coordinates (lexicographic order).
-    box : tuple or None
-        Dense only: ``((i0, i1), (j0, j1), (k0, k1))``, the arrays cover just this box of the
-        grid (C order, ``(i1 - i0) (j1 - j0) (k1 - k0)`` voxels); outside it the state is the
-        empty one (never observed). None: the whole grid.
+        ``blocks`` ``(n, 3)`` int64 block coordinates (lexicographic order; only blocks with an
+        observed voxel), and per block ``(n, B^3)`` ``min_all`` float32 (``+inf`` never
+        observed) and for the visible rule ``bright`` float32 and ``count`` uint8.
     """
 
     kind: str
     options: dict
     n_integrated: int
     arrays: dict = field(repr=False)
-    box: tuple | None = None
 
 
 def _options(mapper) -> tuple[str, dict]:
     from gpumap.mapper import MinMaxMapper
-    from gpumap.sparse import SparseMinMaxMapper
 
-    if isinstance(mapper, MinMaxMapper):
-        kind, space = "dense", {"grid": mapper.grid.to_dict()}
-    elif isinstance(mapper, SparseMinMaxMapper):
-        kind, space = "sparse", {"sparse": mapper.sparse.to_dict()}
-    else:
+    if not isinstance(mapper, MinMaxMapper):
         raise TypeError(
-            f"Expected a gpumap.MinMaxMapper, gpumap.SparseMinMaxMapper, MapState or a map file's path, "
-            f"but got {type(mapper).__name__}"
+            f"Expected a gpumap.MinMaxMapper, MapState or a map file's path, but got {type(mapper).__name__}"
         )
+    if mapper.sparse is None:
+        kind, space = "dense", {"grid": mapper.grid.to_dict()}
+    else:
+        kind, space = "sparse", {"sparse": mapper.sparse.to_dict()}
     return kind, {
         "spec": mapper.spec.to_dict(),
         **space,
@@ -106,20 +101,14 @@ def _options(mapper) -> tuple[str, dict]:
 def map_state(mapper) -> MapState:
     """A copy of ``mapper``'s state (see :class:`MapState`); waits for queued pings first."""
     kind, opts = _options(mapper)
-    visible = mapper.rule == "visible"
     with mapper._lock:
-        if kind == "dense":
-            mapper.synchronize()
-            arrays = {"min_all": mapper._backend.read()}
-            if visible:
-                arrays["bright"], arrays["count"] = mapper._backend.read_evidence()
-        else:
-            mapper.synchronize()
-            mapper._settle()  # blocks no ping observed are freed: only observed blocks travel
-            coords, data = mapper._blocks()
-            arrays = {"blocks": coords.astype(np.int64), "min_all": data["min_all"]}
-            if visible:
-                arrays["bright"], arrays["count"] = data["bright"], data["count"]
+        mapper.synchronize()
+        mapper._settle()  # on demand, blocks no ping observed are freed
+        coords, data = mapper._blocks()
+        keep = np.isfinite(data["min_all"]).any(axis=1)  # only observed blocks travel
+        arrays = {"blocks": coords[keep].astype(np.int64), "min_all": data["min_all"][keep]}
+        if mapper.rule == "visible":
+            arrays["bright"], arrays["count"] = data["bright"][keep], data["count"][keep]
         n = int(mapper.n_integrated)
     return MapState(kind, opts, n, arrays)
 
@@ -207,14 +196,6 @@ def _empty_dense(n: int, visible: bool) -> dict:
     return out
 
 
-def _box_views(full: dict, shape: tuple, box: tuple | None) -> dict:
-    """Views of the (n_voxels,) arrays ``full`` on ``box`` of a grid of ``shape`` (all if None)."""
-    if box is None:
-        return full
-    sl = tuple(slice(a, b) for a, b in box)
-    return {k: v.reshape(shape)[sl] for k, v in full.items()}
-
-
 def merge_into(mapper, other) -> None:
     """Merge ``other`` (a mapper, a :class:`MapState` or a map file) into ``mapper``, in place.
 
@@ -237,35 +218,19 @@ def merge_into(mapper, other) -> None:
             "on the order of the pings and merged maps could not hold it exactly"
         )
     _same(kind, opts, st)
-    visible = opts["rule"] == "visible"
     _check_arrays(st, mapper)
-    if kind == "dense":
-        _merge_dense(mapper, st, visible)
-    else:
-        _merge_sparse(mapper, st, visible)
+    with mapper._lock:
+        mapper._put_blocks(st.arrays["blocks"], st.arrays, combine=True)
+        mapper.n_integrated += int(st.n_integrated)
 
 
 def _check_arrays(st: MapState, mapper) -> None:
-    """The state's arrays have the shapes and dtypes its options say (a MapState built by hand)."""
+    """The state's arrays have the shapes and dtypes its options say, and its blocks lie inside
+    ``mapper``'s bounds (a MapState built by hand)."""
     names = ("min_all", "bright", "count") if st.options["rule"] == "visible" else ("min_all",)
-    if st.kind == "sparse" and st.box is not None:
-        raise ValueError(f"Expected no box with a sparse map's state (blocks say where), but got {st.box!r}")
-    if st.kind == "dense":
-        n = mapper.grid.n_voxels
-        if st.box is not None:
-            box = st.box
-            ok = len(box) == 3 and all(
-                0 <= int(a) <= int(b) <= d for (a, b), d in zip(box, mapper.grid.shape, strict=True)
-            )
-            if not ok:
-                raise ValueError(f"Expected a box inside the grid {mapper.grid.shape}, but got {box!r}")
-            n = int(np.prod([b - a for a, b in box]))
-        want = {k: ((n,), np.uint8 if k == "count" else np.float32) for k in names}
-    else:
-        m = len(st.arrays.get("blocks", ()))
-        B3 = mapper.B3
-        want = {k: ((m, B3), np.uint8 if k == "count" else np.float32) for k in names}
-        want["blocks"] = ((m, 3), np.int64)
+    m = len(st.arrays.get("blocks", ()))
+    want = {k: ((m, mapper.B3), np.uint8 if k == "count" else np.float32) for k in names}
+    want["blocks"] = ((m, 3), np.int64)
     for k, (shape, dt) in want.items():
         a = st.arrays.get(k)
         if not isinstance(a, np.ndarray) or a.shape != shape or a.dtype != dt:
@@ -273,6 +238,11 @@ def _check_arrays(st: MapState, mapper) -> None:
             raise ValueError(
                 f"Expected '{k}' of shape {shape} {np.dtype(dt)} in the map to merge, but got {got}"
             )
+    c = st.arrays["blocks"]
+    if m and (len(np.unique(c, axis=0)) != m or (mapper._dims is not None and (
+            np.any(c < 0) or np.any(c * mapper.B >= mapper._dims)))):
+        raise ValueError("Expected distinct blocks inside the map's bounds in the map to merge, but got "
+                         "repeated blocks or blocks outside")
     n = st.n_integrated
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
         raise ValueError(f"Expected a non-negative ping count in the map to merge, but got {n!r}")
@@ -306,68 +276,6 @@ def _union_blocks(first: MapState, rest, like) -> MapState:
                     {"blocks": coords.astype(np.int64), **acc})
 
 
-def _merge_dense(mapper, st: MapState, visible: bool) -> None:
-    with mapper._lock:
-        mapper.synchronize()
-        mine = {"min_all": mapper._backend.read()}  # copies: combined in place below
-        if visible:
-            mine["bright"], mine["count"] = mapper._backend.read_evidence()
-        _combine_into(_box_views(mine, mapper.grid.shape, st.box), st.arrays, visible)
-        if visible:
-            mapper._backend.write_evidence(mine["bright"], mine["count"])
-        mapper._backend.write(mine["min_all"])
-        mapper.n_integrated += int(st.n_integrated)
-
-
-def _merge_sparse(mapper, st: MapState, visible: bool) -> None:
-    from gpumap.sparse import MapMemoryError
-
-    coords = st.arrays["blocks"]
-    B3 = mapper.B3
-    with mapper._lock:
-        mapper.synchronize()
-        mapper._settle()
-        if len(coords):
-            if mapper._dims is None:  # an unbounded map's index must span the other's blocks
-                mapper._ensure_index(coords.min(axis=0), coords.max(axis=0))
-            lins = mapper._lins(coords)
-            flat = mapper._index.reshape(-1)
-            new = flat[lins] < 0
-            n_new = int(new.sum())
-            short = n_new - len(mapper._free)
-            if short > 0:
-                cap = mapper._backend.cap + short
-                if mapper.max_bytes is not None:
-                    need = cap * mapper._block_bytes + mapper._index.nbytes
-                    if need > mapper.max_bytes:
-                        raise MapMemoryError(
-                            f"Expected the merged map to stay under max_bytes={mapper.max_bytes}, but it "
-                            f"needs {cap} blocks of {mapper._block_bytes} bytes plus a {mapper._index.nbytes}"
-                            f"-byte index ({need} bytes); the map is unchanged (merge never evicts)"
-                        )
-                mapper._grow_to(cap)
-            if n_new:
-                k = len(mapper._free) - n_new
-                slots_new = mapper._free[k:][::-1]
-                mapper._free = mapper._free[:k]
-                flat[lins[new]] = slots_new
-                mapper._coords[slots_new] = coords[new]
-                mapper._used[slots_new] = True
-                mapper._backend.set_blocks(slots_new.astype(np.int32), lins[new].astype(np.int32))
-            slots = flat[lins].astype(np.int64)
-            if n_new == len(coords):  # every block is new (empty): the merge is the other's arrays
-                mine = st.arrays
-            else:
-                g, b, c = mapper._backend.read()
-                addr = slots[:, None] * B3 + np.arange(B3)
-                mine = {"min_all": g[addr]}
-                if visible:
-                    mine["bright"], mine["count"] = b[addr], c[addr]
-                _combine_into(mine, st.arrays, visible)  # mine: copies (fancy indexing)
-            mapper._backend.write_blocks(slots, mine["min_all"], mine.get("bright"), mine.get("count"))
-        mapper.n_integrated += int(st.n_integrated)
-
-
 # ------------------------------------------------------------------------------ files and many maps
 def _file_format(path: Path) -> str:
     """The ``format`` field of a map file's metadata (before anything large is read)."""
@@ -392,39 +300,33 @@ def _file_format(path: Path) -> str:
 
 
 def load_map(path: str | os.PathLike, backend: str = "auto"):
-    """Load a map file written by :meth:`MinMaxMapper.save` or :meth:`SparseMinMaxMapper.save`,
-    whichever it is (its metadata says), onto ``backend``."""
-    from gpumap.mapper import FILE_FORMAT as DENSE
-    from gpumap.mapper import MinMaxMapper
-    from gpumap.sparse import FILE_FORMAT as SPARSE
-    from gpumap.sparse import SparseMinMaxMapper
+    """Load a map file written by :meth:`MinMaxMapper.save` (any version, either storage, or the
+    former ``SparseMinMaxMapper.save``) onto ``backend``."""
+    from gpumap.mapper import FILE_FORMAT, SPARSE_FILE_FORMAT, MinMaxMapper
 
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"Expected a map file at {p}, but nothing is there")
     fmt = _file_format(p)
-    if fmt == DENSE:
-        return MinMaxMapper.load(p, backend=backend)
-    if fmt == SPARSE:
-        return SparseMinMaxMapper.load(p, backend=backend)
-    raise FormatError(f"Expected format {DENSE!r} or {SPARSE!r} in {p}, but got {fmt!r}")
+    if fmt not in (FILE_FORMAT, SPARSE_FILE_FORMAT):
+        raise FormatError(f"Expected format {FILE_FORMAT!r} or {SPARSE_FILE_FORMAT!r} in {p}, "
+                          f"but got {fmt!r}")
+    return MinMaxMapper.load(p, backend=backend)
 
 
 def new_like(state: MapState, backend: str = "auto", **kw):
     """An empty mapper with ``state``'s kind and options on ``backend`` (``kw``: a sparse map's
     ``max_bytes``, ``evict``, ``initial_blocks``)."""
     from gpumap.mapper import MinMaxMapper
-    from gpumap.sparse import SparseMinMaxMapper, SparseSpec
-    from gpumap.spec import GridSpec, SonarSpec
+    from gpumap.spec import GridSpec, SonarSpec, SparseSpec
 
     o = state.options
     spec = SonarSpec.from_dict(o["spec"])
-    common = dict(shadow_m=o["shadow_m"], rule=o["rule"], threshold=o["threshold"],
+    common = dict(method=o["method"], shadow_m=o["shadow_m"], rule=o["rule"], threshold=o["threshold"],
                   carve_views=o["carve_views"])
     if state.kind == "dense":
-        grid = GridSpec.from_dict(o["grid"])
-        return MinMaxMapper(spec, grid, backend=backend, method=o["method"], **common)
-    return SparseMinMaxMapper(spec, SparseSpec.from_dict(o["sparse"]), backend=backend, **common, **kw)
+        return MinMaxMapper(spec, GridSpec.from_dict(o["grid"]), backend=backend, **common)
+    return MinMaxMapper(spec, SparseSpec.from_dict(o["sparse"]), backend=backend, **common, **kw)
 
 
 def merge_maps(maps, backend: str = "auto", **kw):
@@ -442,25 +344,5 @@ def merge_maps(maps, backend: str = "auto", **kw):
     except StopIteration:
         raise ValueError("Expected at least one map to merge, but got none") from None
     out = new_like(first, backend=backend, **kw)
-    if first.kind == "sparse":
-        merge_into(out, _union_blocks(first, it, out))  # the blocks merged here, written once
-        return out
-    # dense: combine the arrays here (in place, one pass per map over its box), write the map once
-    visible = out.rule == "visible"
-    shape = out.grid.shape
-    acc = _empty_dense(out.grid.n_voxels, visible)
-    n = 0
-    st = first
-    while st is not None:
-        _same(first.kind, first.options, st)
-        _check_arrays(st, out)
-        _combine_into(_box_views(acc, shape, st.box), st.arrays, visible)
-        n += int(st.n_integrated)
-        nxt = next(it, None)
-        st = None if nxt is None else _as_state(nxt)
-    with out._lock:
-        if visible:
-            out._backend.write_evidence(acc["bright"], acc["count"])
-        out._backend.write(acc["min_all"])
-        out.n_integrated = n
+    merge_into(out, _union_blocks(first, it, out))  # the blocks merged here, written once
     return out

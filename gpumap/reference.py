@@ -35,6 +35,8 @@ Per voxel centre ``c`` (world frame) and ping ``(image, T_W_S)``:
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 __all__ = ["beam_index_lo", "integrate_gather", "integrate_template", "visible_values", "voxel_ping_values"]
@@ -216,17 +218,21 @@ def integrate_gather(
     edges: np.ndarray,
     grid: np.ndarray,
     state: tuple[np.ndarray, np.ndarray] | None = None,
-) -> None:
+    address=None,
+) -> bool:
     """Gather method: every voxel of the ping's box, min-updated in ``grid`` ((n,) float32) in place.
 
     ``state``: ``(bright (n,) float32, count (n,) uint8)``, the visible rule's evidence (None:
-    the plain rule).
+    the plain rule). ``address``: (m, 3) int64 voxel indices -> (m,) int64 places in ``grid``
+    (-1: nowhere); default the dense row-major grid of ``params["dims"]``. Returns False if an
+    observed voxel had no place (it is skipped), else True.
     """
     lo = params["box_lo"].astype(np.int64)
     n = params["box_n"].astype(np.int64)
     if n.prod() == 0:
-        return
-    dims = params["dims"].astype(np.int64)
+        return True
+    address = address or functools.partial(_dense_address, params["dims"].astype(np.int64))
+    complete = True
     # z-slabs keep the temporaries small for fine grids
     slab = max(1, int(4_000_000 // max(1, n[0] * n[1])))
     II, JJ = np.meshgrid(np.arange(n[0]) + lo[0], np.arange(n[1]) + lo[1], indexing="ij")
@@ -239,10 +245,18 @@ def integrate_gather(
         else:
             v, clear = voxel_ping_values(params, image, edges, _centres(params, idx), clear=True)
         m = v >= 0
-        flat = (idx[m, 0] * dims[1] + idx[m, 1]) * dims[2] + idx[m, 2]
-        grid[flat] = np.minimum(grid[flat], v[m])
+        flat = address(idx[m])
+        ok = flat >= 0
+        complete &= bool(ok.all())
+        flat, vm = flat[ok], v[m][ok]
+        grid[flat] = np.minimum(grid[flat], vm)
         if state is not None:
-            _update_visible(params, v[m], clear[m], flat, *state)
+            _update_visible(params, vm, clear[m][ok], flat, *state)
+    return complete
+
+
+def _dense_address(dims: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    return (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
 
 
 def integrate_template(
@@ -251,8 +265,10 @@ def integrate_template(
     edges: np.ndarray,
     template_S: np.ndarray,
     grid: np.ndarray,
+    address=None,
 ) -> None:
-    """The paper's six steps on a voxel template ((m, 3) float32, sonar frame); ``grid`` in place."""
+    """The paper's six steps on a voxel template ((m, 3) float32, sonar frame); ``grid`` in place
+    (``address`` as for :func:`integrate_gather`)."""
     R = params["R"].reshape(3, 3)
     t = params["t"]
     p = template_S
@@ -272,6 +288,7 @@ def integrate_template(
     # Steps 3-5: back to the voxel centre, to the sonar frame, max over the footprint
     v = voxel_ping_values(params, image, edges, _centres(params, idx))
     m = v >= 0
-    flat = (idx[m, 0] * dims[1] + idx[m, 1]) * dims[2] + idx[m, 2]
+    flat = (address or functools.partial(_dense_address, dims))(idx[m])
+    flat, vm = flat[flat >= 0], v[m][flat >= 0]
     # Step 6: min update (duplicates of a voxel carry the same value)
-    np.minimum.at(grid, flat, v[m])
+    np.minimum.at(grid, flat, vm)

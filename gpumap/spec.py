@@ -1,4 +1,5 @@
-"""Static descriptions: the imaging sonar (:class:`SonarSpec`) and the world grid (:class:`GridSpec`).
+"""Static descriptions: the imaging sonar (:class:`SonarSpec`), the world grid (:class:`GridSpec`)
+and a block-sparse world grid (:class:`SparseSpec`).
 
 Both are small immutable value types. They validate themselves once, at construction,
 so everything downstream can trust them.
@@ -19,7 +20,7 @@ import numpy as np
 
 from gpumap.errors import check_finite_scalar
 
-__all__ = ["SonarSpec", "GridSpec"]
+__all__ = ["GridSpec", "SonarSpec", "SparseSpec"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -318,4 +319,111 @@ def _vec3(v: object, name: str) -> tuple[float, float, float]:
         raise ValueError(f"Expected 3 values for '{name}', but got shape {a.shape}")
     if not np.all(np.isfinite(a)):
         raise ValueError(f"Expected finite values for '{name}', but got {a.tolist()}")
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+# voxel indices stay well inside int32 (kernels add block offsets to them)
+_MAX_VOXEL_INDEX = 2**30
+
+
+@dataclass(frozen=True)
+class SparseSpec:
+    """A block-sparse world grid of cubic voxels.
+
+    Parameters
+    ----------
+    voxel_size_m : float
+        Edge of a cubic voxel, metres.
+    bounds : ((3,), (3,)) float or None
+        Optional box ``[min, max)`` in the world frame, metres: voxels outside it are never
+        mapped, and its min corner is the grid origin (so the map lines up with
+        ``GridSpec(min, max, voxel_size_m)`` voxel for voxel). None (default): unbounded, the
+        origin at ``origin_m``.
+    block : int
+        Voxels per block edge (2..32, default 8: blocks of 512 voxels).
+    origin_m : (3,) float
+        Grid origin of an unbounded map (voxel ``(i, j, k)`` is centred at
+        ``origin + (idx + 0.5) * voxel_size_m``, indices may be negative). Default (0, 0, 0);
+        must be left out with ``bounds``.
+    """
+
+    voxel_size_m: float
+    bounds: tuple | None = None
+    block: int = 8
+    origin_m: tuple | None = None
+
+    def __post_init__(self) -> None:
+        s = check_finite_scalar(self.voxel_size_m, "voxel_size_m")
+        if s <= 0:
+            raise ValueError(f"Expected voxel_size_m > 0, but got {s}")
+        b = self.block
+        if isinstance(b, bool) or not isinstance(b, (int, np.integer)) or not 2 <= b <= 32:
+            raise ValueError(f"Expected block to be an integer in 2..32, but got {b!r}")
+        object.__setattr__(self, "voxel_size_m", s)
+        object.__setattr__(self, "block", int(b))
+        if self.bounds is not None:
+            if self.origin_m is not None:
+                raise ValueError("Expected origin_m to be left out with bounds (the origin is bounds' min)")
+            try:
+                lo, hi = self.bounds
+            except (TypeError, ValueError) as e:
+                raise ValueError(
+                    f"Expected bounds as (min_corner_m, max_corner_m), but got {self.bounds!r}"
+                ) from e
+            lo, hi = _vec3(lo, "bounds[0]"), _vec3(hi, "bounds[1]")
+            if any(h <= lo_ for lo_, h in zip(lo, hi, strict=True)):
+                raise ValueError(f"Expected bounds with max > min on every axis, but got {lo} and {hi}")
+            object.__setattr__(self, "bounds", (lo, hi))
+            shape = self.shape
+            if max(shape) > _MAX_VOXEL_INDEX:
+                raise ValueError(
+                    f"Expected at most {_MAX_VOXEL_INDEX} voxels per axis, but bounds {lo}-{hi} at "
+                    f"voxel_size_m={s} give {shape}"
+                )
+        else:
+            o = (0.0, 0.0, 0.0) if self.origin_m is None else _vec3(self.origin_m, "origin_m")
+            object.__setattr__(self, "origin_m", o)
+
+    @property
+    def origin(self) -> tuple[float, float, float]:
+        """The grid origin, metres: ``bounds[0]``, or ``origin_m`` for an unbounded map."""
+        return self.bounds[0] if self.bounds is not None else self.origin_m
+
+    @property
+    def shape(self) -> tuple[int, int, int] | None:
+        """Voxels per axis inside ``bounds`` (as :class:`GridSpec` counts them), None if unbounded."""
+        if self.bounds is None:
+            return None
+        s = self.voxel_size_m
+        lo, hi = self.bounds
+        return tuple(int(math.ceil(round((h - a) / s, 9))) for a, h in zip(lo, hi, strict=True))
+
+    @property
+    def grid(self) -> GridSpec | None:
+        """The dense :class:`GridSpec` over ``bounds`` (None if unbounded; raises if too large)."""
+        return None if self.bounds is None else GridSpec(self.bounds[0], self.bounds[1], self.voxel_size_m)
+
+    def to_dict(self) -> dict:
+        return {
+            "voxel_size_m": self.voxel_size_m,
+            "bounds": None if self.bounds is None else [list(self.bounds[0]), list(self.bounds[1])],
+            "block": self.block,
+            "origin_m": None if self.bounds is not None else list(self.origin_m),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SparseSpec:
+        b = d["bounds"]
+        return cls(
+            d["voxel_size_m"],
+            None if b is None else (tuple(b[0]), tuple(b[1])),
+            int(d["block"]),
+            None if b is not None else tuple(d["origin_m"]),
+        )
+
+
+def _vec3(v: object, name: str) -> tuple[float, float, float]:
+    a = np.asarray(v, dtype=np.float64)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"Expected 3 finite values for '{name}', but got {v!r}")
     return (float(a[0]), float(a[1]), float(a[2]))

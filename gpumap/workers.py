@@ -12,8 +12,8 @@ process, bit for bit, whatever the split (:mod:`gpumap.merge`).
 Which worker gets a ping (``split``): ``"space"`` (default) ranks the pings by where their
 field of view's middle lies along the grid's longer horizontal axis and cuts the ranking
 into N runs of equal counts, so each worker maps one stretch of the survey and the workers'
-maps overlap only at the seams: a dense map sends only the box of its observed voxels and a
-sparse map only its blocks, about one map's worth in all. ``"pings"`` sends batches to each
+maps overlap only at the seams: a map sends only its blocks with an observed voxel, about one
+map's worth in all. ``"pings"`` sends batches to each
 worker in turn: the work stays even however the sonar moves, but every worker's map spans
 the whole survey and N whole maps travel back.
 
@@ -55,7 +55,6 @@ class MapperActor:
 
     def __init__(self, spec: dict, grid: dict, options: dict, sparse: bool, cpu_threads: int | None) -> None:
         from gpumap.mapper import MinMaxMapper
-        from gpumap.sparse import SparseMinMaxMapper, SparseSpec
 
         t0 = time.perf_counter()
         if cpu_threads is not None:  # this worker process's CPU backends split gathers this many ways
@@ -63,12 +62,7 @@ class MapperActor:
 
             gpumap.backends.CPU_THREADS = int(cpu_threads)
         s, g = SonarSpec.from_dict(spec), GridSpec.from_dict(grid)
-        if sparse:
-            o = {k: v for k, v in options.items() if k != "method"}
-            box = SparseSpec(g.voxel_size_m, (g.min_corner_m, g.max_corner_m))
-            self.mapper = SparseMinMaxMapper(s, box, **o)
-        else:
-            self.mapper = MinMaxMapper(s, g, **options)
+        self.mapper = MinMaxMapper(s, g, sparse=bool(sparse), **options)
         self.seconds_setup = time.perf_counter() - t0
         self.seconds_integrate = 0.0
         self.frames = 0
@@ -87,8 +81,8 @@ class MapperActor:
         return self.frames
 
     def state(self, pack: bool):
-        """The map's state for the wire (:func:`_pack`): a dense map's observed box only, and
-        with ``pack`` its float arrays as bytes where that is lossless (a third of the bytes
+        """The map's state for the wire (:func:`_pack`): its observed blocks, and with ``pack``
+        its float arrays as bytes where that is lossless (a third of the bytes
         to send, for about ten passes over the arrays)."""
         from gpumap.merge import map_state
 
@@ -96,8 +90,7 @@ class MapperActor:
         st = map_state(self.mapper)  # waits for the device
         self.seconds_integrate += time.perf_counter() - t0
         t1 = time.perf_counter()
-        shape = self.mapper.grid.shape if st.kind == "dense" else None
-        packed = _pack(st, pack, shape)
+        packed = _pack(st, pack)
         info = {"frames": self.frames, "seconds_integrate": self.seconds_integrate,
                 "seconds_pack": time.perf_counter() - t1, "state_mb": _nbytes(packed) / 1e6,
                 "state_mb_unpacked": sum(a.nbytes for a in st.arrays.values()) / 1e6}
@@ -118,30 +111,18 @@ def _compact(images: np.ndarray) -> np.ndarray:
     return u8 if np.array_equal(np.multiply(u8, U8_SCALE, dtype=np.float32), images) else images
 
 
-def _pack(st, pack: bool = True, shape: tuple | None = None) -> tuple:
+def _pack(st, pack: bool = True) -> tuple:
     """A :class:`~gpumap.merge.MapState` for the wire; :func:`_unpack` restores it exactly.
 
-    ``shape`` (a dense map's grid shape): only the box of the observed voxels travels (outside
-    it the state is the empty one: ``+inf``, ``+inf``, 0). ``pack``: each float array whose
-    finite values are all bytes times the mapper's float32 1/255 (always so for 8-bit pings:
-    a ping's value is the max of image cells, the map's the min of those) travels as uint8 plus
-    a bit per voxel for ``+inf``, 1.1 bytes instead of 4; others as they are.
+    ``pack``: each float array whose finite values are all bytes times the mapper's float32
+    1/255 (always so for 8-bit pings: a ping's value is the max of image cells, the map's the
+    min of those) travels as uint8 plus a bit per voxel for ``+inf``, 1.1 bytes instead of 4;
+    others as they are.
     """
     from gpumap.backends import U8_SCALE
 
-    crop = None
-    src = st.arrays
-    if shape is not None and st.kind == "dense":
-        fin = np.isfinite(src["min_all"]).reshape(shape)
-        spans = []
-        for ax in range(3):
-            hit = np.flatnonzero(fin.any(axis=tuple(a for a in range(3) if a != ax)))
-            spans.append((int(hit[0]), int(hit[-1]) + 1) if hit.size else (0, 0))
-        box = tuple(slice(a, b) for a, b in spans)
-        crop = (spans, tuple(shape))
-        src = {k: np.ascontiguousarray(v.reshape(shape)[box]) for k, v in src.items()}
     arrays: dict = {}
-    for k, v in src.items():
+    for k, v in st.arrays.items():
         if not pack or v.dtype != np.float32:
             arrays[k] = ("raw", v)
             continue
@@ -153,14 +134,14 @@ def _pack(st, pack: bool = True, shape: tuple | None = None) -> tuple:
             arrays[k] = ("u8", u8, np.packbits(fin.ravel()))
         else:
             arrays[k] = ("raw", v)
-    return st.kind, st.options, st.n_integrated, arrays, crop
+    return st.kind, st.options, st.n_integrated, arrays
 
 
 def _unpack(packed: tuple):
     from gpumap.backends import U8_SCALE
     from gpumap.merge import MapState
 
-    kind, options, n, arrays, crop = packed
+    kind, options, n, arrays = packed
     out = {}
     for k, a in arrays.items():
         if a[0] == "raw":
@@ -170,8 +151,8 @@ def _unpack(packed: tuple):
             v = np.multiply(u8, U8_SCALE, dtype=np.float32)
             fin = np.unpackbits(bits, count=u8.size).view(bool).reshape(u8.shape)
             v[~fin] = np.inf
-        out[k] = v.reshape(-1) if crop is not None else v  # a dense box travels as (nx, ny, nz)
-    return MapState(kind, options, n, out, None if crop is None else tuple(tuple(x) for x in crop[0]))
+        out[k] = v
+    return MapState(kind, options, n, out)
 
 
 def _nbytes(packed: tuple) -> int:
@@ -284,7 +265,7 @@ def run_replay_workers(
         recording's pose list, or one more pass over a recording without one); ``static``
         runs split by pings.
     sparse : bool
-        Workers keep :class:`gpumap.SparseMinMaxMapper` maps bounded by the grid (each sends
+        Workers keep maps with blocks on demand (``sparse=True``), bounded by the grid (each sends
         only the blocks its pings observed); the result is then a sparse map.
     client : distributed.Client, optional
         Use this client (and its cluster) instead; left open.
@@ -301,7 +282,7 @@ def run_replay_workers(
 
     Returns
     -------
-    mapper : MinMaxMapper or SparseMinMaxMapper
+    mapper : MinMaxMapper
         The merged map, on the NumPy backend (it is read and written, not integrated).
     stats : dict
         ``run_replay``'s keys, plus ``workers``, ``scheduler``, ``seconds_cluster`` (starting

@@ -38,6 +38,9 @@ typedef struct {
     float thr;       // occupied intensity: a footprint max >= thr is a bright view
     float thr_dark;  // a clear view darker than this counts twice towards carving
     int rule;        // 0: plain min; 1: visibility-aware (bright / count evidence)
+    int blk_lo[3];   // voxel index of the block index's first voxel
+    int blk_n[3];    // the block index's extent, in blocks
+    int blk;         // voxels per block edge (B)
 } PingParams;
 
 // Largest beam j in [0, n_beams - 1] with tan_edges[j] <= t (0 when none), t = tan(azimuth). A
@@ -258,10 +261,28 @@ inline void column_range(const PingParams *P, float cx, float cy, float *lo, flo
 }
 
 // Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold.
+// Storage address of voxel (i, j, k): its block's slot (through the index) times B^3 plus its place in the
+// block (local order i, j, k, k fastest); -1 when it has no block.
+inline long voxel_address(const PingParams *P, __global const int *index, int i, int j, int k)
+{
+    int B = P->blk;
+    int ri = i - P->blk_lo[0], rj = j - P->blk_lo[1], rk = k - P->blk_lo[2];
+    if (ri < 0 || rj < 0 || rk < 0) return -1;
+    int bi = ri / B, bj = rj / B, bk = rk / B;
+    if (bi >= P->blk_n[0] || bj >= P->blk_n[1] || bk >= P->blk_n[2]) return -1;
+    int slot = index[((size_t)bi * P->blk_n[1] + bj) * P->blk_n[2] + bk];
+    if (slot < 0) return -1;
+    return (long)slot * B * B * B + ((ri - bi * B) * B + (rj - bj * B)) * B + rk - bk * B;
+}
+
+// Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold. A voxel's
+// address is its block's slot (looked up once per block the column enters) times B^3 plus its place in
+// the block; the block is marked seen. An observed voxel without a block sets err[0] and is skipped.
 inline void gather_column(const PingParams *P, int i, int j, int c0, int c1, __global const float *image,
                           __global const float *tan_edges, __global const int *lut,
                           __global const float *table, int use_table, __global const int *first_bright,
-                          __global float *grid, __global float *bright, __global uchar *count)
+                          __global const int *index, __global float *grid, __global float *bright,
+                          __global uchar *count, __global uchar *seen, __global int *err)
 {
     float cx = P->origin[0] + ((float)i + 0.5f) * P->voxel;
     float cy = P->origin[1] + ((float)j + 0.5f) * P->voxel;
@@ -271,23 +292,47 @@ inline void gather_column(const PingParams *P, int i, int j, int c0, int c1, __g
     // voxel centres inside [z0, z1], padded by one voxel against rounding
     int k0 = max(c0, (int)ceil((z0 - P->origin[2]) / P->voxel - 0.5f) - 1);
     int k1 = min(c1, (int)floor((z1 - P->origin[2]) / P->voxel - 0.5f) + 1);
-    size_t base = ((size_t)i * P->dims[1] + j) * P->dims[2];
+    int B = P->blk;
+    int ri = i - P->blk_lo[0], rj = j - P->blk_lo[1];
+    int bi = ri / B, bj = rj / B;
+    int col_ok = ri >= 0 && rj >= 0 && bi < P->blk_n[0] && bj < P->blk_n[1];
+    size_t colbase = ((size_t)bi * P->blk_n[1] + bj) * P->blk_n[2];
+    long within = ((ri - bi * B) * B + (rj - bj * B)) * B;
+    int cur = -2;
+    long base = -1;  // the current block's slot * B^3 + within; -1: no block
     for (int k = k0; k <= k1; ++k) {
         float cz = P->origin[2] + ((float)k + 0.5f) * P->voxel;
         int clear;
         float v = voxel_ping_value(P, cx, cy, cz, image, tan_edges, lut, table, use_table, first_bright,
                                    &clear);
-        if (v >= 0.0f) update_voxel(P, base + k, v, clear, grid, bright, count);
+        if (v >= 0.0f) {
+            int rk = k - P->blk_lo[2];
+            int bk = rk >= 0 ? rk / B : -1;
+            if (bk != cur) {
+                cur = bk;
+                base = -1;
+                if (col_ok && rk >= 0 && bk < P->blk_n[2]) {
+                    int slot = index[colbase + bk];
+                    if (slot >= 0) {
+                        seen[slot] = 1;  // once per block a work-item enters, not per voxel
+                        base = (long)slot * B * B * B + within;
+                    }
+                }
+            }
+            if (base < 0) err[0] = 1;
+            else update_voxel(P, (size_t)(base + rk - bk * B), v, clear, grid, bright, count);
+        }
     }
 }
 
 // One work-item per chunk of an (i, j) column of the ping's index box: it walks the chunk's
-// voxels that the column's range can hold (contiguous in memory).
+// voxels that the column's range can hold (runs of B contiguous in memory).
 __kernel void integrate_gather(const PingParams P, __global const float *image,
                                __global const float *tan_edges, __global const int *lut,
                                __global const float *table, int use_table,
-                               __global const int *first_bright, __global float *grid,
-                               __global float *bright, __global uchar *count)
+                               __global const int *first_bright, __global const int *index,
+                               __global float *grid, __global float *bright, __global uchar *count,
+                               __global uchar *seen, __global int *err)
 {
     int tid = get_global_id(0);
     int n_chunks = (P.box_n[2] + P.chunk - 1) / P.chunk;
@@ -297,7 +342,27 @@ __kernel void integrate_gather(const PingParams P, __global const float *image,
     int c1 = min(c0 + P.chunk, P.box_lo[2] + P.box_n[2]) - 1;
     int i = P.box_lo[0] + col / P.box_n[1];
     int j = P.box_lo[1] + col % P.box_n[1];
-    gather_column(&P, i, j, c0, c1, image, tan_edges, lut, table, use_table, first_bright, grid, bright, count);
+    gather_column(&P, i, j, c0, c1, image, tan_edges, lut, table, use_table, first_bright, index, grid, bright,
+                  count, seen, err);
+}
+
+// One work-item per voxel of each of n listed blocks (pairs: n slots, then n index entries): slot pairs[b]
+// becomes never observed (unknown = +inf, no evidence) and index[pairs[n + b]] = pairs[b] (-1: freed).
+__kernel void init_blocks(__global const int *pairs, int n, int B3, int visible, float unknown,
+                          __global int *index, __global float *grid, __global float *bright,
+                          __global uchar *count, __global uchar *seen)
+{
+    int tid = get_global_id(0);
+    if (tid >= n * B3) return;
+    int b = tid / B3, v = tid % B3;
+    int s = pairs[b];
+    if (s >= 0) {
+        size_t a = (size_t)s * B3 + v;
+        grid[a] = unknown;
+        if (visible) { bright[a] = unknown; count[a] = 0; }
+        if (v == 0) seen[s] = 0;
+    }
+    if (v == 0) index[pairs[n + b]] = s;
 }
 
 // ---------------------------------------------------------------------------------------- batches
@@ -358,8 +423,9 @@ __kernel void integrate_gather_batch(__global const PingParams *Ps, const int n_
                                      const int chunk, const int plane, const int table_stride,
                                      __global const float *images, __global const float *tan_edges,
                                      __global const int *lut, __global const float *tables, int use_table,
-                                     __global const int *first_bright, __global float *grid,
-                                     __global float *bright, __global uchar *count)
+                                     __global const int *first_bright, __global const int *index,
+                                     __global float *grid, __global float *bright, __global uchar *count,
+                                     __global uchar *seen, __global int *err)
 {
     int tid = get_global_id(0);
     int n_chunks = (n2 + chunk - 1) / chunk;
@@ -379,7 +445,7 @@ __kernel void integrate_gather_batch(__global const PingParams *Ps, const int n_
         PingParams P = *Q;
         gather_column(&P, i, j, k0, k1, images + (size_t)b * plane, tan_edges, lut,
                       tables + (size_t)b * table_stride, use_table, first_bright + (size_t)b * P.n_beams,
-                      grid, bright, count);
+                      index, grid, bright, count, seen, err);
     }
 }
 
@@ -388,7 +454,7 @@ __kernel void integrate_template(const PingParams P, __global const float *image
                                  __global const float *tan_edges, __global const int *lut,
                                  __global const float *table, int use_table,
                                  __global const int *first_bright, __global const float *template_S,
-                                 __global float *grid)
+                                 __global const int *index, __global float *grid)
 {
     int tid = get_global_id(0);
     if (tid >= P.n_points) return;
@@ -408,7 +474,7 @@ __kernel void integrate_template(const PingParams P, __global const float *image
                                &clear);  // steps 4-5
     if (v >= 0.0f) {
         // step 6; grid values are >= 0 (or +inf), whose IEEE bits order like ints
-        size_t idx = ((size_t)i * P.dims[1] + j) * P.dims[2] + k;
-        atomic_min((volatile __global int *)(grid + idx), as_int(v));
+        long idx = voxel_address(&P, index, i, j, k);
+        if (idx >= 0) atomic_min((volatile __global int *)(grid + idx), as_int(v));
     }
 }

@@ -50,6 +50,9 @@ class PingParams:
     thr: float  # occupied intensity: a footprint max >= thr is a bright view
     thr_dark: float  # a clear view darker than this counts twice towards carving
     rule: int  # 0: plain min; 1: visibility-aware (bright / count evidence)
+    blk_lo: wp.vec3i  # voxel index of the block index's first voxel
+    blk_n: wp.vec3i  # the block index's extent, in blocks
+    blk: int  # voxels per block edge (B)
 
 
 @wp.func
@@ -339,6 +342,27 @@ def column_range(P: PingParams, cx: float, cy: float) -> wp.vec2:
 
 
 @wp.func
+def voxel_address(P: PingParams, index: wp.array(dtype=int), i: int, j: int, k: int) -> int:
+    """Storage address of voxel (i, j, k): its block's slot (through the index) times B^3 plus its
+    place in the block (local order i, j, k, k fastest); -1 when it has no block."""
+    B = P.blk
+    ri = i - P.blk_lo[0]
+    rj = j - P.blk_lo[1]
+    rk = k - P.blk_lo[2]
+    if ri < 0 or rj < 0 or rk < 0:
+        return -1
+    bi = ri // B
+    bj = rj // B
+    bk = rk // B
+    if bi >= P.blk_n[0] or bj >= P.blk_n[1] or bk >= P.blk_n[2]:
+        return -1
+    slot = index[(bi * P.blk_n[1] + bj) * P.blk_n[2] + bk]
+    if slot < 0:
+        return -1
+    return slot * B * B * B + ((ri - bi * B) * B + (rj - bj * B)) * B + rk - bk * B
+
+
+@wp.func
 def gather_column(
     P: PingParams,
     i: int,
@@ -350,11 +374,18 @@ def gather_column(
     lut: wp.array(dtype=int),
     table: wp.array(dtype=float),
     first_bright: wp.array(dtype=int),
+    index: wp.array(dtype=int),
     grid: wp.array(dtype=float),
     bright: wp.array(dtype=float),
     count: wp.array(dtype=wp.uint8),
+    seen: wp.array(dtype=wp.uint8),
+    err: wp.array(dtype=int),
 ):
-    """Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold."""
+    """Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold.
+
+    A voxel's address is its block's slot (looked up once per block the column enters) times
+    B^3 plus its place in the block; the block is marked seen. An observed voxel without a
+    block (the host's allocation was not conservative) sets err[0] and is skipped."""
     cx = P.origin[0] + (float(i) + 0.5) * P.voxel
     cy = P.origin[1] + (float(j) + 0.5) * P.voxel
     z = column_range(P, cx, cy)
@@ -362,11 +393,35 @@ def gather_column(
         # voxel centres inside [z0, z1], padded by one voxel against rounding
         k0 = wp.max(c0, int(wp.ceil((z[0] - P.origin[2]) / P.voxel - 0.5)) - 1)
         k1 = wp.min(c1, int(wp.floor((z[1] - P.origin[2]) / P.voxel - 0.5)) + 1)
-        base = (i * P.dims[1] + j) * P.dims[2]
+        B = P.blk
+        ri = i - P.blk_lo[0]
+        rj = j - P.blk_lo[1]
+        bi = ri // B
+        bj = rj // B
+        col_ok = ri >= 0 and rj >= 0 and bi < P.blk_n[0] and bj < P.blk_n[1]
+        colbase = (bi * P.blk_n[1] + bj) * P.blk_n[2]
+        within = ((ri - bi * B) * B + (rj - bj * B)) * B
+        cur = int(-2)
+        base = int(-1)  # the current block's slot * B^3 + within; -1: no block
         for k in range(k0, k1 + 1):
             vc = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table, first_bright)
             if vc[0] >= 0.0:
-                update_voxel(P, base + k, vc, grid, bright, count)
+                rk = k - P.blk_lo[2]
+                bk = int(-1)
+                if rk >= 0:
+                    bk = rk // B
+                if bk != cur:
+                    cur = bk
+                    base = -1
+                    if col_ok and rk >= 0 and bk < P.blk_n[2]:
+                        slot = index[colbase + bk]
+                        if slot >= 0:
+                            seen[slot] = wp.uint8(1)  # once per block a thread enters, not per voxel
+                            base = slot * B * B * B + within
+                if base < 0:
+                    err[0] = 1
+                else:
+                    update_voxel(P, base + rk - bk * B, vc, grid, bright, count)
 
 
 @wp.kernel
@@ -377,12 +432,15 @@ def integrate_gather(
     lut: wp.array(dtype=int),
     table: wp.array(dtype=float),
     first_bright: wp.array(dtype=int),
+    index: wp.array(dtype=int),
     grid: wp.array(dtype=float),
     bright: wp.array(dtype=float),
     count: wp.array(dtype=wp.uint8),
+    seen: wp.array(dtype=wp.uint8),
+    err: wp.array(dtype=int),
 ):
     """One thread per chunk of an (i, j) column of the ping's index box: it walks the chunk's
-    voxels that the column's range can hold (contiguous in memory)."""
+    voxels that the column's range can hold (runs of B contiguous in memory)."""
     tid = wp.tid()
     n_chunks = (P.box_n[2] + P.chunk - 1) // P.chunk
     col = tid // n_chunks
@@ -390,7 +448,41 @@ def integrate_gather(
     i = P.box_lo[0] + col // P.box_n[1]
     j = P.box_lo[1] + col - (col // P.box_n[1]) * P.box_n[1]
     c1 = wp.min(c0 + P.chunk, P.box_lo[2] + P.box_n[2]) - 1
-    gather_column(P, i, j, c0, c1, image, tan_edges, lut, table, first_bright, grid, bright, count)
+    gather_column(
+        P, i, j, c0, c1, image, tan_edges, lut, table, first_bright, index, grid, bright, count, seen, err
+    )
+
+
+@wp.kernel
+def init_blocks(
+    pairs: wp.array(dtype=int),
+    n: int,
+    B3: int,
+    visible: int,
+    unknown: float,
+    index: wp.array(dtype=int),
+    grid: wp.array(dtype=float),
+    bright: wp.array(dtype=float),
+    count: wp.array(dtype=wp.uint8),
+    seen: wp.array(dtype=wp.uint8),
+):
+    """One thread per voxel of each of ``n`` listed blocks (``pairs``: n slots, then n index
+    entries): slot ``pairs[b]`` becomes never observed (``unknown`` = +inf, no evidence) and
+    ``index[pairs[n + b]] = pairs[b]`` (slot -1: the block is freed)."""
+    tid = wp.tid()
+    b = tid // B3
+    v = tid - b * B3
+    s = pairs[b]
+    if s >= 0:
+        a = s * B3 + v
+        grid[a] = unknown
+        if visible != 0:
+            bright[a] = unknown
+            count[a] = wp.uint8(0)
+        if v == 0:
+            seen[s] = wp.uint8(0)
+    if v == 0:
+        index[pairs[n + b]] = s
 
 
 # ----------------------------------------------------------------------------- batches
@@ -444,9 +536,12 @@ def integrate_gather_batch(
     lut: wp.array(dtype=int),
     tables: wp.array2d(dtype=float),
     first_bright: wp.array2d(dtype=int),
+    index: wp.array(dtype=int),
     grid: wp.array(dtype=float),
     bright: wp.array(dtype=float),
     count: wp.array(dtype=wp.uint8),
+    seen: wp.array(dtype=wp.uint8),
+    err: wp.array(dtype=int),
 ):
     """One thread per chunk of an (i, j) column of the union box (box_lo, box_n) of the pings'
     boxes; it folds ping 0, 1, ... into its voxels, each ping only within that ping's box
@@ -467,7 +562,7 @@ def integrate_gather_batch(
                 P = Ps[b]
                 gather_column(
                     P, i, j, k0, k1, images[b], tan_edges, lut, tables[b], first_bright[b],
-                    grid, bright, count,
+                    index, grid, bright, count, seen, err,
                 )
 
 
@@ -480,6 +575,7 @@ def integrate_template(
     table: wp.array(dtype=float),
     first_bright: wp.array(dtype=int),
     template_S: wp.array(dtype=wp.vec3),
+    index: wp.array(dtype=int),
     grid: wp.array(dtype=float),
 ):
     """One thread per template point: the paper's steps 1-6."""
@@ -493,4 +589,6 @@ def integrate_template(
     v = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table, first_bright)[0]  # 3-5
     if v >= 0.0:
         # step 6; several template points may land in one voxel: all carry the same value
-        wp.atomic_min(grid, (i * P.dims[1] + j) * P.dims[2] + k, v)
+        a = voxel_address(P, index, i, j, k)
+        if a >= 0:
+            wp.atomic_min(grid, a, v)

@@ -86,7 +86,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=nonnegative_int, default=0,
                    help="random seed of the simulated sonar noise and odometry (default 0)")
     p.add_argument("--sparse", action="store_true",
-                   help="map into gpumap.SparseMinMaxMapper (blocks only where pings look, bounded by the "
+                   help="allocate the map's blocks only where pings look (sparse, bounded by the "
                         "scene's grid; the same values as the dense grid) and report its memory")
     p.add_argument("--plan", type=nonnegative_int, default=0, metavar="N",
                    help="after the trajectory, add N planned next best views and, for comparison, N evenly "
@@ -111,7 +111,7 @@ def _map_pings(
     mapper: gpumap.MinMaxMapper | None = None, rule: str | None = None,
     detectable: np.ndarray | None = None, pose_covs: np.ndarray | None = None, on_ping=None,
     sparse: bool = False,
-) -> tuple[gpumap.MinMaxMapper | gpumap.SparseMinMaxMapper, list[float], list[dict]]:
+) -> tuple[gpumap.MinMaxMapper, list[float], list[dict]]:
     if mapper is None:
         mapper = build_mapper(scene, backend, method, _rule(rule, method), threshold, shadow_m, sparse=sparse)
     times, history = [], []
@@ -156,13 +156,8 @@ def build_mapper(
     demo reads from either: ``integrate``, ``synchronize``, ``values``, ``rule``, ``backend``,
     ``save`` and :func:`_memory_report`.
     """
-    if sparse:
-        g = scene.grid
-        box = gpumap.SparseSpec(g.voxel_size_m, bounds=(g.min_corner_m, g.max_corner_m))
-        return gpumap.SparseMinMaxMapper(scene.sonar_spec, box, backend=backend, method=method,
-                                         shadow_m=shadow_m, rule=rule, threshold=threshold)
     return gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, method=method,
-                               shadow_m=shadow_m, rule=rule, threshold=threshold)
+                               shadow_m=shadow_m, rule=rule, threshold=threshold, sparse=bool(sparse))
 
 
 def _bytes_per_voxel(rule: str) -> int:
@@ -184,7 +179,7 @@ def _memory_report(mapper: gpumap.MinMaxMapper | gpumap.SparseMinMaxMapper, scen
     """
     g = scene.grid
     bpv = _bytes_per_voxel(mapper.rule)
-    if isinstance(mapper, gpumap.SparseMinMaxMapper):
+    if mapper.sparse is not None:
         st = mapper.memory_stats()
         storage, map_bytes, observed = "sparse", int(st["total_bytes"]), int(st["observed_voxels"])
     else:

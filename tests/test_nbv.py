@@ -92,7 +92,8 @@ def test_confirmed_flag_never_frees_and_batch_equals_sequence(backend):
 
 def _state_mapper(backend: str, values: np.ndarray) -> gpumap.MinMaxMapper:
     m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule="plain", confidence=True)
-    m._backend.write(np.ascontiguousarray(values, np.float32).ravel())  # a hand-made map state
+    pool = m._to_pool_order(np.ascontiguousarray(values, np.float32), np.inf)  # a hand-made map state
+    m._backend.write(pool.ravel(), None, None)
     return m
 
 

@@ -81,7 +81,7 @@ def test_sparse_workers_equal_the_dense_one_process_map(cluster):
     one, _ = run_replay(rec, voxel_size_m=0.06, backend="numpy", progress=False)
     got, s = run_replay_workers(rec, workers=2, client=client, voxel_size_m=0.06, backend="numpy",
                                 progress=False, sparse=True)
-    assert isinstance(got, gpumap.SparseMinMaxMapper) and got.grid == one.grid
+    assert got.sparse is not None and got.grid == one.grid
     _assert_same(got, one)
 
 
@@ -160,27 +160,9 @@ def test_state_packing_is_exact_or_not_used():
     packed = _pack(st)
     kinds = {k: a[0] for k, a in packed[3].items()}
     assert kinds == {"min_all": "u8", "bright": "raw", "count": "raw"}
-    # a dense map sends only the box of its observed voxels (here [:, 5:17, 36:64])
-    shape = (8, 40, 64)
-    dense = {k: np.full(shape, np.inf, np.float32) for k in ("min_all", "bright")}
-    dense["count"] = np.zeros(shape, np.uint8)
-    for k in ("min_all", "bright"):
-        dense[k][:, 5:17, 36:] = byte.ravel()[: 8 * 12 * 28].reshape(8, 12, 28)
-    dense["count"][2, 5:17, 36:] = 3
-    dense["min_all"][2, 5:17, 36:] = 0.0  # counted voxels are observed
-    dst = MapState("dense", {}, 2, {k: v.ravel() for k, v in dense.items()})
-    cropped = _pack(dst, pack=False, shape=shape)
-    assert cropped[4][0] == [(0, 8), (5, 17), (36, 64)]
-    for ref, wire in ((st, packed), (dst, cropped), (dst, _pack(dst, True, shape))):
+    for ref, wire in ((st, packed), (st, _pack(st, pack=False))):
         back = _unpack(wire)
-        assert back.n_integrated == ref.n_integrated
-        if back.box is not None:  # the box's arrays, placed into the grid as merge_maps does
-            sl = tuple(slice(a, b) for a, b in back.box)
-            full = {k: np.full(shape, 0 if k == "count" else np.inf, ref.arrays[k].dtype) for k in ref.arrays}
-            for k in full:
-                full[k][sl] = back.arrays[k].reshape(full[k][sl].shape)
-            flat = {k: v.ravel() for k, v in full.items()}
-            back = MapState(back.kind, back.options, back.n_integrated, flat)
+        assert back.n_integrated == ref.n_integrated and back.kind == ref.kind
         for k in ref.arrays:
             assert back.arrays[k].dtype == ref.arrays[k].dtype and back.arrays[k].shape == ref.arrays[k].shape
             assert back.arrays[k].tobytes() == ref.arrays[k].tobytes(), k

@@ -138,7 +138,7 @@ class LiveMapper:
 
     Parameters
     ----------
-    mapper : MinMaxMapper or SparseMinMaxMapper
+    mapper : MinMaxMapper
         Any mapper with ``integrate_batch``; its images' shape is ``mapper.spec.image_shape``.
     queue_size : int
         Pings held at most (waiting for a pose or for the mapper); a new ping finding the
