@@ -454,17 +454,18 @@ def tagged_path(out: str | os.PathLike, prefix: str, tag: str) -> Path:
 
 def put_block(path: str | os.PathLike, begin: str, end: str, body: str, section: str | None = None) -> None:
     """Replace the block of Markdown file ``path`` between the marker lines ``begin`` and ``end``
-    with ``body`` (markers kept); without markers, the ``## `` section headed ``section`` (to the
-    next ``## `` heading) becomes the block, else the block is appended."""
+    with ``body`` (markers kept, what follows the end marker untouched); without markers, the
+    ``## `` section headed ``section`` (to the next ``## `` heading) becomes the block, else the
+    block is appended."""
     path = Path(path)
     old = path.read_text() if path.exists() else ""
-    block = f"{begin}\n{body.rstrip()}\n{end}\n"
+    block = f"{begin}\n{body.strip(chr(10))}\n{end}"
     i, j = old.find(begin), old.find(end)
     if i >= 0 and j > i:
-        new = old[:i] + block + old[j + len(end) :].lstrip("\n")
+        new = old[:i] + block + old[j + len(end) :]
     elif section is not None and (i := old.find(section)) >= 0:
         j = old.find("\n## ", i + len(section))
-        new = old[:i] + block + ("" if j < 0 else "\n" + old[j + 1 :])
+        new = old[:i] + block + ("\n" if j < 0 else "\n\n" + old[j + 1 :])
     else:
-        new = old.rstrip("\n") + "\n\n" + block
+        new = old.rstrip("\n") + "\n\n" + block + "\n"
     path.write_text(new)
