@@ -27,7 +27,6 @@ BENCHMARKS: dict[str, str] = {
     "sparse": "sparse against dense maps: memory and images/s on the tank and survey pings",
     "workers": "the survey mapped by one process against N Dask workers on the same cores",
     "visibility": "the visible rule against the plain min-max rule: errors and speed (tank, circle)",
-    "gpu_visibility": "GPU backends against the NumPy oracle, and their speed, plain and visible rules",
     "rules_real": "both mapping rules on the real OASIS tank (gpumap replay --compare-rules)",
     "refine": "plain, visible and refined maps against truth and on held-out pings",
     "nbv": "next best views: planned against rolled and random views; view_gain speed",

@@ -36,6 +36,7 @@ __all__ = [
     "idle_check",
     "load_average",
     "load_ping_arrays",
+    "load_results",
     "machine_info",
     "merge_json",
     "oasis_tank_dir",
@@ -445,6 +446,21 @@ def merge_json(path: str | os.PathLike, keys: Sequence[str], value: Any, **top: 
     d[keys[-1]] = value
     write_json(path, doc)
     return doc
+
+
+def load_results(folder: str | os.PathLike, pattern: str, schema: str) -> list[dict[str, Any]]:
+    """Every results file ``folder/pattern`` whose ``schema`` starts with ``schema``, by file name,
+    each with its name under ``_file`` (files that do not parse are passed over)."""
+    out = []
+    for p in sorted(Path(folder).glob(pattern)):
+        try:
+            d = json.loads(p.read_text())
+        except (OSError, json.JSONDecodeError):
+            continue
+        if isinstance(d, dict) and str(d.get("schema", "")).startswith(schema):
+            d["_file"] = p.name
+            out.append(d)
+    return out
 
 
 def tagged_path(out: str | os.PathLike, prefix: str, tag: str) -> Path:
