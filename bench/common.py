@@ -33,11 +33,14 @@ __all__ = [
     "PeakRSS",
     "bench_parser",
     "compact",
+    "gl_renderer",
     "idle_check",
     "load_average",
     "load_ping_arrays",
     "load_results",
     "machine_info",
+    "machine_tag",
+    "mark_load",
     "merge_json",
     "oasis_tank_dir",
     "pooled_others",
@@ -145,6 +148,38 @@ def machine_info() -> dict[str, Any]:
     info["gpus"] = gpus
     info["git"] = _git_state()
     return info
+
+
+def machine_tag(info: dict[str, Any], gpu: bool = False, model: bool = False) -> str:
+    """A results file's default stem from :func:`machine_info` ``info``: ``gpu_<first GPU>`` for a
+    GPU run (where there is one), else ``cpu_<cores>c`` (``model``: ``cpu_<model>_<cores>c``)."""
+    if gpu and info.get("gpus"):
+        return "gpu_" + slug(info["gpus"][0].split(" (")[0])
+    return f"cpu_{slug(info['cpu_model']) + '_' if model else ''}{info['cpu_count']}c"
+
+
+def mark_load(info: dict[str, Any], share: CpuShare) -> None:
+    """Record in ``info`` (a :func:`machine_info`) how loaded the machine was over a run: the
+    load average at its end and the cores others took meanwhile (``share``, already exited)."""
+    info["load_avg_end"] = load_average()
+    info["cpu_share_during_run"] = {
+        "others_cores": share.others_cores,
+        "steal_cores": share.steal_cores,
+        "bench_cores": share.own_cores,
+        "note": "average cores busy with other processes / withheld by the hypervisor / used by the bench "
+        "(from /proc/stat and getrusage)",
+    }
+
+
+def gl_renderer() -> str:
+    """The OpenGL renderer of the current context (Mesa llvmpipe on a CPU-only machine)."""
+    try:
+        from OpenGL.GL import GL_RENDERER, glGetString
+
+        s = glGetString(GL_RENDERER)
+        return s.decode() if isinstance(s, bytes) else str(s)
+    except Exception as e:  # informative only
+        return f"unknown ({type(e).__name__})"
 
 
 def _git_state() -> dict[str, Any]:

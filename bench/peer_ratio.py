@@ -45,6 +45,7 @@ from .common import (
     CpuShare,
     bench_parser,
     load_average,
+    machine_tag,
     pooled_others,
     run_header,
     spread,
@@ -156,8 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         **summarize([p["ms_per_frame"] for p in passes if p["side"] == "oasis"],
                     [p["ms_per_frame"] for p in passes if p["side"] == "gpumap"]),
     }
-    info = res["machine"]
-    tag = a.tag or f"cpu_{info['cpu_count']}c"
+    tag = a.tag or machine_tag(res["machine"])
     path = write_json(tagged_path(a.out, "peer_ratio_", tag), res, digits=4)
     print(f"gpumap {res['ratio_median']:.1f}x the public OASIS code (median of {a.repeats}; "
           f"{res['ratio_min']:.1f}-{res['ratio_max']:.1f}x); valid: {res['valid']}; wrote {path}")

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from .common import bench_parser, load_average, write_json
+from .common import bench_parser, gl_renderer, load_average, write_json
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -39,10 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     with SonarSimulator(scene, n_cameras=a.cameras) as sim:
         sim.ping(poses[0], 0)  # GL context, shader compile, upload
         init_s = time.perf_counter() - t0
-        from OpenGL.GL import GL_RENDERER, glGetString
-
-        gl = glGetString(GL_RENDERER)
-        gl = gl.decode() if isinstance(gl, bytes) else str(gl)
+        gl = gl_renderer()
         t0 = time.perf_counter()
         for i, T in enumerate(poses):
             sim.ping(T, i)

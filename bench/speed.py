@@ -38,6 +38,7 @@ import gpumap
 from .common import (
     CpuShare,
     bench_parser,
+    machine_tag,
     oasis_tank_dir,
     run_header,
     stream_rate,
@@ -358,9 +359,7 @@ def main(argv: list[str] | None = None) -> int:
     if on_gpu:
         res["oracle_diff_5cm"] = oracle_check(fr, [b for b in backends if b in gpu_names], 10 * OASIS_RES_M)
         print("oracle", res["oracle_diff_5cm"], flush=True)
-    info = res["machine"]
-    tag = a.tag or ("gpu_" + info["gpus"][0].split(" (")[0] if on_gpu and info.get("gpus") else
-                    f"cpu_{info['cpu_count']}c")
+    tag = a.tag or machine_tag(res["machine"], on_gpu)
     path = write_json(tagged_path(a.out, "speed_", tag), res, digits=4)
     print(f"wrote {path}")
     return 0

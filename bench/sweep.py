@@ -40,9 +40,9 @@ from .common import (
     CpuShare,
     PeakRSS,
     compact,
-    load_average,
     machine_info,
-    slug,
+    machine_tag,
+    mark_load,
     stream_rate,
     synced_ms,
     warm_up,
@@ -370,12 +370,6 @@ def _choose_backends(requested: list[str] | None, gpu_only: bool) -> list[str]:
     return sorted(out, key=lambda b: (b == "numpy", b))
 
 
-def _machine_tag(info: dict, gpu_only: bool) -> str:
-    if gpu_only and info.get("gpus"):
-        return "gpu_" + slug(info["gpus"][0].split(" (")[0])
-    return f"cpu_{slug(info['cpu_model'])}_{info['cpu_count']}c"
-
-
 def run(args: argparse.Namespace) -> dict:
     """Run the sweep for parsed ``args``; returns the result dict (also written as JSON)."""
     progress = not args.no_progress
@@ -484,18 +478,11 @@ def run(args: argparse.Namespace) -> dict:
     if "sim" in pings.meta and not args.pings_from:
         scaling["simulator"] = pings.meta["sim"]
 
-    info["load_avg_end"] = load_average()
     share.__exit__(None, None, None)
-    info["cpu_share_during_run"] = {
-        "others_cores": share.others_cores,
-        "steal_cores": share.steal_cores,
-        "bench_cores": share.own_cores,
-        "note": "average cores busy with other processes / withheld by the hypervisor / used by the bench "
-        "(from /proc/stat and getrusage)",
-    }
+    mark_load(info, share)
     result = {
         "schema": "gpumap-bench/1",
-        "tag": args.tag or _machine_tag(info, args.gpu_only),
+        "tag": args.tag or machine_tag(info, args.gpu_only, model=True),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "argv": sys.argv[1:] if args.argv is None else args.argv,
         "machine": info,

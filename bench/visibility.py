@@ -33,7 +33,7 @@ import gpumap
 from .common import (
     CpuShare,
     bench_parser,
-    load_average,
+    mark_load,
     quantize,
     render_pings,
     run_header,
@@ -266,9 +266,7 @@ def main(argv: list[str] | None = None) -> int:
             if by_rule is not None:
                 plot_curves(name, by_rule, args.fig_dir / f"visibility_fn_fp_{name}.png")
     bar.close()
-    info["load_avg_end"] = load_average()
-    info["cpu_share_during_run"] = {"others_cores": share.others_cores, "steal_cores": share.steal_cores,
-                                    "bench_cores": share.own_cores}
+    mark_load(info, share)
     result = {
         **head,
         "run": {"scenes": sims, "seed": args.seed, "threshold": THRESHOLD, "backend": args.backend,
