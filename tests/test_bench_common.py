@@ -11,7 +11,7 @@ import pytest
 from gpumap.bench import __main__ as runner
 from gpumap.bench import common
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
+BENCH = Path(runner.__file__).resolve().parent  # bench/ in a checkout, gpumap/bench installed
 
 
 def test_the_runner_lists_every_benchmark_module(capsys):
