@@ -1,12 +1,25 @@
-"""Shared helpers of the benchmark: machine description, peak memory, published numbers, JSON rounding."""
+"""Shared helpers of every benchmark: command line, machine description and load check, timing
+loops, the scenes' pings and the real tank, results files and marked Markdown blocks.
+
+A benchmark module under ``bench/`` builds its parser with :func:`bench_parser`, reads its
+inputs with :func:`oasis_tank_dir` / :func:`render_pings` / :func:`load_ping_arrays`, times a
+mapper with :func:`warm_up`, :func:`synced_ms` and :func:`stream_rate`, describes the machine
+with :func:`machine_info` (and :func:`idle_check` where a figure needs an idle machine), and
+writes its results with :func:`run_header` and :func:`write_json` (or :func:`merge_json` for a
+file of sections). ``python -m bench NAME`` runs any of them (:mod:`bench.__main__`).
+"""
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
 import platform
 import re
 import threading
 import time
+from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -18,10 +31,30 @@ __all__ = [
     "TARGETS",
     "CpuShare",
     "PeakRSS",
+    "bench_parser",
     "compact",
+    "gl_renderer",
+    "idle_check",
     "load_average",
+    "load_ping_arrays",
+    "load_results",
     "machine_info",
+    "machine_tag",
+    "mark_load",
+    "merge_json",
+    "oasis_tank_dir",
+    "pooled_others",
+    "put_block",
+    "quantize",
+    "render_pings",
+    "run_header",
     "slug",
+    "spread",
+    "stream_rate",
+    "synced_ms",
+    "tagged_path",
+    "warm_up",
+    "write_json",
 ]
 
 #: The paper's Table I (Phung et al.): voxel size (m) -> published seconds per image.
@@ -115,6 +148,38 @@ def machine_info() -> dict[str, Any]:
     info["gpus"] = gpus
     info["git"] = _git_state()
     return info
+
+
+def machine_tag(info: dict[str, Any], gpu: bool = False, model: bool = False) -> str:
+    """A results file's default stem from :func:`machine_info` ``info``: ``gpu_<first GPU>`` for a
+    GPU run (where there is one), else ``cpu_<cores>c`` (``model``: ``cpu_<model>_<cores>c``)."""
+    if gpu and info.get("gpus"):
+        return "gpu_" + slug(info["gpus"][0].split(" (")[0])
+    return f"cpu_{slug(info['cpu_model']) + '_' if model else ''}{info['cpu_count']}c"
+
+
+def mark_load(info: dict[str, Any], share: CpuShare) -> None:
+    """Record in ``info`` (a :func:`machine_info`) how loaded the machine was over a run: the
+    load average at its end and the cores others took meanwhile (``share``, already exited)."""
+    info["load_avg_end"] = load_average()
+    info["cpu_share_during_run"] = {
+        "others_cores": share.others_cores,
+        "steal_cores": share.steal_cores,
+        "bench_cores": share.own_cores,
+        "note": "average cores busy with other processes / withheld by the hypervisor / used by the bench "
+        "(from /proc/stat and getrusage)",
+    }
+
+
+def gl_renderer() -> str:
+    """The OpenGL renderer of the current context (Mesa llvmpipe on a CPU-only machine)."""
+    try:
+        from OpenGL.GL import GL_RENDERER, glGetString
+
+        s = glGetString(GL_RENDERER)
+        return s.decode() if isinstance(s, bytes) else str(s)
+    except Exception as e:  # informative only
+        return f"unknown ({type(e).__name__})"
 
 
 def _git_state() -> dict[str, Any]:
@@ -247,3 +312,211 @@ def compact(obj: Any, digits: int = 4) -> Any:
             return None
         return float(f"{obj:.{digits}g}")
     return obj
+
+
+# ------------------------------------------------------------------------------ command line
+def bench_parser(module: str, doc: str | None) -> argparse.ArgumentParser:
+    """The parser of ``python -m bench.<module>``: that program name, the docstring's first line."""
+    return argparse.ArgumentParser(prog=f"python -m bench.{module}", description=help_line(doc))
+
+
+# ------------------------------------------------------------------------------ load check
+def idle_check(max_load: float, max_others: float, sample_s: float = 2.0,
+               load: list[float] | None = None) -> dict[str, Any]:
+    """The machine's load now: 1-minute load average (``load``, default :func:`load_average`)
+    and the cores other processes keep busy over ``sample_s`` seconds; ``idle`` when both are
+    within the limits. A bench that needs an idle machine refuses to start when it is not
+    (exit status 3), or runs on request and marks its results ``"valid": false``
+    (:mod:`bench.peer_ratio`)."""
+    load = load_average() if load is None else load
+    with CpuShare() as share:
+        time.sleep(sample_s)
+    others = share.others_cores
+    ok_load = load is None or load[0] <= max_load
+    ok_others = others is None or others <= max_others
+    return {"load_avg": load, "others_cores": others, "idle": bool(ok_load and ok_others)}
+
+
+def pooled_others(passes: list[dict[str, Any]]) -> float | None:
+    """Cores other processes kept busy over all ``passes`` together: their CPU seconds
+    (``others_cores * wall_s`` per pass) over the passes' wall seconds; None without samples."""
+    got = [p for p in passes if p.get("others_cores") is not None and p.get("wall_s")]
+    wall = sum(p["wall_s"] for p in got)
+    if not got or wall <= 0:
+        return None
+    return sum(p["others_cores"] * p["wall_s"] for p in got) / wall
+
+
+# ------------------------------------------------------------------------------ timing
+def warm_up(m: Any, images: Sequence[np.ndarray], poses: Sequence[np.ndarray], n: int) -> None:
+    """Integrate pings ``0..n-1`` into mapper ``m`` (kernel compile, caches), synchronize, then
+    ``reset`` it: the warm-up pings are in no figure and in no map."""
+    for k in range(n):
+        m.integrate(images[k % len(images)], poses[k % len(poses)])
+    m.synchronize()
+    m.reset()
+    m.synchronize()
+
+
+def synced_ms(m: Any, images: Sequence[np.ndarray], poses: Sequence[np.ndarray], n: int | None = None,
+              start: int = 0) -> list[float]:
+    """Milliseconds of ``integrate`` + ``synchronize`` for each of ``n`` pings (default: every
+    ping once), ping ``(start + k) % len(images)``: what a vehicle waits per ping."""
+    n = len(images) if n is None else n
+    out = []
+    for k in range(start, start + n):
+        t = time.perf_counter()
+        m.integrate(images[k % len(images)], poses[k % len(poses)])
+        m.synchronize()
+        out.append(1e3 * (time.perf_counter() - t))
+    return out
+
+
+def stream_rate(m: Any, images: Sequence[np.ndarray], poses: Sequence[np.ndarray], n: int | None = None,
+                batch: int = 1) -> float:
+    """Images per second of ``n`` pings (default: every ping once) handed over back to back, one
+    ``synchronize`` at the end (what a stream of pings sees); ``batch`` > 1: ``integrate_batch``
+    of that many pings at a time (then ``n`` is every ping once)."""
+    t = time.perf_counter()
+    if batch > 1:
+        n = len(images)
+        for k in range(0, n, batch):
+            m.integrate_batch(images[k : k + batch], poses[k : k + batch])
+    else:
+        n = len(images) if n is None else n
+        for k in range(n):
+            m.integrate(images[k % len(images)], poses[k % len(poses)])
+    m.synchronize()
+    return n / (time.perf_counter() - t)
+
+
+def spread(values: Sequence[float]) -> dict[str, float]:
+    """Median, min and max of repeated measurements (the spread a figure is quoted with)."""
+    a = np.asarray(values, float)
+    return {"median": float(np.median(a)), "min": float(a.min()), "max": float(a.max())}
+
+
+# ------------------------------------------------------------------------------ inputs
+def oasis_tank_dir() -> Path | None:
+    """``shared/data/oasis_tank`` (the real Oculus M3000d tank recording) beside the checkout, as
+    CI has it, or above it; None where it is not there."""
+    for up in Path(__file__).resolve().parents:
+        for cand in (up / "shared" / "data" / "oasis_tank", up.parent / "shared" / "data" / "oasis_tank"):
+            if (cand / "sonar_poses.csv").is_file():
+                return cand
+    return None
+
+
+def quantize(image: np.ndarray) -> np.ndarray:
+    """A simulated intensity image (float in [0, 1]) as the Oculus delivers it: uint8, rounded."""
+    return np.round(np.asarray(image) * 255.0).astype(np.uint8)
+
+
+def render_pings(scene: Any, *, seed: int = 0, select: Sequence[int] | None = None, scene_sonar: bool = True,
+                 progress: bool = False, desc: str | None = None) -> list:
+    """The simulator's pings of ``scene`` (a :class:`gpumap.sim.scenes.Scene`) at its trajectory's
+    poses ``T_W_S`` (all, or the indices ``select``); ``scene_sonar``: with the scene's own
+    simulator settings (``scene.sonar_params``, e.g. the survey's gain), as ``gpumap demo`` does."""
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    from gpumap.sim.sonar import SonarSimulator
+    from tqdm import tqdm
+
+    sel = range(len(scene.T_W_S)) if select is None else select
+    extra = scene.sonar_params if scene_sonar else {}
+    with SonarSimulator(scene, seed=seed, **extra) as sim:
+        return [sim.ping(scene.T_W_S[k], int(k))
+                for k in tqdm(sel, desc=desc or "simulate", unit="ping", disable=not progress)]
+
+
+def load_ping_arrays(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """(images, poses) of a ping file: :mod:`bench.tank`'s names (images, poses) or the older
+    (imgs, T)."""
+    with np.load(path, allow_pickle=False) as z:
+        if "images" in z.files:
+            return z["images"], z["poses"]
+        if "imgs" in z.files:
+            return z["imgs"], z["T"]
+        raise ValueError(f"Expected a ping file with images and poses (or imgs and T), but {path} "
+                         f"has {z.files}")
+
+
+# ------------------------------------------------------------------------------ results
+def run_header(schema: str | None, argv: Sequence[str] | None) -> dict[str, Any]:
+    """The first keys of a results file: schema, creation time, the bench's arguments and
+    :func:`machine_info` (load average at the start included)."""
+    import sys
+
+    head: dict[str, Any] = {} if schema is None else {"schema": schema}
+    head["created"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    head["argv"] = list(sys.argv[1:] if argv is None else argv)
+    head["machine"] = machine_info()
+    return head
+
+
+def write_json(path: str | os.PathLike, doc: Any, *, indent: int | None = 1,
+               digits: int | None = None) -> Path:
+    """Write ``doc`` to ``path`` as JSON (its folder made; written whole, then renamed, so that an
+    interrupted run leaves the old file). ``digits``: floats rounded to that many significant
+    digits (:func:`compact`); NumPy scalars are written as numbers either way."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if digits is not None:
+        doc = compact(doc, digits)
+    seps = (",", ":") if indent is None else None
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(doc, indent=indent, separators=seps, default=float) + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+def merge_json(path: str | os.PathLike, keys: Sequence[str], value: Any, **top: Any) -> dict:
+    """Put ``value`` at ``doc[keys[0]][keys[1]]...`` of the results file ``path`` (other sections
+    kept), set the top-level ``top`` keys, write it back (indent 1) and return it."""
+    path = Path(path)
+    doc = json.loads(path.read_text()) if path.is_file() else {}
+    doc.update(top)
+    d = doc
+    for k in keys[:-1]:
+        d = d.setdefault(k, {})
+    d[keys[-1]] = value
+    write_json(path, doc)
+    return doc
+
+
+def load_results(folder: str | os.PathLike, pattern: str, schema: str) -> list[dict[str, Any]]:
+    """Every results file ``folder/pattern`` whose ``schema`` starts with ``schema``, by file name,
+    each with its name under ``_file`` (files that do not parse are passed over)."""
+    out = []
+    for p in sorted(Path(folder).glob(pattern)):
+        try:
+            d = json.loads(p.read_text())
+        except (OSError, json.JSONDecodeError):
+            continue
+        if isinstance(d, dict) and str(d.get("schema", "")).startswith(schema):
+            d["_file"] = p.name
+            out.append(d)
+    return out
+
+
+def tagged_path(out: str | os.PathLike, prefix: str, tag: str) -> Path:
+    """``out/<prefix><tag>.json`` with ``tag`` lower-cased and made file-name safe."""
+    return Path(out) / f"{prefix}{''.join(c if c.isalnum() or c in '-_' else '-' for c in tag.lower())}.json"
+
+
+def put_block(path: str | os.PathLike, begin: str, end: str, body: str, section: str | None = None) -> None:
+    """Replace the block of Markdown file ``path`` between the marker lines ``begin`` and ``end``
+    with ``body`` (markers kept, what follows the end marker untouched); without markers, the
+    ``## `` section headed ``section`` (to the next ``## `` heading) becomes the block, else the
+    block is appended."""
+    path = Path(path)
+    old = path.read_text() if path.exists() else ""
+    block = f"{begin}\n{body.strip(chr(10))}\n{end}"
+    i, j = old.find(begin), old.find(end)
+    if i >= 0 and j > i:
+        new = old[:i] + block + old[j + len(end) :]
+    elif section is not None and (i := old.find(section)) >= 0:
+        j = old.find("\n## ", i + len(section))
+        new = old[:i] + block + ("\n" if j < 0 else "\n\n" + old[j + 1 :])
+    else:
+        new = old.rstrip("\n") + "\n\n" + block + "\n"
+    path.write_text(new)

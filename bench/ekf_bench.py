@@ -47,7 +47,7 @@ from gpumap.ekf import SonarEKF, spherical_point
 from gpumap.ekf.batch import BatchProblem
 from gpumap.lie import se3_adjoint, se3_exp, se3_inverse
 
-from .common import compact, machine_info
+from .common import bench_parser, compact, machine_info, put_block, write_json
 
 
 def _prism_stats(cfg: PrismConfig, seeds: int, desc: str, bar: bool = True, init: str = "arc") -> dict:
@@ -127,10 +127,10 @@ def _band(dof: int, seeds: int, p: float = 0.95) -> tuple[float, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = bench_parser("ekf_bench", __doc__)
     ap.add_argument("--out", required=True, type=Path, help="output folder for JSON and PNGs")
-    ap.add_argument("--seeds", type=int, default=50)
-    ap.add_argument("--sweep-seeds", type=int, default=20)
+    ap.add_argument("--seeds", type=int, default=50, help="prism seeds (default 50)")
+    ap.add_argument("--sweep-seeds", type=int, default=20, help="seeds per odometry-noise scale (default 20)")
     ap.add_argument("--reps", type=int, default=200, help="timed updates per feature count")
     ap.add_argument("--init", default="arc", choices=["arc", "triangulate"],
                     help="feature initialisation of SonarEKF (init=)")
@@ -195,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
         odometry_sweep=sweep,
         timing=timing,
     )
-    (args.out / "ekf_bench.json").write_text(json.dumps(summary, indent=2))
+    write_json(args.out / "ekf_bench.json", summary, indent=2)
     _figures(args.out, st, summary)
     print(json.dumps({k: summary[k] for k in ("final_feature_error_m", "gated_returns")}, indent=2))
     print(f"pose NEES mean {summary['pose_nees']['overall']:.2f} band95 [{lo6:.2f}, {hi6:.2f}], "
@@ -732,23 +732,6 @@ def _shortfalls(cls: list[dict]) -> list[str]:
 BEGIN, END = "<!-- begin:ekf -->", "<!-- end:ekf -->"
 
 
-def _write_section(path: Path, text: str) -> None:
-    """Replace (or append) the EKF block of ``path``: between the marker lines ``BEGIN`` and
-    ``END`` (other report generators keep what lies between them); without markers, the issue
-    #11 section (to the next ``## `` heading) becomes the marked block."""
-    old = path.read_text() if path.exists() else ""
-    block = f"{BEGIN}\n{text.rstrip()}\n{END}\n"
-    i, j = old.find(BEGIN), old.find(END)
-    if i >= 0 and j > i:
-        new = old[:i] + block + old[j + len(END) :].lstrip("\n")
-    elif (i := old.find(SECTION)) >= 0:
-        j = old.find("\n## ", i + len(SECTION))
-        new = old[:i] + block + ("" if j < 0 else "\n" + old[j + 1 :])
-    else:
-        new = old.rstrip("\n") + "\n\n" + block
-    path.write_text(new)
-
-
 def run_vs_batch(args: argparse.Namespace) -> int:
     """``--vs-batch``: :func:`batch_comparison`, its JSON and its BENCHMARKS.md section."""
     t0 = time.perf_counter()
@@ -773,11 +756,11 @@ def run_vs_batch(args: argparse.Namespace) -> int:
             for c in classes for d in c.pop("per_seed")]
     for c in summary["classes"]:
         c.pop("per_seed")
-    (args.out / "ekf_vs_batch.json").write_text(json.dumps(summary, indent=1))
+    write_json(args.out / "ekf_vs_batch.json", summary)
     (args.out / "ekf_vs_batch_seeds.jsonl").write_text("\n".join(rows) + "\n")
     md = batch_markdown(summary)
     if args.benchmarks is not None:
-        _write_section(args.benchmarks, md)
+        put_block(args.benchmarks, BEGIN, END, md, section=SECTION)
     print(md)
     return 0
 

@@ -27,10 +27,8 @@ Writes ``OUT/frontend.json`` with
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import os
 import sys
 import time
 import warnings
@@ -39,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .common import bench_parser, load_average, oasis_tank_dir, put_block, render_pings, write_json
+
 NOISES = (0.005, 0.02)
 RANGE_SIGMA_M = 0.01
 BEARING_SIGMA_RAD = math.radians(0.3)
@@ -46,12 +46,9 @@ BEARING_SIGMA_RAD = math.radians(0.3)
 
 def _render(name: str):
     from gpumap.sim.scenes import make_scene
-    from gpumap.sim.sonar import SonarSimulator
 
     sc = make_scene(name)
-    with SonarSimulator(sc) as sim:
-        pings = [sim.ping(T, k) for k, T in enumerate(sc.T_W_S)]
-    return sc, pings
+    return sc, render_pings(sc, scene_sonar=False)
 
 
 def _dvl_hook(sc, pings, rng):
@@ -322,18 +319,8 @@ def markdown(d: dict) -> str:
     return "\n".join(L)
 
 
-def write_block(path: Path, text: str) -> None:
-    """Replace (or append) this bench's block of ``path`` between ``BEGIN`` and ``END``."""
-    old = path.read_text() if path.exists() else ""
-    block = f"{BEGIN}\n{text.rstrip()}\n{END}\n"
-    i, j = old.find(BEGIN), old.find(END)
-    new = old[:i] + block + old[j + len(END):].lstrip("\n") if i >= 0 and j > i else \
-        old.rstrip("\n") + "\n\n" + block
-    path.write_text(new)
-
-
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.frontend", description=__doc__.splitlines()[0])
+    ap = bench_parser("frontend", __doc__)
     ap.add_argument("--seeds", type=int, default=5, help="drift seeds per scene and noise level (default 5)")
     ap.add_argument("--out", type=Path, default=Path("bench/results"),
                     help="output folder (default bench/results)")
@@ -350,17 +337,15 @@ def main(argv: list[str] | None = None) -> int:
     if a.markdown_only:
         if a.benchmarks is None:
             ap.error("argument --markdown-only: Expected --benchmarks FILE with it, but got none")
-        write_block(a.benchmarks, markdown(json.loads((a.out / "frontend.json").read_text())))
+        put_block(a.benchmarks, BEGIN, END, markdown(json.loads((a.out / "frontend.json").read_text())))
         return 0
     if a.data is None:
-        a.data = next((str(c / "oasis_tank") for up in Path(__file__).resolve().parents
-                       for c in (up / "shared" / "data", up.parent / "shared" / "data")
-                       if (c / "README.md").is_file()), "../shared/data/oasis_tank")
+        a.data = str(oasis_tank_dir() or "../shared/data/oasis_tank")
     warnings.simplefilter("ignore", RuntimeWarning)  # the EKF's NIS monitor; its figures are kept below
     t_start = time.time()
     cmd = "python -m bench.frontend " + " ".join(argv if argv is not None else sys.argv[1:])
     out: dict = {"schema": "gpumap-frontend/1", "command": cmd,
-                 "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "loadavg_start": list(os.getloadavg()),
+                 "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "loadavg_start": load_average(),
                  "drift_model": "per step U_k = T_{k-1}^-1 T_k Exp(w), w ~ N(0, s^2 I6): s m on each "
                                 "translation axis and s rad on each rotation axis",
                  "sim": {}, "sim_detector": {}}
@@ -404,14 +389,11 @@ def main(argv: list[str] | None = None) -> int:
                 [r for r in rows if r["noise"] == noise],
                 lambda r: r["track_consistency_recorded_poses"]["consistent_fraction"]),
         } for noise in NOISES}}
-    out["loadavg_end"] = list(os.getloadavg())
+    out["loadavg_end"] = load_average()
     out["seconds"] = time.time() - t_start
-    a.out.mkdir(parents=True, exist_ok=True)
-    tmp = a.out / "frontend.json.tmp"
-    tmp.write_text(json.dumps(out, indent=1, default=float))
-    os.replace(tmp, a.out / "frontend.json")
+    write_json(a.out / "frontend.json", out)
     if a.benchmarks is not None:
-        write_block(a.benchmarks, markdown(out))
+        put_block(a.benchmarks, BEGIN, END, markdown(out))
     print(f"wrote {a.out / 'frontend.json'} in {out['seconds']:.0f} s")
     return 0
 

@@ -12,15 +12,15 @@ compile kernels and fill caches.
 
 from __future__ import annotations
 
-import argparse
 import json
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
 
 import gpumap
+
+from .common import bench_parser, machine_info, stream_rate, synced_ms, warm_up, write_json
 
 WARMUP = 3
 
@@ -65,26 +65,11 @@ def time_mapper(backend: str, method: str, voxel: float, n: int, seed: int = 0) 
     poses = trajectory(n)
     t0 = time.perf_counter()
     m = gpumap.MinMaxMapper(spec, grid, backend=backend, method=method)
-    for k in range(WARMUP):
-        m.integrate(imgs[k % len(imgs)], poses[k])
-    m.synchronize()
+    warm_up(m, imgs, poses, WARMUP)
     setup_s = time.perf_counter() - t0
-    m.reset()
-    # throughput: back to back
-    t = time.perf_counter()
-    for k in range(n):
-        m.integrate(imgs[k % len(imgs)], poses[k])
-    m.synchronize()
-    thr = n / (time.perf_counter() - t)
+    thr = stream_rate(m, imgs, poses, n)  # throughput: back to back
     observed = int(m.observed().sum())
-    # latency: synced per ping
-    lat = []
-    for k in range(min(n, 50)):
-        t = time.perf_counter()
-        m.integrate(imgs[k % len(imgs)], poses[k])
-        m.synchronize()
-        lat.append(time.perf_counter() - t)
-    lat_ms = np.array(lat) * 1e3
+    lat_ms = np.array(synced_ms(m, imgs, poses, min(n, 50)))  # latency: synced per ping
     return {
         "backend": m.backend,
         "backend_requested": backend,
@@ -101,45 +86,16 @@ def time_mapper(backend: str, method: str, voxel: float, n: int, seed: int = 0) 
     }
 
 
-def machine() -> dict:
-    info = {
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "processor": platform.processor(),
-        "numpy": np.__version__,
-        "gpumap": gpumap.__version__,
-    }
-    try:
-        import warp as wp
-
-        info["warp"] = wp.__version__
-        info["warp_devices"] = [f"{d.alias}: {d.name}" for d in wp.get_devices()]
-    except Exception:
-        pass
-    try:
-        import os
-
-        info["cpus"] = os.cpu_count()
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    info["cpu_model"] = line.split(":", 1)[1].strip()
-                    break
-    except Exception:
-        pass
-    return info
-
-
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = bench_parser("mapper_speed", __doc__)
     ap.add_argument("--voxel-size", "--voxel", dest="voxel", type=float, nargs="+",
                     default=[0.05, 0.03, 0.01],
                     help="voxel edges in metres (default 0.05 0.03 0.01)")
     ap.add_argument("--backend", nargs="+", default=None, help="default: every available backend")
-    ap.add_argument("--method", nargs="+", default=["gather", "template"])
+    ap.add_argument("--method", nargs="+", default=["gather", "template"], help="methods (default both)")
     ap.add_argument("--images", type=int, default=None, help="pings per row (default scales with voxel size)")
-    ap.add_argument("--out", type=Path, default=Path("bench/results"))
-    ap.add_argument("--tag", default="mapper_speed")
+    ap.add_argument("--out", type=Path, default=Path("bench/results"), help="results folder")
+    ap.add_argument("--tag", default="mapper_speed", help="result file stem (default mapper_speed)")
     a = ap.parse_args(argv)
     backends = a.backend or gpumap.available_backends()
     rows = []
@@ -170,9 +126,8 @@ def main(argv: list[str] | None = None) -> int:
                     ),
                     flush=True,
                 )
-    a.out.mkdir(parents=True, exist_ok=True)
-    path = a.out / f"{a.tag}.json"
-    path.write_text(json.dumps({"machine": machine(), "warmup_pings": WARMUP, "rows": rows}, indent=1))
+    path = write_json(a.out / f"{a.tag}.json",
+                      {"machine": machine_info(), "warmup_pings": WARMUP, "rows": rows})
     print(f"wrote {path}")
     return 0
 

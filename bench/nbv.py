@@ -21,7 +21,6 @@ reference's exactly.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -31,6 +30,8 @@ from pathlib import Path
 import numpy as np
 
 import gpumap
+
+from .common import bench_parser, load_average, merge_json, put_block, render_pings
 
 TMP = Path("bench/results/tmp")
 MAP = TMP / "nbv_tank_map.npz"
@@ -43,15 +44,12 @@ N_CANDIDATES = 10_000
 def _simulate(scene_name: str):
     """The scene and its trajectory pings (every one, or ``PINGS`` evenly spaced)."""
     from gpumap.sim.scenes import make_scene
-    from gpumap.sim.sonar import SonarSimulator
 
     scene = make_scene(scene_name, voxel_size_m=VOXEL_M[scene_name], seed=0)
     sel = np.arange(len(scene.T_W_S))
     if PINGS.get(scene_name):
         sel = np.unique(np.linspace(0, len(sel) - 1, PINGS[scene_name]).round().astype(int))
-    with SonarSimulator(scene, seed=0, **scene.sonar_params) as sim:
-        pings = [sim.ping(scene.T_W_S[k], int(k)) for k in sel]
-    return scene, scene.T_W_S[sel], pings
+    return scene, scene.T_W_S[sel], render_pings(scene, select=sel)
 
 
 def _save_speed_map(scene, pings, backend: str) -> None:
@@ -111,9 +109,9 @@ def speed(repeat: int) -> dict:
             n_points = int(pts.points.shape[0])
         rows[b] = {"device": m.device, "seconds": best, "candidates_per_s": N_CANDIDATES / best,
                    "equal_to_reference": bool(np.array_equal(g, ref)),
-                   "loadavg": list(os.getloadavg())}
+                   "loadavg": load_average()}
         print(f"{b:12s} {best:.3f} s for {N_CANDIDATES} candidates  equal={rows[b]['equal_to_reference']}  "
-              f"load {os.getloadavg()}", flush=True)
+              f"load {rows[b]['loadavg']}", flush=True)
     return {"candidates": N_CANDIDATES, "points": n_points, "map": str(MAP), "machine": platform.node(),
             "cpus": os.cpu_count(), "rows": rows}
 
@@ -123,7 +121,7 @@ BEGIN, END = "<!-- begin:nbv -->", "<!-- end:nbv -->"
 
 def markdown(data: dict) -> str:
     """The BENCHMARKS.md block of a results file (every figure read from it)."""
-    out = [BEGIN, "## Next best views and the confidence layer (issue 20)", "",
+    out = ["## Next best views and the confidence layer (issue 20)", "",
            "From `bench/results/nbv.json` (`python -m bench.nbv`; true poses, threshold 0.1, the "
            "visible rule). After the trajectory, 10 views per arm; last row of each curve. FP far "
            "voxels: occupied voxels more than a voxel from any surface (the rate's numerator: a "
@@ -166,30 +164,16 @@ def markdown(data: dict) -> str:
             la = ", ".join(f"{x:.1f}" for x in r["loadavg"])
             out.append(f"| {sec} | {b} | {r['device']} | {r['seconds']:.3f} | {r['equal_to_reference']} "
                        f"| {la} |")
-    out += ["", END]
     return "\n".join(out)
 
 
 def write_markdown(data: dict, path: Path = Path("BENCHMARKS.md")) -> None:
     """Put (or replace) the block between the nbv markers in ``path``."""
-    old = path.read_text() if path.exists() else ""
-    block = markdown(data)
-    if BEGIN in old and END in old:
-        new = old[: old.index(BEGIN)] + block + old[old.index(END) + len(END):]
-    else:
-        new = old.rstrip("\n") + "\n\n" + block + "\n"
-    path.write_text(new)
-
-
-def _merge(path: Path, key: str, section: str, value: dict) -> None:
-    data = json.loads(path.read_text()) if path.exists() else {}
-    data.setdefault(key, {})[section] = value
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=1))
+    put_block(path, BEGIN, END, markdown(data))
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.nbv", description=__doc__.splitlines()[0])
+    p = bench_parser("nbv", __doc__)
     p.add_argument("--scenes", default="tank,circle,survey",
                    help="comma-separated scenes for the quality rows")
     p.add_argument("--plan", type=int, default=10, help="views added by each arm")
@@ -213,12 +197,12 @@ def main(argv: list[str] | None = None) -> int:
         for s in a.scenes.split(","):
             t0 = time.perf_counter()
             res = quality(s, a.plan, a.backend, Path(a.pictures) / s, a.no_progress, a.unknown_weight)
-            res["loadavg"] = list(os.getloadavg())
-            _merge(out, "quality", s, res)
+            res["loadavg"] = load_average()
+            merge_json(out, ["quality", s], res)
             fin = {k: v["curve"][-1] for k, v in res["arms"].items()}
             print(s, f"{time.perf_counter() - t0:.0f} s",
                   {k: round(v["false_positive_rate_far"], 3) for k, v in fin.items()}, flush=True)
-    _merge(out, "speed", a.section, speed(a.repeat))
+    merge_json(out, ["speed", a.section], speed(a.repeat))
     return 0
 
 

@@ -33,9 +33,7 @@ is a headline: BENCHMARKS.md and the README's summary quote it, with its spread.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -43,46 +41,40 @@ import numpy as np
 
 import gpumap
 
-from .common import CpuShare, compact, help_line, load_average, machine_info
+from .common import (
+    CpuShare,
+    bench_parser,
+    load_average,
+    machine_tag,
+    pooled_others,
+    run_header,
+    spread,
+    synced_ms,
+    tagged_path,
+    write_json,
+)
+from .common import idle_check as _idle_check
 from .speed import CACHE, OASIS_RES_M, Frames, _import_oasis, load_frames, oasis_frame_ms, oasis_grid
 
 SCHEMA = "gpumap-peer-ratio/1"
 
 
-def pooled_others(passes: list[dict[str, Any]]) -> float | None:
-    """Cores other processes kept busy over all ``passes`` together: their CPU seconds
-    (``others_cores * wall_s`` per pass) over the passes' wall seconds; None without samples."""
-    got = [p for p in passes if p.get("others_cores") is not None and p.get("wall_s")]
-    wall = sum(p["wall_s"] for p in got)
-    if not got or wall <= 0:
-        return None
-    return sum(p["others_cores"] * p["wall_s"] for p in got) / wall
+__all__ = ["idle_check", "main", "pooled_others", "summarize", "time_gpumap", "time_oasis_pass"]
 
 
 def idle_check(max_load: float, max_others: float, sample_s: float = 2.0) -> dict[str, Any]:
-    """The machine's load now: 1-minute load average and the cores other processes keep busy
-    over ``sample_s`` seconds; ``idle`` when both are within the limits."""
-    load = load_average()
-    with CpuShare() as share:
-        time.sleep(sample_s)
-    others = share.others_cores
-    ok_load = load is None or load[0] <= max_load
-    ok_others = others is None or others <= max_others
-    return {"load_avg": load, "others_cores": others, "idle": bool(ok_load and ok_others)}
+    """:func:`bench.common.idle_check` with this module's :func:`load_average` (what a test replaces)."""
+    return _idle_check(max_load, max_others, sample_s, load=load_average())
 
 
 def summarize(oasis_ms: list[float], gpumap_ms: list[float]) -> dict[str, Any]:
     """Per-repeat ratio (OASIS ms / gpumap ms per frame), its median and its spread."""
     r = np.asarray(oasis_ms, float) / np.asarray(gpumap_ms, float)
     return {
-        "oasis_ms_per_frame": {"median": float(np.median(oasis_ms)), "min": float(np.min(oasis_ms)),
-                               "max": float(np.max(oasis_ms))},
-        "gpumap_ms_per_frame": {"median": float(np.median(gpumap_ms)), "min": float(np.min(gpumap_ms)),
-                                "max": float(np.max(gpumap_ms))},
+        "oasis_ms_per_frame": spread(oasis_ms),
+        "gpumap_ms_per_frame": spread(gpumap_ms),
         "ratio_per_repeat": r.tolist(),
-        "ratio_median": float(np.median(r)),
-        "ratio_min": float(r.min()),
-        "ratio_max": float(r.max()),
+        **{f"ratio_{k}": x for k, x in spread(r).items()},
     }
 
 
@@ -93,13 +85,7 @@ def time_gpumap(fr: Frames, backend: str, rule: str, voxel_m: float, n: int) -> 
     warm.integrate(fr.images[0], fr.poses[0])
     warm.synchronize()
     m = gpumap.MinMaxMapper(fr.spec, grid, backend=backend, rule=rule)
-    ms = []
-    for k in range(1, n + 1):
-        t = time.perf_counter()
-        m.integrate(fr.images[k], fr.poses[k])
-        m.synchronize()
-        ms.append(1e3 * (time.perf_counter() - t))
-    return float(np.mean(ms))
+    return float(np.mean(synced_ms(m, fr.images, fr.poses, n, start=1)))
 
 
 def time_oasis_pass(cls, fr: Frames, downsample: int, n: int) -> float:
@@ -108,7 +94,7 @@ def time_oasis_pass(cls, fr: Frames, downsample: int, n: int) -> float:
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m bench.peer_ratio", description=help_line(__doc__))
+    ap = bench_parser("peer_ratio", __doc__)
     ap.add_argument("--oasis-src", type=Path, required=True,
                     help="checkout of the public OASIS code (chaos-whoi/oasis_iros; opencv and open3d "
                          "importable)")
@@ -161,8 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     quiet_passes = others_during is None or others_during <= a.max_others
     quiet_after = after["others_cores"] is None or after["others_cores"] <= a.max_others
     res: dict[str, Any] = {
-        "schema": SCHEMA, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "argv": sys.argv[1:],
-        "machine": machine_info(),
+        **run_header(SCHEMA, argv),
         "setup": {"frames": a.frames, "repeats": a.repeats, "backend": a.backend, "rule": a.rule,
                   "voxel_m": voxel_m, "oasis_input": "Cartesian fan PNG (grey), as the public code reads it",
                   "gpumap_input": "polar uint8 (fan -> polar conversion timed apart: fan_to_polar_ms)",
@@ -172,11 +157,8 @@ def main(argv: list[str] | None = None) -> int:
         **summarize([p["ms_per_frame"] for p in passes if p["side"] == "oasis"],
                     [p["ms_per_frame"] for p in passes if p["side"] == "gpumap"]),
     }
-    info = res["machine"]
-    tag = a.tag or f"cpu_{info['cpu_count']}c"
-    a.out.mkdir(parents=True, exist_ok=True)
-    path = a.out / f"peer_ratio_{''.join(c if c.isalnum() or c in '-_' else '-' for c in tag.lower())}.json"
-    path.write_text(json.dumps(compact(res), indent=1))
+    tag = a.tag or machine_tag(res["machine"])
+    path = write_json(tagged_path(a.out, "peer_ratio_", tag), res, digits=4)
     print(f"gpumap {res['ratio_median']:.1f}x the public OASIS code (median of {a.repeats}; "
           f"{res['ratio_min']:.1f}-{res['ratio_max']:.1f}x); valid: {res['valid']}; wrote {path}")
     return 0

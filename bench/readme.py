@@ -12,14 +12,13 @@ is stale; ``tests/test_readme.py`` runs that check).
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 import sys
 from pathlib import Path
 from typing import Any
 
-from .common import help_line
+from .common import bench_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -148,7 +147,7 @@ def render(text: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.readme", description=help_line(__doc__))
+    ap = bench_parser("readme", __doc__)
     ap.add_argument("--readme", type=Path, default=ROOT / "README.md", help="the file to update")
     ap.add_argument("--check", action="store_true", help="only compare; exit 1 when a block is stale")
     a = ap.parse_args(argv)

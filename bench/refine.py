@@ -32,7 +32,7 @@ import numpy as np
 
 import gpumap
 
-from .common import help_line, load_average, machine_info
+from .common import bench_parser, load_average, machine_info, oasis_tank_dir, write_json
 
 SIM_THRESHOLD = 0.1
 BAND_VOXELS = 1  # RefineResult.banded: the visible voxels within one voxel of a refined surface
@@ -47,7 +47,7 @@ SCORE_KEYS = (
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m bench.refine", description=help_line(__doc__))
+    p = bench_parser("refine", __doc__)
     p.add_argument(
         "--cases",
         nargs="+",
@@ -80,7 +80,8 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="folder holding oasis_tank (default: shared/data beside the checkout)",
     )
-    p.add_argument("--out", type=Path, default=Path("bench/results/refine.json"))
+    p.add_argument("--out", type=Path, default=Path("bench/results/refine.json"),
+                   help="results file (rows merged by case, voxel size and device)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument(
         "--rescore-maps",
@@ -120,7 +121,7 @@ def rescore(a: argparse.Namespace) -> int:
                 occ = ndimage.binary_dilation(occ, structure=np.ones((3, 3, 3), bool), iterations=b)
             fr.append({"kind": "refined_band", "band_voxels": b, **score(occ & vis)})
         row["truth_frontier"] = fr
-    a.out.write_text(json.dumps(res, indent=1, default=float))
+    write_json(a.out, res)
     return 0
 
 
@@ -175,11 +176,10 @@ def sim_case(name: str, voxel: float, cache: Path, progress: bool) -> dict:
 
 
 def _find_data() -> Path:
-    for up in Path(__file__).resolve().parents:
-        for cand in (up / "shared" / "data", up.parent / "shared" / "data"):
-            if (cand / "oasis_tank").is_dir():
-                return cand
-    raise ValueError("Expected shared/data/oasis_tank beside the checkout, but found none: pass --data")
+    tank = oasis_tank_dir()
+    if tank is None:
+        raise ValueError("Expected shared/data/oasis_tank beside the checkout, but found none: pass --data")
+    return tank.parent
 
 
 def oasis_case(voxel: float, data: Path | None) -> dict:
@@ -327,8 +327,7 @@ def main(argv: list[str] | None = None) -> int:
             for n in rows
         )
     ]
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps({"machine": machine_info(), "rows": keep + rows}, indent=1, default=float))
+    write_json(a.out, {"machine": machine_info(), "rows": keep + rows})
     return 0
 
 

@@ -14,11 +14,10 @@ over verbatim).
 
 from __future__ import annotations
 
-import argparse
 import os
 from pathlib import Path
 
-from .common import help_line
+from .common import bench_parser
 from .report_md import keep_foreign_sections
 from .report_plots import _plots
 from .report_speed import load_speed, render_speed
@@ -41,9 +40,10 @@ def render(folder: Path, out: Path) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=help_line(__doc__))
-    ap.add_argument("--results", type=Path, default=Path("bench/results"))
-    ap.add_argument("--out", type=Path, default=Path("BENCHMARKS.md"))
+    ap = bench_parser("report", __doc__)
+    ap.add_argument("--results", type=Path, default=Path("bench/results"),
+                    help="folder of results files (default bench/results)")
+    ap.add_argument("--out", type=Path, default=Path("BENCHMARKS.md"), help="the file to write")
     a = ap.parse_args(argv)
     a.out.write_text(render(a.results, a.out))
     print(f"wrote {a.out}")

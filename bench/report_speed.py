@@ -4,10 +4,10 @@ the targets of issue #13."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
+from .common import load_results
 from .report_md import _f
 
 HEADING = "## Speed on the real tank frames (issue #13)"
@@ -16,15 +16,7 @@ GPU_BACKENDS = ("warp-cuda", "opencl-gpu")
 
 def load_speed(folder: Path) -> list[dict[str, Any]]:
     """Every ``speed_*.json`` in ``folder`` (CPU runs first)."""
-    out = []
-    for p in sorted(folder.glob("speed_*.json")):
-        try:
-            d = json.loads(p.read_text())
-        except (OSError, json.JSONDecodeError):
-            continue
-        if d.get("schema", "").startswith("gpumap-speed/"):
-            d["_file"] = p.name
-            out.append(d)
+    out = load_results(folder, "speed_*.json", "gpumap-speed/")
     return sorted(out, key=lambda d: (bool(d["machine"].get("gpus")), d["_file"]))
 
 

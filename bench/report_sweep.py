@@ -3,11 +3,11 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 from .common import OASIS_PUBLISHED_MS, PAPER_TABLE_I, TARGETS
+from .common import load_results as _load_results
 from .report_md import _f, _pct
 
 BASELINE_LABELS = {
@@ -19,15 +19,7 @@ BASELINE_LABELS = {
 
 def load_results(folder: Path) -> list[dict[str, Any]]:
     """Every bench JSON in ``folder`` (sorted: CPU runs first, then GPU runs)."""
-    out = []
-    for p in sorted(folder.glob("*.json")):
-        try:
-            d = json.loads(p.read_text())
-        except (OSError, json.JSONDecodeError):
-            continue
-        if d.get("schema", "").startswith("gpumap-bench/"):
-            d["_file"] = p.name
-            out.append(d)
+    out = _load_results(folder, "*.json", "gpumap-bench/")
     return sorted(out, key=lambda d: (d["run"].get("gpu_only", False), d["_file"]))
 
 

@@ -15,10 +15,8 @@ figures ("the recorded rate"), then faster. On a shared machine every rate here 
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import platform
 import re
 import signal
 import subprocess
@@ -29,30 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import help_line
+from .common import bench_parser, load_average, machine_info, oasis_tank_dir, write_json
 
-
-def _tank() -> Path:
-    """``shared/data/oasis_tank`` beside the checkout (as CI has it) or above it."""
-    for up in Path(__file__).resolve().parents:
-        for cand in (up / "shared" / "data" / "oasis_tank", up.parent / "shared" / "data" / "oasis_tank"):
-            if (cand / "sonar_poses.csv").is_file():
-                return cand
-    raise SystemExit("bench.ros_bench: shared/data/oasis_tank not found beside the checkout")
-
-
-TANK = _tank()
 OUT = Path(__file__).resolve().parent / "results" / "ros.json"
-
-
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 class Listener:
@@ -125,7 +102,7 @@ class Listener:
         rclpy.try_shutdown(context=self.ctx)
 
 
-def run_once(params: Path, hz: float, domain: int, n_pings: int, tmp: Path) -> dict:
+def run_once(tank: Path, params: Path, hz: float, domain: int, n_pings: int, tmp: Path) -> dict:
     """One fresh node, one play of the tank at ``hz``; what the node and the listener saw."""
     ns = f"/bench{os.getpid()}_{int(hz)}_{time.monotonic_ns() % 10**6}"
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
@@ -139,8 +116,8 @@ def run_once(params: Path, hz: float, domain: int, n_pings: int, tmp: Path) -> d
     try:
         if not lis.spin(90, lambda: lis.diag is not None):
             raise RuntimeError(f"the node did not start: {(tmp / 'node.log').read_text()[-2000:]}")
-        load0 = os.getloadavg()
-        play = subprocess.Popen([*base, "ros-play", str(TANK), "--hz", str(hz), "--no-progress", "--preload",
+        load0 = load_average() or []
+        play = subprocess.Popen([*base, "ros-play", str(tank), "--hz", str(hz), "--no-progress", "--preload",
                                  "--ros-args", "-r", f"__ns:={ns}"], stdout=subprocess.PIPE,
                                 stderr=subprocess.STDOUT, env=env, text=True, start_new_session=True)
         while play.poll() is None:
@@ -169,7 +146,7 @@ def run_once(params: Path, hz: float, domain: int, n_pings: int, tmp: Path) -> d
             "node_latency_ms_p50": float(d.get("latency_p50_ms", "nan")),
             "node_latency_ms_p99": float(d.get("latency_p99_ms", "nan")),
             "backend": d.get("backend"),
-            "load_avg": [round(x, 2) for x in (*load0, *os.getloadavg())],
+            "load_avg": [*load0, *(load_average() or [])],
         }
     finally:
         lis.close()
@@ -183,7 +160,7 @@ def run_once(params: Path, hz: float, domain: int, n_pings: int, tmp: Path) -> d
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.ros_bench", description=help_line(__doc__))
+    ap = bench_parser("ros_bench", __doc__)
     ap.add_argument("--voxel-sizes", type=float, nargs="+", default=[0.05, 0.03], help="voxel edges, metres")
     ap.add_argument("--rates", type=float, nargs="+", default=[10, 20, 40, 80, 160, 320],
                     help="play rates to try, pings per second (10: the latency figures)")
@@ -191,18 +168,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=OUT, help="results file (JSON)")
     ap.add_argument("--note", default="", help="a remark stored with the results")
     a = ap.parse_args(argv)
+    tank = oasis_tank_dir()
+    if tank is None:
+        raise SystemExit("bench.ros_bench: shared/data/oasis_tank not found beside the checkout")
     from gpumap.ros import use_gpumap_fastdds_profile
     from gpumap.ros.play import open_playable, write_params
 
     use_gpumap_fastdds_profile()
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     domain = 101 - os.getpid() % 50
-    play = open_playable(TANK)
+    play = open_playable(tank)
     n = play.count
+    info = machine_info()
     res: dict = {"what": "gpumap ros + gpumap ros-play over Fast DDS on loopback, real OASIS tank (123 "
                          "pings, 32FC1 398 x 512), one fresh node per run; latency = first cloud holding "
                          "the ping received by a third process - ping sent by ros-play",
-                 "cpu": _cpu(), "n_cpus": os.cpu_count(), "note": a.note,
+                 "cpu": info["cpu_model"], "n_cpus": info["cpu_count"], "machine": info, "note": a.note,
                  "loaded": "shared machine: other engineers' jobs ran beside it (load_avg per run: 1, 5, "
                            "15 min before the play, then after)",
                  "runs": {}}
@@ -214,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
             rows = []
             fails = 0
             for hz in a.rates:
-                r = run_once(params, hz, domain, n, tmp)
+                r = run_once(tank, params, hz, domain, n, tmp)
                 print(json.dumps({"voxel_size_m": vs, **r}), flush=True)
                 rows.append(r)
                 fails = 0 if r["sustained"] else fails + 1
@@ -227,8 +208,7 @@ def main(argv: list[str] | None = None) -> int:
                 "max_sustained_achieved_hz": max(ok) if ok else None,
                 "latency_at_10hz_ms": None if rec is None else [rec["latency_ms_p50"], rec["latency_ms_p99"]],
             }
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps(res, indent=1) + "\n")
+    write_json(a.out, res)
     print(f"wrote {a.out}")
     return 0
 

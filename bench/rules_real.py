@@ -9,32 +9,23 @@ the two rules is generated from that file (``python -m bench.readme``). Takes ~1
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 import tempfile
-import time
 from pathlib import Path
 
-from .common import compact, help_line, machine_info
+from .common import bench_parser, oasis_tank_dir, run_header, write_json
 
 SCHEMA = "gpumap-rules-real/1"
 
 
-def _data_dir() -> Path | None:
-    from .speed import _data_dir as oasis_dir
-
-    return oasis_dir()
-
-
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.rules_real", description=help_line(__doc__))
+    ap = bench_parser("rules_real", __doc__)
     ap.add_argument("--data", type=Path, default=None, help="the oasis_tank folder (default: shared/data)")
     ap.add_argument("--voxel-size", type=float, default=0.05, help="metres (default 0.05, as in the README)")
     ap.add_argument("--backend", default="auto", help="gpumap backend (default auto)")
     ap.add_argument("--out", type=Path, default=Path("bench/results"), help="results folder")
     a = ap.parse_args(argv)
-    data = a.data or _data_dir()
+    data = a.data or oasis_tank_dir()
     if data is None:
         raise SystemExit("bench.rules_real: shared/data/oasis_tank not found; pass --data")
     from gpumap.replay import main as replay
@@ -46,13 +37,10 @@ def main(argv: list[str] | None = None) -> int:
         if rc:
             return rc
         summary = json.loads((Path(tmp) / "summary.json").read_text())
-    res = {"schema": SCHEMA, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "argv": sys.argv[1:],
+    res = {**run_header(SCHEMA, argv),
            "command": "gpumap replay " + " ".join(["shared/data/oasis_tank", *cmd[1:]]),
-           "machine": machine_info(), "voxel_size_m": a.voxel_size,
-           "rule_comparison": summary["rule_comparison"]}
-    a.out.mkdir(parents=True, exist_ok=True)
-    path = a.out / "rules_real_tank.json"
-    path.write_text(json.dumps(compact(res), indent=1))
+           "voxel_size_m": a.voxel_size, "rule_comparison": summary["rule_comparison"]}
+    path = write_json(a.out / "rules_real_tank.json", res, digits=4)
     print(f"wrote {path}")
     return 0
 

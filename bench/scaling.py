@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from collections import defaultdict
 from typing import Any
 
@@ -10,6 +9,8 @@ import numpy as np
 from tqdm import tqdm
 
 import gpumap
+
+from .common import synced_ms, warm_up
 
 __all__ = ["IMAGE_SIZES", "ekf_cost", "image_size_sweep", "linear_fit", "voxels_fit"]
 
@@ -97,15 +98,8 @@ def image_size_sweep(
         n = pings if b != "numpy" else min(pings, 6)
         try:
             m = gpumap.MinMaxMapper(spec, grid, backend=b, method=method)
-            for k in range(3):
-                m.integrate(imgs[k], poses[k])
-            m.synchronize()
-            lat = []
-            for k in range(n):
-                t = time.perf_counter()
-                m.integrate(imgs[k % len(imgs)], poses[k])
-                m.synchronize()
-                lat.append(1e3 * (time.perf_counter() - t))
+            warm_up(m, imgs, poses, 3)
+            lat = synced_ms(m, imgs, poses, n)
             out.append(
                 {
                     "backend": b,

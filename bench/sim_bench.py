@@ -2,7 +2,7 @@
 
 Usage::
 
-    python bench/sim_bench.py --out sim_bench.json [--pings 40] [--cameras 3]
+    python -m bench.sim_bench --out sim_bench.json [--pings 40] [--cameras 3]
 
 The GL renderer in use (Mesa llvmpipe on a CPU-only machine, the GPU's driver otherwise)
 is recorded with the numbers.
@@ -10,7 +10,6 @@ is recorded with the numbers.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -18,13 +17,15 @@ import time
 
 import numpy as np
 
+from .common import bench_parser, gl_renderer, load_average, write_json
+
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = bench_parser("sim_bench", __doc__)
     p.add_argument("--out", default=None, help="JSON file to write")
-    p.add_argument("--pings", type=int, default=40)
-    p.add_argument("--cameras", type=int, default=3)
-    p.add_argument("--scene", default="tank")
+    p.add_argument("--pings", type=int, default=40, help="pings timed (default 40)")
+    p.add_argument("--cameras", type=int, default=3, help="the simulator's cameras (default 3)")
+    p.add_argument("--scene", default="tank", help="scene (default tank)")
     a = p.parse_args(argv)
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
@@ -38,10 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     with SonarSimulator(scene, n_cameras=a.cameras) as sim:
         sim.ping(poses[0], 0)  # GL context, shader compile, upload
         init_s = time.perf_counter() - t0
-        from OpenGL.GL import GL_RENDERER, glGetString
-
-        gl = glGetString(GL_RENDERER)
-        gl = gl.decode() if isinstance(gl, bytes) else str(gl)
+        gl = gl_renderer()
         t0 = time.perf_counter()
         for i, T in enumerate(poses):
             sim.ping(T, i)
@@ -66,11 +64,11 @@ def main(argv: list[str] | None = None) -> int:
         "sonar_images_per_s": a.pings / sonar_s,
         "sonar_ms_per_image": 1e3 * sonar_s / a.pings,
         "dvl_pings_per_s": a.pings / dvl_s,
+        "load_avg": load_average(),
     }
     print(json.dumps(res, indent=1))
     if a.out:
-        with open(a.out, "w") as f:
-            json.dump(res, f, indent=2)
+        write_json(a.out, res, indent=2)
     return 0
 
 

@@ -16,10 +16,7 @@ the row says ``unbounded``. Results are merged into ``--out`` under ``--section`
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -29,24 +26,25 @@ import numpy as np
 import gpumap
 from gpumap.sparse import SparseMinMaxMapper, SparseSpec
 
+from .common import (
+    bench_parser,
+    load_ping_arrays,
+    machine_info,
+    merge_json,
+    quantize,
+    render_pings,
+    stream_rate,
+)
+
 TMP = Path("bench/results/tmp")
-
-
-def _load(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    with np.load(path, allow_pickle=False) as z:  # bench.tank's names, or (imgs, T)
-        return (z["images"], z["poses"]) if "images" in z.files else (z["imgs"], z["T"])
 
 
 def render_survey(path: Path, voxel_size_m: float = 0.05) -> Path:
     """Render the survey scene's pings (uint8, as bench.tank quantizes) to ``path``."""
     from gpumap.sim.scenes import make_scene
-    from gpumap.sim.sonar import SonarSimulator
 
     scene = make_scene("survey", voxel_size_m=voxel_size_m)
-    imgs = []
-    with SonarSimulator(scene, seed=0, **scene.sonar_params) as sim:
-        for k, T in enumerate(scene.T_W_S):
-            imgs.append(np.round(sim.ping(T, k).image * 255.0).astype(np.uint8))
+    imgs = [quantize(p.image) for p in render_pings(scene)]
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(
         path,
@@ -57,25 +55,15 @@ def render_survey(path: Path, voxel_size_m: float = 0.05) -> Path:
     return path
 
 
-def _stream(m, images, poses, passes: int, batch: int = 1) -> tuple[float, float]:
-    """(best images/s over ``passes`` fresh-map streams, seconds of the last); a warm-up first.
+def _stream(m, images, poses, passes: int, batch: int = 1) -> float:
+    """Best images/s over ``passes`` fresh-map streams of every ping; a warm-up stream first.
     ``batch`` > 1: ``integrate_batch`` of that many pings at a time."""
-    best, last = 0.0, 0.0
-    for p in range(passes + 1):
+    rates = []
+    for _ in range(passes + 1):
         m.reset()
         m.synchronize()
-        t0 = time.perf_counter()
-        if batch > 1:
-            for k in range(0, len(images), batch):
-                m.integrate_batch(images[k : k + batch], poses[k : k + batch])
-        else:
-            for img, T in zip(images, poses, strict=True):
-                m.integrate(img, T)
-        m.synchronize()
-        last = time.perf_counter() - t0
-        if p > 0:
-            best = max(best, len(images) / last)
-    return best, last
+        rates.append(stream_rate(m, images, poses, batch=batch))
+    return max(rates[1:], default=0.0)
 
 
 def _row(scene: str, kind: str, backend: str, voxel: float, ips: float, n: int, extra: dict) -> dict:
@@ -111,8 +99,8 @@ def run_scene(
         ref = None
         if dense:
             d = gpumap.MinMaxMapper(spec, grid, backend=be)
-            by_b = {b: round(_stream(d, images, poses, passes, b)[0], 1) for b in batches if b > 1}
-            ips, _ = _stream(d, images, poses, passes)
+            by_b = {b: round(_stream(d, images, poses, passes, b), 1) for b in batches if b > 1}
+            ips = _stream(d, images, poses, passes)
             ref = d.raw_values()
             rows.append(
                 _row(
@@ -139,8 +127,8 @@ def run_scene(
             if label == "sparse-unbounded" and not unbounded:
                 continue
             m = SparseMinMaxMapper(spec, sp, backend=be)
-            by_b = {b: round(_stream(m, images, poses, passes, b)[0], 1) for b in batches if b > 1}
-            ips, _ = _stream(m, images, poses, passes)
+            by_b = {b: round(_stream(m, images, poses, passes, b), 1) for b in batches if b > 1}
+            ips = _stream(m, images, poses, passes)
             st = m.memory_stats()
             extra = {
                 k: st[k]
@@ -168,34 +156,19 @@ def run_scene(
     return rows
 
 
-def _machine() -> dict:
-    out = {
-        "platform": platform.platform(),
-        "cpu_count": os.cpu_count(),
-        "backends": gpumap.available_backends(),
-        "load_avg": list(os.getloadavg()),
-    }
-    try:
-        out["affinity_cpus"] = len(os.sched_getaffinity(0))
-        with open("/proc/cpuinfo") as f:
-            out["cpu_model"] = next(ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.sparse", description=__doc__.splitlines()[0])
-    p.add_argument("--backends", default="warp-cpu,opencl-cpu")
-    p.add_argument("--tank-pings", type=Path, default=TMP / "tank_pings.npz")
-    p.add_argument("--survey-pings", type=Path, default=TMP / "survey_pings.npz")
+    p = bench_parser("sparse", __doc__)
+    p.add_argument("--backends", default="warp-cpu,opencl-cpu", help="comma-separated backends")
+    p.add_argument("--tank-pings", type=Path, default=TMP / "tank_pings.npz", help="tank pings (.npz)")
+    p.add_argument("--survey-pings", type=Path, default=TMP / "survey_pings.npz", help="survey pings (.npz)")
     p.add_argument("--render-survey", action="store_true", help="render the survey pings first")
-    p.add_argument("--tank-voxels", default="0.03,0.02,0.01")
+    p.add_argument("--tank-voxels", default="0.03,0.02,0.01", help="comma-separated tank voxel edges, metres")
     p.add_argument("--survey-voxels", default="0.05,0.02", help="dense rows only at 5 cm and coarser")
-    p.add_argument("--passes", type=int, default=2)
+    p.add_argument("--passes", type=int, default=2, help="timed streams per row, the best kept (default 2)")
     p.add_argument("--batch", default="1", help="also time integrate_batch of these sizes (e.g. 1,8)")
-    p.add_argument("--section", default="cpu")
-    p.add_argument("--out", type=Path, default=Path("bench/results/sparse.json"))
+    p.add_argument("--section", default="cpu", help="name of this run's section in --out")
+    p.add_argument("--out", type=Path, default=Path("bench/results/sparse.json"),
+                   help="results file (merged)")
     args = p.parse_args(argv)
     backends = [b for b in args.backends.split(",") if b]
     batches = tuple(int(b) for b in args.batch.split(",") if b)
@@ -215,14 +188,14 @@ def main(argv: list[str] | None = None) -> int:
         return sc.grid, sc.sonar_spec
 
     if args.tank_pings.is_file() and args.tank_voxels:
-        images, poses = _load(args.tank_pings)
+        images, poses = load_ping_arrays(args.tank_pings)
         for v in (float(x) for x in args.tank_voxels.split(",") if x):
             grid, spec = scene_of("tank", v, args.tank_pings)
             rows += run_scene("tank", grid, spec, images, poses, backends, args.passes, True, False, batches)
     if args.render_survey:
         render_survey(args.survey_pings)
     if args.survey_pings.is_file():
-        images, poses = _load(args.survey_pings)
+        images, poses = load_ping_arrays(args.survey_pings)
         for v in (float(x) for x in args.survey_voxels.split(",") if x):
             grid, spec = scene_of("survey", v, args.survey_pings)
             dense = grid.n_voxels * 9 < 1.5e9
@@ -238,24 +211,20 @@ def main(argv: list[str] | None = None) -> int:
                 v >= 0.05,
                 batches,
             )
-    doc = json.loads(args.out.read_text()) if args.out.is_file() else {}
-    doc["schema"] = "gpumap-bench-sparse/1"
-    doc["note"] = (
+    note = (
         "images_per_s: integrate() per ping, images_per_s_batch: integrate_batch() of B pings at a time; "
         "best of --passes back-to-back streams over every ping of the set into a fresh map "
         "(uint8 images, one synchronize at the end, warm-up pass untimed); bytes: dense = grid voxels x 9 "
         "(float32 min_all + float32 bright + uint8 count, the visible rule); sparse: memory_stats() after "
         "the stream (block_bytes = blocks x 512 voxels x 9; total = pool incl. spare slots + coarse index)"
     )
-    doc[args.section] = {
+    merge_json(args.out, [args.section], {
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        "machine": _machine(),
+        "machine": machine_info(),
         "argv": argv if argv is not None else sys.argv[1:],
         "duration_s": round(time.time() - t0, 1),
         "rows": rows,
-    }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(doc, indent=1) + "\n")
+    }, schema="gpumap-bench-sparse/1", note=note)
     print(f"wrote {args.out}")
     return 0
 

@@ -24,7 +24,6 @@ resolution x downsample factor: 10 -> 5.03 cm, 6 -> 3.02 cm), and gpumap at thos
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -36,7 +35,18 @@ import numpy as np
 
 import gpumap
 
-from .common import CpuShare, compact, help_line, machine_info
+from .common import (
+    CpuShare,
+    bench_parser,
+    machine_tag,
+    oasis_tank_dir,
+    run_header,
+    stream_rate,
+    synced_ms,
+    tagged_path,
+    warm_up,
+    write_json,
+)
 
 CACHE = Path("bench/results/tmp/oasis_polar.npz")
 #: The OASIS configuration's grid box (configs/base.yaml of the public code), metres.
@@ -60,14 +70,6 @@ class Frames:
     polar_ms: float | None = None  # fan -> polar conversion per frame, when measured here
 
 
-def _data_dir() -> Path | None:
-    for up in Path(__file__).resolve().parents:
-        for cand in (up / "shared" / "data" / "oasis_tank", up.parent / "shared" / "data" / "oasis_tank"):
-            if (cand / "sonar_poses.csv").is_file():
-                return cand
-    return None
-
-
 def load_frames(path: Path | None = None) -> Frames:
     """The tank frames from ``path`` (a cache written here) or from shared/data (then cached)."""
     if path is not None and Path(path).is_file():
@@ -78,7 +80,7 @@ def load_frames(path: Path | None = None) -> Frames:
             return Frames(z["imgs"], z["T"], spec, pngs, polar_ms)
     from gpumap.io import open_recording
 
-    data = _data_dir()
+    data = oasis_tank_dir()
     if data is None:
         raise SystemExit("bench.speed: shared/data/oasis_tank not found; pass --frames-from NPZ")
     rec = open_recording(data)
@@ -133,25 +135,12 @@ def _time_backend(fr: Frames, backend: str, voxel_size_m: float, rule: str, *, n
     n = len(fr.images)
     t0 = time.perf_counter()
     m = gpumap.MinMaxMapper(fr.spec, grid, backend=backend, rule=rule)
-    for k in range(WARMUP):
-        m.integrate(fr.images[k], fr.poses[k])
-    m.synchronize()
+    warm_up(m, fr.images, fr.poses, WARMUP)
     row: dict[str, Any] = {"backend": backend, "device": m.device, "voxel_m": voxel_size_m, "rule": rule,
                            "grid_shape": list(grid.shape), "setup_s": time.perf_counter() - t0}
-    m.reset()
-    lat = []
-    for k in range(n_latency):
-        t = time.perf_counter()
-        m.integrate(fr.images[k % n], fr.poses[k % n])
-        m.synchronize()
-        lat.append(1e3 * (time.perf_counter() - t))
-    row["latency"] = _pct(lat)
+    row["latency"] = _pct(synced_ms(m, fr.images, fr.poses, n_latency))
     row["free_at_hz"] = sonar_budget(row["latency"]["p99_ms"])
-    t = time.perf_counter()
-    for k in range(n_stream):
-        m.integrate(fr.images[k % n], fr.poses[k % n])
-    m.synchronize()
-    row["img_per_s"] = n_stream / (time.perf_counter() - t)
+    row["img_per_s"] = stream_rate(m, fr.images, fr.poses, n_stream)
     row["observed_voxels"] = int(m.observed().sum())
     if batch:
         imgs = np.ascontiguousarray(fr.images[:batch])
@@ -310,19 +299,20 @@ def time_oasis(src: Path, fr: Frames, downsample: int, n: int) -> dict[str, Any]
 
 # ------------------------------------------------------------------------------ the run
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.speed", description=help_line(__doc__))
+    ap = bench_parser("speed", __doc__)
     ap.add_argument("--frames-from", type=Path, default=None, help="cached frames (.npz) of this module")
     ap.add_argument("--gpu", action="store_true", help="GPU backends (warp-cuda, opencl-gpu) at 3, 1, 0.5 cm")
-    ap.add_argument("--backend", nargs="+", default=None)
+    ap.add_argument("--backend", nargs="+", default=None, help="backends (default: the CPU or GPU ones here)")
     ap.add_argument("--voxel-size", "--voxel", dest="voxel", type=float, nargs="+", default=None,
                     help="voxel edges in metres (default: each target's)")
-    ap.add_argument("--rule", nargs="+", default=["visible", "plain"])
+    ap.add_argument("--rule", nargs="+", default=["visible", "plain"], help="mapping rules (default both)")
     ap.add_argument("--batch", type=int, default=64, help="frames per integrate_batch call (GPUs)")
-    ap.add_argument("--latency-pings", type=int, default=None)
+    ap.add_argument("--latency-pings", type=int, default=None,
+                    help="synchronized pings per latency figure (default: by backend and voxel size)")
     ap.add_argument("--oasis-src", type=Path, default=None, help="checkout of the public OASIS code")
-    ap.add_argument("--oasis-frames", type=int, default=20)
-    ap.add_argument("--out", type=Path, default=Path("bench/results"))
-    ap.add_argument("--tag", default=None)
+    ap.add_argument("--oasis-frames", type=int, default=20, help="frames the public code maps (default 20)")
+    ap.add_argument("--out", type=Path, default=Path("bench/results"), help="results folder")
+    ap.add_argument("--tag", default=None, help="result file stem after speed_ (default: from the machine)")
     a = ap.parse_args(argv)
     fr = load_frames(a.frames_from or CACHE)
     avail = gpumap.available_backends()
@@ -334,12 +324,11 @@ def main(argv: list[str] | None = None) -> int:
     else:
         backends = [b for b in ("warp-cpu", "opencl-cpu", "numpy") if b in avail]
     voxels = a.voxel or (GPU_VOXELS if a.gpu else CPU_VOXELS)
-    info = machine_info()
     res: dict[str, Any] = {
-        "schema": "gpumap-speed/1", "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "argv": sys.argv[1:],
-        "machine": info, "frames": {"source": "shared/data/oasis_tank (real Oculus M3000d, arm poses)",
-                                    "n": len(fr.images), "image_shape": list(fr.images.shape[1:]),
-                                    "dtype": "uint8", "fan_to_polar_ms": fr.polar_ms},
+        **run_header("gpumap-speed/1", argv),
+        "frames": {"source": "shared/data/oasis_tank (real Oculus M3000d, arm poses)",
+                   "n": len(fr.images), "image_shape": list(fr.images.shape[1:]),
+                   "dtype": "uint8", "fan_to_polar_ms": fr.polar_ms},
         "grid_box_m": OASIS_BOX, "rows": [], "oasis_public": [],
     }
     if a.oasis_src:
@@ -370,11 +359,8 @@ def main(argv: list[str] | None = None) -> int:
     if on_gpu:
         res["oracle_diff_5cm"] = oracle_check(fr, [b for b in backends if b in gpu_names], 10 * OASIS_RES_M)
         print("oracle", res["oracle_diff_5cm"], flush=True)
-    tag = a.tag or ("gpu_" + info["gpus"][0].split(" (")[0] if on_gpu and info.get("gpus") else
-                    f"cpu_{info['cpu_count']}c")
-    a.out.mkdir(parents=True, exist_ok=True)
-    path = a.out / f"speed_{''.join(c if c.isalnum() or c in '-_' else '-' for c in tag.lower())}.json"
-    path.write_text(json.dumps(compact(res), indent=1))
+    tag = a.tag or machine_tag(res["machine"], on_gpu)
+    path = write_json(tagged_path(a.out, "speed_", tag), res, digits=4)
     print(f"wrote {path}")
     return 0
 

@@ -25,6 +25,8 @@ import numpy as np
 
 import gpumap
 
+from .common import gl_renderer
+
 __all__ = ["SEEN_CELL_M", "TankPings", "VoxelTruth", "load_pings", "simulate_tank", "voxel_truth"]
 
 #: Edge of the cells that record which surface points the pings saw, metres.
@@ -112,7 +114,7 @@ def simulate_tank(n_pings: int | None = None, seed: int = 0, progress: bool = Tr
             times.append(time.perf_counter() - t0)
             if i == 0:
                 init_s = time.perf_counter() - t_first
-                gl = _gl_renderer()
+                gl = gl_renderer()
             images.append(np.round(p.image * 255.0).astype(np.uint8))
             cells.append(np.unique(np.floor((p.points_W - lo) / SEEN_CELL_M).astype(np.int32), axis=0))
         rays = int(sim.rays_per_ping)
@@ -135,16 +137,6 @@ def simulate_tank(n_pings: int | None = None, seed: int = 0, progress: bool = Tr
         },
     }
     return TankPings(np.stack(images), scene.T_W_S[sel].copy(), seen, meta)
-
-
-def _gl_renderer() -> str:
-    try:
-        from OpenGL.GL import GL_RENDERER, glGetString
-
-        s = glGetString(GL_RENDERER)
-        return s.decode() if isinstance(s, bytes) else str(s)
-    except Exception as e:  # informative only
-        return f"unknown ({type(e).__name__})"
 
 
 @dataclass

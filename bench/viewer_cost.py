@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import socket
 import subprocess
@@ -23,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from .common import help_line, machine_info
+from .common import bench_parser, load_average, machine_info, oasis_tank_dir, write_json
 
 RESULTS = Path(__file__).resolve().parent / "results" / "viewer_cost.json"
 
@@ -44,13 +43,17 @@ def main(argv: list[str] | None = None) -> int:
     from gpumap.replay import run_replay
     from gpumap.viewer.cli import Session
 
-    here = Path(__file__).resolve().parent.parent
-    ap = argparse.ArgumentParser(prog="python -m bench.viewer_cost", description=help_line(__doc__))
-    ap.add_argument("--data", type=Path, default=here.parent / "shared" / "data" / "oasis_tank")
-    ap.add_argument("--voxel-size", type=float, default=0.05)
-    ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap = bench_parser("viewer_cost", __doc__)
+    ap.add_argument("--data", type=Path, default=None,
+                    help="the oasis_tank folder (default: shared/data beside the checkout)")
+    ap.add_argument("--voxel-size", type=float, default=0.05, help="metres (default 0.05)")
+    ap.add_argument("--repeat", type=int, default=3, help="runs of each mode, the best kept (default 3)")
+    ap.add_argument("--out", type=Path, default=RESULTS, help="results file")
     a = ap.parse_args(argv)
+    if a.data is None:
+        a.data = oasis_tank_dir()
+        if a.data is None:
+            raise SystemExit("bench.viewer_cost: shared/data/oasis_tank not found; pass --data")
 
     rec = open_recording(a.data)
     warm, _ = run_replay(rec, voxel_size_m=a.voxel_size, progress=False)  # compile, size the grid
@@ -117,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         "overhead": {k: round(min(v) / base - 1.0, 3) for k, v in rows.items() if k != "none"},
         "cpu_seconds": {k: round(min(v), 3) for k, v in cpu.items()},
         "cpu_overhead": {k: round(min(v) / min(cpu["none"]) - 1.0, 3) for k, v in cpu.items() if k != "none"},
-        "load_average": list(os.getloadavg()),
+        "load_average": load_average(),
         "target_overhead": 0.20,
         "view": extra.get("view"),
         "view_no_browser": extra.get("view_no_browser"),
@@ -127,8 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         "record": extra.get("record"),
         "machine": machine_info(),
     }
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps(out, indent=2))
+    write_json(a.out, out, indent=2)
     keys = ("frames", "backend", "seconds", "overhead", "cpu_overhead", "load_average", "view", "record")
     print(json.dumps({k: out[k] for k in keys}, indent=1))
     return 0

@@ -21,9 +21,6 @@ the plain rule; it writes ``bench/results/visibility_carve.json`` and no speed f
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -33,7 +30,17 @@ from tqdm import tqdm
 
 import gpumap
 
-from .common import CpuShare, compact, help_line, load_average, machine_info
+from .common import (
+    CpuShare,
+    bench_parser,
+    mark_load,
+    quantize,
+    render_pings,
+    run_header,
+    synced_ms,
+    warm_up,
+    write_json,
+)
 
 RULES = ("plain", "visible")
 THRESHOLD = 0.1
@@ -64,14 +71,15 @@ COLUMNS = (
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m bench.visibility", description=help_line(__doc__))
-    p.add_argument("--scenes", nargs="+", default=["tank", "circle"])
-    p.add_argument("--voxel-sizes", type=float, nargs="+", default=[0.05, 0.03, 0.02, 0.01])
+    p = bench_parser("visibility", __doc__)
+    p.add_argument("--scenes", nargs="+", default=["tank", "circle"], help="scenes (default tank circle)")
+    p.add_argument("--voxel-sizes", type=float, nargs="+", default=[0.05, 0.03, 0.02, 0.01],
+                   help="voxel edges, metres")
     p.add_argument("--backend", default="opencl", help="gpumap backend (default opencl: PoCL on a CPU)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=Path("bench/results/visibility.json"))
+    p.add_argument("--seed", type=int, default=0, help="scene and simulator seed (default 0)")
+    p.add_argument("--out", type=Path, default=Path("bench/results/visibility.json"), help="results file")
     p.add_argument("--fig-dir", type=Path, default=Path("docs"), help="where the FN-FP plots go")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--carve-sweep", type=int, nargs="+", metavar="K",
                    help="quality only: score the visible map at each carve_views K (1..255)")
     return p
@@ -79,35 +87,21 @@ def _parser() -> argparse.ArgumentParser:
 
 def simulate(name: str, seed: int, progress: bool) -> tuple[list, np.ndarray, np.ndarray, float]:
     """Every ping of scene ``name``'s trajectory: (pings, uint8 images, poses, simulator images/s)."""
-    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     from gpumap.sim.scenes import make_scene
-    from gpumap.sim.sonar import SonarSimulator
 
     scene = make_scene(name, seed=seed)
-    pings = []
     t0 = time.perf_counter()
-    with SonarSimulator(scene, seed=seed) as sim:
-        for k in tqdm(range(len(scene.T_W_S)), desc=f"simulate {name}", unit="ping", disable=not progress):
-            pings.append(sim.ping(scene.T_W_S[k], k))
+    pings = render_pings(scene, seed=seed, scene_sonar=False, progress=progress, desc=f"simulate {name}")
     rate = len(pings) / (time.perf_counter() - t0)
-    images = np.stack([np.round(p.image * 255.0).astype(np.uint8) for p in pings])
+    images = np.stack([quantize(p.image) for p in pings])
     return pings, images, scene.T_W_S.copy(), rate
 
 
 def map_pings(spec, grid, images: np.ndarray, poses: np.ndarray, backend: str, rule: str) -> tuple:
     """Map every ping with ``rule``; returns (values, speed dict, backend name, device)."""
     m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule=rule, threshold=THRESHOLD)
-    for k in range(WARMUP):
-        m.integrate(images[k], poses[k])
-    m.synchronize()
-    m.reset()
-    ms = []
-    for img, T in zip(images, poses, strict=True):
-        t = time.perf_counter()
-        m.integrate(img, T)
-        m.synchronize()
-        ms.append(1e3 * (time.perf_counter() - t))
-    a = np.asarray(ms)
+    warm_up(m, images, poses, WARMUP)
+    a = np.asarray(synced_ms(m, images, poses))
     speed = {"ms_median": np.median(a), "ms_p95": np.percentile(a, 95),
              "images_per_s": 1e3 * a.size / a.sum()}
     return m.values(), speed, m.backend, m.device
@@ -241,7 +235,6 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m bench.visibility``."""
     args = _parser().parse_args(argv)
     t_start = time.perf_counter()
-    info = machine_info()
     if args.carve_sweep:
         if min(args.carve_sweep) < 1 or max(args.carve_sweep) > 255:
             raise SystemExit(f"--carve-sweep: expected values in 1..255, got {args.carve_sweep}")
@@ -249,18 +242,19 @@ def main(argv: list[str] | None = None) -> int:
         out = args.out
         if out == _parser().get_default("out"):
             out = out.with_name("visibility_carve.json")
-        out.write_text(json.dumps(compact({
-            "schema": "gpumap-visibility-carve/1", "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "argv": sys.argv[1:] if argv is None else argv, "machine": info,
+        write_json(out, {
+            **run_header("gpumap-visibility-carve/1", argv),
             "run": {"seed": args.seed, "threshold": THRESHOLD, "backend": args.backend,
                     "poses": "true (simulator)", "duration_s": time.perf_counter() - t_start},
-            "rows": rows}), separators=(",", ":")))
+            "rows": rows}, indent=None, digits=4)
         cols = [("scene", "scene", "s"), ("voxel", "voxel_cm", "cm"), ("rule", "rule", "s"),
                 ("carve_views", "carve_views", "s"), *[c for c in COLUMNS if c[1] in SCORE_KEYS + (
                     "carved_vs_plain", "height_error_worst_vox")]]
         print(markdown_table(rows, cols))
         print(f"\nwrote {out}")
         return 0
+    head = run_header("gpumap-visibility/1", argv)  # not "gpumap-bench/": bench.report skips this file
+    info = head["machine"]
     rows, curves, sims = [], {}, {}
     bar = tqdm(total=len(args.scenes) * len(args.voxel_sizes) * len(RULES), desc="visibility", unit="map",
                disable=args.no_progress)
@@ -272,14 +266,9 @@ def main(argv: list[str] | None = None) -> int:
             if by_rule is not None:
                 plot_curves(name, by_rule, args.fig_dir / f"visibility_fn_fp_{name}.png")
     bar.close()
-    info["load_avg_end"] = load_average()
-    info["cpu_share_during_run"] = {"others_cores": share.others_cores, "steal_cores": share.steal_cores,
-                                    "bench_cores": share.own_cores}
+    mark_load(info, share)
     result = {
-        "schema": "gpumap-visibility/1",  # not "gpumap-bench/": bench.report skips this file
-        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        "argv": sys.argv[1:] if argv is None else argv,
-        "machine": info,
+        **head,
         "run": {"scenes": sims, "seed": args.seed, "threshold": THRESHOLD, "backend": args.backend,
                 "rules": list(RULES), "warmup_pings": WARMUP, "poses": "true (simulator)",
                 "image_dtype": "uint8 (intensity * 255, rounded; as the Oculus delivers)",
@@ -290,8 +279,7 @@ def main(argv: list[str] | None = None) -> int:
         "rows": rows,
         "fn_fp_curves": curves,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(compact(result), separators=(",", ":")))
+    write_json(args.out, result, indent=None, digits=4)
     print(markdown_table(rows))
     print(f"\nwrote {args.out} in {result['run']['duration_s']:.0f} s")
     return 0

@@ -26,17 +26,17 @@ every run: on a shared machine these are loaded figures, not headlines.
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import os
-import platform
 import statistics
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from .common import bench_parser, load_average, load_ping_arrays, machine_info, merge_json
 
 TMP = Path("bench/results/tmp")
 
@@ -48,11 +48,10 @@ def survey_recording(path: Path, voxel_size_m: float, passes: int = 1):
     from gpumap.io import Recording, SonarFrame
 
     if not path.is_file():
-        from gpumap.bench.sparse import render_survey
+        from .sparse import render_survey
 
         render_survey(path)
-    with np.load(path, allow_pickle=False) as z:
-        images, poses = z["images"], z["poses"]
+    images, poses = load_ping_arrays(path)
     from gpumap.sim.scenes import make_scene
 
     sc = make_scene("survey", voxel_size_m=voxel_size_m)
@@ -69,12 +68,8 @@ def survey_recording(path: Path, voxel_size_m: float, passes: int = 1):
     return rec, grid
 
 
-def _load() -> list[float]:
-    return [round(x, 2) for x in os.getloadavg()]
-
-
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.workers", description=__doc__.splitlines()[0])
+    p = bench_parser("workers", __doc__)
     p.add_argument("--backend", default="warp-cpu", help="every mapper's backend (default warp-cpu)")
     p.add_argument("--voxel-size", "--voxel", dest="voxel", type=float, default=0.05,
                    help="voxel size, metres (default 0.05)")
@@ -116,16 +111,16 @@ def main(argv: list[str] | None = None) -> int:
     seconds_cluster = time.perf_counter() - tc
     try:
         for rep in range(args.reps):
-            load0 = _load()
+            load0 = load_average()
             t0 = time.perf_counter()
             one, s1 = run_replay(rec, mapper_cls=cls, **kw)
             wall_one = time.perf_counter() - t0
-            load1 = _load()
+            load1 = load_average()
             t0 = time.perf_counter()
             got, sw = run_replay_workers(rec, workers=args.workers, client=client, sparse=args.sparse,
                                          cpu_threads=args.worker_threads, split=args.split, **kw)
             wall_w = time.perf_counter() - t0
-            load2 = _load()
+            load2 = load_average()
             row = {
                 "rep": rep,
                 "cold_workers": rep == 0,
@@ -173,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         "worker_threads": args.worker_threads or "default (2)",
         "split": args.split,
         "cpu_count": os.cpu_count(),
-        "machine": {"platform": platform.platform(), "python": platform.python_version()},
+        "machine": machine_info(),
         "seconds_cluster_start": round(seconds_cluster, 3),
         "duration_s": round(time.time() - t_start, 1),
         "note": (
@@ -193,11 +188,7 @@ def main(argv: list[str] | None = None) -> int:
             "bitwise_equal": rows[0].get("bitwise_equal"),
         },
     }
-    doc = json.loads(args.out.read_text()) if args.out.is_file() else {}
-    doc["schema"] = "gpumap-bench-workers/1"
-    doc[args.section] = sec
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(doc, indent=1) + "\n")
+    merge_json(args.out, [args.section], sec, schema="gpumap-bench-workers/1")
     print(json.dumps(sec["summary"]))
     print(f"wrote {args.out}")
     return 0
