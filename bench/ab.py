@@ -1,0 +1,173 @@
+"""Two source trees timed side by side: a bounded map's speed, in alternating runs of one session.
+
+    python -m bench.ab --a /path/to/other/checkout --voxel 0.03 0.01 --backend opencl-cpu warp-cpu
+
+Tree B is this checkout unless ``--b`` says otherwise. Each round runs every (voxel, backend)
+once per tree, in fresh processes, A first in even rounds and B first in odd ones, so neither
+tree always meets a warm or a cold machine first. A run is the tank set-up of
+:mod:`bench.mapper_speed` (512 beams x 400 bins, 0.1-2 m, the 4 x 3 x 1 m grid, a wrist
+trajectory, speckled pings): warm-up pings, then ``--images`` pings back to back with one
+synchronize at the end (images/s; ``--batch K`` hands them over K at a time with
+``integrate_batch``). Both trees must give the same map: a digest of the values after the timed
+pings is compared, and a mismatch fails the run. The machine must be idle at the start (load
+and other processes' cores, as :mod:`bench.peer_ratio` checks); the other processes' share is
+recorded per run, and a run where they took more than ``--max-others`` cores is marked.
+Writes ``bench/results/ab_<tag>.json``: per row each tree's median images/s and spread, and
+B's median over A's.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+WARMUP = 3
+
+
+def _package(tree: Path, into: Path) -> Path:
+    """A folder that imports ``gpumap`` from ``tree`` (its gpumap/, kernels/, sim/ and bench/ as
+    the installed package lays them out) by symbolic links."""
+    pkg = into / "gpumap"
+    pkg.mkdir(parents=True)
+    for f in (tree / "gpumap").iterdir():
+        (pkg / f.name).symlink_to(f.resolve())
+    for sub in ("kernels", "sim", "bench"):
+        (pkg / sub).symlink_to((tree / sub).resolve())
+    return into
+
+
+def _worker(a) -> None:
+    """One timed run in this process (this file run as a script, importing gpumap from the tree
+    on PYTHONPATH: only gpumap and bench.mapper_speed's set-up, which both trees have); prints
+    one JSON line."""
+    from gpumap.bench.mapper_speed import images, tank_grid, tank_spec, trajectory
+
+    import gpumap
+
+    spec, grid = tank_spec(), tank_grid(a.voxel[0])
+    n = a.images
+    imgs, poses = images(spec, min(n, 16)), trajectory(n)
+    m = gpumap.MinMaxMapper(spec, grid, backend=a.backend[0])
+    for k in range(WARMUP):
+        m.integrate(imgs[k], poses[k])
+    m.synchronize()
+    m.reset()
+    batch = a.batch
+    stack = np.stack(imgs)
+    t = time.perf_counter()
+    if batch:
+        for k0 in range(0, n, batch):
+            ks = np.arange(k0, min(n, k0 + batch))
+            m.integrate_batch(stack[ks % len(imgs)], np.stack([poses[k] for k in ks]))
+    else:
+        for k in range(n):
+            m.integrate(imgs[k % len(imgs)], poses[k])
+    m.synchronize()
+    dt = time.perf_counter() - t
+    v = m.raw_values()
+    print(json.dumps({"images_per_s": n / dt, "backend": m.backend, "device": m.device,
+                      "gpumap_file": gpumap.__file__, "observed": int(np.isfinite(v).sum()),
+                      "digest": hashlib.sha256(v.tobytes()).hexdigest()[:16]}), flush=True)
+
+
+def _run(root: Path, tree: Path, voxel: float, backend: str, n: int, batch: int) -> dict:
+    from gpumap.bench.common import CpuShare
+
+    cmd = [sys.executable, "-P", str(Path(__file__).resolve()), "--worker", "--voxel", str(voxel),
+           "--backend", backend, "--images", str(n), "--batch", str(batch)]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    with CpuShare() as share:
+        p = subprocess.run(cmd, env=env, cwd=root, capture_output=True, text=True, timeout=3600)
+    if p.returncode != 0:
+        raise RuntimeError(f"{tree} {backend} {voxel}: {p.stderr.strip()[-2000:]}")
+    out = json.loads(p.stdout.strip().splitlines()[-1])
+    if not str(Path(out["gpumap_file"]).resolve()).startswith(str(tree.resolve())):
+        raise RuntimeError(f"Expected gpumap imported from {tree}, but it came from {out['gpumap_file']}")
+    out["others_cores"] = share.others_cores
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    if argv is None:
+        argv = sys.argv[1:]
+    if "--worker" in argv:
+        w = argparse.ArgumentParser()
+        w.add_argument("--worker", action="store_true")
+        w.add_argument("--voxel", type=float, nargs=1)
+        w.add_argument("--backend", nargs=1)
+        w.add_argument("--images", type=int)
+        w.add_argument("--batch", type=int)
+        _worker(w.parse_args(argv))
+        return 0
+    from gpumap.bench.common import bench_parser, idle_check, run_header, spread, write_json
+
+    ap = bench_parser("bench.ab", __doc__)
+    ap.add_argument("--a", type=Path, help="the other source tree (a checkout with gpumap/, kernels/, sim/, "
+                    "bench/)")
+    ap.add_argument("--b", type=Path, default=Path.cwd(), help="the tree compared with it (default: here)")
+    ap.add_argument("--voxel", type=float, nargs="+", default=[0.03, 0.01], help="voxel edges, metres")
+    ap.add_argument("--backend", nargs="+", default=["opencl-cpu", "warp-cpu"], help="backends, by name")
+    ap.add_argument("--images", type=int, default=0, help="pings per run (default 200 at >= 2 cm, else 60)")
+    ap.add_argument("--batch", type=int, default=0,
+                    help="hand pings over this many at a time (0: one by one)")
+    ap.add_argument("--rounds", type=int, default=5, help="rounds (each runs every row once per tree)")
+    ap.add_argument("--max-load", type=float, default=0.5, help="refuse to start above this load average")
+    ap.add_argument("--max-others", type=float, default=0.25,
+                    help="cores other processes may take (at the start, and per run before it is marked)")
+    ap.add_argument("--force", action="store_true", help="run on a loaded machine (results marked invalid)")
+    ap.add_argument("--tag", default="cpu", help="results file: bench/results/ab_TAG.json")
+    ap.add_argument("--out", type=Path, default=Path("bench/results"), help="folder for the results file")
+    a = ap.parse_args(argv)
+    if a.a is None:
+        ap.error("--a is required")
+    start = idle_check(a.max_load, a.max_others)
+    if not start["idle"] and not a.force:
+        print(f"bench.ab: the machine is not idle ({start}); refusing to time (--force to run anyway)",
+              file=sys.stderr)
+        return 3
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        roots = {t: _package(getattr(a, t), Path(tmp) / t) for t in ("a", "b")}
+        for voxel in a.voxel:
+            for backend in a.backend:
+                n = a.images or (200 if voxel >= 0.02 else 60)
+                runs: dict[str, list] = {"a": [], "b": []}
+                for r in range(a.rounds):
+                    for t in ("a", "b") if r % 2 == 0 else ("b", "a"):
+                        runs[t].append(_run(roots[t], getattr(a, t), voxel, backend, n, a.batch))
+                digests = {x["digest"] for t in runs for x in runs[t]}
+                row = {"voxel_size_m": voxel, "backend": backend, "images": n, "batch": a.batch,
+                       "device": runs["b"][0]["device"], "same_map": len(digests) == 1,
+                       "observed_voxels": runs["b"][0]["observed"]}
+                for t in ("a", "b"):
+                    ips = [x["images_per_s"] for x in runs[t]]
+                    row[t] = {"images_per_s": spread(ips), "runs": ips,
+                              "others_cores_max": max(x["others_cores"] or 0.0 for x in runs[t])}
+                row["b_over_a"] = row["b"]["images_per_s"]["median"] / row["a"]["images_per_s"]["median"]
+                row["quiet"] = all(row[t]["others_cores_max"] <= a.max_others for t in ("a", "b"))
+                rows.append(row)
+                keys = ("voxel_size_m", "backend", "b_over_a", "same_map", "quiet")
+                medians = {t: round(row[t]["images_per_s"]["median"], 2) for t in ("a", "b")}
+                print(json.dumps({k: row[k] for k in keys} | medians), flush=True)
+                if not row["same_map"]:
+                    print(f"bench.ab: the trees map differently at {voxel} m on {backend}", file=sys.stderr)
+    doc = {**run_header("gpumap.bench.ab/1", argv), "idle_at_start": start, "valid": bool(start["idle"]),
+           "trees": {t: str(getattr(a, t).resolve()) for t in ("a", "b")}, "warmup_pings": WARMUP,
+           "rounds": a.rounds, "rows": rows}
+    path = write_json(a.out / f"ab_{a.tag}.json", doc)
+    print(f"wrote {path}")
+    return 0 if all(r["same_map"] for r in rows) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
