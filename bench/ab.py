@@ -83,7 +83,8 @@ def _run(root: Path, tree: Path, voxel: float, backend: str, n: int, batch: int)
 
     cmd = [sys.executable, "-P", str(Path(__file__).resolve()), "--worker", "--voxel", str(voxel),
            "--backend", backend, "--images", str(n), "--batch", str(batch)]
-    env = {**os.environ, "PYTHONPATH": str(root)}
+    path = os.pathsep.join(x for x in (str(root), os.environ.get("PYTHONPATH")) if x)
+    env = {**os.environ, "PYTHONPATH": path}
     with CpuShare() as share:
         p = subprocess.run(cmd, env=env, cwd=root, capture_output=True, text=True, timeout=3600)
     if p.returncode != 0:

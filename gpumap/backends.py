@@ -1,6 +1,6 @@
 """Compute backends: where map values live and how a ping is applied to them.
 
-Each backend holds one map as a pool of blocks of ``B^3`` voxels and a coarse index over
+Each backend holds one map as a pool of blocks of ``B x B x Bz`` voxels and a coarse index over
 them (:class:`Backend`: float32 values, ``+inf`` = unknown) and applies
 ``integrate(params, image, method)`` to it. ``numpy`` is the reference
 (:mod:`gpumap.reference`); ``warp-cpu``/``warp-cuda`` and ``opencl`` run the kernels in
@@ -87,8 +87,8 @@ class GridTooLargeError(ValueError):
 class Backend:
     """Owns one mapper's map storage and the per-ping device buffers.
 
-    The map lives in a *pool* of ``cap`` blocks of ``B^3`` voxels (slot ``s`` holds voxels
-    ``[s B^3, (s + 1) B^3)``, local order ``(i, j, k)``, ``k`` fastest): ``grid`` float32
+    The map lives in a *pool* of ``cap`` blocks of ``V = B B Bz`` voxels (slot ``s`` holds voxels
+    ``[s V, (s + 1) V)``, local order ``(i, j, k)``, ``k`` fastest): ``grid`` float32
     (the min over every view, ``+inf`` never observed), and for the visible rule ``bright``
     float32 and ``count`` uint8, plus a ``seen`` byte per slot. A dense coarse *index* (int32
     per block of a box, -1 none) maps a block to its slot; the kernels address every voxel
@@ -99,8 +99,9 @@ class Backend:
     name: str
     device: str
 
-    def _setup_pool(self, visible: bool, B: int) -> None:
-        self.visible, self.B, self.B3 = visible, B, B**3
+    def _setup_pool(self, visible: bool, B: int, Bz: int | None) -> None:
+        Bz = B if Bz is None else Bz
+        self.visible, self.B, self.Bz, self.BV = visible, B, Bz, B * B * Bz
         self.cap = 0
         self.blk_lo = np.zeros(3, np.int32)
         self.blk_n = np.zeros(3, np.int32)
@@ -109,6 +110,7 @@ class Backend:
         params["blk_lo"] = self.blk_lo
         params["blk_n"] = self.blk_n
         params["blk"] = self.B
+        params["blk_z"] = self.Bz
 
     def grow(self, cap: int) -> None:
         """Make room for ``cap`` slots (new ones never observed), keeping the first ``self.cap``."""
@@ -143,7 +145,7 @@ class Backend:
             self.integrate(params[b, ...], images[b], method, int(n_threads[b]))
 
     def read(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-        """Copies of the pool: ``grid`` (cap B^3,) float32, ``bright`` and ``count`` (visible
+        """Copies of the pool: ``grid`` (cap B B Bz,) float32, ``bright`` and ``count`` (visible
         rule; None for the plain rule)."""
         raise NotImplementedError
 
@@ -152,9 +154,9 @@ class Backend:
         raise NotImplementedError
 
     def write_blocks(self, slots: np.ndarray, grid, bright, count) -> None:
-        """Blocks ``slots`` take these values ((n, B^3) each) and are marked seen."""
+        """Blocks ``slots`` take these values ((n, B B Bz) each) and are marked seen."""
         g, b, c = self.read()
-        addr = (np.asarray(slots, np.int64)[:, None] * self.B3 + np.arange(self.B3)).ravel()
+        addr = (np.asarray(slots, np.int64)[:, None] * self.BV + np.arange(self.BV)).ravel()
         g[addr] = np.asarray(grid).ravel()
         if self.visible:
             b[addr] = np.asarray(bright).ravel()
@@ -193,8 +195,8 @@ class NumpyBackend(Backend):
     name = "numpy"
     device = "cpu (NumPy reference)"
 
-    def __init__(self, spec, template_S, use_table=None, *, visible=False, B=8, cap=0):
-        self._setup_pool(visible, B)
+    def __init__(self, spec, template_S, use_table=None, *, visible=False, B=8, Bz=None, cap=0):
+        self._setup_pool(visible, B, Bz)
         self.buf = np.empty(spec.image_shape, np.float32)
         self.edges = beam_tan_edges(spec)
         self.template = template_S
@@ -207,7 +209,7 @@ class NumpyBackend(Backend):
         self.grow(cap)
 
     def grow(self, cap):
-        n = (cap - self.cap) * self.B3
+        n = (cap - self.cap) * self.BV
         self.grid = np.concatenate([self.grid, np.full(n, np.inf, np.float32)])
         if self.visible:
             self.bright = np.concatenate([self.bright, np.full(n, np.inf, np.float32)])
@@ -220,7 +222,7 @@ class NumpyBackend(Backend):
 
     def set_blocks(self, slots, lins):
         live = slots[slots >= 0].astype(np.int64)
-        a = (live[:, None] * self.B3 + np.arange(self.B3)).ravel()
+        a = (live[:, None] * self.BV + np.arange(self.BV)).ravel()
         self.grid[a] = np.inf
         if self.visible:
             self.bright[a] = np.inf
@@ -230,16 +232,16 @@ class NumpyBackend(Backend):
 
     def _address(self, idx: np.ndarray) -> np.ndarray:
         """(m, 3) voxel indices -> (m,) pool addresses (-1: no block), marking blocks seen."""
-        B = self.B
+        B, Bz = self.B, self.Bz
         rel = idx - self.blk_lo.astype(np.int64)
-        b = rel // B
+        b = rel // np.array([B, B, Bz])
         inside = np.all((rel >= 0) & (b < self.blk_n), axis=1)
         slot = np.full(len(idx), -1, np.int64)
         nb = self.blk_n.astype(np.int64)
         slot[inside] = self.index[(b[inside, 0] * nb[1] + b[inside, 1]) * nb[2] + b[inside, 2]]
         ok = slot >= 0
-        w = rel - b * B
-        out = np.where(ok, slot * self.B3 + (w[:, 0] * B + w[:, 1]) * B + w[:, 2], -1)
+        w = rel - b * np.array([B, B, Bz])
+        out = np.where(ok, slot * self.BV + (w[:, 0] * B + w[:, 1]) * Bz + w[:, 2], -1)
         self.seen[slot[ok]] = 1
         return out
 
@@ -446,13 +448,13 @@ def _union_groups(params: np.ndarray, n_threads: np.ndarray, slack: float = 2.0)
 
 
 class WarpBackend(Backend):
-    def __init__(self, spec, template_S, use_table=None, device="cpu", *, visible=False, B=8, cap=0):
+    def __init__(self, spec, template_S, use_table=None, device="cpu", *, visible=False, B=8, Bz=None, cap=0):
         n_bins, n_beams = spec.image_shape
         wp, minmax = _warp()
         if device == "cuda" and not wp.is_cuda_available():
             why = "" if cuda_driver_loadable() else " (the NVIDIA CUDA driver, libcuda, cannot be loaded)"
             raise BackendUnavailableError(f"warp-cuda needs a CUDA device, and Warp finds none here{why}")
-        self._setup_pool(visible, B)
+        self._setup_pool(visible, B, Bz)
         self.wp, self.k = wp, minmax
         self.dev = wp.get_device("cuda:0" if device == "cuda" else "cpu")
         self.name = f"warp-{device}"
@@ -533,13 +535,13 @@ class WarpBackend(Backend):
     # ------------------------------------------------------------------ the pool
     def grow(self, cap):
         wp = self.wp
-        n_old = self.cap * self.B3
+        n_old = self.cap * self.BV
         with wp.ScopedDevice(self.dev):
             names = [("grid", wp.full, np.inf, float), ("seen", wp.zeros, None, wp.uint8)]
             if self.visible:
                 names += [("bright", wp.full, np.inf, float), ("count", wp.zeros, None, wp.uint8)]
             for name, make, fill, dt in names:
-                n = cap if name == "seen" else cap * self.B3
+                n = cap if name == "seen" else cap * self.BV
                 new = make(n, value=fill, dtype=dt) if fill is not None else make(n, dtype=dt)
                 old_n = self.cap if name == "seen" else n_old
                 if old_n:
@@ -580,14 +582,14 @@ class WarpBackend(Backend):
             return
         pairs = self._stage_pairs(slots, lins)
         if self._init_cmd is None or self._init_cmd[0] is not pairs:
-            args = [pairs, n, self.B3, int(self.visible), float(np.inf), self.index, self.grid, self.bright,
+            args = [pairs, n, self.BV, int(self.visible), float(np.inf), self.index, self.grid, self.bright,
                     self.count, self.seen]
-            cmd = self.wp.launch(self.k.init_blocks, dim=n * self.B3, inputs=args, device=self.dev,
+            cmd = self.wp.launch(self.k.init_blocks, dim=n * self.BV, inputs=args, device=self.dev,
                                  record_cmd=True)
             self._init_cmd = (pairs, cmd)
         cmd = self._init_cmd[1]
         cmd.set_param_by_name("n", n)
-        cmd.set_dim(n * self.B3)
+        cmd.set_dim(n * self.BV)
         cmd.launch()
 
     def read(self):
@@ -879,11 +881,11 @@ def usable_opencl_device(kind: str):
 
 
 class OpenCLBackend(Backend):
-    def __init__(self, spec, template_S, use_table=None, kind="any", *, visible=False, B=8, cap=0):
+    def __init__(self, spec, template_S, use_table=None, kind="any", *, visible=False, B=8, Bz=None, cap=0):
         n_bins, n_beams = spec.image_shape
         cl = _opencl()
         d = usable_opencl_device(kind)
-        self._setup_pool(visible, B)
+        self._setup_pool(visible, B, Bz)
         self.cl = cl
         self.ctx, prg = _opencl_context(d)
         self._cl_device = d
@@ -958,15 +960,15 @@ class OpenCLBackend(Backend):
 
     def grow(self, cap):
         cl, q = self.cl, self.queue
-        n = cap * self.B3
+        n = cap * self.BV
         d = self._cl_device
         if 4 * n > d.max_mem_alloc_size:
             raise GridTooLargeError(
-                f"Expected a map that fits in one OpenCL buffer, but {cap} blocks of {self.B3} voxels need "
+                f"Expected a map that fits in one OpenCL buffer, but {cap} blocks of {self.BV} voxels need "
                 f"{4 * n / 2**30:.2f} GiB and {d.name.strip()} allows {d.max_mem_alloc_size / 2**30:.2f} GiB"
             )
-        n_old = self.cap * self.B3
-        arrays = [("grid", 4, np.float32(np.inf)), ("seen", 1 / self.B3, np.uint8(0))]
+        n_old = self.cap * self.BV
+        arrays = [("grid", 4, np.float32(np.inf)), ("seen", 1 / self.BV, np.uint8(0))]
         if self.visible:
             arrays += [("bright", 4, np.float32(np.inf)), ("count", 1, np.uint8(0))]
         for name, per, fill in arrays:
@@ -1003,9 +1005,9 @@ class OpenCLBackend(Backend):
             self.ipairs_n = max(2 * n, 4096)
             self.ipairs = self._buf(4 * self.ipairs_n)
         self.iuploads[k] = self.cl.enqueue_copy(self.queue, self.ipairs, host[: 2 * n], is_blocking=False)
-        gs = -(-(n * self.B3) // self.wg) * self.wg
+        gs = -(-(n * self.BV) // self.wg) * self.wg
         i32 = np.int32
-        self.k_init(self.queue, (gs,), (self.wg,), self.ipairs, i32(n), i32(self.B3), i32(self.visible),
+        self.k_init(self.queue, (gs,), (self.wg,), self.ipairs, i32(n), i32(self.BV), i32(self.visible),
                     np.float32(np.inf), self.index, self.grid, self.bright, self.count, self.seen)
 
     def _read(self, buf, n, dt):
@@ -1015,7 +1017,7 @@ class OpenCLBackend(Backend):
         return out
 
     def read(self):
-        n = self.cap * self.B3
+        n = self.cap * self.BV
         g = self._read(self.grid, n, np.float32)
         if not self.visible:
             return g, None, None
@@ -1198,17 +1200,19 @@ def make_backend(
     *,
     visible: bool = False,
     B: int = 8,
+    Bz: int | None = None,
     cap: int = 0,
 ) -> Backend:
     """Build the backend called ``name`` (never another one; raises if it cannot run) with a pool
-    of ``cap`` blocks of ``B^3`` voxels (grown later with :meth:`Backend.grow`).
+    of ``cap`` blocks of ``B x B x Bz`` voxels (``Bz`` default ``B``; grown later with
+    :meth:`Backend.grow`).
 
     ``use_table`` picks how kernels take the max over a footprint: a per-ping max table
     (True), a loop over cells (False), or the faster for the device (None: table on CPUs).
     ``visible`` keeps the visible rule's per-voxel evidence (5 more bytes per voxel).
     """
     args = (spec, template_S, use_table)
-    kw = {"visible": visible, "B": B, "cap": cap}
+    kw = {"visible": visible, "B": B, "Bz": Bz, "cap": cap}
     if name == "numpy":
         return NumpyBackend(*args, **kw)
     if name in ("warp-cpu", "warp-cuda"):

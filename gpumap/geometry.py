@@ -66,7 +66,8 @@ PING_DTYPE = np.dtype(
         ("rule", np.int32),  # 0: the paper's plain min; 1: visibility-aware (see gpumap.mapper)
         ("blk_lo", np.int32, (3,)),  # voxel index of the block index's first voxel (set by the backend)
         ("blk_n", np.int32, (3,)),  # the block index's extent, in blocks
-        ("blk", np.int32),  # voxels per block edge (B)
+        ("blk", np.int32),  # a block's edge along x and y, voxels (B)
+        ("blk_z", np.int32),  # a block's edge along z, voxels (Bz)
     ]
 )
 

@@ -1,11 +1,11 @@
 """The min-max occupancy mapper: the public entry point of gpumap.
 
 One :class:`MinMaxMapper` serves a fixed box and an open world. Its map lives in *blocks* of
-``B^3`` voxels (``B = 8``: 512 voxels) on the backend's device: a *pool* of slots (per voxel
+``B x B x Bz`` voxels on the backend's device: a *pool* of slots (per voxel
 float32 ``min_all``, and for the visible rule float32 ``bright`` and uint8 ``count``: 9 bytes;
 4 for the plain rule) and a dense coarse *index* of int32 slots, one per block of a box (``-1`` =
 no block; 4 bytes per 512 voxels). Every kernel addresses a voxel through the index: its
-block's slot times ``B^3`` plus its place in the block (an O(1) read: no hash, no probing,
+block's slot times its size plus its place in the block (an O(1) read: no hash, no probing,
 nothing OpenCL 1.2 lacks), in one kernel family for every storage (``gpumap.kernels.minmax``).
 
 - **A bounded box** (a :class:`~gpumap.GridSpec`): every block of the box is allocated up front
@@ -153,10 +153,10 @@ def _evidence_empty(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 @functools.cache
-def _local(B: int) -> np.ndarray:
-    """(B^3, 3) int64 local voxel offsets of a block, in storage order."""
-    a = np.arange(B**3)
-    return np.stack([a // (B * B), (a // B) % B, a % B], axis=1)
+def _local(B: int, Bz: int) -> np.ndarray:
+    """(B B Bz, 3) int64 local voxel offsets of a block, in storage order."""
+    a = np.arange(B * B * Bz)
+    return np.stack([a // (B * Bz), (a // Bz) % B, a % Bz], axis=1)
 
 
 class MinMaxMapper:
@@ -183,7 +183,7 @@ class MinMaxMapper:
     - ``"plain"``: the paper's rule: the minimum over all views. A ping carves voxels in its
       acoustic shadow, so surfaces seen from one side are erased by views from the other.
 
-    Storage (module docstring): blocks of ``B^3`` voxels, all of a bounded box up front, or
+    Storage (module docstring): blocks of voxels, all of a bounded box up front, or
     allocated where pings look; the values are the same either way.
 
     Parameters
@@ -335,10 +335,15 @@ class MinMaxMapper:
         self.evict = evict
         self.n_integrated = 0
         self._visible = rule == "visible"
+        # a bounded box's blocks are BLOCK x BLOCK columns of the grid's height (one index read per
+        # column in the kernels, which then walk contiguous voxels: the dense grid's speed); blocks
+        # on demand are cubes of the SparseSpec's edge
         B = BLOCK if space is None else space.block
-        self.B, self.B3 = B, B**3
+        Bz = int(grid.shape[2]) if space is None else B
+        self.B, self.Bz, self.BV = B, Bz, B * B * Bz
+        self._bs = np.array([B, B, Bz], np.int64)
         self.bytes_per_voxel = 9 if self._visible else 4
-        self._block_bytes = self.B3 * self.bytes_per_voxel + 1  # + the seen byte
+        self._block_bytes = self.BV * self.bytes_per_voxel + 1  # + the seen byte
         if space is None:
             self._grid = grid
             self._voxel, self._origin = grid.voxel_size_m, np.asarray(grid.min_corner_m, np.float64)
@@ -363,15 +368,15 @@ class MinMaxMapper:
         self._lock = threading.RLock()
         # the coarse index: block (lo_b + (a, b, c)) -> slot, -1 none
         self._lo_b = np.zeros(3, np.int64)
-        nb = np.zeros(3, np.int64) if self._dims is None else -(-self._dims // B)
+        nb = np.zeros(3, np.int64) if self._dims is None else -(-self._dims // self._bs)
         if self._dims is not None:
             self._check_index_size(nb, "the bounds")
         n_blocks = int(np.prod(nb))
         if space is None:  # every block of the box, slot = index entry (the identity)
-            if n_blocks * self.B3 > _MAX_POOL_VOXELS:
+            if n_blocks * self.BV > _MAX_POOL_VOXELS:
                 raise GridTooLargeError(
                     f"Expected at most {_MAX_POOL_VOXELS} voxels in the grid's blocks, but {grid.shape} "
-                    f"voxels take {n_blocks} blocks of {B}^3"
+                    f"voxels take {n_blocks} blocks of {B} x {B} x {Bz}"
                 )
             self._index = np.arange(n_blocks, dtype=np.int32).reshape(tuple(int(x) for x in nb))
             cap = n_blocks
@@ -387,7 +392,7 @@ class MinMaxMapper:
             self._used = np.zeros(cap, bool)
             self._free = np.arange(cap - 1, -1, -1, dtype=np.int64)  # a stack: pop from the end
         self._backend = self._make_backend(backend, cap)
-        self._backend.set_index(self._index, self._lo_b * B)
+        self._backend.set_index(self._index, self._lo_b * self._bs)
         n_vox = 0 if space is not None or not confidence else grid.n_voxels
         self._confirmed = np.zeros(n_vox, np.uint8) if confidence else None
         # the elevation-arc directions (gpumap.nbv.PAIR_STEPS bits) each voxel was observed along
@@ -404,7 +409,7 @@ class MinMaxMapper:
         if n > _MAX_INDEX_BLOCKS:
             raise MapMemoryError(
                 f"Expected at most {_MAX_INDEX_BLOCKS} blocks in the coarse index, but {what} span "
-                f"{tuple(int(x) for x in nb)} blocks of {self.B}^3 voxels"
+                f"{tuple(int(x) for x in nb)} blocks of {self.BV} voxels"
             )
         if self.max_bytes is not None and need + self._block_bytes > self.max_bytes:
             raise MapMemoryError(
@@ -423,14 +428,14 @@ class MinMaxMapper:
         names = AUTO_ORDER if backend == "auto" else (backend,)
         errors = []
         for name in names:
-            need = cap * self.B3 * self.bytes_per_voxel
+            need = cap * self.BV * self.bytes_per_voxel
             free = _free_memory_bytes(name)
             if self.sparse is None and free is not None and need > free:
                 msg = (
                     f"Expected a grid that fits in memory, but {self.grid.shape} voxels at "
                     f"voxel_size_m={self.grid.voxel_size_m} need {need / 2**30:.2f} GiB and "
                     f"{name} has {free / 2**30:.2f} GiB free ({self.bytes_per_voxel} bytes a voxel, "
-                    f"in blocks of {self.B}^3)"
+                    f"in blocks of {self.B} x {self.B} x {self.Bz})"
                 )
                 if backend != "auto":
                     raise ValueError(msg)
@@ -438,7 +443,7 @@ class MinMaxMapper:
                 continue
             try:
                 return make_backend(name, self.spec, self._template, self._use_table, visible=self._visible,
-                                    B=self.B, cap=cap)
+                                    B=self.B, Bz=self.Bz, cap=cap)
             except (BackendUnavailableError, GridTooLargeError) as e:
                 if backend != "auto":
                     raise
@@ -850,7 +855,7 @@ class MinMaxMapper:
             e = a + np.asarray(self._index.shape)
             new[a[0] : e[0], a[1] : e[1], a[2] : e[2]] = self._index
         self._index, self._lo_b = new, new_lo
-        self._backend.set_index(new, new_lo * self.B)
+        self._backend.set_index(new, new_lo * self._bs)
 
     def _lins(self, coords: np.ndarray) -> np.ndarray:
         r = coords - self._lo_b
@@ -945,7 +950,7 @@ class MinMaxMapper:
                 f"Expected max_bytes={self.max_bytes} to hold at least one ping's blocks, but this ping "
                 f"alone needs {int(keep.sum()) + n} blocks and {len(cand)} others can be evicted"
             )
-        c = self._origin + (self._coords[cand] + 0.5) * self.B * self._voxel
+        c = self._origin + (self._coords[cand] + 0.5) * self._bs * self._voxel
         d = np.linalg.norm(c - sonar_t, axis=1)
         self._free_slots(cand[np.argsort(-d, kind="stable")[:n]])
 
@@ -970,11 +975,11 @@ class MinMaxMapper:
         self._reclaim()
 
     def _blocks(self) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """Used blocks' coords (n, 3) int64 (lexicographic order) and their (n, B^3) arrays:
+        """Used blocks' coords (n, 3) int64 (lexicographic order) and their (n, B B Bz) arrays:
         ``min_all``, ``values`` and for the visible rule ``bright`` and ``count``."""
         self.check()
         g, b, c = self._backend.read()
-        B3 = self.B3
+        B3 = self.BV
         if self.sparse is None:  # every block, slot = index entry: already in coordinate order
             coords = self._coords
             out = {"min_all": g.reshape(-1, B3)}
@@ -1004,7 +1009,7 @@ class MinMaxMapper:
         if len(used) == 0:
             return np.zeros(3, np.int64), np.zeros(3, np.int64)
         c = self._coords[used]
-        return c.min(axis=0) * self.B, (c.max(axis=0) + 1) * self.B - 1
+        return c.min(axis=0) * self._bs, (c.max(axis=0) + 1) * self._bs - 1
 
     def _box_grid(self, i0: np.ndarray, i1: np.ndarray) -> GridSpec:
         s = self._voxel
@@ -1020,8 +1025,8 @@ class MinMaxMapper:
         if int(np.prod(shape)) > _MAX_BOX_VOXELS:
             raise ValueError(f"Expected a box of at most {_MAX_BOX_VOXELS} voxels, but got {shape}")
         coords, data = self._blocks() if blocks is None else blocks
-        B = self.B
-        b0, b1 = i0 // B, i1 // B
+        B, Bz, bs = self.B, self.Bz, self._bs
+        b0, b1 = i0 // bs, i1 // bs
         nb = tuple(int(x) for x in b1 - b0 + 1)
         sel = np.all((coords >= b0) & (coords <= b1), axis=1)
         r = coords[sel] - b0
@@ -1030,25 +1035,25 @@ class MinMaxMapper:
         for n in names:
             dt, fill = (np.uint8, 0) if n == "count" else (np.float32, np.inf)
             if whole:
-                V = data[n][sel].reshape(*nb, B, B, B)
+                V = data[n][sel].reshape(*nb, B, B, Bz)
             else:
-                V = np.full((*nb, B, B, B), fill, dt)
-                V[r[:, 0], r[:, 1], r[:, 2]] = data[n][sel].reshape(-1, B, B, B)
-            V = V.transpose(0, 3, 1, 4, 2, 5).reshape(*(x * B for x in nb))
-            a = i0 - b0 * B
+                V = np.full((*nb, B, B, Bz), fill, dt)
+                V[r[:, 0], r[:, 1], r[:, 2]] = data[n][sel].reshape(-1, B, B, Bz)
+            V = V.transpose(0, 3, 1, 4, 2, 5).reshape(*(x * e for x, e in zip(nb, bs, strict=True)))
+            a = i0 - b0 * bs
             out[n] = np.ascontiguousarray(
                 V[a[0] : a[0] + shape[0], a[1] : a[1] + shape[1], a[2] : a[2] + shape[2]]
             )
         return out
 
     def _to_pool_order(self, a: np.ndarray, fill) -> np.ndarray:
-        """A bounded box's (nx, ny, nz) array as (n_blocks, B^3) in slot order (``fill`` past the box)."""
-        B = self.B
+        """A bounded box's (nx, ny, nz) array as (n_blocks, B B Bz) in slot order (``fill`` past the box)."""
+        B, Bz = self.B, self.Bz
         nb = self._index.shape
-        V = np.full(tuple(n * B for n in nb), fill, a.dtype)
+        V = np.full((nb[0] * B, nb[1] * B, nb[2] * Bz), fill, a.dtype)
         V[: a.shape[0], : a.shape[1], : a.shape[2]] = a
         return np.ascontiguousarray(
-            V.reshape(nb[0], B, nb[1], B, nb[2], B).transpose(0, 2, 4, 1, 3, 5)).reshape(-1, self.B3)
+            V.reshape(nb[0], B, nb[1], B, nb[2], Bz).transpose(0, 2, 4, 1, 3, 5)).reshape(-1, self.BV)
 
     def raw_values(self) -> np.ndarray:
         """(nx, ny, nz) float32 copy of the map values over :attr:`grid`, ``+inf`` = never observed."""
@@ -1110,7 +1115,7 @@ class MinMaxMapper:
         with self._lock:
             self._settle()
             coords, data = self._blocks()
-        B, s = self.B, self._voxel
+        bs, s = self._bs, self._voxel
         c = None
         if center_m is not None or radius_m is not None:
             if center_m is None or radius_m is None:
@@ -1120,13 +1125,13 @@ class MinMaxMapper:
             r = check_finite_scalar(radius_m, "radius_m")
             if r < 0:
                 raise ValueError(f"Expected radius_m >= 0, but got {r}")
-            mid = self._origin + (coords + 0.5) * B * s
-            near = np.linalg.norm(mid - c, axis=1) <= r + math.sqrt(3) / 2 * B * s
+            mid = self._origin + (coords + 0.5) * bs * s
+            near = np.linalg.norm(mid - c, axis=1) <= r + float(np.linalg.norm(bs)) / 2 * s
             coords, vals = coords[near], data["values"][near]
         else:
             vals = data["values"]
         blk, loc = np.nonzero(np.isfinite(vals) & (vals >= thr))
-        idx = coords[blk] * B + _local(B)[loc]
+        idx = coords[blk] * bs + _local(self.B, self.Bz)[loc]
         idx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
         pts = self._origin + (idx + 0.5) * s
         if c is not None:
@@ -1154,12 +1159,12 @@ class MinMaxMapper:
             dense = int(np.prod(i1 - i0 + 1)) * bpv if n or self._dims is not None else 0
             return {
                 "blocks": n,
-                "block_size": self.B,
+                "block_size": self.B if self.Bz == self.B else [self.B, self.B, self.Bz],
                 "observed_voxels": n_obs,
                 "bytes_per_voxel": bpv,
-                "block_bytes": n * self.B3 * bpv,
+                "block_bytes": n * self.BV * bpv,
                 "observed_bytes": n_obs * bpv,
-                "block_over_observed": (n * self.B3 / n_obs) if n_obs else None,
+                "block_over_observed": (n * self.BV / n_obs) if n_obs else None,
                 "pool_blocks": cap,
                 "pool_bytes": cap * self._block_bytes,
                 "index_bytes": int(self._index.nbytes),
@@ -1274,7 +1279,7 @@ class MinMaxMapper:
 
     def _put_blocks(self, coords: np.ndarray, arrays: dict, combine: bool) -> None:
         """Blocks ``coords`` ((n, 3) int64, distinct, inside the bounds) take ``arrays``
-        (``min_all`` and for the visible rule ``bright``, ``count``: (n, B^3) each), merged with
+        (``min_all`` and for the visible rule ``bright``, ``count``: (n, B B Bz) each), merged with
         what they hold when ``combine`` (:func:`gpumap.merge._combine_into`). Allocates missing
         blocks (never evicts); raises :class:`MapMemoryError` past ``max_bytes``, unchanged."""
         from gpumap.merge import _combine_into
@@ -1313,7 +1318,7 @@ class MinMaxMapper:
         mine = arrays
         if combine and n_new < len(coords):
             g, b, c = self._backend.read()
-            addr = slots[:, None] * self.B3 + np.arange(self.B3)
+            addr = slots[:, None] * self.BV + np.arange(self.BV)
             mine = {"min_all": g[addr]}
             if self._visible:
                 mine["bright"], mine["count"] = b[addr], c[addr]
@@ -1325,7 +1330,7 @@ class MinMaxMapper:
         """Write the map to ``path`` (.npz), atomically: a crash leaves the old file intact.
 
         Lossless, in blocks (format version 4, for every storage): ``blocks`` (n, 3) int32 block
-        coordinates (lexicographic; only blocks with an observed voxel), ``values`` (n, B, B, B)
+        coordinates (lexicographic; only blocks with an observed voxel), ``values`` (n, B, B, Bz)
         float32, the map as :meth:`raw_values` gives it (``+inf`` unknown); for the visible rule
         its state (``min_all`` and ``bright`` float32, ``count`` uint8); with the confidence
         layer ``confirmed`` uint8 and ``arcs`` uint16; ``meta`` (JSON): the sonar spec, the
@@ -1336,7 +1341,7 @@ class MinMaxMapper:
         path = Path(path)
         if path.suffix != ".npz":
             path = path.with_suffix(path.suffix + ".npz") if path.suffix else path.with_suffix(".npz")
-        B = self.B
+        B, Bz = self.B, self.Bz
         with self._lock:  # one consistent snapshot, even while other threads integrate
             self.synchronize()
             self._settle()
@@ -1350,14 +1355,14 @@ class MinMaxMapper:
                 arrays["confirmed"] = self._to_pool_order(self._confirmed.reshape(shape), 0)[keep]
                 arrays["arcs"] = self._to_pool_order(self._arcs.reshape(shape), 0)[keep]
             n_integrated = self.n_integrated
-        arrays = {k: v if k == "blocks" else v.reshape(-1, B, B, B) for k, v in arrays.items()}
+        arrays = {k: v if k == "blocks" else v.reshape(-1, B, B, Bz) for k, v in arrays.items()}
         meta = {
             "format": FILE_FORMAT,
             "version": FILE_VERSION,
             "spec": self.spec.to_dict(),
             "grid": self.grid.to_dict() if self.sparse is None else None,
             "sparse": None if self.sparse is None else self.sparse.to_dict(),
-            "block": B,
+            "block": [B, B, Bz],
             "method": self.method,
             "shadow_m": self.shadow_m,
             "rule": self.rule,
@@ -1424,11 +1429,15 @@ class MinMaxMapper:
                             f"Expected 'blocks' of shape (n, 3) int32 in {path}, but got "
                             f"{'nothing' if bshape is None else f'{bshape} {bdt}'}"
                         )
-                    B = space.block if isinstance(space, SparseSpec) else meta.get("block", BLOCK)
-                    if B != BLOCK and isinstance(space, GridSpec):
-                        raise FormatError(f"Expected block {BLOCK} for a grid map in {path}, but got {B!r}")
+                    if isinstance(space, SparseSpec):
+                        B, Bz = space.block, space.block
+                    else:  # as a mapper of this grid lays its blocks out
+                        B, Bz = BLOCK, int(space.shape[2])
+                    if meta.get("block", [B, B, Bz]) != [B, B, Bz]:
+                        raise FormatError(f"Expected blocks of {[B, B, Bz]} voxels in {path}, but its "
+                                          f"metadata says {meta.get('block')!r}")
                     n_blocks = bshape[0]
-                    shape = (n_blocks, B, B, B)
+                    shape = (n_blocks, B, B, Bz)
                 for name in names:
                     dt = {"count": np.uint8, "confirmed": np.uint8, "arcs": np.uint16}.get(name, np.float32)
                     got, dtype = headers.get(f"{name}.npy", (None, None))
@@ -1470,20 +1479,21 @@ class MinMaxMapper:
             return m
         coords = arrays.pop("blocks").astype(np.int64)
         n = len(coords)
-        flat = {k: v.reshape(n, B**3) for k, v in arrays.items()}
+        bs = np.array([B, B, Bz], np.int64)
+        flat = {k: v.reshape(n, B * B * Bz) for k, v in arrays.items()}
         _check_map_values(flat, opts, path)
         if n and len(np.unique(coords, axis=0)) != n:
             raise FormatError(f"Expected each block once in {path}, but some repeat")
-        if np.abs(coords).max(initial=0) * B > _MAX_VOXEL_INDEX - 2 * B:
+        if np.abs(coords).max(initial=0) * max(B, Bz) > _MAX_VOXEL_INDEX - 2 * max(B, Bz):
             raise FormatError(f"Expected block coordinates within +-{_MAX_VOXEL_INDEX // B - 2} in {path}")
         obs = np.isfinite(flat["min_all" if opts["rule"] == "visible" else "values"])
         if not obs.any(axis=1).all():
             raise FormatError(f"Expected every block in {path} to hold an observed voxel, but some hold none")
         dims = space.shape
         if dims is not None and n:
-            idx = coords[:, None, :] * B + _local(B)[None]
+            idx = coords[:, None, :] * bs + _local(B, Bz)[None]
             outside = np.any((idx < 0) | (idx >= np.asarray(dims)), axis=2)
-            if np.any(outside & obs) or np.any(coords < 0) or np.any(coords * B >= np.asarray(dims)):
+            if np.any(outside & obs) or np.any(coords < 0) or np.any(coords * bs >= np.asarray(dims)):
                 raise FormatError(
                     f"Expected observed voxels only inside the bounds in {path}, but some lie outside"
                 )
@@ -1497,11 +1507,11 @@ class MinMaxMapper:
             m._put_blocks(coords, src, combine=False)
             if opts["confidence"]:
                 for name, target in (("confirmed", m._confirmed), ("arcs", m._arcs)):
-                    full = np.zeros((int(np.prod(m._index.shape)), m.B3), target.dtype)
+                    full = np.zeros((int(np.prod(m._index.shape)), m.BV), target.dtype)
                     full[m._lins(coords)] = flat[name]
-                    g = m.grid.shape
-                    V = full.reshape(*m._index.shape, B, B, B).transpose(0, 3, 1, 4, 2, 5)
-                    V = V.reshape(*(x * B for x in m._index.shape))
+                    g, nb = m.grid.shape, m._index.shape
+                    V = full.reshape(*nb, B, B, Bz).transpose(0, 3, 1, 4, 2, 5)
+                    V = V.reshape(nb[0] * B, nb[1] * B, nb[2] * Bz)
                     target[:] = V[: g[0], : g[1], : g[2]].ravel()
             m.n_integrated = n_integrated
         return m

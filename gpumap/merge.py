@@ -65,7 +65,7 @@ class MapState:
         Pings the map has integrated.
     arrays : dict
         ``blocks`` ``(n, 3)`` int64 block coordinates (lexicographic order; only blocks with an
-        observed voxel), and per block ``(n, B^3)`` ``min_all`` float32 (``+inf`` never
+        observed voxel), and per block ``(n, B B Bz)`` ``min_all`` float32 (``+inf`` never
         observed) and for the visible rule ``bright`` float32 and ``count`` uint8.
     """
 
@@ -229,7 +229,7 @@ def _check_arrays(st: MapState, mapper) -> None:
     ``mapper``'s bounds (a MapState built by hand)."""
     names = ("min_all", "bright", "count") if st.options["rule"] == "visible" else ("min_all",)
     m = len(st.arrays.get("blocks", ()))
-    want = {k: ((m, mapper.B3), np.uint8 if k == "count" else np.float32) for k in names}
+    want = {k: ((m, mapper.BV), np.uint8 if k == "count" else np.float32) for k in names}
     want["blocks"] = ((m, 3), np.int64)
     for k, (shape, dt) in want.items():
         a = st.arrays.get(k)
@@ -240,7 +240,7 @@ def _check_arrays(st: MapState, mapper) -> None:
             )
     c = st.arrays["blocks"]
     if m and (len(np.unique(c, axis=0)) != m or (mapper._dims is not None and (
-            np.any(c < 0) or np.any(c * mapper.B >= mapper._dims)))):
+            np.any(c < 0) or np.any(c * mapper._bs >= mapper._dims)))):
         raise ValueError("Expected distinct blocks inside the map's bounds in the map to merge, but got "
                          "repeated blocks or blocks outside")
     n = st.n_integrated
@@ -263,7 +263,7 @@ def _union_blocks(first: MapState, rest, like) -> MapState:
     coords, inverse = np.unique(np.concatenate([st.arrays["blocks"] for st in states]), axis=0,
                                 return_inverse=True)
     inverse = inverse.reshape(-1)
-    acc = {k: v.reshape(len(coords), -1) for k, v in _empty_dense(len(coords) * like.B3, visible).items()}
+    acc = {k: v.reshape(len(coords), -1) for k, v in _empty_dense(len(coords) * like.BV, visible).items()}
     start = 0
     for st in states:
         rows = inverse[start : start + len(st.arrays["blocks"])]  # distinct within one map

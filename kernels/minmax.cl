@@ -40,7 +40,8 @@ typedef struct {
     int rule;        // 0: plain min; 1: visibility-aware (bright / count evidence)
     int blk_lo[3];   // voxel index of the block index's first voxel
     int blk_n[3];    // the block index's extent, in blocks
-    int blk;         // voxels per block edge (B)
+    int blk;         // a block's edge along x and y, voxels (B)
+    int blk_z;       // a block's edge along z, voxels (Bz)
 } PingParams;
 
 // Largest beam j in [0, n_beams - 1] with tan_edges[j] <= t (0 when none), t = tan(azimuth). A
@@ -261,23 +262,24 @@ inline void column_range(const PingParams *P, float cx, float cy, float *lo, flo
 }
 
 // Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold.
-// Storage address of voxel (i, j, k): its block's slot (through the index) times B^3 plus its place in the
-// block (local order i, j, k, k fastest); -1 when it has no block.
+// Storage address of voxel (i, j, k): its block's slot (through the index) times the block's voxels
+// (B B Bz) plus its place in the block (local order i, j, k, k fastest); -1 when it has no block.
 inline long voxel_address(const PingParams *P, __global const int *index, int i, int j, int k)
 {
-    int B = P->blk;
+    int B = P->blk, Bz = P->blk_z;
     int ri = i - P->blk_lo[0], rj = j - P->blk_lo[1], rk = k - P->blk_lo[2];
     if (ri < 0 || rj < 0 || rk < 0) return -1;
-    int bi = ri / B, bj = rj / B, bk = rk / B;
+    int bi = ri / B, bj = rj / B, bk = rk / Bz;
     if (bi >= P->blk_n[0] || bj >= P->blk_n[1] || bk >= P->blk_n[2]) return -1;
     int slot = index[((size_t)bi * P->blk_n[1] + bj) * P->blk_n[2] + bk];
     if (slot < 0) return -1;
-    return (long)slot * B * B * B + ((ri - bi * B) * B + (rj - bj * B)) * B + rk - bk * B;
+    return (long)slot * B * B * Bz + ((ri - bi * B) * B + (rj - bj * B)) * Bz + rk - bk * Bz;
 }
 
-// Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold. A voxel's
-// address is its block's slot (looked up once per block the column enters) times B^3 plus its place in
-// the block; the block is marked seen. An observed voxel without a block sets err[0] and is skipped.
+// Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold. Block by block
+// along the column: one index read per block, then that block's voxels (contiguous) as a plain loop; a
+// block with an observed voxel is marked seen. An observed voxel without a block sets err[0] and is
+// skipped. A bounded box's blocks span the grid's height, so its columns run as one loop.
 inline void gather_column(const PingParams *P, int i, int j, int c0, int c1, __global const float *image,
                           __global const float *tan_edges, __global const int *lut,
                           __global const float *table, int use_table, __global const int *first_bright,
@@ -292,41 +294,43 @@ inline void gather_column(const PingParams *P, int i, int j, int c0, int c1, __g
     // voxel centres inside [z0, z1], padded by one voxel against rounding
     int k0 = max(c0, (int)ceil((z0 - P->origin[2]) / P->voxel - 0.5f) - 1);
     int k1 = min(c1, (int)floor((z1 - P->origin[2]) / P->voxel - 0.5f) + 1);
-    int B = P->blk;
+    int B = P->blk, Bz = P->blk_z;
     int ri = i - P->blk_lo[0], rj = j - P->blk_lo[1];
     int bi = ri / B, bj = rj / B;
     int col_ok = ri >= 0 && rj >= 0 && bi < P->blk_n[0] && bj < P->blk_n[1];
     size_t colbase = ((size_t)bi * P->blk_n[1] + bj) * P->blk_n[2];
-    long within = ((ri - bi * B) * B + (rj - bj * B)) * B;
-    int cur = -2;
-    long base = -1;  // the current block's slot * B^3 + within; -1: no block
-    for (int k = k0; k <= k1; ++k) {
-        float cz = P->origin[2] + ((float)k + 0.5f) * P->voxel;
-        int clear;
-        float v = voxel_ping_value(P, cx, cy, cz, image, tan_edges, lut, table, use_table, first_bright,
-                                   &clear);
-        if (v >= 0.0f) {
-            int rk = k - P->blk_lo[2];
-            int bk = rk >= 0 ? rk / B : -1;
-            if (bk != cur) {
-                cur = bk;
-                base = -1;
-                if (col_ok && rk >= 0 && bk < P->blk_n[2]) {
-                    int slot = index[colbase + bk];
-                    if (slot >= 0) {
-                        seen[slot] = 1;  // once per block a work-item enters, not per voxel
-                        base = (long)slot * B * B * B + within;
-                    }
-                }
-            }
-            if (base < 0) err[0] = 1;
-            else update_voxel(P, (size_t)(base + rk - bk * B), v, clear, grid, bright, count);
+    long within = ((ri - bi * B) * B + (rj - bj * B)) * Bz;
+    for (int kb = k0; kb <= k1;) {
+        int rk = kb - P->blk_lo[2];
+        int slot = -1, kstop = min(k1, P->blk_lo[2] - 1);
+        long base = 0;  // the block's slot * B B Bz + within - its first k
+        if (rk >= 0) {
+            int bk = rk / Bz;
+            kstop = min(k1, P->blk_lo[2] + bk * Bz + Bz - 1);
+            if (col_ok && bk < P->blk_n[2]) slot = index[colbase + bk];
+            base = (long)slot * B * B * Bz + within - (long)(P->blk_lo[2] + bk * Bz);
         }
+        int hit = 0;
+        for (int k = kb; k <= kstop; ++k) {
+            float cz = P->origin[2] + ((float)k + 0.5f) * P->voxel;
+            int clear;
+            float v = voxel_ping_value(P, cx, cy, cz, image, tan_edges, lut, table, use_table, first_bright,
+                                       &clear);
+            if (v >= 0.0f) {
+                hit = 1;
+                if (slot >= 0) update_voxel(P, (size_t)(base + k), v, clear, grid, bright, count);
+            }
+        }
+        if (hit) {
+            if (slot >= 0) seen[slot] = 1;
+            else err[0] = 1;
+        }
+        kb = kstop + 1;
     }
 }
 
 // One work-item per chunk of an (i, j) column of the ping's index box: it walks the chunk's
-// voxels that the column's range can hold (runs of B contiguous in memory).
+// voxels that the column's range can hold (contiguous in memory within a block).
 __kernel void integrate_gather(const PingParams P, __global const float *image,
                                __global const float *tan_edges, __global const int *lut,
                                __global const float *table, int use_table,
@@ -346,18 +350,19 @@ __kernel void integrate_gather(const PingParams P, __global const float *image,
                   count, seen, err);
 }
 
-// One work-item per voxel of each of n listed blocks (pairs: n slots, then n index entries): slot pairs[b]
-// becomes never observed (unknown = +inf, no evidence) and index[pairs[n + b]] = pairs[b] (-1: freed).
-__kernel void init_blocks(__global const int *pairs, int n, int B3, int visible, float unknown,
+// One work-item per voxel of each of n listed blocks of bv voxels (pairs: n slots, then n index entries):
+// slot pairs[b] becomes never observed (unknown = +inf, no evidence) and index[pairs[n + b]] = pairs[b]
+// (-1: freed).
+__kernel void init_blocks(__global const int *pairs, int n, int bv, int visible, float unknown,
                           __global int *index, __global float *grid, __global float *bright,
                           __global uchar *count, __global uchar *seen)
 {
     int tid = get_global_id(0);
-    if (tid >= n * B3) return;
-    int b = tid / B3, v = tid % B3;
+    if (tid >= n * bv) return;
+    int b = tid / bv, v = tid % bv;
     int s = pairs[b];
     if (s >= 0) {
-        size_t a = (size_t)s * B3 + v;
+        size_t a = (size_t)s * bv + v;
         grid[a] = unknown;
         if (visible) { bright[a] = unknown; count[a] = 0; }
         if (v == 0) seen[s] = 0;

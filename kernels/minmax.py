@@ -52,7 +52,8 @@ class PingParams:
     rule: int  # 0: plain min; 1: visibility-aware (bright / count evidence)
     blk_lo: wp.vec3i  # voxel index of the block index's first voxel
     blk_n: wp.vec3i  # the block index's extent, in blocks
-    blk: int  # voxels per block edge (B)
+    blk: int  # a block's edge along x and y, voxels (B)
+    blk_z: int  # a block's edge along z, voxels (Bz)
 
 
 @wp.func
@@ -343,9 +344,11 @@ def column_range(P: PingParams, cx: float, cy: float) -> wp.vec2:
 
 @wp.func
 def voxel_address(P: PingParams, index: wp.array(dtype=int), i: int, j: int, k: int) -> int:
-    """Storage address of voxel (i, j, k): its block's slot (through the index) times B^3 plus its
-    place in the block (local order i, j, k, k fastest); -1 when it has no block."""
+    """Storage address of voxel (i, j, k): its block's slot (through the index) times the block's
+    voxels (B B Bz) plus its place in the block (local order i, j, k, k fastest); -1 when it has
+    no block."""
     B = P.blk
+    Bz = P.blk_z
     ri = i - P.blk_lo[0]
     rj = j - P.blk_lo[1]
     rk = k - P.blk_lo[2]
@@ -353,13 +356,13 @@ def voxel_address(P: PingParams, index: wp.array(dtype=int), i: int, j: int, k: 
         return -1
     bi = ri // B
     bj = rj // B
-    bk = rk // B
+    bk = rk // Bz
     if bi >= P.blk_n[0] or bj >= P.blk_n[1] or bk >= P.blk_n[2]:
         return -1
     slot = index[(bi * P.blk_n[1] + bj) * P.blk_n[2] + bk]
     if slot < 0:
         return -1
-    return slot * B * B * B + ((ri - bi * B) * B + (rj - bj * B)) * B + rk - bk * B
+    return slot * B * B * Bz + ((ri - bi * B) * B + (rj - bj * B)) * Bz + rk - bk * Bz
 
 
 @wp.func
@@ -383,9 +386,11 @@ def gather_column(
 ):
     """Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold.
 
-    A voxel's address is its block's slot (looked up once per block the column enters) times
-    B^3 plus its place in the block; the block is marked seen. An observed voxel without a
-    block (the host's allocation was not conservative) sets err[0] and is skipped."""
+    Block by block along the column: one index read per block, then that block's voxels
+    (contiguous in memory) as a plain loop; a block with an observed voxel is marked seen. An
+    observed voxel without a block (the host's allocation was not conservative) sets err[0]
+    and is skipped. A bounded box's blocks span the grid's height, so its columns run as one
+    loop."""
     cx = P.origin[0] + (float(i) + 0.5) * P.voxel
     cy = P.origin[1] + (float(j) + 0.5) * P.voxel
     z = column_range(P, cx, cy)
@@ -394,34 +399,39 @@ def gather_column(
         k0 = wp.max(c0, int(wp.ceil((z[0] - P.origin[2]) / P.voxel - 0.5)) - 1)
         k1 = wp.min(c1, int(wp.floor((z[1] - P.origin[2]) / P.voxel - 0.5)) + 1)
         B = P.blk
+        Bz = P.blk_z
         ri = i - P.blk_lo[0]
         rj = j - P.blk_lo[1]
         bi = ri // B
         bj = rj // B
         col_ok = ri >= 0 and rj >= 0 and bi < P.blk_n[0] and bj < P.blk_n[1]
         colbase = (bi * P.blk_n[1] + bj) * P.blk_n[2]
-        within = ((ri - bi * B) * B + (rj - bj * B)) * B
-        cur = int(-2)
-        base = int(-1)  # the current block's slot * B^3 + within; -1: no block
-        for k in range(k0, k1 + 1):
-            vc = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table, first_bright)
-            if vc[0] >= 0.0:
-                rk = k - P.blk_lo[2]
-                bk = int(-1)
-                if rk >= 0:
-                    bk = rk // B
-                if bk != cur:
-                    cur = bk
-                    base = -1
-                    if col_ok and rk >= 0 and bk < P.blk_n[2]:
-                        slot = index[colbase + bk]
-                        if slot >= 0:
-                            seen[slot] = wp.uint8(1)  # once per block a thread enters, not per voxel
-                            base = slot * B * B * B + within
-                if base < 0:
-                    err[0] = 1
+        within = ((ri - bi * B) * B + (rj - bj * B)) * Bz
+        kb = k0
+        while kb <= k1:
+            rk = kb - P.blk_lo[2]
+            slot = int(-1)
+            base = int(0)  # the block's slot * B B Bz + within - its first k
+            kstop = wp.min(k1, P.blk_lo[2] - 1)
+            if rk >= 0:
+                bk = rk // Bz
+                kstop = wp.min(k1, P.blk_lo[2] + bk * Bz + Bz - 1)
+                if col_ok and bk < P.blk_n[2]:
+                    slot = index[colbase + bk]
+                base = slot * B * B * Bz + within - (P.blk_lo[2] + bk * Bz)
+            hit = int(0)
+            for k in range(kb, kstop + 1):
+                vc = voxel_ping_value(P, voxel_centre(P, i, j, k), image, tan_edges, lut, table, first_bright)
+                if vc[0] >= 0.0:
+                    hit = 1
+                    if slot >= 0:
+                        update_voxel(P, base + k, vc, grid, bright, count)
+            if hit != 0:
+                if slot >= 0:
+                    seen[slot] = wp.uint8(1)
                 else:
-                    update_voxel(P, base + rk - bk * B, vc, grid, bright, count)
+                    err[0] = 1
+            kb = kstop + 1
 
 
 @wp.kernel
@@ -440,7 +450,7 @@ def integrate_gather(
     err: wp.array(dtype=int),
 ):
     """One thread per chunk of an (i, j) column of the ping's index box: it walks the chunk's
-    voxels that the column's range can hold (runs of B contiguous in memory)."""
+    voxels that the column's range can hold (contiguous in memory within a block)."""
     tid = wp.tid()
     n_chunks = (P.box_n[2] + P.chunk - 1) // P.chunk
     col = tid // n_chunks
@@ -457,7 +467,7 @@ def integrate_gather(
 def init_blocks(
     pairs: wp.array(dtype=int),
     n: int,
-    B3: int,
+    bv: int,
     visible: int,
     unknown: float,
     index: wp.array(dtype=int),
@@ -466,15 +476,15 @@ def init_blocks(
     count: wp.array(dtype=wp.uint8),
     seen: wp.array(dtype=wp.uint8),
 ):
-    """One thread per voxel of each of ``n`` listed blocks (``pairs``: n slots, then n index
-    entries): slot ``pairs[b]`` becomes never observed (``unknown`` = +inf, no evidence) and
+    """One thread per voxel of each of ``n`` listed blocks of ``bv`` voxels (``pairs``: n slots,
+    then n index entries): slot ``pairs[b]`` becomes never observed (``unknown`` = +inf, no evidence) and
     ``index[pairs[n + b]] = pairs[b]`` (slot -1: the block is freed)."""
     tid = wp.tid()
-    b = tid // B3
-    v = tid - b * B3
+    b = tid // bv
+    v = tid - b * bv
     s = pairs[b]
     if s >= 0:
-        a = s * B3 + v
+        a = s * bv + v
         grid[a] = unknown
         if visible != 0:
             bright[a] = unknown

@@ -1,0 +1,110 @@
+"""Map files: one format (version 4, blocks) for every storage, and the files earlier versions
+wrote still load: dense arrays over the grid (versions 1 to 3, with and without the visible
+rule's state and the confidence layer) and the former SparseMinMaxMapper's block files.
+
+The earlier layouts are written here by hand, member by member as those versions' ``save``
+wrote them (their docstrings are the reference), from a map's public reads; loading them must
+give that map back: values, evidence, confidence layer and ping count, bit for bit.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_mapper import GRID, SPEC
+from test_visibility import _random_pings
+
+import gpumap
+from gpumap import SparseSpec
+from gpumap.merge import load_map, map_state
+
+PINGS = _random_pings(4, 31)
+
+
+def _mapped(grid=GRID, **kw) -> gpumap.MinMaxMapper:
+    m = gpumap.MinMaxMapper(SPEC, grid, backend="numpy", threshold=0.1, **kw)
+    for img, T in PINGS:
+        m.integrate(img, T)
+    return m
+
+
+def _meta(m, version: int, **extra) -> dict:
+    meta = {"format": "gpumap.MinMaxMapper", "version": version, "spec": SPEC.to_dict(),
+            "grid": m.grid.to_dict(), "method": m.method, "shadow_m": m.shadow_m, "rule": m.rule,
+            "threshold": m.threshold, "carve_views": m.carve_views, "n_integrated": m.n_integrated,
+            "backend": "numpy", **extra}
+    if version == 1:
+        for k in ("rule", "threshold", "carve_views"):
+            meta.pop(k)
+    return meta
+
+
+def _write(path, meta: dict, **arrays) -> None:
+    np.savez_compressed(path, **arrays, meta=np.array(json.dumps(meta)))
+
+
+def _same(a: gpumap.MinMaxMapper, b: gpumap.MinMaxMapper) -> None:
+    np.testing.assert_array_equal(a.raw_values(), b.raw_values())
+    assert a.n_integrated == b.n_integrated and a.rule == b.rule and a.grid == b.grid
+    if a.rule == "visible":
+        for k, v in a.evidence().items():
+            np.testing.assert_array_equal(v, b.evidence()[k], err_msg=k)
+
+
+@pytest.mark.parametrize("version", [1, 2, 3])
+def test_dense_files_of_versions_1_to_3_load(tmp_path, version):
+    rule = "plain" if version == 1 else "visible"
+    m = _mapped(rule=rule, confidence=version == 3)
+    arrays = {"values": m.raw_values()}
+    if rule == "visible":
+        arrays.update(m.evidence())
+    extra = {}
+    if version == 3:
+        arrays["confirmed"] = m._confirmed.reshape(GRID.shape).copy()
+        arrays["arcs"] = m._arcs.reshape(GRID.shape).copy()
+        extra["confidence"] = True
+        assert (arrays["confirmed"] == 1).any()  # the layer holds something to get back
+    _write(tmp_path / "old.npz", _meta(m, version, **extra), **arrays)
+    for got in (gpumap.MinMaxMapper.load(tmp_path / "old.npz", backend="numpy"),
+                load_map(tmp_path / "old.npz", backend="numpy")):
+        _same(got, m)
+        if version == 3:
+            np.testing.assert_array_equal(got.confidence(), m.confidence())
+
+
+def test_former_sparse_files_load(tmp_path):
+    m = _mapped(grid=SparseSpec(GRID.voxel_size_m, origin_m=GRID.min_corner_m))
+    st = map_state(m)
+    B = m.B
+    arrays = {"blocks": st.arrays["blocks"].astype(np.int32), "values": None}
+    for k in ("min_all", "bright", "count"):
+        arrays[k] = st.arrays[k].reshape(-1, B, B, B)
+    from gpumap.reference import visible_values
+
+    arrays["values"] = visible_values(arrays["min_all"], arrays["bright"], arrays["count"], m.carve_views)
+    meta = {"format": "gpumap.SparseMinMaxMapper", "version": 1, "spec": SPEC.to_dict(),
+            "sparse": m.sparse.to_dict(), "method": "gather", "shadow_m": 0.0, "rule": "visible",
+            "threshold": 0.1, "carve_views": 2, "n_integrated": m.n_integrated, "backend": "numpy"}
+    _write(tmp_path / "old.npz", meta, **arrays)
+    got = load_map(tmp_path / "old.npz", backend="numpy")
+    assert got.sparse == m.sparse
+    _same(got, m)
+    assert gpumap.SparseMinMaxMapper.load(tmp_path / "old.npz", backend="numpy").sparse == m.sparse
+
+
+@pytest.mark.parametrize("sparse", [False, True])
+def test_version_4_round_trip_holds_only_observed_blocks(tmp_path, sparse):
+    m = _mapped(confidence=not sparse, sparse=sparse or None)
+    path = m.save(tmp_path / "m.npz")
+    with np.load(path) as z:
+        blocks, values = z["blocks"], z["values"]
+        assert json.loads(str(z["meta"]))["version"] == 4
+    assert 0 < len(blocks) < int(np.prod(m._index.shape))  # only blocks with an observed voxel
+    assert np.isfinite(values.reshape(len(blocks), -1)).any(axis=1).all()
+    got = gpumap.MinMaxMapper.load(path, backend="numpy")
+    assert (got.sparse is None) == (not sparse)
+    _same(got, m)
+    if not sparse:
+        np.testing.assert_array_equal(got.confidence(), m.confidence())
