@@ -20,6 +20,7 @@ from .sweep import run, write_result
 
 #: Every benchmark and report tool ``python -m bench NAME`` runs: module name -> one line.
 BENCHMARKS: dict[str, str] = {
+    "ab": "two source trees timed side by side: a bounded map's speed, alternating runs in one session",
     "sweep": "speed against error on the simulated tank: every backend, voxel size, method and baseline",
     "speed": "latency and throughput on the real OASIS tank frames, and the public OASIS code beside it",
     "mapper_speed": "images/s per voxel size, backend and method on synthetic speckle pings",

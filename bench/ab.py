@@ -52,6 +52,10 @@ def _worker(a) -> None:
 
     import gpumap
 
+    if a.gpu_chunk:
+        import gpumap.backends
+
+        gpumap.backends.GPU_CHUNK = a.gpu_chunk
     spec, grid = tank_spec(), tank_grid(a.voxel[0])
     n = a.images
     imgs, poses = images(spec, min(n, 16)), trajectory(n)
@@ -78,11 +82,11 @@ def _worker(a) -> None:
                       "digest": hashlib.sha256(v.tobytes()).hexdigest()[:16]}), flush=True)
 
 
-def _run(root: Path, tree: Path, voxel: float, backend: str, n: int, batch: int) -> dict:
+def _run(root: Path, tree: Path, voxel: float, backend: str, n: int, batch: int, chunk: int = 0) -> dict:
     from gpumap.bench.common import CpuShare
 
     cmd = [sys.executable, "-P", str(Path(__file__).resolve()), "--worker", "--voxel", str(voxel),
-           "--backend", backend, "--images", str(n), "--batch", str(batch)]
+           "--backend", backend, "--images", str(n), "--batch", str(batch), "--gpu-chunk", str(chunk)]
     path = os.pathsep.join(x for x in (str(root), os.environ.get("PYTHONPATH")) if x)
     env = {**os.environ, "PYTHONPATH": path}
     with CpuShare() as share:
@@ -108,6 +112,7 @@ def main(argv: list[str] | None = None) -> int:
         w.add_argument("--backend", nargs=1)
         w.add_argument("--images", type=int)
         w.add_argument("--batch", type=int)
+        w.add_argument("--gpu-chunk", type=int, default=0)
         _worker(w.parse_args(argv))
         return 0
     from gpumap.bench.common import bench_parser, idle_check, run_header, spread, write_json
@@ -121,6 +126,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--images", type=int, default=0, help="pings per run (default 200 at >= 2 cm, else 60)")
     ap.add_argument("--batch", type=int, default=0,
                     help="hand pings over this many at a time (0: one by one)")
+    ap.add_argument("--gpu-chunk", type=int, default=0,
+                    help="voxels of a column per GPU thread in both trees (0: each tree's default)")
     ap.add_argument("--rounds", type=int, default=5, help="rounds (each runs every row once per tree)")
     ap.add_argument("--max-load", type=float, default=0.5, help="refuse to start above this load average")
     ap.add_argument("--max-others", type=float, default=0.25,
@@ -145,9 +152,10 @@ def main(argv: list[str] | None = None) -> int:
                 runs: dict[str, list] = {"a": [], "b": []}
                 for r in range(a.rounds):
                     for t in ("a", "b") if r % 2 == 0 else ("b", "a"):
-                        runs[t].append(_run(roots[t], getattr(a, t), voxel, backend, n, a.batch))
+                        runs[t].append(_run(roots[t], getattr(a, t), voxel, backend, n, a.batch, a.gpu_chunk))
                 digests = {x["digest"] for t in runs for x in runs[t]}
                 row = {"voxel_size_m": voxel, "backend": backend, "images": n, "batch": a.batch,
+                       "gpu_chunk": a.gpu_chunk or "default",
                        "device": runs["b"][0]["device"], "same_map": len(digests) == 1,
                        "observed_voxels": runs["b"][0]["observed"]}
                 for t in ("a", "b"):

@@ -270,6 +270,14 @@ class NumpyBackend(Backend):
             self.bright[...] = bright
             self.count[...] = count
 
+    def write_blocks(self, slots, grid, bright, count):  # in place: the pool is host memory
+        addr = (np.asarray(slots, np.int64)[:, None] * self.BV + np.arange(self.BV)).ravel()
+        self.grid[addr] = np.asarray(grid).ravel()
+        if self.visible:
+            self.bright[addr] = np.asarray(bright).ravel()
+            self.count[addr] = np.asarray(count).ravel()
+        self.seen[slots] = 1
+
     def read_seen(self):
         return self.seen.copy()
 

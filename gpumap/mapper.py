@@ -334,6 +334,7 @@ class MinMaxMapper:
         self.max_bytes = None if max_bytes is None else int(max_bytes)
         self.evict = evict
         self.n_integrated = 0
+        self._empty = True  # no ping, merge or load has gone into the map since it was made or reset
         self._visible = rule == "visible"
         # a bounded box's blocks are BLOCK x BLOCK columns of the grid's height (one index read per
         # column in the kernels, which then walk contiguous voxels: the dense grid's speed); blocks
@@ -561,6 +562,7 @@ class MinMaxMapper:
                 pads[0] = self._pose_pad(_check_pose_cov(pose_cov), pose_sigmas)
             params, n_threads = self._ping_params(T[None], pads)
             self._prepare(params, T[None], n_threads)
+            self._empty = False
             self._backend.integrate(params[0, ...], img, self.method, int(n_threads[0]))
             if self._confirmed is not None:
                 self._confirm(T, pads[0], img)
@@ -677,6 +679,7 @@ class MinMaxMapper:
             return
         with self._lock:
             if self._confirmed is not None:  # the layer follows the pings in order: one at a time
+                self._empty = False
                 for b in range(B):
                     params, n_threads = self._ping_params(Ts[b:b + 1], pads[b:b + 1])
                     self._backend.integrate(params[0, ...], imgs[b], self.method, int(n_threads[0]))
@@ -685,6 +688,7 @@ class MinMaxMapper:
                 return
             params, n_threads = self._ping_params(Ts, pads)
             self._prepare(params, Ts, n_threads)
+            self._empty = False
             self._backend.integrate_batch(params, imgs, self.method, n_threads)
             self.n_integrated += B
 
@@ -974,9 +978,10 @@ class MinMaxMapper:
         self.check()
         self._reclaim()
 
-    def _blocks(self) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def _blocks(self, values: bool = True) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """Used blocks' coords (n, 3) int64 (lexicographic order) and their (n, B B Bz) arrays:
-        ``min_all``, ``values`` and for the visible rule ``bright`` and ``count``."""
+        ``min_all``, ``values`` (unless ``values`` is False) and for the visible rule ``bright``
+        and ``count``."""
         self.check()
         g, b, c = self._backend.read()
         B3 = self.BV
@@ -994,11 +999,11 @@ class MinMaxMapper:
             out = {"min_all": g[take].reshape(-1, B3)}
             if self._visible:
                 out["bright"], out["count"] = b[take].reshape(-1, B3), c[take].reshape(-1, B3)
-        if self._visible:
+        if self._visible and values:
             from gpumap.reference import visible_values
 
             out["values"] = visible_values(out["min_all"], out["bright"], out["count"], self.carve_views)
-        else:
+        elif values:
             out["values"] = out["min_all"]
         return coords, out
 
@@ -1267,6 +1272,7 @@ class MinMaxMapper:
             else:
                 self._free_slots(np.flatnonzero(self._used))
             self.n_integrated = 0
+            self._empty = True
 
     def merge(self, other) -> None:
         """Add the pings of ``other`` (a map of the same grid and options built from other pings:
@@ -1324,6 +1330,7 @@ class MinMaxMapper:
                 mine["bright"], mine["count"] = b[addr], c[addr]
             _combine_into(mine, arrays, self._visible)  # mine: copies (fancy indexing)
         self._backend.write_blocks(slots, mine["min_all"], mine.get("bright"), mine.get("count"))
+        self._empty = False
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | os.PathLike) -> Path:
@@ -1472,6 +1479,7 @@ class MinMaxMapper:
             with m._lock:
                 grid = pool["min_all"] if opts["rule"] == "visible" else pool["values"]
                 m._backend.write(grid, pool.get("bright"), pool.get("count"))
+                m._empty = False
                 if opts["confidence"]:
                     m._confirmed[:] = arrays["confirmed"].ravel()
                     m._arcs[:] = arrays["arcs"].ravel()

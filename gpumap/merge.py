@@ -104,7 +104,7 @@ def map_state(mapper) -> MapState:
     with mapper._lock:
         mapper.synchronize()
         mapper._settle()  # on demand, blocks no ping observed are freed
-        coords, data = mapper._blocks()
+        coords, data = mapper._blocks(values=False)
         keep = np.isfinite(data["min_all"]).any(axis=1)  # only observed blocks travel
         arrays = {"blocks": coords[keep].astype(np.int64), "min_all": data["min_all"][keep]}
         if mapper.rule == "visible":
@@ -220,7 +220,8 @@ def merge_into(mapper, other) -> None:
     _same(kind, opts, st)
     _check_arrays(st, mapper)
     with mapper._lock:
-        mapper._put_blocks(st.arrays["blocks"], st.arrays, combine=True)
+        # a map that nothing went into yet: the other's blocks are the merge (no read of the pool)
+        mapper._put_blocks(st.arrays["blocks"], st.arrays, combine=not mapper._empty)
         mapper.n_integrated += int(st.n_integrated)
 
 

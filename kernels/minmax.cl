@@ -261,6 +261,24 @@ inline void column_range(const PingParams *P, float cx, float cy, float *lo, flo
     clip_linear(lo, hi, P->slab + p0z, az);
 }
 
+// Column (i, j) in the block index: whether the index spans it, the index entry of its first block, and
+// the offset of its voxels in a block. Blocks of 8 (the default) use shifts.
+typedef struct { int ok; size_t base; long within; } BlockColumn;
+
+inline BlockColumn block_column(const PingParams *P, int i, int j)
+{
+    BlockColumn c = {0, 0, 0};
+    int B = P->blk;
+    int ri = i - P->blk_lo[0], rj = j - P->blk_lo[1];
+    if (ri < 0 || rj < 0) return c;
+    int bi = B == 8 ? ri >> 3 : ri / B, bj = B == 8 ? rj >> 3 : rj / B;
+    if (bi >= P->blk_n[0] || bj >= P->blk_n[1]) return c;
+    c.ok = 1;
+    c.base = ((size_t)bi * P->blk_n[1] + bj) * P->blk_n[2];
+    c.within = (long)((ri - bi * B) * B + (rj - bj * B)) * P->blk_z;
+    return c;
+}
+
 // Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold.
 // Storage address of voxel (i, j, k): its block's slot (through the index) times the block's voxels
 // (B B Bz) plus its place in the block (local order i, j, k, k fastest); -1 when it has no block.
@@ -276,15 +294,16 @@ inline long voxel_address(const PingParams *P, __global const int *index, int i,
     return (long)slot * B * B * Bz + ((ri - bi * B) * B + (rj - bj * B)) * Bz + rk - bk * Bz;
 }
 
-// Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold. Block by block
+// Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold (col: its
+// block_column, or ok = -1 to look it up here). Block by block
 // along the column: one index read per block, then that block's voxels (contiguous) as a plain loop; a
 // block with an observed voxel is marked seen. An observed voxel without a block sets err[0] and is
 // skipped. A bounded box's blocks span the grid's height, so its columns run as one loop.
 inline void gather_column(const PingParams *P, int i, int j, int c0, int c1, __global const float *image,
                           __global const float *tan_edges, __global const int *lut,
                           __global const float *table, int use_table, __global const int *first_bright,
-                          __global const int *index, __global float *grid, __global float *bright,
-                          __global uchar *count, __global uchar *seen, __global int *err)
+                          __global const int *index, BlockColumn col, __global float *grid,
+                          __global float *bright, __global uchar *count, __global uchar *seen, __global int *err)
 {
     float cx = P->origin[0] + ((float)i + 0.5f) * P->voxel;
     float cy = P->origin[1] + ((float)j + 0.5f) * P->voxel;
@@ -295,17 +314,16 @@ inline void gather_column(const PingParams *P, int i, int j, int c0, int c1, __g
     int k0 = max(c0, (int)ceil((z0 - P->origin[2]) / P->voxel - 0.5f) - 1);
     int k1 = min(c1, (int)floor((z1 - P->origin[2]) / P->voxel - 0.5f) + 1);
     int B = P->blk, Bz = P->blk_z;
-    int ri = i - P->blk_lo[0], rj = j - P->blk_lo[1];
-    int bi = ri / B, bj = rj / B;
-    int col_ok = ri >= 0 && rj >= 0 && bi < P->blk_n[0] && bj < P->blk_n[1];
-    size_t colbase = ((size_t)bi * P->blk_n[1] + bj) * P->blk_n[2];
-    long within = ((ri - bi * B) * B + (rj - bj * B)) * Bz;
+    if (col.ok < 0) col = block_column(P, i, j);  // not given: look the column up now
+    int col_ok = col.ok;
+    size_t colbase = col.base;
+    long within = col.within;
     for (int kb = k0; kb <= k1;) {
         int rk = kb - P->blk_lo[2];
         int slot = -1, kstop = min(k1, P->blk_lo[2] - 1);
         long base = 0;  // the block's slot * B B Bz + within - its first k
         if (rk >= 0) {
-            int bk = rk / Bz;
+            int bk = rk < Bz ? 0 : rk / Bz;  // a bounded box's column is one block: no division
             kstop = min(k1, P->blk_lo[2] + bk * Bz + Bz - 1);
             if (col_ok && bk < P->blk_n[2]) slot = index[colbase + bk];
             base = (long)slot * B * B * Bz + within - (long)(P->blk_lo[2] + bk * Bz);
@@ -322,8 +340,8 @@ inline void gather_column(const PingParams *P, int i, int j, int c0, int c1, __g
             }
         }
         if (hit) {
-            if (slot >= 0) seen[slot] = 1;
-            else err[0] = 1;
+            if (slot < 0) err[0] = 1;
+            else if (!seen[slot]) seen[slot] = 1;  // a read, and a write only the first time
         }
         kb = kstop + 1;
     }
@@ -346,8 +364,9 @@ __kernel void integrate_gather(const PingParams P, __global const float *image,
     int c1 = min(c0 + P.chunk, P.box_lo[2] + P.box_n[2]) - 1;
     int i = P.box_lo[0] + col / P.box_n[1];
     int j = P.box_lo[1] + col % P.box_n[1];
-    gather_column(&P, i, j, c0, c1, image, tan_edges, lut, table, use_table, first_bright, index, grid, bright,
-                  count, seen, err);
+    BlockColumn later = {-1, 0, 0};
+    gather_column(&P, i, j, c0, c1, image, tan_edges, lut, table, use_table, first_bright, index, later, grid,
+                  bright, count, seen, err);
 }
 
 // One work-item per voxel of each of n listed blocks of bv voxels (pairs: n slots, then n index entries):
@@ -440,6 +459,8 @@ __kernel void integrate_gather_batch(__global const PingParams *Ps, const int n_
     int c1 = min(c0 + chunk, lo2 + n2) - 1;
     int i = lo0 + col / n1;
     int j = lo1 + col % n1;
+    PingParams P0 = Ps[0];
+    BlockColumn bcol = block_column(&P0, i, j);  // every ping of a batch has the same block index
     for (int b = 0; b < n_pings; ++b) {
         __global const PingParams *Q = Ps + b;
         if (i < Q->box_lo[0] || i >= Q->box_lo[0] + Q->box_n[0] || j < Q->box_lo[1] ||
@@ -450,7 +471,7 @@ __kernel void integrate_gather_batch(__global const PingParams *Ps, const int n_
         PingParams P = *Q;
         gather_column(&P, i, j, k0, k1, images + (size_t)b * plane, tan_edges, lut,
                       tables + (size_t)b * table_stride, use_table, first_bright + (size_t)b * P.n_beams,
-                      index, grid, bright, count, seen, err);
+                      index, bcol, grid, bright, count, seen, err);
     }
 }
 

@@ -366,6 +366,21 @@ def voxel_address(P: PingParams, index: wp.array(dtype=int), i: int, j: int, k: 
 
 
 @wp.func
+def block_column(P: PingParams, i: int, j: int) -> wp.vec3i:
+    """Column (i, j) in the block index: (1 if the index spans it else 0, the index entry of its
+    first block, the offset of its voxels in a block)."""
+    B = P.blk
+    ri = i - P.blk_lo[0]
+    rj = j - P.blk_lo[1]
+    bi = ri // B
+    bj = rj // B
+    ok = int(0)
+    if ri >= 0 and rj >= 0 and bi < P.blk_n[0] and bj < P.blk_n[1]:
+        ok = 1
+    return wp.vec3i(ok, (bi * P.blk_n[1] + bj) * P.blk_n[2], ((ri - bi * B) * B + (rj - bj * B)) * P.blk_z)
+
+
+@wp.func
 def gather_column(
     P: PingParams,
     i: int,
@@ -378,13 +393,15 @@ def gather_column(
     table: wp.array(dtype=float),
     first_bright: wp.array(dtype=int),
     index: wp.array(dtype=int),
+    col: wp.vec3i,
     grid: wp.array(dtype=float),
     bright: wp.array(dtype=float),
     count: wp.array(dtype=wp.uint8),
     seen: wp.array(dtype=wp.uint8),
     err: wp.array(dtype=int),
 ):
-    """Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold.
+    """Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold
+    (``col``: :func:`block_column` of the column, or ``(-1, 0, 0)`` to look it up here).
 
     Block by block along the column: one index read per block, then that block's voxels
     (contiguous in memory) as a plain loop; a block with an observed voxel is marked seen. An
@@ -400,21 +417,38 @@ def gather_column(
         k1 = wp.min(c1, int(wp.floor((z[1] - P.origin[2]) / P.voxel - 0.5)) + 1)
         B = P.blk
         Bz = P.blk_z
-        ri = i - P.blk_lo[0]
-        rj = j - P.blk_lo[1]
-        bi = ri // B
-        bj = rj // B
-        col_ok = ri >= 0 and rj >= 0 and bi < P.blk_n[0] and bj < P.blk_n[1]
-        colbase = (bi * P.blk_n[1] + bj) * P.blk_n[2]
-        within = ((ri - bi * B) * B + (rj - bj * B)) * Bz
+        bc = col
+        if bc[0] < 0:  # not given: look the column up now (only columns the ping can reach)
+            bc = block_column(P, i, j)
+        col_ok = bc[0] != 0
+        colbase = bc[1]
+        within = bc[2]
         kb = k0
+        rk0 = k0 - P.blk_lo[2]
+        if col_ok and rk0 >= 0 and k1 - P.blk_lo[2] < Bz and P.blk_n[2] > 0:
+            # the whole run lies in the column's first block (a bounded box's only one): the plain loop
+            slot0 = index[colbase]
+            if slot0 >= 0:
+                base0 = slot0 * B * B * Bz + within - P.blk_lo[2]
+                hit0 = int(0)
+                for k in range(k0, k1 + 1):
+                    c = voxel_centre(P, i, j, k)
+                    vc = voxel_ping_value(P, c, image, tan_edges, lut, table, first_bright)
+                    if vc[0] >= 0.0:
+                        hit0 = 1
+                        update_voxel(P, base0 + k, vc, grid, bright, count)
+                if hit0 != 0 and seen[slot0] == wp.uint8(0):
+                    seen[slot0] = wp.uint8(1)
+                kb = k1 + 1
         while kb <= k1:
             rk = kb - P.blk_lo[2]
             slot = int(-1)
             base = int(0)  # the block's slot * B B Bz + within - its first k
             kstop = wp.min(k1, P.blk_lo[2] - 1)
             if rk >= 0:
-                bk = rk // Bz
+                bk = int(0)  # a bounded box's column is one block: no division
+                if rk >= Bz:
+                    bk = rk // Bz
                 kstop = wp.min(k1, P.blk_lo[2] + bk * Bz + Bz - 1)
                 if col_ok and bk < P.blk_n[2]:
                     slot = index[colbase + bk]
@@ -427,10 +461,10 @@ def gather_column(
                     if slot >= 0:
                         update_voxel(P, base + k, vc, grid, bright, count)
             if hit != 0:
-                if slot >= 0:
-                    seen[slot] = wp.uint8(1)
-                else:
+                if slot < 0:
                     err[0] = 1
+                elif seen[slot] == wp.uint8(0):  # a read, and a write only the first time
+                    seen[slot] = wp.uint8(1)
             kb = kstop + 1
 
 
@@ -459,7 +493,8 @@ def integrate_gather(
     j = P.box_lo[1] + col - (col // P.box_n[1]) * P.box_n[1]
     c1 = wp.min(c0 + P.chunk, P.box_lo[2] + P.box_n[2]) - 1
     gather_column(
-        P, i, j, c0, c1, image, tan_edges, lut, table, first_bright, index, grid, bright, count, seen, err
+        P, i, j, c0, c1, image, tan_edges, lut, table, first_bright, index, wp.vec3i(-1, 0, 0), grid, bright,
+        count, seen, err,
     )
 
 
@@ -563,6 +598,7 @@ def integrate_gather_batch(
     c1 = wp.min(c0 + chunk, box_lo[2] + box_n[2]) - 1
     i = box_lo[0] + col // box_n[1]
     j = box_lo[1] + col - (col // box_n[1]) * box_n[1]
+    bcol = block_column(Ps[0], i, j)  # every ping of a batch has the same block index
     for b in range(Ps.shape[0]):
         inside_i = i >= boxes[b, 0] and i < boxes[b, 0] + boxes[b, 3]
         if inside_i and j >= boxes[b, 1] and j < boxes[b, 1] + boxes[b, 4]:
@@ -572,7 +608,7 @@ def integrate_gather_batch(
                 P = Ps[b]
                 gather_column(
                     P, i, j, k0, k1, images[b], tan_edges, lut, tables[b], first_bright[b],
-                    index, grid, bright, count, seen, err,
+                    index, bcol, grid, bright, count, seen, err,
                 )
 
 

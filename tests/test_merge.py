@@ -301,3 +301,17 @@ def test_maps_with_the_confidence_layer_are_refused_unchanged():
     with pytest.raises(ValueError, match="confidence layer"):
         plain_b.merge(b)
     np.testing.assert_array_equal(a.raw_values(), before)
+
+
+def test_states_merged_one_after_the_other_into_a_new_map_both_count():
+    """A new map takes the first state's blocks as they are (nothing to combine with) and must then
+    combine the second with them, even when the states claim no pings (built by hand)."""
+    pings = _random_pings(4, 29)
+    a, b = map_state(_dense("numpy", pings[:2])), map_state(_dense("numpy", pings[2:]))
+    ref = _state(merge_maps([a, b], backend="numpy"))
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.1)
+    for st in (a, b):
+        m.merge(MapState(st.kind, st.options, 0, st.arrays))
+    got = _state(m)
+    assert got.pop("n") == 0 and ref.pop("n") == 4
+    _assert_same(got, ref)
