@@ -13,7 +13,7 @@ pings is compared, and a mismatch fails the run. The machine must be idle at the
 and other processes' cores, as :mod:`bench.peer_ratio` checks); the other processes' share is
 recorded per run, and a run where they took more than ``--max-others`` cores is marked.
 Writes ``bench/results/ab_<tag>.json``: per row each tree's median images/s and spread, and
-B's median over A's.
+B's median over A's; ``--report BENCHMARKS.md`` writes the table of every such file there.
 """
 
 from __future__ import annotations
@@ -100,6 +100,36 @@ def _run(root: Path, tree: Path, voxel: float, backend: str, n: int, batch: int,
     return out
 
 
+BEGIN, END = "<!-- begin:ab -->", "<!-- end:ab -->"
+SECTION = "## One mapper over blocks: speed against the two mappers it replaced (issue #24)"
+
+
+def markdown(docs: list[tuple[str, dict]]) -> str:
+    """The BENCHMARKS.md block of ``ab_*.json`` results: one row per (file, voxel, backend)."""
+    out = [SECTION, "",
+           "`python -m bench.ab --a OTHER_CHECKOUT ...` times two source trees side by side (module "
+           "docstring); tree A is the commit before the unification, B the one mapper over blocks. "
+           "Images/s: median (min-max) of the rounds; every run of both trees gave the same map (digest).",
+           "", "| file | device | voxel | backend | pings | batch | A img/s | B img/s | B / A | same map |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, d in docs:
+        for r in d["rows"]:
+            a, b = r["a"]["images_per_s"], r["b"]["images_per_s"]
+            out.append(
+                f"| `{name}` | {r['device']} | {r['voxel_size_m'] * 100:g} cm | {r['backend']} | "
+                f"{r['images']} | {r['batch'] or '-'} | {a['median']:.1f} ({a['min']:.0f}-{a['max']:.0f}) | "
+                f"{b['median']:.1f} ({b['min']:.0f}-{b['max']:.0f}) | {r['b_over_a']:.3f} | "
+                f"{'yes' if r['same_map'] else '**no**'} |")
+    return "\n".join(out)
+
+
+def report(folder: Path, benchmarks: Path) -> None:
+    docs = [(p.name, json.loads(p.read_text())) for p in sorted(folder.glob("ab_*.json"))]
+    from gpumap.bench.common import put_block
+
+    put_block(benchmarks, BEGIN, END, markdown(docs), section=SECTION)
+
+
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
@@ -135,7 +165,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--force", action="store_true", help="run on a loaded machine (results marked invalid)")
     ap.add_argument("--tag", default="cpu", help="results file: bench/results/ab_TAG.json")
     ap.add_argument("--out", type=Path, default=Path("bench/results"), help="folder for the results file")
+    ap.add_argument("--report", type=Path, metavar="BENCHMARKS_MD",
+                    help="only write the table of every ab_*.json in --out into this Markdown file")
     a = ap.parse_args(argv)
+    if a.report is not None:
+        report(a.out, a.report)
+        return 0
     if a.a is None:
         ap.error("--a is required")
     start = idle_check(a.max_load, a.max_others)

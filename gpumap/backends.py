@@ -153,14 +153,20 @@ class Backend:
         """Replace the whole pool (arrays as :meth:`read` gives them)."""
         raise NotImplementedError
 
+    def read_blocks(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """Copies of blocks ``slots``: ``grid`` and for the visible rule ``bright`` and ``count``,
+        (n, B B Bz) each (None for the plain rule)."""
+        rows = np.asarray(slots, np.int64)
+        return tuple(None if a is None else a.reshape(-1, self.BV)[rows] for a in self.read())
+
     def write_blocks(self, slots: np.ndarray, grid, bright, count) -> None:
         """Blocks ``slots`` take these values ((n, B B Bz) each) and are marked seen."""
         g, b, c = self.read()
-        addr = (np.asarray(slots, np.int64)[:, None] * self.BV + np.arange(self.BV)).ravel()
-        g[addr] = np.asarray(grid).ravel()
+        rows = np.asarray(slots, np.int64)
+        g.reshape(-1, self.BV)[rows] = np.asarray(grid).reshape(-1, self.BV)
         if self.visible:
-            b[addr] = np.asarray(bright).ravel()
-            c[addr] = np.asarray(count).ravel()
+            b.reshape(-1, self.BV)[rows] = np.asarray(bright).reshape(-1, self.BV)
+            c.reshape(-1, self.BV)[rows] = np.asarray(count).reshape(-1, self.BV)
         seen = self.read_seen()
         seen[slots] = 1
         self.write(g, b, c)
@@ -270,13 +276,19 @@ class NumpyBackend(Backend):
             self.bright[...] = bright
             self.count[...] = count
 
-    def write_blocks(self, slots, grid, bright, count):  # in place: the pool is host memory
-        addr = (np.asarray(slots, np.int64)[:, None] * self.BV + np.arange(self.BV)).ravel()
-        self.grid[addr] = np.asarray(grid).ravel()
+    def read_blocks(self, slots):  # the pool is host memory: only these blocks are copied, by rows
+        rows = np.asarray(slots, np.int64)
+        if not self.visible:
+            return self.grid.reshape(-1, self.BV)[rows], None, None
+        return tuple(a.reshape(-1, self.BV)[rows] for a in (self.grid, self.bright, self.count))
+
+    def write_blocks(self, slots, grid, bright, count):  # in place, by rows
+        rows = np.asarray(slots, np.int64)
+        self.grid.reshape(-1, self.BV)[rows] = np.asarray(grid).reshape(-1, self.BV)
         if self.visible:
-            self.bright[addr] = np.asarray(bright).ravel()
-            self.count[addr] = np.asarray(count).ravel()
-        self.seen[slots] = 1
+            self.bright.reshape(-1, self.BV)[rows] = np.asarray(bright).reshape(-1, self.BV)
+            self.count.reshape(-1, self.BV)[rows] = np.asarray(count).reshape(-1, self.BV)
+        self.seen[rows] = 1
 
     def read_seen(self):
         return self.seen.copy()

@@ -995,10 +995,9 @@ class MinMaxMapper:
             coords = self._coords[used]
             order = np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0]))
             used, coords = used[order], coords[order]
-            take = (used[:, None] * B3 + np.arange(B3)).reshape(-1)
-            out = {"min_all": g[take].reshape(-1, B3)}
+            out = {"min_all": g.reshape(-1, B3)[used]}  # rows: one copy per block
             if self._visible:
-                out["bright"], out["count"] = b[take].reshape(-1, B3), c[take].reshape(-1, B3)
+                out["bright"], out["count"] = b.reshape(-1, B3)[used], c.reshape(-1, B3)[used]
         if self._visible and values:
             from gpumap.reference import visible_values
 
@@ -1321,14 +1320,20 @@ class MinMaxMapper:
             self._used[slots_new] = True
             self._backend.set_blocks(slots_new.astype(np.int32), lins[new].astype(np.int32))
         slots = flat[lins].astype(np.int64)
-        mine = arrays
+        names = ("min_all", "bright", "count") if self._visible else ("min_all",)
+        mine = {k: arrays[k] for k in names}
         if combine and n_new < len(coords):
-            g, b, c = self._backend.read()
-            addr = slots[:, None] * self.BV + np.arange(self.BV)
-            mine = {"min_all": g[addr]}
-            if self._visible:
-                mine["bright"], mine["count"] = b[addr], c[addr]
-            _combine_into(mine, arrays, self._visible)  # mine: copies (fancy indexing)
+            # only blocks that already hold something are read and combined (a block never observed,
+            # merged or loaded has seen 0); the others take the arrays as they are
+            held = np.flatnonzero(self._backend.read_seen()[slots] != 0)
+            if len(held):
+                mine = {k: v.copy() for k, v in mine.items()}
+                part = dict(zip(("min_all", "bright", "count"), self._backend.read_blocks(slots[held]),
+                                strict=True))
+                part = {k: part[k] for k in names}
+                _combine_into(part, {k: v[held] for k, v in mine.items()}, self._visible)
+                for k in names:
+                    mine[k][held] = part[k]
         self._backend.write_blocks(slots, mine["min_all"], mine.get("bright"), mine.get("count"))
         self._empty = False
 
@@ -1479,6 +1484,7 @@ class MinMaxMapper:
             with m._lock:
                 grid = pool["min_all"] if opts["rule"] == "visible" else pool["values"]
                 m._backend.write(grid, pool.get("bright"), pool.get("count"))
+                m._backend._write_seen(np.ones(m._backend.cap, np.uint8))  # merges combine with them
                 m._empty = False
                 if opts["confidence"]:
                     m._confirmed[:] = arrays["confirmed"].ravel()

@@ -189,13 +189,6 @@ def _combine_into(acc: dict, b: dict, visible: bool) -> None:
         acc["count"][...] = c
 
 
-def _empty_dense(n: int, visible: bool) -> dict:
-    out = {"min_all": np.full(n, np.inf, np.float32)}
-    if visible:
-        out["bright"], out["count"] = np.full(n, np.inf, np.float32), np.zeros(n, np.uint8)
-    return out
-
-
 def merge_into(mapper, other) -> None:
     """Merge ``other`` (a mapper, a :class:`MapState` or a map file) into ``mapper``, in place.
 
@@ -247,34 +240,6 @@ def _check_arrays(st: MapState, mapper) -> None:
     n = st.n_integrated
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
         raise ValueError(f"Expected a non-negative ping count in the map to merge, but got {n!r}")
-
-
-def _union_blocks(first: MapState, rest, like) -> MapState:
-    """One sparse state holding the merge of ``first`` and the maps in ``rest`` (checked
-    against ``first`` and ``like``, the mapper they go into): the union of their blocks, each
-    block's arrays combined as :func:`_combine_into` combines voxels."""
-    states = [first]
-    for m in rest:
-        st = _as_state(m)
-        _same(first.kind, first.options, st)
-        states.append(st)
-    for st in states:
-        _check_arrays(st, like)
-    visible = first.options["rule"] == "visible"
-    coords, inverse = np.unique(np.concatenate([st.arrays["blocks"] for st in states]), axis=0,
-                                return_inverse=True)
-    inverse = inverse.reshape(-1)
-    acc = {k: v.reshape(len(coords), -1) for k, v in _empty_dense(len(coords) * like.BV, visible).items()}
-    start = 0
-    for st in states:
-        rows = inverse[start : start + len(st.arrays["blocks"])]  # distinct within one map
-        start += len(rows)
-        part = {k: acc[k][rows] for k in acc}
-        _combine_into(part, st.arrays, visible)
-        for k in acc:
-            acc[k][rows] = part[k]
-    return MapState(first.kind, first.options, sum(int(st.n_integrated) for st in states),
-                    {"blocks": coords.astype(np.int64), **acc})
 
 
 # ------------------------------------------------------------------------------ files and many maps
@@ -345,5 +310,9 @@ def merge_maps(maps, backend: str = "auto", **kw):
     except StopIteration:
         raise ValueError("Expected at least one map to merge, but got none") from None
     out = new_like(first, backend=backend, **kw)
-    merge_into(out, _union_blocks(first, it, out))  # the blocks merged here, written once
+    st = first
+    while st is not None:  # one map at a time: only blocks that two maps hold are combined
+        merge_into(out, st)
+        nxt = next(it, None)
+        st = None if nxt is None else _as_state(nxt)
     return out

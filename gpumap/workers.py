@@ -114,26 +114,30 @@ def _compact(images: np.ndarray) -> np.ndarray:
 def _pack(st, pack: bool = True) -> tuple:
     """A :class:`~gpumap.merge.MapState` for the wire; :func:`_unpack` restores it exactly.
 
-    ``pack``: each float array whose finite values are all bytes times the mapper's float32
-    1/255 (always so for 8-bit pings: a ping's value is the max of image cells, the map's the
-    min of those) travels as uint8 plus a bit per voxel for ``+inf``, 1.1 bytes instead of 4;
-    others as they are.
+    ``pack``: each per-voxel array travels as its non-empty entries (``+inf`` floats and 0 counts
+    are empty: most of a block's voxels) and a bit per voxel saying which; float entries that
+    are all bytes times the mapper's float32 1/255 (always so for 8-bit pings: a ping's value is
+    the max of image cells, the map's the min of those) travel as those bytes. Kinds: ``"u8"``
+    (such bytes), ``"f32"`` (other floats), ``"bytes"`` (counts); ``"raw"``: as it is.
     """
     from gpumap.backends import U8_SCALE
 
     arrays: dict = {}
     for k, v in st.arrays.items():
-        if not pack or v.dtype != np.float32:
+        if not pack or k == "blocks" or v.dtype not in (np.float32, np.uint8):
             arrays[k] = ("raw", v)
             continue
-        fin = np.isfinite(v)
-        b = np.rint(np.where(fin, v, np.float32(0.0)) * np.float32(255.0))
-        ok = bool(b.min(initial=0) >= 0 and b.max(initial=0) <= 255)
-        u8 = b.astype(np.uint8) if ok else None
-        if ok and np.array_equal(np.where(fin, np.multiply(u8, U8_SCALE, dtype=np.float32), v), v):
-            arrays[k] = ("u8", u8, np.packbits(fin.ravel()))
-        else:
-            arrays[k] = ("raw", v)
+        keep = np.isfinite(v) if v.dtype == np.float32 else v != 0
+        vals = v[keep]
+        kind = "bytes"
+        if v.dtype == np.float32:
+            b = np.rint(vals * np.float32(255.0))
+            u8 = b.astype(np.uint8) if vals.size == 0 or (b.min() >= 0 and b.max() <= 255) else None
+            if u8 is not None and np.array_equal(np.multiply(u8, U8_SCALE, dtype=np.float32), vals):
+                kind, vals = "u8", u8
+            else:
+                kind = "f32"
+        arrays[k] = (kind, v.shape, np.packbits(keep.ravel()), vals)
     return st.kind, st.options, st.n_integrated, arrays
 
 
@@ -145,18 +149,24 @@ def _unpack(packed: tuple):
     out = {}
     for k, a in arrays.items():
         if a[0] == "raw":
-            v = a[1]
+            out[k] = a[1]
+            continue
+        what, shape, bits, vals = a
+        size = int(np.prod(shape))
+        keep = np.unpackbits(bits, count=size).view(bool)
+        if what == "bytes":
+            v = np.zeros(size, np.uint8)
         else:
-            u8, bits = a[1], a[2]
-            v = np.multiply(u8, U8_SCALE, dtype=np.float32)
-            fin = np.unpackbits(bits, count=u8.size).view(bool).reshape(u8.shape)
-            v[~fin] = np.inf
-        out[k] = v
+            v = np.full(size, np.inf, np.float32)
+            if what == "u8":
+                vals = np.multiply(vals, U8_SCALE, dtype=np.float32)
+        v[keep] = vals
+        out[k] = v.reshape(shape)
     return MapState(kind, options, n, out)
 
 
 def _nbytes(packed: tuple) -> int:
-    return sum(x.nbytes for a in packed[3].values() for x in a[1:])
+    return sum(x.nbytes for a in packed[3].values() for x in a[1:] if isinstance(x, np.ndarray))
 
 
 def _poses_of(recording, stride: int, max_frames: int | None, frames) -> tuple[SonarSpec, list]:
@@ -273,10 +283,9 @@ def run_replay_workers(
         Threads each worker's CPU backend splits a gather into (``gpumap.backends.CPU_THREADS``,
         set in the worker process: use it with worker processes only). None: the default (2).
     pack : bool, optional
-        Workers send their maps packed where that is lossless (maps of 8-bit pings: 3.3 bytes
-        a voxel instead of 9, at the cost of a few passes over the arrays in each worker).
-        None: only with ``scheduler`` (a cluster across a network; on one host, sending is
-        cheaper than packing).
+        Workers send their maps packed (:func:`_pack`, lossless: the observed entries only, bytes
+        where the values are bytes / 255; about a seventh of the bytes on the survey), at the cost
+        of a few passes over the arrays in each worker. None (default): packed.
     Other parameters: as :func:`gpumap.replay.run_replay` (``grid`` None: sized from every
     selected pose, before mapping).
 
@@ -403,20 +412,28 @@ def run_replay_workers(
                 q.popleft().result()
         seconds_map = time.perf_counter() - t_map - t_setup
         t1 = time.perf_counter()
-        if pack is None:  # a network between the workers and here: send a third of the bytes
-            pack = own and scheduler is not None
+        if pack is None:  # the observed entries only: cheaper to pack than to send, even on one host
+            pack = True
         futs = [a.state(bool(pack)) for a in actors]  # every worker sends at once
-        results = [f.result() for f in futs]
-        seconds_gather = time.perf_counter() - t1
-        t2 = time.perf_counter()
+        results: list = []
+        seconds_gather = 0.0  # waiting for states; the rest of the time after t1 is merging
+
+        def states():  # each state as it comes: merged while the next ones still travel
+            nonlocal seconds_gather
+            for f in futs:
+                t = time.perf_counter()
+                results.append(f.result())
+                seconds_gather += time.perf_counter() - t
+                yield _unpack(results[-1][0])
+
         quiet = logging.getLogger("gpumap")  # the merged map's NumPy backend is no news to the user
         level = quiet.level
         quiet.setLevel(logging.WARNING)
         try:
-            mapper = merge_maps((_unpack(st) for st, _ in results), backend="numpy")  # one at a time
+            mapper = merge_maps(states(), backend="numpy")  # one at a time
         finally:
             quiet.setLevel(level)
-        seconds_merge = time.perf_counter() - t2
+        seconds_merge = time.perf_counter() - t1 - seconds_gather
     finally:
         if own:
             client.close()

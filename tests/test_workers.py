@@ -159,7 +159,8 @@ def test_state_packing_is_exact_or_not_used():
     st = MapState("sparse", {}, 7, {"min_all": byte, "bright": other, "count": count})
     packed = _pack(st)
     kinds = {k: a[0] for k, a in packed[3].items()}
-    assert kinds == {"min_all": "u8", "bright": "raw", "count": "raw"}
+    assert kinds == {"min_all": "u8", "bright": "f32", "count": "bytes"}
+    assert packed[3]["min_all"][3].size == np.isfinite(byte).sum()  # the observed entries only
     for ref, wire in ((st, packed), (st, _pack(st, pack=False))):
         back = _unpack(wire)
         assert back.n_integrated == ref.n_integrated and back.kind == ref.kind
