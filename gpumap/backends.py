@@ -139,10 +139,19 @@ class Backend:
         self, params: np.ndarray, images: np.ndarray, method: str, n_threads: np.ndarray
     ) -> None:
         """Apply B pings: ``params`` (B,) PING_DTYPE, ``images`` (B, n_bins, n_beams) uint8 or
-        float32, ``n_threads`` (B,) ints. The same map as B calls of :meth:`integrate` (this
-        default makes them; GPU backends fold the whole batch in a few launches)."""
-        for b in range(params.shape[0]):
-            self.integrate(params[b, ...], images[b], method, int(n_threads[b]))
+        float32, ``n_threads`` (B,) ints. The same map as B calls of :meth:`integrate`: with
+        ``batch_kernels`` (GPUs; tests may set it on warp-cpu) groups of pings whose boxes overlap
+        go to ``_launch_batch``, else the pings are applied one by one."""
+        # batch_kernels: only backends with a _launch_batch have it
+        fold = getattr(self, "batch_kernels", False) and method == "gather"
+        if not fold or not _fold_in_batches(params, n_threads):
+            for b in range(params.shape[0]):
+                self.integrate(params[b, ...], images[b], method, int(n_threads[b]))
+            return
+        _check_rule(params[0, ...], self.visible)
+        params["chunk"] = self.chunk
+        for b0, b1 in _union_groups(params, n_threads):
+            self._launch_batch(params[b0:b1], images[b0:b1], n_threads[b0:b1])
 
     def read(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         """Copies of the pool: ``grid`` (cap B B Bz,) float32, ``bright`` and ``count`` (visible
@@ -719,14 +728,6 @@ class WarpBackend(Backend):
             self._cmd2 = wp.launch(k.integrate_gather, dim=1, inputs=[self._P2, *gather_args], **rec)
 
     # ------------------------------------------------------------------ batches (CUDA)
-    def integrate_batch(self, params, images, method, n_threads):
-        if not self.batch_kernels or method != "gather" or not _fold_in_batches(params, n_threads):
-            return super().integrate_batch(params, images, method, n_threads)
-        _check_rule(params[0, ...], self.visible)
-        params["chunk"] = self.chunk
-        for b0, b1 in _union_groups(params, n_threads):
-            self._launch_batch(params[b0:b1], images[b0:b1], n_threads[b0:b1])
-
     def _batch_buffers(self, n: int) -> dict:
         """Device and pinned host buffers for up to ``n`` pings (grown to the next power of two)."""
         bb = self._batch
@@ -1115,14 +1116,6 @@ class OpenCLBackend(Backend):
         self.queue.flush()
 
     # ------------------------------------------------------------------ batches (GPUs)
-    def integrate_batch(self, params, images, method, n_threads):
-        if not self.batch_kernels or method != "gather" or not _fold_in_batches(params, n_threads):
-            return super().integrate_batch(params, images, method, n_threads)
-        _check_rule(params[0, ...], self.visible)
-        params["chunk"] = self.chunk
-        for b0, b1 in _union_groups(params, n_threads):
-            self._launch_batch(params[b0:b1], images[b0:b1], n_threads[b0:b1])
-
     def _batch_buffers(self, n: int) -> dict:
         bb = self._batch
         if bb is not None and bb["cap"] >= n:
