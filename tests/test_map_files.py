@@ -108,3 +108,24 @@ def test_version_4_round_trip_holds_only_observed_blocks(tmp_path, sparse):
     _same(got, m)
     if not sparse:
         np.testing.assert_array_equal(got.confidence(), m.confidence())
+
+
+def test_a_bounded_box_allocates_every_block_up_front_and_never_searches(monkeypatch):
+    """A GridSpec map holds every block of the box from the start (columns of 8 x 8 voxels by the
+    grid's height, slot = index entry) and integrates without the per-ping block search."""
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.1)
+    nb = (-(-GRID.shape[0] // 8), -(-GRID.shape[1] // 8), 1)
+    assert m._index.shape == nb and (m.B, m.Bz) == (8, GRID.shape[2])
+    np.testing.assert_array_equal(m._index.ravel(), np.arange(int(np.prod(nb))))
+    assert m.memory_stats()["pool_blocks"] == int(np.prod(nb))
+
+    def searched(*a, **k):
+        raise AssertionError("a bounded box searched for blocks")
+
+    monkeypatch.setattr(gpumap.MinMaxMapper, "_candidate_lins", searched)
+    monkeypatch.setattr(gpumap.MinMaxMapper, "_allocate", searched)
+    for img, T in PINGS:
+        m.integrate(img, T)
+    imgs = np.stack([img for img, _ in PINGS])
+    m.integrate_batch(imgs, np.stack([T for _, T in PINGS]))
+    assert np.isfinite(m.raw_values()).sum() > 1000
