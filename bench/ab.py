@@ -109,7 +109,8 @@ def markdown(docs: list[tuple[str, dict]]) -> str:
     out = [SECTION, "",
            "`python -m bench.ab --a OTHER_CHECKOUT ...` times two source trees side by side (module "
            "docstring); tree A is the commit before the unification, B the one mapper over blocks. "
-           "Images/s: median (min-max) of the rounds; every run of both trees gave the same map (digest).",
+           "Images/s: median (min-max) of the rounds; every run of both trees gave the same map (digest). "
+           "This block: `python -m bench.ab --report BENCHMARKS.md` (after `python -m bench.report`).",
            "", "| file | device | voxel | backend | pings | batch | A img/s | B img/s | B / A | same map |",
            "|---|---|---|---|---|---|---|---|---|---|"]
     for name, d in docs:
