@@ -634,6 +634,14 @@ class WarpBackend(Backend):
             self.bright.assign(wp.array(np.ascontiguousarray(bright, np.float32), dtype=float, device=dev))
             self.count.assign(wp.array(np.ascontiguousarray(count, np.uint8), dtype=wp.uint8, device=dev))
 
+    def read_blocks(self, slots):
+        if self.dev.is_cuda:
+            return super().read_blocks(slots)
+        rows = np.asarray(slots, np.int64)  # CPU arrays: rows straight from the pool, no whole copy
+        if not self.visible:
+            return self.grid.numpy().reshape(-1, self.BV)[rows], None, None
+        return tuple(a.numpy().reshape(-1, self.BV)[rows] for a in (self.grid, self.bright, self.count))
+
     def read_seen(self):
         return self.seen.numpy().copy()
 

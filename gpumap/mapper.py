@@ -978,11 +978,28 @@ class MinMaxMapper:
         self.check()
         self._reclaim()
 
-    def _blocks(self, values: bool = True) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def _blocks(self, values: bool = True, seen_only: bool = False
+                ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """Used blocks' coords (n, 3) int64 (lexicographic order) and their (n, B B Bz) arrays:
         ``min_all``, ``values`` (unless ``values`` is False) and for the visible rule ``bright``
-        and ``count``."""
+        and ``count``. ``seen_only``: only the blocks that hold something (observed, merged or
+        loaded: the seen flag), read block by block."""
         self.check()
+        if seen_only:
+            slots = np.flatnonzero(self._used & self._holding(np.arange(len(self._used))))
+            coords = self._coords[slots]
+            if self.sparse is not None:  # slot order is not coordinate order on demand
+                order = np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0]))
+                slots, coords = slots[order], coords[order]
+            g, b, c = self._backend.read_blocks(slots)
+            out = {"min_all": g} if not self._visible else {"min_all": g, "bright": b, "count": c}
+            if values:
+                out["values"] = g
+                if self._visible:
+                    from gpumap.reference import visible_values
+
+                    out["values"] = visible_values(g, b, c, self.carve_views)
+            return coords, out
         g, b, c = self._backend.read()
         B3 = self.BV
         if self.sparse is None:  # every block, slot = index entry: already in coordinate order
@@ -1005,6 +1022,14 @@ class MinMaxMapper:
         elif values:
             out["values"] = out["min_all"]
         return coords, out
+
+    def _holding(self, slots: np.ndarray) -> np.ndarray:
+        """(n,) bool: which of ``slots`` may hold an observed voxel. The seen flag says so for the
+        gather kernels, merges and loads; the template kernel does not set it, so a template map
+        that took pings counts every block as holding."""
+        if self.method == "template" and not self._empty:
+            return np.ones(len(slots), bool)
+        return self._backend.read_seen()[slots] != 0
 
     def _whole_box(self) -> tuple[np.ndarray, np.ndarray]:
         if self._dims is not None:
@@ -1325,15 +1350,15 @@ class MinMaxMapper:
         if combine and n_new < len(coords):
             # only blocks that already hold something are read and combined (a block never observed,
             # merged or loaded has seen 0); the others take the arrays as they are
-            held = np.flatnonzero(self._backend.read_seen()[slots] != 0)
-            if len(held):
-                mine = {k: v.copy() for k, v in mine.items()}
+            held = self._holding(slots)
+            if held.any():
                 part = dict(zip(("min_all", "bright", "count"), self._backend.read_blocks(slots[held]),
                                 strict=True))
                 part = {k: part[k] for k in names}
                 _combine_into(part, {k: v[held] for k, v in mine.items()}, self._visible)
-                for k in names:
-                    mine[k][held] = part[k]
+                self._backend.write_blocks(slots[held], part["min_all"], part.get("bright"),
+                                           part.get("count"))
+                slots, mine = slots[~held], {k: v[~held] for k, v in mine.items()}
         self._backend.write_blocks(slots, mine["min_all"], mine.get("bright"), mine.get("count"))
         self._empty = False
 

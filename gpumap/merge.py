@@ -104,7 +104,7 @@ def map_state(mapper) -> MapState:
     with mapper._lock:
         mapper.synchronize()
         mapper._settle()  # on demand, blocks no ping observed are freed
-        coords, data = mapper._blocks(values=False)
+        coords, data = mapper._blocks(values=False, seen_only=True)  # blocks that hold something
         keep = np.isfinite(data["min_all"]).any(axis=1)  # only observed blocks travel
         arrays = {"blocks": coords[keep].astype(np.int64), "min_all": data["min_all"][keep]}
         if mapper.rule == "visible":

@@ -315,3 +315,16 @@ def test_states_merged_one_after_the_other_into_a_new_map_both_count():
     got = _state(m)
     assert got.pop("n") == 0 and ref.pop("n") == 4
     _assert_same(got, ref)
+
+
+def test_template_method_maps_merge_exactly(backend):
+    """The template kernels do not mark blocks seen: merging into a template map that took pings
+    must still combine with every block (not overwrite), and its state must carry them all."""
+    pings = _random_pings(6, 37)
+    ref = _state(_dense(backend, pings, rule="plain", method="template"))
+    assert ref["observed"].sum() > 500
+    a = _dense(backend, pings[:3], rule="plain", method="template")
+    b = _dense(backend, pings[3:], rule="plain", method="template")
+    _assert_same(_state(merge_maps([a, b], backend=backend)), ref)
+    a.merge(b)
+    _assert_same(_state(a), ref)
