@@ -188,16 +188,28 @@ def _poses_of(recording, stride: int, max_frames: int | None, frames) -> tuple[S
 def _space_owners(spec: SonarSpec, poses: list, grid: GridSpec, n: int) -> np.ndarray:
     """Worker of each selected frame for the space split: frames ranked by where their field of
     view's middle (half the range along the boresight) lies along the grid's longer horizontal
-    axis, cut into ``n`` runs of equal counts; frames without a pose go to worker 0."""
+    axis, cut into ``n`` runs of equal work (each frame weighs the voxels of its field of view's
+    bounding box inside the grid, what the gather walks: equal counts of frames that look at
+    more or less of the grid would leave one worker waiting for the other); frames without a
+    pose go to worker 0."""
     axis = 0 if grid.shape[0] >= grid.shape[1] else 1
     mid = 0.5 * (spec.range_min_m + spec.range_max_m)
     key = np.full(len(poses), -np.inf)
+    cost = np.zeros(len(poses))
+    corners = spec.fov_corners_S()
+    lo, s, dims = np.asarray(grid.min_corner_m), grid.voxel_size_m, np.asarray(grid.shape)
     for i, T in enumerate(poses):
         if T is not None:
             T = np.asarray(T, np.float64)
             key[i] = T[axis, 3] + mid * T[axis, 0]
+            W = corners @ T[:3, :3].T + T[:3, 3]
+            i0 = np.clip(np.floor((W.min(axis=0) - lo) / s) - 1, 0, dims)
+            i1 = np.clip(np.floor((W.max(axis=0) - lo) / s) + 2, 0, dims)
+            cost[i] = np.prod(np.maximum(i1 - i0, 0)) + 1.0  # + 1: a frame costs something
+    order = np.argsort(key, kind="stable")
+    before = np.cumsum(cost[order]) - cost[order]  # the work ranked ahead of each frame
     owners = np.empty(len(poses), np.int64)
-    owners[np.argsort(key, kind="stable")] = np.arange(len(poses)) * n // max(1, len(poses))
+    owners[order] = np.minimum((before * n / max(cost.sum(), 1.0)).astype(np.int64), n - 1)
     return owners
 
 
