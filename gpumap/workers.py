@@ -48,6 +48,8 @@ log = logging.getLogger("gpumap")
 BATCH = 32
 #: Batches a worker may have queued before the client waits for it (bounds the memory in flight).
 QUEUED = 2
+#: Seconds to wait for a given cluster's workers to join before saying how many it has.
+WAIT_WORKERS_S = 30.0
 
 
 class MapperActor:
@@ -231,7 +233,7 @@ def _client(workers: int, scheduler: str | None, processes: bool):
         try:
             client.wait_for_workers(workers, timeout=60)
         except Exception as e:
-            n = len(client.scheduler_info()["workers"])
+            n = len(client.ncores())
             client.close()
             raise ValueError(
                 f"Expected {workers} workers at the scheduler {scheduler}, but {n} came within 60 s"
@@ -359,7 +361,11 @@ def run_replay_workers(
         client, cluster = _client(int(workers), scheduler, processes)
     seconds_cluster = time.perf_counter() - t0
     try:
-        addrs = sorted(client.scheduler_info()["workers"])[: int(workers)]
+        try:  # a cluster that is still starting its workers gets a while to do so
+            client.wait_for_workers(int(workers), timeout=WAIT_WORKERS_S)
+        except (TimeoutError, OSError):
+            pass
+        addrs = sorted(client.ncores())[: int(workers)]  # a fresh ask (scheduler_info may be cached)
         if len(addrs) < workers:
             raise ValueError(f"Expected {workers} Dask workers, but the cluster has {len(addrs)}")
         total = recording.count()

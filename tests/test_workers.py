@@ -198,3 +198,14 @@ def test_space_split_cuts_the_ranking_into_runs_of_equal_work():
     owners3 = _space_owners(spec, poses + [None], grid, 3)
     assert owners3[-1] == 0 and set(owners3[:-1]) == {0, 1, 2}
 
+
+
+@needs_data
+def test_asking_more_workers_than_the_cluster_has_says_how_many(cluster, monkeypatch):
+    import gpumap.workers
+
+    monkeypatch.setattr(gpumap.workers, "WAIT_WORKERS_S", 0.2)
+    _, client = cluster
+    with pytest.raises(ValueError, match="Expected 5 Dask workers, but the cluster has 3"):
+        run_replay_workers(_tank(6), workers=5, client=client, voxel_size_m=0.06, backend="numpy",
+                           progress=False)
