@@ -985,36 +985,20 @@ class MinMaxMapper:
         and ``count``. ``seen_only``: only the blocks that hold something (observed, merged or
         loaded: the seen flag), read block by block."""
         self.check()
-        if seen_only:
-            slots = np.flatnonzero(self._used & self._holding(np.arange(len(self._used))))
+        keep = self._used & self._holding(np.arange(len(self._used))) if seen_only else self._used
+        if self.sparse is None and keep.all():  # every block, slot = index entry: the pool as it is
+            coords = self._coords
+            arrays = [None if a is None else a.reshape(-1, self.BV) for a in self._backend.read()]
+        else:
+            slots = np.flatnonzero(keep)
             coords = self._coords[slots]
-            if self.sparse is not None:  # slot order is not coordinate order on demand
+            if self.sparse is not None:  # slot order is coordinate order only for a bounded box
                 order = np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0]))
                 slots, coords = slots[order], coords[order]
-            g, b, c = self._backend.read_blocks(slots)
-            out = {"min_all": g} if not self._visible else {"min_all": g, "bright": b, "count": c}
-            if values:
-                out["values"] = g
-                if self._visible:
-                    from gpumap.reference import visible_values
-
-                    out["values"] = visible_values(g, b, c, self.carve_views)
-            return coords, out
-        g, b, c = self._backend.read()
-        B3 = self.BV
-        if self.sparse is None:  # every block, slot = index entry: already in coordinate order
-            coords = self._coords
-            out = {"min_all": g.reshape(-1, B3)}
-            if self._visible:
-                out["bright"], out["count"] = b.reshape(-1, B3), c.reshape(-1, B3)
-        else:
-            used = np.flatnonzero(self._used)
-            coords = self._coords[used]
-            order = np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0]))
-            used, coords = used[order], coords[order]
-            out = {"min_all": g.reshape(-1, B3)[used]}  # rows: one copy per block
-            if self._visible:
-                out["bright"], out["count"] = b.reshape(-1, B3)[used], c.reshape(-1, B3)[used]
+            arrays = self._backend.read_blocks(slots)
+        out = dict(zip(("min_all", "bright", "count"), arrays, strict=True))
+        if not self._visible:
+            del out["bright"], out["count"]
         if self._visible and values:
             from gpumap.reference import visible_values
 
@@ -1062,7 +1046,8 @@ class MinMaxMapper:
         whole = len(r) == int(np.prod(nb))  # every block of the box, in coordinate order
         out = {}
         for n in names:
-            dt, fill = (np.uint8, 0) if n == "count" else (np.float32, np.inf)
+            dt = data[n].dtype  # where no block: +inf for values, 0 for counts and flags
+            fill = np.inf if dt.kind == "f" else 0
             if whole:
                 V = data[n][sel].reshape(*nb, B, B, Bz)
             else:
@@ -1544,14 +1529,10 @@ class MinMaxMapper:
             src["bright"], src["count"] = flat["bright"], flat["count"]
         with m._lock:
             m._put_blocks(coords, src, combine=False)
-            if opts["confidence"]:
-                for name, target in (("confirmed", m._confirmed), ("arcs", m._arcs)):
-                    full = np.zeros((int(np.prod(m._index.shape)), m.BV), target.dtype)
-                    full[m._lins(coords)] = flat[name]
-                    g, nb = m.grid.shape, m._index.shape
-                    V = full.reshape(*nb, B, B, Bz).transpose(0, 3, 1, 4, 2, 5)
-                    V = V.reshape(nb[0] * B, nb[1] * B, nb[2] * Bz)
-                    target[:] = V[: g[0], : g[1], : g[2]].ravel()
+            if opts["confidence"]:  # host arrays over the grid, from the file's blocks
+                layer = m._dense(*m._whole_box(), ("confirmed", "arcs"), blocks=(coords, flat))
+                m._confirmed[:] = layer["confirmed"].ravel()
+                m._arcs[:] = layer["arcs"].ravel()
             m.n_integrated = n_integrated
         return m
 

@@ -289,6 +289,7 @@ def integrate_template(
     v = voxel_ping_values(params, image, edges, _centres(params, idx))
     m = v >= 0
     flat = (address or functools.partial(_dense_address, dims))(idx[m])
-    flat, vm = flat[flat >= 0], v[m][flat >= 0]
+    ok = flat >= 0
+    flat, vm = flat[ok], v[m][ok]
     # Step 6: min update (duplicates of a voxel carry the same value)
     np.minimum.at(grid, flat, vm)

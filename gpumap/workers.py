@@ -107,7 +107,7 @@ def _compact(images: np.ndarray) -> np.ndarray:
     if images.dtype != np.float32:
         return images
     b = np.rint(images * np.float32(255.0))
-    if not (b.min() >= 0 and b.max() <= 255):
+    if images.size and not (b.min() >= 0 and b.max() <= 255):
         return images
     u8 = b.astype(np.uint8)
     return u8 if np.array_equal(np.multiply(u8, U8_SCALE, dtype=np.float32), images) else images
@@ -122,8 +122,6 @@ def _pack(st, pack: bool = True) -> tuple:
     the max of image cells, the map's the min of those) travel as those bytes. Kinds: ``"u8"``
     (such bytes), ``"f32"`` (other floats), ``"bytes"`` (counts); ``"raw"``: as it is.
     """
-    from gpumap.backends import U8_SCALE
-
     arrays: dict = {}
     for k, v in st.arrays.items():
         if not pack or k == "blocks" or v.dtype not in (np.float32, np.uint8):
@@ -133,12 +131,8 @@ def _pack(st, pack: bool = True) -> tuple:
         vals = v[keep]
         kind = "bytes"
         if v.dtype == np.float32:
-            b = np.rint(vals * np.float32(255.0))
-            u8 = b.astype(np.uint8) if vals.size == 0 or (b.min() >= 0 and b.max() <= 255) else None
-            if u8 is not None and np.array_equal(np.multiply(u8, U8_SCALE, dtype=np.float32), vals):
-                kind, vals = "u8", u8
-            else:
-                kind = "f32"
+            vals = _compact(vals)
+            kind = "u8" if vals.dtype == np.uint8 else "f32"
         arrays[k] = (kind, v.shape, np.packbits(keep.ravel()), vals)
     return st.kind, st.options, st.n_integrated, arrays
 
