@@ -726,7 +726,7 @@ class WarpBackend(Backend):
             else wp.launch(
                 k.integrate_template,
                 dim=self.template.shape[0],
-                inputs=[P, *ping_args, self.template, self.index, self.grid],
+                inputs=[P, *ping_args, self.template, self.index, self.grid, self.seen],
                 **rec,
             ),
         }
@@ -1120,7 +1120,8 @@ class OpenCLBackend(Backend):
             self.k_gather(self.queue, (gs,), (self.wg,), *args, *pool)
         else:
             gs = -(-self.n_points // self.wg) * self.wg
-            self.k_template(self.queue, (gs,), (self.wg,), *args, self.template, self.index, self.grid)
+            self.k_template(self.queue, (gs,), (self.wg,), *args, self.template, self.index, self.grid,
+                            self.seen)
         self.queue.flush()
 
     # ------------------------------------------------------------------ batches (GPUs)

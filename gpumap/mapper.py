@@ -1008,11 +1008,8 @@ class MinMaxMapper:
         return coords, out
 
     def _holding(self, slots: np.ndarray) -> np.ndarray:
-        """(n,) bool: which of ``slots`` may hold an observed voxel. The seen flag says so for the
-        gather kernels, merges and loads; the template kernel does not set it, so a template map
-        that took pings counts every block as holding."""
-        if self.method == "template" and not self._empty:
-            return np.ones(len(slots), bool)
+        """(n,) bool: which of ``slots`` hold something (an observed, merged or loaded voxel: the
+        seen flag, set by every kernel, merge and load)."""
         return self._backend.read_seen()[slots] != 0
 
     def _whole_box(self) -> tuple[np.ndarray, np.ndarray]:

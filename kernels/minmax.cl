@@ -480,7 +480,7 @@ __kernel void integrate_template(const PingParams P, __global const float *image
                                  __global const float *tan_edges, __global const int *lut,
                                  __global const float *table, int use_table,
                                  __global const int *first_bright, __global const float *template_S,
-                                 __global const int *index, __global float *grid)
+                                 __global const int *index, __global float *grid, __global uchar *seen)
 {
     int tid = get_global_id(0);
     if (tid >= P.n_points) return;
@@ -501,6 +501,9 @@ __kernel void integrate_template(const PingParams P, __global const float *image
     if (v >= 0.0f) {
         // step 6; grid values are >= 0 (or +inf), whose IEEE bits order like ints
         long idx = voxel_address(&P, index, i, j, k);
-        if (idx >= 0) atomic_min((volatile __global int *)(grid + idx), as_int(v));
+        if (idx >= 0) {
+            atomic_min((volatile __global int *)(grid + idx), as_int(v));
+            seen[idx / ((long)P.blk * P.blk * P.blk_z)] = 1;  // its block holds an observed voxel
+        }
     }
 }

@@ -424,22 +424,6 @@ def gather_column(
         colbase = bc[1]
         within = bc[2]
         kb = k0
-        rk0 = k0 - P.blk_lo[2]
-        if col_ok and rk0 >= 0 and k1 - P.blk_lo[2] < Bz and P.blk_n[2] > 0:
-            # the whole run lies in the column's first block (a bounded box's only one): the plain loop
-            slot0 = index[colbase]
-            if slot0 >= 0:
-                base0 = slot0 * B * B * Bz + within - P.blk_lo[2]
-                hit0 = int(0)
-                for k in range(k0, k1 + 1):
-                    c = voxel_centre(P, i, j, k)
-                    vc = voxel_ping_value(P, c, image, tan_edges, lut, table, first_bright)
-                    if vc[0] >= 0.0:
-                        hit0 = 1
-                        update_voxel(P, base0 + k, vc, grid, bright, count)
-                if hit0 != 0 and seen[slot0] == wp.uint8(0):
-                    seen[slot0] = wp.uint8(1)
-                kb = k1 + 1
         while kb <= k1:
             rk = kb - P.blk_lo[2]
             slot = int(-1)
@@ -623,6 +607,7 @@ def integrate_template(
     template_S: wp.array(dtype=wp.vec3),
     index: wp.array(dtype=int),
     grid: wp.array(dtype=float),
+    seen: wp.array(dtype=wp.uint8),
 ):
     """One thread per template point: the paper's steps 1-6."""
     tid = wp.tid()
@@ -638,3 +623,4 @@ def integrate_template(
         a = voxel_address(P, index, i, j, k)
         if a >= 0:
             wp.atomic_min(grid, a, v)
+            seen[a // (P.blk * P.blk * P.blk_z)] = wp.uint8(1)  # its block holds an observed voxel
