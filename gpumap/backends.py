@@ -89,11 +89,12 @@ class Backend:
 
     The map lives in a *pool* of ``cap`` blocks of ``V = B B Bz`` voxels (slot ``s`` holds voxels
     ``[s V, (s + 1) V)``, local order ``(i, j, k)``, ``k`` fastest): ``grid`` float32
-    (the min over every view, ``+inf`` never observed), and for the visible rule ``bright``
-    float32 and ``count`` uint8, plus a ``seen`` byte per slot. A dense coarse *index* (int32
-    per block of a box, -1 none) maps a block to its slot; the kernels address every voxel
-    through it (:func:`gpumap.kernels.minmax.gather_column`). The host (the mapper) decides
-    which blocks exist: all of a bounded box up front, or those a ping can reach.
+    (the min over every view, ``+inf`` never observed), and for the visible and evidence rules
+    ``bright`` float32 and ``count`` uint64 (two packed view counts), plus a ``seen`` byte per
+    slot. A dense coarse *index* (int32 per block of a box, -1 none) maps a block to its slot;
+    the kernels address every voxel through it (:func:`gpumap.kernels.minmax.gather_column`).
+    The host (the mapper) decides which blocks exist: all of a bounded box up front, or those a
+    ping can reach.
     """
 
     name: str
@@ -199,8 +200,9 @@ class Backend:
 def _check_rule(params: np.ndarray, visible: bool) -> None:
     """A backend built without the visible rule's evidence must never run its update (the
     kernels would write past one-element stand-in buffers)."""
-    if int(params["rule"]) == 1 and not visible:
-        raise ValueError("Expected a backend built with visible=True for rule='visible' parameters")
+    if int(params["rule"]) != 0 and not visible:
+        raise ValueError(
+            "Expected a backend built with visible=True for rule='visible' or 'evidence' parameters")
 
 
 class NumpyBackend(Backend):
@@ -217,7 +219,7 @@ class NumpyBackend(Backend):
         self.template = template_S
         self.grid = np.empty(0, np.float32)
         self.bright = np.empty(0, np.float32) if visible else None
-        self.count = np.empty(0, np.uint8) if visible else None
+        self.count = np.empty(0, np.uint64) if visible else None
         self.seen = np.empty(0, np.uint8)
         self.index = np.empty(0, np.int32)
         self.err = 0
@@ -228,7 +230,7 @@ class NumpyBackend(Backend):
         self.grid = np.concatenate([self.grid, np.full(n, np.inf, np.float32)])
         if self.visible:
             self.bright = np.concatenate([self.bright, np.full(n, np.inf, np.float32)])
-            self.count = np.concatenate([self.count, np.zeros(n, np.uint8)])
+            self.count = np.concatenate([self.count, np.zeros(n, np.uint64)])
         self.seen = np.concatenate([self.seen, np.zeros(cap - self.cap, np.uint8)])
         self.cap = cap
 
@@ -494,7 +496,7 @@ class WarpBackend(Backend):
             # the plain rule (its kernels never touch it)
             self.grid = wp.empty(0, dtype=float)
             self.bright = wp.empty(0, dtype=float)
-            self.count = wp.empty(0, dtype=wp.uint8)
+            self.count = wp.empty(0, dtype=wp.uint64)
             self.seen = wp.empty(0, dtype=wp.uint8)
             self.index = wp.full(1, value=-1, dtype=int)
             self.err = wp.zeros(1, dtype=int)
@@ -568,7 +570,7 @@ class WarpBackend(Backend):
         with wp.ScopedDevice(self.dev):
             names = [("grid", wp.full, np.inf, float), ("seen", wp.zeros, None, wp.uint8)]
             if self.visible:
-                names += [("bright", wp.full, np.inf, float), ("count", wp.zeros, None, wp.uint8)]
+                names += [("bright", wp.full, np.inf, float), ("count", wp.zeros, None, wp.uint64)]
             for name, make, fill, dt in names:
                 n = cap if name == "seen" else cap * self.BV
                 new = make(n, value=fill, dtype=dt) if fill is not None else make(n, dtype=dt)
@@ -632,7 +634,7 @@ class WarpBackend(Backend):
         self.grid.assign(wp.array(np.ascontiguousarray(grid, np.float32), dtype=float, device=dev))
         if self.visible:
             self.bright.assign(wp.array(np.ascontiguousarray(bright, np.float32), dtype=float, device=dev))
-            self.count.assign(wp.array(np.ascontiguousarray(count, np.uint8), dtype=wp.uint8, device=dev))
+            self.count.assign(wp.array(np.ascontiguousarray(count, np.uint64), dtype=wp.uint64, device=dev))
 
     def read_blocks(self, slots):
         if self.dev.is_cuda:
@@ -694,14 +696,14 @@ class WarpBackend(Backend):
         self._P_addr = ctypes.addressof(P._ctype)
         rec = {"device": self.dev, "record_cmd": True}
         table = []
-        if int(params["rule"]) == 1 and self.first_bright_cells:  # GPUs: a thread per cell
+        if int(params["rule"]) != 0 and self.first_bright_cells:  # GPUs: a thread per cell
             nb, nj = int(params["n_bins"]), int(params["n_beams"])
             table += [
                 wp.launch(k.first_bright_init, dim=nj, inputs=[P, self.first_bright], **rec),
                 wp.launch(k.find_first_bright_cells, dim=(nb, nj), inputs=[P, self.image, self.first_bright],
                           **rec),
             ]
-        elif int(params["rule"]) == 1:  # CPUs: a thread per beam, stopping at the first return
+        elif int(params["rule"]) != 0:  # CPUs: a thread per beam, stopping at the first return
             table.append(
                 wp.launch(
                     k.find_first_bright,
@@ -800,7 +802,7 @@ class WarpBackend(Backend):
             bb["events"][s] = wp.record_event() if self.dev.is_cuda else None
         fb = bb["first_bright"]  # (cap, ...): kernels index their B first rows only
         tables = bb["tables"]
-        if int(params["rule"][0]) == 1:
+        if int(params["rule"][0]) != 0:
             wp.launch(k.find_first_bright_batch, dim=(B, self.n_beams), inputs=[P, imgs, fb], device=self.dev)
         if self.use_table:
             cells = images.shape
@@ -999,7 +1001,7 @@ class OpenCLBackend(Backend):
         n_old = self.cap * self.BV
         arrays = [("grid", 4, np.float32(np.inf)), ("seen", 1 / self.BV, np.uint8(0))]
         if self.visible:
-            arrays += [("bright", 4, np.float32(np.inf)), ("count", 1, np.uint8(0))]
+            arrays += [("bright", 4, np.float32(np.inf)), ("count", 8, np.uint64(0))]
         for name, per, fill in arrays:
             nb, ob = int(per * n), int(per * n_old)
             new = self._buf(nb)
@@ -1008,7 +1010,7 @@ class OpenCLBackend(Backend):
                 cl.enqueue_copy(q, new, getattr(self, name), byte_count=ob)
             setattr(self, name, new)
         if not self.visible:
-            self.bright, self.count = self._buf(4), self._buf(4)
+            self.bright, self.count = self._buf(4), self._buf(8)
         self.cap = cap
         q.finish()
 
@@ -1050,14 +1052,14 @@ class OpenCLBackend(Backend):
         g = self._read(self.grid, n, np.float32)
         if not self.visible:
             return g, None, None
-        return g, self._read(self.bright, n, np.float32), self._read(self.count, n, np.uint8)
+        return g, self._read(self.bright, n, np.float32), self._read(self.count, n, np.uint64)
 
     def write(self, grid, bright, count):
         q = self.queue
         self.cl.enqueue_copy(q, self.grid, np.ascontiguousarray(grid, np.float32), is_blocking=True)
         if self.visible:
             self.cl.enqueue_copy(q, self.bright, np.ascontiguousarray(bright, np.float32), is_blocking=True)
-            self.cl.enqueue_copy(q, self.count, np.ascontiguousarray(count, np.uint8), is_blocking=True)
+            self.cl.enqueue_copy(q, self.count, np.ascontiguousarray(count, np.uint64), is_blocking=True)
 
     def read_seen(self):
         return self._read(self.seen, self.cap, np.uint8)
@@ -1095,12 +1097,12 @@ class OpenCLBackend(Backend):
         if method == "gather" and not n_threads:
             return
         flag = np.int32(self.use_table)
-        if int(params["rule"]) == 1 and self.first_bright_cells:
+        if int(params["rule"]) != 0 and self.first_bright_cells:
             gs = -(-self.n_beams // self.wg) * self.wg
             self.k_first_init(self.queue, (gs,), (self.wg,), P, self.first_bright)
             gs = -(-(self.n_bins * self.n_beams) // self.wg) * self.wg
             self.k_first_cells(self.queue, (gs,), (self.wg,), P, image_buf, self.first_bright)
-        elif int(params["rule"]) == 1:
+        elif int(params["rule"]) != 0:
             gs = -(-self.n_beams // 16) * 16
             self.k_first(self.queue, (gs,), (16,), P, image_buf, self.first_bright)
         if self.use_table:
@@ -1188,7 +1190,7 @@ class OpenCLBackend(Backend):
             self.k_u8(q, (-(-n_px // wg) * wg,), (wg,), bb["u8"], U8_SCALE, bb["images"], i32(n_px))
         P = bb["P"]
         stride = i32(bb["n_table"])
-        if int(params["rule"][0]) == 1:
+        if int(params["rule"][0]) != 0:
             n = B * self.n_beams
             bb["find_first_bright_batch"](q, (-(-n // wg) * wg,), (wg,), P, i32(B), i32(self.n_beams),
                                           bb["images"], bb["first_bright"])

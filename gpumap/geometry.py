@@ -14,10 +14,12 @@ import numpy as np
 from gpumap.spec import GridSpec, SonarSpec
 
 __all__ = [
+    "BRIGHT_SHARE",
     "CARVE_VIEWS",
     "FOOTPRINT_PAD_M",
     "PING_DTYPE",
     "RULES",
+    "SHARE_Z",
     "footprint_radius_m",
     "make_template_S",
     "ping_params",
@@ -120,9 +122,13 @@ def static_params(
 
 
 #: Update rules, in the order of PING_DTYPE's ``rule`` codes.
-RULES = ("plain", "visible")
+RULES = ("plain", "visible", "evidence")
 #: Clear dark views that carve a voxel once seen bright (a view darker than thr_dark counts twice).
 CARVE_VIEWS = 2
+#: Evidence rule: a voxel is free once its views show, at confidence SHARE_Z (a one-sided normal
+#: quantile), that it is bright in fewer than BRIGHT_SHARE of its clear views.
+BRIGHT_SHARE = 0.5
+SHARE_Z = 1.645
 
 
 def pose_pad_m(pose_cov: np.ndarray, range_max_m: float, sigmas: float) -> float:

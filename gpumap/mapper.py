@@ -2,11 +2,12 @@
 
 One :class:`MinMaxMapper` serves a fixed box and an open world. Its map lives in *blocks* of
 ``B x B x Bz`` voxels on the backend's device: a *pool* of slots (per voxel
-float32 ``min_all``, and for the visible rule float32 ``bright`` and uint8 ``count``: 9 bytes;
-4 for the plain rule) and a dense coarse *index* of int32 slots, one per block of a box (``-1`` =
-no block; 4 bytes per 512 voxels). Every kernel addresses a voxel through the index: its
-block's slot times its size plus its place in the block (an O(1) read: no hash, no probing,
-nothing OpenCL 1.2 lacks), in one kernel family for every storage (``gpumap.kernels.minmax``).
+float32 ``min_all``, and for the evidence and visible rules float32 ``bright`` and uint64 ``count``
+(two packed view counts): 16 bytes; 4 for the plain rule) and a dense coarse *index* of int32
+slots, one per block of a box (``-1`` = no block; 4 bytes per 512 voxels). Every kernel
+addresses a voxel through the index: its block's slot times its size plus its place in the
+block (an O(1) read: no hash, no probing, nothing OpenCL 1.2 lacks), in one kernel family for
+every storage (``gpumap.kernels.minmax``).
 
 - **A bounded box** (a :class:`~gpumap.GridSpec`): every block of the box is allocated up front
   and the index is the identity, so a ping costs no block search (the dense grid's speed).
@@ -56,7 +57,7 @@ from gpumap.errors import (
     check_finite_scalar,
     check_pose,
 )
-from gpumap.geometry import RULES, make_template_S, pose_pad_m, static_params
+from gpumap.geometry import BRIGHT_SHARE, RULES, SHARE_Z, make_template_S, pose_pad_m, static_params
 from gpumap.spec import _MAX_VOXEL_INDEX, GridSpec, SonarSpec, SparseSpec, _vec3
 
 __all__ = ["MapMemoryError", "MinMaxMapper", "available_backends"]
@@ -66,10 +67,11 @@ log = logging.getLogger("gpumap")
 METHODS = ("gather", "template")
 _ONE_BITS = np.uint32(0x3F800000)  # the bits of float32 1.0
 FILE_FORMAT = "gpumap.MinMaxMapper"
+# 5: the evidence rule (``count`` uint64: clear dark and bright views; bright_share, share_z);
 # 4: blocks (``blocks`` and per-block arrays) for every storage; 3: the optional confidence layer
 # (confirmed); 2: the visible rule's evidence (bright, count) and the rule; 1 to 3 are dense
 # arrays over the grid, and still load, as do files of the former SparseMinMaxMapper
-FILE_VERSION = 4
+FILE_VERSION = 5
 SPARSE_FILE_FORMAT = "gpumap.SparseMinMaxMapper"  # written until version 4 took its place
 BLOCK = 8  # voxels per block edge of a bounded box (a SparseSpec says its own)
 GROWTH = 1.5  # an on-demand pool grows by this factor (at least to what a ping needs)
@@ -86,6 +88,18 @@ class MapMemoryError(GridTooLargeError):
 def available_backends() -> list[str]:
     """Backends that run on this machine, in the order ``backend="auto"`` tries them."""
     return _available()
+
+
+def rule_values(rule: str, min_all: np.ndarray, bright, count, carve_views: int, bright_share: float,
+                share_z: float) -> np.ndarray:
+    """A map's values from its per-voxel state, by ``rule`` (:mod:`gpumap.reference`)."""
+    from gpumap.reference import evidence_values, visible_values
+
+    if rule == "visible":
+        return visible_values(min_all, bright, count, carve_views)
+    if rule == "evidence":
+        return evidence_values(min_all, bright, count, bright_share, share_z)
+    return min_all
 
 
 def _free_memory_bytes(name: str) -> int | None:
@@ -166,20 +180,34 @@ class MinMaxMapper:
     over its footprint (the cells its bounding sphere touches: conservative, so a thin bright
     object is never lost to sampling). Never-observed voxels stay unknown.
 
-    How views combine (``rule``):
+    How views combine (``rule``). A view is *clear* when no image cell ``>= threshold`` lies
+    nearer than the voxel's footprint in the footprint's beams: nothing stood between the sonar
+    and the voxel, at any elevation. A dark view behind a return proves nothing: the voxel may
+    sit in that return's acoustic shadow, or be a surface seen at grazing incidence behind
+    nearer parts of itself.
 
-    - ``"visible"`` (default with ``method="gather"``): a dark view lowers a voxel only
-      where it proves the voxel empty. A view is *clear* when no image cell
-      ``>= threshold`` lies nearer than the voxel's footprint in the footprint's beams:
-      nothing stood between the sonar and the voxel, at any elevation. A dark view behind
-      a return proves nothing: the voxel may sit in that return's acoustic shadow, or be a
-      surface seen at grazing incidence behind nearer parts of itself. A voxel ever seen
-      bright (``>= threshold``) keeps the dimmest of its bright values until clear dark
-      views carve it: ``carve_views`` (2) of them, one darker than ``threshold / 2``
-      counting twice (speckle rarely darkens a seen surface that far). A voxel never seen
-      bright takes the minimum over its views, as in the plain rule. Every update is a min
-      or a count, so the map does not depend on the order of the pings. Costs 5 bytes per
-      voxel more (a float32 and a uint8) and a per-beam scan of each ping.
+    - ``"evidence"`` (default with ``method="gather"``): per voxel, the number of bright views
+      (``>= threshold``) and of clear dark views. A voxel is occupied when some view saw it
+      bright and its views do not show, at confidence ``share_z`` (a one-sided normal quantile;
+      1.645: 95 %), that it is bright in fewer than ``bright_share`` of them (the Wilson score
+      upper bound of the bright share is at least ``bright_share``); free when no view saw it
+      bright, or when they do show it; unknown when no view observed it. The decision rests on
+      a proportion, so it converges as views accumulate instead of drifting towards "free" as a
+      min over views does: a real surface, bright in most but not all of its views (speckle,
+      gain, pose error, grazing incidence), stays occupied however long the sonar looks, while
+      water that the elevation aperture painted bright now and then is carved once enough
+      clear views show it dark. The two counts are 32-bit and saturate on their own at
+      2^32 - 1 (6.8 years of one voxel in view at 20 Hz); at the limit the count stops and the
+      decision keeps the share it had. An occupied voxel's value is its dimmest bright view,
+      a free one's the minimum over its views. Every update is a min or a saturating count,
+      so the map does not depend on the order of the pings and merges exactly. 12 bytes per
+      voxel more than the plain rule (a float32 and a uint64) and a per-beam scan of each ping.
+    - ``"visible"``: a voxel ever seen bright keeps the dimmest of its bright values until
+      clear dark views carve it: ``carve_views`` (2) of them, one darker than
+      ``threshold / 2`` counting twice. A fixed count of dark views: the longer the sonar
+      looks, the more of a real surface's normal speckle-dark views add up and carve it
+      (kept by name, to measure that). A voxel never seen bright takes the minimum over its
+      views, as in the plain rule.
     - ``"plain"``: the paper's rule: the minimum over all views. A ping carves voxels in its
       acoustic shadow, so surfaces seen from one side are erased by views from the other.
 
@@ -216,9 +244,9 @@ class MinMaxMapper:
         ``"auto"``/``"table"`` (a per-ping max table, built in the way that suits the
         device, then two reads per voxel) or ``"loop"`` (a loop over the footprint's cells).
     rule : str or None
-        ``"visible"`` or ``"plain"``, see above; None (default) picks ``"visible"`` for the
-        gather method and ``"plain"`` for the template method (the paper's six steps with the
-        paper's rule; ``"visible"`` needs ``method="gather"``).
+        ``"evidence"``, ``"visible"`` or ``"plain"``, see above; None (default) picks
+        ``"evidence"`` for the gather method and ``"plain"`` for the template method (the
+        paper's six steps with the paper's rule; the others need ``method="gather"``).
     threshold : float
         Intensity in (0, 1] from which a view counts as bright (the visible rule's returns and
         shadows). Set it to the threshold you read the map at; lower is more conservative
@@ -229,6 +257,13 @@ class MinMaxMapper:
         one speckle-dark view; 1 carves more water and more weak surfaces (fewer false
         positives, more false negatives); larger is more conservative. Read-time only: it
         may be changed between pings (:attr:`carve_views`), in 1..255.
+    bright_share : float
+        Evidence rule: the share of bright views, in (0, 1], below which a voxel is free once
+        the views show it (default :data:`gpumap.geometry.BRIGHT_SHARE`). Read-time only.
+    share_z : float
+        Evidence rule: how sure the views must be before they free a voxel, as a one-sided
+        normal quantile in [0, 10] (default :data:`gpumap.geometry.SHARE_Z`, 1.645: 95 %);
+        larger keeps more voxels occupied on few views. Read-time only.
     confidence : bool
         Keep the confidence layer (:mod:`gpumap.confidence`; a bounded GridSpec only): after
         each ping a separate pass marks the occupied voxels that view confirmed (resolved in
@@ -264,6 +299,8 @@ class MinMaxMapper:
         rule: str | None = None,
         threshold: float = 0.1,
         carve_views: int = 2,
+        bright_share: float = BRIGHT_SHARE,
+        share_z: float = SHARE_Z,
         confidence: bool = False,
         sparse: bool | None = None,
         max_bytes: int | None = None,
@@ -293,12 +330,12 @@ class MinMaxMapper:
                 f"Expected footprint_max to be 'auto', 'table' or 'loop', but got {footprint_max!r}"
             )
         if rule is None:
-            rule = "visible" if method == "gather" else "plain"
+            rule = "evidence" if method == "gather" else "plain"
         if rule not in RULES:
             raise ValueError(f"Expected rule to be one of {RULES} (or None), but got {rule!r}")
-        if rule == "visible" and method != "gather":
+        if rule != "plain" and method != "gather":
             raise ValueError(
-                f"Expected method='gather' with rule='visible' (the template method's duplicate "
+                f"Expected method='gather' with rule={rule!r} (the template method's duplicate "
                 f"points cannot count views once), but got method={method!r}; use rule='plain' with it"
             )
         thr = check_finite_scalar(threshold, "threshold")
@@ -330,12 +367,14 @@ class MinMaxMapper:
         self.spec, self.sparse = spec, space
         self.method, self.rule, self.threshold, self.shadow_m = method, rule, thr, shadow
         self.carve_views = carve_views
+        self.bright_share = bright_share
+        self.share_z = share_z
         self._use_table = None if footprint_max == "auto" else footprint_max == "table"
         self.max_bytes = None if max_bytes is None else int(max_bytes)
         self.evict = evict
         self.n_integrated = 0
         self._empty = True  # no ping, merge or load has gone into the map since it was made or reset
-        self._visible = rule == "visible"
+        self._stateful = rule != "plain"  # the visible and evidence rules keep bright and count
         # a bounded box's blocks are BLOCK x BLOCK columns of the grid's height (one index read per
         # column in the kernels, which then walk contiguous voxels: the dense grid's speed); blocks
         # on demand are cubes of the SparseSpec's edge
@@ -343,7 +382,7 @@ class MinMaxMapper:
         Bz = int(grid.shape[2]) if space is None else B
         self.B, self.Bz, self.BV = B, Bz, B * B * Bz
         self._bs = np.array([B, B, Bz], np.int64)
-        self.bytes_per_voxel = 9 if self._visible else 4
+        self.bytes_per_voxel = 16 if self._stateful else 4  # + bright float32, count uint64
         self._block_bytes = self.BV * self.bytes_per_voxel + 1  # + the seen byte
         if space is None:
             self._grid = grid
@@ -443,7 +482,7 @@ class MinMaxMapper:
                 errors.append(f"{name}: {msg}")
                 continue
             try:
-                return make_backend(name, self.spec, self._template, self._use_table, visible=self._visible,
+                return make_backend(name, self.spec, self._template, self._use_table, visible=self._stateful,
                                     B=self.B, Bz=self.Bz, cap=cap)
             except (BackendUnavailableError, GridTooLargeError) as e:
                 if backend != "auto":
@@ -471,6 +510,35 @@ class MinMaxMapper:
     @carve_views.setter
     def carve_views(self, n: int) -> None:
         self._carve_views = check_carve_views(n)
+
+    @property
+    def bright_share(self) -> float:
+        """Evidence rule: the share of bright views below which a voxel is free (see the class)."""
+        return self._bright_share
+
+    @bright_share.setter
+    def bright_share(self, p: float) -> None:
+        p = check_finite_scalar(p, "bright_share")
+        if not 0.0 < p <= 1.0:
+            raise ValueError(f"Expected bright_share in (0, 1], but got {p}")
+        self._bright_share = p
+
+    @property
+    def share_z(self) -> float:
+        """Evidence rule: the one-sided normal quantile of the confidence that frees a voxel."""
+        return self._share_z
+
+    @share_z.setter
+    def share_z(self, z: float) -> None:
+        z = check_finite_scalar(z, "share_z")
+        if not 0.0 <= z <= 10.0:
+            raise ValueError(f"Expected share_z in [0, 10], but got {z}")
+        self._share_z = z
+
+    def _rule_values(self, min_all: np.ndarray, bright, count) -> np.ndarray:
+        """The map's values from its state, by the rule (the plain rule's are ``min_all``)."""
+        return rule_values(self.rule, min_all, bright, count, self.carve_views, self.bright_share,
+                           self.share_z)
 
     @property
     def grid(self) -> GridSpec:
@@ -997,12 +1065,10 @@ class MinMaxMapper:
                 slots, coords = slots[order], coords[order]
             arrays = self._backend.read_blocks(slots)
         out = dict(zip(("min_all", "bright", "count"), arrays, strict=True))
-        if not self._visible:
+        if not self._stateful:
             del out["bright"], out["count"]
-        if self._visible and values:
-            from gpumap.reference import visible_values
-
-            out["values"] = visible_values(out["min_all"], out["bright"], out["count"], self.carve_views)
+        if self._stateful and values:
+            out["values"] = self._rule_values(out["min_all"], out["bright"], out["count"])
         elif values:
             out["values"] = out["min_all"]
         return coords, out
@@ -1031,7 +1097,7 @@ class MinMaxMapper:
         :meth:`_blocks`' result, read here if None)."""
         shape = tuple(int(x) for x in i1 - i0 + 1)
         if min(shape) <= 0:
-            return {n: np.zeros((0, 0, 0), np.uint8 if n == "count" else np.float32) for n in names}
+            return {n: np.zeros((0, 0, 0), np.uint64 if n == "count" else np.float32) for n in names}
         if int(np.prod(shape)) > _MAX_BOX_VOXELS:
             raise ValueError(f"Expected a box of at most {_MAX_BOX_VOXELS} voxels, but got {shape}")
         coords, data = self._blocks() if blocks is None else blocks
@@ -1079,16 +1145,23 @@ class MinMaxMapper:
         return v
 
     def evidence(self) -> dict[str, np.ndarray]:
-        """The visible rule's per-voxel state over :attr:`grid`, (nx, ny, nz) copies: ``min_all``
-        float32 (min over every view, ``+inf`` never observed), ``bright`` float32 (min over bright
-        views, ``+inf`` none) and ``count`` uint8 (clear dark evidence). Raises for the plain rule."""
-        if not self._visible:
+        """The visible or evidence rule's per-voxel state over :attr:`grid`, (nx, ny, nz) copies:
+        ``min_all`` float32 (min over every view, ``+inf`` never observed), ``bright`` float32
+        (min over bright views, ``+inf`` none), ``count`` uint32 (clear dark views; the visible
+        rule's weighted and stopping at 255) and ``hits`` uint32 (bright views). Raises for the
+        plain rule."""
+        from gpumap.reference import split_counts
+
+        if not self._stateful:
             raise ValueError(
-                f"Expected a mapper with rule='visible' for evidence(), but its rule is {self.rule!r}"
+                "Expected a mapper with rule='visible' or 'evidence' for evidence(), "
+                f"but its rule is {self.rule!r}"
             )
         with self._lock:
             self._settle()
-            return self._dense(*self._whole_box(), ("min_all", "bright", "count"))
+            out = self._dense(*self._whole_box(), ("min_all", "bright", "count"))
+        out["count"], out["hits"] = split_counts(out["count"])
+        return out
 
     def observed(self) -> np.ndarray:
         """(nx, ny, nz) bool over :attr:`grid`: voxels seen by at least one ping."""
@@ -1327,7 +1400,7 @@ class MinMaxMapper:
             self._used[slots_new] = True
             self._backend.set_blocks(slots_new.astype(np.int32), lins[new].astype(np.int32))
         slots = flat[lins].astype(np.int64)
-        names = ("min_all", "bright", "count") if self._visible else ("min_all",)
+        names = ("min_all", "bright", "count") if self._stateful else ("min_all",)
         mine = {k: arrays[k] for k in names}
         if combine and n_new < len(coords):
             # only blocks that already hold something are read and combined (a block never observed,
@@ -1337,7 +1410,7 @@ class MinMaxMapper:
                 part = dict(zip(("min_all", "bright", "count"), self._backend.read_blocks(slots[held]),
                                 strict=True))
                 part = {k: part[k] for k in names}
-                _combine_into(part, {k: v[held] for k, v in mine.items()}, self._visible)
+                _combine_into(part, {k: v[held] for k, v in mine.items()}, self._stateful, self.rule)
                 self._backend.write_blocks(slots[held], part["min_all"], part.get("bright"),
                                            part.get("count"))
                 slots, mine = slots[~held], {k: v[~held] for k, v in mine.items()}
@@ -1367,7 +1440,7 @@ class MinMaxMapper:
             coords, data = self._blocks()
             keep = np.isfinite(data["min_all"]).any(axis=1)
             arrays = {"blocks": coords[keep].astype(np.int32), "values": data["values"][keep]}
-            if self._visible:
+            if self._stateful:
                 arrays.update({k: data[k][keep] for k in ("min_all", "bright", "count")})
             if self._confirmed is not None:
                 shape = self.grid.shape
@@ -1387,6 +1460,8 @@ class MinMaxMapper:
             "rule": self.rule,
             "threshold": self.threshold,
             "carve_views": self.carve_views,
+            "bright_share": self.bright_share,
+            "share_z": self.share_z,
             "n_integrated": n_integrated,
             "backend": self.backend,
             "confidence": self._confirmed is not None,
@@ -1433,10 +1508,12 @@ class MinMaxMapper:
                 with zf.open("meta.npy") as f:
                     meta = json.loads(str(np.lib.format.read_array(f, allow_pickle=False)))
                 spec, space, opts, n_integrated, dense_file = _check_meta(meta, path)
+                # before version 5 'count' was the visible rule's uint8 dark count
+                count_dt = np.uint64 if meta.get("version") == FILE_VERSION else np.uint8
                 if cls._on_demand and not isinstance(space, SparseSpec):
                     raise FormatError(f"Expected a sparse map file (blocks on demand) for {cls.__name__}, "
                                       f"but {path} holds a map of a bounded grid: load it with MinMaxMapper")
-                names = ("values", "min_all", "bright", "count") if opts["rule"] == "visible" else ("values",)
+                names = ("values", "min_all", "bright", "count") if opts["rule"] != "plain" else ("values",)
                 if opts["confidence"]:
                     names = (*names, "confirmed", "arcs")
                 if dense_file:  # versions 1 to 3: arrays over the grid
@@ -1458,14 +1535,14 @@ class MinMaxMapper:
                     n_blocks = bshape[0]
                     shape = (n_blocks, B, B, Bz)
                 for name in names:
-                    dt = {"count": np.uint8, "confirmed": np.uint8, "arcs": np.uint16}.get(name, np.float32)
+                    dt = {"count": count_dt, "confirmed": np.uint8, "arcs": np.uint16}.get(name, np.float32)
                     got, dtype = headers.get(f"{name}.npy", (None, None))
                     if got != shape or dtype != np.dtype(dt):
                         raise FormatError(
                             f"Expected '{name}' of shape {shape} {np.dtype(dt)} in {path}, "
                             f"but got {'nothing' if got is None else f'{got} {dtype}'}"
                         )
-                size = {"count": 1, "confirmed": 1, "arcs": 2}
+                size = {"count": 8, "confirmed": 1, "arcs": 2}
                 need = sum(int(np.prod(shape)) * size.get(n, 4) for n in names)
                 free = _free_memory_bytes("numpy")
                 if free is not None and 2 * need > free:
@@ -1477,6 +1554,8 @@ class MinMaxMapper:
                 for name in (*names, *(() if dense_file else ("blocks",))):
                     with zf.open(f"{name}.npy") as f:
                         arrays[name] = np.lib.format.read_array(f, allow_pickle=False)
+                if "count" in arrays:  # the packed view counts (an old file's dark count, no bright count)
+                    arrays["count"] = arrays["count"].astype(np.uint64)
         except (OSError, EOFError, zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError,
                 zlib.error, tokenize.TokenError, SyntaxError, NotImplementedError, struct.error) as e:
             # damaged deflate data, a damaged .npy header dict, an unknown zip compression
@@ -1487,9 +1566,9 @@ class MinMaxMapper:
             _check_map_values(arrays, opts, path)
             m = cls(spec, space, backend=backend, **opts, **kw)
             pool = {k: m._to_pool_order(arrays[k], 0 if k == "count" else np.inf).ravel()
-                    for k in (("min_all", "bright", "count") if opts["rule"] == "visible" else ("values",))}
+                    for k in (("min_all", "bright", "count") if opts["rule"] != "plain" else ("values",))}
             with m._lock:
-                grid = pool["min_all"] if opts["rule"] == "visible" else pool["values"]
+                grid = pool["min_all"] if opts["rule"] != "plain" else pool["values"]
                 m._backend.write(grid, pool.get("bright"), pool.get("count"))
                 m._backend._write_seen(np.ones(m._backend.cap, np.uint8))  # merges combine with them
                 m._empty = False
@@ -1507,7 +1586,7 @@ class MinMaxMapper:
             raise FormatError(f"Expected each block once in {path}, but some repeat")
         if np.abs(coords).max(initial=0) * max(B, Bz) > _MAX_VOXEL_INDEX - 2 * max(B, Bz):
             raise FormatError(f"Expected block coordinates within +-{_MAX_VOXEL_INDEX // B - 2} in {path}")
-        obs = np.isfinite(flat["min_all" if opts["rule"] == "visible" else "values"])
+        obs = np.isfinite(flat["min_all" if opts["rule"] != "plain" else "values"])
         if not obs.any(axis=1).all():
             raise FormatError(f"Expected every block in {path} to hold an observed voxel, but some hold none")
         dims = space.shape
@@ -1521,8 +1600,8 @@ class MinMaxMapper:
         if isinstance(space, SparseSpec):
             kw = {"initial_blocks": max(1, n), **kw}
         m = cls(spec, space, backend=backend, **opts, **kw)
-        src = {"min_all": flat["min_all" if opts["rule"] == "visible" else "values"]}
-        if opts["rule"] == "visible":
+        src = {"min_all": flat["min_all" if opts["rule"] != "plain" else "values"]}
+        if opts["rule"] != "plain":
             src["bright"], src["count"] = flat["bright"], flat["count"]
         with m._lock:
             m._put_blocks(coords, src, combine=False)
@@ -1575,12 +1654,13 @@ def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec | SparseS
     fmt, version = meta.get("format"), meta.get("version")
     if fmt not in (FILE_FORMAT, SPARSE_FILE_FORMAT):
         raise FormatError(f"Expected format {FILE_FORMAT!r} in {path}, but got {fmt!r}")
-    if (fmt == FILE_FORMAT and version not in (1, 2, 3, FILE_VERSION)) or (
+    if (fmt == FILE_FORMAT and version not in (1, 2, 3, 4, FILE_VERSION)) or (
             fmt == SPARSE_FILE_FORMAT and version != 1):
         raise FormatError(
             f"Expected file version 1 to {FILE_VERSION} in {path} ({fmt}), but got {version!r}"
         )
-    sparse_file = fmt == SPARSE_FILE_FORMAT or (version == FILE_VERSION and meta.get("sparse") is not None)
+    sparse_file = fmt == SPARSE_FILE_FORMAT or (
+        version in (4, FILE_VERSION) and meta.get("sparse") is not None)
     try:
         spec = SonarSpec.from_dict(meta["spec"])
         space = SparseSpec.from_dict(meta["sparse"]) if sparse_file else GridSpec.from_dict(meta["grid"])
@@ -1599,6 +1679,8 @@ def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec | SparseS
         "rule": rule,
         "threshold": meta.get("threshold", 0.1),
         "carve_views": meta.get("carve_views", 2),
+        "bright_share": meta.get("bright_share", BRIGHT_SHARE),
+        "share_z": meta.get("share_z", SHARE_Z),
         "confidence": meta.get("confidence", False),  # versions 1 and 2 have no confidence layer
     }
     if opts["method"] not in METHODS or rule not in RULES or (sparse_file and opts["method"] != "gather"):
@@ -1615,7 +1697,12 @@ def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec | SparseS
     cv = opts["carve_views"]
     if isinstance(cv, bool) or not isinstance(cv, int) or not 1 <= cv <= 255:
         raise FormatError(f"Expected carve_views in 1..255 in {path}, but got {cv!r}")
-    return spec, space, opts, n, fmt == FILE_FORMAT and version != FILE_VERSION
+    p, z = opts["bright_share"], opts["share_z"]
+    if any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in (p, z)) or not (
+            0.0 < p <= 1.0 and 0.0 <= z <= 10.0):
+        raise FormatError(f"Expected bright_share in (0, 1] and share_z in [0, 10] in {path}, but got "
+                          f"{p!r} and {z!r}")
+    return spec, space, opts, n, fmt == FILE_FORMAT and version not in (4, FILE_VERSION)
 
 
 def _check_map_values(arrays: dict[str, np.ndarray], opts: dict, path: Path) -> None:
@@ -1636,13 +1723,11 @@ def _check_map_values(arrays: dict[str, np.ndarray], opts: dict, path: Path) -> 
         raise FormatError(f"Expected 'confirmed' flags of 0 or 1 in {path}, but some are larger")
     if "arcs" in arrays and np.any(arrays["arcs"] >= 1 << 13):
         raise FormatError(f"Expected 13-bit 'arcs' masks in {path}, but some have higher bits")
-    if opts["rule"] == "visible":
-        from gpumap.reference import visible_values
-
+    if opts["rule"] != "plain":
         unseen = np.isinf(arrays["min_all"])
         if np.any(unseen & (np.isfinite(arrays["bright"]) | (arrays["count"] > 0))):
             raise FormatError(f"Expected no evidence on never-observed voxels in {path}, but some have it")
-        cv = opts["carve_views"]
-        if not np.array_equal(visible_values(arrays["min_all"], arrays["bright"], arrays["count"], cv),
-                              arrays["values"]):
+        want = rule_values(opts["rule"], arrays["min_all"], arrays["bright"], arrays["count"],
+                           opts["carve_views"], opts["bright_share"], opts["share_z"])
+        if not np.array_equal(want, arrays["values"]):
             raise FormatError(f"Expected 'values' in {path} to follow from its state, but they disagree")

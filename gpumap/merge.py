@@ -44,7 +44,6 @@ from gpumap.errors import FormatError
 
 __all__ = ["MapState", "load_map", "map_state", "merge_into", "merge_maps", "new_like"]
 
-_COUNT_MAX = 255
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,6 +93,8 @@ def _options(mapper) -> tuple[str, dict]:
         "rule": mapper.rule,
         "threshold": float(mapper.threshold),
         "carve_views": int(mapper.carve_views),
+        "bright_share": float(mapper.bright_share),
+        "share_z": float(mapper.share_z),
         "confidence": getattr(mapper, "_confirmed", None) is not None,
     }
 
@@ -107,7 +108,7 @@ def map_state(mapper) -> MapState:
         coords, data = mapper._blocks(values=False, seen_only=True)  # blocks that hold something
         keep = np.isfinite(data["min_all"]).any(axis=1)  # only observed blocks travel
         arrays = {"blocks": coords[keep].astype(np.int64), "min_all": data["min_all"][keep]}
-        if mapper.rule == "visible":
+        if mapper.rule != "plain":
             arrays["bright"], arrays["count"] = data["bright"][keep], data["count"][keep]
         n = int(mapper.n_integrated)
     return MapState(kind, opts, n, arrays)
@@ -120,7 +121,8 @@ def _same(kind: str, opts: dict, other: MapState) -> None:
             f"Expected maps of the same kind to merge, but got a {kind} map and a {other.kind} map "
             "(merge dense with dense and sparse with sparse)"
         )
-    for key in ("spec", "grid", "sparse", "method", "shadow_m", "rule", "threshold", "carve_views"):
+    for key in ("spec", "grid", "sparse", "method", "shadow_m", "rule", "threshold", "carve_views",
+                "bright_share", "share_z"):
         a, b = opts.get(key), other.options.get(key)
         if a != b:
             if isinstance(a, dict) and isinstance(b, dict):  # name the field inside (spec.n_bins, ...)
@@ -176,17 +178,17 @@ def _as_state(other, backend: str = "numpy") -> MapState:
     return map_state(other)
 
 
-def _combine_into(acc: dict, b: dict, visible: bool) -> None:
+def _combine_into(acc: dict, b: dict, visible: bool, rule: str = "visible") -> None:
     """``acc`` (arrays or views, e.g. a box of the grid) becomes the merge of itself and ``b``
-    (the same voxels, any shape of the same size), in place."""
+    (the same voxels, any shape of the same size), in place: mins of the mins, saturating sums
+    of the view counts (:func:`gpumap.reference.add_counts`)."""
+    from gpumap.reference import add_counts
+
     shape = acc["min_all"].shape
     np.minimum(acc["min_all"], b["min_all"].reshape(shape), out=acc["min_all"])
     if visible:
         np.minimum(acc["bright"], b["bright"].reshape(shape), out=acc["bright"])
-        c = acc["count"].astype(np.uint16)
-        c += b["count"].reshape(shape)
-        np.minimum(c, _COUNT_MAX, out=c)
-        acc["count"][...] = c
+        acc["count"][...] = add_counts(acc["count"], b["count"].reshape(shape), rule)
 
 
 def merge_into(mapper, other) -> None:
@@ -221,9 +223,9 @@ def merge_into(mapper, other) -> None:
 def _check_arrays(st: MapState, mapper) -> None:
     """The state's arrays have the shapes and dtypes its options say, and its blocks lie inside
     ``mapper``'s bounds (a MapState built by hand)."""
-    names = ("min_all", "bright", "count") if st.options["rule"] == "visible" else ("min_all",)
+    names = ("min_all", "bright", "count") if st.options["rule"] != "plain" else ("min_all",)
     m = len(st.arrays.get("blocks", ()))
-    want = {k: ((m, mapper.BV), np.uint8 if k == "count" else np.float32) for k in names}
+    want = {k: ((m, mapper.BV), np.uint64 if k == "count" else np.float32) for k in names}
     want["blocks"] = ((m, 3), np.int64)
     for k, (shape, dt) in want.items():
         a = st.arrays.get(k)

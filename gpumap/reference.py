@@ -39,7 +39,10 @@ import functools
 
 import numpy as np
 
-__all__ = ["beam_index_lo", "integrate_gather", "integrate_template", "visible_values", "voxel_ping_values"]
+__all__ = [
+    "add_counts", "beam_index_lo", "evidence_occupied", "evidence_values", "integrate_gather",
+    "integrate_template", "pack_counts", "split_counts", "visible_values", "voxel_ping_values",
+]
 
 _F = np.float32
 
@@ -182,6 +185,21 @@ def _centres(params: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return params["origin"] + (idx.astype(_F) + _F(0.5)) * params["voxel"]
 
 
+COUNT_LOW = np.uint64(0xFFFFFFFF)  # the low 32 bits of ``count``: clear dark views
+COUNT_MAX = 0xFFFFFFFF  # each of the two counts saturates here (the visible rule's dark count at 255)
+
+
+def split_counts(count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` (uint64, as the kernels pack it) -> (clear dark views, bright views), uint32 each."""
+    c = np.asarray(count, dtype=np.uint64)
+    return (c & COUNT_LOW).astype(np.uint32), (c >> np.uint64(32)).astype(np.uint32)
+
+
+def pack_counts(dark: np.ndarray, hits: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`split_counts`: uint64 with ``hits`` in the high and ``dark`` in the low 32 bits."""
+    return (np.asarray(hits, np.uint64) << np.uint64(32)) | np.asarray(dark, np.uint64)
+
+
 def _update_visible(
     params: np.ndarray,
     v: np.ndarray,
@@ -190,26 +208,72 @@ def _update_visible(
     bright: np.ndarray,
     count: np.ndarray,
 ) -> None:
-    """The visible rule's evidence: ``bright`` and ``count`` at voxels ``flat``, in place."""
+    """The visible and evidence rules' state: ``bright`` and ``count`` at voxels ``flat``, in place."""
     thr = params["thr"]
     lit = v >= thr
     bright[flat[lit]] = np.minimum(bright[flat[lit]], v[lit])
-    dark = clear & ~lit
-    step = np.where(v[dark] < params["thr_dark"], 2, 1)
-    count[flat[dark]] = np.minimum(count[flat[dark]].astype(np.int32) + step, 255).astype(np.uint8)
+    dark, hits = split_counts(count[flat])
+    hits = np.where(lit, np.minimum(hits.astype(np.int64) + 1, COUNT_MAX), hits)
+    clear_dark = clear & ~lit
+    if int(params["rule"]) == 1:  # visible: a very dark view counts twice, the count stops at 255
+        step, cap = np.where(v < params["thr_dark"], 2, 1), 255
+    else:
+        step, cap = 1, COUNT_MAX
+    grown = np.minimum(dark.astype(np.int64) + step, cap)
+    dark = np.where(clear_dark & (dark < cap), grown, dark)
+    count[flat] = pack_counts(dark, hits)
+
+
+def add_counts(a: np.ndarray, b: np.ndarray, rule: str) -> np.ndarray:
+    """Two packed ``count`` arrays (uint64) merged: each half summed, saturating where the kernels
+    saturate it (the visible rule's dark count at 255, every other count at 2^32 - 1). Saturating
+    sums do not depend on the order, so disjoint pings merge bit for bit."""
+    da, ha = split_counts(a)
+    db, hb = split_counts(b)
+    cap = 255 if rule == "visible" else COUNT_MAX
+    dark = np.minimum(da.astype(np.uint64) + db, np.uint64(cap))
+    hits = np.minimum(ha.astype(np.uint64) + hb, np.uint64(COUNT_MAX))
+    return pack_counts(dark, hits)
 
 
 def visible_values(
     grid: np.ndarray, bright: np.ndarray, count: np.ndarray, carve_views: int | None = None
 ) -> np.ndarray:
     """Map values of the visible rule: ``bright`` where the voxel was bright in some view and
-    its clear dark evidence ``count`` is below ``carve_views`` (default
+    its clear dark evidence (the low half of ``count``) is below ``carve_views`` (default
     :data:`~gpumap.geometry.CARVE_VIEWS`), else ``grid`` (the min over every view; ``+inf``
     never observed)."""
     from gpumap.geometry import CARVE_VIEWS
 
-    keep = np.isfinite(bright) & (count < (CARVE_VIEWS if carve_views is None else carve_views))
+    dark, _ = split_counts(count)
+    keep = np.isfinite(bright) & (dark < (CARVE_VIEWS if carve_views is None else carve_views))
     return np.where(keep, bright, grid)
+
+
+def evidence_occupied(dark: np.ndarray, hits: np.ndarray, p_min: float, z: float) -> np.ndarray:
+    """The evidence rule's decision: a voxel is occupied when some view saw it bright and the
+    views do not show, at confidence ``z`` (one-sided normal quantile), that its share of bright
+    views is below ``p_min``: the one-sided binomial score test of ``share >= p_min`` does not
+    reject, ``share >= p_min`` or ``(p_min - share)^2 n <= z^2 p_min (1 - p_min)`` with
+    ``share = hits / n``, ``n = hits + dark`` (the same as: the Wilson score upper bound of the
+    share is at least ``p_min``; a tie keeps the voxel). Unknown, free and occupied stay apart: no
+    view, no bright view, or this test."""
+    k = np.asarray(hits, np.float64)
+    n = k + np.asarray(dark, np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = k / n
+        near = (p_min - share) ** 2 * n <= z * z * p_min * (1.0 - p_min)
+    return (k > 0) & ((share >= p_min) | near)
+
+
+def evidence_values(
+    grid: np.ndarray, bright: np.ndarray, count: np.ndarray, p_min: float, z: float
+) -> np.ndarray:
+    """Map values of the evidence rule: ``bright`` (the min over the bright views, at least the
+    threshold) where :func:`evidence_occupied` holds, else ``grid`` (the min over every view:
+    below the threshold wherever a clear dark view came, ``+inf`` never observed)."""
+    dark, hits = split_counts(count)
+    return np.where(evidence_occupied(dark, hits, p_min, z), bright, grid)
 
 
 def integrate_gather(
@@ -222,7 +286,7 @@ def integrate_gather(
 ) -> bool:
     """Gather method: every voxel of the ping's box, min-updated in ``grid`` ((n,) float32) in place.
 
-    ``state``: ``(bright (n,) float32, count (n,) uint8)``, the visible rule's evidence (None:
+    ``state``: ``(bright (n,) float32, count (n,) uint64)``, the visible or evidence rule's state (None:
     the plain rule). ``address``: (m, 3) int64 voxel indices -> (m,) int64 places in ``grid``
     (-1: nowhere); default the dense row-major grid of ``params["dims"]``. Returns False if an
     observed voxel had no place (it is skipped), else True.

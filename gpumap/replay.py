@@ -6,7 +6,7 @@ Usage::
                        [--grid auto|xmin,ymin,zmin,xmax,ymax,zmax] [--threshold 0.4|auto]
                        [--static] [--stride N] [--max-frames N] [--vfov-deg D]
                        [--flip-lr] [--flip-ud] [--no-pictures]
-                       [--rule visible|plain] [--compare-rules]
+                       [--rule evidence|visible|plain] [--compare-rules]
 
 Writes into ``--out`` (default ``replay_out/``): ``map.npz`` (``MinMaxMapper.save``),
 ``occupied.ply`` (occupied voxel centres with their value as ``intensity``), ``views.png``
@@ -17,8 +17,8 @@ The files are written into a temporary folder and replace an earlier run's as on
 Every flag is checked before the recording is read (bad ones exit with status 2 and one line).
 
 ``--rule`` picks how views combine (``MinMaxMapper``'s ``rule``); the mapper counts a view
-as bright from ``--threshold`` on. ``--compare-rules`` replays the same frames under both
-rules and adds ``rules.png`` (the two maps side by side, and where they differ) and a
+as bright from ``--threshold`` on. ``--compare-rules`` replays the same frames under every
+rule and adds ``rules.png`` (the two maps side by side, and where they differ) and a
 ``rule_comparison`` section to ``summary.json`` (see :func:`compare_rules`).
 """
 
@@ -49,6 +49,7 @@ from gpumap.cli import (
     user_errors,
     vfov_deg,
 )
+from gpumap.geometry import RULES as GEOMETRY_RULES
 from gpumap.spec import GridSpec, SonarSpec
 
 __all__ = [
@@ -68,7 +69,7 @@ __all__ = [
 #: mapper's bright threshold when the reading threshold is only known after the run (Otsu).
 DEFAULT_THRESHOLD = 0.4
 #: The mapper's rules, in the order the comparison shows them.
-RULES = ("plain", "visible")
+RULES = GEOMETRY_RULES
 
 
 def auto_grid(spec: SonarSpec, poses: Sequence[np.ndarray], voxel_size_m: float,
@@ -356,14 +357,15 @@ def _quantiles(x: np.ndarray, q=(10, 50, 90)) -> list[float] | None:
 
 def compare_rules(values: dict[str, np.ndarray], grid: GridSpec, threshold: float,
                   positions: np.ndarray | None = None, picture: Path | None = None,
-                  title: str = "") -> dict:
-    """Compare the maps of the plain and the visible rule read at ``threshold``.
+                  title: str = "", rule: str | None = None) -> dict:
+    """Compare the map of the paper's plain rule with that of ``rule``, read at ``threshold``.
 
     Parameters
     ----------
     values : dict
-        ``{"plain": values, "visible": values}``, the ``MinMaxMapper.values()`` of the same
-        frames on the same grid (NaN = never observed).
+        ``{"plain": values, rule: values, ...}``, the ``MinMaxMapper.values()`` of the same
+        frames on the same grid (NaN = never observed), for ``"plain"`` and one or more of the
+        other rules (each gets its counts under ``rules``).
     grid : GridSpec
     threshold : float
         Occupied if value >= this.
@@ -371,52 +373,59 @@ def compare_rules(values: dict[str, np.ndarray], grid: GridSpec, threshold: floa
         Sonar positions (world), for the range of the differing voxels from the sonar.
     picture : Path, optional
         Where to write the side-by-side picture (PNG).
+    rule : str, optional
+        The rule compared with plain in detail (default ``"evidence"`` when given, else
+        ``"visible"``).
 
     Returns
     -------
     dict
-        ``threshold``; ``rules`` (per rule: ``occupied_voxels``, ``observed_voxels``);
-        ``observed_equal`` (both rules observe the same voxels, as they should);
-        ``occupied_both``; ``visible_only`` (occupied under visible, free under plain: the
-        plain rule carved them, as a dark view in their acoustic shadow or at grazing
-        incidence does) and ``plain_only`` (the reverse: always 0, see next);
-        ``visible_ge_plain`` (every observed voxel's visible value >= its plain value: the
-        visible rule's value is either the min over all views, the plain value, or the
-        dimmest bright view, which is no lower; so plain-occupied implies visible-occupied
-        at any reading threshold, and a voxel whose views were all bright has the same value
-        under both);
+        ``threshold``; ``rule`` (the one compared); ``rules`` (per rule given:
+        ``occupied_voxels``, ``observed_voxels``); ``observed_equal`` (both rules observe the
+        same voxels, as they should); ``occupied_both``; ``rule_only`` (occupied under
+        ``rule``, free under plain: the plain rule carved them, as a dark view in their acoustic
+        shadow or at grazing incidence does) and ``plain_only`` (the reverse: always 0, see
+        next); ``rule_ge_plain`` (every observed voxel's value under ``rule`` >= its plain
+        value: the visible and evidence rules' value is either the min over all views, the
+        plain value, or the dimmest bright view, which is no lower; so plain-occupied implies
+        occupied under either at any reading threshold);
         ``where``: quantiles (10/50/90 %) and histograms of the range from the nearest sonar
         position and of the height, for the voxels only visible calls occupied and for those
         both call occupied, the plain values of the former, the floor height and the
         fractions of each group below, at (+-0.25 m) and above the floor; ``text``, a
         sentence on where the differences lie; ``picture`` (file name) when written.
     """
-    vp, vv = values["plain"], values["visible"]
-    if vp.shape != grid.shape or vv.shape != grid.shape:
-        raise ValueError(
-            f"Expected both maps of shape {grid.shape}, but got {vp.shape} and {vv.shape}"
-        )
+    if rule is None:
+        rule = "evidence" if "evidence" in values else "visible"
+    if "plain" not in values or rule not in values or rule == "plain":
+        raise ValueError(f"Expected the plain rule's values and those of another rule ({rule!r}), "
+                         f"but got rules {sorted(values)}")
+    vp, vv = values["plain"], values[rule]
+    for r, v in values.items():
+        if v.shape != grid.shape:
+            raise ValueError(f"Expected maps of shape {grid.shape}, but the {r} rule's is {v.shape}")
     thr = float(threshold)
     obs = {r: np.isfinite(v) for r, v in values.items()}
     occ = {r: obs[r] & (values[r] >= np.float32(thr)) for r in values}
-    both_obs = obs["plain"] & obs["visible"]
-    vis_only = occ["visible"] & ~occ["plain"]
-    plain_only = occ["plain"] & ~occ["visible"]
-    both = occ["plain"] & occ["visible"]
+    both_obs = obs["plain"] & obs[rule]
+    vis_only = occ[rule] & ~occ["plain"]
+    plain_only = occ["plain"] & ~occ[rule]
+    both = occ["plain"] & occ[rule]
     res: dict = {
         "threshold": thr,
+        "rule": rule,
         "rules": {r: {"occupied_voxels": int(occ[r].sum()), "observed_voxels": int(obs[r].sum())}
-                  for r in RULES},
-        "observed_equal": bool(np.array_equal(obs["plain"], obs["visible"])),
+                  for r in RULES if r in values},
+        "observed_equal": bool(np.array_equal(obs["plain"], obs[rule])),
         "occupied_both": int(both.sum()),
-        "visible_only": int(vis_only.sum()),
+        "rule_only": int(vis_only.sum()),
         "plain_only": int(plain_only.sum()),
-        "visible_ge_plain": bool(np.all(vv[both_obs] >= vp[both_obs])),
+        "rule_ge_plain": bool(np.all(vv[both_obs] >= vp[both_obs])),
     }
 
     # where the differences lie: range from the nearest sonar position, height
     pts = {k: grid.centers(np.argwhere(m)) for k, m in
-           (("visible_only", vis_only), ("plain_only", plain_only), ("both", both))}
+           (("rule_only", vis_only), ("plain_only", plain_only), ("both", both))}
     where: dict = {}
     dist: dict[str, np.ndarray] = {}
     if positions is not None and len(positions):
@@ -436,9 +445,9 @@ def compare_rules(values: dict[str, np.ndarray], grid: GridSpec, threshold: floa
     where["height_m"] = {k: _quantiles(v) for k, v in z.items()}
     where["height_histogram"] = {"edges_m": [round(float(e), 3) for e in zedges],
                                  **{k: np.histogram(v, zedges)[0].tolist() for k, v in z.items()}}
-    where["plain_value_of_visible_only"] = _quantiles(vp[vis_only])
+    where["plain_value_of_rule_only"] = _quantiles(vp[vis_only])
     # the floor: the horizontal layer with the most voxels occupied under either rule, low half
-    union = occ["plain"] | occ["visible"]
+    union = occ["plain"] | occ[rule]
     counts = union.sum(axis=(0, 1))
     nz = grid.shape[2]
     k_floor = int(np.argmax(counts[: max(1, nz // 2)]))
@@ -458,30 +467,31 @@ def compare_rules(values: dict[str, np.ndarray], grid: GridSpec, threshold: floa
     res["text"] = _where_text(res, where, frac)
     if picture is not None:
         _rules_picture(values, occ, vis_only, plain_only, both, dist, z, zedges, floor_z, grid,
-                       thr, Path(picture), title)
+                       thr, Path(picture), title, rule)
         res["picture"] = Path(picture).name
     return res
 
 
 def _where_text(res: dict, where: dict, frac: dict) -> str:
-    n_v, n_p = res["rules"]["visible"]["occupied_voxels"], res["rules"]["plain"]["occupied_voxels"]
-    t = (f"visible {n_v} occupied voxels, plain {n_p}; {res['visible_only']} occupied only under "
-         f"visible (plain carved them), {res['plain_only']} only under plain; observed voxels "
+    rule = res["rule"]
+    others = ", ".join(f"{r} {c['occupied_voxels']}" for r, c in res["rules"].items())
+    t = (f"occupied voxels: {others}; {res['rule_only']} occupied only under "
+         f"{rule} (plain carved them), {res['plain_only']} only under plain; observed voxels "
          f"{'identical' if res['observed_equal'] else 'DIFFER'} "
-         f"({res['rules']['visible']['observed_voxels']}).")
-    if not res["visible_only"]:
+         f"({res['rules'][rule]['observed_voxels']}).")
+    if not res["rule_only"]:
         return t
-    pv = where["plain_value_of_visible_only"]
+    pv = where["plain_value_of_rule_only"]
     t += f" Plain lowered those to a median {pv[1]:.2f} (10-90 %: {pv[0]:.2f}-{pv[2]:.2f})."
     r = where.get("range_from_sonar_m")
     if r and r["both"]:
-        t += (f" They lie {r['visible_only'][1]:.2f} m (median; 10-90 %: {r['visible_only'][0]:.2f}"
-              f"-{r['visible_only'][2]:.2f}) from the nearest sonar position, against "
+        t += (f" They lie {r['rule_only'][1]:.2f} m (median; 10-90 %: {r['rule_only'][0]:.2f}"
+              f"-{r['rule_only'][2]:.2f}) from the nearest sonar position, against "
               f"{r['both'][1]:.2f} m for voxels both rules keep.")
     h = where["height_m"]
     if h["both"]:
-        fv, fb = frac["visible_only"], frac["both"]
-        t += (f" Heights: median z {h['visible_only'][1]:.2f} m against {h['both'][1]:.2f} m; "
+        fv, fb = frac["rule_only"], frac["both"]
+        t += (f" Heights: median z {h['rule_only'][1]:.2f} m against {h['both'][1]:.2f} m; "
               f"relative to the floor (z {where['floor_z_m']:.2f} m, +-0.25 m): {fv['below']:.0%} "
               f"below, {fv['at']:.0%} at, {fv['above']:.0%} above it, against {fb['below']:.0%}, "
               f"{fb['at']:.0%}, {fb['above']:.0%} of the voxels both keep.")
@@ -489,14 +499,14 @@ def _where_text(res: dict, where: dict, frac: dict) -> str:
 
 
 def _rules_picture(values, occ, vis_only, plain_only, both, dist, z, zedges, floor_z, grid, thr,
-                   path: Path, title: str) -> None:
-    """Plain and visible maps from one viewpoint, one colour scale; their difference; histograms."""
+                   path: Path, title: str, rule: str = "visible") -> None:
+    """Plain and ``rule``'s maps from one viewpoint, one colour scale; their difference; histograms."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    union = occ["plain"] | occ["visible"]
+    union = occ["plain"] | occ[rule]
     idx_u = np.argwhere(union)
     if idx_u.size:  # frame the occupied voxels of either map (one box for every panel)
         lo = grid.centers(idx_u.min(0)) - grid.voxel_size_m
@@ -516,7 +526,7 @@ def _rules_picture(values, occ, vis_only, plain_only, both, dist, z, zedges, flo
     views = [(28, -60, "oblique"), (89.9, -90, "top")]
     sc = None
     for row, (elev, azim, vname) in enumerate(views):
-        for col, name in enumerate(("plain", "visible", "difference")):
+        for col, name in enumerate(("plain", rule, "difference")):
             ax = fig.add_subplot(gs[row, col], projection="3d")
             if name in values:
                 idx = cloud(occ[name])
@@ -527,7 +537,7 @@ def _rules_picture(values, occ, vis_only, plain_only, both, dist, z, zedges, flo
                 head = f"{name}: {int(occ[name].sum())} occupied"
             else:
                 # one scatter, so that matplotlib sorts every group's points by depth together
-                kinds = ((both, "#9a9a9a", "both"), (vis_only, "#d62728", "visible only"),
+                kinds = ((both, "#9a9a9a", "both"), (vis_only, "#d62728", f"{rule} only"),
                          (plain_only, "#1f77b4", "plain only"))
                 idx = [cloud(m) for m, _, _ in kinds]
                 p = grid.centers(np.concatenate(idx)) if sum(map(len, idx)) else np.zeros((0, 3))
@@ -557,7 +567,7 @@ def _rules_picture(values, occ, vis_only, plain_only, both, dist, z, zedges, flo
         cax.yaxis.set_label_position("left")
         cax.yaxis.tick_left()
 
-    groups = (("both", "0.55"), ("visible_only", "#d62728"), ("plain_only", "#1f77b4"))
+    groups = (("both", "0.55"), ("rule_only", "#d62728"), ("plain_only", "#1f77b4"))
     ax = fig.add_subplot(gs[0, 3])
     if dist:
         edges = np.arange(0.0, max(float(d.max()) for d in dist.values() if d.size) + 0.1, 0.1) \
@@ -565,7 +575,7 @@ def _rules_picture(values, occ, vis_only, plain_only, both, dist, z, zedges, flo
         for k, colour in groups:
             if dist[k].size:
                 ax.hist(dist[k], edges, histtype="step", color=colour, lw=1.5,
-                        label=k.replace("_", " "))
+                        label=k.replace("rule", rule).replace("_", " "))
         ax.set_xlabel("range from the nearest sonar position [m]", fontsize=8)
         ax.legend(fontsize=7, frameon=False)
     ax.set_ylabel("occupied voxels", fontsize=8)
@@ -576,7 +586,7 @@ def _rules_picture(values, occ, vis_only, plain_only, both, dist, z, zedges, flo
     for k, colour in groups:
         if z[k].size:
             ax.hist(z[k], zedges, histtype="step", color=colour, lw=1.5, orientation="horizontal",
-                    label=k.replace("_", " "))
+                    label=k.replace("rule", rule).replace("_", " "))
     ax.axhline(floor_z, color="k", ls=":", lw=1, label=f"floor (z {floor_z:.2f} m)")
     ax.legend(fontsize=7, frameon=False, loc="upper right")
     ax.set_ylabel("height z [m]", fontsize=8)
@@ -584,7 +594,7 @@ def _rules_picture(values, occ, vis_only, plain_only, both, dist, z, zedges, flo
     ax.yaxis.set_label_position("right")
     ax.set_xlabel("occupied voxels", fontsize=8)
     ax.tick_params(labelsize=7)
-    fig.suptitle(f"{title}  plain vs visible rule, occupied = value >= {thr:.2f}, "
+    fig.suptitle(f"{title}  plain vs {rule} rule, occupied = value >= {thr:.2f}, "
                  f"{grid.voxel_size_m * 100:g} cm voxels", fontsize=11)
     fig.subplots_adjust(left=0.07, right=0.955, top=0.93, bottom=0.06)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -634,12 +644,14 @@ def _parser() -> ArgumentParser:
                          "observed voxels, known only after the run, so the mapper then uses "
                          f"{DEFAULT_THRESHOLD}")
     ap.add_argument("--rule", default=None, choices=list(RULES),
-                    help="how views combine: 'visible' (default; a dark view carves a voxel only "
-                         "when nothing bright lies nearer in its beams) or 'plain' (the paper's "
-                         "min over views: a ping carves its acoustic shadow). --method template "
-                         "supports only 'plain' and defaults to it")
+                    help="how views combine: 'evidence' (default; occupied unless the clear views "
+                         "show, at 95 %% confidence, that the voxel is dark in most of them: holds "
+                         "however many pings come), 'visible' (carved by 2 clear dark views) or "
+                         "'plain' (the paper's min over views: a ping carves its acoustic shadow). "
+                         "--method template supports only 'plain' and defaults to it")
     ap.add_argument("--compare-rules", action="store_true",
-                    help="also replay the frames under the other rule and write rules.png (both "
+                    help="also replay the frames under the other rules and write rules.png (the "
+                         "chosen rule and plain "
                          "maps side by side, and where they differ) and a 'rule_comparison' "
                          "section in summary.json (needs --method gather)")
     ap.add_argument("--static", action="store_true",
@@ -679,11 +691,11 @@ def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]
     from gpumap.ekf_replay import check_ekf_args
 
     check_ekf_args(ap, a)
-    if a.method == "template" and a.rule == "visible":
+    if a.method == "template" and a.rule not in (None, "plain"):
         ap.error("argument --rule: Expected rule='plain' with --method template (the template "
-                 "method's duplicate points cannot count views once), but got --rule visible")
+                 f"method's duplicate points cannot count views once), but got --rule {a.rule}")
     if a.compare_rules and a.method != "gather":
-        ap.error(f"argument --compare-rules: Expected --method gather (the visible rule needs it), "
+        ap.error(f"argument --compare-rules: Expected --method gather (the other rules need it), "
                  f"but got --method {a.method}")
     grid = None
     if a.grid is not None:
@@ -792,7 +804,7 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
         stride = 1
     rec = open_recording(a.path, **kwargs)
     mapper_thr = DEFAULT_THRESHOLD if a.threshold == "auto" else a.threshold
-    rule = a.rule or ("visible" if a.method == "gather" else "plain")
+    rule = a.rule or ("evidence" if a.method == "gather" else "plain")
     replay_kw = dict(voxel_size_m=a.voxel_size, backend=a.backend, method=a.method,
                      static=a.static, stride=stride, max_frames=a.max_frames,
                      progress=not a.no_progress, threshold=mapper_thr)
@@ -832,7 +844,8 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
             other = {r: m.values() for r, (m, _) in runs.items() if r != rule}
             cmp_ = compare_rules({rule: values, **other}, mapper.grid, thr,
                                  np.asarray(positions).reshape(-1, 3),
-                                 None if a.no_pictures else out / "rules.png", title=Path(a.path).name)
+                                 None if a.no_pictures else out / "rules.png", title=Path(a.path).name,
+                                 rule=None if rule == "plain" else rule)
             cmp_["runs"] = {r: {k: st[k] for k in ("frames", "backend", "seconds_total",
                                                      "images_per_s", "integrate_per_s")}
                             for r, (_, st) in runs.items()}

@@ -120,11 +120,11 @@ def _pack(st, pack: bool = True) -> tuple:
     are empty: most of a block's voxels) and a bit per voxel saying which; float entries that
     are all bytes times the mapper's float32 1/255 (always so for 8-bit pings: a ping's value is
     the max of image cells, the map's the min of those) travel as those bytes. Kinds: ``"u8"``
-    (such bytes), ``"f32"`` (other floats), ``"bytes"`` (counts); ``"raw"``: as it is.
+    (such bytes), ``"f32"`` (other floats), ``"bytes"`` (counts, in their own dtype); ``"raw"``: as it is.
     """
     arrays: dict = {}
     for k, v in st.arrays.items():
-        if not pack or k == "blocks" or v.dtype not in (np.float32, np.uint8):
+        if not pack or k == "blocks" or v.dtype not in (np.float32, np.uint8, np.uint64):
             arrays[k] = ("raw", v)
             continue
         keep = np.isfinite(v) if v.dtype == np.float32 else v != 0
@@ -151,7 +151,7 @@ def _unpack(packed: tuple):
         size = int(np.prod(shape))
         keep = np.unpackbits(bits, count=size).view(bool)
         if what == "bytes":
-            v = np.zeros(size, np.uint8)
+            v = np.zeros(size, vals.dtype)
         else:
             v = np.full(size, np.inf, np.float32)
             if what == "u8":
@@ -346,7 +346,7 @@ def run_replay_workers(
             grid = auto_grid(spec0, posed, voxel_size_m)
         if split == "space":
             owners = _space_owners(spec0, sel, grid, int(workers))
-    rule = rule or ("visible" if method == "gather" else "plain")
+    rule = rule or ("evidence" if method == "gather" else "plain")
     options = {"backend": backend, "method": method, "rule": rule, "threshold": threshold}
     t0 = time.perf_counter()
     own = client is None

@@ -36,8 +36,8 @@ typedef struct {
     int chunk;       // voxels of a column per gather work-item (GPUs: a few; CPUs: all)
     float near;      // rho + shadow_m: the footprint reaches this far towards the sonar, m
     float thr;       // occupied intensity: a footprint max >= thr is a bright view
-    float thr_dark;  // a clear view darker than this counts twice towards carving
-    int rule;        // 0: plain min; 1: visibility-aware (bright / count evidence)
+    float thr_dark;  // visible rule: a clear view darker than this counts twice towards carving
+    int rule;        // 0: plain min; 1: visible (bright min, clear-dark count); 2: evidence (view counts)
     int blk_lo[3];   // voxel index of the block index's first voxel
     int blk_n[3];    // the block index's extent, in blocks
     int blk;         // a block's edge along x and y, voxels (B)
@@ -89,7 +89,7 @@ inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
         if (d0 > 0.0f) j0 = beam_index_lo((t - u) / d0, tan_edges, lut, P->lut_n, P);
         if (d1 > 0.0f) j1 = beam_index_lo((t + u) / d1, tan_edges, lut, P->lut_n, P);
     }
-    if (P->rule == 1) {
+    if (P->rule != 0) {
         *clear = 1;
         for (int jj = j0; jj <= j1; ++jj) if (first_bright[jj] < b0) *clear = 0;
     }
@@ -176,15 +176,24 @@ __kernel void find_first_bright_cells(const PingParams P, __global const float *
     if (image[c] >= P.thr) atomic_min(first_bright + c % P.n_beams, c / P.n_beams);
 }
 
-// Fold one view (value v, clear) into voxel idx: the plain min, and for the visible rule the
-// bright min and the clear-dark count (see gpumap.reference).
+// Fold one view (value v, clear) into voxel idx: the plain min, and for the visible and evidence rules
+// the bright min and the view counts (see gpumap.reference). count packs clear dark views (low 32 bits)
+// and bright views (high 32 bits), each saturating on its own (the visible rule's dark count at 255).
 inline void update_voxel(const PingParams *P, size_t idx, float v, int clear, __global float *grid,
-                         __global float *bright, __global uchar *count)
+                         __global float *bright, __global ulong *count)
 {
     grid[idx] = fmin(grid[idx], v);
-    if (P->rule == 1) {
-        if (v >= P->thr) bright[idx] = fmin(bright[idx], v);
-        else if (clear) count[idx] = (uchar)min((int)count[idx] + (v < P->thr_dark ? 2 : 1), 255);
+    if (P->rule != 0) {
+        ulong c = count[idx];
+        if (v >= P->thr) {
+            bright[idx] = fmin(bright[idx], v);
+            if ((c >> 32) < 0xFFFFFFFFUL) count[idx] = c + 0x100000000UL;
+        } else if (clear) {
+            ulong dark = c & 0xFFFFFFFFUL;
+            ulong cap = P->rule == 1 ? 255UL : 0xFFFFFFFFUL;
+            ulong step = (P->rule == 1 && v < P->thr_dark) ? 2UL : 1UL;
+            if (dark < cap) count[idx] = (c - dark) + min(dark + step, cap);
+        }
     }
 }
 
@@ -303,7 +312,7 @@ inline void gather_column(const PingParams *P, int i, int j, int c0, int c1, __g
                           __global const float *tan_edges, __global const int *lut,
                           __global const float *table, int use_table, __global const int *first_bright,
                           __global const int *index, BlockColumn col, __global float *grid,
-                          __global float *bright, __global uchar *count, __global uchar *seen, __global int *err)
+                          __global float *bright, __global ulong *count, __global uchar *seen, __global int *err)
 {
     float cx = P->origin[0] + ((float)i + 0.5f) * P->voxel;
     float cy = P->origin[1] + ((float)j + 0.5f) * P->voxel;
@@ -353,7 +362,7 @@ __kernel void integrate_gather(const PingParams P, __global const float *image,
                                __global const float *tan_edges, __global const int *lut,
                                __global const float *table, int use_table,
                                __global const int *first_bright, __global const int *index,
-                               __global float *grid, __global float *bright, __global uchar *count,
+                               __global float *grid, __global float *bright, __global ulong *count,
                                __global uchar *seen, __global int *err)
 {
     int tid = get_global_id(0);
@@ -374,7 +383,7 @@ __kernel void integrate_gather(const PingParams P, __global const float *image,
 // (-1: freed).
 __kernel void init_blocks(__global const int *pairs, int n, int bv, int visible, float unknown,
                           __global int *index, __global float *grid, __global float *bright,
-                          __global uchar *count, __global uchar *seen)
+                          __global ulong *count, __global uchar *seen)
 {
     int tid = get_global_id(0);
     if (tid >= n * bv) return;
@@ -448,7 +457,7 @@ __kernel void integrate_gather_batch(__global const PingParams *Ps, const int n_
                                      __global const float *images, __global const float *tan_edges,
                                      __global const int *lut, __global const float *tables, int use_table,
                                      __global const int *first_bright, __global const int *index,
-                                     __global float *grid, __global float *bright, __global uchar *count,
+                                     __global float *grid, __global float *bright, __global ulong *count,
                                      __global uchar *seen, __global int *err)
 {
     int tid = get_global_id(0);

@@ -48,8 +48,8 @@ class PingParams:
     chunk: int  # voxels of a column per gather thread (GPUs: a few, for threads in flight; CPUs: all)
     near: float  # rho + shadow_m: the footprint reaches this far towards the sonar, m
     thr: float  # occupied intensity: a footprint max >= thr is a bright view
-    thr_dark: float  # a clear view darker than this counts twice towards carving
-    rule: int  # 0: plain min; 1: visibility-aware (bright / count evidence)
+    thr_dark: float  # visible rule: a clear view darker than this counts twice towards carving
+    rule: int  # 0: plain min; 1: visible (bright min, clear-dark count); 2: evidence (view counts)
     blk_lo: wp.vec3i  # voxel index of the block index's first voxel
     blk_n: wp.vec3i  # the block index's extent, in blocks
     blk: int  # a block's edge along x and y, voxels (B)
@@ -122,7 +122,7 @@ def voxel_ping_value(
         if d1 > 0.0:
             j1 = beam_index_lo((t + u) / d1, tan_edges, lut, P)
     clear = float(0.0)
-    if P.rule == 1:
+    if P.rule != 0:
         blocked = int(0)
         for jj in range(j0, j1 + 1):
             if first_bright[jj] < b0:
@@ -184,6 +184,14 @@ def find_first_bright_cells(P: PingParams, image: wp.array2d(dtype=float), first
         wp.atomic_min(first_bright, j, i)
 
 
+# ``count`` packs two view counts in a uint64: clear dark views in the low 32 bits, bright views
+# in the high 32 bits. Each saturates on its own (the visible rule's dark count at 255, as it
+# always did; every other count at 2^32 - 1: 6.8 years of a voxel in view at 20 Hz), so an
+# update is a saturating add, which no order changes.
+COUNT_LOW = wp.constant(wp.uint64(0xFFFFFFFF))
+COUNT_HIGH_ONE = wp.constant(wp.uint64(0x100000000))
+
+
 @wp.func
 def update_voxel(
     P: PingParams,
@@ -191,20 +199,29 @@ def update_voxel(
     vc: wp.vec2,
     grid: wp.array(dtype=float),
     bright: wp.array(dtype=float),
-    count: wp.array(dtype=wp.uint8),
+    count: wp.array(dtype=wp.uint64),
 ):
-    """Fold one view (value, clear) into voxel idx: the plain min, and for the visible rule
-    the bright min and the clear-dark count (see gpumap.reference)."""
+    """Fold one view (value, clear) into voxel idx: the plain min, and for the visible and
+    evidence rules the bright min and the view counts (see gpumap.reference)."""
     v = vc[0]
     grid[idx] = wp.min(grid[idx], v)
-    if P.rule == 1:
+    if P.rule != 0:
+        c = count[idx]
         if v >= P.thr:
             bright[idx] = wp.min(bright[idx], v)
+            if (c >> wp.uint64(32)) < COUNT_LOW:
+                count[idx] = c + COUNT_HIGH_ONE
         elif vc[1] > 0.0:
-            step = int(1)
-            if v < P.thr_dark:
-                step = 2
-            count[idx] = wp.uint8(wp.min(int(count[idx]) + step, 255))
+            dark = c & COUNT_LOW
+            cap = COUNT_LOW
+            step = wp.uint64(1)
+            if P.rule == 1:
+                cap = wp.uint64(255)
+                if v < P.thr_dark:
+                    step = wp.uint64(2)
+            if dark < cap:
+                dark = wp.min(dark + step, cap)
+                count[idx] = (c - (c & COUNT_LOW)) + dark
 
 
 @wp.kernel
@@ -396,7 +413,7 @@ def gather_column(
     col: wp.vec3i,
     grid: wp.array(dtype=float),
     bright: wp.array(dtype=float),
-    count: wp.array(dtype=wp.uint8),
+    count: wp.array(dtype=wp.uint64),
     seen: wp.array(dtype=wp.uint8),
     err: wp.array(dtype=int),
 ):
@@ -463,7 +480,7 @@ def integrate_gather(
     index: wp.array(dtype=int),
     grid: wp.array(dtype=float),
     bright: wp.array(dtype=float),
-    count: wp.array(dtype=wp.uint8),
+    count: wp.array(dtype=wp.uint64),
     seen: wp.array(dtype=wp.uint8),
     err: wp.array(dtype=int),
 ):
@@ -492,7 +509,7 @@ def init_blocks(
     index: wp.array(dtype=int),
     grid: wp.array(dtype=float),
     bright: wp.array(dtype=float),
-    count: wp.array(dtype=wp.uint8),
+    count: wp.array(dtype=wp.uint64),
     seen: wp.array(dtype=wp.uint8),
 ):
     """One thread per voxel of each of ``n`` listed blocks of ``bv`` voxels (``pairs``: n slots,
@@ -507,7 +524,7 @@ def init_blocks(
         grid[a] = unknown
         if visible != 0:
             bright[a] = unknown
-            count[a] = wp.uint8(0)
+            count[a] = wp.uint64(0)
         if v == 0:
             seen[s] = wp.uint8(0)
     if v == 0:
@@ -568,7 +585,7 @@ def integrate_gather_batch(
     index: wp.array(dtype=int),
     grid: wp.array(dtype=float),
     bright: wp.array(dtype=float),
-    count: wp.array(dtype=wp.uint8),
+    count: wp.array(dtype=wp.uint64),
     seen: wp.array(dtype=wp.uint8),
     err: wp.array(dtype=int),
 ):

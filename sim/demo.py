@@ -76,10 +76,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="use only this many pings (evenly spaced)")
     p.add_argument("--threshold", type=unit_interval, default=OCCUPIED_THRESHOLD,
                    help="occupied intensity, in (0, 1]")
-    p.add_argument("--rule", default="visible", choices=["visible", "plain"],
-                   help="how views combine: 'visible' (a dark view carves only when nothing is in front "
-                        "of the voxel in its beams) or 'plain' (the paper's min); the other rule is "
-                        "always mapped too, for the side-by-side 'rules' rows")
+    p.add_argument("--rule", default="evidence", choices=list(gpumap.geometry.RULES),
+                   help="how views combine: 'evidence' (occupied unless its clear views show it dark in "
+                        "most of them), 'visible' (carved by 2 clear dark views) or 'plain' (the "
+                        "paper's min); the other rules are always mapped too, for the side-by-side "
+                        "'rules' rows")
     p.add_argument("--shadow-m", type=nonnegative_float, default=0.0, metavar="M",
                    help="acoustic-shadow allowance (metres): returns also count up to M behind them; "
                         "0 = the paper's min-max")
@@ -161,8 +162,8 @@ def build_mapper(
 
 
 def _bytes_per_voxel(rule: str) -> int:
-    """Dense storage per voxel: the float32 value, plus the visible rule's float32 and uint8."""
-    return 9 if rule == "visible" else 4
+    """Dense storage per voxel: the float32 value, plus the other rules' float32 and uint64."""
+    return 4 if rule == "plain" else 16
 
 
 def _memory_report(mapper: gpumap.MinMaxMapper | gpumap.SparseMinMaxMapper, scene: Scene) -> dict:
@@ -333,8 +334,8 @@ def _summary(ev: dict) -> dict:
 
 
 def _rule(rule: str | None, method: str) -> str:
-    """The visible rule needs the gather method: the template method keeps the paper's rule."""
-    return "plain" if method == "template" else (rule or "visible")
+    """The other rules need the gather method: the template method keeps the paper's rule."""
+    return "plain" if method == "template" else (rule or "evidence")
 
 
 def run_demo(args: argparse.Namespace) -> dict:
@@ -380,11 +381,11 @@ def run_demo(args: argparse.Namespace) -> dict:
                                         shadow_m=args.shadow_m, mapper=first, detectable=detectable,
                                         on_ping=None if session is None else session.ping)
     final = history[-1]
-    # the other rule on the same pings, side by side
-    other = "plain" if rule == "visible" else "visible"
+    # the other rules on the same pings, side by side
     rules = {rule: {**_summary(final), "height_error_m": final["height_error_m"],
                     "ms_per_image": 1e3 * float(np.mean(times[1:] if len(times) > 1 else times))}}
-    if args.method == "gather":
+    others = [r for r in gpumap.geometry.RULES if r != rule] if args.method == "gather" else []
+    for other in others:
         m_o, t_o, _ = _map_pings(scene, truth, pings, seen_each, T_true, args.backend, args.method,
                                  args.threshold, quiet, f"{other} rule", curve=False, shadow_m=args.shadow_m,
                                  rule=other, sparse=sparse)

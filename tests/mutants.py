@@ -52,10 +52,9 @@ MUTANTS = [
         "dark-counts-once",
         "a clear view darker than threshold/2 adds 1 to the carving count instead of 2",
         {
-            "numpy": [('np.where(v[dark] < params["thr_dark"], 2, 1)',
-                       'np.where(v[dark] < params["thr_dark"], 1, 1)')],
-            "warp-cpu": [("                step = 2\n", "                step = 1\n")],
-            "opencl-cpu": [("(v < P->thr_dark ? 2 : 1)", "(v < P->thr_dark ? 1 : 1)")],
+            "numpy": [('np.where(v < params["thr_dark"], 2, 1)', 'np.where(v < params["thr_dark"], 1, 1)')],
+            "warp-cpu": [("step = wp.uint64(2)", "step = wp.uint64(1)")],
+            "opencl-cpu": [("v < P->thr_dark) ? 2UL : 1UL", "v < P->thr_dark) ? 1UL : 1UL")],
         },
     ),
     Mutant(
@@ -74,7 +73,7 @@ MUTANTS = [
         {
             "numpy": [("lit = v >= thr", "lit = v > thr")],
             "warp-cpu": [("        if v >= P.thr:\n", "        if v > P.thr:\n")],
-            "opencl-cpu": [("if (v >= P->thr) bright[idx]", "if (v > P->thr) bright[idx]")],
+            "opencl-cpu": [("if (v >= P->thr) {", "if (v > P->thr) {")],
         },
     ),
     Mutant(
@@ -96,14 +95,57 @@ MUTANTS = [
     ),
     Mutant(
         "count-not-saturating",
-        "the carving count wraps at 256 instead of saturating at 255",
+        "the visible rule's carving count wraps at 256 instead of saturating at 255",
         {
-            "numpy": [("np.minimum(count[flat[dark]].astype(np.int32) + step, 255)",
-                       "((count[flat[dark]].astype(np.int32) + step) % 256)")],
-            "warp-cpu": [("wp.min(int(count[idx]) + step, 255)", "(int(count[idx]) + step) % 256")],
-            "opencl-cpu": [("min((int)count[idx] + (v < P->thr_dark ? 2 : 1), 255)",
-                            "((int)count[idx] + (v < P->thr_dark ? 2 : 1)) % 256")],
+            "numpy": [("grown = np.minimum(dark.astype(np.int64) + step, cap)",
+                       "grown = (dark.astype(np.int64) + step) % (cap + 1)"),
+                      ("clear_dark & (dark < cap)", "clear_dark")],
+            "warp-cpu": [("            if dark < cap:\n                dark = wp.min(dark + step, cap)",
+                          "            if dark <= cap:\n"
+                          "                dark = (dark + step) % (cap + wp.uint64(1))")],
+            "opencl-cpu": [("if (dark < cap) count[idx] = (c - dark) + min(dark + step, cap);",
+                            "count[idx] = (c - dark) + (dark + step) % (cap + 1UL);")],
         },
+    ),
+    Mutant(
+        "bright-count-wraps",
+        "the 32-bit bright-view count wraps at 2^32 (carries out of the word) instead of saturating",
+        {
+            "numpy": [("np.minimum(hits.astype(np.int64) + 1, COUNT_MAX)", "(hits.astype(np.int64) + 1)")],
+            "warp-cpu": [("if (c >> wp.uint64(32)) < COUNT_LOW:", "if (c >> wp.uint64(32)) <= COUNT_LOW:")],
+            "opencl-cpu": [("if ((c >> 32) < 0xFFFFFFFFUL)", "if ((c >> 32) <= 0xFFFFFFFFUL)")],
+        },
+        tests=("tests/test_evidence_rule.py",),
+    ),
+    Mutant(
+        "dark-count-carries",
+        "the 32-bit clear-dark count of the evidence rule carries into the bright count at 2^32",
+        {
+            "numpy": [("grown = np.minimum(dark.astype(np.int64) + step, cap)",
+                       "grown = dark.astype(np.int64) + step")],
+            "warp-cpu": [("            if dark < cap:\n                dark = wp.min(dark + step, cap)",
+                          "            if dark <= cap:\n                dark = dark + step")],
+            "opencl-cpu": [("if (dark < cap) count[idx] = (c - dark) + min(dark + step, cap);",
+                            "count[idx] = (c - dark) + dark + step;")],
+        },
+        tests=("tests/test_evidence_rule.py",),
+    ),
+    Mutant(
+        "occluded-view-counts-dark",
+        "a dark view behind a return counts as clear dark evidence (the blocking test ignored)",
+        {
+            "numpy": [("clear_dark = clear & ~lit", "clear_dark = ~lit")],
+            "warp-cpu": [("        elif vc[1] > 0.0:", "        elif vc[1] >= 0.0:")],
+            "opencl-cpu": [("} else if (clear) {", "} else {")],
+        },
+        tests=("tests/test_evidence_rule.py",),
+    ),
+    Mutant(
+        "decision-ignores-view-count",
+        "the evidence rule decides on the bright share alone, not its confidence over the views",
+        # the decision is host code that every backend shares: mutated once, in gpumap/reference.py
+        {"numpy": [("return (k > 0) & (upper >= p_min)", "return (k > 0) & (p >= p_min)")]},
+        tests=("tests/test_evidence_rule.py",),
     ),
     Mutant(
         "footprint-one-bin-short",
@@ -209,11 +251,14 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     for m in chosen:
         for b in a.backends:
+            if b not in m.edits:  # host code every backend shares: mutated on numpy's run only
+                continue
             status, dt, tail = run_one(m, b, a.timeout, a.verbose, m.tests, extra)
             survived += status != "killed"
             shown = tail if a.verbose else tail[:90]
             print(f"{m.name:26s} {b:11s} {status:8s} {dt:6.1f} s  {shown}", flush=True)
-    print(f"{survived} of {len(chosen) * len(a.backends)} mutant runs not killed" if survived
+    runs = sum(b in m.edits for m in chosen for b in a.backends)
+    print(f"{survived} of {runs} mutant runs not killed" if survived
           else "every mutant killed on every backend tried")
     return 1 if survived else 0
 

@@ -1,6 +1,7 @@
-"""Map files: one format (version 4, blocks) for every storage, and the files earlier versions
+"""Map files: one format (version 5, blocks) for every storage, and the files earlier versions
 wrote still load: dense arrays over the grid (versions 1 to 3, with and without the visible
-rule's state and the confidence layer) and the former SparseMinMaxMapper's block files.
+rule's state and the confidence layer), the former SparseMinMaxMapper's block files and
+version 4's blocks (the visible rule's uint8 dark count, no bright count).
 
 The earlier layouts are written here by hand, member by member as those versions' ``save``
 wrote them (their docstrings are the reference), from a map's public reads; loading them must
@@ -45,12 +46,22 @@ def _write(path, meta: dict, **arrays) -> None:
     np.savez_compressed(path, **arrays, meta=np.array(json.dumps(meta)))
 
 
-def _same(a: gpumap.MinMaxMapper, b: gpumap.MinMaxMapper) -> None:
+def _same(a: gpumap.MinMaxMapper, b: gpumap.MinMaxMapper, hits: bool = True) -> None:
+    """The same map; ``hits=False``: a file from before version 5 (no bright-view count)."""
     np.testing.assert_array_equal(a.raw_values(), b.raw_values())
     assert a.n_integrated == b.n_integrated and a.rule == b.rule and a.grid == b.grid
-    if a.rule == "visible":
+    if a.rule != "plain":
         for k, v in a.evidence().items():
-            np.testing.assert_array_equal(v, b.evidence()[k], err_msg=k)
+            if hits or k != "hits":
+                np.testing.assert_array_equal(v, b.evidence()[k], err_msg=k)
+        if not hits:
+            assert not a.evidence()["hits"].any()
+
+
+def _old_evidence(m: gpumap.MinMaxMapper) -> dict:
+    """The visible rule's state as files before version 5 held it: a uint8 dark count."""
+    ev = m.evidence()
+    return {"min_all": ev["min_all"], "bright": ev["bright"], "count": ev["count"].astype(np.uint8)}
 
 
 @pytest.mark.parametrize("version", [1, 2, 3])
@@ -59,7 +70,7 @@ def test_dense_files_of_versions_1_to_3_load(tmp_path, version):
     m = _mapped(rule=rule, confidence=version == 3)
     arrays = {"values": m.raw_values()}
     if rule == "visible":
-        arrays.update(m.evidence())
+        arrays.update(_old_evidence(m))
     extra = {}
     if version == 3:
         arrays["confirmed"] = m._confirmed.reshape(GRID.shape).copy()
@@ -69,38 +80,59 @@ def test_dense_files_of_versions_1_to_3_load(tmp_path, version):
     _write(tmp_path / "old.npz", _meta(m, version, **extra), **arrays)
     for got in (gpumap.MinMaxMapper.load(tmp_path / "old.npz", backend="numpy"),
                 load_map(tmp_path / "old.npz", backend="numpy")):
-        _same(got, m)
+        _same(got, m, hits=False)
         if version == 3:
             np.testing.assert_array_equal(got.confidence(), m.confidence())
 
 
-def test_former_sparse_files_load(tmp_path):
-    m = _mapped(grid=SparseSpec(GRID.voxel_size_m, origin_m=GRID.min_corner_m))
-    st = map_state(m)
-    B = m.B
-    arrays = {"blocks": st.arrays["blocks"].astype(np.int32), "values": None}
-    for k in ("min_all", "bright", "count"):
-        arrays[k] = st.arrays[k].reshape(-1, B, B, B)
-    from gpumap.reference import visible_values
+def _old_blocks(m: gpumap.MinMaxMapper) -> dict:
+    """A visible-rule map's blocks as block files before version 5 held them (uint8 dark count)."""
+    from gpumap.reference import split_counts, visible_values
 
+    st = map_state(m)
+    B, Bz = m.B, m.Bz
+    arrays = {"blocks": st.arrays["blocks"].astype(np.int32)}
+    for k in ("min_all", "bright"):
+        arrays[k] = st.arrays[k].reshape(-1, B, B, Bz)
+    arrays["count"] = split_counts(st.arrays["count"])[0].astype(np.uint8).reshape(-1, B, B, Bz)
     arrays["values"] = visible_values(arrays["min_all"], arrays["bright"], arrays["count"], m.carve_views)
+    return arrays
+
+
+def test_former_sparse_files_load(tmp_path):
+    m = _mapped(grid=SparseSpec(GRID.voxel_size_m, origin_m=GRID.min_corner_m), rule="visible")
     meta = {"format": "gpumap.SparseMinMaxMapper", "version": 1, "spec": SPEC.to_dict(),
             "sparse": m.sparse.to_dict(), "method": "gather", "shadow_m": 0.0, "rule": "visible",
             "threshold": 0.1, "carve_views": 2, "n_integrated": m.n_integrated, "backend": "numpy"}
-    _write(tmp_path / "old.npz", meta, **arrays)
+    _write(tmp_path / "old.npz", meta, **_old_blocks(m))
     got = load_map(tmp_path / "old.npz", backend="numpy")
     assert got.sparse == m.sparse
-    _same(got, m)
+    _same(got, m, hits=False)
     assert gpumap.SparseMinMaxMapper.load(tmp_path / "old.npz", backend="numpy").sparse == m.sparse
 
 
 @pytest.mark.parametrize("sparse", [False, True])
-def test_version_4_round_trip_holds_only_observed_blocks(tmp_path, sparse):
+def test_version_4_block_files_load(tmp_path, sparse):
+    m = _mapped(rule="visible", sparse=sparse or None)
+    meta = {**_meta(m, 4), "block": [m.B, m.B, m.Bz], "confidence": False}
+    if sparse:
+        meta.pop("grid")
+        meta["sparse"] = m.sparse.to_dict()
+    _write(tmp_path / "v4.npz", meta, **_old_blocks(m))
+    got = gpumap.MinMaxMapper.load(tmp_path / "v4.npz", backend="numpy")
+    assert (got.sparse is None) == (not sparse) and got.rule == "visible"
+    _same(got, m, hits=False)
+
+
+@pytest.mark.parametrize("sparse", [False, True])
+def test_version_5_round_trip_holds_only_observed_blocks(tmp_path, sparse):
     m = _mapped(confidence=not sparse, sparse=sparse or None)
+    assert m.rule == "evidence"
     path = m.save(tmp_path / "m.npz")
     with np.load(path) as z:
         blocks, values = z["blocks"], z["values"]
-        assert json.loads(str(z["meta"]))["version"] == 4
+        assert json.loads(str(z["meta"]))["version"] == 5
+        assert z["count"].dtype == np.uint64
     assert 0 < len(blocks) < int(np.prod(m._index.shape))  # only blocks with an observed voxel
     assert np.isfinite(values.reshape(len(blocks), -1)).any(axis=1).all()
     got = gpumap.MinMaxMapper.load(path, backend="numpy")

@@ -52,8 +52,8 @@ def centres_S(T_W_S: np.ndarray) -> np.ndarray:
     return (c - T_W_S[:3, 3]) @ T_W_S[:3, :3]
 
 
-def integrate(backend, pings, method="gather", spec=SPEC, grid=GRID):
-    m = gpumap.MinMaxMapper(spec, grid, backend=backend, method=method)
+def integrate(backend, pings, method="gather", spec=SPEC, grid=GRID, rule=None):
+    m = gpumap.MinMaxMapper(spec, grid, backend=backend, method=method, rule=rule)
     for img, T in pings:
         m.integrate(img, T)
     return m
@@ -201,7 +201,7 @@ def test_plane_of_returns_is_kept_and_space_in_front_is_carved_over_two_views(ba
     D = 1.0
     views = [pose(rot_y(0.0), (0, 0, 0)), pose(rot_y(0.25), (0.0, 0.0, 0.15))]
     pings = [(_render_plane(SPEC, T, D), T) for T in views]
-    m = integrate(backend, pings)
+    m = integrate(backend, pings, rule="visible")  # one very dark clear view carves
     v = m.values()
     c = GRID.all_centers()
     s = GRID.voxel_size_m
@@ -229,7 +229,7 @@ def test_plane_of_returns_is_kept_and_space_in_front_is_carved_over_two_views(ba
         carved_by.append(ways[0])
     sure = front & ~unsure
     want_one, want_two = carved_by[0][sure], carved_by[0][sure] | carved_by[1][sure]
-    single = integrate(backend, pings[:1]).values().ravel()[sure]
+    single = integrate(backend, pings[:1], rule="visible").values().ravel()[sure]
     carved_one, carved_two = single == 0, v.ravel()[sure] == 0
     print(f"carved in front of the plane: {carved_one.mean():.1%} after one view, {carved_two.mean():.1%} "
           f"after two ({sure.sum()} voxels, {(front & unsure).sum()} on a footprint edge left out)")
@@ -381,8 +381,8 @@ def test_grid_too_big_for_memory_says_how_much_it_needs(monkeypatch):
     monkeypatch.setattr(mapper_mod, "_free_memory_bytes", lambda name: 2**30)  # 1 GiB free
     with pytest.raises(ValueError, match=r"need 3\.73 GiB and numpy has 1\.00 GiB free"):
         gpumap.MinMaxMapper(SPEC, grid, backend="numpy", rule="plain")
-    # the visible rule keeps 5 more bytes per voxel (bright float32, count uint8): 9 / 4 as much
-    with pytest.raises(ValueError, match=r"need 8\.38 GiB and numpy has 1\.00 GiB free"):
+    # the evidence rule keeps 12 more bytes per voxel (bright float32, count uint64): 16 / 4 as much
+    with pytest.raises(ValueError, match=r"need 14\.90 GiB and numpy has 1\.00 GiB free"):
         gpumap.MinMaxMapper(SPEC, grid, backend="numpy")
     with pytest.raises(gpumap.BackendUnavailableError, match="fits in memory"):
         gpumap.MinMaxMapper(SPEC, grid, backend="auto")  # auto tries each, then says why none ran

@@ -22,14 +22,14 @@ BOUNDED = SparseSpec(S, (GRID.min_corner_m, GRID.max_corner_m))
 UNBOUNDED = SparseSpec(S, origin_m=GRID.min_corner_m)
 
 
-def _dense(backend, pings, rule="visible", spec=SPEC, grid=GRID, **kw):
+def _dense(backend, pings, rule="evidence", spec=SPEC, grid=GRID, **kw):
     m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule=rule, threshold=0.1, **kw)
     for img, T in pings:
         m.integrate(img, T)
     return m
 
 
-def _sparse(backend, pings, sparse=BOUNDED, rule="visible", spec=SPEC, **kw):
+def _sparse(backend, pings, sparse=BOUNDED, rule="evidence", spec=SPEC, **kw):
     m = SparseMinMaxMapper(spec, sparse, backend=backend, rule=rule, threshold=0.1, initial_blocks=2, **kw)
     for img, T in pings:
         m.integrate(img, T)
@@ -44,9 +44,9 @@ def _split(n: int, parts: int, rng) -> list[np.ndarray]:
 
 
 def _state(m) -> dict:
-    """Everything a map says: values, observed, the visible rule's evidence, the ping count."""
+    """Everything a map says: values, observed, the rule's evidence (counts included), the ping count."""
     out = {"values": m.raw_values(), "observed": m.observed(), "n": m.n_integrated}
-    if m.rule == "visible":
+    if m.rule != "plain":
         out.update(m.evidence())
     if m.sparse is not None:
         m.memory_stats()
@@ -65,14 +65,15 @@ def _assert_same(a: dict, b: dict) -> None:
 
 
 # ------------------------------------------------------------------------------ exact merges
-@pytest.mark.parametrize("rule", ["visible", "plain"])
+@pytest.mark.parametrize("rule", ["evidence", "visible", "plain"])
 def test_dense_random_splits_equal_one_mapper(backend, rule):
     rng = np.random.default_rng(7)
     pings = _random_pings(8, 11)
     ref = _state(_dense(backend, pings, rule))
     assert ref["observed"].sum() > 1000
-    if rule == "visible":  # both evidence paths exercised, or the test proves little
+    if rule != "plain":  # both evidence paths exercised, or the test proves little
         assert ref["count"].max() >= 2 and np.isfinite(ref["bright"]).sum() > 100
+        assert ref["hits"].max() >= 2
     for parts in (2, 3):
         idx = _split(len(pings), parts, rng)
         maps = [_dense(backend, [pings[i] for i in ix], rule) for ix in idx]
@@ -87,7 +88,7 @@ def test_dense_random_splits_equal_one_mapper(backend, rule):
         _assert_same(_state(maps2[1]), before)
 
 
-@pytest.mark.parametrize("rule", ["visible", "plain"])
+@pytest.mark.parametrize("rule", ["evidence", "visible", "plain"])
 @pytest.mark.parametrize("space", ["bounded", "unbounded"])
 def test_sparse_random_splits_equal_one_mapper(backend, rule, space):
     rng = np.random.default_rng(3)
@@ -110,13 +111,13 @@ def test_sparse_random_splits_equal_one_mapper(backend, rule, space):
 
 
 def test_count_saturates_as_one_mapper_does():
-    """140 clear dark views (2 each) saturate the count at 255; two halves of 70 must too."""
+    """Visible rule: 140 clear dark views (2 each) saturate the count at 255; two halves of 70 must too."""
     dark = np.full(SPEC.image_shape, 0.01, np.float32)
     T = pose(rot_y(0.1), (0.0, 0.0, 0.0))
     pings = [(dark, T)] * 140
-    one = _dense("numpy", pings)
+    one = _dense("numpy", pings, "visible")
     assert one.evidence()["count"].max() == 255
-    a, b = _dense("numpy", pings[:70]), _dense("numpy", pings[70:])
+    a, b = _dense("numpy", pings[:70], "visible"), _dense("numpy", pings[70:], "visible")
     assert a.evidence()["count"].max() == 140
     a.merge(b)
     _assert_same(_state(a), _state(one))
@@ -139,7 +140,7 @@ def test_files_and_states_merge_too(tmp_path):
 
 
 @needs_data
-@pytest.mark.parametrize("kind", ["dense-visible", "dense-plain", "sparse-visible"])
+@pytest.mark.parametrize("kind", ["dense-evidence", "dense-visible", "dense-plain", "sparse-evidence"])
 def test_real_tank_pings_random_split(backend, kind):
     from gpumap.io import open_fan_folder
     from gpumap.replay import auto_grid

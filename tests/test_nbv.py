@@ -54,8 +54,9 @@ def _target_index() -> tuple[int, int, int]:
 def test_one_view_confirms_nothing_a_rolled_view_confirms_the_echo(backend):
     """A point reflector seen level: its echo could come from any voxel of the elevation arc, so
     nothing is confirmed (the whole arc is the stretch). Rolled 90 deg, the arc lies sideways,
-    across the voxels the first view carved: the target alone stays occupied and is confirmed."""
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, confidence=True)
+    across the voxels the first view carved: the target alone stays occupied and is confirmed.
+    The visible rule: one clear dark view carves (the evidence rule needs several)."""
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, confidence=True, rule="visible")
     T1 = _look_at_target()
     m.integrate(_echo_image(T1), T1)
     c1 = m.confidence()
@@ -69,7 +70,7 @@ def test_one_view_confirms_nothing_a_rolled_view_confirms_the_echo(backend):
     occ = np.argwhere(c2 >= 2)
     assert np.abs(occ - i0).max() <= 1  # the stretch is gone: only the target and its footprint's
     # confidence only labels: the values are those of a mapper without the layer
-    plain = gpumap.MinMaxMapper(SPEC, GRID, backend=backend)
+    plain = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule="visible")
     plain.integrate(_echo_image(T1), T1)
     plain.integrate(_echo_image(T2), T2)
     np.testing.assert_array_equal(plain.raw_values(), m.raw_values())

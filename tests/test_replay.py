@@ -49,7 +49,7 @@ def _meta(path: Path) -> dict:
 def test_replay_rule_and_threshold_reach_the_mapper(tmp_path: Path) -> None:
     common = [str(DATA / "oasis_tank"), "--stride", "12", "--no-progress", "--no-pictures",
               "--voxel-size", "0.1", "--backend", "numpy"]
-    for extra, rule, thr in (([], "visible", 0.4), (["--rule", "plain"], "plain", 0.4),
+    for extra, rule, thr in (([], "evidence", 0.4), (["--rule", "plain"], "plain", 0.4),
                              (["--rule", "visible", "--threshold", "0.3"], "visible", 0.3)):
         out = tmp_path / "_".join(["r", *extra]).replace("-", "")
         assert main([*common, "--out", str(out), *extra]) == 0
@@ -87,35 +87,42 @@ def test_replay_rejects_bad_rule_settings(tmp_path: Path, capsys) -> None:
 
 @needs_data
 def test_rules_on_real_frames_observe_alike_and_plain_occupied_stays_occupied(tmp_path: Path) -> None:
-    """Both rules observe the same voxels; a voxel plain calls occupied (all its views bright)
-    has the same value under visible, so it is occupied there too; visible only keeps more."""
+    """Every rule observes the same voxels; a voxel plain calls occupied (all its views bright)
+    has the same value under the visible and evidence rules, so it is occupied there too; they
+    only keep more."""
     rec = open_fan_folder(DATA / "oasis_tank", stride=3)
     runs, c = run_rule_comparison(rec, threshold=0.4, voxel_size_m=0.08, backend="numpy",
                                   progress=False)
-    (mp, sp), (mv, sv) = runs["plain"], runs["visible"]
-    assert (sp["rule"], sv["rule"]) == ("plain", "visible") and sp["frames"] == sv["frames"] == 41
-    assert mp.grid == mv.grid and (mp.rule, mv.rule) == ("plain", "visible")
-    vp, vv = mp.values(), mv.values()
-    np.testing.assert_array_equal(np.isfinite(vp), np.isfinite(vv))
+    mp, sp = runs["plain"]
+    assert set(runs) == {"plain", "visible", "evidence"} and sp["frames"] == 41
+    vp = mp.values()
     obs = np.isfinite(vp)
-    occ_p, occ_v = obs & (vp >= np.float32(0.4)), obs & (vv >= np.float32(0.4))
+    occ_p = obs & (vp >= np.float32(0.4))
     assert occ_p.sum() > 100
-    assert not (occ_p & ~occ_v).any()  # plain-occupied => visible-occupied
-    assert np.all(vv[obs] >= vp[obs])  # visible only ever keeps a bright value plain lowers
-    kept = obs & (vv != vp)
-    assert kept.any() and np.all(vv[kept] >= np.float32(0.4))
-    np.testing.assert_array_equal(vv[occ_p], vp[occ_p])  # all views bright: same value
-    # the visible map's min over every view is the plain map, bit for bit
-    saved = gpumap.MinMaxMapper.load(mv.save(tmp_path / "v.npz"), backend="numpy")
-    np.testing.assert_array_equal(saved.evidence()["min_all"], mp.raw_values())
-    assert c["observed_equal"] and c["visible_ge_plain"] and c["plain_only"] == 0
+    for rule in ("visible", "evidence"):
+        mv, sv = runs[rule]
+        assert sv["rule"] == mv.rule == rule and sv["frames"] == 41 and mp.grid == mv.grid
+        vv = mv.values()
+        np.testing.assert_array_equal(np.isfinite(vp), np.isfinite(vv))
+        occ_v = obs & (vv >= np.float32(0.4))
+        assert not (occ_p & ~occ_v).any()  # plain-occupied => occupied under the rule
+        assert np.all(vv[obs] >= vp[obs])  # the rule only ever keeps a bright value plain lowers
+        kept = obs & (vv != vp)
+        assert kept.any() and np.all(vv[kept] >= np.float32(0.4))
+        np.testing.assert_array_equal(vv[occ_p], vp[occ_p])  # all views bright: same value
+        # the rule's min over every view is the plain map, bit for bit
+        saved = gpumap.MinMaxMapper.load(mv.save(tmp_path / f"{rule}.npz"), backend="numpy")
+        np.testing.assert_array_equal(saved.evidence()["min_all"], mp.raw_values())
+        assert c["rules"][rule]["occupied_voxels"] == int(occ_v.sum())
+        assert c["rules"][rule]["observed_voxels"] == obs.sum()
+    occ_v = obs & (runs["evidence"][0].values() >= np.float32(0.4))
+    assert c["rule"] == "evidence" and c["observed_equal"] and c["rule_ge_plain"] and c["plain_only"] == 0
     assert c["rules"]["plain"]["occupied_voxels"] == int(occ_p.sum())
-    assert c["rules"]["visible"]["occupied_voxels"] == int(occ_v.sum())
-    assert c["visible_only"] == int((occ_v & ~occ_p).sum()) > 0
+    assert c["rule_only"] == int((occ_v & ~occ_p).sum()) > 0
     assert c["occupied_both"] == int(occ_p.sum())
-    assert c["rules"]["plain"]["observed_voxels"] == c["rules"]["visible"]["observed_voxels"] == obs.sum()
+    assert c["rules"]["plain"]["observed_voxels"] == obs.sum()
     w = c["where"]
-    assert sum(w["range_histogram"]["visible_only"]) == c["visible_only"]
+    assert sum(w["range_histogram"]["rule_only"]) == c["rule_only"]
     assert sum(w["height_histogram"]["both"]) == c["occupied_both"]
     assert "plain carved them" in c["text"]
 
@@ -125,15 +132,15 @@ def test_replay_compare_rules_writes_picture_and_figures(tmp_path: Path, capsys)
     out = tmp_path / "out"
     assert main([str(DATA / "oasis_tank"), "--stride", "6", "--out", str(out), "--no-progress",
                  "--voxel-size", "0.1", "--backend", "numpy", "--compare-rules"]) == 0
-    assert "rules: visible" in capsys.readouterr().out
+    assert "rules: occupied voxels: plain" in capsys.readouterr().out
     s = json.loads((out / "summary.json").read_text())
     c = s["rule_comparison"]
-    assert s["rule"] == "visible" and c["picture"] == "rules.png"
+    assert s["rule"] == c["rule"] == "evidence" and c["picture"] == "rules.png"
     assert (out / "rules.png").stat().st_size > 10_000
-    assert c["rules"]["visible"]["occupied_voxels"] == s["occupied_voxels"]
-    assert c["observed_equal"] and c["plain_only"] == 0 and c["visible_only"] > 0
-    assert set(c["runs"]) == {"plain", "visible"} and c["runs"]["plain"]["frames"] == s["frames"]
-    assert _meta(out / "map.npz")["rule"] == "visible"
+    assert c["rules"]["evidence"]["occupied_voxels"] == s["occupied_voxels"]
+    assert c["observed_equal"] and c["plain_only"] == 0 and c["rule_only"] > 0
+    assert set(c["runs"]) == {"plain", "visible", "evidence"} and c["runs"]["plain"]["frames"] == s["frames"]
+    assert _meta(out / "map.npz")["rule"] == "evidence"
 
 
 @needs_data

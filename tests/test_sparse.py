@@ -18,6 +18,7 @@ from test_visibility import _random_pings
 
 import gpumap
 from gpumap import MapMemoryError, SparseMinMaxMapper, SparseSpec
+from gpumap.reference import split_counts
 
 S = GRID.voxel_size_m
 BOUNDED = SparseSpec(S, (GRID.min_corner_m, GRID.max_corner_m))
@@ -47,10 +48,13 @@ def _in_grid(m: SparseMinMaxMapper, grid: gpumap.GridSpec, name: str = "values")
 
 def _assert_same(sparse: SparseMinMaxMapper, dense: gpumap.MinMaxMapper) -> None:
     sparse.check()  # no observed voxel fell outside the allocated blocks
-    if dense.rule == "visible":
+    if dense.rule != "plain":
         ev = dense.evidence()
-        for k in ("min_all", "bright", "count"):
+        for k in ("min_all", "bright"):
             np.testing.assert_array_equal(_in_grid(sparse, dense.grid, k), ev[k], err_msg=k)
+        dark, hits = split_counts(_in_grid(sparse, dense.grid, "count"))
+        np.testing.assert_array_equal(dark, ev["count"], err_msg="count")
+        np.testing.assert_array_equal(hits, ev["hits"], err_msg="hits")
     np.testing.assert_array_equal(_in_grid(sparse, dense.grid), dense.raw_values())
 
 
@@ -65,7 +69,7 @@ def _block_set(m: SparseMinMaxMapper) -> set:
 
 
 # ------------------------------------------------------------------------------ identical maps
-@pytest.mark.parametrize("rule", ["visible", "plain"])
+@pytest.mark.parametrize("rule", ["evidence", "visible", "plain"])
 def test_random_pings_bounded_and_unbounded_equal_dense(backend, rule):
     pings = _random_pings(5, 3)
     d = _dense(backend, pings, rule)
@@ -121,7 +125,7 @@ def scene_pings(request):
     return scene, pings
 
 
-@pytest.mark.parametrize("rule", ["visible", "plain"])
+@pytest.mark.parametrize("rule", ["evidence", "visible", "plain"])
 def test_scenes_sparse_equals_dense(backend, scene_pings, rule):
     scene, pings = scene_pings
     d = _dense(backend, pings, rule, spec=scene.sonar_spec, grid=scene.grid)
@@ -178,8 +182,8 @@ def test_memory_counts_only_blocks_with_an_observed_voxel():
     blocks = {tuple(b) for b in (obs + i0) // 8}
     assert st["blocks"] == len(blocks) == len(_block_set(m))
     assert st["observed_voxels"] == len(obs)
-    assert st["block_bytes"] == st["blocks"] * 512 * 9
-    assert st["observed_bytes"] == len(obs) * 9
+    assert st["block_bytes"] == st["blocks"] * 512 * 16
+    assert st["observed_bytes"] == len(obs) * 16
     assert st["total_bytes"] == st["pool_bytes"] + st["index_bytes"]
     assert st["pool_blocks"] >= st["blocks"]
     # the pool grew from 2 slots by 1.5x steps, never far past what the blocks need
@@ -201,7 +205,7 @@ def test_memory_grows_with_what_was_seen_not_with_the_box():
 
 # ------------------------------------------------------------------------------ save / load
 @pytest.mark.parametrize("sparse", [BOUNDED, UNBOUNDED], ids=["bounded", "unbounded"])
-@pytest.mark.parametrize("rule", ["visible", "plain"])
+@pytest.mark.parametrize("rule", ["evidence", "visible", "plain"])
 def test_save_load_round_trip(tmp_path, backend, sparse, rule):
     pings = _random_pings(5, 12)
     m = _sparse(backend, pings[:3], sparse, rule)
@@ -212,7 +216,7 @@ def test_save_load_round_trip(tmp_path, backend, sparse, rule):
     assert back.n_integrated == 3 and back.carve_views == 3 and back.rule == rule
     assert back.sparse == sparse and back.spec == SPEC
     np.testing.assert_array_equal(back.raw_values(), m.raw_values())
-    if rule == "visible":
+    if rule != "plain":
         for k, a in m.evidence().items():
             np.testing.assert_array_equal(back.evidence()[k], a, err_msg=k)
     # a loaded map goes on exactly as the original would
@@ -253,7 +257,7 @@ def test_load_refuses_bad_files(tmp_path):
             values=np.concatenate([values, unseen["values"]]),
             min_all=np.concatenate([min_all, unseen["min_all"]]),
             bright=np.concatenate([bright, unseen["min_all"]]),
-            count=np.concatenate([count, np.zeros((1, 8, 8, 8), np.uint8)]),
+            count=np.concatenate([count, np.zeros((1, 8, 8, 8), np.uint64)]),
         ),
         "format": dict(meta=np.array('{"format": "other"}')),
     }
@@ -347,7 +351,7 @@ def test_eviction_keeps_memory_under_the_cap_and_the_latest_view(backend):
     img = (rng.random(spec.image_shape) * 0.5).astype(np.float32)
     poses = [pose(rot_z(0.3 * k), (2.0 * k, 0.0, 0.0)) for k in range(6)]
     one = _sparse(backend, [(img, poses[0])], SparseSpec(0.1)).memory_stats()
-    cap = 2 * one["blocks"] * (512 * 9 + 1) + 4096
+    cap = 2 * one["blocks"] * (512 * 16 + 1) + 4096
     m = _sparse(backend, [(img, T) for T in poses], SparseSpec(0.1), max_bytes=cap, evict="farthest")
     st = m.memory_stats()
     assert st["total_bytes"] <= cap and m.n_integrated == 6

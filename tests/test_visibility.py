@@ -84,6 +84,8 @@ def _fold_views(pings):
     min_all = np.full(n, np.inf, np.float32)
     bright = np.full(n, np.inf, np.float32)
     count = np.zeros(n, np.int64)
+    dark_views = np.zeros(n, np.int64)  # the evidence rule's counts: clear dark views, bright views
+    bright_views = np.zeros(n, np.int64)
     branches = ("bright", "at_threshold", "clear_very_dark", "at_half", "clear_dark", "blocked_dark",
                 "blocked_at_b0_minus_1")
     hits = dict.fromkeys(branches, 0)
@@ -108,6 +110,8 @@ def _fold_views(pings):
         min_all[seen] = np.minimum(min_all[seen], v[seen])
         bright[lit] = np.minimum(bright[lit], v[lit])
         count[dark & clear] += np.where(v[dark & clear] < half, 2, 1)
+        dark_views += dark & clear
+        bright_views += lit
         hits["bright"] += lit.sum()
         hits["at_threshold"] += (seen & (v == thr)).sum()
         hits["clear_very_dark"] += (dark & clear & (v < half)).sum()
@@ -115,7 +119,8 @@ def _fold_views(pings):
         hits["clear_dark"] += (dark & clear & (v >= half)).sum()
         hits["blocked_dark"] += (dark & ~clear).sum()
         hits["blocked_at_b0_minus_1"] += (dark & ~clear & clear_but_last).sum()
-    ev = {"min_all": min_all, "bright": bright, "count": np.minimum(count, 255).astype(np.uint8)}
+    ev = {"min_all": min_all, "bright": bright, "count": np.minimum(count, 255).astype(np.uint8),
+          "dark_views": dark_views, "bright_views": bright_views}
     return {k: a.reshape(GRID.shape) for k, a in ev.items()}, hits
 
 
@@ -153,7 +158,7 @@ def test_count_saturates_at_255(backend):
     spec = gpumap.SonarSpec.uniform(hfov_deg=20, vfov_deg=10, n_beams=8, n_bins=20, range_min_m=0.1,
                                     range_max_m=1.0)
     grid = gpumap.GridSpec((0.3, -0.1, -0.05), (0.7, 0.1, 0.05), 0.05)
-    m = gpumap.MinMaxMapper(spec, grid, backend=backend, threshold=THR)
+    m = gpumap.MinMaxMapper(spec, grid, backend=backend, threshold=THR, rule="visible")
     m.integrate(np.full(spec.image_shape, 0.5, np.float32), np.eye(4))
     dark = np.zeros(spec.image_shape, np.float32)
     for _ in range(130):
@@ -173,14 +178,16 @@ def test_order_of_pings_does_not_change_the_map(backend):
     np.testing.assert_array_equal(a.raw_values(), b.raw_values())
 
 
-def test_clear_views_match_a_float64_brute_force(backend):
-    """After one dark ping with a few bright cells, a voxel's count is 2 exactly where no bright
-    cell lies nearer than its footprint in its beams (float64 sphere; boundary cases skipped)."""
+@pytest.mark.parametrize(("rule", "step"), [("visible", 2), ("evidence", 1)])
+def test_clear_views_match_a_float64_brute_force(backend, rule, step):
+    """After one dark ping with a few bright cells, a voxel's count is ``step`` (a very dark view:
+    2 for the visible rule, 1 for the evidence rule) exactly where no bright cell lies nearer than
+    its footprint in its beams (float64 sphere; boundary cases skipped), else 0."""
     img = np.zeros(SPEC.image_shape, np.float32)
     cells = [(10, 5), (25, 20), (40, 33), (3, 44)]
     for c in cells:
         img[c] = 1.0
-    m = _run(backend, [(img, T_B)])
+    m = _run(backend, [(img, T_B)], rule)
     ev = m.evidence()
     count = ev["count"].ravel()
     obs = np.isfinite(ev["min_all"].ravel())
@@ -200,7 +207,7 @@ def test_clear_views_match_a_float64_brute_force(backend):
             clear = ~blocked
     sure = dark & ~unsure
     assert sure.sum() > 1000 and (~clear[sure]).sum() > 100 and clear[sure].sum() > 100
-    np.testing.assert_array_equal(count[sure], np.where(clear[sure], 2, 0))
+    np.testing.assert_array_equal(count[sure], np.where(clear[sure], step, 0))
 
 
 def _one_voxel_pings(bright_views: int, dark_value: float, dark_views: int = 1):

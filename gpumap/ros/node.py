@@ -96,7 +96,7 @@ PARAMETERS: dict[str, tuple[object, str]] = {
     "grid_max_m": ([2.0, 2.0, 1.0], "grid box upper corner x, y, z in world_frame, metres"),
     "voxel_size_m": (0.05, "voxel edge, metres"),
     "backend": ("auto", "mapper backend: auto or a name of gpumap info (never falls back when named)"),
-    "rule": ("visible", "how views combine: visible or plain"),
+    "rule": ("evidence", "how views combine: evidence, visible or plain"),
     "threshold": (0.4, "occupied from this value on; also the mapper's bright threshold (as gpumap replay)"),
     "carve_views": (2, "visible rule: clear dark views that carve a voxel once seen bright"),
     "confidence": (False, "keep the confidence layer (MinMaxMapper(confidence=True)): the cloud gets a uint8 "
@@ -213,12 +213,13 @@ def make_node(node_name: str = NODE_NAME, context=None):
             else:
                 self.in_shape = self.spec.image_shape
             self.mapper = gpumap.MinMaxMapper(self.spec, self.grid, backend=str(p["backend"]),
-                                              rule=_choice(p, "rule", ("visible", "plain")),
+                                              rule=_choice(p, "rule", ("evidence", "visible", "plain")),
                                               threshold=self.threshold, carve_views=int(p["carve_views"]),
                                               confidence=_flag(p, "confidence"))
             self.confidence = _flag(p, "confidence")
-            # values (4) [+ evidence (5), visible rule] [+ confirmed (1) and arcs (2), confidence]
-            self.map_bytes = self.grid.n_voxels * ((9 if self.mapper.rule == "visible" else 4)
+            # the mapper's bytes per voxel (4 plain, 16 with the view state) [+ confirmed (1) and
+            # arcs (2), confidence]
+            self.map_bytes = self.grid.n_voxels * (self.mapper.bytes_per_voxel
                                                    + (3 if self.confidence else 0))
             log = self.get_logger()
             self.live = LiveMapper(
