@@ -29,6 +29,7 @@ BENCHMARKS: dict[str, str] = {
     "workers": "the survey mapped by one process against N Dask workers on the same cores",
     "visibility": "the visible rule against the plain min-max rule: errors and speed (tank, circle)",
     "rules_real": "both mapping rules on the real OASIS tank (gpumap replay --compare-rules)",
+    "rate_real": "every rule on the full real tank run at the sonar's rate, judged by held-out first returns",
     "refine": "plain, visible and refined maps against truth and on held-out pings",
     "nbv": "next best views: planned against rolled and random views; view_gain speed",
     "ekf_bench": "the EKF on the prism simulation (NEES, odometry sweep, update cost; --vs-batch)",

@@ -76,17 +76,21 @@ def _worker(a) -> None:
             m.integrate(imgs[k % len(imgs)], poses[k])
     m.synchronize()
     dt = time.perf_counter() - t
-    v = m.raw_values()
+    # --digest min_all: the min over every view, which every rule keeps (trees whose default
+    # rules differ: the same views were folded, though the rules then read them differently)
+    v = m.evidence()["min_all"] if a.digest == "min_all" and m.rule != "plain" else m.raw_values()
     print(json.dumps({"images_per_s": n / dt, "backend": m.backend, "device": m.device,
                       "gpumap_file": gpumap.__file__, "observed": int(np.isfinite(v).sum()),
                       "digest": hashlib.sha256(v.tobytes()).hexdigest()[:16]}), flush=True)
 
 
-def _run(root: Path, tree: Path, voxel: float, backend: str, n: int, batch: int, chunk: int = 0) -> dict:
+def _run(root: Path, tree: Path, voxel: float, backend: str, n: int, batch: int, chunk: int = 0,
+         digest: str = "values") -> dict:
     from gpumap.bench.common import CpuShare
 
     cmd = [sys.executable, "-P", str(Path(__file__).resolve()), "--worker", "--voxel", str(voxel),
-           "--backend", backend, "--images", str(n), "--batch", str(batch), "--gpu-chunk", str(chunk)]
+           "--backend", backend, "--images", str(n), "--batch", str(batch), "--gpu-chunk", str(chunk),
+           "--digest", digest]
     path = os.pathsep.join(x for x in (str(root), os.environ.get("PYTHONPATH")) if x)
     env = {**os.environ, "PYTHONPATH": path}
     with CpuShare() as share:
@@ -108,19 +112,23 @@ def markdown(docs: list[tuple[str, dict]]) -> str:
     """The BENCHMARKS.md block of ``ab_*.json`` results: one row per (file, voxel, backend)."""
     out = [SECTION, "",
            "`python -m bench.ab --a OTHER_CHECKOUT ...` times two source trees side by side (module "
-           "docstring); tree A is the commit before the unification, B the one mapper over blocks. "
-           "Images/s: median (min-max) of the rounds; every run of both trees gave the same map (digest). "
+           "docstring); tree A is the commit before the change a file measures, B the change: the one "
+           "mapper over blocks (issue #24) in the first files, the evidence rule (issue #28) in "
+           "`ab_*_evidence.json`. "
+           "Images/s: median (min-max) of the rounds; every run of both trees gave the same map (digest; "
+           "'same views': trees with different default rules folded the same min over every view). "
            "This block: `python -m bench.ab --report BENCHMARKS.md` (after `python -m bench.report`).",
            "", "| file | device | voxel | backend | pings | batch | A img/s | B img/s | B / A | same map |",
            "|---|---|---|---|---|---|---|---|---|---|"]
     for name, d in docs:
         for r in d["rows"]:
+            same = "yes" if r.get("digest", "values") == "values" else "same views"
             a, b = r["a"]["images_per_s"], r["b"]["images_per_s"]
             out.append(
                 f"| `{name}` | {r['device']} | {r['voxel_size_m'] * 100:g} cm | {r['backend']} | "
                 f"{r['images']} | {r['batch'] or '-'} | {a['median']:.1f} ({a['min']:.0f}-{a['max']:.0f}) | "
                 f"{b['median']:.1f} ({b['min']:.0f}-{b['max']:.0f}) | {r['b_over_a']:.3f} | "
-                f"{'yes' if r['same_map'] else '**no**'} |")
+                f"{same if r['same_map'] else '**no**'} |")
     return "\n".join(out)
 
 
@@ -144,6 +152,7 @@ def main(argv: list[str] | None = None) -> int:
         w.add_argument("--images", type=int)
         w.add_argument("--batch", type=int)
         w.add_argument("--gpu-chunk", type=int, default=0)
+        w.add_argument("--digest", default="values")
         _worker(w.parse_args(argv))
         return 0
     from gpumap.bench.common import bench_parser, idle_check, run_header, spread, write_json
@@ -160,6 +169,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gpu-chunk", type=int, default=0,
                     help="voxels of a column per GPU thread in both trees (0: each tree's default)")
     ap.add_argument("--rounds", type=int, default=5, help="rounds (each runs every row once per tree)")
+    ap.add_argument("--digest", choices=("values", "min_all"), default="values",
+                    help="what must be the same in both trees: the map's values (default), or the min "
+                         "over every view (trees whose default rules differ)")
     ap.add_argument("--max-load", type=float, default=0.5, help="refuse to start above this load average")
     ap.add_argument("--max-others", type=float, default=0.25,
                     help="cores other processes may take (at the start, and per run before it is marked)")
@@ -188,10 +200,11 @@ def main(argv: list[str] | None = None) -> int:
                 runs: dict[str, list] = {"a": [], "b": []}
                 for r in range(a.rounds):
                     for t in ("a", "b") if r % 2 == 0 else ("b", "a"):
-                        runs[t].append(_run(roots[t], getattr(a, t), voxel, backend, n, a.batch, a.gpu_chunk))
+                        runs[t].append(_run(roots[t], getattr(a, t), voxel, backend, n, a.batch, a.gpu_chunk,
+                                            a.digest))
                 digests = {x["digest"] for t in runs for x in runs[t]}
                 row = {"voxel_size_m": voxel, "backend": backend, "images": n, "batch": a.batch,
-                       "gpu_chunk": a.gpu_chunk or "default",
+                       "gpu_chunk": a.gpu_chunk or "default", "digest": a.digest,
                        "device": runs["b"][0]["device"], "same_map": len(digests) == 1,
                        "observed_voxels": runs["b"][0]["observed"]}
                 for t in ("a", "b"):

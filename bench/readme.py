@@ -84,9 +84,24 @@ def summary_rows() -> list[tuple[str, str, str]]:
     rr = _load("rules_real_tank.json")
     if rr:
         c = rr["rule_comparison"]["rules"]
-        rows.append(("Real tank, 5 cm: occupied voxels (visible / plain rule), same observed voxels",
-                     f"{c['visible']['occupied_voxels']:,} / {c['plain']['occupied_voxels']:,}",
+        names = [r for r in ("evidence", "visible", "plain") if r in c]
+        rows.append((f"Real tank (every 10th frame), 5 cm: occupied voxels ({' / '.join(names)} rule), same "
+                     "observed voxels", " / ".join(f"{c[r]['occupied_voxels']:,}" for r in names),
                      "rules_real_tank.json"))
+    rate = _load("rate_real.json")
+    if rate:
+        ev = rate["rules"]["evidence"]
+        occ = ev["occupied_common"]
+        rows.append(("Real tank run at the sonar's rate, frames 0-799, 5 cm, default rule: occupied voxels "
+                     "mapping every 10th / 3rd / every frame (same observed region)",
+                     " / ".join(f"{occ[k]:,}" for k in ("every_10", "every_3", "every_1")), "rate_real.json"))
+        for rule in ("evidence", "visible"):
+            r = rate["rules"][rule]
+            j10, j1 = r["every_10"]["judge"], r["every_1"]["judge"]
+            rows.append((f"... held-out frames 800-1222, first returns the {rule} map agrees with / "
+                         "phantoms in front: every 10th, every frame",
+                         f"{_pct(j10['agreement'])} / {_pct(j10['phantom_rate'])}, "
+                         f"{_pct(j1['agreement'])} / {_pct(j1['phantom_rate'])}", "rate_real.json"))
     peers = sorted(RESULTS.glob("peer_ratio_*.json"))
     valid = [json.loads(p.read_text()) | {"_file": p.name} for p in peers]
     valid = [d for d in valid if d.get("valid")]
@@ -115,16 +130,19 @@ def rules_real_block() -> str:
         return "(run `python -m bench.rules_real` to measure this)"
     c = d["rule_comparison"]
     w = c["where"]
-    vo = w["fraction_vs_floor_0.25m"]["visible_only"]
+    rule = c["rule"]
+    vo = w["fraction_vs_floor_0.25m"]["rule_only"]
     rng = w["range_from_sonar_m"]
-    vis, pl = c["rules"]["visible"], c["rules"]["plain"]
+    vis, pl = c["rules"][rule], c["rules"]["plain"]
+    others = ", ".join(f"the {r} rule {x['occupied_voxels']:,}" for r, x in c["rules"].items()
+                       if r not in ("plain", rule))
     same = "exactly the same" if c["observed_equal"] else "not the same"
     return (
-        f"The two maps observe {same} {vis['observed_voxels']:,} voxels; the plain rule calls "
-        f"{pl['occupied_voxels']:,} occupied, the visible rule {vis['occupied_voxels']:,}, and "
-        f"{c['plain_only']:,} voxels are occupied under the plain rule but free under the visible one "
-        f"(by construction a visible value is never below the plain one). The {c['visible_only']:,} voxels "
-        f"only the visible rule keeps lie further from the sonar (median {rng['visible_only'][1]:.2f} m "
+        f"The maps observe {same} {vis['observed_voxels']:,} voxels; the plain rule calls "
+        f"{pl['occupied_voxels']:,} occupied, the {rule} rule {vis['occupied_voxels']:,} ({others}), and "
+        f"{c['plain_only']:,} voxels are occupied under the plain rule but free under the {rule} one "
+        f"(by construction its value is never below the plain one). The {c['rule_only']:,} voxels "
+        f"only the {rule} rule keeps lie further from the sonar (median {rng['rule_only'][1]:.2f} m "
         f"against {rng['both'][1]:.2f} m) and low: {100 * vo['at']:.0f} % at the tank floor, which the plain "
         f"rule erases wherever one grazing view was dark, {100 * vo['below']:.0f} % below it (shadow that no "
         f"view saw clearly) and {100 * vo['above']:.0f} % above it (the elevation stretch that only a clear "

@@ -42,6 +42,7 @@ from gpumap.cli import (
     unit_interval,
     user_errors,
 )
+from gpumap.geometry import RULES
 
 from .metrics import evaluate
 from .scenes import SCENES, Scene, make_scene
@@ -76,7 +77,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="use only this many pings (evenly spaced)")
     p.add_argument("--threshold", type=unit_interval, default=OCCUPIED_THRESHOLD,
                    help="occupied intensity, in (0, 1]")
-    p.add_argument("--rule", default="evidence", choices=list(gpumap.geometry.RULES),
+    p.add_argument("--rule", default="evidence", choices=list(RULES),
                    help="how views combine: 'evidence' (occupied unless its clear views show it dark in "
                         "most of them), 'visible' (carved by 2 clear dark views) or 'plain' (the "
                         "paper's min); the other rules are always mapped too, for the side-by-side "
@@ -384,7 +385,7 @@ def run_demo(args: argparse.Namespace) -> dict:
     # the other rules on the same pings, side by side
     rules = {rule: {**_summary(final), "height_error_m": final["height_error_m"],
                     "ms_per_image": 1e3 * float(np.mean(times[1:] if len(times) > 1 else times))}}
-    others = [r for r in gpumap.geometry.RULES if r != rule] if args.method == "gather" else []
+    others = [r for r in RULES if r != rule] if args.method == "gather" else []
     for other in others:
         m_o, t_o, _ = _map_pings(scene, truth, pings, seen_each, T_true, args.backend, args.method,
                                  args.threshold, quiet, f"{other} rule", curve=False, shadow_m=args.shadow_m,

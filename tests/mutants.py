@@ -122,7 +122,7 @@ MUTANTS = [
         "the 32-bit clear-dark count of the evidence rule carries into the bright count at 2^32",
         {
             "numpy": [("grown = np.minimum(dark.astype(np.int64) + step, cap)",
-                       "grown = dark.astype(np.int64) + step")],
+                       "grown = dark.astype(np.int64) + step"), ("clear_dark & (dark < cap)", "clear_dark")],
             "warp-cpu": [("            if dark < cap:\n                dark = wp.min(dark + step, cap)",
                           "            if dark <= cap:\n                dark = dark + step")],
             "opencl-cpu": [("if (dark < cap) count[idx] = (c - dark) + min(dark + step, cap);",

@@ -39,5 +39,5 @@ def test_rules_on_the_real_tank_match_a_fresh_replay(tmp_path):
     assert main([str(DATA / "oasis_tank"), "--voxel-size", "0.05", "--compare-rules", "--no-progress",
                  "--no-pictures", "--out", str(tmp_path)]) == 0
     got = json.loads((tmp_path / "summary.json").read_text())["rule_comparison"]
-    for k in ("rules", "occupied_both", "visible_only", "plain_only", "observed_equal"):
+    for k in ("rule", "rules", "occupied_both", "rule_only", "plain_only", "observed_equal"):
         assert got[k] == want[k], k
