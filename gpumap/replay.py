@@ -25,6 +25,7 @@ rules and adds ``rules.png`` (the two maps side by side, and where they differ) 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import sys
@@ -644,6 +645,10 @@ def _parser() -> ArgumentParser:
                          "section in summary.json (needs --method gather)")
     ap.add_argument("--static", action="store_true",
                     help="map every ping at one fixed (identity) pose: for pose-less recordings")
+    ap.add_argument("--frames", type=frame_range, default=None, metavar="START:STOP[:STEP]",
+                    help="only the recording's frames START to STOP-1 (counted from 0, every STEP-th; "
+                         "START or STOP may be left out), before --stride and --max-frames: split a "
+                         "recording into maps of disjoint pings that gpumap merge can join")
     ap.add_argument("--stride", type=positive_int, default=1, help="use every N-th frame")
     ap.add_argument("--max-frames", type=positive_int, default=None,
                     help="stop after this many frames (after --stride); default all")
@@ -666,6 +671,37 @@ def _parser() -> ArgumentParser:
     return ap
 
 
+def select_frames(recording, frames: slice):
+    """The frames of ``recording`` whose indices are in ``frames`` (``slice(start, stop, step)``,
+    start and stop >= 0), as a :class:`~gpumap.io.Recording` (``gpumap replay --frames``)."""
+    from gpumap.io.frame import Recording
+
+    rec = recording
+    return Recording(
+        rec.path, rec.kind, lambda: itertools.islice(iter(rec), frames.start, frames.stop, frames.step),
+        rec.has_poses,
+        count=None if rec.count() is None else lambda: len(range(rec.count())[frames]),
+        poses=None if rec._poses is None else lambda: list(rec.poses())[frames],
+    )
+
+
+def frame_range(text: str) -> slice:
+    """``START:STOP[:STEP]`` (whole numbers, START >= 0, STOP > START, STEP >= 1; START or STOP
+    may be empty) as a ``slice`` (``--frames``)."""
+    want = "START:STOP or START:STOP:STEP (whole numbers, START >= 0, STOP > START, STEP >= 1)"
+    parts = text.split(":")
+    if len(parts) not in (2, 3):
+        raise argparse.ArgumentTypeError(f"Expected {want}, but got {text!r}")
+    try:
+        start, stop, step = (int(x) if x.strip() else None for x in (*parts, "")[:3])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"Expected {want}, but got {text!r}") from None
+    start = start or 0
+    if start < 0 or (stop is not None and stop <= start) or (step is not None and step < 1):
+        raise argparse.ArgumentTypeError(f"Expected {want}, but got {text!r}")
+    return slice(start, stop, step)
+
+
 def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]:
     """Parse and check every flag, alone and together, before any work; exit 2 on a bad one."""
     ap = _parser()
@@ -679,6 +715,9 @@ def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]
     from gpumap.ekf_replay import check_ekf_args
 
     check_ekf_args(ap, a)
+    if a.frames is not None and a.ekf:
+        ap.error("argument --frames: Expected it without --ekf (the EKF replay reads the whole "
+                 "recording), but got both")
     if a.method == "template" and a.rule == "visible":
         ap.error("argument --rule: Expected rule='plain' with --method template (the template "
                  "method's duplicate points cannot count views once), but got --rule visible")
@@ -787,10 +826,12 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
     elif a.vfov_deg is not None:
         kwargs["vfov_deg"] = a.vfov_deg
     stride = a.stride
-    if p.is_dir() and not (p / "metadata.yaml").exists():
+    if p.is_dir() and not (p / "metadata.yaml").exists() and a.frames is None:
         kwargs["stride"] = stride  # the fan reader skips pictures without decoding them
         stride = 1
     rec = open_recording(a.path, **kwargs)
+    if a.frames is not None:
+        rec = select_frames(rec, a.frames)
     mapper_thr = DEFAULT_THRESHOLD if a.threshold == "auto" else a.threshold
     rule = a.rule or ("visible" if a.method == "gather" else "plain")
     replay_kw = dict(voxel_size_m=a.voxel_size, backend=a.backend, method=a.method,

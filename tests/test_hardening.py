@@ -1,0 +1,94 @@
+"""What a careless user and a hostile wire found (issue 31): each fix, checked by what it promises."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from conftest import DATA, needs_data
+from test_mapper import GRID, SPEC
+from test_visibility import _random_pings
+
+import gpumap
+from gpumap.merge import load_map, merge_maps
+
+
+def _map(pings, backend="numpy"):
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, threshold=0.1)
+    for img, T in pings:
+        m.integrate(img, T)
+    return m
+
+
+# ------------------------------------------------------------------ 2. merging maps that share pings
+def test_maps_sharing_pings_are_refused_naming_the_files_and_the_count(tmp_path) -> None:
+    pings = _random_pings(6, 3)
+    full, half, other = _map(pings), _map(pings[:3]), _map(pings[3:])
+    full.save(tmp_path / "full.npz")
+    half.save(tmp_path / "half.npz")
+    other.save(tmp_path / "other.npz")
+    with pytest.raises(ValueError, match=r"half\.npz.* and .*full\.npz.* share 3 pings"):
+        merge_maps([tmp_path / "full.npz", tmp_path / "half.npz"], backend="numpy")
+    # disjoint halves still merge, and the merged map knows all six pings
+    m = merge_maps([tmp_path / "half.npz", tmp_path / "other.npz"], backend="numpy")
+    assert m.n_integrated == 6 and len(m.pings) == 6
+    np.testing.assert_array_equal(m.raw_values(), full.raw_values())
+    # so a merged map then refuses a map of one of its pings, and the fingerprints survive a file
+    m.save(tmp_path / "merged.npz")
+    assert len(load_map(tmp_path / "merged.npz", backend="numpy").pings) == 6
+    with pytest.raises(ValueError, match="share 1 pings"):
+        merge_maps([tmp_path / "merged.npz", _map(pings[4:5])], backend="numpy")
+
+
+def test_fingerprints_follow_the_ping_not_the_call(tmp_path) -> None:
+    """integrate and integrate_batch, uint8 or not: the same ping has the same fingerprint; another
+    pose or image another; reset forgets them."""
+    pings = _random_pings(3, 4)
+    a = _map(pings)
+    b = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.1)
+    b.integrate_batch(np.stack([p[0] for p in pings]), np.stack([p[1] for p in pings]))
+    np.testing.assert_array_equal(a.pings.array(), b.pings.array())
+    assert len(set(a.pings.array().tolist())) == 3
+    moved = pings[0][1].copy()
+    moved[0, 3] += 1e-3
+    c = _map([(pings[0][0], moved)])
+    assert a.pings.shared(c.pings.array()) == 0
+    a.reset()
+    assert len(a.pings) == 0
+
+
+@needs_data
+def test_replay_frames_split_a_recording_that_merge_then_joins(tmp_path) -> None:
+    """gpumap replay --frames: two halves of the OASIS tank merge into the whole; the whole and a
+    half do not."""
+    rec = str(DATA / "oasis_tank")
+    common = ["--max-frames", "6", "--voxel-size", "0.1", "--backend", "numpy", "--no-pictures",
+              "--no-progress", "--grid=-1,-2,-1.6,2.5,2.2,1.4"]
+    from gpumap.cli import main
+
+    assert main(["replay", rec, "--frames", "0:12:2", "--out", str(tmp_path / "full"), *common]) == 0
+    assert main(["replay", rec, "--frames", "0:6:2", "--out", str(tmp_path / "a"), *common]) == 0
+    assert main(["replay", rec, "--frames", "6:12:2", "--out", str(tmp_path / "b"), *common]) == 0
+    assert json.loads((tmp_path / "a" / "summary.json").read_text())["frames"] == 3
+    full = load_map(tmp_path / "full" / "map.npz", backend="numpy")
+    out = tmp_path / "m.npz"
+    assert main(["merge", str(out), str(tmp_path / "a" / "map.npz"), str(tmp_path / "b" / "map.npz")]) == 0
+    np.testing.assert_array_equal(load_map(out, backend="numpy").raw_values(), full.raw_values())
+    r = subprocess.run([sys.executable, "-m", "gpumap.cli", "merge", str(out),
+                        str(tmp_path / "full" / "map.npz"), str(tmp_path / "a" / "map.npz")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2, r.stderr
+    assert "share 3 pings" in r.stderr and "full" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("bad", ["5", "3:2", "-1:4", "1:4:0", "a:b", "1:2:3:4"])
+def test_replay_frames_refuses_what_is_not_a_range(bad, capsys) -> None:
+    from gpumap.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["replay", "nowhere", "--frames", bad])
+    assert e.value.code == 2
+    assert "--frames" in capsys.readouterr().err
