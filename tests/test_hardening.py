@@ -92,3 +92,33 @@ def test_replay_frames_refuses_what_is_not_a_range(bad, capsys) -> None:
         main(["replay", "nowhere", "--frames", bad])
     assert e.value.code == 2
     assert "--frames" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ 1. memory: honest model, bounded
+def test_replay_pictures_colour_the_occupied_box_not_the_grid(tmp_path, monkeypatch) -> None:
+    """views.png colours and meshes only the occupied voxels' box (colour_voxels takes ~60 bytes a
+    voxel: over a 864 M-voxel grid that alone was 50 GB), with the same geometry in the world."""
+    import gpumap.viewer.render as render
+
+    grid = gpumap.GridSpec((0.0, 0.0, 0.0), (10.0, 10.0, 5.0), 0.05)
+    values = np.full(grid.shape, np.nan, np.float32)
+    values[90:110, 95:100, 10:14] = 0.8
+    seen = {}
+    colour, faces = render.colour_voxels, render.exposed_faces_mesh
+
+    def colour_voxels(v, occ, *a, **k):
+        seen["colour"] = v.shape
+        return colour(v, occ, *a, **k)
+
+    def exposed_faces_mesh(occ, col, origin, vs):
+        seen["mesh"] = faces(occ, col, origin, vs)
+        return seen["mesh"]
+
+    monkeypatch.setattr(render, "colour_voxels", colour_voxels)
+    monkeypatch.setattr(render, "exposed_faces_mesh", exposed_faces_mesh)
+    monkeypatch.setattr(render, "render_voxels", lambda *a, **k: np.zeros((4, 4, 3), np.uint8))
+    render.replay_views(tmp_path / "views.png", values, grid, 0.4)
+    assert seen["colour"] == (20, 5, 4)
+    pos = seen["mesh"][0]
+    np.testing.assert_allclose(pos.min(0), [4.5, 4.75, 0.5], atol=1e-5)  # the box's faces, in metres
+    np.testing.assert_allclose(pos.max(0), [5.5, 5.0, 0.7], atol=1e-5)
