@@ -122,3 +122,85 @@ def test_replay_pictures_colour_the_occupied_box_not_the_grid(tmp_path, monkeypa
     pos = seen["mesh"][0]
     np.testing.assert_allclose(pos.min(0), [4.5, 4.75, 0.5], atol=1e-5)  # the box's faces, in metres
     np.testing.assert_allclose(pos.max(0), [5.5, 5.0, 0.7], atol=1e-5)
+
+
+# ------------------------------------------------------------------ 3. the ROS node
+def _live():
+    from test_ros import SMALL_GRID, SMALL_SPEC, _small_pings
+
+    from gpumap.ros.live import LiveMapper
+
+    m = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy")
+    return LiveMapper(m, queue_size=64), _small_pings(4)
+
+
+def test_one_image_from_the_near_future_does_not_refuse_the_pings_after_it() -> None:
+    live, (imgs, _) = _live()
+    s = 1_000_000_000
+    now = 100 * s
+    assert live.add_ping(now, imgs[0], now)
+    assert live.add_ping(now + 9 * s // 10, imgs[1], now + s // 100)  # 0.9 s ahead of the clock
+    for k in range(1, 18):  # the next 17 good pings, at 20 Hz, all before the bad stamp
+        assert live.add_ping(now + k * s // 20, imgs[2], now + k * s // 20), k
+    assert not live.rejected
+    assert not live.add_ping(now + 9 * s // 10, imgs[1], now + s)  # the same stamp again: refused
+    assert not live.add_ping(now + s // 20, imgs[2], now + s)  # and an old one
+    assert live.rejected == {"image_out_of_order": 2}
+
+
+def test_diagnostics_level_follows_the_share_of_messages_lost() -> None:
+    from gpumap.ros.live import health
+
+    def st(received, rejected=0, dropped=0):
+        return {"received": received, "integrated": received - rejected, "rejected": {"image_values": rejected},
+                "skipped": {}, "dropped": {"middleware_lost": dropped}}
+
+    assert health(None, st(100))[0] == "OK"
+    assert health(st(100), st(200, rejected=1))[0] == "OK"  # 1 % of the period
+    level, text = health(st(100), st(200, rejected=30))
+    assert level == "WARN" and "30 of 100" in text
+    assert health(st(100), st(140, dropped=60))[0] == "ERROR"  # 60 of the 100 that came were lost
+    assert health(st(100, rejected=50), st(200, rejected=50))[0] == "OK"  # an old burst is over
+    assert health(None, st(10), RuntimeError("boom"))[0] == "ERROR"
+
+
+def test_absurd_finite_poses_are_refused() -> None:
+    from types import SimpleNamespace
+
+    from gpumap import limits
+    from gpumap.errors import _MAX_POSITION_M, check_pose
+    from gpumap.ros.convert import BadMessage, transform_from_pose
+
+    assert limits.MAX_POSITION_M == _MAX_POSITION_M
+    T = np.eye(4)
+    T[0, 3] = 1e200
+    with pytest.raises(ValueError, match="1e\\+200"):
+        check_pose(T)
+    with pytest.raises(BadMessage) as e:
+        transform_from_pose(SimpleNamespace(x=1e200, y=0.0, z=0.0), SimpleNamespace(x=0.0, y=0.0, z=0.0, w=1.0))
+    assert e.value.reason == "pose_out_of_range"
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")
+    with pytest.raises(ValueError, match="position"):
+        m.integrate(np.zeros(SPEC.image_shape, np.float32), T)
+    assert m.n_integrated == 0
+
+
+def test_user_parameters_win_over_the_params_file(tmp_path) -> None:
+    pytest.importorskip("rclpy")
+    import rclpy
+
+    from gpumap.ros.node import ros_arguments
+
+    f = tmp_path / "node.yaml"
+    f.write_text("/**:\n  ros__parameters:\n    voxel_size_m: 0.05\n    backend: opencl\n")
+    args = ros_arguments(f, ["--ros-args", "-p", "backend:=numpy", "-p", "voxel_size_m:=0.1"])
+    ctx = rclpy.Context()
+    rclpy.init(args=["gpumap_ros", *args], context=ctx)
+    try:
+        node = rclpy.create_node("gpumap", context=ctx)
+        assert node.declare_parameter("voxel_size_m", 0.2).value == 0.1
+        assert node.declare_parameter("backend", "auto").value == "numpy"
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
+    assert ros_arguments(f, []) == ["--ros-args", "--params-file", str(f)]
