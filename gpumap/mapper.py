@@ -1489,7 +1489,8 @@ class MinMaxMapper:
                 zlib.error, tokenize.TokenError, SyntaxError, NotImplementedError, struct.error) as e:
             # damaged deflate data, a damaged .npy header dict, an unknown zip compression
             raise FormatError(
-                f"Expected a gpumap map file (.npz) at {path}, but it cannot be read: {e!r}"
+                f"Expected a gpumap map file (.npz) at {path}, but it cannot be read "
+                f"({type(e).__name__}: {e})"
             ) from e
         if dense_file:
             _check_map_values(arrays, opts, path)

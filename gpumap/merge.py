@@ -276,11 +276,17 @@ def _file_format(path: Path) -> str:
                 raise FormatError(f"Expected map metadata under {_META_MAX_BYTES} bytes in {path}")
             with zf.open(info) as f:
                 meta = json.loads(str(np.lib.format.read_array(f, allow_pickle=False)))
-    except (OSError, KeyError, EOFError, zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError,
-            ValueError) as e:
+    except zipfile.BadZipFile:
+        raise FormatError(f"Expected a gpumap map file (.npz: a zip archive) at {path}, but it is not a zip "
+                          "archive (a truncated or damaged file, or another kind of file)") from None
+    except KeyError:
+        raise FormatError(f"Expected a gpumap map file (.npz with 'meta') at {path}, but it has no 'meta' "
+                          "member: a .npz that gpumap did not write") from None
+    except (OSError, EOFError, json.JSONDecodeError, UnicodeDecodeError, ValueError) as e:
         if isinstance(e, FormatError):
             raise
-        raise FormatError(f"Expected a gpumap map file (.npz with 'meta') at {path}, but: {e!r}") from e
+        raise FormatError(f"Expected a gpumap map file (.npz with 'meta') at {path}, but its metadata cannot "
+                          f"be read ({type(e).__name__}: {e})") from e
     fmt = meta.get("format") if isinstance(meta, dict) else None
     if not isinstance(fmt, str):
         raise FormatError(f"Expected a 'format' in the metadata of {path}, but got {fmt!r}")

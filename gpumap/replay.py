@@ -73,7 +73,8 @@ RULES = ("plain", "visible")
 
 
 def auto_grid(spec: SonarSpec, poses: Sequence[np.ndarray], voxel_size_m: float,
-              max_voxels: int = 200_000_000) -> GridSpec:
+              max_voxels: int = 200_000_000,
+              remedy: str = "pass --grid or a larger --voxel-size") -> GridSpec:
     """The box holding every field of view of ``spec`` at ``poses``, padded by one voxel.
 
     Parameters
@@ -83,7 +84,8 @@ def auto_grid(spec: SonarSpec, poses: Sequence[np.ndarray], voxel_size_m: float,
         ``T_W_S`` of every ping.
     voxel_size_m : float
     max_voxels : int
-        Refuse boxes larger than this (the message says which ``--grid`` to pass instead).
+        Refuse boxes larger than this, saying ``remedy`` (what the caller can change: a command
+        names its own flags).
     """
     c = spec.fov_corners_S()
     lo = np.full(3, np.inf)
@@ -99,7 +101,7 @@ def auto_grid(spec: SonarSpec, poses: Sequence[np.ndarray], voxel_size_m: float,
         raise ValueError(
             f"Expected an automatic grid of at most {max_voxels} voxels, but the fields of view "
             f"span {np.round(lo, 2).tolist()}..{np.round(hi, 2).tolist()} m = {n.astype(int).tolist()}"
-            f" voxels at {voxel_size_m} m: pass --grid or a larger --voxel-size"
+            f" voxels at {voxel_size_m} m: {remedy}"
         )
     return GridSpec(tuple(lo), tuple(hi), voxel_size_m)
 

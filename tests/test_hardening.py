@@ -152,8 +152,8 @@ def test_diagnostics_level_follows_the_share_of_messages_lost() -> None:
     from gpumap.ros.live import health
 
     def st(received, rejected=0, dropped=0):
-        return {"received": received, "integrated": received - rejected, "rejected": {"image_values": rejected},
-                "skipped": {}, "dropped": {"middleware_lost": dropped}}
+        return {"received": received, "integrated": received - rejected, "skipped": {},
+                "rejected": {"image_values": rejected}, "dropped": {"middleware_lost": dropped}}
 
     assert health(None, st(100))[0] == "OK"
     assert health(st(100), st(200, rejected=1))[0] == "OK"  # 1 % of the period
@@ -177,7 +177,8 @@ def test_absurd_finite_poses_are_refused() -> None:
     with pytest.raises(ValueError, match="1e\\+200"):
         check_pose(T)
     with pytest.raises(BadMessage) as e:
-        transform_from_pose(SimpleNamespace(x=1e200, y=0.0, z=0.0), SimpleNamespace(x=0.0, y=0.0, z=0.0, w=1.0))
+        transform_from_pose(SimpleNamespace(x=1e200, y=0.0, z=0.0),
+                            SimpleNamespace(x=0.0, y=0.0, z=0.0, w=1.0))
     assert e.value.reason == "pose_out_of_range"
     m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")
     with pytest.raises(ValueError, match="position"):
@@ -204,3 +205,57 @@ def test_user_parameters_win_over_the_params_file(tmp_path) -> None:
     finally:
         rclpy.shutdown(context=ctx)
     assert ros_arguments(f, []) == ["--ros-args", "--params-file", str(f)]
+
+
+# ------------------------------------------------------------------ 4. messages name only what exists
+def _flags(parser) -> set[str]:
+    return {o for act in parser._actions for o in act.option_strings}
+
+
+@needs_data
+def test_refine_grid_error_names_only_refine_flags(capsys) -> None:
+    import re
+
+    from gpumap.cli import main
+    from gpumap.refine_cli import _parser
+
+    rc = main(["refine", str(DATA / "oasis_tank"), "--voxel-size", "0.002", "--max-frames", "3",
+               "--no-progress", "--out", "/nonexistent-never-written"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "automatic grid" in err, err
+    named = set(re.findall(r"--[a-z][a-z-]+", err))
+    assert named and named <= _flags(_parser()), named - _flags(_parser())
+
+
+def test_view_without_the_viewer_names_no_flag_it_lacks(monkeypatch, capsys, tmp_path) -> None:
+    import importlib.util
+
+    from gpumap.viewer import cli as vcli
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "viser" else real(name, *a))
+    (tmp_path / "map.npz").write_bytes(b"")
+    with pytest.raises(SystemExit) as e:
+        vcli.main([str(tmp_path / "map.npz")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "pip install 'gpumap[viewer]'" in err and "--view:" not in err
+    assert "after the run" not in vcli._parser().format_help()
+
+
+@pytest.mark.parametrize("content", [b"not a zip at all", None])
+def test_export_and_merge_say_what_is_wrong_with_a_map_file_in_words(content, tmp_path) -> None:
+    import zipfile
+
+    bad = tmp_path / "bad.npz"
+    if content is None:  # a zip archive without gpumap's metadata
+        with zipfile.ZipFile(bad, "w") as z:
+            z.writestr("x.npy", b"1")
+    else:
+        bad.write_bytes(content)
+    for argv in (["export", str(bad), str(tmp_path / "o.ply")], ["merge", str(tmp_path / "o.npz"), str(bad)]):
+        r = subprocess.run([sys.executable, "-m", "gpumap.cli", *argv], capture_output=True, text=True)
+        assert r.returncode == 2, r.stderr
+        assert "Expected a gpumap map file" in r.stderr
+        for raw in ("BadZipFile(", "KeyError(", "Traceback"):
+            assert raw not in r.stderr, r.stderr
