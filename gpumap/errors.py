@@ -91,6 +91,9 @@ def check_finite_scalar(value: object, name: str) -> float:
     return v
 
 
+_MAX_POSITION_M = 1e8  # gpumap.limits.MAX_POSITION_M (limits imports this module; a test checks they agree)
+
+
 def check_pose(T: object, name: str = "T_W_S", atol: float = 1e-5) -> np.ndarray:
     """Validate a 4x4 rigid transform and return it as a float64 array (a copy).
 
@@ -106,6 +109,10 @@ def check_pose(T: object, name: str = "T_W_S", atol: float = 1e-5) -> np.ndarray
         raise ValueError(f"Expected a (4, 4) transform for '{name}', but got shape {a.shape}")
     if not np.isfinite(a).all():
         raise ValueError(f"Expected finite entries in '{name}', but got NaN or inf")
+    far = float(np.abs(a[:3, 3]).max())
+    if far > _MAX_POSITION_M:
+        raise ValueError(f"Expected a position within {_MAX_POSITION_M:g} m of the origin in '{name}' "
+                         f"(gpumap.limits.MAX_POSITION_M), but got a coordinate of {far:.3g} m")
     r3 = a[3]
     if abs(r3[0]) > atol or abs(r3[1]) > atol or abs(r3[2]) > atol or abs(r3[3] - 1.0) > atol:
         raise ValueError(f"Expected the last row of '{name}' to be [0, 0, 0, 1], but got {r3.tolist()}")

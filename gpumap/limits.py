@@ -33,6 +33,7 @@ __all__ = [
     "MAX_PLY_HEADER_BYTES",
     "MAX_PLY_PROPERTIES",
     "MAX_PLY_VERTICES",
+    "MAX_POSITION_M",
     "MAX_RANGE_M",
     "MAX_TABLE_BYTES",
     "MIN_BIN_SIZE_M",
@@ -97,6 +98,12 @@ MIN_BIN_SIZE_M = 1e-5
 
 MAX_RANGE_M = 1e4
 """10 km: the farthest range a file may declare for a ping (``range_max_m``)."""
+
+MAX_POSITION_M = 1e8
+"""100,000 km: the farthest a sonar pose may lie from the world origin (each coordinate of its
+translation). A finite but absurd pose (x = 1e200) overflowed the mapper's arithmetic and was
+counted as mapped; every pose gpumap takes (``check_pose``, the ROS node's pose messages) is
+refused beyond this, far past any survey (UTM northings stay under 1e7 m)."""
 
 
 def check_geometry(spec, what: str = "the ping", *, offset: int | None = None,

@@ -58,6 +58,7 @@ from gpumap.errors import (
     check_pose,
 )
 from gpumap.geometry import BRIGHT_SHARE, RULES, SHARE_Z, make_template_S, pose_pad_m, static_params
+from gpumap.pings import PingPrints, read_prints
 from gpumap.spec import _MAX_VOXEL_INDEX, GridSpec, SonarSpec, SparseSpec, _vec3
 
 __all__ = ["MapMemoryError", "MinMaxMapper", "available_backends"]
@@ -373,6 +374,7 @@ class MinMaxMapper:
         self.max_bytes = None if max_bytes is None else int(max_bytes)
         self.evict = evict
         self.n_integrated = 0
+        self.pings = PingPrints()  # a fingerprint per integrated ping (gpumap.pings)
         self._empty = True  # no ping, merge or load has gone into the map since it was made or reset
         self._stateful = rule != "plain"  # the visible and evidence rules keep bright and count
         # a bounded box's blocks are BLOCK x BLOCK columns of the grid's height (one index read per
@@ -635,6 +637,7 @@ class MinMaxMapper:
             if self._confirmed is not None:
                 self._confirm(T, pads[0], img)
             self.n_integrated += 1  # under the lock
+            self.pings.add(img, T)
 
     def _pose_pad(self, C: np.ndarray, pose_sigmas: float) -> float:
         k = check_finite_scalar(pose_sigmas, "pose_sigmas")
@@ -753,12 +756,14 @@ class MinMaxMapper:
                     self._backend.integrate(params[0, ...], imgs[b], self.method, int(n_threads[0]))
                     self._confirm(Ts[b], pads[b], imgs[b])
                     self.n_integrated += 1
+                    self.pings.add(imgs[b], Ts[b])
                 return
             params, n_threads = self._ping_params(Ts, pads)
             self._prepare(params, Ts, n_threads)
             self._empty = False
             self._backend.integrate_batch(params, imgs, self.method, n_threads)
             self.n_integrated += B
+            self.pings.add_batch(imgs, Ts)
 
     def _check_images(self, images: object) -> np.ndarray:
         """(B, n_bins, n_beams) C-contiguous uint8 or float32 in [0, 1] (converted if needed)."""
@@ -1351,6 +1356,7 @@ class MinMaxMapper:
             else:
                 self._free_slots(np.flatnonzero(self._used))
             self.n_integrated = 0
+            self.pings.clear()
             self._empty = True
 
     def merge(self, other) -> None:
@@ -1428,7 +1434,7 @@ class MinMaxMapper:
         layer ``confirmed`` uint8 and ``arcs`` uint16; ``meta`` (JSON): the sonar spec, the
         ``grid`` (a bounded box) or the ``sparse`` spec (on demand), the method, rule,
         threshold, carve_views, shadow_m and the ping count, under a format name and version
-        checked by :meth:`load`.
+        checked by :meth:`load`; ``pings`` (n,) uint64, the pings' fingerprints (:mod:`gpumap.pings`).
         """
         path = Path(path)
         if path.suffix != ".npz":
@@ -1447,7 +1453,8 @@ class MinMaxMapper:
                 arrays["confirmed"] = self._to_pool_order(self._confirmed.reshape(shape), 0)[keep]
                 arrays["arcs"] = self._to_pool_order(self._arcs.reshape(shape), 0)[keep]
             n_integrated = self.n_integrated
-        arrays = {k: v if k == "blocks" else v.reshape(-1, B, B, Bz) for k, v in arrays.items()}
+            arrays["pings"] = self.pings.array()
+        arrays = {k: v if k in ("blocks", "pings") else v.reshape(-1, B, B, Bz) for k, v in arrays.items()}
         meta = {
             "format": FILE_FORMAT,
             "version": FILE_VERSION,
@@ -1510,6 +1517,7 @@ class MinMaxMapper:
                 spec, space, opts, n_integrated, dense_file = _check_meta(meta, path)
                 # before version 5 'count' was the visible rule's uint8 dark count
                 count_dt = np.uint64 if meta.get("version") == FILE_VERSION else np.uint8
+                prints = read_prints(zf, members, headers, n_integrated, path)
                 if cls._on_demand and not isinstance(space, SparseSpec):
                     raise FormatError(f"Expected a sparse map file (blocks on demand) for {cls.__name__}, "
                                       f"but {path} holds a map of a bounded grid: load it with MinMaxMapper")
@@ -1560,7 +1568,8 @@ class MinMaxMapper:
                 zlib.error, tokenize.TokenError, SyntaxError, NotImplementedError, struct.error) as e:
             # damaged deflate data, a damaged .npy header dict, an unknown zip compression
             raise FormatError(
-                f"Expected a gpumap map file (.npz) at {path}, but it cannot be read: {e!r}"
+                f"Expected a gpumap map file (.npz) at {path}, but it cannot be read "
+                f"({type(e).__name__}: {e})"
             ) from e
         if dense_file:
             _check_map_values(arrays, opts, path)
@@ -1576,6 +1585,7 @@ class MinMaxMapper:
                     m._confirmed[:] = arrays["confirmed"].ravel()
                     m._arcs[:] = arrays["arcs"].ravel()
                 m.n_integrated = n_integrated
+                m.pings = prints
             return m
         coords = arrays.pop("blocks").astype(np.int64)
         n = len(coords)
@@ -1610,6 +1620,7 @@ class MinMaxMapper:
                 m._confirmed[:] = layer["confirmed"].ravel()
                 m._arcs[:] = layer["arcs"].ravel()
             m.n_integrated = n_integrated
+            m.pings = prints
         return m
 
 

@@ -65,7 +65,9 @@ class MapState:
     arrays : dict
         ``blocks`` ``(n, 3)`` int64 block coordinates (lexicographic order; only blocks with an
         observed voxel), and per block ``(n, B B Bz)`` ``min_all`` float32 (``+inf`` never
-        observed) and for the visible rule ``bright`` float32 and ``count`` uint8.
+        observed) and for the visible rule ``bright`` float32 and ``count`` uint8; ``pings``
+        ``(k,) uint64``, the fingerprints of the pings it knows (:mod:`gpumap.pings`; ``k`` may
+        be less than ``n_integrated`` for maps of older files, absent in a state built by hand).
     """
 
     kind: str
@@ -110,6 +112,7 @@ def map_state(mapper) -> MapState:
         arrays = {"blocks": coords[keep].astype(np.int64), "min_all": data["min_all"][keep]}
         if mapper.rule != "plain":
             arrays["bright"], arrays["count"] = data["bright"][keep], data["count"][keep]
+        arrays["pings"] = mapper.pings.array()
         n = int(mapper.n_integrated)
     return MapState(kind, opts, n, arrays)
 
@@ -214,10 +217,29 @@ def merge_into(mapper, other) -> None:
         )
     _same(kind, opts, st)
     _check_arrays(st, mapper)
+    prints = _prints(st)
+    shared = mapper.pings.shared(prints)
+    if shared:
+        raise ValueError(
+            f"Expected maps built from different pings, but the map to merge shares {shared} of its "
+            f"{len(prints)} known pings with the map it goes into (merged, those pings would count twice)")
     with mapper._lock:
         # a map that nothing went into yet: the other's blocks are the merge (no read of the pool)
         mapper._put_blocks(st.arrays["blocks"], st.arrays, combine=not mapper._empty)
         mapper.n_integrated += int(st.n_integrated)
+        mapper.pings.extend(prints)
+
+
+def _prints(st: MapState) -> np.ndarray:
+    """The state's ping fingerprints, checked: ``(k,) uint64``, distinct, ``k <= n_integrated``."""
+    p = st.arrays.get("pings")
+    if p is None:
+        return np.zeros(0, np.uint64)
+    if not isinstance(p, np.ndarray) or p.ndim != 1 or p.dtype != np.uint64 or len(p) > st.n_integrated:
+        got = f"{getattr(p, 'shape', '?')} {getattr(p, 'dtype', type(p).__name__)}"
+        raise ValueError(f"Expected 'pings' of shape (k,) uint64 with k <= {st.n_integrated} pings in the "
+                         f"map to merge, but got {got}")
+    return p
 
 
 def _check_arrays(st: MapState, mapper) -> None:
@@ -256,11 +278,17 @@ def _file_format(path: Path) -> str:
                 raise FormatError(f"Expected map metadata under {_META_MAX_BYTES} bytes in {path}")
             with zf.open(info) as f:
                 meta = json.loads(str(np.lib.format.read_array(f, allow_pickle=False)))
-    except (OSError, KeyError, EOFError, zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError,
-            ValueError) as e:
+    except zipfile.BadZipFile:
+        raise FormatError(f"Expected a gpumap map file (.npz: a zip archive) at {path}, but it is not a zip "
+                          "archive (a truncated or damaged file, or another kind of file)") from None
+    except KeyError:
+        raise FormatError(f"Expected a gpumap map file (.npz with 'meta') at {path}, but it has no 'meta' "
+                          "member: a .npz that gpumap did not write") from None
+    except (OSError, EOFError, json.JSONDecodeError, UnicodeDecodeError, ValueError) as e:
         if isinstance(e, FormatError):
             raise
-        raise FormatError(f"Expected a gpumap map file (.npz with 'meta') at {path}, but: {e!r}") from e
+        raise FormatError(f"Expected a gpumap map file (.npz with 'meta') at {path}, but its metadata cannot "
+                          f"be read ({type(e).__name__}: {e})") from e
     fmt = meta.get("format") if isinstance(meta, dict) else None
     if not isinstance(fmt, str):
         raise FormatError(f"Expected a 'format' in the metadata of {path}, but got {fmt!r}")
@@ -308,13 +336,30 @@ def merge_maps(maps, backend: str = "auto", **kw):
     """
     it = _distinct_files(maps)
     try:
-        first = _as_state(next(it))
+        src = next(it)
     except StopIteration:
         raise ValueError("Expected at least one map to merge, but got none") from None
+    first = _as_state(src)
     out = new_like(first, backend=backend, **kw)
     st = first
+    seen: list[tuple[str, np.ndarray]] = []  # (name, ping fingerprints) of the maps merged so far
     while st is not None:  # one map at a time: only blocks that two maps hold are combined
+        prints, name = _prints(st), _name(src, len(seen))
+        for other, theirs in seen:
+            n = int(np.isin(prints, theirs).sum())
+            if n:
+                raise ValueError(
+                    f"Expected maps built from different pings, but {name} and {other} share {n} pings "
+                    f"({name} has {st.n_integrated}, {other} {len(theirs)} known): merged, those pings "
+                    "would count twice; merge maps of disjoint frames (gpumap replay --frames)")
         merge_into(out, st)
-        nxt = next(it, None)
-        st = None if nxt is None else _as_state(nxt)
+        seen.append((name, prints))
+        src = next(it, None)
+        st = None if src is None else _as_state(src)
     return out
+
+
+def _name(src, i: int) -> str:
+    """How an error names a map to merge: its file, or its place in the list."""
+    return repr(str(src)) if isinstance(src, (str, os.PathLike)) else f"map {i + 1}"
+

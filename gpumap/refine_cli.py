@@ -126,7 +126,8 @@ def main(argv: list[str] | None = None) -> int:
 
         _init_warp(a.device)  # a missing CUDA device is said before the frames are read and mapped
         spec, images, poses = load_frames(a.path, a.stride, a.max_frames)
-        grid = auto_grid(spec, list(poses), a.voxel_size)
+        grid = auto_grid(spec, list(poses), a.voxel_size,
+                         remedy="use a larger --voxel-size, or fewer frames (--stride, --max-frames)")
         mapper = gpumap.MinMaxMapper(spec, grid, backend=a.backend, rule="visible", threshold=a.threshold)
         mapper.integrate_batch(images, poses)
         opts = RefineOptions(iterations=a.iterations, pings_per_step=a.pings_per_step)

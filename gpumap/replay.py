@@ -25,6 +25,7 @@ rule and adds ``rules.png`` (the two maps side by side, and where they differ) a
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import sys
@@ -73,7 +74,8 @@ RULES = GEOMETRY_RULES
 
 
 def auto_grid(spec: SonarSpec, poses: Sequence[np.ndarray], voxel_size_m: float,
-              max_voxels: int = 200_000_000) -> GridSpec:
+              max_voxels: int = 200_000_000,
+              remedy: str = "pass --grid or a larger --voxel-size") -> GridSpec:
     """The box holding every field of view of ``spec`` at ``poses``, padded by one voxel.
 
     Parameters
@@ -83,7 +85,8 @@ def auto_grid(spec: SonarSpec, poses: Sequence[np.ndarray], voxel_size_m: float,
         ``T_W_S`` of every ping.
     voxel_size_m : float
     max_voxels : int
-        Refuse boxes larger than this (the message says which ``--grid`` to pass instead).
+        Refuse boxes larger than this, saying ``remedy`` (what the caller can change: a command
+        names its own flags).
     """
     c = spec.fov_corners_S()
     lo = np.full(3, np.inf)
@@ -99,7 +102,7 @@ def auto_grid(spec: SonarSpec, poses: Sequence[np.ndarray], voxel_size_m: float,
         raise ValueError(
             f"Expected an automatic grid of at most {max_voxels} voxels, but the fields of view "
             f"span {np.round(lo, 2).tolist()}..{np.round(hi, 2).tolist()} m = {n.astype(int).tolist()}"
-            f" voxels at {voxel_size_m} m: pass --grid or a larger --voxel-size"
+            f" voxels at {voxel_size_m} m: {remedy}"
         )
     return GridSpec(tuple(lo), tuple(hi), voxel_size_m)
 
@@ -656,6 +659,10 @@ def _parser() -> ArgumentParser:
                          "section in summary.json (needs --method gather)")
     ap.add_argument("--static", action="store_true",
                     help="map every ping at one fixed (identity) pose: for pose-less recordings")
+    ap.add_argument("--frames", type=frame_range, default=None, metavar="START:STOP[:STEP]",
+                    help="only the recording's frames START to STOP-1 (counted from 0, every STEP-th; "
+                         "START or STOP may be left out), before --stride and --max-frames: split a "
+                         "recording into maps of disjoint pings that gpumap merge can join")
     ap.add_argument("--stride", type=positive_int, default=1, help="use every N-th frame")
     ap.add_argument("--max-frames", type=positive_int, default=None,
                     help="stop after this many frames (after --stride); default all")
@@ -678,6 +685,37 @@ def _parser() -> ArgumentParser:
     return ap
 
 
+def select_frames(recording, frames: slice):
+    """The frames of ``recording`` whose indices are in ``frames`` (``slice(start, stop, step)``,
+    start and stop >= 0), as a :class:`~gpumap.io.Recording` (``gpumap replay --frames``)."""
+    from gpumap.io.frame import Recording
+
+    rec = recording
+    return Recording(
+        rec.path, rec.kind, lambda: itertools.islice(iter(rec), frames.start, frames.stop, frames.step),
+        rec.has_poses,
+        count=None if rec.count() is None else lambda: len(range(rec.count())[frames]),
+        poses=None if rec._poses is None else lambda: list(rec.poses())[frames],
+    )
+
+
+def frame_range(text: str) -> slice:
+    """``START:STOP[:STEP]`` (whole numbers, START >= 0, STOP > START, STEP >= 1; START or STOP
+    may be empty) as a ``slice`` (``--frames``)."""
+    want = "START:STOP or START:STOP:STEP (whole numbers, START >= 0, STOP > START, STEP >= 1)"
+    parts = text.split(":")
+    if len(parts) not in (2, 3):
+        raise argparse.ArgumentTypeError(f"Expected {want}, but got {text!r}")
+    try:
+        start, stop, step = (int(x) if x.strip() else None for x in (*parts, "")[:3])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"Expected {want}, but got {text!r}") from None
+    start = start or 0
+    if start < 0 or (stop is not None and stop <= start) or (step is not None and step < 1):
+        raise argparse.ArgumentTypeError(f"Expected {want}, but got {text!r}")
+    return slice(start, stop, step)
+
+
 def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]:
     """Parse and check every flag, alone and together, before any work; exit 2 on a bad one."""
     ap = _parser()
@@ -691,6 +729,9 @@ def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]
     from gpumap.ekf_replay import check_ekf_args
 
     check_ekf_args(ap, a)
+    if a.frames is not None and a.ekf:
+        ap.error("argument --frames: Expected it without --ekf (the EKF replay reads the whole "
+                 "recording), but got both")
     if a.method == "template" and a.rule not in (None, "plain"):
         ap.error("argument --rule: Expected rule='plain' with --method template (the template "
                  f"method's duplicate points cannot count views once), but got --rule {a.rule}")
@@ -799,10 +840,12 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
     elif a.vfov_deg is not None:
         kwargs["vfov_deg"] = a.vfov_deg
     stride = a.stride
-    if p.is_dir() and not (p / "metadata.yaml").exists():
+    if p.is_dir() and not (p / "metadata.yaml").exists() and a.frames is None:
         kwargs["stride"] = stride  # the fan reader skips pictures without decoding them
         stride = 1
     rec = open_recording(a.path, **kwargs)
+    if a.frames is not None:
+        rec = select_frames(rec, a.frames)
     mapper_thr = DEFAULT_THRESHOLD if a.threshold == "auto" else a.threshold
     rule = a.rule or ("evidence" if a.method == "gather" else "plain")
     replay_kw = dict(voxel_size_m=a.voxel_size, backend=a.backend, method=a.method,

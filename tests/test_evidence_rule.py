@@ -132,11 +132,13 @@ def test_a_surface_bright_in_most_views_stays_while_a_rarely_bright_one_goes(bac
     assert np.all(vis[surface] < THR)  # what the default rule must not do: the test can fail
 
 
-def _preloaded(backend, dark: int, hits: int) -> tuple[gpumap.MinMaxMapper, np.ndarray]:
+def _preloaded(backend, dark: int, hits: int,
+               brightness: float = 0.7) -> tuple[gpumap.MinMaxMapper, np.ndarray]:
     """A map whose observed voxels hold ``dark`` clear dark and ``hits`` bright views (a state
-    merged into a fresh map), and the mask of those voxels."""
+    merged into a fresh map), and the mask of those voxels. Its one ping is a bright range bin of
+    ``brightness`` (maps holding the very same ping do not merge)."""
     img = np.zeros(SPEC.image_shape, np.float32)
-    img[SPEC.bin_index(np.array([0.8]))[0]] = 0.7
+    img[SPEC.bin_index(np.array([0.8]))[0]] = brightness
     seed = _run("numpy", [(img, T_A)])
     st = map_state(seed)
     counts = np.where(np.isfinite(st.arrays["min_all"]), pack_counts(dark, hits), np.uint64(0))
@@ -169,7 +171,7 @@ def test_counts_saturate_at_2_to_the_32_minus_1_and_never_wrap(backend):
 def test_merged_counts_saturate_too():
     """Merging two maps near the limit stops each count at 2^32 - 1, as one mapper would."""
     a, seen = _preloaded("numpy", TOP - 5, 3)
-    b, _ = _preloaded("numpy", 10, TOP - 1)
+    b, _ = _preloaded("numpy", 10, TOP - 1, brightness=0.6)
     a.merge(b)
     ev = a.evidence()
     assert np.all(ev["count"][seen] == TOP) and np.all(ev["hits"][seen] == TOP)

@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from gpumap.limits import MAX_POSITION_M
 from gpumap.spec import GridSpec
 
 __all__ = [
@@ -141,14 +142,18 @@ def transform_from_pose(position, orientation, quat_tol: float = 1e-3) -> np.nda
     Raises
     ------
     BadMessage
-        ``pose_nonfinite`` (NaN or inf anywhere) or ``pose_not_unit_quaternion`` (norm off
-        1 by more than ``quat_tol``: not a rotation).
+        ``pose_nonfinite`` (NaN or inf anywhere), ``pose_out_of_range`` (a coordinate beyond
+        ``gpumap.limits.MAX_POSITION_M``) or ``pose_not_unit_quaternion`` (norm off 1 by more
+        than ``quat_tol``: not a rotation).
     """
     p = np.array([position.x, position.y, position.z], dtype=np.float64)
     q = np.array([orientation.x, orientation.y, orientation.z, orientation.w], dtype=np.float64)
     if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
         raise BadMessage("pose_nonfinite", f"Expected a finite pose, but got position {p.tolist()} and "
                          f"quaternion (x, y, z, w) {q.tolist()}")
+    if np.abs(p).max() > MAX_POSITION_M:
+        raise BadMessage("pose_out_of_range", f"Expected a position within {MAX_POSITION_M:g} m of the "
+                         f"origin (gpumap.limits.MAX_POSITION_M), but got {p.tolist()}")
     n = float(np.linalg.norm(q))
     if abs(n - 1.0) > quat_tol:
         raise BadMessage("pose_not_unit_quaternion", f"Expected a unit quaternion (a rotation), but its norm "

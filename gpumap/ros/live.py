@@ -7,7 +7,11 @@ the pings.
 What happens to a ping (stamp ``t``, a polar image):
 
 1. :meth:`LiveMapper.add_ping` refuses a stamp not after the last accepted ping's
-   (``rejected['image_out_of_order']``) and queues the ping. The queue holds at most
+   (``rejected['image_out_of_order']``) and queues the ping. A ping stamped ahead of the
+   receiver's clock (``now_ns``; within the node's ``max_future_s``, else the node refuses it)
+   is mapped but does not become the mark later pings must pass: one image stamped 0.9 s
+   ahead no longer gets the next second of good pings refused as out of order (a stamp
+   already accepted is still refused). The queue holds at most
    ``queue_size`` pings: when a new ping finds it full, the **oldest** queued ping is dropped
    (``dropped['queue_full']``), so the map follows the vehicle's latest view and the queue's
    latency stays bounded. Nothing else is ever dropped, and every drop is counted.
@@ -133,6 +137,37 @@ class QueuedPing:
     T_W_S: np.ndarray | None = field(default=None, repr=False)
 
 
+#: /diagnostics goes WARN when more than this share of the messages that came in one period were
+#: lost (rejected, skipped or dropped: every reason), ERROR above :data:`ERROR_FRACTION` (or when the
+#: worker stopped).
+WARN_FRACTION = 0.05
+ERROR_FRACTION = 0.5
+
+
+def health(prev: dict | None, now: dict, error: BaseException | None = None) -> tuple[str, str]:
+    """``(level, message)`` of ``/diagnostics`` from two :meth:`LiveMapper.stats` (the last period's and
+    this one's; ``prev`` None: since the start): ``"OK"``, ``"WARN"`` or ``"ERROR"`` by the share of
+    the period's messages that were lost (images received or lost in the middleware, and poses
+    refused), see :data:`WARN_FRACTION`."""
+    def lost(s: dict | None) -> int:
+        return 0 if s is None else sum(sum(s[k].values()) for k in ("rejected", "skipped", "dropped"))
+
+    def came(s: dict | None) -> int:
+        return 0 if s is None else s["received"] + s["dropped"].get("middleware_lost", 0)
+
+    d_lost, d_came = lost(now) - lost(prev), came(now) - came(prev)
+    share = d_lost / max(d_came, 1)
+    gone = sum(now["dropped"].values()) + sum(now["skipped"].values())
+    total = (f"{now['integrated']} pings mapped, {gone} dropped or skipped, "
+             f"{sum(now['rejected'].values())} messages rejected")
+    if error is not None:
+        return "ERROR", f"worker stopped: {error!r}; {total}"
+    if not d_lost:
+        return "OK", total
+    level = "ERROR" if share > ERROR_FRACTION else "WARN" if share > WARN_FRACTION else "OK"
+    return level, f"{d_lost} of {d_came} messages lost in the last period ({share:.0%}); {total}"
+
+
 class LiveMapper:
     """Feed a mapper from a live stream of pings and poses on a worker thread.
 
@@ -199,7 +234,8 @@ class LiveMapper:
         self._map_lock = threading.Lock()  # integrate / reset / save / reads of the map
         self._pending: collections.deque[QueuedPing] = collections.deque()
         self._in_flight = 0  # pings taken from the queue, in the mapper now
-        self._last_ping_ns: int | None = None
+        self._last_ping_ns: int | None = None  # the newest accepted stamp not ahead of the clock
+        self._ahead: collections.deque[int] = collections.deque(maxlen=64)  # accepted, ahead of it
         self._stop = False
         self._thread: threading.Thread | None = None
         self._logged: set[str] = set()
@@ -256,12 +292,13 @@ class LiveMapper:
                         f"the newest buffered pose ({self.poses.newest_ns * 1e-9:.6f} s)")
         return ok
 
-    def add_ping(self, stamp_ns: int, image: np.ndarray) -> bool:
+    def add_ping(self, stamp_ns: int, image: np.ndarray, now_ns: int | None = None) -> bool:
         """Queue a checked polar image (uint8 or float32 in [0, 1]); never waits for the mapper.
 
         Returns False when refused: the stamp is not after the last accepted ping's
         (``rejected['image_out_of_order']``), or the shape is not the sonar's
-        (``rejected['image_size']``).
+        (``rejected['image_size']``). ``now_ns``: the receiver's clock; a stamp after it is
+        accepted without moving the mark later stamps must pass (module docstring).
         """
         if tuple(image.shape) != self.image_shape:
             self.reject("image_size", f"expected a polar image of shape {self.image_shape}, but got "
@@ -269,12 +306,15 @@ class LiveMapper:
             return False
         dropped = None
         with self._cond:
-            if self._last_ping_ns is not None and stamp_ns <= self._last_ping_ns:
-                last = self._last_ping_ns
+            if (self._last_ping_ns is not None and stamp_ns <= self._last_ping_ns) or stamp_ns in self._ahead:
+                last = self._last_ping_ns if stamp_ns not in self._ahead else int(stamp_ns)
                 ok = False
             else:
                 ok = True
-                self._last_ping_ns = int(stamp_ns)
+                if now_ns is not None and stamp_ns > now_ns:
+                    self._ahead.append(int(stamp_ns))
+                else:
+                    self._last_ping_ns = int(stamp_ns)
                 self._pending.append(QueuedPing(int(stamp_ns), image, self._clock()))
                 if len(self._pending) > self.queue_size:
                     dropped = self._pending.popleft()

@@ -63,7 +63,7 @@ from gpumap.ros.convert import (
     project_obstacles,
     stamp_ns,
 )
-from gpumap.ros.live import LiveMapper
+from gpumap.ros.live import LiveMapper, health
 from gpumap.spec import GridSpec, SonarSpec
 
 __all__ = ["NODE_NAME", "PARAMETERS", "main", "make_node", "sonar_spec_from_params"]
@@ -252,6 +252,7 @@ def make_node(node_name: str = NODE_NAME, context=None):
                                   durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
             self.sub_pose = self.create_subscription(Odometry if pose_type == "odometry" else PoseStamped,
                                                      "sonar/pose", self._on_pose, pose_qos)
+            self._diag_prev: dict | None = None  # the counters at the last /diagnostics, for its rates
             self.srv_save = self.create_service(Trigger, "~/save_map", self._on_save)
             self.srv_reset = self.create_service(Trigger, "~/reset", self._on_reset)
             self.timer_diag = self.create_timer(float(p["diagnostics_period_s"]), self._publish_diagnostics)
@@ -260,6 +261,9 @@ def make_node(node_name: str = NODE_NAME, context=None):
                      f"with poses on {self.sub_pose.topic_name} into a {self.grid.shape} grid of "
                      f"{self.grid.voxel_size_m} m ({self.mapper.backend} on {self.mapper.device}); "
                      f"cloud on {self.pub_cloud.topic_name}")
+            big = 4 * self.spec.image_shape[0] * self.spec.image_shape[1]
+            if big > FASTDDS_DEFAULT_SEGMENT_BYTES:
+                log.info(f"a 32FC1 image of this sonar is {big:,} bytes: {FASTDDS_HINT}")
 
         # ------------------------------------------------------------ callbacks: never block
         def _now_ns(self) -> int:
@@ -273,10 +277,11 @@ def make_node(node_name: str = NODE_NAME, context=None):
                 last = self._last_seq.get(gid)
                 self._last_seq[gid] = max(seq, last or 0)
                 if last is not None and seq > last + 1:
+                    hint = f"; {FASTDDS_HINT}" if len(msg.data) > FASTDDS_DEFAULT_SEGMENT_BYTES else ""
                     self.live.drop("middleware_lost", seq - last - 1,
                                    "images published but never delivered to this node (a gap in the "
                                    "publisher's sequence numbers: the transport or the subscription queue "
-                                   "lost them)")
+                                   f"lost them){hint}")
             t = stamp_ns(msg.header.stamp)
             if t > self._now_ns() + self.max_future_ns:
                 self.live.reject("image_from_future", f"image stamped {t * 1e-9:.3f} s, more than "
@@ -291,7 +296,7 @@ def make_node(node_name: str = NODE_NAME, context=None):
             except BadMessage as e:
                 self.live.reject(e.reason, str(e))
                 return
-            self.live.add_ping(t, img)
+            self.live.add_ping(t, img, self._now_ns())
 
         def _on_pose(self, msg) -> None:
             try:
@@ -369,11 +374,14 @@ def make_node(node_name: str = NODE_NAME, context=None):
             st = DiagnosticStatus()
             st.name = f"{self.get_fully_qualified_name()}: mapper"
             st.hardware_id = f"{s['backend']} ({s['device']})"
-            lost = sum(s["dropped"].values()) + sum(s["skipped"].values())
-            st.level = DiagnosticStatus.WARN if lost or self.live.error else DiagnosticStatus.OK
-            st.message = ("worker stopped: " + repr(self.live.error)) if self.live.error else (
-                f"{s['integrated']} pings mapped, {lost} dropped or skipped, {sum(s['rejected'].values())} "
-                "messages rejected")
+            level, st.message = health(self._diag_prev, s, self.live.error)
+            self._diag_prev = s
+            st.level = {"OK": DiagnosticStatus.OK, "WARN": DiagnosticStatus.WARN,
+                        "ERROR": DiagnosticStatus.ERROR}[level]
+            if s["dropped"].get("middleware_lost") and 4 * self.spec.image_shape[0] * \
+                    self.spec.image_shape[1] > FASTDDS_DEFAULT_SEGMENT_BYTES:
+                st.message += f"; images lost in the middleware: {FASTDDS_HINT}"
+
             kv = [("pings_received", s["received"]), ("pings_integrated", s["integrated"]),
                   ("ping_rate_hz", f"{s['ping_rate_hz']:.2f}"),
                   ("latency_p50_ms", f"{s['latency_p50_ms']:.2f}"),
@@ -395,6 +403,22 @@ def make_node(node_name: str = NODE_NAME, context=None):
                 print(f"gpumap ros: map saved to {path}", file=sys.stderr)  # ROS logging may be down
 
     return GpumapNode()
+
+
+#: Fast DDS's default shared-memory segment (512 KiB): a larger message through it is often lost.
+FASTDDS_DEFAULT_SEGMENT_BYTES = 512 * 1024
+FASTDDS_HINT = ("a publisher on Fast DDS's defaults (a 512 KiB shared-memory segment) loses most images "
+                "larger than that; start it with FASTDDS_DEFAULT_PROFILES_FILE pointing at a profile with a "
+                "larger segment (gpumap/ros/fastdds_shm.xml, as gpumap ros-play uses) or send mono8")
+
+
+def ros_arguments(params_file, ros_args: list[str]) -> list[str]:
+    """The ROS arguments: ``--params-file FILE`` (``gpumap ros --params-file``) first, then the
+    user's ``--ros-args ...``, so that a ``-p name:=value`` given there wins over the file (ROS
+    applies parameter sources in order, the last one winning)."""
+    if params_file is None:
+        return list(ros_args)
+    return ["--ros-args", "--params-file", str(params_file), *ros_args[1:]]
 
 
 def _split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
@@ -433,9 +457,7 @@ def main(argv: list[str] | None = None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
-    if a.params_file is not None:
-        ros_args = (ros_args or ["--ros-args"]) + ["--params-file", str(a.params_file)]
-    rclpy.init(args=["gpumap_ros", *ros_args])
+    rclpy.init(args=["gpumap_ros", *ros_arguments(a.params_file, ros_args)])
     node = None
     try:
         node = make_node()

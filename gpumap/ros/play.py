@@ -143,7 +143,8 @@ def write_params(path: str | Path, play: Playable, *, voxel_size_m: float | None
         poses = [f.T_W_S for f in play.frames()]
         if not poses:
             raise ValueError(f"Expected posed frames in {play.path}, but got none")
-        grid = auto_grid(play.spec, poses, 0.05 if voxel_size_m is None else voxel_size_m)
+        grid = auto_grid(play.spec, poses, 0.05 if voxel_size_m is None else voxel_size_m,
+                         remedy="use a larger --voxel-size, or fewer frames (--stride, --max-frames)")
     path = Path(path)
     spec_path = path.with_name(path.name + ".sonar.json")
     with atomic_write(spec_path) as f:

@@ -404,9 +404,15 @@ def replay_views(
         lo, hi = np.asarray(grid.min_corner_m), np.asarray(grid.max_corner_m)
     zlo, zhi = float(lo[2]), float(hi[2])
     eye, target = _camera_for(lo, hi, azim_deg=-120.0, elev_deg=40.0)
-    col = colour_voxels(values, occ, "height", zlo, zhi, z0_m=o[2], voxel_m=vs)
+    # colours and faces of the occupied voxels' box only: colour_voxels takes ~60 bytes a voxel, which
+    # over the whole grid was most of a replay's peak memory (bench/memory.py)
+    i0 = idx.min(0) if len(idx) else np.zeros(3, int)
+    i1 = idx.max(0) + 1 if len(idx) else np.zeros(3, int)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(i0, i1, strict=True))
+    o_box = o + i0 * vs
+    col = colour_voxels(values[box], occ[box], "height", zlo, zhi, z0_m=o_box[2], voxel_m=vs)
     lines = [np.asarray(positions)] if positions is not None and len(positions) > 1 else None
-    img = render_voxels([exposed_faces_mesh(occ, col, o, vs)], eye, target, (900, 680), lines=lines)
+    img = render_voxels([exposed_faces_mesh(occ[box], col, o_box, vs)], eye, target, (900, 680), lines=lines)
     fig = plt.figure(figsize=(13, 5.2), dpi=90)
     gs = fig.add_gridspec(1, 3, width_ratios=(1.25, 1, 0.04), wspace=0.12)
     ax = fig.add_subplot(gs[0, 0])
