@@ -20,12 +20,13 @@ frames. The defaults: ``bright_share`` 0.5, ``share_z`` 1.645. Writes
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .common import bench_parser, run_header, write_json
+from .common import bench_parser, put_block, run_header, write_json
 
 SCHEMA = "gpumap-rate-real/1"
 STRIDES = (10, 3, 1)
@@ -72,7 +73,7 @@ def _map(spec, grid, images, poses, frames, rule, backend, threshold, checkpoint
     idx = list(frames)
     t0 = time.perf_counter()
     done = 0
-    for cut in [*checkpoints, len(idx)]:
+    for cut in [*(c for c in checkpoints if c < len(idx)), len(idx)]:
         cut = min(cut, len(idx))
         for a in range(done, cut, 32):
             b = idx[a:min(a + 32, cut)]
@@ -103,7 +104,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-tuning", action="store_true", help="skip the settings grid on frames 0-799")
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--out", type=Path, default=Path("bench/results"), help="results folder")
+    ap.add_argument("--report", type=Path, metavar="BENCHMARKS_MD",
+                    help="only write this benchmark's section of that file from --out/rate_real.json")
     a = ap.parse_args(argv)
+    if a.report is not None:
+        res = json.loads((a.out / "rate_real.json").read_text())
+        put_block(a.report, BEGIN, END, markdown(res, a.out), section=SECTION)
+        print(f"wrote the rate_real section of {a.report}")
+        return 0
     data = a.data or full_run_dir()
     if data is None:
         raise SystemExit("bench.rate_real: the full tank run was not found; get it as shared/data/README.md "
@@ -172,8 +180,55 @@ def main(argv: list[str] | None = None) -> int:
     res["seconds_total"] = time.perf_counter() - t_start
     path = write_json(a.out / "rate_real.json", res, digits=4)
     _picture(res, a.out / "rate_real.png")
-    print(f"wrote {path} and rate_real.png ({res['seconds_total']:.0f} s)")
+    print(f"wrote {path} and rate_real.png ({res['seconds_total']:.0f} s); BENCHMARKS.md: "
+          f"python -m bench rate_real --report BENCHMARKS.md")
     return 0
+
+
+BEGIN, END = "<!-- begin:rate-real -->", "<!-- end:rate-real -->"
+SECTION = "## The rules at the sonar's own rate: the full real tank run (issue #28)"
+
+
+def markdown(res: dict, folder: Path) -> str:
+    """The BENCHMARKS.md section of a ``rate_real.json``."""
+    m = res["machine"]
+    out = [SECTION, "",
+           f"`python -m bench rate_real` ({res['created']}, {m.get('cpu_model')} x{m.get('cpu_count')}, load "
+           f"{m.get('load_avg_start')} at the start, backend {res['backend']}): frames 0-799 of the full run "
+           f"mapped at 5 cm, threshold {res['threshold']:g}; {res['judged_frames']} held-out frames 800-1222 "
+           "judged by first returns (`gpumap.first_return`: per beam with a return, the map's nearest "
+           "occupied voxel in its fan within 2 voxels of the measured one = agrees, nearer = phantom in "
+           "front, farther or none = missing; unknown voxels count as missing). Occupied voxels also on "
+           f"the {res['common_observed']:,} voxels every map observes.", "",
+           "| rule | frames mapped | occupied | occupied (common region) | agrees | phantom in front | "
+           "missing |", "|---|---|---|---|---|---|---|"]
+    for rule, r in res["rules"].items():
+        for s in STRIDES:
+            x = r[f"every_{s}"]
+            j = x["judge"]
+            rate = {10: "every 10th", 3: "every 3rd", 1: "every frame"}.get(s, f"every {s}")
+            out.append(f"| {rule} | {rate} ({x['frames']}) | {x['occupied']:,} | "
+                       f"{r['occupied_common'][f'every_{s}']:,} | "
+                       f"{100 * j['agreement']:.1f} % | {100 * j['phantom_rate']:.1f} % | "
+                       f"{100 * j['missing_rate']:.1f} % |")
+    out += ["", "Spread of the occupied voxels over the three rates (common region, max / min - 1): "
+            + ", ".join(f"{rule} {100 * r['occupied_common_spread']:.0f} %"
+                        for rule, r in res["rules"].items()) + ".", "",
+            f"![occupied voxels as pings accumulate; held-out first returns]({folder.as_posix()}/rate_real.png)"]
+    t = res.get("tuning")
+    if t:
+        out += ["", f"How the evidence rule's settings were chosen, on frames 0-799 only: frames "
+                f"{t['mapped_frames'][0]}-{t['mapped_frames'][1] - 1} mapped, every 5th of frames "
+                f"{t['judged_frames'][0]}-{t['judged_frames'][1] - 1} judged. Agrees / phantom in front / "
+                "missing at every frame, and the occupied voxels at every 10th, 3rd and every frame:", "",
+                "| bright_share | share_z | agrees | phantom | missing | occupied 10th / 3rd / all |",
+                "|---|---|---|---|---|---|"]
+        for row in t["rows"]:
+            f = row["every_1"]
+            occ = " / ".join(f"{row[f'every_{s}']['occupied']:,}" for s in STRIDES)
+            out.append(f"| {row['bright_share']:g} | {row['share_z']:g} | {100 * f['agreement']:.1f} % | "
+                       f"{100 * f['phantom_rate']:.1f} % | {100 * f['missing_rate']:.1f} % | {occ} |")
+    return "\n".join(out)
 
 
 def _picture(res: dict, path: Path) -> None:
