@@ -214,7 +214,7 @@ def markdown(res: dict, folder: Path) -> str:
     out += ["", "Spread of the occupied voxels over the three rates (common region, max / min - 1): "
             + ", ".join(f"{rule} {100 * r['occupied_common_spread']:.0f} %"
                         for rule, r in res["rules"].items()) + ".", "",
-            f"![occupied voxels as pings accumulate; held-out first returns]({folder.as_posix()}/rate_real.png)"]
+            f"![held-out first returns]({folder.as_posix()}/rate_real.png)"]
     t = res.get("tuning")
     if t:
         out += ["", f"How the evidence rule's settings were chosen, on frames 0-799 only: frames "
