@@ -38,7 +38,8 @@ def _package(tree: Path, into: Path) -> Path:
     pkg = into / "gpumap"
     pkg.mkdir(parents=True)
     for f in (tree / "gpumap").iterdir():
-        (pkg / f.name).symlink_to(f.resolve())
+        if f.name not in ("kernels", "sim", "bench"):  # a tree may link them there itself
+            (pkg / f.name).symlink_to(f.resolve())
     for sub in ("kernels", "sim", "bench"):
         (pkg / sub).symlink_to((tree / sub).resolve())
     return into
