@@ -60,7 +60,7 @@ def _worker(a) -> None:
     spec, grid = tank_spec(), tank_grid(a.voxel[0])
     n = a.images
     imgs, poses = images(spec, min(n, 16)), trajectory(n)
-    m = gpumap.MinMaxMapper(spec, grid, backend=a.backend[0])
+    m = gpumap.MinMaxMapper(spec, grid, backend=a.backend[0], **({"rule": a.rule} if a.rule else {}))
     for k in range(WARMUP):
         m.integrate(imgs[k], poses[k])
     m.synchronize()
@@ -86,12 +86,12 @@ def _worker(a) -> None:
 
 
 def _run(root: Path, tree: Path, voxel: float, backend: str, n: int, batch: int, chunk: int = 0,
-         digest: str = "values") -> dict:
+         digest: str = "values", rule: str = "") -> dict:
     from gpumap.bench.common import CpuShare
 
     cmd = [sys.executable, "-P", str(Path(__file__).resolve()), "--worker", "--voxel", str(voxel),
            "--backend", backend, "--images", str(n), "--batch", str(batch), "--gpu-chunk", str(chunk),
-           "--digest", digest]
+           "--digest", digest, "--rule", rule]
     path = os.pathsep.join(x for x in (str(root), os.environ.get("PYTHONPATH")) if x)
     env = {**os.environ, "PYTHONPATH": path}
     with CpuShare() as share:
@@ -154,6 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         w.add_argument("--batch", type=int)
         w.add_argument("--gpu-chunk", type=int, default=0)
         w.add_argument("--digest", default="values")
+        w.add_argument("--rule", default="")
         _worker(w.parse_args(argv))
         return 0
     from gpumap.bench.common import bench_parser, idle_check, run_header, spread, write_json
@@ -170,6 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gpu-chunk", type=int, default=0,
                     help="voxels of a column per GPU thread in both trees (0: each tree's default)")
     ap.add_argument("--rounds", type=int, default=5, help="rounds (each runs every row once per tree)")
+    ap.add_argument("--rule", default="", help="the mappers' rule in both trees (default: each tree's own)")
     ap.add_argument("--digest", choices=("values", "min_all"), default="values",
                     help="what must be the same in both trees: the map's values (default), or the min "
                          "over every view (trees whose default rules differ)")
@@ -202,10 +204,10 @@ def main(argv: list[str] | None = None) -> int:
                 for r in range(a.rounds):
                     for t in ("a", "b") if r % 2 == 0 else ("b", "a"):
                         runs[t].append(_run(roots[t], getattr(a, t), voxel, backend, n, a.batch, a.gpu_chunk,
-                                            a.digest))
+                                            a.digest, a.rule))
                 digests = {x["digest"] for t in runs for x in runs[t]}
                 row = {"voxel_size_m": voxel, "backend": backend, "images": n, "batch": a.batch,
-                       "gpu_chunk": a.gpu_chunk or "default", "digest": a.digest,
+                       "gpu_chunk": a.gpu_chunk or "default", "digest": a.digest, "rule": a.rule or "default",
                        "device": runs["b"][0]["device"], "same_map": len(digests) == 1,
                        "observed_voxels": runs["b"][0]["observed"]}
                 for t in ("a", "b"):

@@ -182,13 +182,14 @@ __kernel void find_first_bright_cells(const PingParams P, __global const float *
 inline void update_voxel(const PingParams *P, size_t idx, float v, int clear, __global float *grid,
                          __global float *bright, __global ulong *count)
 {
-    grid[idx] = fmin(grid[idx], v);
-    if (P->rule != 0) {
-        ulong c = count[idx];
+    if (v < grid[idx]) grid[idx] = v;  // a write only where the value falls (memory traffic bounds it)
+    if (P->rule != 0) {  // count is read only where it changes (a dark view behind a return leaves it)
         if (v >= P->thr) {
-            bright[idx] = fmin(bright[idx], v);
-            if ((c >> 32) < 0xFFFFFFFFUL) count[idx] = c + 0x100000000UL;
+            if (v < bright[idx]) bright[idx] = v;
+            ulong c = count[idx];
+            if (c < 0xFFFFFFFF00000000UL) count[idx] = c + 0x100000000UL;
         } else if (clear) {
+            ulong c = count[idx];
             ulong dark = c & 0xFFFFFFFFUL;
             ulong cap = P->rule == 1 ? 255UL : 0xFFFFFFFFUL;
             ulong step = (P->rule == 1 && v < P->thr_dark) ? 2UL : 1UL;

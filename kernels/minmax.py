@@ -190,6 +190,7 @@ def find_first_bright_cells(P: PingParams, image: wp.array2d(dtype=float), first
 # update is a saturating add, which no order changes.
 COUNT_LOW = wp.constant(wp.uint64(0xFFFFFFFF))
 COUNT_HIGH_ONE = wp.constant(wp.uint64(0x100000000))
+HITS_FULL = wp.constant(wp.uint64(0xFFFFFFFF00000000))  # count >= this: the bright count is full
 
 
 @wp.func
@@ -204,14 +205,17 @@ def update_voxel(
     """Fold one view (value, clear) into voxel idx: the plain min, and for the visible and
     evidence rules the bright min and the view counts (see gpumap.reference)."""
     v = vc[0]
-    grid[idx] = wp.min(grid[idx], v)
-    if P.rule != 0:
-        c = count[idx]
+    if v < grid[idx]:  # a write only where the value falls (memory traffic, not arithmetic, bounds it)
+        grid[idx] = v
+    if P.rule != 0:  # count is read only where it changes (a dark view behind a return leaves it)
         if v >= P.thr:
-            bright[idx] = wp.min(bright[idx], v)
-            if (c >> wp.uint64(32)) < COUNT_LOW:
+            if v < bright[idx]:
+                bright[idx] = v
+            c = count[idx]
+            if c < HITS_FULL:
                 count[idx] = c + COUNT_HIGH_ONE
         elif vc[1] > 0.0:
+            c = count[idx]
             dark = c & COUNT_LOW
             cap = COUNT_LOW
             step = wp.uint64(1)

@@ -112,8 +112,8 @@ MUTANTS = [
         "the 32-bit bright-view count wraps at 2^32 (carries out of the word) instead of saturating",
         {
             "numpy": [("np.minimum(hits.astype(np.int64) + 1, COUNT_MAX)", "(hits.astype(np.int64) + 1)")],
-            "warp-cpu": [("if (c >> wp.uint64(32)) < COUNT_LOW:", "if (c >> wp.uint64(32)) <= COUNT_LOW:")],
-            "opencl-cpu": [("if ((c >> 32) < 0xFFFFFFFFUL)", "if ((c >> 32) <= 0xFFFFFFFFUL)")],
+            "warp-cpu": [("            if c < HITS_FULL:", "            if c <= COUNT_LOW | HITS_FULL:")],
+            "opencl-cpu": [("if (c < 0xFFFFFFFF00000000UL)", "if (c <= 0xFFFFFFFFFFFFFFFFUL)")],
         },
         tests=("tests/test_evidence_rule.py",),
     ),
