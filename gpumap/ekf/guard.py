@@ -22,6 +22,8 @@ pose only while they are consistent:
 - **Two windows**: a short one (``window`` returns) that reacts fast and a long one
   (``long_window``) whose band is tight enough to see a small but steady mismatch; both must
   be in band, the long one full (by default).
+- **Hold**: trust comes only after ``hold`` updates in a row with both windows in band, and
+  goes at the first update that leaves them.
 - **Track quality**: only returns of tracks at least ``min_track_hits`` long count in the
   window (a just-confirmed track's returns have the elevation's prior in them).
 
@@ -89,6 +91,11 @@ class TrustGuard:
         dof of 0.66 sits inside the 120-dof band) shows in 600 dof.
     long_full : bool, default True
         Trust only once the long window is full (False: test it with what it holds).
+    hold : int, default 10
+        Updates in a row after which both windows were consistent before the pings are
+        trusted (trust lost at the first inconsistent one): a brief stretch of consistency
+        after a long one of odometry alone, when the pose covariance is largest and one
+        update can move the pose most, is not enough.
 
     Attributes
     ----------
@@ -102,7 +109,8 @@ class TrustGuard:
     """
 
     def __init__(self, window: int = 60, prob: float = 0.99, per_component: bool = True,
-                 min_track_hits: int = 0, long_window: int = 300, long_full: bool = True) -> None:
+                 min_track_hits: int = 0, long_window: int = 300, long_full: bool = True,
+                 hold: int = 10) -> None:
         if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 1:
             raise ValueError(f"Expected an integer window >= 1, but got {window!r}")
         p = check_finite_scalar(prob, "prob")
@@ -117,6 +125,10 @@ class TrustGuard:
         self.window = int(window)
         self.long_window = int(long_window)
         self.long_full = bool(long_full)
+        if isinstance(hold, bool) or not isinstance(hold, (int, np.integer)) or hold < 1:
+            raise ValueError(f"Expected an integer hold >= 1, but got {hold!r}")
+        self.hold = int(hold)
+        self._run = 0  # consecutive updates after which the windows were consistent
         self.prob = p
         self.per_component = bool(per_component)
         self.min_track_hits = int(min_track_hits)
@@ -135,6 +147,7 @@ class TrustGuard:
         self._sum = np.zeros(4)
         self._long.clear()
         self._lsum = np.zeros(4)
+        self._run = 0
         self.trusted = False
 
     @property
@@ -216,7 +229,8 @@ class TrustGuard:
         self._lsum = self._lsum + row
         while self._lsum[0] - self._long[0][0] >= self.long_window:
             self._lsum = self._lsum - self._long.popleft()
-        self.trusted = self.consistent()
+        self._run = self._run + 1 if self.consistent() else 0
+        self.trusted = self._run >= self.hold
 
     def summary(self) -> dict:
         """JSON-ready counters and the window's state."""
@@ -234,7 +248,7 @@ class TrustGuard:
                 "long_window": self.long_window, "long_window_returns": int(round(self._lsum[0])),
                 "long_window_nis_per_dof": (float(self._lsum[1] / (2 * self._lsum[0]))
                                             if self._lsum[0] else None),
-                "min_track_hits": self.min_track_hits}
+                "min_track_hits": self.min_track_hits, "hold": self.hold}
 
     def __repr__(self) -> str:
         v = self.nis_per_dof
