@@ -5,10 +5,12 @@ corrupted (sliding scatterers, as real glints are), where the plain EKF ends far
 
 from __future__ import annotations
 
+import json
 import warnings
 
 import numpy as np
 import pytest
+from conftest import DATA, needs_data
 from gpumap.sim.prism import PrismConfig, measure, run_odometry, simulate
 from scipy.stats import chi2
 
@@ -216,3 +218,28 @@ def test_trust_comes_after_hold_consistent_updates_in_a_row_and_goes_at_the_firs
     # consistent from the first update on: trusted at the third; the wild one spoils the short
     # window until it has left it (4 more returns), then three in a row again
     assert seen == [False, False, True, True, False, False, False, True, True, True, True, True]
+
+
+@needs_data
+@pytest.mark.parametrize("unguarded", [False, True])
+def test_replay_ekf_reports_how_much_it_trusted_the_pings(tmp_path, capsys, unguarded) -> None:
+    from gpumap.replay import main
+
+    out = tmp_path / "o"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        rc = main([str(DATA / "oasis_tank"), "--ekf", "--max-frames", "12", "--out", str(out),
+                   "--backend", "numpy", "--no-pictures", "--no-progress"]
+                  + (["--ekf-unguarded"] if unguarded else []))
+    assert rc == 0
+    t = json.loads((out / "summary.json").read_text())["ekf"]["trust"]
+    assert t["guard"] is (not unguarded)
+    for k in ("fused_with_pose", "fused_features_only", "gated", "pings_pose_corrected_share",
+              "window_nis_per_dof", "returns", "paired"):
+        assert k in t
+    if not unguarded:  # 12 pings never fill the long window: the pose is the odometry's
+        assert t["fused_with_pose"] == 0 and t["pings_pose_corrected_share"] == 0.0
+        assert t["guard_state"]["trusted_now"] is False
+    assert "trust in the pings:" in capsys.readouterr().out
+    if unguarded:  # only with --ekf (exit 2 before any work)
+        assert main([str(DATA / "oasis_tank"), "--ekf-unguarded", "--out", str(tmp_path / "x")]) == 2
