@@ -242,4 +242,6 @@ def test_replay_ekf_reports_how_much_it_trusted_the_pings(tmp_path, capsys, ungu
         assert t["guard_state"]["trusted_now"] is False
     assert "trust in the pings:" in capsys.readouterr().out
     if unguarded:  # only with --ekf (exit 2 before any work)
-        assert main([str(DATA / "oasis_tank"), "--ekf-unguarded", "--out", str(tmp_path / "x")]) == 2
+        with pytest.raises(SystemExit) as e:
+            main([str(DATA / "oasis_tank"), "--ekf-unguarded", "--out", str(tmp_path / "x")])
+        assert e.value.code == 2
