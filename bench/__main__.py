@@ -33,6 +33,7 @@ BENCHMARKS: dict[str, str] = {
     "refine": "plain, visible and refined maps against truth and on held-out pings",
     "nbv": "next best views: planned against rolled and random views; view_gain speed",
     "ekf_bench": "the EKF on the prism simulation (NEES, odometry sweep, update cost; --vs-batch)",
+    "ekf_real": "the EKF on the full real tank: EKF/odometry per variant, drift, seed; dev and held-out",
     "frontend": "the EKF front end: detection, association and the EKF loop, simulated and real",
     "sim_bench": "the sonar simulator's images/s (and the DVL's pings/s) on this machine",
     "viewer_cost": "what the live view and the recorder cost gpumap replay of the real tank",

@@ -8,7 +8,9 @@ EKF's. :func:`run_ekf_replay` (the API) returns the figures; the CLI also writes
 
 - ``summary.json``: the usual replay summary of the EKF-pose map, plus an ``ekf`` section:
   the drift model, pose errors of odometry and EKF against the recorded poses (position and
-  heading: mean, RMS, max, final), each map against the recorded-pose map (occupied voxels
+  heading: mean, RMS, max, final), how much it trusted the pings (``trust``: returns fused
+  with a pose correction, into their features only, gated; share of pings that corrected the
+  pose; windowed NIS, see :mod:`gpumap.ekf.guard`), each map against the recorded-pose map (occupied voxels
   that disagree, FN and FP), the tracks and their lifetimes, and milliseconds per ping;
 - ``map.npz`` / ``occupied.ply`` / ``views.png``: the EKF-pose map;
 - ``ekf_paths.png``: recorded, odometry and EKF paths over the recorded-pose map's height map,
@@ -29,7 +31,11 @@ import numpy as np
 from gpumap.cli import nonnegative_float, nonnegative_int, refuse_without
 
 __all__ = ["EKF_OUTPUTS", "add_ekf_args", "check_ekf_args", "compare_maps", "replay_with_ekf",
-           "run_ekf_replay", "track_consistency"]
+           "run_ekf_replay", "track_consistency", "trust_summary"]
+
+
+def _fmt(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2f}"
 
 #: Files ``--ekf`` writes besides the replay's own.
 EKF_OUTPUTS = ("ekf_paths.png", "ekf_measurements.png")
@@ -49,12 +55,17 @@ def add_ekf_args(ap: argparse.ArgumentParser) -> None:
                          "0.005 0.005, the demo's --pose-noise 0.005)")
     ap.add_argument("--seed", type=nonnegative_int, default=None,
                     help="with --ekf: seed of the odometry drift (default 0)")
+    ap.add_argument("--ekf-unguarded", action="store_true",
+                    help="with --ekf: no innovation-consistency guard; every accepted return "
+                         "corrects the pose even when the pings' innovations do not fit the model "
+                         "(on the real tank this ends worse than odometry; for comparison only)")
 
 
 def check_ekf_args(ap: argparse.ArgumentParser, a: argparse.Namespace) -> None:
     """--odometry-noise and --seed only with --ekf (exit 2, before any work); fill their defaults."""
     refuse_without(ap, "--ekf", a.ekf, {"--odometry-noise": a.odometry_noise is not None,
-                                         "--seed": a.seed is not None})
+                                         "--seed": a.seed is not None,
+                                         "--ekf-unguarded": bool(getattr(a, "ekf_unguarded", False))})
     a.odometry_noise = (0.005, 0.005) if a.odometry_noise is None else a.odometry_noise
     a.seed = 0 if a.seed is None else a.seed
 
@@ -143,6 +154,41 @@ def track_consistency(loop, T_ref: np.ndarray, gate_prob: float = 0.999) -> dict
             "tracks_all_consistent": n_tr_ok / n_tr if n_tr else None}
 
 
+def trust_summary(loop) -> dict:
+    """How much the EKF trusted the pings with the pose (the guard's counters, per ping and per return).
+
+    Returns
+    -------
+    dict
+        ``guard`` (bool: whether the filter had one), ``returns`` (found), ``paired`` (with a
+        confirmed track), ``fused_with_pose`` / ``fused_features_only`` (returns fused while the
+        guard trusted the pings / as Schmidt updates of their feature only), ``gated`` (paired
+        returns refused by the EKF's per-return chi-square gate), ``pings_trusted_share`` and
+        ``pings_pose_corrected_share`` (pings whose update was allowed to, and did, move the
+        pose), ``window_nis_per_dof`` (median and last, per ping) and the guard's own summary.
+    """
+    ekf = loop.tracker.ekf
+    n = len(loop.steps)
+    paired = int(sum(len(s.confirmed_hits) + len(s.refused) for s in loop.steps))
+    corrected = np.array([bool(s.confirmed_hits) for s in loop.steps]) & loop.trusted
+    wn = loop.window_nis[np.isfinite(loop.window_nis)] if loop.window_nis is not None else np.zeros(0)
+    out = {"guard": ekf.guard is not None, "pings": n,
+           "returns": int(sum(len(m) for m in loop.measurements)), "paired": paired,
+           "pings_trusted_share": float(np.mean(loop.trusted)),
+           "pings_pose_corrected_share": float(corrected.mean()) if n else 0.0,
+           "window_nis_per_dof": {"median": float(np.median(wn)) if wn.size else None,
+                                  "last": float(wn[-1]) if wn.size else None}}
+    if ekf.guard is not None:
+        g = ekf.guard.summary()
+        out.update({"fused_with_pose": g["fused_with_pose"], "fused_features_only": g["fused_features_only"],
+                    "gated": g["gated"], "guard_state": g})
+    else:
+        fused = int(sum(len(s.confirmed_hits) for s in loop.steps))
+        out.update({"fused_with_pose": fused, "fused_features_only": 0,
+                    "gated": int(sum(len(s.refused) for s in loop.steps))})
+    return out
+
+
 def _map(spec, grid, images, poses, backend, threshold, rule):
     from gpumap import MinMaxMapper
 
@@ -156,7 +202,8 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
                    voxel_size_m: float = 0.05, grid=None, backend: str = "auto",
                    threshold: float = 0.4, rule: str | None = None, stride: int = 1,
                    max_frames: int | None = None, progress: bool = True, detector=None,
-                   ekf_kwargs: dict | None = None, tracker_kwargs: dict | None = None) -> dict:
+                   ekf_kwargs: dict | None = None, tracker_kwargs: dict | None = None,
+                   guard=True, frames: tuple[int, int | None] | None = None) -> dict:
     """Run the EKF loop on a posed recording and compare it with the recorded poses.
 
     Parameters
@@ -173,6 +220,14 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
         Every ``stride``-th posed frame, at most ``max_frames``.
     detector, ekf_kwargs, tracker_kwargs
         Passed to :func:`gpumap.ekf.loop.run_ekf_loop`.
+    guard : bool or TrustGuard, default True
+        The filter's innovation-consistency guard (:mod:`gpumap.ekf.guard`): True a default
+        :class:`~gpumap.ekf.guard.TrustGuard` (the pings correct the pose only while their
+        innovations are consistent; otherwise the pose follows odometry), False none (the plain
+        EKF, which on the real tank ends worse than odometry).
+    frames : (int, int or None), optional
+        Only recording frames ``start <= i < stop`` (indices in the recording, before
+        ``stride``); the run starts from the recorded pose of the first one kept.
 
     Returns
     -------
@@ -187,8 +242,11 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
     st, sr = (float(v) for v in odometry_noise)
     images, poses, spec = [], [], None
     k = 0
+    f0, f1 = (0, None) if frames is None else frames
     for i, fr in enumerate(recording):
-        if i % max(1, int(stride)) or fr.T_W_S is None:
+        if f1 is not None and i >= f1:
+            break
+        if i < f0 or (i - f0) % max(1, int(stride)) or fr.T_W_S is None:
             continue
         if spec is None:
             spec = fr.spec
@@ -206,8 +264,15 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
     U, T_odo = drifting_odometry(T_rec, st, sr, seed)
     Q = motion_cov(st, sr)
     t0 = time.perf_counter()
+    from gpumap.ekf.guard import TrustGuard
+
+    ekw = dict(ekf_kwargs or {})
+    if isinstance(guard, TrustGuard):
+        ekw["guard"] = guard
+    elif guard:
+        ekw.setdefault("guard", TrustGuard())
     loop = run_ekf_loop(images, U, T_rec[0], spec, odometry_cov=Q, detector=detector,
-                        ekf_kwargs=ekf_kwargs, tracker_kwargs=tracker_kwargs, progress=progress)
+                        ekf_kwargs=ekw, tracker_kwargs=tracker_kwargs, progress=progress)
     t_loop = time.perf_counter() - t0
     if grid is None:
         grid = auto_grid(spec, list(T_rec), voxel_size_m)
@@ -241,6 +306,7 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
                             for n in ("odometry", "ekf")},
         "threshold": float(threshold),
         "measurements": {"returns": n_meas, "per_ping_mean": n_meas / len(images), "fused": fused},
+        "trust": trust_summary(loop),
         "tracks": loop.tracker.lifetimes(),
         "track_consistency_recorded_poses": track_consistency(loop, T_rec),
         "ms_per_ping": {"detect_mean": float(loop.ms_detect.mean()),
@@ -359,7 +425,8 @@ def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
     t0 = time.perf_counter()
     res = run_ekf_replay(rec, odometry_noise=tuple(a.odometry_noise), seed=a.seed, voxel_size_m=a.voxel_size,
                          grid=grid, backend=a.backend, threshold=thr, rule=a.rule, stride=a.stride,
-                         max_frames=a.max_frames, progress=not a.no_progress)
+                         max_frames=a.max_frames, progress=not a.no_progress,
+                         guard=not getattr(a, "ekf_unguarded", False))
     mapper = res["maps"]["ekf"]
     values = res["values"]["ekf"]
     occ = np.isfinite(values) & (values >= thr)
@@ -383,11 +450,16 @@ def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
                 res, out / "ekf_measurements.png")
         (out / "summary.json").write_text(json.dumps(stats, indent=2))
     e, o = s["pose_error"]["ekf"], s["pose_error"]["odometry"]
+    tr = s["trust"]
     mo, me = s["map_vs_recorded"]["odometry"], s["map_vs_recorded"]["ekf"]
     print(f"gpumap replay --ekf: position error mean {100 * o['position_m']['mean']:.1f} cm (odometry) "
           f"-> {100 * e['position_m']['mean']:.1f} cm (EKF), heading "
           f"{np.degrees(o['heading_rad']['mean']):.2f} -> {np.degrees(e['heading_rad']['mean']):.2f} deg; "
           f"map vs recorded-pose map, voxels disagreeing {mo['disagree']} (odometry) -> "
           f"{me['disagree']} (EKF); {s['tracks']['confirmed']} tracks confirmed; "
+          f"trust in the pings: {tr['fused_with_pose']} returns fused with the pose, "
+          f"{tr['fused_features_only']} into their features only, {tr['gated']} gated, "
+          f"{100 * tr['pings_pose_corrected_share']:.0f} % of pings corrected the pose, windowed NIS per dof "
+          f"{_fmt(tr['window_nis_per_dof']['median'])} (median); "
           f"{s['ms_per_ping']['total_mean']:.1f} ms per ping (front-end + EKF)")
     return stats, mapper.grid

@@ -41,6 +41,14 @@ Kalman Filter by Using Acoustic Camera Images" (Section 3), with these changes:
   NIS and the innovations of the last returns and estimates the range and bearing noise
   from them (Mehra's covariance matching); an update whose pooled NIS leaves its 99.99 %
   band warns once (``RuntimeWarning``; logged at INFO on ``gpumap.ekf``).
+- **Trust guard** (``guard=TrustGuard()``, issue 29; on in ``gpumap replay --ekf``): the
+  NIS of the fused returns over a short and a long sliding window, each against its
+  two-sided chi-square band (and per component), decides whether the returns may correct
+  the pose; while they may not (and until trust is earned: a full long window, then
+  ``hold`` consistent updates in a row) accepted returns update their own feature only
+  (Schmidt), so the pose keeps the odometry increment exactly. On the real tank the point
+  returns never earn it and the EKF stays at odometry, where the plain filter ends up to 4x
+  worse (``bench/results/ekf_real.json``).
 - **Immature features** (``mature_elevation_sigma_rad``, off by default): returns of
   features whose elevation given the pose is still looser than this update only their own
   feature (Schmidt-Kalman consider update; Joseph form keeps the covariance right). This
@@ -84,12 +92,14 @@ Modules
 model over a whole sweep: the filter's yardstick, and a smoother); for real pings (issue #23)
 :mod:`~gpumap.ekf.frontend` (point returns found in a polar image, with covariances),
 :mod:`~gpumap.ekf.association` (which feature each return belongs to: tracks) and
-:mod:`~gpumap.ekf.loop` (odometry, detection, association and filter, ping by ping).
+:mod:`~gpumap.ekf.loop` (odometry, detection, association and filter, ping by ping);
+:mod:`~gpumap.ekf.guard` (when the pings' innovations do not fit, lean on odometry).
 """
 
 from __future__ import annotations
 
 from gpumap.ekf.filter import InnovationStats, PlaneUpdateResult, SonarEKF, UpdateResult
+from gpumap.ekf.guard import TrustGuard, nis_band
 from gpumap.ekf.initialisation import Triangulation, anchor_jacobian, triangulate
 from gpumap.ekf.measurement import (
     MIN_HORIZONTAL_M,
@@ -108,9 +118,11 @@ __all__ = [
     "PlaneUpdateResult",
     "SonarEKF",
     "Triangulation",
+    "TrustGuard",
     "UpdateResult",
     "anchor_jacobian",
     "motion_jacobian",
+    "nis_band",
     "observation_model",
     "plane_range_model",
     "spherical_point",

@@ -430,7 +430,8 @@ class FeatureTracker:
         if pairs:
             tid = np.array([ids[q] for q, _ in pairs], dtype=np.int64)
             js = np.array([j for _, j in pairs])
-            res = self.ekf.update(tid, meas.ranges_m[js], meas.bearings_rad[js], meas.covs[js])
+            res = self.ekf.update(tid, meas.ranges_m[js], meas.bearings_rad[js], meas.covs[js],
+                                  track_hits=np.array([self.tracks[i].hits for i in tid.tolist()]))
             acc = set(res.accepted_ids)
             for i, j in zip(tid.tolist(), js.tolist(), strict=True):
                 if i in acc:

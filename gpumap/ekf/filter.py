@@ -24,6 +24,7 @@ from gpumap.ekf._checks import (
     _chi2_quantile,
     _real_array,
 )
+from gpumap.ekf.guard import TrustGuard
 from gpumap.ekf.initialisation import anchor_jacobian
 from gpumap.ekf.measurement import (
     MIN_PLANE_COS,
@@ -240,6 +241,12 @@ class SonarEKF:
         warning, and start a new window (it may raise them again). Off by default: an
         estimator that rewrites its own noise needs the user's consent; on real data whose
         noise was never measured it is the honest choice.
+    guard : TrustGuard or None, default None
+        Innovation-consistency guard (:mod:`gpumap.ekf.guard`): each update asks it whether
+        the returns may correct the pose; while it says no, accepted returns are fused as
+        Schmidt updates of their own feature only (the pose and its covariance keep the
+        odometry's increment exactly), and every update's innovations are fed to it. None:
+        every update corrects the pose (the plain EKF).
     blas_threads : int or None, default 1
         BLAS threads used inside ``predict`` and the updates (through threadpoolctl, set and
         restored around each call, about 10 µs). The filter's matrices are small and dense:
@@ -272,8 +279,12 @@ class SonarEKF:
         second_order: bool = True,
         nis_window: int = 200,
         adapt_noise: bool = False,
+        guard: TrustGuard | None = None,
         blas_threads: int | None = 1,
     ) -> None:
+        if guard is not None and not isinstance(guard, TrustGuard):
+            raise TypeError(f"Expected a TrustGuard or None for 'guard', but got {type(guard).__name__}")
+        self.guard = guard
         if blas_threads is not None and (isinstance(blas_threads, bool) or int(blas_threads) < 1):
             raise ValueError(f"Expected blas_threads >= 1 or None, but got {blas_threads!r}")
         self._blas_threads = None if blas_threads is None else int(blas_threads)
@@ -520,7 +531,7 @@ class SonarEKF:
     @_blas_limited
     def update(
         self, ids: Iterable[int] | np.ndarray, ranges_m: np.ndarray, bearings_rad: np.ndarray,
-        covs: np.ndarray | None = None,
+        covs: np.ndarray | None = None, track_hits: np.ndarray | None = None,
     ) -> UpdateResult:
         """Fuse one ping's feature returns; add features seen for the first time.
 
@@ -540,6 +551,8 @@ class SonarEKF:
             Each return's own covariance of ``(range m, azimuth rad)`` (e.g. from
             :class:`gpumap.ekf.frontend.PointDetector`); default: ``diag(range_sigma_m^2,
             bearing_sigma_rad^2)`` for every return.
+        track_hits : (m,) int, optional
+            Each return's track length so far, for the guard's ``min_track_hits``.
 
         Returns
         -------
@@ -568,6 +581,8 @@ class SonarEKF:
         nis: float | None = None
         innov = None
 
+        pose_ok = self.guard is None or self.guard.trusted
+        guard_feed = None
         if known:
             slots = np.array([self._index[id_list[k]] for k in known])
             meas = np.stack([rng_m[known], brg[known]], axis=1)
@@ -622,6 +637,9 @@ class SonarEKF:
                         d2[j] = best[0]
                     shift[j] = best[1]
             keep = np.flatnonzero(d2 <= self._gate)
+            if self.guard is not None:
+                th = None if track_hits is None else np.asarray(track_hits)[np.asarray(known)[sel[keep]]]
+                guard_feed = (d2[keep], nu_e[keep], Sb[keep], int(len(slots) - keep.size), pose_ok, th)
             for j in np.flatnonzero(~(d2 <= self._gate)):
                 rejected[id_list[known[sel[j]]]] = float(d2[j])
             if keep.size:
@@ -629,6 +647,8 @@ class SonarEKF:
                 own = None
                 if self.mature_elevation_sigma_rad is not None:
                     own = _elevation_var_given_pose(P, slots[kk]) > self.mature_elevation_sigma_rad**2
+                if not pose_ok:  # the guard does not trust the pings: features only
+                    own = np.ones(kk.size, bool)
                 dx0 = None
                 if np.any(shift[kk]):
                     dx0 = np.zeros(P.shape[0])
@@ -690,6 +710,9 @@ class SonarEKF:
         if accepted:
             self._nis, self._nis_dof = nis, 2 * len(accepted)
             self._monitor(innov)
+        if guard_feed is not None:
+            g_nis, g_nu, g_S, g_gated, g_pose, g_hits = guard_feed
+            self.guard.add(g_nis, g_nu, g_S, gated=g_gated, pose_corrected=g_pose, track_hits=g_hits)
         return UpdateResult(
             accepted_ids=tuple(accepted),
             rejected=rejected,

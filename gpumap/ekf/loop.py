@@ -124,6 +124,11 @@ class LoopResult:
         Milliseconds per ping in the detector and in association + EKF (predict included).
     tracker : FeatureTracker
         Its ``tracks`` and :meth:`~FeatureTracker.lifetimes`; ``tracker.ekf`` is the filter.
+    trusted : (n,) bool
+        Whether the filter's guard (:class:`~gpumap.ekf.guard.TrustGuard`) trusted the pings
+        with the pose at each ping's update (all True without a guard).
+    window_nis : (n,) float64
+        The guard's windowed NIS per dof after each ping (NaN while empty or without a guard).
     """
 
     poses: np.ndarray
@@ -133,6 +138,8 @@ class LoopResult:
     ms_detect: np.ndarray
     ms_track: np.ndarray
     tracker: FeatureTracker
+    trusted: np.ndarray | None = None
+    window_nis: np.ndarray | None = None
 
 
 #: Defaults of the filter in the loop (``ekf_kwargs`` overrides them). The range and bearing
@@ -203,6 +210,7 @@ def run_ekf_loop(
     poses = np.zeros((n, 4, 4))
     covs = np.zeros((n, 6, 6))
     ms_d, ms_t = np.zeros(n), np.zeros(n)
+    trusted, wnis = np.ones(n, bool), np.full(n, np.nan)
     meas_all: list[PointMeasurements] = []
     steps: list[TrackerStep] = []
     k = -1
@@ -216,12 +224,16 @@ def run_ekf_loop(
             ekf.predict(U[k], Q)
         if before_update is not None:
             before_update(k, ekf)
+        if ekf.guard is not None:
+            trusted[k] = ekf.guard.trusted
         st = tracker.step(meas, Q if k else None)
         t2 = time.perf_counter()
         poses[k], covs[k] = ekf.pose, ekf.pose_cov
         ms_d[k], ms_t[k] = 1e3 * (t1 - t0), 1e3 * (t2 - t1)
+        if ekf.guard is not None and ekf.guard.nis_per_dof is not None:
+            wnis[k] = ekf.guard.nis_per_dof
         meas_all.append(meas)
         steps.append(st)
     if k + 1 != n:
         raise ValueError(f"Expected {n} images (one per odometry step), but got {k + 1}")
-    return LoopResult(poses, covs, meas_all, steps, ms_d, ms_t, tracker)
+    return LoopResult(poses, covs, meas_all, steps, ms_d, ms_t, tracker, trusted, wnis)
