@@ -357,3 +357,17 @@ def test_cli_refines_a_saved_map_and_says_what_it_wrote(tmp_path: Path, capsys) 
     with pytest.raises(SystemExit):
         main(["refine", str(rec), "--map", str(mp), "--threshold", "0.2", "--out", str(out)])
     assert "--threshold" in capsys.readouterr().err
+
+
+def test_gpumap_view_serves_either_layer_of_a_refined_map(refined, tmp_path: Path) -> None:
+    pytest.importorskip("viser")
+    from gpumap.viewer.cli import _parser, _view_map
+
+    _, res = refined
+    path = res.save(tmp_path / "refined.npz")
+    for layer, mask in (("surface", res.occupied()), ("safe", res.safe())):
+        v = _view_map(path, _parser().parse_args([str(path), "--view-port", "0", "--layer", layer]))
+        try:
+            assert np.count_nonzero(v._q) == mask.sum() > 0, layer
+        finally:
+            v.close()
