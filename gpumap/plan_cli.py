@@ -15,8 +15,10 @@ pings, so gains do not account for one another: take the first view, map it, pla
 The map needs its confidence layer (a mapper made with ``confidence=True``). A map saved without
 it gets it rebuilt when ``--recording`` is given: the recording's frames (``--stride``,
 ``--max-frames``, as the map was built) are mapped again with the layer, on the map's grid, rule
-and threshold. Writes ``--out`` (default ``plan.json``: ``views``, each ``T_W_S`` as a 4x4 list,
-``gain``, ``candidate``; the limits and settings) and prints a short table.
+and threshold, and must give the saved map's values exactly. Writes ``--out`` (default
+``plan.json``: ``views``, each ``T_W_S`` as a 4x4 list, ``gain``, ``candidate``; the limits and
+settings) and prints a short table. An anchor that starts with a minus sign is written
+``--pose=-1,0,0.5,0,20,0``.
 """
 
 from __future__ import annotations
@@ -143,6 +145,10 @@ def _with_layer(mapper, a: argparse.Namespace, frames) -> tuple[object, bool]:
                             carve_views=mapper.carve_views, bright_share=mapper.bright_share,
                             share_z=mapper.share_z, confidence=True)
     map_frames(m, images, poses, progress=not a.no_progress)
+    if not np.array_equal(m.raw_values(), mapper.raw_values()):
+        raise ValueError(f"Expected the frames of {a.recording} (--stride {a.stride}, --max-frames "
+                         f"{a.max_frames}) to rebuild {a.map}, but the map they make differs: pass the "
+                         "frames the map was built from")
     return m, True
 
 
