@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import DATA, needs_data
 
 import gpumap
 
@@ -65,3 +66,28 @@ def test_plan_says_what_is_missing(tmp_path: Path, capsys) -> None:
     assert "--pose or --recording" in capsys.readouterr().err
     assert main(["plan", str(mp), "--pose", "0,0,0,0,0,0", "--out", str(tmp_path / "p.json")]) == 2
     assert "confidence layer" in capsys.readouterr().err
+
+
+@needs_data
+def test_plan_rebuilds_the_layer_from_the_maps_own_frames(tmp_path: Path, capsys) -> None:
+    """A map saved without the layer: its recording's frames rebuild it (the same values, exactly)
+    and the anchors are the recording's poses; other frames are refused."""
+    from gpumap.cli import main
+    from gpumap.refine import recording_frames
+    from gpumap.replay import auto_grid
+
+    rec = DATA / "oasis_tank"
+    spec, images, poses = recording_frames(rec, 12)
+    m = gpumap.MinMaxMapper(spec, auto_grid(spec, list(poses), 0.12), backend="numpy", threshold=0.4)
+    m.integrate_batch(images, poses)
+    mp = m.save(tmp_path / "map.npz")
+    out = tmp_path / "plan.json"
+    assert main(["plan", str(mp), "--recording", str(rec), "--stride", "12", "--anchors", "4", "--candidates",
+                 "40", "--views", "2", "--backend", "numpy", "--no-progress", "--out", str(out)]) == 0
+    plan = json.loads(out.read_text())
+    assert plan["rebuilt_confidence"] and len(plan["views"]) == 2
+    np.testing.assert_allclose(plan["anchors"][0], poses[0])
+    capsys.readouterr()
+    assert main(["plan", str(mp), "--recording", str(rec), "--stride", "13", "--backend", "numpy",
+                 "--no-progress", "--out", str(out)]) == 2
+    assert "rebuild" in capsys.readouterr().err
