@@ -7,13 +7,16 @@ The public API::
     mapper = gpumap.MinMaxMapper(spec, grid, backend="auto")
     mapper.integrate(image, T_W_S)
     mapper.values()  # (nx, ny, nz) float32, NaN = never observed
+    res = gpumap.refine(mapper, images, poses)  # the surfaces the pings need (gpumap.refine)
+    res = gpumap.refine_saved("map.npz", "recording.oculus")  # the same from a saved map
 """
 
 from gpumap.errors import BackendUnavailableError
 from gpumap.spec import GridSpec, SonarSpec, SparseSpec
 
-__all__ = ["BackendUnavailableError", "GridSpec", "MapMemoryError", "MinMaxMapper", "SonarSpec",
-           "SparseMinMaxMapper", "SparseSpec", "available_backends", "load_map", "merge_maps"]
+__all__ = ["BackendUnavailableError", "GridSpec", "MapMemoryError", "MinMaxMapper", "RefineOptions",
+           "RefineResult", "SonarSpec", "SparseMinMaxMapper", "SparseSpec", "available_backends", "load_map",
+           "merge_maps", "refine", "refine_saved"]
 __version__ = "0.1.0"
 
 
@@ -30,4 +33,12 @@ def __getattr__(name: str):  # lazy: importing gpumap must not import warp or py
         from gpumap import merge
 
         return getattr(merge, name)
+    if name == "refine":  # the module, callable as its function refine() (see gpumap.refine)
+        import importlib
+
+        return importlib.import_module("gpumap.refine")
+    if name in ("RefineOptions", "RefineResult", "refine_saved"):
+        import importlib
+
+        return getattr(importlib.import_module("gpumap.refine"), name)
     raise AttributeError(f"module 'gpumap' has no attribute {name!r}")

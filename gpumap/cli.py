@@ -55,12 +55,14 @@ __all__ = [
 COMMANDS = {
     "demo": ("gpumap.sim.demo", "simulate the tank scene, map it, and score the map against truth"),
     "replay": ("gpumap.replay", "map a real recording (Oculus, ARIS, fan images + poses, ROS bag)"),
-    "view": ("gpumap.viewer.cli", "serve a saved map or a recording in the browser view ([viewer] extra)"),
-    "export": ("gpumap.export_cli", "write a saved map as OctoMap .bt (RViz, octovis) or .ply"),
+    "view": ("gpumap.viewer.cli", "serve a saved or refined map or a recording in the browser view ([viewer] "
+             "extra)"),
+    "export": ("gpumap.export_cli", "write a saved or refined map as OctoMap .bt (RViz, octovis) or .ply"),
     "merge": ("gpumap.merge_cli", "merge saved maps of one grid built from different pings into one"),
     "ros": ("gpumap.ros.node", "a ROS 2 node that maps live sonar pings ([ros] extra)"),
     "ros-play": ("gpumap.ros.play", "publish a recording as the ROS 2 node's sonar topics ([ros] extra)"),
     "refine": ("gpumap.refine_cli", "fit a recording's map so that pings rendered from it match its pings"),
+    "plan": ("gpumap.plan_cli", "next best sonar views for a saved map, from its confidence layer"),
     "bench": ("gpumap.bench.__main__", "speed against error sweep on this machine (results in --out)"),
     "info": ("gpumap.cli", "list the backends this machine can run"),
 }

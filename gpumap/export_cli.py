@@ -1,4 +1,16 @@
-"""``gpumap export MAP.npz OUT.bt|OUT.ply``: a saved map as OctoMap ``.bt`` or as a ``.ply`` cloud.
+"""``gpumap export MAP OUT.bt|OUT.ply``: a saved map as OctoMap ``.bt`` or as a ``.ply`` cloud.
+
+``MAP`` is a map file (``map.npz``, :meth:`gpumap.MinMaxMapper.save`) or a refined map file
+(``refined.npz``, what ``gpumap refine`` writes, :meth:`gpumap.refine.RefineResult.save`). A
+refined file holds two layers, exported apart:
+
+- ``surface``: the refined occupancy, occupied from :data:`gpumap.refine.OCCUPIED_LEVEL` (the thin
+  surfaces the pings need; the value is the occupancy);
+- ``safe``: the map's occupied voxels (value ``>=`` the map's threshold): the obstacle layer to
+  keep a vehicle out of (a superset of the surface).
+
+``--layer surface|safe`` writes that layer to ``OUT``; without it both are written, to
+``NAME.surface.EXT`` and ``NAME.safe.EXT`` beside ``OUT``.
 
 The command lives here, beside :mod:`gpumap.cli`, so that the readers and writers of
 :mod:`gpumap.io` never import the command line (no ``cli`` <-> ``io.octomap`` cycle).
@@ -7,46 +19,85 @@ The command lives here, beside :mod:`gpumap.cli`, so that the readers and writer
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 
 from gpumap.cli import ArgumentParser, existing_file, output_file, unit_interval
 
-__all__ = ["main"]
+__all__ = ["LAYERS", "main"]
+
+#: The layers of a refined map file.
+LAYERS = ("surface", "safe")
 
 
 def _parser() -> ArgumentParser:
     p = ArgumentParser(prog="gpumap export",
-                       description="write a saved map (map.npz) as OctoMap .bt (RViz, octovis) or .ply")
-    p.add_argument("map", type=existing_file, help="a map file written by gpumap (map.npz, dense or sparse)")
+                       description="write a saved map (map.npz) or a refined map (refined.npz) as OctoMap "
+                       ".bt (RViz, octovis) or .ply")
+    p.add_argument("map", type=existing_file,
+                   help="a map file written by gpumap (map.npz, dense or sparse) or by gpumap refine "
+                   "(refined.npz)")
     p.add_argument("out", type=output_file,
                    help="output: NAME.bt (OctoMap binary tree: occupied, free, unknown) or NAME.ply "
                         "(occupied voxel centres with their value as 'intensity')")
     p.add_argument("--threshold", type=unit_interval, default=None,
-                   help="occupied if value >= this (default: the map's own threshold)")
+                   help="occupied if value >= this (default: the map's own threshold; map.npz only)")
+    p.add_argument("--layer", choices=LAYERS, default=None,
+                   help="refined.npz only: surface (refined occupancy >= 0.5) or safe (the map's occupied "
+                        "voxels) into OUT (default: both, into NAME.surface.EXT and NAME.safe.EXT)")
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``gpumap export MAP.npz OUT.bt|OUT.ply``; returns the exit status."""
+def _write(out: Path, values: np.ndarray, grid, thr: float) -> dict:
+    """``values`` (nx, ny, nz) float, NaN unknown, occupied from ``thr``, as ``out`` (.bt or .ply)."""
     from gpumap.io.octomap import write_octomap_bt
     from gpumap.io.ply import write_ply
+
+    if out.suffix.lower() == ".bt":
+        info = write_octomap_bt(out, values, grid, threshold=thr)
+    else:
+        occ = np.isfinite(values) & (values >= np.float32(thr))
+        write_ply(out, grid.centers(np.argwhere(occ)), values[occ])
+        info = {"path": str(out), "occupied_cells": int(occ.sum())}
+    return {**info, "threshold": thr}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``gpumap export MAP OUT.bt|OUT.ply``; returns the exit status."""
     from gpumap.merge import load_map
+    from gpumap.refine import OCCUPIED_LEVEL, is_refined_file, load_refined
 
     p = _parser()
     a = p.parse_args(argv)
     suffix = a.out.suffix.lower()
     if suffix not in (".bt", ".ply"):
         p.error(f"argument out: Expected a name ending .bt or .ply, but got {str(a.out)!r}")
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    if is_refined_file(a.map):
+        if a.threshold is not None:
+            p.error("argument --threshold: Expected no --threshold with a refined map (its layers keep "
+                    f"their own: surface from {OCCUPIED_LEVEL}, safe from the map's), but got {a.threshold}")
+        res = load_refined(a.map)
+        layers = {"surface": (res.occupancy, OCCUPIED_LEVEL), "safe": (res.map_values, float(res.threshold))}
+        names = [a.layer] if a.layer else list(LAYERS)
+        infos = []
+        for name in names:
+            out = a.out if a.layer else a.out.with_name(f"{a.out.stem}.{name}{a.out.suffix}")
+            values, thr = layers[name]
+            infos.append({"layer": name, **_write(out, values, res.grid, thr)})
+        print(json.dumps(infos[0] if a.layer else infos))
+        return 0
+    if a.layer is not None:
+        p.error(f"argument --layer: Expected a refined map (gpumap refine's refined.npz) with --layer, but "
+                f"{str(a.map)!r} is a map of one layer")
     mapper = load_map(a.map, backend="numpy")
     thr = float(mapper.threshold if a.threshold is None else a.threshold)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".bt":
-        info = write_octomap_bt(a.out, mapper, threshold=thr)
+        from gpumap.io.octomap import write_octomap_bt
+
+        info = {**write_octomap_bt(a.out, mapper, threshold=thr), "threshold": thr}
     else:
-        v = mapper.values()
-        occ = np.isfinite(v) & (v >= thr)
-        write_ply(a.out, mapper.grid.centers(np.argwhere(occ)), v[occ])
-        info = {"path": str(a.out), "occupied_cells": int(occ.sum())}
-    print(json.dumps({**info, "threshold": thr}))
+        info = _write(a.out, mapper.values(), mapper.grid, thr)
+    print(json.dumps(info))
     return 0

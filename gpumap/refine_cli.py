@@ -1,12 +1,19 @@
-"""``gpumap refine``: map a recording with the visible rule, then refine the map so that its
+"""``gpumap refine``: map a recording (or take its saved map), then refine the map so that its
 rendered pings match the measured ones (issue 19; the method is in :mod:`gpumap.refine`).
 
     gpumap refine /path/to/oasis_tank --voxel-size 0.03 --out refine_out
+    gpumap refine /path/to/oasis_tank --map replay_out/map.npz --out refine_out
 
-Writes ``refined.npz`` (``occupancy`` and ``confidence`` (nx, ny, nz) float32, NaN unknown,
-``reflectivity``, ``visible`` (the visible rule's map), ``carved`` and ``raised`` masks, the grid
-as ``min_corner_m`` / ``voxel_size_m``) and ``refine.json`` (timings, fitted gain and floor,
-constraint counts, options) into ``--out``.
+With ``--map`` the saved map's grid, rule and threshold are used (``gpumap replay``'s
+``map.npz``; pass the ``--stride`` / ``--max-frames`` it was built with), and its pings are
+checked against the recording's (fingerprints); without, the recording is mapped first (rule
+``--rule``, evidence by default). The device is said before any work (``--device auto`` says
+which it took and why). Writes ``refined.npz`` (a refined map file,
+:meth:`gpumap.refine.RefineResult.save`: ``occupancy``, ``confidence``, ``field``,
+``reflectivity`` and the map's ``values``, NaN unknown, the ``carved`` and ``raised`` masks, the
+sonar, grid, rule and threshold; ``gpumap view`` and ``gpumap export`` read it), ``refined.ply``
+(the refined occupied voxels' centres, confidence as intensity) and ``refine.json`` (timings,
+device, fitted gain and floor, constraint counts, options) into ``--out``, and says so.
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ from gpumap.cli import (
     ArgumentParser,
     backend_name,
     error_line,
+    existing_file,
     output_dir,
     output_set,
     positive_float,
@@ -43,28 +51,35 @@ def _device(text: str) -> str:
 
 
 def _parser() -> ArgumentParser:
-    from gpumap.refine import RefineOptions
+    from gpumap.refine import REFINE_RULES, RefineOptions
     from gpumap.replay import DEFAULT_THRESHOLD
 
     d = RefineOptions()
     ap = ArgumentParser(prog="gpumap refine",
-                        description="map a recording with the visible rule, then refine "
+                        description="map a recording (or take its saved map, --map), then refine "
                         "the map so that pings rendered from it match the measured ones")
     ap.add_argument("path", help="recording with poses: Oculus .raw/.oculus, ARIS .aris, fan folder, ROS bag")
-    ap.add_argument("--voxel-size", type=positive_float, default=0.05, help="metres (default 0.05)")
+    ap.add_argument("--map", type=existing_file, default=None, metavar="MAP.npz",
+                    help="start from this saved map of the recording (gpumap replay's map.npz): its grid, "
+                    "rule and threshold; pass the --stride/--max-frames it was built with")
+    ap.add_argument("--voxel-size", type=positive_float, default=None,
+                    help="metres (default 0.05; not with --map)")
     ap.add_argument(
         "--threshold",
         type=unit_interval,
-        default=DEFAULT_THRESHOLD,
-        help=f"the visible mapper's bright threshold, in (0, 1] (default {DEFAULT_THRESHOLD})",
+        default=None,
+        help=f"the mapper's bright threshold, in (0, 1] (default {DEFAULT_THRESHOLD}; not with --map)",
     )
+    ap.add_argument("--rule", choices=REFINE_RULES, default=None,
+                    help="the mapper's rule (default evidence, the mapper's default; not with --map)")
     ap.add_argument("--backend", type=backend_name, default="auto",
-                    help=f"the visible map's backend, {BACKEND_HELP}")
+                    help=f"the map's backend, {BACKEND_HELP}")
     ap.add_argument(
         "--device",
         default="auto",
         type=_device,
-        help="where the refinement runs: auto (CUDA if Warp finds it, else CPU), cpu, cuda, cuda:N",
+        help="where the refinement runs: auto (CUDA if Warp finds it, else CPU; says which and why), "
+        "cpu, cuda, cuda:N (a named device that cannot run is an error)",
     )
     ap.add_argument("--stride", type=positive_int, default=1, help="use every N-th frame")
     ap.add_argument("--max-frames", type=positive_int, default=None, help="use at most this many frames")
@@ -93,80 +108,71 @@ def _parser() -> ArgumentParser:
 def load_frames(
     path: str, stride: int = 1, max_frames: int | None = None
 ) -> tuple[object, np.ndarray, np.ndarray]:
-    """(spec, images (N, n_bins, n_beams) float32, poses (N, 4, 4)) of a recording's posed frames
-    (every ``stride``-th, at most ``max_frames``; frames of another sonar geometry are skipped)."""
-    from gpumap.io import open_recording
+    """(spec, images (N, n_bins, n_beams), poses (N, 4, 4)): :func:`gpumap.refine.recording_frames`
+    (kept here by name for older callers)."""
+    from gpumap.refine import recording_frames
 
-    rec = open_recording(path)
-    spec, images, poses = None, [], []
-    for i, fr in enumerate(rec):
-        if i % stride or fr.T_W_S is None:
-            continue
-        spec = spec or fr.spec
-        if fr.spec != spec:
-            continue
-        images.append(np.asarray(fr.image, np.float32))
-        poses.append(np.asarray(fr.T_W_S, np.float64))
-        if max_frames is not None and len(images) >= max_frames:
-            break
-    if not images:
-        raise ValueError(f"Expected a recording with sonar poses (refine needs one per ping), but {path} "
-                         "has no posed frames")
-    return spec, np.stack(images), np.stack(poses)
+    return recording_frames(path, stride, max_frames)
 
 
 def main(argv: list[str] | None = None) -> int:
-    a = _parser().parse_args(argv)
+    p = _parser()
+    a = p.parse_args(argv)
+    if a.map is not None:
+        for flag, v in (("--voxel-size", a.voxel_size), ("--threshold", a.threshold), ("--rule", a.rule)):
+            if v is not None:
+                p.error(f"argument {flag}: Expected no {flag} with --map (the saved map's grid, rule and "
+                        f"threshold are used), but got {v}")
     import gpumap
-    from gpumap.refine import RefineOptions, refine
-    from gpumap.replay import auto_grid
+    from gpumap.refine import RefineOptions, map_frames, pick_device, recording_frames, refine, refine_saved
+    from gpumap.replay import DEFAULT_THRESHOLD, auto_grid
 
+    progress = not a.no_progress
     try:
-        from gpumap.render import _init_warp
-
-        _init_warp(a.device)  # a missing CUDA device is said before the frames are read and mapped
-        spec, images, poses = load_frames(a.path, a.stride, a.max_frames)
-        grid = auto_grid(spec, list(poses), a.voxel_size,
-                         remedy="use a larger --voxel-size, or fewer frames (--stride, --max-frames)")
-        mapper = gpumap.MinMaxMapper(spec, grid, backend=a.backend, rule="visible", threshold=a.threshold)
-        mapper.integrate_batch(images, poses)
+        # the device is said (and a missing one refused) before the frames are read and mapped
+        device, why = pick_device(a.device)
         opts = RefineOptions(iterations=a.iterations, pings_per_step=a.pings_per_step)
-        res = refine(mapper, images, poses, options=opts, device=a.device, progress=not a.no_progress)
+        if a.map is not None:
+            mapper = gpumap.load_map(a.map, backend=a.backend)
+            res = refine_saved(mapper, a.path, stride=a.stride, max_frames=a.max_frames, options=opts,
+                               device=device, progress=progress)
+        else:
+            spec, images, poses = recording_frames(a.path, a.stride, a.max_frames, progress)
+            grid = auto_grid(spec, list(poses), a.voxel_size or 0.05,
+                             remedy="use a larger --voxel-size, or fewer frames (--stride, --max-frames)")
+            mapper = gpumap.MinMaxMapper(spec, grid, backend=a.backend, rule=a.rule or "evidence",
+                                         threshold=a.threshold or DEFAULT_THRESHOLD)
+            map_frames(mapper, images, poses, progress)
+            res = refine(mapper, images, poses, options=opts, device=device, progress=progress)
     except user_errors() as e:
         print(error_line("gpumap refine", e), file=sys.stderr)
         return 2
+    res.stats["device_reason"] = why
+    n_frames = int(res.stats["frames"])
+    grid = res.grid
     summary = {
-        "frames": len(images),
+        "frames": n_frames,
+        "map": None if a.map is None else str(a.map),
         "grid_shape": list(grid.shape),
         "grid": grid.to_dict(),
         "mapper_backend": mapper.backend,
-        "threshold": a.threshold,
         "gain": res.gain,
         "floor": res.floor,
-        "visible_occupied": int(np.sum(np.nan_to_num(mapper.values(), nan=-1.0) >= a.threshold)),
+        "map_occupied": int(res.safe().sum()),
         "refined_occupied": int(res.occupied().sum()),
         **res.stats,
         "loss_first_last": [res.history[0], res.history[-1]],
     }
     with output_set(a.out, OUTPUTS) as out:
-        np.savez_compressed(
-            Path(out) / "refined.npz",
-            occupancy=res.occupancy,
-            confidence=res.confidence,
-            reflectivity=res.reflectivity,
-            visible=mapper.values(),
-            carved=res.carved,
-            raised=res.raised,
-            min_corner_m=np.asarray(grid.min_corner_m),
-            voxel_size_m=np.float64(grid.voxel_size_m),
-        )
+        res.save(Path(out) / "refined.npz")
         from gpumap.io.ply import write_ply
 
-        occ = res.occupied()  # the refined surface for any point-cloud viewer (gpumap view reads maps only)
+        occ = res.occupied()  # the refined surface for any point-cloud viewer
         write_ply(Path(out) / "refined.ply", grid.centers(np.argwhere(occ)), res.confidence[occ])
         (Path(out) / "refine.json").write_text(json.dumps(summary, indent=1, default=float))
     print(
-        f"gpumap refine: {len(images)} pings, {summary['visible_occupied']} voxels occupied in the visible "
+        f"gpumap refine: {n_frames} pings, {summary['map_occupied']} voxels occupied in the {res.rule} "
         f"map, {summary['refined_occupied']} refined, {res.stats['seconds']:.1f} s on {res.stats['device']}"
     )
+    print(f"gpumap refine: wrote {', '.join(str(Path(a.out) / n) for n in OUTPUTS)}")
     return 0

@@ -354,6 +354,7 @@ def _parsers():
 
     import gpumap.export_cli
     import gpumap.merge_cli
+    import gpumap.plan_cli
     import gpumap.refine_cli
     import gpumap.ros.node
     import gpumap.ros.play
@@ -362,6 +363,7 @@ def _parsers():
     return {"demo": gpumap.sim.demo._parser(), "replay": gpumap.replay._parser(),
             "view": gpumap.viewer.cli._parser(), "export": gpumap.export_cli._parser(),
             "merge": gpumap.merge_cli._parser(), "refine": gpumap.refine_cli._parser(),
+            "plan": gpumap.plan_cli._parser(),
             "bench": bench._parser(), "ros": gpumap.ros.node._parser(), "ros-play": gpumap.ros.play._parser()}
 
 

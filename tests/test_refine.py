@@ -190,7 +190,7 @@ def test_cli_refines_the_real_tank(tmp_path: Path) -> None:
     z = np.load(out / "refined.npz")
     s = json.loads((out / "refine.json").read_text())
     assert z["occupancy"].shape == tuple(s["grid_shape"]) and s["frames"] == 11
-    assert np.all(np.isnan(z["occupancy"]) == np.isnan(z["visible"]))
+    assert np.all(np.isnan(z["occupancy"]) == np.isnan(z["values"]))
     # refined.ply: the refined occupied voxels' centres, their confidence as intensity
     from gpumap.io import read_ply
 

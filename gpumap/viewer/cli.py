@@ -1,7 +1,9 @@
 """Command-line glue of the viewer: ``--view``/``--record`` of ``demo`` and ``replay``; ``gpumap view``.
 
 ``gpumap view PATH`` serves a saved map (``map.npz``: its occupied voxels, coloured by value
-or height, threshold adjustable) or a recording (``*.gpumap-rec``: a ping slider and a play
+or height, threshold adjustable), a refined map (``refined.npz`` of ``gpumap refine``: its
+``--layer surface``, the refined occupancy from 0.5, or ``--layer safe``, the map's occupied
+voxels) or a recording (``*.gpumap-rec``: a ping slider and a play
 button replay the run: images, pose, trajectory and the map as it was at that ping).
 """
 
@@ -19,7 +21,7 @@ import numpy as np
 
 from gpumap.viewer import MISSING_VIEWER
 
-__all__ = ["Session", "add_view_args", "check_view_args", "main"]
+__all__ = ["Session", "add_view_args", "check_view_args", "main", "map_layer"]
 
 
 def _port(text: str) -> int:
@@ -206,31 +208,68 @@ def _parser() -> argparse.ArgumentParser:
         prog="gpumap view",
         description="serve a saved map (map.npz) or a recording (--record FILE) in the browser view",
     )
-    p.add_argument("path", type=existing_file, help="map.npz (gpumap demo/replay) or a recording")
+    p.add_argument("path", type=existing_file,
+                   help="map.npz (gpumap demo/replay), refined.npz (gpumap refine) or a recording")
     p.add_argument(
         "--threshold",
         type=unit_interval,
         default=None,
-        help="occupied if value >= this (default: the map's own threshold)",
+        help="occupied if value >= this (default: the map's own threshold; a refined map's surface: 0.5)",
     )
+    p.add_argument("--layer", choices=("surface", "safe"), default=None,
+                   help="refined.npz only: surface (the refined occupancy, the default) or safe (the map's "
+                   "occupied voxels)")
     add_view_args(p, record=False, live=False)
     return p
 
 
-def _view_map(path: Path, a: argparse.Namespace) -> Any:
+def map_layer(path: str | Path, layer: str | None = None, threshold: float | None = None) -> dict[str, Any]:
+    """What ``gpumap view`` shows of a map file: ``spec``, ``grid``, ``values`` ((nx, ny, nz)
+    float32, NaN unknown), ``threshold``, ``confidence`` (the map's layer or None), ``n_pings``,
+    ``layer`` (None for a map file).
+
+    A refined map (:func:`gpumap.refine.is_refined_file`) shows ``layer`` ``"surface"`` (default:
+    the refined occupancy, occupied from :data:`gpumap.refine.OCCUPIED_LEVEL`) or ``"safe"`` (the
+    map's values and threshold); a map file has one layer (``layer`` given raises ValueError).
+    """
+    from gpumap.refine import OCCUPIED_LEVEL, is_refined_file, load_refined
+
+    path = Path(path)
+    if is_refined_file(path):
+        res = load_refined(path)
+        layer = layer or "surface"
+        if layer not in ("surface", "safe"):
+            raise ValueError(f"Expected layer 'surface' or 'safe', but got {layer!r}")
+        values, thr = ((res.occupancy, OCCUPIED_LEVEL) if layer == "surface"
+                       else (res.map_values, float(res.threshold)))
+        return {"spec": res.spec, "grid": res.grid, "values": values,
+                "threshold": float(thr if threshold is None else threshold), "confidence": None,
+                "n_pings": int(res.stats.get("frames", 0)), "layer": layer}
+    if layer is not None:
+        raise ValueError("Expected a refined map (gpumap refine's refined.npz) with a layer, but "
+                         f"{path} is a map of one layer")
     from gpumap.mapper import MinMaxMapper
-    from gpumap.viewer.live import MapViewer, mapper_confidence
+    from gpumap.viewer.live import mapper_confidence
 
     m = MinMaxMapper.load(path, backend="numpy")
-    thr = float(m.threshold if a.threshold is None else a.threshold)
-    v = MapViewer(m.spec, m.grid, thr, host=a.view_host, port=a.view_port, title=f"gpumap view {path.name}",
+    return {"spec": m.spec, "grid": m.grid, "values": m.values(),
+            "threshold": float(m.threshold if threshold is None else threshold),
+            "confidence": mapper_confidence(m),  # saved with its layer: unconfirmed voxels pale
+            "n_pings": int(m.n_integrated), "layer": None}
+
+
+def _view_map(path: Path, a: argparse.Namespace) -> Any:
+    from gpumap.viewer.live import MapViewer
+
+    d = map_layer(path, getattr(a, "layer", None), a.threshold)
+    thr, values, conf = d["threshold"], d["values"], d["confidence"]
+    title = f"gpumap view {path.name}" + (f" ({d['layer']})" if d["layer"] else "")
+    v = MapViewer(d["spec"], d["grid"], thr, host=a.view_host, port=a.view_port, title=title,
                   show_pings=False)  # a saved map holds no ping: no empty image panels
-    conf = mapper_confidence(m)  # a map saved with its confidence layer: unconfirmed voxels pale
-    v.set_values(m.values(), conf)
-    v.n_pings = int(m.n_integrated)
+    v.set_values(values, conf)
+    v.n_pings = d["n_pings"]
     v.finish()
     slider = v.server.gui.add_slider("occupied from", 0.01, 1.0, 0.01, thr)
-    values = m.values()
 
     def _rethreshold(_e) -> None:
         v.threshold = float(slider.value)
@@ -319,6 +358,9 @@ def main(argv: list[str] | None = None) -> int:
             names = set(zf.namelist())
     except zipfile.BadZipFile:
         raise ValueError(f"Expected a map (map.npz) or a gpumap recording, but {path} is not a zip") from None
+    if "meta.json" in names and a.layer is not None:
+        p.error("argument --layer: Expected a refined map (gpumap refine's refined.npz) with --layer, but "
+                f"{str(path)!r} is a recording")
     v = _view_recording(path, a) if "meta.json" in names else _view_map(path, a)
     print(
         f"gpumap view: serving {path} at {v.url} "
