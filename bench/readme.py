@@ -102,6 +102,17 @@ def summary_rows() -> list[tuple[str, str, str]]:
                          "phantoms in front: every 10th, every frame",
                          f"{_pct(j10['agreement'])} / {_pct(j10['phantom_rate'])}, "
                          f"{_pct(j1['agreement'])} / {_pct(j1['phantom_rate'])}", "rate_real.json"))
+    ekf = _load("ekf_real.json")
+    if ekf:
+        def worst(variant: str, key: str) -> float:
+            return max(v[key] for k, v in ekf["summary"].items() if k.split("|")[0] == variant)
+
+        g = (worst("guarded", "ratio_position_max"), worst("guarded", "ratio_heading_max"))
+        p = (worst("plain", "ratio_position_max"), worst("plain", "ratio_heading_max"))
+        rows.append(("Real tank run at the sonar's rate, EKF pose error over odometry's, worst of 5 seeds, "
+                     "2 drifts, dev / held-out / whole run: guarded (default) position / heading, "
+                     "unguarded position / heading",
+                     f"{g[0]:.3f} / {g[1]:.3f}, {p[0]:.2f} / {p[1]:.2f}", "ekf_real.json"))
     peers = sorted(RESULTS.glob("peer_ratio_*.json"))
     valid = [json.loads(p.read_text()) | {"_file": p.name} for p in peers]
     valid = [d for d in valid if d.get("valid")]
