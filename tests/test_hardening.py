@@ -259,3 +259,15 @@ def test_export_and_merge_say_what_is_wrong_with_a_map_file_in_words(content, tm
         assert "Expected a gpumap map file" in r.stderr
         for raw in ("BadZipFile(", "KeyError(", "Traceback"):
             assert raw not in r.stderr, r.stderr
+
+
+def test_images_lost_after_the_last_one_delivered_are_counted() -> None:
+    pytest.importorskip("rclpy")
+    from gpumap.ros.node import lost_at_stream_end
+
+    a, b = bytes(range(12)), bytes(range(1, 13))  # two participants (publishing processes)
+    last = {a + b"\x00\x00\x01\x03": 117, b + b"\x00\x00\x01\x03": 40}
+    assert lost_at_stream_end({}, last) == 0  # nobody said how many they sent
+    assert lost_at_stream_end({a: 123}, last) == 6  # 118..123 never came
+    assert lost_at_stream_end({a: 123, b: 40}, last) == 6
+    assert lost_at_stream_end({bytes(12): 5}, last) == 5  # a publisher none of whose images came
