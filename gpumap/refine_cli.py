@@ -167,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         (Path(out) / "refine.json").write_text(json.dumps(summary, indent=1, default=float))
     print(
         f"gpumap refine: {len(images)} pings, {summary['visible_occupied']} voxels occupied in the visible "
-        f"map, {summary['refined_occupied']} refined, {res.stats['seconds']:.1f} s on {res.stats['device']}"
+        f"map, {summary['refined_occupied']} refined, {res.stats['seconds']:.1f} s on {res.stats['device']}; "
+        f"wrote {', '.join(OUTPUTS)} to {a.out}/"
     )
     return 0

@@ -275,6 +275,37 @@ def test_images_lost_after_the_last_one_delivered_are_counted() -> None:
     assert lost_at_stream_end({bytes(12): 5}, last) == 5  # a publisher none of whose images came
 
 
+
+# ------------------------------------------------------------------ 5. silent or unhelpful
+def test_bench_ends_with_what_it_keeps_up_with_and_names_its_folder(tmp_path, capsys) -> None:
+    from gpumap.bench.sweep import write_result
+
+    def row(backend, v, rate, kind="gpumap"):
+        return {"kind": kind, "backend": backend, "method": "gather", "voxel_size_m": v, "images_per_s": rate}
+
+    rows = [row("opencl-cpu", 0.05, 25.0), row("numpy", 0.05, 3.0), row("numpy", 0.03, 4.0),
+            row("", 0.03, 900.0, kind="octomap")]
+    write_result({"tag": "t", "rows": rows, "run": {"duration_s": 1.0}}, tmp_path / "res")
+    out = capsys.readouterr().out
+    assert str(tmp_path / "res") in out
+    five = next(line for line in out.splitlines() if line.lstrip().startswith("5.0 cm"))
+    assert "opencl-cpu" in five and "25.0" in five and "20 Hz" in five and "not 40 Hz" in five
+    three = next(line for line in out.splitlines() if line.lstrip().startswith("3.0 cm"))
+    assert "none of 5 Hz" in three
+
+
+def test_auto_names_its_backend_once_a_process(monkeypatch, caplog) -> None:
+    import logging
+
+    import gpumap.mapper
+
+    monkeypatch.setattr(gpumap.mapper, "_ANNOUNCED", set())
+    with caplog.at_level(logging.INFO, logger="gpumap"):
+        for _ in range(3):
+            gpumap.MinMaxMapper(SPEC, GRID)
+    said = [r for r in caplog.records if r.levelno == logging.INFO and "backend" in r.getMessage()]
+    assert len(said) == 1
+
 # ------------------------------------------------------------------ 6. a fast suite
 def test_a_run_restricted_to_some_backends_starts_no_other() -> None:
     """tests/mutants.py runs the suite's rule tests 21 times, each on one backend
