@@ -527,7 +527,7 @@ def keeps_up_table(res: dict, rates=SONAR_RATES_HZ) -> str:
     """The sweep in a few lines: per voxel size, the fastest gpumap row (backend, method) in
     images per second and the sonar ping rates of ``rates`` it keeps up with."""
     best: dict[float, dict] = {}
-    for r in res["rows"]:
+    for r in res.get("rows", ()):
         if r.get("kind") != "gpumap" or "error" in r or not r.get("images_per_s"):
             continue
         v = float(r["voxel_size_m"])
