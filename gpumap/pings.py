@@ -2,9 +2,10 @@
 
 A merge is exact only for maps of *disjoint* pings (:mod:`gpumap.merge`): a ping in both maps
 would count its clear dark views twice. Each map therefore keeps one 64-bit fingerprint per
-integrated ping, a BLAKE2b digest of the image (its dtype, shape and bytes, as the mapper took
-it) and of the pose (``T_W_S`` as float64): 8 bytes a ping, saved in the map file as the member
-``pings`` (``(n,) uint64``; files of older versions have none, and their pings are unknown).
+integrated ping, the first 8 bytes of a SHA-1 digest of the image (its dtype, shape and bytes,
+as the mapper took it) and of the pose (``T_W_S`` as float64): 8 bytes a ping, saved in the map
+file as the member ``pings`` (``(n,) uint64``; files of older versions have none, and their
+pings are unknown).
 Two maps built from the same recording share a ping exactly when the same image came at the
 same pose; the chance that two different pings share a fingerprint is about ``n**2 / 2**65``
 (1e-10 for 100,000 pings).
@@ -22,11 +23,14 @@ __all__ = ["PingPrints", "ping_print"]
 def ping_print(image: np.ndarray, T_W_S: np.ndarray) -> int:
     """The 64-bit fingerprint of one ping: its image (dtype, shape, bytes) and its pose."""
     img = np.ascontiguousarray(image)
-    h = hashlib.blake2b(digest_size=8)
+    # SHA-1 (hardware-accelerated where the CPU has SHA extensions): 2.5x BLAKE2b's speed here, about
+    # 1 ms for a 400 x 512 float32 ping on the loaded 2-core machine, 0.3 ms for uint8; only its first
+    # 8 bytes are kept, and nothing here needs resistance to a crafted collision
+    h = hashlib.sha1(usedforsecurity=False)
     h.update(f"{img.dtype.str}{img.shape}".encode())
     h.update(memoryview(img).cast("B"))
     h.update(np.ascontiguousarray(T_W_S, dtype="<f8").tobytes())
-    return int.from_bytes(h.digest(), "little")
+    return int.from_bytes(h.digest()[:8], "little")
 
 
 class PingPrints:
