@@ -26,6 +26,7 @@ BENCHMARKS: dict[str, str] = {
     "mapper_speed": "images/s per voxel size, backend and method on synthetic speckle pings",
     "peer_ratio": "gpumap against the public OASIS code, in turn, refused on a loaded machine",
     "sparse": "sparse against dense maps: memory and images/s on the tank and survey pings",
+    "memory": "peak memory of gpumap replay against the grid's voxels, per backend and rule",
     "workers": "the survey mapped by one process against N Dask workers on the same cores",
     "visibility": "the visible rule against the plain min-max rule: errors and speed (tank, circle)",
     "rules_real": "both mapping rules on the real OASIS tank (gpumap replay --compare-rules)",

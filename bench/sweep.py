@@ -519,13 +519,43 @@ def run(args: argparse.Namespace) -> dict:
     return compact(result)
 
 
+#: Ping rates of imaging sonars the summary table checks against (an Oculus runs at up to 40 Hz).
+SONAR_RATES_HZ = (5, 10, 20, 40)
+
+
+def keeps_up_table(res: dict, rates=SONAR_RATES_HZ) -> str:
+    """The sweep in a few lines: per voxel size, the fastest gpumap row (backend, method) in
+    images per second and the sonar ping rates of ``rates`` it keeps up with."""
+    best: dict[float, dict] = {}
+    for r in res.get("rows", ()):
+        if r.get("kind") != "gpumap" or "error" in r or not r.get("images_per_s"):
+            continue
+        v = float(r["voxel_size_m"])
+        if v not in best or r["images_per_s"] > best[v]["images_per_s"]:
+            best[v] = r
+    lines = [f"{'voxel':>7}  {'fastest here':<22} {'images/s':>9}  keeps up with a sonar pinging at"]
+    for v in sorted(best, reverse=True):
+        r = best[v]
+        ok = [f"{h} Hz" for h in rates if r["images_per_s"] >= h]
+        not_ok = [f"{h} Hz" for h in rates if r["images_per_s"] < h]
+        verdict = ", ".join(ok) if ok else "none of " + ", ".join(not_ok)
+        if ok and not_ok:
+            verdict += f" (not {', '.join(not_ok)})"
+        who = f"{r['backend']} {r['method']}"
+        lines.append(f"{v * 100:5.1f} cm  {who:<22} {r['images_per_s']:9.1f}  {verdict}")
+    if not best:
+        lines.append("  (no gpumap row finished: see the errors in the results file)")
+    return "\n".join(lines)
+
+
 def write_result(res: dict, out: Path) -> Path:
-    """Write a sweep's result as ``out/<tag>.json`` and say where."""
+    """Write a sweep's result as ``out/<tag>.json``, say where, and end with :func:`keeps_up_table`."""
     path = write_json(out / f"{res['tag']}.json", res, indent=None)
     print(
         f"wrote {path} ({path.stat().st_size / 1024:.0f} kB) in {res['run']['duration_s']:.0f} s; "
-        f"run python -m bench.report to rewrite BENCHMARKS.md"
+        f"in a checkout, python -m bench.report --results {out} writes BENCHMARKS.md from that folder"
     )
+    print(keeps_up_table(res))
     return path
 
 

@@ -1247,10 +1247,13 @@ def make_backend(
     raise ValueError(f"Expected backend to be 'auto' or one of {BACKENDS}, but got {name!r}")
 
 
-def available_backends() -> list[str]:
-    """Backends that can run on this machine, fastest first (the order ``auto`` tries)."""
+def available_backends(among=None) -> list[str]:
+    """Backends that can run on this machine, fastest first (the order ``auto`` tries); ``among``
+    (names): probe only those (starting Warp or building the OpenCL kernels takes seconds)."""
     out = []
     for name in AUTO_ORDER:
+        if among is not None and name not in among:
+            continue
         try:
             if name == "warp-cuda":
                 wp, _ = _warp()

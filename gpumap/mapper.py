@@ -82,6 +82,9 @@ _MAX_BOX_VOXELS = 2**31 - 1
 _MAX_POOL_VOXELS = 2**31 - 1  # kernels address the pool with int32
 
 
+_ANNOUNCED: set[tuple[str, str]] = set()  # the (backend, device) pairs "auto" has logged in this process
+
+
 class MapMemoryError(GridTooLargeError):
     """A ping (or a spec) needs more memory than the cap or the device allows; the map is unchanged."""
 
@@ -440,9 +443,12 @@ class MinMaxMapper:
         # the elevation-arc directions (gpumap.nbv.PAIR_STEPS bits) each voxel was observed along
         self._arcs = np.zeros(n_vox, np.uint16) if confidence else None
         self._gain_runner = None
-        # auto says what it picked; a backend asked for by name is what the caller already knows
-        (log.info if backend == "auto" else log.debug)(
+        # auto says what it picked, once a process (a command makes several mappers); a backend asked
+        # for by name is what the caller already knows
+        said = (self._backend.name, self._backend.device)
+        (log.info if backend == "auto" and said not in _ANNOUNCED else log.debug)(
             "gpumap: backend %s on %s", self._backend.name, self._backend.device)
+        _ANNOUNCED.add(said)
 
     # ------------------------------------------------------------------ setup
     def _check_index_size(self, nb: np.ndarray, what: str) -> None:

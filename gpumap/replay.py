@@ -140,6 +140,9 @@ def run_replay(
     threshold: float = DEFAULT_THRESHOLD,
     positions: list | None = None,
     on_ping=None,
+    max_memory: int | None = None,
+    maps_held: int = 1,
+    memory_remedy: str | None = None,
 ) -> tuple[object, dict]:
     """Integrate every posed frame of ``recording``; return ``(mapper, stats)``.
 
@@ -165,6 +168,15 @@ def run_replay(
     on_ping : callable, optional
         ``on_ping(image, T_W_S, mapper)`` after each integrated ping (the live view and
         recording of :mod:`gpumap.viewer`); its time counts in ``seconds_total``.
+    max_memory : int, optional
+        Bytes the run may take at its peak (None: 90 % of the memory available). Checked with
+        :func:`gpumap.memory.check_run_fits` before the mapper allocates the grid: a grid that
+        would not fit raises :class:`~gpumap.backends.GridTooLargeError` (a ``ValueError``)
+        saying how much it needs.
+    maps_held : int
+        Maps of this grid held at once, this one included (``replay_rules`` holds every rule's).
+    memory_remedy : str, optional
+        What the memory error tells the user to change (a command names its flags).
 
     Returns
     -------
@@ -216,6 +228,10 @@ def run_replay(
         if spec0 is None or not poses:
             raise ValueError(f"Expected at least one posed frame in {recording.path}, but got none")
         grid = auto_grid(spec0, poses, voxel_size_m)
+    from gpumap.memory import API_REMEDY, check_run_fits
+
+    check_run_fits(grid.n_voxels, rule or ("visible" if method == "gather" else "plain"), backend,
+                   max_memory, maps=maps_held, remedy=memory_remedy or API_REMEDY)
 
     total = recording.count()
     if total is not None:
@@ -347,7 +363,7 @@ def replay_rules(recording, *, rules: Sequence[str] = RULES, grid: GridSpec | No
     """
     out: dict[str, tuple[object, dict]] = {}
     for rule in rules:
-        mapper, stats = run_replay(recording, grid=grid, rule=rule,
+        mapper, stats = run_replay(recording, grid=grid, rule=rule, maps_held=len(out) + 1,
                                    positions=positions if not out else None, **kwargs)
         grid = mapper.grid
         out[rule] = (mapper, stats)
@@ -663,6 +679,13 @@ def _parser() -> ArgumentParser:
                     help="only the recording's frames START to STOP-1 (counted from 0, every STEP-th; "
                          "START or STOP may be left out), before --stride and --max-frames: split a "
                          "recording into maps of disjoint pings that gpumap merge can join")
+    ap.add_argument("--max-memory", type=memory_size, default=None, metavar="SIZE",
+                    help="the most memory the run may take, e.g. 8G or 512M (default: 90%% of what is "
+                         "available); a grid that needs more is refused before anything is allocated, "
+                         "with the figure (measured bytes a voxel per rule: gpumap/memory.py)")
+    ap.add_argument("--skip-bad-frames", action="store_true",
+                    help="fan folders: skip a picture that cannot be read (truncated, corrupt) instead "
+                         "of stopping; each is counted in the printed line and in summary.json")
     ap.add_argument("--stride", type=positive_int, default=1, help="use every N-th frame")
     ap.add_argument("--max-frames", type=positive_int, default=None,
                     help="stop after this many frames (after --stride); default all")
@@ -697,6 +720,19 @@ def select_frames(recording, frames: slice):
         count=None if rec.count() is None else lambda: len(range(rec.count())[frames]),
         poses=None if rec._poses is None else lambda: list(rec.poses())[frames],
     )
+
+
+REPLAY_REMEDY = "use a larger --voxel-size or a smaller --grid, or set the cap (--max-memory)"
+
+
+def memory_size(text: str) -> int | None:
+    """``--max-memory``: ``auto`` (None) or a size such as ``8G``, in bytes."""
+    from gpumap.memory import parse_size
+
+    try:
+        return parse_size(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def frame_range(text: str) -> slice:
@@ -751,8 +787,10 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``gpumap replay``; returns the process exit status.
 
     Bad flags exit with status 2 (``SystemExit``) before anything is read; bad input found
-    later (an unreadable recording, no poses, a backend that cannot run) prints one line and
-    returns 2. The outputs replace those in ``--out`` as one set, only once all are written.
+    later (an unreadable recording, no poses, a backend that cannot run, a grid that would not
+    fit in memory) prints one line and returns 2. A run in which no ping observed any voxel of
+    the grid writes its outputs, warns, and returns :data:`EMPTY_MAP_STATUS` (3). The outputs
+    replace those in ``--out`` as one set, only once all are written.
     """
     a, grid = _parse(argv)
     a.view_sessions = []  # the live view / recording, if asked for (gpumap.viewer)
@@ -781,16 +819,33 @@ def main(argv: list[str] | None = None) -> int:
     print(f"gpumap replay: {how}; "
           f"grid {tuple(stats['grid_shape'])} at {grid_out.voxel_size_m} m; "
           f"{stats['occupied_voxels']} occupied (>= {thr:.3f}, {stats['rule']} rule) of "
-          f"{stats['observed_voxels']} observed voxels; wrote {a.out}/")
+          f"{stats['observed_voxels']} observed voxels"
+          + (f"; skipped {stats['skipped_bad_frames']} unreadable frames" if stats.get("skipped_bad_frames")
+             else "") + f"; wrote {a.out}/")
     if a.compare_rules:
         print(f"gpumap replay: rules: {stats['rule_comparison']['text']}")
     if stats["skipped_no_pose"] or stats["skipped_spec"]:
         print(f"gpumap replay: skipped {stats['skipped_no_pose']} frames without a pose and "
               f"{stats['skipped_spec']} whose sonar geometry differs from the first",
               file=sys.stderr)
+    if stats.get("skipped_bad_frames"):
+        print(f"gpumap replay: skipped {stats['skipped_bad_frames']} frames that could not be read "
+              f"(--skip-bad-frames; the first: {stats['bad_frames'][0]}); summary.json lists them",
+              file=sys.stderr)
     for s in a.view_sessions:
         s.serve()
+    if stats["observed_voxels"] == 0:
+        # the outputs are written (summary.json says what was mapped where), but an empty map is
+        # almost always a --grid that misses the pings or wrong poses: a script must not carry on
+        print(f"gpumap replay: warning: no ping observed any voxel of the grid "
+              f"{tuple(stats['grid_shape'])} ({stats['frames']} pings mapped): check --grid against "
+              f"the sonar's positions and its range (exit status {EMPTY_MAP_STATUS})", file=sys.stderr)
+        return EMPTY_MAP_STATUS
     return 0
+
+
+#: Exit status of ``gpumap replay`` when no ping observed any voxel of the grid (outputs written).
+EMPTY_MAP_STATUS = 3
 
 
 def _view_hook(a: argparse.Namespace, threshold: float):
@@ -843,6 +898,12 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
     if p.is_dir() and not (p / "metadata.yaml").exists() and a.frames is None:
         kwargs["stride"] = stride  # the fan reader skips pictures without decoding them
         stride = 1
+    bad: list[str] = []
+    if a.skip_bad_frames:
+        if not (p.is_dir() and not (p / "metadata.yaml").exists()):
+            raise ValueError(f"Expected a folder of fan pictures with --skip-bad-frames (the one format "
+                             f"whose frames can be skipped one by one), but {a.path} is not one")
+        kwargs["on_bad"] = lambda e: bad.append(str(e))
     rec = open_recording(a.path, **kwargs)
     if a.frames is not None:
         rec = select_frames(rec, a.frames)
@@ -850,7 +911,8 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
     rule = a.rule or ("evidence" if a.method == "gather" else "plain")
     replay_kw = dict(voxel_size_m=a.voxel_size, backend=a.backend, method=a.method,
                      static=a.static, stride=stride, max_frames=a.max_frames,
-                     progress=not a.no_progress, threshold=mapper_thr)
+                     progress=not a.no_progress, threshold=mapper_thr, max_memory=a.max_memory,
+                     memory_remedy=REPLAY_REMEDY)
     positions: list = []
     replay_kw["on_ping"] = _view_hook(a, mapper_thr)
     if a.compare_rules:
@@ -862,12 +924,17 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
         from gpumap.workers import run_replay_workers
 
         replay_kw.pop("on_ping")
+        replay_kw.pop("max_memory")  # each worker holds its own map (gpumap.workers)
+        replay_kw.pop("memory_remedy")
         mapper, stats = run_replay_workers(rec, workers=a.workers, scheduler=a.scheduler, grid=grid,
                                            rule=a.rule, positions=positions, **replay_kw)
     else:
         mapper, stats = run_replay(rec, grid=grid, rule=a.rule, positions=positions, **replay_kw)
     for s in getattr(a, "view_sessions", ()):
         s.finish(mapper)
+    if a.skip_bad_frames:
+        stats["skipped_bad_frames"] = len(bad)
+        stats["bad_frames"] = bad[:100]  # the first hundred errors, each naming its file
     values = mapper.values()
     thr = otsu_threshold(values) if a.threshold == "auto" else float(a.threshold)
     occ = np.isfinite(values) & (values >= thr)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import gpumap
+import gpumap.backends
 
 
 def _find_data() -> Path | None:
@@ -26,9 +27,11 @@ needs_data = pytest.mark.skipif(
 )
 
 ALL_BACKENDS = ("numpy", "warp-cpu", "warp-cuda", "opencl-cpu", "opencl-gpu")
-_AVAILABLE = gpumap.available_backends()
 #: GPUMAP_TEST_BACKENDS="numpy,warp-cpu" runs the per-backend tests on those only (tests/mutants.py)
 _ONLY = [b for b in os.environ.get("GPUMAP_TEST_BACKENDS", "").split(",") if b]
+# probing every backend starts Warp and builds the OpenCL kernels (~4 s a process on 2 cores):
+# a run restricted to some backends (each of tests/mutants.py's 21 runs) probes only those
+_AVAILABLE = gpumap.backends.available_backends(_ONLY or None)
 #: CI runs on a CPU machine that must have every CPU backend: a missing one fails the run (see
 #: tests/test_backends_present.py) instead of skipping its tests. GPUMAP_REQUIRE_BACKENDS overrides.
 _CI_BACKENDS = "numpy,warp-cpu,opencl-cpu" if os.environ.get("CI") else ""

@@ -28,6 +28,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -228,6 +229,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--list", action="store_true", help="list the mutants and exit")
     ap.add_argument("--timeout", type=float, default=600.0, help="seconds allowed per mutant and backend")
     ap.add_argument("-v", "--verbose", action="store_true", help="show the end of each pytest run")
+    ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1),
+                    help="runs at a time (default: 2, or 1 on one core); each run is its own process")
     ap.add_argument("--pytest-args", default="",
                     help="more pytest arguments, one string, e.g. \"-k 'not box'\" where pyrender is missing")
     a = ap.parse_args(argv)
@@ -240,25 +243,29 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     extra = shlex.split(a.pytest_args)
     survived = 0
+    # each run is a pytest process of its own on its own copy: up to --jobs of them at once (they
+    # wait on one core each), results printed in order
+    pool = ThreadPoolExecutor(max(1, a.jobs))
     # the unmutated copy must pass the same tests on each backend, or a kill means nothing
-    for b in a.backends:
-        tests = tuple(sorted({t for m in chosen for t in m.tests}))
-        status, dt, tail = run_one(None, b, a.timeout, a.verbose, tests, extra)
+    tests = tuple(sorted({t for m in chosen for t in m.tests}))
+    runs = [pool.submit(run_one, None, b, a.timeout, a.verbose, tests, extra) for b in a.backends]
+    for b, fut in zip(a.backends, runs, strict=True):
+        status, dt, tail = fut.result()
         print(f"{'(baseline: no mutant)':26s} {b:11s} {'passes' if status == 'survived' else status:8s} "
               f"{dt:6.1f} s  {tail if a.verbose else tail[:90]}", flush=True)
         if status != "survived":
             print(f"the tests fail on {b} without any mutant: fix that first")
+            pool.shutdown(cancel_futures=True)
             return 2
-    for m in chosen:
-        for b in a.backends:
-            if b not in m.edits:  # host code every backend shares: mutated on numpy's run only
-                continue
-            status, dt, tail = run_one(m, b, a.timeout, a.verbose, m.tests, extra)
-            survived += status != "killed"
-            shown = tail if a.verbose else tail[:90]
-            print(f"{m.name:26s} {b:11s} {status:8s} {dt:6.1f} s  {shown}", flush=True)
-    runs = sum(b in m.edits for m in chosen for b in a.backends)
-    print(f"{survived} of {runs} mutant runs not killed" if survived
+    todo = [(m, b) for m in chosen for b in a.backends if b in m.edits]  # host code: numpy's run only
+    runs = [pool.submit(run_one, m, b, a.timeout, a.verbose, m.tests, extra) for m, b in todo]
+    for (m, b), fut in zip(todo, runs, strict=True):
+        status, dt, tail = fut.result()
+        survived += status != "killed"
+        shown = tail if a.verbose else tail[:90]
+        print(f"{m.name:26s} {b:11s} {status:8s} {dt:6.1f} s  {shown}", flush=True)
+    pool.shutdown()
+    print(f"{survived} of {len(todo)} mutant runs not killed" if survived
           else "every mutant killed on every backend tried")
     return 1 if survived else 0
 

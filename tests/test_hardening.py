@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -259,3 +261,102 @@ def test_export_and_merge_say_what_is_wrong_with_a_map_file_in_words(content, tm
         assert "Expected a gpumap map file" in r.stderr
         for raw in ("BadZipFile(", "KeyError(", "Traceback"):
             assert raw not in r.stderr, r.stderr
+
+
+# ------------------------------------------------------------------ 5. silent or unhelpful
+def _tank_copy(tmp_path, n=6):
+    """The first ``n`` pictures of the OASIS tank and the pose table, in a folder of their own."""
+    import shutil
+
+    src = DATA / "oasis_tank"
+    dst = tmp_path / "tank"
+    (dst / "sonar").mkdir(parents=True)
+    for f in sorted((src / "sonar").glob("*.png"))[:n]:
+        shutil.copy(f, dst / "sonar" / f.name)
+    shutil.copy(src / "sonar_poses.csv", dst / "sonar_poses.csv")
+    return dst
+
+
+_QUICK = ["--voxel-size", "0.1", "--backend", "numpy", "--no-pictures", "--no-progress"]
+
+
+@needs_data
+def test_a_grid_no_ping_sees_warns_and_exits_3(tmp_path, capsys) -> None:
+    from gpumap.cli import main
+
+    rc = main(["replay", str(_tank_copy(tmp_path, 3)), "--grid=100,100,100,101,101,101", *_QUICK,
+               "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 3 and "no ping observed any voxel" in err and "--grid" in err
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["observed_voxels"] == 0
+
+
+@needs_data
+def test_skip_bad_frames_skips_a_truncated_picture_and_counts_it(tmp_path, capsys) -> None:
+    from gpumap.cli import main
+
+    tank = _tank_copy(tmp_path)
+    bad = sorted((tank / "sonar").glob("*.png"))[2]
+    bad.write_bytes(bad.read_bytes()[: bad.stat().st_size // 2])
+    assert main(["replay", str(tank), *_QUICK, "--out", str(tmp_path / "a")]) == 2
+    assert bad.name in capsys.readouterr().err
+    assert main(["replay", str(tank), *_QUICK, "--skip-bad-frames", "--out", str(tmp_path / "b")]) == 0
+    out, err = capsys.readouterr()
+    s = json.loads((tmp_path / "b" / "summary.json").read_text())
+    assert s["frames"] == 5 and s["skipped_bad_frames"] == 1 and bad.name in s["bad_frames"][0]
+    assert "skipped 1 unreadable frames" in out and bad.name in err
+
+
+def test_bench_ends_with_what_it_keeps_up_with_and_names_its_folder(tmp_path, capsys) -> None:
+    from gpumap.bench.sweep import write_result
+
+    def row(backend, v, rate, kind="gpumap"):
+        return {"kind": kind, "backend": backend, "method": "gather", "voxel_size_m": v, "images_per_s": rate}
+
+    rows = [row("opencl-cpu", 0.05, 25.0), row("numpy", 0.05, 3.0), row("numpy", 0.03, 4.0),
+            row("", 0.03, 900.0, kind="octomap")]
+    write_result({"tag": "t", "rows": rows, "run": {"duration_s": 1.0}}, tmp_path / "res")
+    out = capsys.readouterr().out
+    assert str(tmp_path / "res") in out
+    five = next(line for line in out.splitlines() if line.lstrip().startswith("5.0 cm"))
+    assert "opencl-cpu" in five and "25.0" in five and "20 Hz" in five and "not 40 Hz" in five
+    three = next(line for line in out.splitlines() if line.lstrip().startswith("3.0 cm"))
+    assert "none of 5 Hz" in three
+
+
+def test_auto_names_its_backend_once_a_process(monkeypatch, caplog) -> None:
+    import logging
+
+    import gpumap.mapper
+
+    monkeypatch.setattr(gpumap.mapper, "_ANNOUNCED", set())
+    with caplog.at_level(logging.INFO, logger="gpumap"):
+        for _ in range(3):
+            gpumap.MinMaxMapper(SPEC, GRID)
+    said = [r for r in caplog.records if r.levelno == logging.INFO and "backend" in r.getMessage()]
+    assert len(said) == 1
+
+
+def test_images_lost_after_the_last_one_delivered_are_counted() -> None:
+    pytest.importorskip("rclpy")
+    from gpumap.ros.node import lost_at_stream_end
+
+    a, b = bytes(range(12)), bytes(range(1, 13))  # two participants (publishing processes)
+    last = {a + b"\x00\x00\x01\x03": 117, b + b"\x00\x00\x01\x03": 40}
+    assert lost_at_stream_end({}, last) == 0  # nobody said how many they sent
+    assert lost_at_stream_end({a: 123}, last) == 6  # 118..123 never came
+    assert lost_at_stream_end({a: 123, b: 40}, last) == 6
+    assert lost_at_stream_end({bytes(12): 5}, last) == 5  # a publisher none of whose images came
+
+
+# ------------------------------------------------------------------ 6. a fast suite
+def test_a_run_restricted_to_some_backends_starts_no_other() -> None:
+    """tests/mutants.py runs the suite's rule tests 21 times, each on one backend
+    (GPUMAP_TEST_BACKENDS): conftest then probes that backend only, not Warp and OpenCL every time
+    (starting Warp and building the OpenCL kernels took ~4 s of each run)."""
+    code = ("import sys; sys.path.insert(0, 'tests'); import conftest; "
+            "print(conftest._AVAILABLE, 'warp' in sys.modules, 'pyopencl' in sys.modules)")
+    env = {**os.environ, "GPUMAP_TEST_BACKENDS": "numpy"}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                       cwd=str(Path(__file__).resolve().parents[1]))
+    assert r.stdout.split() == ["['numpy']", "False", "False"], r.stdout + r.stderr

@@ -245,8 +245,12 @@ def test_load_errors_are_gpumap_format_errors(tmp_path):
         gpumap.MinMaxMapper.load(tmp_path / "junk.npz")
 
 
-def test_auto_says_which_backend_it_picked_and_a_named_one_stays_quiet(caplog):
+def test_auto_says_which_backend_it_picked_and_a_named_one_stays_quiet(caplog, monkeypatch):
     import logging
+
+    import gpumap.mapper
+
+    monkeypatch.setattr(gpumap.mapper, "_ANNOUNCED", set())  # it says so once a process
 
     spec = gpumap.SonarSpec.uniform(n_beams=4, n_bins=4)
     grid = gpumap.GridSpec((0, 0, 0), (1, 1, 1), 0.5)

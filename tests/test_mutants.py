@@ -3,7 +3,8 @@
 ``tests/mutants.py`` applies each mutant (a very dark view counting once, the blocking test off
 by a bin, bright or a return compared strictly, the count wrapping instead of saturating, the
 footprint a bin short) to a temporary copy of the package, per backend, and runs the tests that
-guard the rule there; it first checks that the unmutated copy passes. About 35 s on 2 cores.
+guard the rule there; it first checks that the unmutated copy passes. The 21 runs go two at a
+time (``--jobs``), each probing only its backend (conftest).
 The two slowest scene tests are left out of each inner run (they kill none of these mutants
 that the others do not).
 """

@@ -161,7 +161,7 @@ def test_roc_auc_and_heldout_scores() -> None:
 
 
 @needs_data
-def test_cli_refines_the_real_tank(tmp_path: Path) -> None:
+def test_cli_refines_the_real_tank(tmp_path: Path, capsys) -> None:
     from gpumap.cli import main
 
     out = tmp_path / "out"
@@ -187,6 +187,7 @@ def test_cli_refines_the_real_tank(tmp_path: Path) -> None:
         )
         == 0
     )
+    assert f"wrote refined.npz, refined.ply, refine.json to {out}/" in capsys.readouterr().out
     z = np.load(out / "refined.npz")
     s = json.loads((out / "refine.json").read_text())
     assert z["occupancy"].shape == tuple(s["grid_shape"]) and s["frames"] == 11

@@ -469,6 +469,7 @@ def open_fan_folder(
     poses: str | os.PathLike | None = None,
     image_dir: str = "sonar",
     stride: int = 1,
+    on_bad=None,
 ) -> Recording:
     """Open a folder of Cartesian fan PNGs with a poses CSV (OASIS tank layout by default).
 
@@ -484,6 +485,10 @@ def open_fan_folder(
         Poses CSV (default ``folder/sonar_poses.csv``; frames without a pose get ``None``).
     stride : int
         Use every ``stride``-th picture.
+    on_bad : callable, optional
+        ``on_bad(error)`` for a picture that cannot be read (a :class:`FormatError`: truncated,
+        corrupt, the wrong size), which is then skipped (``gpumap replay --skip-bad-frames``);
+        None (default): the error ends the iteration.
 
     Notes
     -----
@@ -534,7 +539,13 @@ def open_fan_folder(
 
     def frames() -> Iterator[SonarFrame]:
         for k, f in files:
-            fan = read_grey_png(f, expected_shape=shape)
+            try:
+                fan = read_grey_png(f, expected_shape=shape)
+            except FormatError as e:
+                if on_bad is None:
+                    raise
+                on_bad(e)
+                continue
             img = sampler(fan)
             np.clip(img, 0.0, 1.0, out=img)  # a convex mix of [0, 1] values, less float32 rounding
             yield SonarFrame(image=img, spec=spec, timestamp_s=t_of.get(k), T_W_S=T.get(k),

@@ -17,6 +17,10 @@ Subscribes (relative names: remap them with ``-r``):
 - ``sonar/pose`` (``geometry_msgs/PoseStamped``, or ``nav_msgs/Odometry`` with
   ``pose_type: odometry``; reliable): ``T_W_S``, the sonar's pose in ``world_frame``.
 
+- ``sonar/images_sent`` (``std_msgs/UInt64``, reliable, transient-local; optional): how many
+  images a publisher sent, said at its end (``gpumap ros-play`` does): those after the last
+  one that arrived are counted as ``dropped['lost_at_stream_end']``.
+
 Publishes (in ``world_frame``): ``~/occupied_cloud`` (``sensor_msgs/PointCloud2``, fields
 x, y, z, value: every voxel with value >= ``threshold``; with ``confidence: true`` also
 ``confirmed``, uint8 at offset 16 of 20-byte points: 1 where some view resolved the voxel in
@@ -248,6 +252,15 @@ def make_node(node_name: str = NODE_NAME, context=None):
             # numbers (the transport's, the subscription queue's overflow, ...): counted, never silent
             self._last_seq: dict[bytes, int] = {}
             self.sub_image = self.create_subscription(Image, "sonar/image", self._on_image, sensor)
+            # images lost after the last one delivered leave no gap: a publisher that says how many it
+            # sent (gpumap ros-play does, at its end) lets them be counted (dropped.lost_at_stream_end)
+            self._sent: dict[bytes, int] = {}
+            from std_msgs.msg import UInt64
+
+            sent_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                                  durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                                  history=HistoryPolicy.KEEP_LAST)
+            self.sub_sent = self.create_subscription(UInt64, "sonar/images_sent", self._on_sent, sent_qos)
             pose_qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                                   durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
             self.sub_pose = self.create_subscription(Odometry if pose_type == "odometry" else PoseStamped,
@@ -297,6 +310,10 @@ def make_node(node_name: str = NODE_NAME, context=None):
                 self.live.reject(e.reason, str(e))
                 return
             self.live.add_ping(t, img, self._now_ns())
+
+        def _on_sent(self, msg, info) -> None:
+            gid = bytes(info["publisher_gid"]["data"]) if info else b""
+            self._sent[gid[:PARTICIPANT_PREFIX]] = int(msg.data)
 
         def _on_pose(self, msg) -> None:
             try:
@@ -357,6 +374,9 @@ def make_node(node_name: str = NODE_NAME, context=None):
 
         def diagnostics(self) -> dict:
             s = self.live.stats()
+            end = lost_at_stream_end(self._sent, self._last_seq)
+            if end:
+                s["dropped"]["lost_at_stream_end"] = end
             s.update(backend=self.mapper.backend, device=self.mapper.device, map_bytes=self.map_bytes,
                      grid_shape=list(self.grid.shape), voxel_size_m=self.grid.voxel_size_m,
                      threshold=self.threshold)
@@ -410,6 +430,22 @@ FASTDDS_DEFAULT_SEGMENT_BYTES = 512 * 1024
 FASTDDS_HINT = ("a publisher on Fast DDS's defaults (a 512 KiB shared-memory segment) loses most images "
                 "larger than that; start it with FASTDDS_DEFAULT_PROFILES_FILE pointing at a profile with a "
                 "larger segment (gpumap/ros/fastdds_shm.xml, as gpumap ros-play uses) or send mono8")
+
+
+#: Bytes of a DDS GUID naming its participant: a node's publishers (ros-play's images and its count)
+#: share them.
+PARTICIPANT_PREFIX = 12
+
+
+def lost_at_stream_end(sent: dict[bytes, int], last_seq: dict[bytes, int]) -> int:
+    """Images a publisher said it sent (``sent``: participant prefix -> count, from
+    ``sonar/images_sent``) after the last one that reached the node (``last_seq``: publisher gid ->
+    the highest sequence number delivered; a publisher's first message is number 1)."""
+    n = 0
+    for prefix, count in sent.items():
+        last = max((q for g, q in last_seq.items() if g[:PARTICIPANT_PREFIX] == prefix), default=0)
+        n += max(0, count - last)
+    return n
 
 
 def ros_arguments(params_file, ros_args: list[str]) -> list[str]:

@@ -269,6 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import Image
+    from std_msgs.msg import UInt64
     from tqdm import tqdm
 
     from gpumap.ros.convert import image_msg, stamp_of
@@ -284,6 +285,11 @@ def main(argv: list[str] | None = None) -> int:
         pub_img = node.create_publisher(Image, "sonar/image", sensor)
         pub_pose = node.create_publisher(Odometry if a.pose_type == "odometry" else PoseStamped,
                                          "sonar/pose", reliable)
+        # how many images went out, said once at the end (reliable, kept for a late reader): the node
+        # counts those that never reached it after its last one (dropped.lost_at_stream_end)
+        pub_sent = node.create_publisher(UInt64, "sonar/images_sent", QoSProfile(
+            depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+            history=HistoryPolicy.KEEP_LAST))
         deadline = time.monotonic() + a.wait_subscribers
         while time.monotonic() < deadline and (pub_img.get_subscription_count() == 0
                                                or pub_pose.get_subscription_count() == 0):
@@ -313,6 +319,7 @@ def main(argv: list[str] | None = None) -> int:
             pub_img.publish(image_msg(fr.image, now_ns, a.sonar_frame, a.encoding))
             n += 1
         dt = time.monotonic() - t0_wall
+        pub_sent.publish(UInt64(data=n))
         time.sleep(0.5)  # let the last messages leave before the publishers go
         print(f"gpumap ros-play: published {n} pings in {dt:.2f} s ({n / max(dt, 1e-9):.1f} /s); left out "
               f"{play.skipped}", file=sys.stderr)
