@@ -245,9 +245,14 @@ def visible_values(
     never observed)."""
     from gpumap.geometry import CARVE_VIEWS
 
-    dark, _ = split_counts(count)
-    keep = np.isfinite(bright) & (dark < (CARVE_VIEWS if carve_views is None else carve_views))
-    return np.where(keep, bright, grid)
+    cv = CARVE_VIEWS if carve_views is None else carve_views
+    # over the voxels ever bright only: a map's read costs no temporaries over the whole grid
+    out = np.array(grid, dtype=np.float32, copy=True)
+    flat_b = np.asarray(bright).reshape(-1)
+    idx = np.flatnonzero(np.isfinite(flat_b))
+    keep = idx[(np.asarray(count).reshape(-1)[idx] & COUNT_LOW) < cv]
+    out.reshape(-1)[keep] = flat_b[keep]
+    return out
 
 
 def evidence_occupied(dark: np.ndarray, hits: np.ndarray, p_min: float, z: float) -> np.ndarray:
@@ -258,12 +263,15 @@ def evidence_occupied(dark: np.ndarray, hits: np.ndarray, p_min: float, z: float
     ``share = hits / n``, ``n = hits + dark`` (the same as: the Wilson score upper bound of the
     share is at least ``p_min``; a tie keeps the voxel). Unknown, free and occupied stay apart: no
     view, no bright view, or this test."""
-    k = np.asarray(hits, np.float64)
-    n = k + np.asarray(dark, np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        share = k / n
-        near = (p_min - share) ** 2 * n <= z * z * p_min * (1.0 - p_min)
-    return (k > 0) & ((share >= p_min) | near)
+    h = np.asarray(hits)
+    out = h > 0
+    idx = np.flatnonzero(out)  # the test runs on the voxels ever bright only (lean on memory)
+    k = h.reshape(-1)[idx].astype(np.float64)
+    n = k + np.asarray(dark).reshape(-1)[idx]
+    share = k / n
+    near = (p_min - share) ** 2 * n <= z * z * p_min * (1.0 - p_min)
+    out.reshape(-1)[idx] = (share >= p_min) | near
+    return out
 
 
 def evidence_values(
@@ -272,8 +280,13 @@ def evidence_values(
     """Map values of the evidence rule: ``bright`` (the min over the bright views, at least the
     threshold) where :func:`evidence_occupied` holds, else ``grid`` (the min over every view:
     below the threshold wherever a clear dark view came, ``+inf`` never observed)."""
-    dark, hits = split_counts(count)
-    return np.where(evidence_occupied(dark, hits, p_min, z), bright, grid)
+    out = np.array(grid, dtype=np.float32, copy=True)
+    flat_b = np.asarray(bright).reshape(-1)
+    idx = np.flatnonzero(np.isfinite(flat_b))  # only a voxel once bright can be occupied
+    dark, hits = split_counts(np.asarray(count).reshape(-1)[idx])
+    keep = idx[evidence_occupied(dark, hits, p_min, z)]
+    out.reshape(-1)[keep] = flat_b[keep]
+    return out
 
 
 def integrate_gather(

@@ -259,8 +259,8 @@ def test_demo_survey_reports_memory_and_sparse_maps_the_same(tmp_path):
     assert d["grid_shape"] == [250, 100, 15]
     md, ms = d["memory"], s["memory"]
     assert md["storage"] == "dense" and ms["storage"] == "sparse"
-    assert md["map_bytes"] == md["dense_grid_bytes"] == 250 * 100 * 15 * 9
-    assert md["dense_water_column_bytes"] == 250 * 100 * 23 * 9  # from 4.6 m down to the surface
+    assert md["map_bytes"] == md["dense_grid_bytes"] == 250 * 100 * 15 * 16
+    assert md["dense_water_column_bytes"] == 250 * 100 * 23 * 16  # from 4.6 m down to the surface
     # the same pings into either storage: the same observed voxels and the same scores
     assert 0 < md["observed_voxels"] == ms["observed_voxels"] < 250 * 100 * 15
     assert ms["map_bytes"] == ms["sparse"]["total_bytes"]
