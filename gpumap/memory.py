@@ -7,14 +7,13 @@ its peak: the map read back as float32 values, the occupied and observed masks, 
 buffers. ``bench/memory.py`` measures the peak resident set of ``gpumap replay`` for boxes of
 7 to 32 M voxels, per backend and rule, with and without the pictures; on the 2-core CPU
 (``bench/results/memory_cpu_2c.json``) the cost of a voxel more (the slope between the two
-largest boxes) is at most 16.8 bytes for the plain rule and 30.8 for the visible rule on every
-backend (without pictures: with them, at these sizes, the pictures set the peak and the slope
-is lower), which
+largest boxes) is at most 16.0 bytes for the plain rule and 44.7 for the visible and evidence
+rules (16 bytes of state each) on every backend (without pictures: with them, at these sizes,
+the pictures set the peak and the slope is lower), which
 
     peak bytes  =  FIXED_BYTES[backend]  +  voxels * (STATE_COPIES * STATE_BYTES[rule] + EXTRA_BYTES)
 
-covers (17.2 and 31.2 bytes a voxel), with a fixed cost above every measured one; a replay
-of a 108 M-voxel box (10 cm, numpy, visible) peaked at 3.3 GB against 3.8 GB reckoned. A rule
+covers (16.1 and 44.9 bytes a voxel), with a fixed cost above every measured one. A rule
 that keeps more state per voxel is priced from its entry in :data:`STATE_BYTES`
 alone (the one table to change when a rule's arrays change), and :func:`run_bytes` is what
 ``gpumap replay`` checks, before the mapper allocates anything, against the memory the machine
@@ -45,8 +44,8 @@ STATE_BYTES: dict[str, int] = {"plain": 4, "visible": 16, "evidence": 16}
 #: Copies of the state a run holds at its peak (the mapper's, and ``save``'s gathered blocks),
 #: and the bytes per voxel beyond them (float32 values read back, the boolean masks), fitted to
 #: the measured slopes of every backend and rule (``tests/test_memory.py`` checks they cover them).
-STATE_COPIES = 2.8
-EXTRA_BYTES = 6.0
+STATE_COPIES = 2.4
+EXTRA_BYTES = 6.5
 
 #: Measured fixed cost of a run per backend (interpreter, libraries, compiled kernels), bytes.
 FIXED_BYTES: dict[str, int] = {"numpy": 400 << 20, "warp-cpu": 560 << 20, "opencl-cpu": 560 << 20}

@@ -174,5 +174,5 @@ def main(argv: list[str] | None = None) -> int:
         f"gpumap refine: {n_frames} pings, {summary['map_occupied']} voxels occupied in the {res.rule} "
         f"map, {summary['refined_occupied']} refined, {res.stats['seconds']:.1f} s on {res.stats['device']}"
     )
-    print(f"gpumap refine: wrote {', '.join(str(Path(a.out) / n) for n in OUTPUTS)}")
+    print(f"gpumap refine: wrote {', '.join(OUTPUTS)} to {a.out}/")
     return 0

@@ -56,7 +56,7 @@ def test_sizes_parse() -> None:
 
 def test_check_names_the_figure_and_the_cap() -> None:
     need = memory.run_bytes(864_000_000, "visible", "numpy")
-    with pytest.raises(ValueError, match=r"864,000,000 voxels .* need about 41\.[0-9] GiB .*bytes a voxel.*"
+    with pytest.raises(ValueError, match=r"864,000,000 voxels .* need about 36\.[0-9] GiB .*bytes a voxel.*"
                                          r"set the cap \(max_memory=\)"):
         memory.check_run_fits(864_000_000, "visible", "numpy", max_bytes=need - 1)
     assert memory.check_run_fits(864_000_000, "visible", "numpy", max_bytes=need) == need

@@ -346,7 +346,7 @@ def test_cli_refines_a_saved_map_and_says_what_it_wrote(tmp_path: Path, capsys) 
     assert main(["refine", str(rec), "--map", str(mp), "--stride", "12", "--iterations", "2", "--device",
                  "cpu", "--backend", "numpy", "--out", str(out)]) == 0
     cap = capsys.readouterr()
-    assert f"wrote {out / 'refined.npz'}" in cap.out
+    assert f"wrote refined.npz, refined.ply, refine.json to {out}/" in cap.out
     assert "refine (cpu): 100%" in cap.err  # the progress bar, on by default
     res = load_refined(out / "refined.npz")
     assert res.grid == m.grid and res.rule == "evidence" and res.threshold == pytest.approx(0.3)
