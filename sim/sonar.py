@@ -423,11 +423,9 @@ class SonarSimulator:
                 nu = var.texture_shape
                 tex = np.random.default_rng([self.seed, int(index), STREAM_TEXTURE])
                 E = E * tex.gamma(nu, 1.0 / nu, E.shape)
-            if var.dropout_prob > 0.0:
-                dropped = bool(np.random.default_rng([self.seed, int(index), STREAM_DROPOUT]).random()
-                               < var.dropout_prob)
-                if dropped:
-                    E = np.zeros_like(E)
+            dropped = self.is_dropped(int(index))
+            if dropped:
+                E = np.zeros_like(E)
         img = 1.0 - np.exp(-self.gain * E * speckle)
         img += rng.rayleigh(self.noise_floor, size=E.shape)
         img = np.clip(img, 0.0, 1.0).astype(np.float32)
@@ -454,6 +452,11 @@ class SonarSimulator:
             return 10.0 ** (v.gain_offset_db / 10.0)
         x = float(self._ar1(STREAM_GAIN, index, 1, v.gain_correlation)[0])
         return 10.0 ** ((v.gain_offset_db + v.gain_sigma_db * x) / 10.0)
+
+    def is_dropped(self, index: int) -> bool:
+        """Whether ping ``index`` loses its echoes (probability ``variation.dropout_prob``)."""
+        p = self.variation.dropout_prob
+        return p > 0.0 and bool(np.random.default_rng([self.seed, int(index), STREAM_DROPOUT]).random() < p)
 
     def jitter(self, index: int) -> np.ndarray:
         """(4, 4) float64 pose error of ping ``index`` in the sonar frame: the ping is taken from
