@@ -46,7 +46,8 @@ How a ping is made (:meth:`SonarSimulator.ping`)
 
    The gain and the jitter are AR(1) series over the ping index (:func:`~.variation.ar1_series`),
    the texture and the dropouts have their own streams: still deterministic per
-   ``(seed, ping index)``. ``clean_image`` stays the mean-energy image of the true pose.
+   ``(seed, ping index)``. ``clean_image`` is the image of the mean energy at the median gain
+   (``gain_offset_db``), of the pose the ping was actually taken from.
    Without a variation (or with :meth:`SonarVariation.none`) pings are bit for bit as before.
 
 Detectable ground truth (:func:`detected_points`)
@@ -106,7 +107,8 @@ class Ping:
     feature_ranges_m, feature_bearings_rad : (m,) float64
         Their true range and azimuth.
     clean_image : (n_bins, n_beams) float32 or None
-        Noise-free image ``1 - exp(-gain * E)`` (no speckle, no noise floor); ``None`` when
+        Noise-free image ``1 - exp(-gain * E)`` (no speckle, no noise floor; with a variation, at
+        its median gain ``gain_offset_db`` and no per-ping spread); ``None`` when
         the ping was not made by :class:`SonarSimulator`.
     ray_bins, ray_beams : (n,) int16 or None
         Cell ``(bin, beam)`` of each visible point's ray (rows of ``points_W``; int32 for
@@ -411,7 +413,8 @@ class SonarSimulator:
         E = np.bincount(bins * sp.n_beams + self._beam[hi], weights=e, minlength=sp.n_bins * sp.n_beams)
         E = E.reshape(sp.n_bins, sp.n_beams)
 
-        clean = (1.0 - np.exp(-self.gain * E)).astype(np.float32)
+        E_mean = E if var.gain_offset_db == 0.0 else E * 10.0 ** (var.gain_offset_db / 10.0)
+        clean = (1.0 - np.exp(-self.gain * E_mean)).astype(np.float32)
 
         rng = np.random.default_rng([self.seed, int(index)])
         looks = self.looks if var.looks is None else var.looks
