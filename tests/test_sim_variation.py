@@ -171,6 +171,30 @@ def test_heavier_speckle_brightens_a_dim_floor_footprint_max():
     assert heavy > light + 0.05
 
 
+def test_variation_stats_counts_views_runs_and_shadows():
+    """One voxel 1 m ahead, views bright or dark in a known order; a view with a bright cell in
+    front of the voxel in its beams is a shadow, not a dark view."""
+    grid = gpumap.GridSpec((-1.0, -1.0, -1.0), (2.0, 1.0, 1.0), 0.05)
+    idx = grid.index_of(np.array([[1.0, 0.0, 0.0]]))
+    st = VariationStats(SPEC, grid, idx, np.array([[1.0, 0.0, 0.0]]), threshold=0.5)
+    r0 = SPEC.bin_index(np.array([1.0]))[0]
+    bright = np.zeros(SPEC.image_shape, np.float32)
+    bright[r0 - 1:r0 + 2] = 0.9  # every beam: cells inside the footprint (none in front of it) bright
+    shadow = np.zeros(SPEC.image_shape, np.float32)
+    shadow[r0 - 20] = 0.9  # a return well in front of the voxel
+    pattern = "BBDDSDB"  # S: shadowed, not seen
+    for c in pattern:
+        st.add({"B": bright, "D": np.zeros_like(bright), "S": shadow}[c], np.eye(4))
+    assert st.n_seen[0] == 6 and st.n_bright[0] == 3 and st.n_observed[0] == 7
+    # consecutive views that both see it: BB, BD, DD, then S breaks the chain, then DB
+    assert st.pairs[0].tolist() == [[1, 1], [1, 1]]
+    s = st.summary(min_views=1)
+    assert s["bright_share"]["quantiles"]["q50"] == 0.5
+    assert s["by_range"][2]["views"] == 6 and s["by_range"][2]["pooled_bright"] == 0.5  # 1 m: bin 0.8-1.1
+    assert s["by_incidence"][0]["views"] == 6  # looking along the normal: 0 deg
+    assert s["ping_gain"]["pings_without_bright_cells"] == 3
+
+
 def test_surface_normals_of_a_plane_and_incidence_bins():
     m = np.zeros((12, 12, 12), bool)
     m[:, :, 5] = True
