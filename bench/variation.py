@@ -188,7 +188,7 @@ def plot(path: Path, real: dict, sims: dict[str, dict]) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(1, 3, figsize=(15, 4.2))
+    fig, ax = plt.subplots(1, 4, figsize=(20, 4.2))
     series = {"real tank (frames 0-799)": real, **{f"sim, {n}": s for n, s in sims.items()}}
     styles = ["k-", "C0--", "C1-", "C2:", "C3-."]
     for (name, d), st in zip(series.items(), styles, strict=False):
@@ -197,16 +197,23 @@ def plot(path: Path, real: dict, sims: dict[str, dict]) -> None:
         q = d["bright_share"]["quantiles"]
         ax[0].plot(centres, h["fraction"], st, drawstyle="steps-mid",
                    label=f"{name}: median {q['q50']:.2f}, q10 {q['q10']:.2f}")
-        for a, key, label in ((ax[1], "by_range", "range_m"), (ax[2], "by_incidence", "incidence_deg")):
+        h = d["bright_share_all_observed_views"]["histogram"]
+        q = d["bright_share_all_observed_views"]["quantiles"]
+        ax[1].plot(centres, h["fraction"], st, drawstyle="steps-mid",
+                   label=f"{name}: median {q['q50']:.2f}, q10 {q['q10']:.2f}")
+        for a, key, label in ((ax[2], "by_range", "range_m"), (ax[3], "by_incidence", "incidence_deg")):
             x = [0.5 * (r[label][0] + r[label][1]) for r in d[key]]
             a.plot(x, [r["pooled_bright"] for r in d[key]], st + "o" if st[-1] != "o" else st, label=name)
     ax[0].set(xlabel="share of a surface voxel's clear views that are bright", ylabel="fraction of voxels",
               title="per-voxel bright share")
-    ax[1].set(xlabel="range (m)", ylabel="bright views / clear views", title="by range", ylim=(0, 1))
-    ax[2].set(xlabel="incidence (deg from the normal)", ylabel="bright views / clear views",
+    ax[1].set(xlabel="share of all the views observing a surface voxel that are bright",
+              ylabel="fraction of voxels", title="per-voxel bright share, shadowed views too")
+    ax[2].set(xlabel="range (m)", ylabel="bright views / clear views", title="by range", ylim=(0, 1))
+    ax[3].set(xlabel="incidence (deg from the normal)", ylabel="bright views / clear views",
               title="by incidence", ylim=(0, 1))
     ax[0].legend(fontsize=7)
-    ax[2].legend(fontsize=7)
+    ax[1].legend(fontsize=7)
+    ax[3].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
