@@ -27,7 +27,6 @@ Takes ~3 min on 2 cores (``--fit``: ~1 min more per candidate).
 
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
 from typing import Any
@@ -41,16 +40,16 @@ REAL_THRESHOLD = 0.4
 VOXEL_M = 0.05
 MIN_VIEWS = 10
 
-#: ``--fit`` candidates: changes to :meth:`SonarVariation.real_tank` (each scored on the simulated sweep;
-#: the preset itself first). The preset came from a coarse search by hand over the gain offset, the
-#: gain's spread, the speckle's looks and the jitter; this keeps the neighbours that search ended at.
+#: ``--fit`` candidates: changes to :meth:`SonarVariation.real_tank` (each scored on the simulated sweep).
+#: The preset came from rounds of this by hand (gain offset -14 to -20 dB, spread 4 to 7 dB, gain
+#: correlation, jitter, looks); these are its neighbours (the preset itself first).
 FIT_CANDIDATES: list[dict[str, float]] = [
-    {"gain_offset_db": -14.0},
-    {"gain_offset_db": -17.0},
-    {"gain_offset_db": -20.0},
-    {"gain_offset_db": -17.0, "gain_sigma_db": 6.0},
-    {"gain_offset_db": -20.0, "gain_sigma_db": 6.0, "jitter_translation_m": 0.01,
-     "jitter_rotation_rad": math.radians(1.0)},
+    {},
+    {"gain_correlation": 0.9},
+    {"gain_offset_db": -18.0, "gain_sigma_db": 5.0},
+    {"gain_offset_db": -16.0, "gain_sigma_db": 7.0},
+    {"jitter_translation_m": 0.0, "jitter_rotation_rad": 0.0},
+    {"looks": 2.0},
 ]
 
 def measure_real(data: Path, frames: tuple[int, int], map_stride: int, backend: str,

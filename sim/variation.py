@@ -160,11 +160,11 @@ class SonarVariation:
 
 #: The preset :meth:`SonarVariation.real_tank` returns (see there how it was fitted).
 REAL_TANK: dict[str, float] = {
-    "gain_offset_db": -14.0,
+    "gain_offset_db": -17.0,
     "looks": 1.0,
     "texture_shape": math.inf,
-    "gain_sigma_db": 4.0,
-    "gain_correlation": 0.9,
+    "gain_sigma_db": 6.0,
+    "gain_correlation": 0.97,
     "jitter_translation_m": 0.005,
     "jitter_rotation_rad": math.radians(0.5),
     "jitter_correlation": 0.9,
