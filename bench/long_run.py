@@ -12,7 +12,8 @@ surface not called occupied) and ``false_positive_rate_far`` (phantoms more than
 surface). A rule that erodes real surfaces shows it as a miss rate that rises with pings.
 
 Writes ``bench/results/long_run.json`` and ``bench/results/long_run.png`` (``--quick``: 60 pings,
-``long_run_quick.*``). Takes ~15 min on 2 cores (the simulator's rendering dominates).
+``long_run_quick.*``; another ``--voxel-size``: ``long_run_<mm>mm.*``). Takes ~15 min on 2 cores
+(the simulator's rendering dominates).
 """
 
 from __future__ import annotations
@@ -153,7 +154,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{name} {rule:>8} @ {last['pings']}: miss objects {last['miss_rate_objects']:.3f}  "
                       f"miss {last['miss_rate']:.3f}  FP far {last['false_positive_rate_far']:.4f}")
     mark_load(head["machine"], share)
-    stem = "long_run_quick" if a.quick else "long_run"
+    stem = ("long_run_quick" if a.quick else "long_run") + (
+        "" if abs(a.voxel_size - 0.03) < 1e-9 else f"_{round(a.voxel_size * 1000)}mm")
     res = {**head, "command": "python -m bench long_run " + " ".join(argv or []),
            "variation": {"name": a.variation, **var.to_dict()}, "checkpoints": list(checkpoints),
            "threshold": OCCUPIED_THRESHOLD,
