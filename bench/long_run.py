@@ -111,6 +111,8 @@ def plot(path: Path, scenes: dict[str, dict]) -> None:
             for rule, rows in res["curves"].items():
                 a.plot([r["pings"] for r in rows], [r[key] for r in rows], "o-", label=rule)
             a.set(xlabel="pings", ylabel=label, title=f"{name}: {label}", xscale="log")
+            if key.startswith("miss"):
+                a.set_ylim(0.0, 1.02)
             a.grid(alpha=0.3)
             if j == 0:
                 a.legend(fontsize=8)
