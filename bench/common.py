@@ -42,6 +42,7 @@ __all__ = [
     "machine_tag",
     "mark_load",
     "merge_json",
+    "oasis_full_dir",
     "oasis_tank_dir",
     "pooled_others",
     "put_block",
@@ -407,23 +408,35 @@ def oasis_tank_dir() -> Path | None:
     return None
 
 
+def oasis_full_dir() -> Path | None:
+    """The full-rate OASIS tank recording (``oasis_tank_full/`` with ``sonar/*.png``, written by
+    ``shared/data/oasis_tank_full/get_images.sh``) beside the checkout or above it; None where
+    its images are not there (``shared/data/oasis_tank_full`` itself holds only the poses)."""
+    for up in Path(__file__).resolve().parents:
+        for cand in (up / "oasis_tank_full", up / "shared" / "data" / "oasis_tank_full"):
+            if (cand / "sonar_poses.csv").is_file() and (cand / "sonar").is_dir():
+                return cand
+    return None
+
+
 def quantize(image: np.ndarray) -> np.ndarray:
     """A simulated intensity image (float in [0, 1]) as the Oculus delivers it: uint8, rounded."""
     return np.round(np.asarray(image) * 255.0).astype(np.uint8)
 
 
 def render_pings(scene: Any, *, seed: int = 0, select: Sequence[int] | None = None, scene_sonar: bool = True,
-                 progress: bool = False, desc: str | None = None) -> list:
+                 progress: bool = False, desc: str | None = None, variation: Any = None) -> list:
     """The simulator's pings of ``scene`` (a :class:`gpumap.sim.scenes.Scene`) at its trajectory's
     poses ``T_W_S`` (all, or the indices ``select``); ``scene_sonar``: with the scene's own
-    simulator settings (``scene.sonar_params``, e.g. the survey's gain), as ``gpumap demo`` does."""
+    simulator settings (``scene.sonar_params``, e.g. the survey's gain), as ``gpumap demo`` does;
+    ``variation``: a :class:`gpumap.sim.variation.SonarVariation` (None: none)."""
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     from gpumap.sim.sonar import SonarSimulator
     from tqdm import tqdm
 
     sel = range(len(scene.T_W_S)) if select is None else select
     extra = scene.sonar_params if scene_sonar else {}
-    with SonarSimulator(scene, seed=seed, **extra) as sim:
+    with SonarSimulator(scene, seed=seed, variation=variation, **extra) as sim:
         return [sim.ping(scene.T_W_S[k], int(k))
                 for k in tqdm(sel, desc=desc or "simulate", unit="ping", disable=not progress)]
 

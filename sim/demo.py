@@ -48,6 +48,7 @@ from .metrics import evaluate
 from .scenes import SCENES, Scene, make_scene
 from .sonar import OCCUPIED_THRESHOLD, Ping, SonarSimulator
 from .truth import Truth, ground_truth_masks, occupancy, points_to_voxels
+from .variation import SonarVariation
 
 __all__ = ["main", "run_demo"]
 
@@ -55,6 +56,8 @@ RANGE_SIGMA_M = 0.01
 BEARING_SIGMA_RAD = math.radians(0.3)
 #: Voxel edge (metres) of each scene when ``--voxel-size`` is not given; others take 0.03.
 DEFAULT_VOXEL_M = {"survey": 0.05}
+#: ``--variation`` names -> the simulated sonar's view-to-view variation.
+VARIATIONS = {"none": SonarVariation.none, "real_tank": SonarVariation.real_tank}
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -87,6 +90,9 @@ def _parser() -> argparse.ArgumentParser:
                         "0 = the paper's min-max")
     p.add_argument("--seed", type=nonnegative_int, default=0,
                    help="random seed of the simulated sonar noise and odometry (default 0)")
+    p.add_argument("--variation", default="none", choices=sorted(VARIATIONS),
+                   help="view-to-view variation of the simulated sonar: none (default) or real_tank "
+                        "(speckle, per-ping gain, pose jitter and dropouts measured on the real tank run)")
     p.add_argument("--sparse", action="store_true",
                    help="allocate the map's blocks only where pings look (sparse, bounded by the "
                         "scene's grid; the same values as the dense grid) and report its memory")
@@ -366,7 +372,8 @@ def run_demo(args: argparse.Namespace) -> dict:
 
     t0 = time.perf_counter()
     pings, seen_each = [], []
-    with SonarSimulator(scene, seed=args.seed, **scene.sonar_params) as sim:
+    variation = VARIATIONS[getattr(args, "variation", "none")]()
+    with SonarSimulator(scene, seed=args.seed, variation=variation, **scene.sonar_params) as sim:
         for i, k in enumerate(_progress(sel, quiet, desc="simulate", unit="ping")):
             p = sim.ping(scene.T_W_S[k], int(k))
             pings.append(p)
@@ -403,6 +410,7 @@ def run_demo(args: argparse.Namespace) -> dict:
         "images": len(pings),
         "threshold": args.threshold,
         "shadow_m": args.shadow_m,
+        "variation": {"name": getattr(args, "variation", "none"), **variation.to_dict()},
         "ms_per_image": 1e3 * float(np.mean(times[1:] if len(times) > 1 else times)),
         "ms_per_image_first": 1e3 * times[0],
         "sim_ms_per_image": 1e3 * sim_s / len(pings),

@@ -25,6 +25,7 @@ maps (:func:`survey_scene`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -49,6 +50,9 @@ __all__ = [
     "BACKGROUND_OBJECTS",
     "pose_from_xyz_ypr",
     "box_scene",
+    "circle_orbit_trajectory",
+    "long_run_scene",
+    "tank_sweep_trajectory",
 ]
 
 
@@ -623,6 +627,73 @@ def circle_trajectory(
         for r in np.linspace(-roll_deg, roll_deg, n_roll):
             poses.append(pose_from_xyz_ypr(xyz, yaw, look_down, math.radians(r)))
     return np.array(poses)
+
+
+# ------------------------------------------------------------------------------ long runs at a sonar's rate
+def tank_sweep_trajectory(n_pings: int, pass_pings: int = 200,
+                          nod_pings: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """``(T_W_S, T_W_D)``, (n_pings, 4, 4) each: the arm sweeping the tank at a sonar's own rate.
+
+    The wrist goes back and forth along the arc of :func:`tank_scene`'s trajectory (one pass
+    every ``pass_pings`` pings: about 6 mm per ping, as the real OASIS arm between frames),
+    yawed toward the objects, while nodding its pitch between 12 and 26 deg with a period of
+    ``nod_pings`` pings (about 1.7 deg per ping): a path that keeps looking at the scene for as
+    long as it runs.
+    """
+    if n_pings < 1 or pass_pings < 2 or nod_pings < 2:
+        raise ValueError(f"Expected n_pings >= 1, pass_pings >= 2 and nod_pings >= 2, but got {n_pings}, "
+                         f"{pass_pings}, {nod_pings}")
+    T_wrist_S, T_wrist_D = mounts()
+    target = np.array([1.05, 0.0])
+    wrists = []
+    for k in range(n_pings):
+        u = (k / pass_pings) % 2.0
+        s = u if u <= 1.0 else 2.0 - u  # triangle wave over the arc
+        y = -0.55 + 1.1 * s
+        x = 0.25 + 0.15 * math.sin(math.pi * s)
+        z = 0.05 - 0.15 * math.sin(math.pi * s)
+        yaw = math.atan2(target[1] - y, target[0] - x)
+        pitch = math.radians(12.0 + 14.0 * (0.5 + 0.5 * math.cos(2 * math.pi * k / nod_pings)))
+        wrists.append(pose_from_xyz_ypr(np.array([x, y, z]), yaw, pitch))
+    W = np.array(wrists)
+    return W @ T_wrist_S, W @ T_wrist_D
+
+
+def circle_orbit_trajectory(n_pings: int, n_orbits: float = 2.0, radius_m: float = 1.2, height_m: float = 0.4,
+                            nod_pings: int = 30, roll_pings: int = 70) -> np.ndarray:
+    """(n_pings, 4, 4) sonar poses orbiting :func:`circle_scene`'s objects at a sonar's rate.
+
+    ``n_orbits`` turns of a circle of ``radius_m`` around the origin, ``height_m`` above the
+    mean sand, yawed at the origin, the pitch nodding between 10 and 40 deg down (period
+    ``nod_pings``) and the roll swinging +-10 deg (period ``roll_pings``): every object is seen
+    from every side, again and again.
+    """
+    if n_pings < 1 or n_orbits <= 0:
+        raise ValueError(f"Expected n_pings >= 1 and n_orbits > 0, but got {n_pings}, {n_orbits}")
+    z = CIRCLE["floor_z_m"] + height_m
+    poses = []
+    for k in range(n_pings):
+        a = math.radians(-90.0) + 2 * math.pi * n_orbits * k / n_pings
+        xyz = np.array([radius_m * math.cos(a), radius_m * math.sin(a), z])
+        pitch = 25.0 - 15.0 * math.cos(2 * math.pi * k / nod_pings)
+        roll = 10.0 * math.sin(2 * math.pi * k / roll_pings)
+        poses.append(pose_from_xyz_ypr(xyz, a + math.pi, math.radians(pitch), math.radians(roll)))
+    return np.array(poses)
+
+
+def long_run_scene(name: str, n_pings: int, voxel_size_m: float = 0.03, seed: int = 0) -> Scene:
+    """The ``tank`` or ``circle`` scene with a trajectory of ``n_pings`` pings at a sonar's rate
+    (:func:`tank_sweep_trajectory`, :func:`circle_orbit_trajectory`) instead of its short one."""
+    if name == "tank":
+        scene = tank_scene(seed=seed, voxel_size_m=voxel_size_m)
+        T_W_S, T_W_D = tank_sweep_trajectory(n_pings)
+    elif name == "circle":
+        scene = circle_scene(seed=seed, voxel_size_m=voxel_size_m)
+        T_W_S = circle_orbit_trajectory(n_pings)
+        T_W_D = T_W_S.copy()
+    else:
+        raise ValueError(f"Expected a scene name in ['circle', 'tank'] for a long run, but got {name!r}")
+    return dataclasses.replace(scene, T_W_S=T_W_S, T_W_D=T_W_D)
 
 
 # ------------------------------------------------------------------------------ a seabed survey

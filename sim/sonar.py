@@ -35,6 +35,20 @@ How a ping is made (:meth:`SonarSimulator.ping`)
    display ``I = 1 - exp(-gain * E)``, an additive Rayleigh noise floor of scale
    ``noise_floor`` and clipping to [0, 1]. Noise is seeded by ``(seed, ping index)``, so
    a ping is reproducible whatever the order pings are made in.
+6. **View-to-view variation** (opt-in, ``variation=``: :class:`~.variation.SonarVariation`).
+   A real sonar at its own rate images a surface differently every ping; with a variation
+   the ping is rendered from ``T_W_S @ exp(jitter)`` (the arm's pose error; the ping still
+   reports ``T_W_S``), its energy is scaled by a per-ping log-normal gain (median
+   ``gain_offset_db``; 0 for a dropped ping) and the speckle takes the variation's ``looks``
+   and K-distribution texture::
+
+       I = 1 - exp(-gain * g_ping * E * Gamma(looks', 1 / looks') * Gamma(nu, 1 / nu))
+
+   The gain and the jitter are AR(1) series over the ping index (:func:`~.variation.ar1_series`),
+   the texture and the dropouts have their own streams: still deterministic per
+   ``(seed, ping index)``. ``clean_image`` is the image of the mean energy at the median gain
+   (``gain_offset_db``), of the pose the ping was actually taken from.
+   Without a variation (or with :meth:`SonarVariation.none`) pings are bit for bit as before.
 
 Detectable ground truth (:func:`detected_points`)
 -------------------------------------------------
@@ -68,8 +82,9 @@ import gpumap
 from gpumap.errors import check_pose
 
 from .scenes import Scene
+from .variation import STREAM_DROPOUT, STREAM_GAIN, STREAM_JITTER, STREAM_TEXTURE, SonarVariation, ar1_series
 
-__all__ = ["SonarSimulator", "Ping", "OCCUPIED_THRESHOLD", "detected_points"]
+__all__ = ["SonarSimulator", "SonarVariation", "Ping", "OCCUPIED_THRESHOLD", "detected_points"]
 
 #: Intensity from which a voxel is called occupied (see the module docstring).
 OCCUPIED_THRESHOLD = 0.1
@@ -92,11 +107,17 @@ class Ping:
     feature_ranges_m, feature_bearings_rad : (m,) float64
         Their true range and azimuth.
     clean_image : (n_bins, n_beams) float32 or None
-        Noise-free image ``1 - exp(-gain * E)`` (no speckle, no noise floor); ``None`` when
+        Noise-free image ``1 - exp(-gain * E)`` (no speckle, no noise floor; with a variation, at
+        its median gain ``gain_offset_db`` and no per-ping spread); ``None`` when
         the ping was not made by :class:`SonarSimulator`.
     ray_bins, ray_beams : (n,) int16 or None
         Cell ``(bin, beam)`` of each visible point's ray (rows of ``points_W``; int32 for
         images of 32768 bins or beams or more).
+    T_W_S_actual : (4, 4) float64 or None
+        The pose the ping was actually taken from when the simulator's variation jitters
+        poses (``points_W`` and the features are from it); None: ``T_W_S`` itself.
+    dropped : bool
+        The ping lost its echoes (a variation's dropout): its image is the noise floor only.
     """
 
     image: np.ndarray
@@ -108,6 +129,8 @@ class Ping:
     clean_image: np.ndarray | None = None
     ray_bins: np.ndarray | None = None
     ray_beams: np.ndarray | None = None
+    T_W_S_actual: np.ndarray | None = None
+    dropped: bool = False
 
     @property
     def detected_W(self) -> np.ndarray:
@@ -169,6 +192,9 @@ class SonarSimulator:
         Rays are cast out to ``vertical_extent * vfov / 2`` in elevation: the nominal
         aperture is the beam's -3 dB width, and a real beam still hears (weaker) echoes
         beyond it (1.5: down to -6.8 dB two-way at the last ray).
+    variation : SonarVariation, optional
+        View-to-view variation (speckle, per-ping gain, pose jitter, dropouts; see the
+        module docstring); None or :meth:`SonarVariation.none`: none, the pings as always.
     """
 
     def __init__(
@@ -185,7 +211,13 @@ class SonarSimulator:
         spreading_exponent: float = 0.5,
         absorption_db_per_m: float = 0.04,
         vertical_extent: float = 1.5,
+        variation: SonarVariation | None = None,
     ) -> None:
+        if variation is not None and not isinstance(variation, SonarVariation):
+            raise TypeError(
+                f"Expected a SonarVariation or None for 'variation', but got {type(variation).__name__}")
+        self.variation = variation or SonarVariation.none()
+        self._series: dict[int, np.ndarray] = {}
         self.scene = scene
         self.spec = spec or scene.sonar_spec
         self.seed = int(seed)
@@ -348,7 +380,12 @@ class SonarSimulator:
 
         ``index`` seeds the noise together with the simulator's seed.
         """
-        T = check_pose(T_W_S, "T_W_S")
+        T_nominal = check_pose(T_W_S, "T_W_S")
+        var = self.variation
+        if not var.is_none and int(index) < 0:
+            raise ValueError(
+                f"Expected index >= 0 with a variation (it indexes the per-ping series), but got {index}")
+        T = T_nominal @ self.jitter(int(index)) if var.has_jitter else T_nominal
         sp = self.spec
         colors, depths = self._render(T)
         col = np.concatenate([c.reshape(-1, 3)[p] for c, p in zip(colors, self._pix, strict=True)])
@@ -376,18 +413,68 @@ class SonarSimulator:
         E = np.bincount(bins * sp.n_beams + self._beam[hi], weights=e, minlength=sp.n_bins * sp.n_beams)
         E = E.reshape(sp.n_bins, sp.n_beams)
 
-        clean = (1.0 - np.exp(-self.gain * E)).astype(np.float32)
+        E_mean = E if var.gain_offset_db == 0.0 else E * 10.0 ** (var.gain_offset_db / 10.0)
+        clean = (1.0 - np.exp(-self.gain * E_mean)).astype(np.float32)
 
         rng = np.random.default_rng([self.seed, int(index)])
-        speckle = rng.gamma(self.looks, 1.0 / self.looks, size=E.shape)
+        looks = self.looks if var.looks is None else var.looks
+        speckle = rng.gamma(looks, 1.0 / looks, size=E.shape)
+        dropped = False
+        if not var.is_none:
+            E = E * self.ping_gain(int(index))
+            if math.isfinite(var.texture_shape):
+                nu = var.texture_shape
+                tex = np.random.default_rng([self.seed, int(index), STREAM_TEXTURE])
+                E = E * tex.gamma(nu, 1.0 / nu, E.shape)
+            dropped = self.is_dropped(int(index))
+            if dropped:
+                E = np.zeros_like(E)
         img = 1.0 - np.exp(-self.gain * E * speckle)
         img += rng.rayleigh(self.noise_floor, size=E.shape)
         img = np.clip(img, 0.0, 1.0).astype(np.float32)
 
         points_W = (T[:3, 3] + (d_S * r[:, None]) @ R.T).astype(np.float32)
         fid, fr, fb = self._visible_features(T, depths)
-        return Ping(img, T, points_W, fid, fr, fb, clean_image=clean,
-                    ray_bins=bins.astype(self._cell_dtype), ray_beams=self._beam[hi].astype(self._cell_dtype))
+        return Ping(img, T_nominal, points_W, fid, fr, fb, clean_image=clean,
+                    ray_bins=bins.astype(self._cell_dtype), ray_beams=self._beam[hi].astype(self._cell_dtype),
+                    T_W_S_actual=T if var.has_jitter else None, dropped=dropped)
+
+    def _ar1(self, stream: int, index: int, dim: int, rho: float) -> np.ndarray:
+        """Row ``index`` of the variation's AR(1) series ``stream`` (cached, grown in blocks)."""
+        x = self._series.get(stream)
+        if x is None or len(x) <= index:
+            x = ar1_series(self.seed, stream, max(index + 1, 2 * (0 if x is None else len(x))), dim, rho)
+            self._series[stream] = x
+        return x[index]
+
+    def ping_gain(self, index: int) -> float:
+        """The variation's gain on ping ``index``'s echo energy: log-normal, median
+        ``10 ** (gain_offset_db / 10)`` (1 without a variation)."""
+        v = self.variation
+        if v.gain_sigma_db == 0.0:
+            return 10.0 ** (v.gain_offset_db / 10.0)
+        x = float(self._ar1(STREAM_GAIN, index, 1, v.gain_correlation)[0])
+        return 10.0 ** ((v.gain_offset_db + v.gain_sigma_db * x) / 10.0)
+
+    def is_dropped(self, index: int) -> bool:
+        """Whether ping ``index`` loses its echoes (probability ``variation.dropout_prob``)."""
+        p = self.variation.dropout_prob
+        return p > 0.0 and bool(np.random.default_rng([self.seed, int(index), STREAM_DROPOUT]).random() < p)
+
+    def jitter(self, index: int) -> np.ndarray:
+        """(4, 4) float64 pose error of ping ``index`` in the sonar frame: the ping is taken from
+        ``T_W_S @ jitter(index)`` (rotation ``exp`` of a vector of ``jitter_rotation_rad`` per axis,
+        translation ``jitter_translation_m`` per axis; identity without jitter)."""
+        v = self.variation
+        out = np.eye(4)
+        if not v.has_jitter:
+            return out
+        x = self._ar1(STREAM_JITTER, index, 6, v.jitter_correlation)
+        from gpumap.lie import so3_exp
+
+        out[:3, :3] = so3_exp(x[:3] * v.jitter_rotation_rad)
+        out[:3, 3] = x[3:] * v.jitter_translation_m
+        return out
 
     def _visible_features(
         self, T_W_S: np.ndarray, depths: list[np.ndarray], tol_m: float = 0.02

@@ -1,0 +1,175 @@
+"""``python -m bench long_run``: every mapping rule over a long simulated run with realistic variation.
+
+The tank and circle scenes are flown at a sonar's own rate (:func:`gpumap.sim.scenes.long_run_scene`:
+the arm sweeping the tank, an orbit of the circle's objects; up to 1,000 pings, a minute and a half at
+10 Hz) with :meth:`gpumap.sim.variation.SonarVariation.real_tank` (speckle, per-ping gain, pose jitter
+and dropouts fitted to the real OASIS run by ``python -m bench variation``). Each ping, quantized to
+uint8 as the Oculus delivers, goes at its reported (nominal) pose into one 3 cm map per rule in
+``gpumap.geometry.RULES`` (whatever it holds when this runs). After 40, 100, 200, 500 and 1,000 pings
+every map is scored (:func:`gpumap.sim.metrics.evaluate`, at the simulator's threshold) against the
+truth and what the pings so far could detect: ``miss_rate_objects`` and ``miss_rate`` (FN: detectable
+surface not called occupied) and ``false_positive_rate_far`` (phantoms more than a voxel from any
+surface). A rule that erodes real surfaces shows it as a miss rate that rises with pings.
+
+Writes ``bench/results/long_run.json`` and ``bench/results/long_run.png`` (``--quick``: 60 pings,
+``long_run_quick.*``; another ``--voxel-size``: ``long_run_<mm>mm.*``). Takes ~15 min on 2 cores
+(the simulator's rendering dominates).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .common import CpuShare, bench_parser, mark_load, quantize, run_header, write_json
+
+SCHEMA = "gpumap-long-run/1"
+CHECKPOINTS = (40, 100, 200, 500, 1000)
+QUICK_CHECKPOINTS = (20, 40, 60)
+SCORES = ("miss_rate_objects", "miss_rate", "false_positive_rate_far", "false_negative_rate_detectable",
+          "observed_surface_fraction")
+
+
+def run_scene(name: str, checkpoints: tuple[int, ...], voxel_m: float, variation: Any, backend: str,
+              seed: int, progress: bool) -> dict[str, Any]:
+    """Fly scene ``name`` for ``max(checkpoints)`` pings, mapping by every rule; score at the checkpoints."""
+    from gpumap.sim.metrics import evaluate
+    from gpumap.sim.scenes import long_run_scene
+    from gpumap.sim.sonar import OCCUPIED_THRESHOLD, SonarSimulator
+    from gpumap.sim.truth import detected_points, occupancy, points_to_voxels
+    from tqdm import tqdm
+
+    import gpumap
+    from gpumap.geometry import RULES
+
+    n = max(checkpoints)
+    scene = long_run_scene(name, n, voxel_m, seed=seed)
+    t0 = time.perf_counter()
+    truth = occupancy(scene, seed=seed)
+    truth_s = time.perf_counter() - t0
+    grid = scene.grid
+    mappers = {r: gpumap.MinMaxMapper(scene.sonar_spec, grid, backend=backend, rule=r,
+                                      threshold=OCCUPIED_THRESHOLD) for r in RULES}
+    seen = np.zeros(grid.n_voxels, bool)
+    det = np.zeros(grid.n_voxels, bool)
+    sim_s, eval_s = 0.0, 0.0
+    map_s = dict.fromkeys(RULES, 0.0)
+    curves: dict[str, list[dict]] = {r: [] for r in RULES}
+    dropped = 0
+    with SonarSimulator(scene, seed=seed, variation=variation, **scene.sonar_params) as sim:
+        for k in tqdm(range(n), disable=not progress, desc=f"{name}", unit="ping"):
+            t = time.perf_counter()
+            p = sim.ping(scene.T_W_S[k], k)
+            img = quantize(p.image)
+            seen[points_to_voxels(p.points_W, grid)] = True
+            det[points_to_voxels(detected_points(p, OCCUPIED_THRESHOLD), grid)] = True
+            dropped += p.dropped
+            sim_s += time.perf_counter() - t
+            for r, m in mappers.items():
+                t = time.perf_counter()
+                m.integrate(img, p.T_W_S)
+                m.synchronize()
+                map_s[r] += time.perf_counter() - t
+            if k + 1 in checkpoints:
+                t = time.perf_counter()
+                for r, m in mappers.items():
+                    ev = evaluate(m.values(), truth, OCCUPIED_THRESHOLD, seen.reshape(grid.shape), voxel_m,
+                                  detectable=det.reshape(grid.shape)).to_dict()
+                    curves[r].append({"pings": k + 1, **{s: ev[s] for s in SCORES}})
+                eval_s += time.perf_counter() - t
+    return {
+        "pings": n,
+        "voxel_size_m": voxel_m,
+        "grid_shape": list(grid.shape),
+        "backend": next(iter(mappers.values())).backend,
+        "rules": list(RULES),
+        "dropped_pings": int(dropped),
+        "curves": curves,
+        "seconds": {"truth": truth_s, "simulate": sim_s, "evaluate": eval_s,
+                    **{f"map_{r}": s for r, s in map_s.items()}},
+        "sim_pings_per_s": n / sim_s if sim_s > 0 else None,
+        "map_ms_per_ping": {r: 1e3 * s / n for r, s in map_s.items()},
+    }
+
+
+def plot(path: Path, scenes: dict[str, dict]) -> None:
+    """Miss rate (objects, all) and far false positives against pings, one line per rule."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = (("miss_rate_objects", "miss rate, objects (FN)"), ("miss_rate", "miss rate, all surface (FN)"),
+            ("false_positive_rate_far", "false positives, far (FP)"))
+    fig, ax = plt.subplots(len(scenes), len(keys), figsize=(14, 3.6 * len(scenes)), squeeze=False)
+    for i, (name, res) in enumerate(scenes.items()):
+        for j, (key, label) in enumerate(keys):
+            a = ax[i, j]
+            for rule, rows in res["curves"].items():
+                a.plot([r["pings"] for r in rows], [r[key] for r in rows], "o-", label=rule)
+            a.set(xlabel="pings", ylabel=label, title=f"{name}: {label}", xscale="log")
+            if key.startswith("miss"):
+                a.set_ylim(0.0, 1.02)
+            a.grid(alpha=0.3)
+            if j == 0:
+                a.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = bench_parser("long_run", __doc__)
+    ap.add_argument("--scenes", nargs="+", default=["tank", "circle"], choices=["tank", "circle"])
+    ap.add_argument("--checkpoints", type=int, nargs="+", default=None,
+                    help=f"pings at which the maps are scored (default {' '.join(map(str, CHECKPOINTS))})")
+    ap.add_argument("--voxel-size", type=float, default=0.03, help="metres (default 0.03)")
+    ap.add_argument("--variation", default="real_tank", choices=["real_tank", "none"],
+                    help="the simulator's view-to-view variation (default real_tank)")
+    ap.add_argument("--quick", action="store_true",
+                    help=f"a short run: {max(QUICK_CHECKPOINTS)} pings, scored at "
+                         f"{' '.join(map(str, QUICK_CHECKPOINTS))}; writes long_run_quick.*")
+    ap.add_argument("--backend", default="auto", help="gpumap backend (default auto)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=Path("bench/results"), help="results folder")
+    ap.add_argument("--no-progress", action="store_true")
+    a = ap.parse_args(argv)
+    from gpumap.sim.sonar import OCCUPIED_THRESHOLD
+    from gpumap.sim.variation import SonarVariation
+
+    checkpoints = tuple(sorted(set(a.checkpoints or (QUICK_CHECKPOINTS if a.quick else CHECKPOINTS))))
+    if checkpoints[0] < 1:
+        raise SystemExit("bench.long_run: checkpoints must be >= 1")
+    var = SonarVariation.real_tank() if a.variation == "real_tank" else SonarVariation.none()
+    head = run_header(SCHEMA, argv)
+    t0 = time.perf_counter()
+    scenes = {}
+    with CpuShare() as share:
+        for name in a.scenes:
+            scenes[name] = run_scene(name, checkpoints, a.voxel_size, var, a.backend, a.seed,
+                                     not a.no_progress)
+            for rule, rows in scenes[name]["curves"].items():
+                last = rows[-1]
+                print(f"{name} {rule:>8} @ {last['pings']}: miss objects {last['miss_rate_objects']:.3f}  "
+                      f"miss {last['miss_rate']:.3f}  FP far {last['false_positive_rate_far']:.4f}")
+    mark_load(head["machine"], share)
+    stem = ("long_run_quick" if a.quick else "long_run") + (
+        "" if abs(a.voxel_size - 0.03) < 1e-9 else f"_{round(a.voxel_size * 1000)}mm")
+    res = {**head, "command": "python -m bench long_run " + " ".join(argv or []),
+           "variation": {"name": a.variation, **var.to_dict()}, "checkpoints": list(checkpoints),
+           "threshold": OCCUPIED_THRESHOLD,
+           "image_dtype": "uint8 (intensity * 255, rounded; as the Oculus delivers)",
+           "poses": "the pings' reported poses (nominal; the variation's jitter is the error)",
+           "scenes": scenes, "duration_s": time.perf_counter() - t0}
+    a.out.mkdir(parents=True, exist_ok=True)
+    path = write_json(a.out / f"{stem}.json", res, digits=4)
+    plot(a.out / f"{stem}.png", scenes)
+    print(f"wrote {path} in {res['duration_s']:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,234 @@
+"""The simulated sonar's view-to-view variation (gpumap.sim.variation.SonarVariation) and its measurement."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from gpumap.sim.metrics import evaluate
+from gpumap.sim.scenes import box_scene, pose_from_xyz_ypr
+from gpumap.sim.sonar import OCCUPIED_THRESHOLD, SonarSimulator, detected_points
+from gpumap.sim.truth import occupancy, points_to_voxels
+from gpumap.sim.variation import SonarVariation, VariationStats, ar1_series, surface_normals
+
+import gpumap
+from gpumap.lie import so3_log
+
+#: A small sonar: renders in a few milliseconds per ping.
+SPEC = gpumap.SonarSpec.uniform(hfov_deg=130, vfov_deg=20, n_beams=64, n_bins=100,
+                                range_min_m=0.1, range_max_m=2.0)
+FAST = {"elevation_step_rad": math.radians(0.4)}
+FLOOR = ((0.0, 0.0, -0.55), (4.0, 3.0, 0.1))  # top at z = -0.5
+BLOCK = ((0.9, 0.1, -0.35), (0.2, 0.3, 0.3))
+
+
+def _poses(n: int, period: int = 20) -> np.ndarray:
+    """``n`` poses nodding and sliding over a ``period`` (a sonar at its own rate over the same ground)."""
+    out = []
+    for k in range(n):
+        a = 2 * math.pi * (k % period) / period
+        out.append(pose_from_xyz_ypr(np.array([0.0, 0.15 * math.sin(a), 0.0]), 0.05 * math.cos(a),
+                                     math.radians(30 + 8 * math.sin(a))))
+    return np.array(out)
+
+
+def _scene(boxes=(FLOOR,), n: int = 1, voxel_m: float = 0.05):
+    return box_scene(list(boxes), T_W_S=_poses(n), spec=SPEC, voxel_size_m=voxel_m)
+
+
+# ------------------------------------------------------------------------------ the parameter object
+def test_none_is_the_simulator_as_before_bit_for_bit():
+    scene = _scene((FLOOR, BLOCK), n=3)
+    out = []
+    for var in (None, SonarVariation.none()):
+        with SonarSimulator(scene, seed=4, variation=var, **FAST) as sim:
+            out.append([sim.ping(T, k) for k, T in enumerate(scene.T_W_S)])
+    for a, b in zip(*out, strict=True):
+        assert np.array_equal(a.image, b.image) and np.array_equal(a.clean_image, b.clean_image)
+        assert np.array_equal(a.points_W, b.points_W) and np.array_equal(a.T_W_S, b.T_W_S)
+        assert b.T_W_S_actual is None and not b.dropped
+    assert SonarVariation.none().is_none and not SonarVariation.real_tank().is_none
+
+
+def test_variation_is_deterministic_per_seed_and_ping_order_free():
+    scene = _scene((FLOOR, BLOCK), n=6)
+    var = SonarVariation.real_tank()
+    with SonarSimulator(scene, seed=1, variation=var, **FAST) as sim:
+        fwd = {k: sim.ping(scene.T_W_S[k], k) for k in (2, 5)}
+    with SonarSimulator(scene, seed=1, variation=var, **FAST) as sim:
+        rev = {k: sim.ping(scene.T_W_S[k], k) for k in (5, 2)}
+    with SonarSimulator(scene, seed=2, variation=var, **FAST) as sim:
+        other = sim.ping(scene.T_W_S[2], 2)
+    for k in (2, 5):
+        assert np.array_equal(fwd[k].image, rev[k].image)
+        assert np.array_equal(fwd[k].T_W_S_actual, rev[k].T_W_S_actual)
+        assert np.array_equal(fwd[k].T_W_S, scene.T_W_S[k])  # the ping reports the nominal pose
+        assert not np.allclose(fwd[k].T_W_S_actual, scene.T_W_S[k])  # and was taken elsewhere
+    assert not np.array_equal(fwd[2].image, other.image)
+
+
+@pytest.mark.parametrize("bad", [{"looks": 0.0}, {"gain_correlation": 1.0}, {"dropout_prob": 1.5},
+                                 {"jitter_translation_m": -0.01}, {"texture_shape": 0.0},
+                                 {"gain_offset_db": math.inf}])
+def test_invalid_parameters_are_refused(bad):
+    with pytest.raises(ValueError):
+        SonarVariation(**bad)
+    with pytest.raises(TypeError):
+        SonarVariation(gain_sigma_db="3")
+    with pytest.raises(TypeError):
+        SonarSimulator(_scene(), variation={"looks": 1.0})
+
+
+def test_ar1_series_has_unit_variance_its_correlation_and_stable_prefixes():
+    rho = 0.8
+    x = ar1_series(7, 1, 40_000, 1, rho)[:, 0]
+    n_eff = len(x) * (1 - rho) / (1 + rho)  # effective samples of a mean under AR(1)
+    assert abs(x.mean()) < 5 / math.sqrt(n_eff)
+    assert abs(x.var() - 1.0) < 0.05
+    assert abs(np.corrcoef(x[:-1], x[1:])[0, 1] - rho) < 0.02
+    # a row depends on its index only, never on how long a series was asked for
+    assert np.array_equal(ar1_series(7, 1, 300, 2, 0.5)[:100], ar1_series(7, 1, 100, 2, 0.5))
+    assert not np.array_equal(ar1_series(7, 1, 10, 1, 0.5), ar1_series(7, 2, 10, 1, 0.5))
+
+
+def test_gain_jitter_and_dropouts_match_their_parameters():
+    var = SonarVariation(gain_offset_db=-3.0, gain_sigma_db=2.5, gain_correlation=0.5,
+                         jitter_translation_m=0.004, jitter_rotation_rad=math.radians(0.4),
+                         jitter_correlation=0.5, dropout_prob=0.1)
+    n = 4000
+    with SonarSimulator(_scene(), seed=3, variation=var, **FAST) as sim:  # nothing is rendered here
+        g_db = 10 * np.log10([sim.ping_gain(k) for k in range(n)])
+        J = np.array([sim.jitter(k) for k in range(n)])
+        drops = np.array([sim.is_dropped(k) for k in range(n)])
+    n_eff = n * (1 - 0.5) / (1 + 0.5)
+    assert abs(g_db.mean() - (-3.0)) < 5 * 2.5 / math.sqrt(n_eff)
+    assert abs(g_db.std() / 2.5 - 1) < 0.08
+    assert abs(np.corrcoef(g_db[:-1], g_db[1:])[0, 1] - 0.5) < 0.06
+    rot = np.array([so3_log(T[:3, :3]) for T in J])
+    assert np.allclose(rot.std(0) / math.radians(0.4), 1, atol=0.08)
+    assert np.allclose(J[:, :3, 3].std(0) / 0.004, 1, atol=0.08)
+    assert np.allclose(J[:, 3, :], [0, 0, 0, 1])
+    assert abs(drops.mean() - 0.1) < 5 * math.sqrt(0.1 * 0.9 / n)
+
+
+@pytest.mark.parametrize("looks, nu", [(1.0, math.inf), (3.0, math.inf), (1.0, 2.0)])
+def test_speckle_multiplier_has_the_analytic_mean_and_variance(looks, nu):
+    """Gamma(L) speckle: mean 1, variance 1/L; with a Gamma(nu) texture (K): E[s^2] = (1 + 1/L)(1 + 1/nu)."""
+    scene = _scene((FLOOR, BLOCK), n=3)
+    var = SonarVariation(looks=looks, texture_shape=nu)
+    s = []
+    with SonarSimulator(scene, seed=5, variation=var, noise_floor=0.0, **FAST) as sim:
+        for k in range(3):
+            p = sim.ping(scene.T_W_S[k], k)
+            c = p.clean_image.astype(np.float64)
+            ok = (c > 0.02) & (c < 0.3)  # the display's linear-ish part: no clipping, float32 is exact enough
+            s.append(np.log1p(-p.image[ok].astype(np.float64)) / np.log1p(-c[ok]))
+    s = np.concatenate(s)
+    assert s.size > 2000
+    m2 = (1 + 1 / looks) * (1 + (0.0 if math.isinf(nu) else 1 / nu))
+    v = m2 - 1
+    se_mean = math.sqrt(v / s.size)
+    se_var = math.sqrt((np.mean((s - s.mean()) ** 4) - s.var() ** 2) / s.size)
+    assert abs(s.mean() - 1) < 5 * se_mean + 1e-3
+    assert abs(s.var() - v) < 5 * se_var + 1e-3
+
+
+# ------------------------------------------------------------------------------ the measurement
+def _floor_share(var: SonarVariation, n: int = 20) -> float:
+    """Mean bright share of the floor's surface voxels over the ``n`` pings that observe them (the
+    bench's measurement; a floor voxel has the floor nearer in its own beams, so few views are clear)."""
+    scene = _scene((FLOOR,), n=n)
+    truth = occupancy(scene)
+    idx = np.argwhere(truth.surface)
+    normals, _ = surface_normals(truth.surface, idx)
+    st = VariationStats(SPEC, scene.grid, idx, normals, OCCUPIED_THRESHOLD)
+    with SonarSimulator(scene, seed=0, variation=var, **FAST) as sim:
+        for k in range(n):
+            p = sim.ping(scene.T_W_S[k], k)
+            st.add(p.image, p.T_W_S)
+    share = st.summary(min_views=5)["bright_share_all_observed_views"]
+    assert share["voxels"] > 50
+    return share["mean"]
+
+
+def test_bright_share_of_a_flat_floor_falls_as_the_pings_vary_more():
+    """On a floor above the threshold, the share of bright views falls as the pings dim (a gain
+    offset) and vary (a per-ping gain spread dims whole pings at once)."""
+    base = _floor_share(SonarVariation.none())
+    assert base > 0.95  # the simulator's floor, as it was: bright in (nearly) every view
+    dim = _floor_share(SonarVariation(gain_offset_db=-8.0))
+    spread = _floor_share(SonarVariation(gain_offset_db=-8.0, gain_sigma_db=4.0))
+    assert base > dim + 0.05 and dim > spread + 0.05
+
+
+def test_heavier_speckle_brightens_a_dim_floor_footprint_max():
+    """Speckle alone does not erode: a footprint max over many cells of heavier speckle reaches
+    the threshold more often (measured: 0.90 with looks 1 against 0.78 with looks 16 on a floor
+    dimmed by 8 dB). Views go dark through the ping's gain and geometry, not through speckle."""
+    heavy = _floor_share(SonarVariation(gain_offset_db=-8.0, looks=1.0))
+    light = _floor_share(SonarVariation(gain_offset_db=-8.0, looks=16.0))
+    assert heavy > light + 0.05
+
+
+def test_variation_stats_counts_views_runs_and_shadows():
+    """One voxel 1 m ahead, views bright or dark in a known order; a view with a bright cell in
+    front of the voxel in its beams is a shadow, not a dark view."""
+    grid = gpumap.GridSpec((-1.0, -1.0, -1.0), (2.0, 1.0, 1.0), 0.05)
+    idx = grid.index_of(np.array([[1.0, 0.0, 0.0]]))
+    st = VariationStats(SPEC, grid, idx, np.array([[1.0, 0.0, 0.0]]), threshold=0.5)
+    r0 = SPEC.bin_index(np.array([1.0]))[0]
+    bright = np.zeros(SPEC.image_shape, np.float32)
+    bright[r0 - 1:r0 + 2] = 0.9  # every beam: cells inside the footprint (none in front of it) bright
+    shadow = np.zeros(SPEC.image_shape, np.float32)
+    shadow[r0 - 20] = 0.9  # a return well in front of the voxel
+    pattern = "BBDDSDB"  # S: shadowed, not seen
+    for c in pattern:
+        st.add({"B": bright, "D": np.zeros_like(bright), "S": shadow}[c], np.eye(4))
+    assert st.n_seen[0] == 6 and st.n_bright[0] == 3 and st.n_observed[0] == 7
+    # consecutive views that both see it: BB, BD, DD, then S breaks the chain, then DB
+    assert st.pairs[0].tolist() == [[1, 1], [1, 1]]
+    s = st.summary(min_views=1)
+    assert s["bright_share"]["quantiles"]["q50"] == 0.5
+    assert s["by_range"][2]["views"] == 6 and s["by_range"][2]["pooled_bright"] == 0.5  # 1 m: bin 0.8-1.1
+    assert s["by_incidence"][0]["views"] == 6  # looking along the normal: 0 deg
+    assert s["ping_gain"]["pings_without_bright_cells"] == 3
+
+
+def test_surface_normals_of_a_plane_and_incidence_bins():
+    m = np.zeros((12, 12, 12), bool)
+    m[:, :, 5] = True
+    idx = np.argwhere(m)[::7]
+    n, flat = surface_normals(m, idx)
+    assert np.allclose(np.abs(n[:, 2]), 1.0) and np.all(flat > 0.99)
+
+
+# ------------------------------------------------------------------------------ what it does to a map
+def _miss_rate(var: SonarVariation, checkpoints=(40, 400)) -> list[float]:
+    scene = _scene((FLOOR, BLOCK), n=max(checkpoints), voxel_m=0.05)
+    truth = occupancy(scene)
+    m = gpumap.MinMaxMapper(SPEC, scene.grid, rule="visible", threshold=OCCUPIED_THRESHOLD)
+    det = np.zeros(scene.grid.n_voxels, bool)
+    out = []
+    with SonarSimulator(scene, seed=0, variation=var, **FAST) as sim:
+        for k in range(max(checkpoints)):
+            p = sim.ping(scene.T_W_S[k], k)
+            det[points_to_voxels(detected_points(p), scene.grid)] = True
+            m.integrate(p.image, p.T_W_S)
+            if k + 1 in checkpoints:
+                ev = evaluate(m.values(), truth, OCCUPIED_THRESHOLD, detectable=det.reshape(scene.grid.shape))
+                out.append(ev.miss_rate)
+    return out
+
+
+def test_visible_rule_erodes_a_surface_as_realistic_pings_accumulate():
+    """The issue's erosion: with the real tank's variation the visible rule's map loses more of
+    the detectable surface after 400 pings than after 40 (clear dark views accumulate)."""
+    early, late = _miss_rate(SonarVariation.real_tank())
+    assert late > early + 0.05
+
+
+def test_without_variation_more_pings_do_not_erode():
+    """The simulator as it was hides the erosion: 400 pings miss no more than 40 do."""
+    early, late = _miss_rate(SonarVariation.none())
+    assert late <= early + 0.01
