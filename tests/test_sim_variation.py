@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -204,31 +205,50 @@ def test_surface_normals_of_a_plane_and_incidence_bins():
 
 
 # ------------------------------------------------------------------------------ what it does to a map
-def _miss_rate(var: SonarVariation, checkpoints=(40, 400)) -> list[float]:
+@functools.lru_cache(maxsize=2)
+def _miss_rates(preset: str, checkpoints=(40, 400)) -> dict[str, list[float]]:
+    """Per rule, the miss rate of the detectable surface after each checkpoint's pings (one
+    simulated pass, every rule mapping the same pings)."""
+    var = getattr(SonarVariation, preset)()
     scene = _scene((FLOOR, BLOCK), n=max(checkpoints), voxel_m=0.05)
     truth = occupancy(scene)
-    m = gpumap.MinMaxMapper(SPEC, scene.grid, rule="visible", threshold=OCCUPIED_THRESHOLD)
+    rules = ("visible", "evidence")
+    maps = {r: gpumap.MinMaxMapper(SPEC, scene.grid, rule=r, threshold=OCCUPIED_THRESHOLD) for r in rules}
     det = np.zeros(scene.grid.n_voxels, bool)
-    out = []
+    out: dict[str, list[float]] = {r: [] for r in rules}
     with SonarSimulator(scene, seed=0, variation=var, **FAST) as sim:
         for k in range(max(checkpoints)):
             p = sim.ping(scene.T_W_S[k], k)
             det[points_to_voxels(detected_points(p), scene.grid)] = True
-            m.integrate(p.image, p.T_W_S)
+            for m in maps.values():
+                m.integrate(p.image, p.T_W_S)
             if k + 1 in checkpoints:
-                ev = evaluate(m.values(), truth, OCCUPIED_THRESHOLD, detectable=det.reshape(scene.grid.shape))
-                out.append(ev.miss_rate)
+                for r, m in maps.items():
+                    ev = evaluate(m.values(), truth, OCCUPIED_THRESHOLD,
+                                  detectable=det.reshape(scene.grid.shape))
+                    out[r].append(ev.miss_rate)
     return out
 
 
 def test_visible_rule_erodes_a_surface_as_realistic_pings_accumulate():
     """The issue's erosion: with the real tank's variation the visible rule's map loses more of
     the detectable surface after 400 pings than after 40 (clear dark views accumulate)."""
-    early, late = _miss_rate(SonarVariation.real_tank())
+    early, late = _miss_rates("real_tank")["visible"]
     assert late > early + 0.05
+
+
+def test_the_evidence_rule_keeps_the_surface_as_realistic_pings_accumulate():
+    """The default rule on the same pings keeps most of the surface at 400 pings as at 40, where
+    the visible rule has lost all of it (measured: 9 % and 13 % missed against 83 % and 100 %).
+    Its decision converges: what it frees as views accumulate is floor at grazing incidence that
+    is bright in fewer than half of its views (bright_share), not an erosion that goes on."""
+    rates = _miss_rates("real_tank")
+    early, late = rates["evidence"]
+    assert early < 0.2 and late <= early + 0.05
+    assert late < rates["visible"][1] / 4
 
 
 def test_without_variation_more_pings_do_not_erode():
     """The simulator as it was hides the erosion: 400 pings miss no more than 40 do."""
-    early, late = _miss_rate(SonarVariation.none())
+    early, late = _miss_rates("none")["visible"]
     assert late <= early + 0.01
