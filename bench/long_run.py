@@ -29,6 +29,8 @@ from .common import CpuShare, bench_parser, mark_load, quantize, run_header, wri
 SCHEMA = "gpumap-long-run/1"
 CHECKPOINTS = (40, 100, 200, 500, 1000)
 QUICK_CHECKPOINTS = (20, 40, 60)
+#: Other settings of the evidence rule's bright_share decided from the same counts (the frontier).
+SHARE_FRONTIER = (0.1, 0.2, 0.3, 0.4, 0.5)
 SCORES = ("miss_rate_objects", "miss_rate", "false_positive_rate_far", "false_negative_rate_detectable",
           "observed_surface_fraction")
 
@@ -58,6 +60,9 @@ def run_scene(name: str, checkpoints: tuple[int, ...], voxel_m: float, variation
     sim_s, eval_s = 0.0, 0.0
     map_s = dict.fromkeys(RULES, 0.0)
     curves: dict[str, list[dict]] = {r: [] for r in RULES}
+    # the evidence rule's bright_share is read-time: the same counts decided at other settings too
+    alt = [s for s in SHARE_FRONTIER if "evidence" in mappers and s != mappers["evidence"].bright_share]
+    curves.update({f"evidence@{s:g}": [] for s in alt})
     dropped = 0
     with SonarSimulator(scene, seed=seed, variation=variation, **scene.sonar_params) as sim:
         for k in tqdm(range(n), disable=not progress, desc=f"{name}", unit="ping"):
@@ -79,6 +84,15 @@ def run_scene(name: str, checkpoints: tuple[int, ...], voxel_m: float, variation
                     ev = evaluate(m.values(), truth, OCCUPIED_THRESHOLD, seen.reshape(grid.shape), voxel_m,
                                   detectable=det.reshape(grid.shape)).to_dict()
                     curves[r].append({"pings": k + 1, **{s: ev[s] for s in SCORES}})
+                    if r == "evidence":
+                        default = m.bright_share
+                        for share in alt:
+                            m.bright_share = share
+                            ev = evaluate(m.values(), truth, OCCUPIED_THRESHOLD, seen.reshape(grid.shape),
+                                          voxel_m, detectable=det.reshape(grid.shape)).to_dict()
+                            row = {"pings": k + 1, **{s: ev[s] for s in SCORES}}
+                            curves[f"evidence@{share:g}"].append(row)
+                        m.bright_share = default
                 eval_s += time.perf_counter() - t
     return {
         "pings": n,
