@@ -127,7 +127,7 @@ RULES = ("plain", "visible", "evidence")
 CARVE_VIEWS = 2
 #: Evidence rule: a voxel is free once its views show, at confidence SHARE_Z (a one-sided normal
 #: quantile), that it is bright in fewer than BRIGHT_SHARE of its clear views.
-BRIGHT_SHARE = 0.5
+BRIGHT_SHARE = 0.2
 SHARE_Z = 1.645
 
 

@@ -664,8 +664,9 @@ def _parser() -> ArgumentParser:
                          f"{DEFAULT_THRESHOLD}")
     ap.add_argument("--rule", default=None, choices=list(RULES),
                     help="how views combine: 'evidence' (default; occupied unless the clear views "
-                         "show, at 95 %% confidence, that the voxel is dark in most of them: holds "
-                         "however many pings come), 'visible' (carved by 2 clear dark views) or "
+                         "show, at 95 %% confidence, that the voxel is bright in fewer than a fifth "
+                         "of them: holds however many pings come), 'visible' (carved by 2 clear dark "
+                         "views) or "
                          "'plain' (the paper's min over views: a ping carves its acoustic shadow). "
                          "--method template supports only 'plain' and defaults to it")
     ap.add_argument("--compare-rules", action="store_true",

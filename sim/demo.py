@@ -81,10 +81,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--threshold", type=unit_interval, default=OCCUPIED_THRESHOLD,
                    help="occupied intensity, in (0, 1]")
     p.add_argument("--rule", default="evidence", choices=list(RULES),
-                   help="how views combine: 'evidence' (occupied unless its clear views show it dark in "
-                        "most of them), 'visible' (carved by 2 clear dark views) or 'plain' (the "
-                        "paper's min); the other rules are always mapped too, for the side-by-side "
-                        "'rules' rows")
+                   help="how views combine: 'evidence' (occupied unless its clear views show it bright "
+                        "in fewer than a fifth of them), 'visible' (carved by 2 clear dark views) or "
+                        "'plain' (the paper's min); the other rules are always mapped too, for the "
+                        "side-by-side 'rules' rows")
     p.add_argument("--shadow-m", type=nonnegative_float, default=0.0, metavar="M",
                    help="acoustic-shadow allowance (metres): returns also count up to M behind them; "
                         "0 = the paper's min-max")
