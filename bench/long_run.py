@@ -109,6 +109,33 @@ def run_scene(name: str, checkpoints: tuple[int, ...], voxel_m: float, variation
     }
 
 
+BEGIN, END = "<!-- begin:long-run -->", "<!-- end:long-run -->"
+SECTION = "## Long simulated runs with the real sonar's variation (issue #28)"
+
+
+def markdown(res: dict, folder: Path) -> str:
+    """The BENCHMARKS.md section of a ``long_run.json``: per scene and rule, the misses of the
+    objects and of every detectable surface and the far phantoms at each checkpoint."""
+    m = res["machine"]
+    v = res["variation"]
+    out = [SECTION, "",
+           f"`{res['command'].strip()}` ({res['created']}, {m.get('cpu_model')} x{m.get('cpu_count')}, "
+           f"{res['duration_s']:.0f} s): the simulated tank (a sweep) and circle (an orbit) at 3 cm, "
+           f"{res['checkpoints'][-1]} pings with the `{v['name']}` variation fitted to the real run's "
+           "frames 0-799 (`python -m bench variation`), uint8 pings at their nominal poses. Per "
+           "checkpoint: objects missed / all detectable surface missed / far water called occupied. "
+           "`evidence@S`: the default rule's counts decided at bright_share S (read-time).", "",
+           "| scene | rule | " + " | ".join(f"{c} pings" for c in res["checkpoints"]) + " |",
+           "|---|---|" + "---|" * len(res["checkpoints"])]
+    for name, sc in res["scenes"].items():
+        for rule, rows in sc["curves"].items():
+            cells = [f"{100 * r['miss_rate_objects']:.1f} / {100 * r['miss_rate']:.1f} / "
+                     f"{100 * r['false_positive_rate_far']:.1f} %" for r in rows]
+            out.append(f"| {name} | {rule} | " + " | ".join(cells) + " |")
+    out += ["", f"![misses and phantoms as pings accumulate]({folder.as_posix()}/long_run.png)"]
+    return "\n".join(out)
+
+
 def plot(path: Path, scenes: dict[str, dict]) -> None:
     """Miss rate (objects, all) and far false positives against pings, one line per rule."""
     import matplotlib
@@ -150,7 +177,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=Path("bench/results"), help="results folder")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--report", type=Path, metavar="BENCHMARKS_MD",
+                    help="only write this benchmark's section of that file from --out/long_run.json")
     a = ap.parse_args(argv)
+    if a.report is not None:
+        import json
+
+        from .common import put_block
+
+        res = json.loads((a.out / "long_run.json").read_text())
+        put_block(a.report, BEGIN, END, markdown(res, a.out), section=SECTION)
+        print(f"wrote the long_run section of {a.report}")
+        return 0
     from gpumap.sim.sonar import OCCUPIED_THRESHOLD
     from gpumap.sim.variation import SonarVariation
 

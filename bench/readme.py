@@ -99,9 +99,23 @@ def summary_rows() -> list[tuple[str, str, str]]:
             r = rate["rules"][rule]
             j10, j1 = r["every_10"]["judge"], r["every_1"]["judge"]
             rows.append((f"... held-out frames 800-1222, first returns the {rule} map agrees with / "
-                         "phantoms in front: every 10th, every frame",
-                         f"{_pct(j10['agreement'])} / {_pct(j10['phantom_rate'])}, "
-                         f"{_pct(j1['agreement'])} / {_pct(j1['phantom_rate'])}", "rate_real.json"))
+                         "phantoms in front / misses: every 10th, every frame",
+                         ", ".join(f"{_pct(j['agreement'])} / {_pct(j['phantom_rate'])} / "
+                                   f"{_pct(j['missing_rate'])}" for j in (j10, j1)),
+                         "rate_real.json"))
+    lr = _load("long_run.json")
+    if lr:
+        cells = []
+        for name, sc in lr["scenes"].items():
+            for rule in ("evidence", "visible"):
+                c = sc["curves"].get(rule)
+                if c:
+                    cells.append(f"{name} {rule} {_pct(c[0]['miss_rate_objects'])} / "
+                                 f"{_pct(c[-1]['miss_rate_objects'])}")
+        first, last = lr["checkpoints"][0], lr["checkpoints"][-1]
+        rows.append((f"Simulated tank and circle, {last} pings with the real sonar's variation, 3 cm: "
+                     f"objects missed after {first} / {last} pings",
+                     ", ".join(cells), "long_run.json"))
     ekf = _load("ekf_real.json")
     if ekf:
         def worst(variant: str, key: str) -> float:

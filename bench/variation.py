@@ -251,6 +251,34 @@ def held_out(a: Any, argv: list[str] | None) -> int:
     return 0
 
 
+BEGIN, END = "<!-- begin:variation -->", "<!-- end:variation -->"
+SECTION = "## How real views vary, and the simulator beside them (issue #28)"
+
+
+def markdown(res: dict, folder: Path) -> str:
+    """The BENCHMARKS.md section of a ``variation_real.json``: real against simulated, side by side."""
+    q = res["side_by_side"]["bright_share_quantiles"]
+    per = res["side_by_side"]["persistence"]
+    names = {"real": "real, frames 0-799", "sim_real_tank": "simulator, real_tank",
+             "sim_none": "simulator, none"}
+    out = [SECTION, "",
+           f"`{res['command'].strip()}` ({res['created']}): per surface voxel, the share of its clear views "
+           "that are bright (footprint max >= threshold), quantiles 10/25/50/75/90, and how a voxel's "
+           "bright/dark state persists from one view to the next. Distance to the real quantiles: "
+           + ", ".join(f"{k} {v:.3f}" for k, v in res["distance_to_real"].items()) + ".", "",
+           "| | q10 | q25 | q50 | q75 | q90 | P(bright after bright) | P(dark after dark) |",
+           "|---|---|---|---|---|---|---|---|"]
+    for k, label in names.items():
+        if k in q:
+            row = q[k]
+            p = per.get(k, {})
+            cells = " | ".join(f"{row[c]:.2f}" for c in ("q10", "q25", "q50", "q75", "q90"))
+            out.append(f"| {label} | {cells} | {p.get('p_bright_after_bright', float('nan')):.2f} | "
+                       f"{p.get('p_dark_after_dark', float('nan')):.2f} |")
+    out += ["", f"![bright share, real and simulated]({folder.as_posix()}/variation_real.png)"]
+    return "\n".join(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = bench_parser("variation", __doc__)
     ap.add_argument("--data", type=Path, default=None, help="the full-rate oasis_tank_full folder")
@@ -266,7 +294,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=Path("bench/results"), help="results folder")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--report", type=Path, metavar="BENCHMARKS_MD",
+                    help="only write this benchmark's section of that file from --out/variation_real.json")
     a = ap.parse_args(argv)
+    if a.report is not None:
+        import json
+
+        from .common import put_block
+
+        res = json.loads((a.out / "variation_real.json").read_text())
+        put_block(a.report, BEGIN, END, markdown(res, a.out), section=SECTION)
+        print(f"wrote the variation section of {a.report}")
+        return 0
     if a.held_out:
         return held_out(a, argv)
     if a.frames[1] > 800:
