@@ -56,6 +56,7 @@ __all__ = [
     "tagged_path",
     "warm_up",
     "write_json",
+    "write_section",
 ]
 
 #: The paper's Table I (Phung et al.): voxel size (m) -> published seconds per image.
@@ -514,6 +515,17 @@ def load_results(folder: str | os.PathLike, pattern: str, schema: str) -> list[d
 def tagged_path(out: str | os.PathLike, prefix: str, tag: str) -> Path:
     """``out/<prefix><tag>.json`` with ``tag`` lower-cased and made file-name safe."""
     return Path(out) / f"{prefix}{''.join(c if c.isalnum() or c in '-_' else '-' for c in tag.lower())}.json"
+
+
+def write_section(report: str | os.PathLike, results: str | os.PathLike, module: Any) -> int:
+    """A benchmark's ``--report``: its section of the Markdown file ``report``, rendered by
+    ``module.markdown(results_doc, results_folder)`` between ``module.BEGIN`` and ``module.END``
+    (the ``## `` section ``module.SECTION`` where the markers are missing). Returns 0."""
+    res = json.loads(Path(results).read_text())
+    put_block(report, module.BEGIN, module.END, module.markdown(res, Path(results).parent),
+              section=module.SECTION)
+    print(f"wrote the {Path(results).stem} section of {report}")
+    return 0
 
 
 def put_block(path: str | os.PathLike, begin: str, end: str, body: str, section: str | None = None) -> None:

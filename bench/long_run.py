@@ -181,14 +181,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="only write this benchmark's section of that file from --out/long_run.json")
     a = ap.parse_args(argv)
     if a.report is not None:
-        import json
+        import sys
 
-        from .common import put_block
+        from .common import write_section
 
-        res = json.loads((a.out / "long_run.json").read_text())
-        put_block(a.report, BEGIN, END, markdown(res, a.out), section=SECTION)
-        print(f"wrote the long_run section of {a.report}")
-        return 0
+        return write_section(a.report, a.out / "long_run.json", sys.modules[__name__])
     from gpumap.sim.sonar import OCCUPIED_THRESHOLD
     from gpumap.sim.variation import SonarVariation
 

@@ -21,13 +21,13 @@ frames. The defaults, ``bright_share`` 0.2 and ``share_z`` 1.645, come from this
 
 from __future__ import annotations
 
-import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .common import bench_parser, put_block, run_header, write_json
+from .common import bench_parser, run_header, write_json, write_section
 
 SCHEMA = "gpumap-rate-real/1"
 STRIDES = (10, 3, 1)
@@ -109,10 +109,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="only write this benchmark's section of that file from --out/rate_real.json")
     a = ap.parse_args(argv)
     if a.report is not None:
-        res = json.loads((a.out / "rate_real.json").read_text())
-        put_block(a.report, BEGIN, END, markdown(res, a.out), section=SECTION)
-        print(f"wrote the rate_real section of {a.report}")
-        return 0
+        return write_section(a.report, a.out / "rate_real.json", sys.modules[__name__])
     data = a.data or full_run_dir()
     if data is None:
         raise SystemExit("bench.rate_real: the full tank run was not found; get it as shared/data/README.md "

@@ -298,14 +298,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="only write this benchmark's section of that file from --out/variation_real.json")
     a = ap.parse_args(argv)
     if a.report is not None:
-        import json
+        import sys
 
-        from .common import put_block
+        from .common import write_section
 
-        res = json.loads((a.out / "variation_real.json").read_text())
-        put_block(a.report, BEGIN, END, markdown(res, a.out), section=SECTION)
-        print(f"wrote the variation section of {a.report}")
-        return 0
+        return write_section(a.report, a.out / "variation_real.json", sys.modules[__name__])
     if a.held_out:
         return held_out(a, argv)
     if a.frames[1] > 800:
