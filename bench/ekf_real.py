@@ -45,10 +45,10 @@ import numpy as np
 from gpumap.ekf.frontend import PointDetector
 from gpumap.ekf.guard import TrustGuard
 from gpumap.ekf.loop import drifting_odometry, motion_cov, pose_errors, run_ekf_loop
-from gpumap.ekf_replay import trust_summary
+from gpumap.ekf_replay import posed_frames, trust_summary
 from gpumap.io import open_recording
 
-from .common import bench_parser, compact, load_average, run_header, write_json
+from .common import bench_parser, compact, load_average, oasis_full_dir, run_header, write_json
 
 #: Variant name -> (keyword arguments of the filter, made fresh per run; factor on the
 #: detector's covariances).
@@ -59,23 +59,6 @@ VARIANTS = {
     "guarded_r4": (lambda: {"guard": TrustGuard()}, 4.0),
 }
 DEFAULT_VARIANTS = ["plain", "guarded"]
-
-DEFAULT_DATA = Path("/work/oasis_tank_full")
-
-
-def load(path: Path) -> tuple[list, np.ndarray, object]:
-    """(images, recorded poses (n, 4, 4), spec) of every posed frame of one spec."""
-    images, poses, spec = [], [], None
-    for fr in open_recording(path):
-        if fr.T_W_S is None:
-            continue
-        if spec is None:
-            spec = fr.spec
-        if fr.spec != spec:
-            continue
-        images.append(np.array(fr.image))
-        poses.append(np.asarray(fr.T_W_S, dtype=np.float64))
-    return images, np.stack(poses), spec
 
 
 def one_run(meas: list, T_rec: np.ndarray, spec, drift: float, seed: int, variant: str) -> dict:
@@ -137,9 +120,7 @@ def prism_section(seeds: list[int], slide: float = 0.5) -> dict:
     vertex measured at ``p + slide (t_k - t_0)``, moving with the sonar as a glint on a wall
     does. EKF/odometry mean position error per seed, plain and guarded.
     """
-    from gpumap.sim.prism import PrismConfig, measure, run_odometry, simulate
-
-    from gpumap.ekf import SonarEKF
+    from gpumap.sim.prism import PrismConfig, position_ratio, simulate
 
     cfg = PrismConfig(n_views=150, k_t=0.1, k_r=0.05)
     out: dict = {"config": {"n_views": 150, "k_t": 0.1, "k_r": 0.05, "slide": slide}}
@@ -147,27 +128,9 @@ def prism_section(seeds: list[int], slide: float = 0.5) -> dict:
         for variant in ("plain", "guarded"):
             ratios, pose_updates = [], []
             for seed in seeds:
-                run = simulate(seed, cfg)
-                rng = np.random.default_rng(1000 + seed)
                 g = TrustGuard() if variant == "guarded" else None
-                ekf = SonarEKF(run.T_W_S[0], np.zeros((6, 6)), range_sigma_m=cfg.range_sigma_m,
-                               bearing_sigma_rad=cfg.bearing_sigma_rad, vfov_rad=cfg.vfov_rad, guard=g,
-                               nis_window=0)
-                T = np.empty_like(run.T_W_S)
-                for k in range(len(T)):
-                    if k:
-                        ekf.predict(run.U_odo[k - 1], run.Q[k - 1])
-                    ids, r, b = run.ids[k], run.ranges_m[k], run.bearings_rad[k]
-                    if case == "sliding":
-                        pts = run.points_W + slide * (run.T_W_S[k, :3, 3] - run.T_W_S[0, :3, 3])
-                        ids, r, b = measure(run.T_W_S[k], pts, rng, cfg.range_sigma_m, cfg.bearing_sigma_rad,
-                                            cfg.hfov_rad, cfg.vfov_rad)
-                    ekf.update(ids, r, b)
-                    T[k] = ekf.pose
-                To = run_odometry(run)
-                e = np.linalg.norm(T[:, :3, 3] - run.T_W_S[:, :3, 3], axis=1).mean()
-                o = np.linalg.norm(To[:, :3, 3] - run.T_W_S[:, :3, 3], axis=1).mean()
-                ratios.append(float(e / o))
+                ratio, _ = position_ratio(simulate(seed, cfg), g, slide if case == "sliding" else 0.0, seed)
+                ratios.append(ratio)
                 pose_updates.append(0 if g is None else g.pose_updates)
             out[f"{case}|{variant}"] = {"seeds": seeds, "ratio_position": ratios,
                                         "ratio_position_mean": float(np.mean(ratios)),
@@ -179,8 +142,8 @@ def prism_section(seeds: list[int], slide: float = 0.5) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = bench_parser("ekf_real", __doc__)
-    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the full real tank run (fan PNGs + "
-                    "sonar_poses.csv)")
+    ap.add_argument("--data", type=Path, default=None, help="the full real tank run (fan PNGs + "
+                    "sonar_poses.csv; default: oasis_tank_full beside the checkout)")
     ap.add_argument("--out", type=Path, default=Path("bench/results"), help="folder of ekf_real.json")
     ap.add_argument("--name", default="ekf_real", help="results file stem (default ekf_real)")
     ap.add_argument("--drifts", type=float, nargs="+", default=[0.005, 0.02])
@@ -196,7 +159,11 @@ def main(argv: list[str] | None = None) -> int:
         warnings.simplefilter("ignore", RuntimeWarning)
         prism = None if a.no_prism else prism_section(a.seeds)
     t0 = time.perf_counter()
-    images, T_all, spec = load(a.data)
+    data = a.data or oasis_full_dir()
+    if data is None:
+        raise SystemExit("bench.ekf_real: the full tank run was not found; get it as shared/data/README.md "
+                         "says (oasis_tank_full/get_images.sh) and pass --data")
+    images, T_all, spec = posed_frames(open_recording(data))
     t_load = time.perf_counter() - t0
     det = PointDetector(spec)
     t0 = time.perf_counter()
@@ -223,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
                           f"{100 * r['trust']['pings_pose_corrected_share']:.0f} % of pings, "
                           f"{r['ms_per_ping_track_ekf']['mean']:.1f} ms/ping", flush=True)
     doc.update({
-        "data": str(a.data), "frames": n, "split": a.split, "slices": {k: list(v) for k, v in slices.items()},
+        "data": str(data), "frames": n, "split": a.split, "slices": {k: list(v) for k, v in slices.items()},
         "drift_model": "U_k = T_{k-1}^-1 T_k Exp(w_k), w_k ~ N(0, diag(d^2 I3, d^2 I3)), d = drift "
                        "(m and rad per step), seeded; chained from the slice's first recorded pose",
         "load_seconds": t_load, "ms_per_ping_detect": ms_detect,

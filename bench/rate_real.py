@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import bench_parser, run_header, write_json, write_section
+from .common import bench_parser, oasis_full_dir, run_header, write_json, write_section
 
 SCHEMA = "gpumap-rate-real/1"
 STRIDES = (10, 3, 1)
@@ -36,17 +36,6 @@ TUNE_MAP, TUNE_JUDGE = (0, 600), (600, 800)
 SHARES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7)
 ZS = (0.0, 1.0, 1.645, 2.33)
 CHECKPOINTS = (25, 50, 100, 200, 400, 800)
-
-
-def full_run_dir() -> Path | None:
-    """The full run's recording folder (``sonar/*.png`` + poses) where the README's script puts it:
-    beside the checkout (``../oasis_tank_full``) or in ``shared/data/oasis_tank_full``."""
-    for up in Path(__file__).resolve().parents:
-        for cand in (up.parent / "oasis_tank_full", up / "oasis_tank_full",
-                     up.parent / "shared" / "data" / "oasis_tank_full"):
-            if (cand / "sonar").is_dir() and (cand / "sonar_poses.csv").is_file():
-                return cand
-    return None
 
 
 def _load(path: Path, progress: bool):
@@ -110,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.report is not None:
         return write_section(a.report, a.out / "rate_real.json", sys.modules[__name__])
-    data = a.data or full_run_dir()
+    data = a.data or oasis_full_dir()
     if data is None:
         raise SystemExit("bench.rate_real: the full tank run was not found; get it as shared/data/README.md "
                          "says (oasis_tank_full/get_images.sh) and pass --data")

@@ -30,7 +30,7 @@ import numpy as np
 
 from gpumap.cli import nonnegative_float, nonnegative_int, refuse_without
 
-__all__ = ["EKF_OUTPUTS", "add_ekf_args", "check_ekf_args", "compare_maps", "replay_with_ekf",
+__all__ = ["EKF_OUTPUTS", "add_ekf_args", "check_ekf_args", "compare_maps", "posed_frames", "replay_with_ekf",
            "run_ekf_replay", "track_consistency", "trust_summary"]
 
 
@@ -198,6 +198,31 @@ def _map(spec, grid, images, poses, backend, threshold, rule):
     return m
 
 
+def posed_frames(recording, stride: int = 1, max_frames: int | None = None,
+                 frames: tuple[int, int | None] | None = None) -> tuple[list, np.ndarray, object]:
+    """(images, poses (n, 4, 4) float64, spec) of a recording's frames that carry a pose and the
+    first frame's sonar spec: every ``stride``-th of frames ``start <= i < stop`` (``frames``),
+    at most ``max_frames``."""
+    images, poses, spec = [], [], None
+    k = 0
+    f0, f1 = (0, None) if frames is None else frames
+    for i, fr in enumerate(recording):
+        if f1 is not None and i >= f1:
+            break
+        if i < f0 or (i - f0) % max(1, int(stride)) or fr.T_W_S is None:
+            continue
+        if spec is None:
+            spec = fr.spec
+        if fr.spec != spec:
+            continue
+        images.append(np.array(fr.image))
+        poses.append(np.asarray(fr.T_W_S, dtype=np.float64))
+        k += 1
+        if max_frames is not None and k >= max_frames:
+            break
+    return images, (np.stack(poses) if poses else np.zeros((0, 4, 4))), spec
+
+
 def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0.005), seed: int = 0,
                    voxel_size_m: float = 0.05, grid=None, backend: str = "auto",
                    threshold: float = 0.4, rule: str | None = None, stride: int = 1,
@@ -240,27 +265,10 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
     from gpumap.replay import auto_grid
 
     st, sr = (float(v) for v in odometry_noise)
-    images, poses, spec = [], [], None
-    k = 0
-    f0, f1 = (0, None) if frames is None else frames
-    for i, fr in enumerate(recording):
-        if f1 is not None and i >= f1:
-            break
-        if i < f0 or (i - f0) % max(1, int(stride)) or fr.T_W_S is None:
-            continue
-        if spec is None:
-            spec = fr.spec
-        if fr.spec != spec:
-            continue
-        images.append(np.array(fr.image))
-        poses.append(np.asarray(fr.T_W_S, dtype=np.float64))
-        k += 1
-        if max_frames is not None and k >= max_frames:
-            break
+    images, T_rec, spec = posed_frames(recording, stride, max_frames, frames)
     if len(images) < 2:
         raise ValueError(f"Expected at least 2 posed frames for --ekf, but {recording.path} gave "
                          f"{len(images)}")
-    T_rec = np.stack(poses)
     U, T_odo = drifting_odometry(T_rec, st, sr, seed)
     Q = motion_cov(st, sr)
     t0 = time.perf_counter()

@@ -11,7 +11,7 @@ import warnings
 import numpy as np
 import pytest
 from conftest import DATA, needs_data
-from gpumap.sim.prism import PrismConfig, measure, run_odometry, simulate
+from gpumap.sim.prism import PrismConfig, position_ratio, simulate
 from scipy.stats import chi2
 
 from gpumap.ekf import SonarEKF
@@ -25,32 +25,9 @@ CFG = PrismConfig(n_views=150, k_t=0.1, k_r=0.05)
 
 
 def _prism(seed: int, guard: TrustGuard | None, slide: float = 0.0) -> tuple[float, SonarEKF]:
-    """Mean position error of the EKF over that of dead reckoning on one prism run.
-
-    ``slide`` > 0 makes every vertex a sliding scatterer: it is measured at ``p + slide *
-    (t_k - t_0)``, moving with the sonar (what a glint on a wall does), so the returns are
-    wrong for a model of fixed points while each one alone looks plausible.
-    """
-    run = simulate(seed, CFG)
-    rng = np.random.default_rng(1000 + seed)
-    ekf = SonarEKF(run.T_W_S[0], np.zeros((6, 6)), range_sigma_m=CFG.range_sigma_m,
-                   bearing_sigma_rad=CFG.bearing_sigma_rad, vfov_rad=CFG.vfov_rad, guard=guard,
-                   nis_window=0)
-    T = np.empty_like(run.T_W_S)
-    for k in range(len(T)):
-        if k:
-            ekf.predict(run.U_odo[k - 1], run.Q[k - 1])
-        ids, r, b = run.ids[k], run.ranges_m[k], run.bearings_rad[k]
-        if slide:
-            pts = run.points_W + slide * (run.T_W_S[k, :3, 3] - run.T_W_S[0, :3, 3])
-            ids, r, b = measure(run.T_W_S[k], pts, rng, CFG.range_sigma_m, CFG.bearing_sigma_rad,
-                                CFG.hfov_rad, CFG.vfov_rad)
-        ekf.update(ids, r, b)
-        T[k] = ekf.pose
-    To = run_odometry(run)
-    e = np.linalg.norm(T[:, :3, 3] - run.T_W_S[:, :3, 3], axis=1).mean()
-    o = np.linalg.norm(To[:, :3, 3] - run.T_W_S[:, :3, 3], axis=1).mean()
-    return float(e / o), ekf
+    """Mean position error of the EKF over that of dead reckoning on one prism run of CFG
+    (:func:`gpumap.sim.prism.position_ratio`; ``slide``: sliding scatterers)."""
+    return position_ratio(simulate(seed, CFG), guard, slide, seed)
 
 
 # ------------------------------------------------------------------------------ the bands
