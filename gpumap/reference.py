@@ -200,7 +200,7 @@ def pack_counts(dark: np.ndarray, hits: np.ndarray) -> np.ndarray:
     return (np.asarray(hits, np.uint64) << np.uint64(32)) | np.asarray(dark, np.uint64)
 
 
-def _update_visible(
+def _update_state(
     params: np.ndarray,
     v: np.ndarray,
     clear: np.ndarray,
@@ -246,11 +246,17 @@ def visible_values(
     from gpumap.geometry import CARVE_VIEWS
 
     cv = CARVE_VIEWS if carve_views is None else carve_views
-    # over the voxels ever bright only: a map's read costs no temporaries over the whole grid
+    return _bright_where(grid, bright, count, lambda c: (c & COUNT_LOW) < cv)
+
+
+def _bright_where(grid: np.ndarray, bright: np.ndarray, count: np.ndarray, keeps) -> np.ndarray:
+    """``grid`` with ``bright`` where a voxel was ever bright and ``keeps`` (packed counts of those
+    voxels -> bool) holds. It looks at the voxels ever bright only: a map's read costs no
+    temporaries over the whole grid."""
     out = np.array(grid, dtype=np.float32, copy=True)
     flat_b = np.asarray(bright).reshape(-1)
     idx = np.flatnonzero(np.isfinite(flat_b))
-    keep = idx[(np.asarray(count).reshape(-1)[idx] & COUNT_LOW) < cv]
+    keep = idx[keeps(np.asarray(count).reshape(-1)[idx])]
     out.reshape(-1)[keep] = flat_b[keep]
     return out
 
@@ -280,13 +286,7 @@ def evidence_values(
     """Map values of the evidence rule: ``bright`` (the min over the bright views, at least the
     threshold) where :func:`evidence_occupied` holds, else ``grid`` (the min over every view:
     below the threshold wherever a clear dark view came, ``+inf`` never observed)."""
-    out = np.array(grid, dtype=np.float32, copy=True)
-    flat_b = np.asarray(bright).reshape(-1)
-    idx = np.flatnonzero(np.isfinite(flat_b))  # only a voxel once bright can be occupied
-    dark, hits = split_counts(np.asarray(count).reshape(-1)[idx])
-    keep = idx[evidence_occupied(dark, hits, p_min, z)]
-    out.reshape(-1)[keep] = flat_b[keep]
-    return out
+    return _bright_where(grid, bright, count, lambda c: evidence_occupied(*split_counts(c), p_min, z))
 
 
 def integrate_gather(
@@ -328,7 +328,7 @@ def integrate_gather(
         flat, vm = flat[ok], v[m][ok]
         grid[flat] = np.minimum(grid[flat], vm)
         if state is not None:
-            _update_visible(params, vm, clear[m][ok], flat, *state)
+            _update_state(params, vm, clear[m][ok], flat, *state)
     return complete
 
 
