@@ -58,6 +58,7 @@ from gpumap.errors import (
     check_pose,
 )
 from gpumap.geometry import BRIGHT_SHARE, RULES, SHARE_Z, make_template_S, pose_pad_m, static_params
+from gpumap.memory import STATE_BYTES
 from gpumap.pings import PingPrints, read_prints
 from gpumap.spec import _MAX_VOXEL_INDEX, GridSpec, SonarSpec, SparseSpec, _vec3
 
@@ -390,7 +391,7 @@ class MinMaxMapper:
         Bz = int(grid.shape[2]) if space is None else B
         self.B, self.Bz, self.BV = B, Bz, B * B * Bz
         self._bs = np.array([B, B, Bz], np.int64)
-        self.bytes_per_voxel = 16 if self._stateful else 4  # + bright float32, count uint64
+        self.bytes_per_voxel = STATE_BYTES[rule]  # gpumap.memory's one table of the rules' state
         self._block_bytes = self.BV * self.bytes_per_voxel + 1  # + the seen byte
         if space is None:
             self._grid = grid

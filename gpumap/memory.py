@@ -1,7 +1,7 @@
 """How much memory mapping a grid takes, measured, and the check made before allocating it.
 
 The mapper's per-voxel *state* is what each rule keeps (:data:`STATE_BYTES`: float32 values for
-the plain rule; for the visible rule also its evidence). A run takes more than its state at
+the plain rule; for the visible and evidence rules also their counts). A run takes more than its state at
 its peak: the map read back as float32 values, the occupied and observed masks, the arrays
 ``save`` gathers (a second copy of the state, and the values once more), the backend's own
 buffers. ``bench/memory.py`` measures the peak resident set of ``gpumap replay`` for boxes of

@@ -168,11 +168,6 @@ def build_mapper(
                                shadow_m=shadow_m, rule=rule, threshold=threshold, sparse=bool(sparse))
 
 
-def _bytes_per_voxel(rule: str) -> int:
-    """Dense storage per voxel: the float32 value, plus the other rules' float32 and uint64."""
-    return 4 if rule == "plain" else 16
-
-
 def _memory_report(mapper: gpumap.MinMaxMapper | gpumap.SparseMinMaxMapper, scene: Scene) -> dict:
     """Bytes the map holds next to what the voxels it observed need and the dense equivalents.
 
@@ -186,7 +181,7 @@ def _memory_report(mapper: gpumap.MinMaxMapper | gpumap.SparseMinMaxMapper, scen
     without knowing where the seabed lies.
     """
     g = scene.grid
-    bpv = _bytes_per_voxel(mapper.rule)
+    bpv = mapper.bytes_per_voxel
     if mapper.sparse is not None:
         st = mapper.memory_stats()
         storage, map_bytes, observed = "sparse", int(st["total_bytes"]), int(st["observed_voxels"])
