@@ -29,7 +29,8 @@ import numpy as np
 
 from gpumap.spec import GridSpec, SonarSpec
 
-__all__ = ["FirstReturnScore", "first_return_score", "map_first_returns", "measured_first_returns"]
+__all__ = ["FirstReturnScore", "first_bright_bins", "first_return_score", "map_first_returns",
+           "measured_first_returns"]
 
 
 @dataclass(frozen=True)
@@ -70,17 +71,22 @@ class FirstReturnScore:
                 "missing_rate": self.missing_rate}
 
 
+def first_bright_bins(image: np.ndarray, threshold: float) -> np.ndarray:
+    """(n_beams,) int: the nearest bin of each beam whose intensity is ``>= threshold`` (compared
+    in float32, as the kernels do), -1 where the beam has none. ``image``: (n_bins, n_beams)."""
+    b = np.asarray(image) >= np.float32(threshold)
+    return np.where(b.any(axis=0), np.argmax(b, axis=0), -1)
+
+
 def measured_first_returns(image: np.ndarray, spec: SonarSpec, threshold: float) -> np.ndarray:
     """(n_beams,) float64: range of each beam's first bin ``>= threshold`` (bin centre, metres);
     ``inf`` where the beam has none. ``image`` is (n_bins, n_beams) in [0, 1]."""
     img = np.asarray(image)
     if img.shape != spec.image_shape:
         raise ValueError(f"Expected an image of shape {spec.image_shape}, but got {img.shape}")
-    bright = img >= threshold
-    first = np.argmax(bright, axis=0)
+    first = first_bright_bins(img, threshold)
     dr = (spec.range_max_m - spec.range_min_m) / spec.n_bins
-    r = spec.range_min_m + (first + 0.5) * dr
-    return np.where(bright.any(axis=0), r, np.inf)
+    return np.where(first >= 0, spec.range_min_m + (first + 0.5) * dr, np.inf)
 
 
 def map_first_returns(centres_W: np.ndarray, T_W_S: np.ndarray, spec: SonarSpec, voxel_size_m: float

@@ -67,6 +67,7 @@ from pathlib import Path
 import numpy as np
 
 from gpumap.errors import BackendUnavailableError
+from gpumap.first_return import first_bright_bins
 from gpumap.render import PingModel, PingRenderer
 from gpumap.spec import GridSpec, SonarSpec
 
@@ -550,13 +551,6 @@ class _Fit:
         return value
 
 
-def _first_bright(img: np.ndarray, thr: float) -> np.ndarray:
-    """(n_beams,) int: the nearest bin ``>= thr`` of each beam, -1 where none."""
-    b = img >= np.float32(thr)
-    first = np.argmax(b, axis=0)
-    return np.where(b.any(axis=0), first, -1)
-
-
 def _views_and_raise(
     spec: SonarSpec,
     grid: GridSpec,
@@ -577,7 +571,7 @@ def _views_and_raise(
     for img, T in zip(images, poses, strict=True):
         p_S = (centres - T[:3, 3]) @ T[:3, :3]
         views += spec.in_fov(p_S)
-        fb = _first_bright(_as_float(img), thr)
+        fb = first_bright_bins(_as_float(img), thr)
         cand = np.flatnonzero(mov)
         q = p_S[cand]
         r = np.linalg.norm(q, axis=1)

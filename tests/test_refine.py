@@ -13,7 +13,8 @@ from conftest import DATA, needs_data
 from scipy import ndimage
 
 import gpumap
-from gpumap.refine import OCCUPIED_LEVEL, RefineOptions, _first_bright, heldout_scores, refine, roc_auc
+from gpumap.first_return import first_bright_bins
+from gpumap.refine import OCCUPIED_LEVEL, RefineOptions, heldout_scores, refine, roc_auc
 from gpumap.render import PingRenderer
 
 pytest.importorskip("warp")
@@ -103,7 +104,7 @@ def test_refine_removes_phantoms_and_keeps_the_hard_constraints(scene) -> None:
     cen = grid.centers(np.argwhere(np.ones(grid.shape, bool))).reshape(-1, 3)
     rho = 0.5 * math.sqrt(3) * grid.voxel_size_m
     for img, T in zip(images, poses, strict=True):
-        fb = _first_bright(img, 0.1)
+        fb = first_bright_bins(img, 0.1)
         q = (cen - T[:3, 3]) @ T[:3, :3]
         rr = np.linalg.norm(q, axis=1)
         az = np.arctan2(q[:, 1], q[:, 0])
