@@ -1426,7 +1426,7 @@ class MinMaxMapper:
                 part = dict(zip(("min_all", "bright", "count"), self._backend.read_blocks(slots[held]),
                                 strict=True))
                 part = {k: part[k] for k in names}
-                _combine_into(part, {k: v[held] for k, v in mine.items()}, self._stateful, self.rule)
+                _combine_into(part, {k: v[held] for k, v in mine.items()}, self.rule)
                 self._backend.write_blocks(slots[held], part["min_all"], part.get("bright"),
                                            part.get("count"))
                 slots, mine = slots[~held], {k: v[~held] for k, v in mine.items()}

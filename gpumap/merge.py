@@ -181,15 +181,16 @@ def _as_state(other, backend: str = "numpy") -> MapState:
     return map_state(other)
 
 
-def _combine_into(acc: dict, b: dict, visible: bool, rule: str = "visible") -> None:
+def _combine_into(acc: dict, b: dict, rule: str) -> None:
     """``acc`` (arrays or views, e.g. a box of the grid) becomes the merge of itself and ``b``
-    (the same voxels, any shape of the same size), in place: mins of the mins, saturating sums
-    of the view counts (:func:`gpumap.reference.add_counts`)."""
+    (the same voxels, any shape of the same size), in place: mins of the mins, and for the rules
+    that keep view state (all but ``"plain"``) saturating sums of the view counts
+    (:func:`gpumap.reference.add_counts`)."""
     from gpumap.reference import add_counts
 
     shape = acc["min_all"].shape
     np.minimum(acc["min_all"], b["min_all"].reshape(shape), out=acc["min_all"])
-    if visible:
+    if rule != "plain":
         np.minimum(acc["bright"], b["bright"].reshape(shape), out=acc["bright"])
         acc["count"][...] = add_counts(acc["count"], b["count"].reshape(shape), rule)
 
