@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from test_mapper import GRID, SPEC, T_A, centres_S
 from test_visibility import THR, _fold_views, _random_pings
+from test_visibility import _run as _run_rule
 
 import gpumap
 from gpumap.merge import MapState, map_state
@@ -21,11 +22,9 @@ from gpumap.reference import evidence_occupied, pack_counts, split_counts
 TOP = 2**32 - 1  # where each of the two counts stops
 
 
-def _run(backend, pings, rule="evidence", **kw):
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule=rule, threshold=THR, **kw)
-    for img, T in pings:
-        m.integrate(img, T)
-    return m
+def _run(backend, pings, rule="evidence"):
+    """test_visibility's mapper of the pings (threshold THR), under this file's rule by default."""
+    return _run_rule(backend, pings, rule)
 
 
 @pytest.fixture(scope="module")
