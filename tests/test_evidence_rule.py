@@ -93,6 +93,19 @@ def test_the_same_share_over_more_views_decides_more():
     np.testing.assert_array_equal(occ, [True, False, True, True, True, True])
 
 
+def test_the_readme_says_how_many_clear_dark_views_free_a_voxel_seen_bright_once():
+    """The README's figure, from the decision at the default settings: the first count of clear
+    dark views at which one bright view no longer keeps a voxel."""
+    from pathlib import Path
+
+    from gpumap.geometry import BRIGHT_SHARE, SHARE_Z
+
+    n = next(d for d in range(1, 1000)
+             if not evidence_occupied(np.array([d]), np.array([1]), BRIGHT_SHARE, SHARE_Z)[0])
+    readme = " ".join((Path(__file__).resolve().parents[1] / "README.md").read_text().split())
+    assert f"a voxel seen bright once needs {n} clear dark views" in readme, n
+
+
 def _band_pings(shares: dict[float, float], n: int):
     """``n`` pings from one pose of bands at the given ranges (m) that are bright (0.7) in a
     share of the pings, spread evenly (ping k is bright when floor((k + 1) share) passes an
