@@ -172,7 +172,8 @@ def _layout(dst: Path) -> None:
     for src, name in (("kernels", "kernels"), ("sim", "sim"), ("bench", "bench")):
         shutil.copytree(ROOT / src, dst / "gpumap" / name, ignore=ign)
     shutil.copytree(ROOT / "tests", dst / "tests", ignore=ign)
-    shutil.copy2(ROOT / "pyproject.toml", dst / "pyproject.toml")
+    for name in ("pyproject.toml", "README.md"):  # tests read the README's claims too
+        shutil.copy2(ROOT / name, dst / name)
 
 
 def _installed_path(rel: str) -> str:
@@ -214,7 +215,9 @@ def run_one(m: Mutant | None, backend: str, timeout_s: float, verbose: bool, tes
             return "error", time.perf_counter() - t0, "timed out"
         dt = time.perf_counter() - t0
         out = (r.stdout + r.stderr).strip().splitlines()
-        tail = "\n".join(out[-12:] if verbose else out[-1:])
+        # a failing baseline names its failing tests even when not verbose
+        failed = [line for line in out if line.startswith(("FAILED", "ERROR"))] if m is None else []
+        tail = "\n".join(out[-12:] if verbose else [*failed, *out[-1:]])
         if r.returncode == 1:
             return "killed", dt, tail
         if r.returncode == 0:
@@ -253,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     for b, fut in zip(a.backends, runs, strict=True):
         status, dt, tail = fut.result()
         print(f"{'(baseline: no mutant)':26s} {b:11s} {'passes' if status == 'survived' else status:8s} "
-              f"{dt:6.1f} s  {tail if a.verbose else tail[:90]}", flush=True)
+              f"{dt:6.1f} s  {tail if a.verbose or status != 'survived' else tail[:90]}", flush=True)
         if status != "survived":
             print(f"the tests fail on {b} without any mutant: fix that first")
             pool.shutdown(cancel_futures=True)
