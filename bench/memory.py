@@ -31,7 +31,7 @@ RULES = ("plain", "visible", "evidence")
 
 def peak_rss(argv: list[str]) -> tuple[int, int]:
     """(exit status, peak resident set in bytes) of ``gpumap`` run with ``argv`` in a child process."""
-    p = subprocess.Popen([sys.executable, "-m", "gpumap.cli", *argv],
+    p = subprocess.Popen([sys.executable, "-m", "gpumap.commands", *argv],
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     _, status, usage = os.wait4(p.pid, 0)
     p.returncode = os.waitstatus_to_exitcode(status)

@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
                          "says (oasis_tank_full/get_images.sh) and pass --data")
     from gpumap.geometry import RULES
     from gpumap.reference import evidence_occupied
-    from gpumap.replay import auto_grid
+    from gpumap.spec import auto_grid
 
     t_start = time.perf_counter()
     spec, images, poses = _load(data, not a.no_progress)

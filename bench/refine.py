@@ -183,8 +183,9 @@ def _find_data() -> Path:
 
 
 def oasis_case(voxel: float, data: Path | None) -> dict:
-    from gpumap.refine_cli import load_frames
-    from gpumap.replay import DEFAULT_THRESHOLD, auto_grid
+    from gpumap.refine import recording_frames as load_frames
+    from gpumap.replay import DEFAULT_THRESHOLD
+    from gpumap.spec import auto_grid
 
     spec, images, poses = load_frames(str((data or _find_data()) / "oasis_tank"))
     grid = auto_grid(spec, list(poses), voxel)

@@ -107,7 +107,7 @@ def run_once(tank: Path, params: Path, hz: float, domain: int, n_pings: int, tmp
     ns = f"/bench{os.getpid()}_{int(hz)}_{time.monotonic_ns() % 10**6}"
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONUNBUFFERED="1")
-    base = [sys.executable, "-m", "gpumap.cli"]
+    base = [sys.executable, "-m", "gpumap.commands"]
     ros = ["--ros-args", "-r", f"__ns:={ns}", "-p", "diagnostics_period_s:=0.25"]
     nlog = open(tmp / "node.log", "w")  # noqa: SIM115
     node = subprocess.Popen([*base, "ros", "--params-file", str(params), *ros], stdout=nlog,

@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None) -> int:
     data = a.data or oasis_tank_dir()
     if data is None:
         raise SystemExit("bench.rules_real: shared/data/oasis_tank not found; pass --data")
-    from gpumap.replay import main as replay
+    from gpumap.commands.replay import main as replay
 
     cmd = [str(data), "--voxel-size", str(a.voxel_size), "--compare-rules", "--backend", a.backend,
            "--no-progress", "--no-pictures"]

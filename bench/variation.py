@@ -60,7 +60,7 @@ def measure_real(data: Path, frames: tuple[int, int], map_stride: int, backend: 
 
     import gpumap
     import gpumap.io
-    from gpumap.replay import auto_grid
+    from gpumap.spec import auto_grid
 
     rec = gpumap.io.open_recording(data)
     poses = rec.poses()

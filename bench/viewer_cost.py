@@ -41,7 +41,7 @@ def _session_args(view: bool, record: Path | None, port: int) -> argparse.Namesp
 def main(argv: list[str] | None = None) -> int:
     from gpumap.io import open_recording
     from gpumap.replay import run_replay
-    from gpumap.viewer.cli import Session
+    from gpumap.viewer.session import Session
 
     ap = bench_parser("viewer_cost", __doc__)
     ap.add_argument("--data", type=Path, default=None,

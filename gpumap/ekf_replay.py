@@ -4,7 +4,7 @@ The recording's poses are the reference. Odometry is made from them by the drift
 :func:`gpumap.ekf.loop.drifting_odometry` (seeded, ``--seed``), run through
 :func:`gpumap.ekf.loop.run_ekf_loop` (returns found in each image, associated, fused), and the
 pings are mapped three times on one grid: at the recorded poses, at the odometry's and at the
-EKF's. :func:`run_ekf_replay` (the API) returns the figures; the CLI also writes
+EKF's. :func:`run_ekf_replay` returns the figures; the command (:mod:`gpumap.commands.replay`) writes
 
 - ``summary.json``: the usual replay summary of the EKF-pose map, plus an ``ekf`` section:
   the drift model, pose errors of odometry and EKF against the recorded poses (position and
@@ -20,54 +20,13 @@ EKF's. :func:`run_ekf_replay` (the API) returns the figures; the CLI also writes
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import time
 from pathlib import Path
 
 import numpy as np
 
-from gpumap.cli import nonnegative_float, nonnegative_int, refuse_without
-
-__all__ = ["EKF_OUTPUTS", "add_ekf_args", "check_ekf_args", "compare_maps", "posed_frames", "replay_with_ekf",
-           "run_ekf_replay", "track_consistency", "trust_summary"]
-
-
-def _fmt(v: float | None) -> str:
-    return "-" if v is None else f"{v:.2f}"
-
-#: Files ``--ekf`` writes besides the replay's own.
-EKF_OUTPUTS = ("ekf_paths.png", "ekf_measurements.png")
-
-
-def add_ekf_args(ap: argparse.ArgumentParser) -> None:
-    """The replay's EKF options."""
-    ap.add_argument("--ekf", action="store_true",
-                    help="run the EKF on the pings: odometry made from the recorded poses with "
-                         "drift (--odometry-noise), point returns found in the images and "
-                         "associated; map with the EKF's poses and compare with the recorded-pose "
-                         "map (writes ekf_paths.png, ekf_measurements.png, an 'ekf' summary section)")
-    ap.add_argument("--odometry-noise", type=nonnegative_float, nargs=2, default=None,
-                    metavar=("TRANS_M", "ROT_RAD"),
-                    help="with --ekf: standard deviation of each odometry step's error per "
-                         "translation axis (metres) and per rotation axis (radians) (default "
-                         "0.005 0.005, the demo's --pose-noise 0.005)")
-    ap.add_argument("--seed", type=nonnegative_int, default=None,
-                    help="with --ekf: seed of the odometry drift (default 0)")
-    ap.add_argument("--ekf-unguarded", action="store_true",
-                    help="with --ekf: no innovation-consistency guard; every accepted return "
-                         "corrects the pose even when the pings' innovations do not fit the model "
-                         "(on the real tank this ends worse than odometry; for comparison only)")
-
-
-def check_ekf_args(ap: argparse.ArgumentParser, a: argparse.Namespace) -> None:
-    """--odometry-noise and --seed only with --ekf (exit 2, before any work); fill their defaults."""
-    refuse_without(ap, "--ekf", a.ekf, {"--odometry-noise": a.odometry_noise is not None,
-                                         "--seed": a.seed is not None,
-                                         "--ekf-unguarded": bool(getattr(a, "ekf_unguarded", False))})
-    a.odometry_noise = (0.005, 0.005) if a.odometry_noise is None else a.odometry_noise
-    a.seed = 0 if a.seed is None else a.seed
+__all__ = ["compare_maps", "posed_frames", "run_ekf_replay", "track_consistency", "trust_summary"]
 
 
 def compare_maps(ref: np.ndarray, test: np.ndarray, threshold: float) -> dict:
@@ -262,7 +221,7 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
         mapper: ``recorded``, ``odometry``, ``ekf``), ``images``, ``spec``, ``grid``.
     """
     from gpumap.ekf.loop import drifting_odometry, motion_cov, pose_errors, run_ekf_loop
-    from gpumap.replay import auto_grid
+    from gpumap.spec import auto_grid
 
     st, sr = (float(v) for v in odometry_noise)
     images, T_rec, spec = posed_frames(recording, stride, max_frames, frames)
@@ -413,61 +372,3 @@ def measurements_picture(res: dict, out: Path, ping: int | None = None) -> int:
     return ping
 
 
-def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
-    """``gpumap replay --ekf``: run and write into ``a.out``; ``(stats, grid)`` for replay's summary."""
-    from gpumap.cli import output_set
-    from gpumap.io import open_recording
-    from gpumap.io.ply import write_ply
-    from gpumap.replay import DEFAULT_THRESHOLD, OUTPUTS, save_pictures
-
-    if a.static:
-        raise ValueError("Expected a recording with poses for --ekf (they are its reference), but got "
-                         "--static")
-    other = [f for f, on in (("--compare-rules", a.compare_rules), ("--view", getattr(a, "view", False)),
-                             ("--record", getattr(a, "record", None) is not None)) if on]
-    if other:
-        raise ValueError(f"Expected --ekf alone (it makes three maps of its own), but got it with "
-                         f"{' and '.join(other)}")
-    rec = open_recording(a.path)
-    thr = DEFAULT_THRESHOLD if a.threshold == "auto" else float(a.threshold)
-    t0 = time.perf_counter()
-    res = run_ekf_replay(rec, odometry_noise=tuple(a.odometry_noise), seed=a.seed, voxel_size_m=a.voxel_size,
-                         grid=grid, backend=a.backend, threshold=thr, rule=a.rule, stride=a.stride,
-                         max_frames=a.max_frames, progress=not a.no_progress,
-                         guard=not getattr(a, "ekf_unguarded", False))
-    mapper = res["maps"]["ekf"]
-    values = res["values"]["ekf"]
-    occ = np.isfinite(values) & (values >= thr)
-    s = res["summary"]
-    stats = {"frames": s["frames"], "backend": mapper.backend, "rule": mapper.rule, "threshold": thr,
-             "seconds_total": time.perf_counter() - t0, "grid": res["grid"].to_dict(),
-             "grid_shape": list(res["grid"].shape), "occupied_voxels": int(occ.sum()),
-             "observed_voxels": int(np.isfinite(values).sum()), "skipped_no_pose": 0, "skipped_spec": 0,
-             "ekf": s}
-    stats["images_per_s"] = stats["frames"] / stats["seconds_total"]
-    stats["integrate_per_s"] = stats["frames"] / max(s["ms_per_ping"]["map_seconds"]["ekf"], 1e-9)
-    with output_set(a.out, (*OUTPUTS, *EKF_OUTPUTS)) as out:
-        mapper.save(out / "map.npz")
-        write_ply(out / "occupied.ply", mapper.grid.centers(np.argwhere(occ)), values[occ])
-        if not a.no_pictures:
-            stats.update(save_pictures(values, mapper.grid, thr, out,
-                                       title=f"{Path(a.path).name} (EKF poses)",
-                                       positions=res["loop"].poses[:, :3, 3]))
-            paths_picture(res, out / "ekf_paths.png", title=Path(a.path).name)
-            stats["ekf"]["measurements_picture_ping"] = measurements_picture(
-                res, out / "ekf_measurements.png")
-        (out / "summary.json").write_text(json.dumps(stats, indent=2))
-    e, o = s["pose_error"]["ekf"], s["pose_error"]["odometry"]
-    tr = s["trust"]
-    mo, me = s["map_vs_recorded"]["odometry"], s["map_vs_recorded"]["ekf"]
-    print(f"gpumap replay --ekf: position error mean {100 * o['position_m']['mean']:.1f} cm (odometry) "
-          f"-> {100 * e['position_m']['mean']:.1f} cm (EKF), heading "
-          f"{np.degrees(o['heading_rad']['mean']):.2f} -> {np.degrees(e['heading_rad']['mean']):.2f} deg; "
-          f"map vs recorded-pose map, voxels disagreeing {mo['disagree']} (odometry) -> "
-          f"{me['disagree']} (EKF); {s['tracks']['confirmed']} tracks confirmed; "
-          f"trust in the pings: {tr['fused_with_pose']} returns fused with the pose, "
-          f"{tr['fused_features_only']} into their features only, {tr['gated']} gated, "
-          f"{100 * tr['pings_pose_corrected_share']:.0f} % of pings corrected the pose, windowed NIS per dof "
-          f"{_fmt(tr['window_nis_per_dof']['median'])} (median); "
-          f"{s['ms_per_ping']['total_mean']:.1f} ms per ping (front-end + EKF)")
-    return stats, mapper.grid

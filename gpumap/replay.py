@@ -1,69 +1,36 @@
-"""``gpumap replay``: stream a recording through the min-max mapper and write what it built.
+"""Map a recording: stream its pings through the min-max mapper (:func:`run_replay`), and
+compare the rules on the same frames (:func:`replay_rules`, :func:`compare_rules`).
 
-Usage::
-
-    gpumap replay PATH [--voxel-size 0.05] [--backend auto] [--method gather] [--out DIR]
-                       [--grid auto|xmin,ymin,zmin,xmax,ymax,zmax] [--threshold 0.4|auto]
-                       [--static] [--stride N] [--max-frames N] [--vfov-deg D]
-                       [--flip-lr] [--flip-ud] [--no-pictures]
-                       [--rule evidence|visible|plain] [--compare-rules]
-
-Writes into ``--out`` (default ``replay_out/``): ``map.npz`` (``MinMaxMapper.save``),
-``occupied.ply`` (occupied voxel centres with their value as ``intensity``), ``views.png``
-(3-D render from three viewpoints), ``floor_slice.png`` (horizontal slice through the
-densest low layer: the floor) and ``summary.json``; prints images/s.
-The files are written into a temporary folder and replace an earlier run's as one set
-(:func:`gpumap.cli.output_set`): an interrupted run leaves the old set or the new one, whole.
-Every flag is checked before the recording is read (bad ones exit with status 2 and one line).
-
-``--rule`` picks how views combine (``MinMaxMapper``'s ``rule``); the mapper counts a view
-as bright from ``--threshold`` on. ``--compare-rules`` replays the same frames under every
-rule and adds ``rules.png`` (the two maps side by side, and where they differ) and a
-``rule_comparison`` section to ``summary.json`` (see :func:`compare_rules`).
+The library under ``gpumap replay`` (:mod:`gpumap.commands.replay`, which writes ``map.npz``,
+``occupied.ply``, the pictures and ``summary.json``). ``rule`` picks how views combine
+(``MinMaxMapper``'s ``rule``); the mapper counts a view as bright from ``threshold`` on.
+:func:`run_rule_comparison` replays the same frames under every rule and says where the maps
+differ (and draws ``rules.png``).
 """
 
 from __future__ import annotations
 
-import argparse
 import itertools
-import json
 import math
-import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from gpumap.cli import (
-    BACKEND_HELP,
-    METHOD_HELP,
-    ArgumentParser,
-    backend_name,
-    error_line,
-    grid_box,
-    output_dir,
-    output_set,
-    positive_float,
-    positive_int,
-    threshold_or_auto,
-    user_errors,
-    vfov_deg,
-)
 from gpumap.geometry import RULES as GEOMETRY_RULES
-from gpumap.spec import GridSpec, SonarSpec
+from gpumap.spec import GridSpec, auto_grid
 
 __all__ = [
     "DEFAULT_THRESHOLD",
-    "OUTPUTS",
     "RULES",
     "auto_grid",
     "compare_rules",
-    "main",
     "otsu_threshold",
     "replay_rules",
     "run_replay",
     "run_rule_comparison",
+    "select_frames",
 ]
 
 #: Occupied intensity of ``gpumap replay`` (on the OASIS tank views agree above it); also the
@@ -71,40 +38,6 @@ __all__ = [
 DEFAULT_THRESHOLD = 0.4
 #: The mapper's rules, in the order the comparison shows them.
 RULES = GEOMETRY_RULES
-
-
-def auto_grid(spec: SonarSpec, poses: Sequence[np.ndarray], voxel_size_m: float,
-              max_voxels: int = 200_000_000,
-              remedy: str = "pass --grid or a larger --voxel-size") -> GridSpec:
-    """The box holding every field of view of ``spec`` at ``poses``, padded by one voxel.
-
-    Parameters
-    ----------
-    spec : SonarSpec
-    poses : sequence of (4, 4) float
-        ``T_W_S`` of every ping.
-    voxel_size_m : float
-    max_voxels : int
-        Refuse boxes larger than this, saying ``remedy`` (what the caller can change: a command
-        names its own flags).
-    """
-    c = spec.fov_corners_S()
-    lo = np.full(3, np.inf)
-    hi = np.full(3, -np.inf)
-    for T in poses:
-        w = c @ np.asarray(T)[:3, :3].T + np.asarray(T)[:3, 3]
-        lo = np.minimum(lo, w.min(0))
-        hi = np.maximum(hi, w.max(0))
-    lo -= voxel_size_m
-    hi += voxel_size_m
-    n = np.ceil((hi - lo) / voxel_size_m)
-    if float(np.prod(n)) > max_voxels:
-        raise ValueError(
-            f"Expected an automatic grid of at most {max_voxels} voxels, but the fields of view "
-            f"span {np.round(lo, 2).tolist()}..{np.round(hi, 2).tolist()} m = {n.astype(int).tolist()}"
-            f" voxels at {voxel_size_m} m: {remedy}"
-        )
-    return GridSpec(tuple(lo), tuple(hi), voxel_size_m)
 
 
 def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
@@ -307,50 +240,6 @@ def _flush_batch(mapper, batch: list) -> None:
     """Integrate the buffered (image, T_W_S) frames in one call and empty the buffer."""
     mapper.integrate_batch(np.stack([b[0] for b in batch]), np.stack([b[1] for b in batch]))
     batch.clear()
-
-
-def save_pictures(values: np.ndarray, grid: GridSpec, threshold: float, out: Path,
-                  title: str = "", positions: np.ndarray | None = None) -> dict:
-    """Write ``views.png`` (occupied voxels shaded in 3-D, colour = height, beside a top-down
-    height map with a colour bar; ``positions`` (P, 3): the sonar's path) and ``floor_slice.png``.
-
-    Returns
-    -------
-    dict
-        ``floor_z_m`` (height of the slice) and the file names.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    occ = np.isfinite(values) & (values >= threshold)
-    # the occupied voxels shaded in 3-D (pyrender offscreen) beside a top-down height map
-    from gpumap.viewer.render import replay_views
-
-    replay_views(out / "views.png", values, grid, threshold, title=title, positions=positions)
-
-    # floor: the horizontal layer with the most occupied voxels in the lower half of the box
-    counts = occ.sum(axis=(0, 1))
-    nz = values.shape[2]
-    k_floor = int(np.argmax(counts[: max(1, nz // 2)])) if counts.any() else nz // 4
-    z = grid.min_corner_m[2] + (k_floor + 0.5) * grid.voxel_size_m
-    fig, ax = plt.subplots(figsize=(5.5, 4.5), dpi=80)
-    sl = values[:, :, k_floor].T
-    cmap = matplotlib.colormaps["magma"].with_extremes(bad="#3060a0")
-    lo, hi = grid.min_corner_m, grid.max_corner_m
-    im = ax.imshow(sl, origin="lower", cmap=cmap, vmin=0, vmax=1,
-                   extent=(lo[0], lo[0] + values.shape[0] * grid.voxel_size_m,
-                           lo[1], lo[1] + values.shape[1] * grid.voxel_size_m))
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_title(f"slice z = {z:.3f} m (blue = never observed)", fontsize=9)
-    fig.colorbar(im, ax=ax, label="min-max value")
-    fig.tight_layout()
-    fig.savefig(out / "floor_slice.png")
-    plt.close(fig)
-    del hi
-    return {"floor_z_m": z, "pictures": ["views.png", "floor_slice.png"]}
 
 
 def replay_rules(recording, *, rules: Sequence[str] = RULES, grid: GridSpec | None = None,
@@ -638,77 +527,6 @@ def run_rule_comparison(recording, *, threshold: float = DEFAULT_THRESHOLD,
     return runs, cmp_
 
 
-#: Every file ``gpumap replay`` can write into ``--out``: one run's set replaces the last one's.
-OUTPUTS = ("map.npz", "occupied.ply", "views.png", "floor_slice.png", "rules.png", "summary.json")
-
-
-def _parser() -> ArgumentParser:
-    ap = ArgumentParser(prog="gpumap replay",
-                        description="stream a recording through the min-max mapper and write what it built")
-    ap.add_argument("path", help="recording: Oculus .raw/.oculus, ARIS .aris, fan folder, ROS bag")
-    ap.add_argument("--voxel-size", type=positive_float, default=0.05, help="metres (default 0.05)")
-    ap.add_argument("--backend", type=backend_name, default="auto",
-                    help=BACKEND_HELP)
-    ap.add_argument("--method", default="gather", choices=["gather", "template"],
-                    help=METHOD_HELP)
-    ap.add_argument("--out", type=output_dir, default="replay_out",
-                    help="output folder (default replay_out); its files are replaced as one set")
-    ap.add_argument("--grid", type=grid_box, default="auto",
-                    help="auto or xmin,ymin,zmin,xmax,ymax,zmax (m); write --grid=-1,... when it "
-                         "starts with a minus sign")
-    ap.add_argument("--threshold", type=threshold_or_auto, default=DEFAULT_THRESHOLD,
-                    help=f"occupied if value >= this, in (0, 1] (default {DEFAULT_THRESHOLD}; on the "
-                         "OASIS tank views agree above it), also the mapper's bright threshold (its "
-                         "'threshold': the visible rule's returns and shadows); 'auto' = Otsu over "
-                         "observed voxels, known only after the run, so the mapper then uses "
-                         f"{DEFAULT_THRESHOLD}")
-    ap.add_argument("--rule", default=None, choices=list(RULES),
-                    help="how views combine: 'evidence' (default; occupied unless the clear views "
-                         "show, at 95 %% confidence, that the voxel is bright in fewer than a fifth "
-                         "of them: holds however many pings come), 'visible' (carved by 2 clear dark "
-                         "views) or "
-                         "'plain' (the paper's min over views: a ping carves its acoustic shadow). "
-                         "--method template supports only 'plain' and defaults to it")
-    ap.add_argument("--compare-rules", action="store_true",
-                    help="also replay the frames under the other rules and write rules.png (the "
-                         "chosen rule and plain "
-                         "maps side by side, and where they differ) and a 'rule_comparison' "
-                         "section in summary.json (needs --method gather)")
-    ap.add_argument("--static", action="store_true",
-                    help="map every ping at one fixed (identity) pose: for pose-less recordings")
-    ap.add_argument("--frames", type=frame_range, default=None, metavar="START:STOP[:STEP]",
-                    help="only the recording's frames START to STOP-1 (counted from 0, every STEP-th; "
-                         "START or STOP may be left out), before --stride and --max-frames: split a "
-                         "recording into maps of disjoint pings that gpumap merge can join")
-    ap.add_argument("--max-memory", type=memory_size, default=None, metavar="SIZE",
-                    help="the most memory the run may take, e.g. 8G or 512M (default: 90%% of what is "
-                         "available); a grid that needs more is refused before anything is allocated, "
-                         "with the figure (measured bytes a voxel per rule: gpumap/memory.py)")
-    ap.add_argument("--skip-bad-frames", action="store_true",
-                    help="fan folders: skip a picture that cannot be read (truncated, corrupt) instead "
-                         "of stopping; each is counted in the printed line and in summary.json")
-    ap.add_argument("--stride", type=positive_int, default=1, help="use every N-th frame")
-    ap.add_argument("--max-frames", type=positive_int, default=None,
-                    help="stop after this many frames (after --stride); default all")
-    ap.add_argument("--vfov-deg", type=vfov_deg, default=None, help="vertical aperture override")
-    ap.add_argument("--flip-lr", action="store_true", help="fan folders: mirror columns")
-    ap.add_argument("--flip-ud", action="store_true", help="fan folders: mirror rows")
-    ap.add_argument("--no-pictures", action="store_true",
-                    help="write the map and summary only, not views.png and floor_slice.png")
-    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
-    # the old spelling, still accepted (not shown): one spelling for the same idea across commands
-    ap.add_argument("--quiet", dest="no_progress", action="store_true", help=argparse.SUPPRESS)
-    from gpumap.ekf_replay import add_ekf_args
-    from gpumap.workers import add_worker_args
-
-    add_worker_args(ap)
-    from gpumap.viewer.cli import add_view_args
-
-    add_view_args(ap)
-    add_ekf_args(ap)
-    return ap
-
-
 def select_frames(recording, frames: slice):
     """The frames of ``recording`` whose indices are in ``frames`` (``slice(start, stop, step)``,
     start and stop >= 0), as a :class:`~gpumap.io.Recording` (``gpumap replay --frames``)."""
@@ -721,248 +539,3 @@ def select_frames(recording, frames: slice):
         count=None if rec.count() is None else lambda: len(range(rec.count())[frames]),
         poses=None if rec._poses is None else lambda: list(rec.poses())[frames],
     )
-
-
-REPLAY_REMEDY = "use a larger --voxel-size or a smaller --grid, or set the cap (--max-memory)"
-
-
-def memory_size(text: str) -> int | None:
-    """``--max-memory``: ``auto`` (None) or a size such as ``8G``, in bytes."""
-    from gpumap.memory import parse_size
-
-    try:
-        return parse_size(text)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
-
-
-def frame_range(text: str) -> slice:
-    """``START:STOP[:STEP]`` (whole numbers, START >= 0, STOP > START, STEP >= 1; START or STOP
-    may be empty) as a ``slice`` (``--frames``)."""
-    want = "START:STOP or START:STOP:STEP (whole numbers, START >= 0, STOP > START, STEP >= 1)"
-    parts = text.split(":")
-    if len(parts) not in (2, 3):
-        raise argparse.ArgumentTypeError(f"Expected {want}, but got {text!r}")
-    try:
-        start, stop, step = (int(x) if x.strip() else None for x in (*parts, "")[:3])
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"Expected {want}, but got {text!r}") from None
-    start = start or 0
-    if start < 0 or (stop is not None and stop <= start) or (step is not None and step < 1):
-        raise argparse.ArgumentTypeError(f"Expected {want}, but got {text!r}")
-    return slice(start, stop, step)
-
-
-def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]:
-    """Parse and check every flag, alone and together, before any work; exit 2 on a bad one."""
-    ap = _parser()
-    a = ap.parse_args(argv)
-    from gpumap.viewer.cli import check_view_args
-
-    check_view_args(ap, a)
-    from gpumap.workers import check_worker_args
-
-    check_worker_args(ap, a)
-    from gpumap.ekf_replay import check_ekf_args
-
-    check_ekf_args(ap, a)
-    if a.frames is not None and a.ekf:
-        ap.error("argument --frames: Expected it without --ekf (the EKF replay reads the whole "
-                 "recording), but got both")
-    if a.method == "template" and a.rule not in (None, "plain"):
-        ap.error("argument --rule: Expected rule='plain' with --method template (the template "
-                 f"method's duplicate points cannot count views once), but got --rule {a.rule}")
-    if a.compare_rules and a.method != "gather":
-        ap.error(f"argument --compare-rules: Expected --method gather (the other rules need it), "
-                 f"but got --method {a.method}")
-    grid = None
-    if a.grid is not None:
-        try:
-            grid = GridSpec(a.grid[:3], a.grid[3:], a.voxel_size)
-        except ValueError as e:
-            ap.error(f"argument --grid: {e}")
-    return a, grid
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``gpumap replay``; returns the process exit status.
-
-    Bad flags exit with status 2 (``SystemExit``) before anything is read; bad input found
-    later (an unreadable recording, no poses, a backend that cannot run, a grid that would not
-    fit in memory) prints one line and returns 2. A run in which no ping observed any voxel of
-    the grid writes its outputs, warns, and returns :data:`EMPTY_MAP_STATUS` (3). The outputs
-    replace those in ``--out`` as one set, only once all are written.
-    """
-    a, grid = _parse(argv)
-    a.view_sessions = []  # the live view / recording, if asked for (gpumap.viewer)
-    try:
-        stats, grid_out = _replay(a, grid)
-    except user_errors() as e:
-        for s in a.view_sessions:
-            s.abort()
-        print(error_line("gpumap replay", e), file=sys.stderr)
-        return 2
-    except BaseException:
-        for s in a.view_sessions:
-            s.abort()
-        raise
-    thr = stats["threshold"]
-    if stats.get("workers"):  # gpumap.workers: say so, and the wall time with the cluster's start
-        how = (f"{stats['frames']} images in {stats['workers']} Dask workers on {stats['backend']} "
-               f"({stats['split']} split) in {stats['seconds_wall']:.2f} s wall, of which "
-               f"{stats['seconds_cluster']:.2f} s starting the cluster and "
-               f"{stats['seconds_gather'] + stats['seconds_merge']:.2f} s gathering and merging the maps")
-    else:
-        how = (f"{stats['frames']} images on {stats['backend']} in "
-               f"{stats['seconds_total']:.2f} s: {stats['images_per_s']:.1f} images/s overall "
-               f"(read + convert + integrate), {stats['integrate_per_s']:.1f} images/s counting only "
-               f"the time spent in integrate() (device kernels overlap the reading)")
-    print(f"gpumap replay: {how}; "
-          f"grid {tuple(stats['grid_shape'])} at {grid_out.voxel_size_m} m; "
-          f"{stats['occupied_voxels']} occupied (>= {thr:.3f}, {stats['rule']} rule) of "
-          f"{stats['observed_voxels']} observed voxels"
-          + (f"; skipped {stats['skipped_bad_frames']} unreadable frames" if stats.get("skipped_bad_frames")
-             else "") + f"; wrote {a.out}/")
-    if a.compare_rules:
-        print(f"gpumap replay: rules: {stats['rule_comparison']['text']}")
-    if stats["skipped_no_pose"] or stats["skipped_spec"]:
-        print(f"gpumap replay: skipped {stats['skipped_no_pose']} frames without a pose and "
-              f"{stats['skipped_spec']} whose sonar geometry differs from the first",
-              file=sys.stderr)
-    if stats.get("skipped_bad_frames"):
-        print(f"gpumap replay: skipped {stats['skipped_bad_frames']} frames that could not be read "
-              f"(--skip-bad-frames; the first: {stats['bad_frames'][0]}); summary.json lists them",
-              file=sys.stderr)
-    for s in a.view_sessions:
-        s.serve()
-    if stats["observed_voxels"] == 0:
-        # the outputs are written (summary.json says what was mapped where), but an empty map is
-        # almost always a --grid that misses the pings or wrong poses: a script must not carry on
-        print(f"gpumap replay: warning: no ping observed any voxel of the grid "
-              f"{tuple(stats['grid_shape'])} ({stats['frames']} pings mapped): check --grid against "
-              f"the sonar's positions and its range (exit status {EMPTY_MAP_STATUS})", file=sys.stderr)
-        return EMPTY_MAP_STATUS
-    return 0
-
-
-#: Exit status of ``gpumap replay`` when no ping observed any voxel of the grid (outputs written).
-EMPTY_MAP_STATUS = 3
-
-
-def _view_hook(a: argparse.Namespace, threshold: float):
-    """``on_ping`` for :func:`run_replay` feeding ``--view``/``--record`` (None without them).
-
-    The session opens at the first ping (when the grid and the sonar are known) and follows
-    only the first mapper it sees: with ``--compare-rules``, the chosen rule's run.
-    """
-    if not (getattr(a, "view", False) or getattr(a, "record", None) is not None):
-        return None
-    from gpumap.viewer.cli import Session
-
-    state: dict = {}
-
-    def on_ping(image, T_W_S, mapper) -> None:
-        if "mapper" not in state:
-            state["mapper"] = mapper
-            s = Session(a, mapper.spec, mapper.grid, threshold,
-                        title=f"gpumap replay {Path(a.path).name} ({mapper.grid.voxel_size_m * 100:g} cm)")
-            a.view_sessions.append(s)
-            state["session"] = s
-        if mapper is state["mapper"]:
-            state["session"].ping(image, T_W_S, mapper)
-
-    return on_ping
-
-
-def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpec]:
-    """Map the recording of parsed flags ``a``; write the output set; ``(summary, grid)``."""
-    if a.ekf:  # odometry + EKF on the pings, three maps (gpumap.ekf_replay)
-        from gpumap.ekf_replay import replay_with_ekf
-
-        return replay_with_ekf(a, grid)
-    from gpumap.io import open_recording
-
-    kwargs: dict = {}
-    p = Path(a.path)
-    if a.flip_lr or a.flip_ud or (a.vfov_deg is not None and p.is_dir()
-                                  and not (p / "metadata.yaml").exists()):
-        from gpumap.io.fan import OASIS_SPEC, FanGeometry
-
-        kwargs["geom"] = FanGeometry(flip_lr=a.flip_lr, flip_ud=a.flip_ud)
-        if a.vfov_deg is not None:
-            kwargs["spec"] = SonarSpec(OASIS_SPEC.range_min_m, OASIS_SPEC.range_max_m,
-                                       OASIS_SPEC.n_bins, OASIS_SPEC.bearings_rad,
-                                       math.radians(a.vfov_deg))
-    elif a.vfov_deg is not None:
-        kwargs["vfov_deg"] = a.vfov_deg
-    stride = a.stride
-    if p.is_dir() and not (p / "metadata.yaml").exists() and a.frames is None:
-        kwargs["stride"] = stride  # the fan reader skips pictures without decoding them
-        stride = 1
-    bad: list[str] = []
-    if a.skip_bad_frames:
-        if not (p.is_dir() and not (p / "metadata.yaml").exists()):
-            raise ValueError(f"Expected a folder of fan pictures with --skip-bad-frames (the one format "
-                             f"whose frames can be skipped one by one), but {a.path} is not one")
-        kwargs["on_bad"] = lambda e: bad.append(str(e))
-    rec = open_recording(a.path, **kwargs)
-    if a.frames is not None:
-        rec = select_frames(rec, a.frames)
-    mapper_thr = DEFAULT_THRESHOLD if a.threshold == "auto" else a.threshold
-    rule = a.rule or ("evidence" if a.method == "gather" else "plain")
-    replay_kw = dict(voxel_size_m=a.voxel_size, backend=a.backend, method=a.method,
-                     static=a.static, stride=stride, max_frames=a.max_frames,
-                     progress=not a.no_progress, threshold=mapper_thr, max_memory=a.max_memory,
-                     memory_remedy=REPLAY_REMEDY)
-    positions: list = []
-    replay_kw["on_ping"] = _view_hook(a, mapper_thr)
-    if a.compare_rules:
-        # the chosen rule first: it sizes the grid, and its run's timings are the ones reported
-        order = (rule, *[r for r in RULES if r != rule])
-        runs = replay_rules(rec, rules=order, grid=grid, positions=positions, **replay_kw)
-        mapper, stats = runs[rule]
-    elif a.workers:  # gpumap.workers: the same map, mapped in Dask workers and merged
-        from gpumap.workers import run_replay_workers
-
-        replay_kw.pop("on_ping")
-        replay_kw.pop("max_memory")  # each worker holds its own map (gpumap.workers)
-        replay_kw.pop("memory_remedy")
-        mapper, stats = run_replay_workers(rec, workers=a.workers, scheduler=a.scheduler, grid=grid,
-                                           rule=a.rule, positions=positions, **replay_kw)
-    else:
-        mapper, stats = run_replay(rec, grid=grid, rule=a.rule, positions=positions, **replay_kw)
-    for s in getattr(a, "view_sessions", ()):
-        s.finish(mapper)
-    if a.skip_bad_frames:
-        stats["skipped_bad_frames"] = len(bad)
-        stats["bad_frames"] = bad[:100]  # the first hundred errors, each naming its file
-    values = mapper.values()
-    thr = otsu_threshold(values) if a.threshold == "auto" else float(a.threshold)
-    occ = np.isfinite(values) & (values >= thr)
-    stats["threshold"] = thr
-    stats["occupied_voxels"] = int(occ.sum())
-    stats["observed_voxels"] = int(np.isfinite(values).sum())
-    from gpumap.io.ply import write_ply
-
-    with output_set(a.out, OUTPUTS) as out:  # all of them appear in --out together, or none
-        mapper.save(out / "map.npz")
-        write_ply(out / "occupied.ply", mapper.grid.centers(np.argwhere(occ)), values[occ])
-        if not a.no_pictures:
-            stats.update(save_pictures(values, mapper.grid, thr, out,
-                                       title=f"{Path(a.path).name} ({stats['rule']} rule)",
-                                       positions=np.asarray(positions).reshape(-1, 3) if positions else None))
-        if a.compare_rules:
-            other = {r: m.values() for r, (m, _) in runs.items() if r != rule}
-            cmp_ = compare_rules({rule: values, **other}, mapper.grid, thr,
-                                 np.asarray(positions).reshape(-1, 3),
-                                 None if a.no_pictures else out / "rules.png", title=Path(a.path).name,
-                                 rule=None if rule == "plain" else rule)
-            cmp_["runs"] = {r: {k: st[k] for k in ("frames", "backend", "seconds_total",
-                                                     "images_per_s", "integrate_per_s")}
-                            for r, (_, st) in runs.items()}
-            stats["rule_comparison"] = cmp_
-        (out / "summary.json").write_text(json.dumps(stats, indent=2))
-    return stats, mapper.grid
-
-if __name__ == "__main__":
-    raise SystemExit(main())

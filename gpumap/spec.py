@@ -1,5 +1,6 @@
 """Static descriptions: the imaging sonar (:class:`SonarSpec`), the world grid (:class:`GridSpec`)
-and a block-sparse world grid (:class:`SparseSpec`).
+and a block-sparse world grid (:class:`SparseSpec`); :func:`auto_grid`, the grid that holds
+the fields of view of a recording's poses.
 
 Both are small immutable value types. They validate themselves once, at construction,
 so everything downstream can trust them.
@@ -14,13 +15,14 @@ its neighbours (the outer edges mirror the first and last half-spacings).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from gpumap.errors import check_finite_scalar
 
-__all__ = ["GridSpec", "SonarSpec", "SparseSpec"]
+__all__ = ["GridSpec", "SonarSpec", "SparseSpec", "auto_grid"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -427,3 +429,37 @@ def _vec3(v: object, name: str) -> tuple[float, float, float]:
     if a.shape != (3,) or not np.all(np.isfinite(a)):
         raise ValueError(f"Expected 3 finite values for '{name}', but got {v!r}")
     return (float(a[0]), float(a[1]), float(a[2]))
+
+
+def auto_grid(spec: SonarSpec, poses: Iterable[np.ndarray], voxel_size_m: float,
+              max_voxels: int = 200_000_000,
+              remedy: str = "pass --grid or a larger --voxel-size") -> GridSpec:
+    """The box holding every field of view of ``spec`` at ``poses``, padded by one voxel.
+
+    Parameters
+    ----------
+    spec : SonarSpec
+    poses : sequence of (4, 4) float
+        ``T_W_S`` of every ping.
+    voxel_size_m : float
+    max_voxels : int
+        Refuse boxes larger than this, saying ``remedy`` (what the caller can change: a command
+        names its own flags).
+    """
+    c = spec.fov_corners_S()
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for T in poses:
+        w = c @ np.asarray(T)[:3, :3].T + np.asarray(T)[:3, 3]
+        lo = np.minimum(lo, w.min(0))
+        hi = np.maximum(hi, w.max(0))
+    lo -= voxel_size_m
+    hi += voxel_size_m
+    n = np.ceil((hi - lo) / voxel_size_m)
+    if float(np.prod(n)) > max_voxels:
+        raise ValueError(
+            f"Expected an automatic grid of at most {max_voxels} voxels, but the fields of view "
+            f"span {np.round(lo, 2).tolist()}..{np.round(hi, 2).tolist()} m = {n.astype(int).tolist()}"
+            f" voxels at {voxel_size_m} m: {remedy}"
+        )
+    return GridSpec(tuple(lo), tuple(hi), voxel_size_m)

@@ -40,7 +40,7 @@ import numpy as np
 
 from gpumap.spec import GridSpec, SonarSpec
 
-__all__ = ["BATCH", "add_worker_args", "check_worker_args", "run_replay_workers"]
+__all__ = ["BATCH", "run_replay_workers"]
 
 log = logging.getLogger("gpumap")
 
@@ -332,13 +332,13 @@ def run_replay_workers(
     owners = None
     if static:
         if grid is None:
-            from gpumap.replay import auto_grid
+            from gpumap.spec import auto_grid
 
             grid = auto_grid(next(iter(recording)).spec, [eye], voxel_size_m)
     elif grid is None or split == "space":
         spec0, sel = _poses_of(recording, stride, max_frames, frames)
         if grid is None:  # as run_replay sizes it: the box of every selected field of view
-            from gpumap.replay import auto_grid
+            from gpumap.spec import auto_grid
 
             posed = [T for T in sel if T is not None]
             if not posed:
@@ -476,31 +476,3 @@ def run_replay_workers(
         per_worker=per,
     )
     return mapper, stats
-
-
-# ------------------------------------------------------------------------------ gpumap replay's flags
-def add_worker_args(ap) -> None:
-    """``--workers`` and ``--scheduler`` on ``gpumap replay``'s parser."""
-    from gpumap.cli import positive_int
-
-    ap.add_argument("--workers", type=positive_int, default=None,
-                    help="map in N Dask workers (one mapper each, pings split among them in batches "
-                         "of 32) and merge their maps: the same map as one process, bit for bit "
-                         "(needs the workers extra: pip install 'gpumap[workers]')")
-    ap.add_argument("--scheduler", default=None,
-                    help="address of a running Dask scheduler (e.g. tcp://10.0.0.5:8786) whose "
-                         "workers map; default: start N local worker processes (needs --workers)")
-
-
-def check_worker_args(ap, a) -> None:
-    """Refuse flag combinations the worker run does not support (exit 2, before any work)."""
-    if a.scheduler is not None and not a.workers:
-        ap.error("argument --scheduler: Expected --workers N with it, but --workers is missing")
-    if a.workers:
-        for flag, on in (("--view", getattr(a, "view", False)),
-                         ("--record", getattr(a, "record", None) is not None),
-                         ("--compare-rules", a.compare_rules),
-                         ("--ekf", getattr(a, "ekf", False))):
-            if on:
-                ap.error(f"argument --workers: Expected no {flag} with it (the workers' maps are only "
-                         f"whole once merged), but got {flag}")

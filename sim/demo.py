@@ -1,6 +1,7 @@
-"""``gpumap demo``: simulate the tank, map it with the min-max filter, score it against truth.
+"""The demo: simulate the tank, map it with the min-max filter, score it against truth
+(:func:`run_demo`; the command is ``gpumap demo``, :mod:`gpumap.commands.demo`).
 
-Writes to ``--out``: ``metrics.json`` (scene, backend, voxel size, images, mapper time per
+Writes to ``args.out``: ``metrics.json`` (scene, backend, voxel size, images, mapper time per
 image, false-negative/positive rates, height errors, whether the pipe was found, and with
 ``--pose-noise`` one row per pose source), ``map.npz`` (the map, :meth:`MinMaxMapper.save`)
 and pictures: ``sonar_image.png`` (a sample ping), ``map_vs_truth.png`` (the map's occupied
@@ -20,37 +21,21 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 import gpumap
-from gpumap.cli import (
-    BACKEND_HELP,
-    METHOD_HELP,
-    ArgumentParser,
-    backend_name,
-    error_line,
-    nonnegative_float,
-    nonnegative_int,
-    output_dir,
-    output_set,
-    positive_float,
-    positive_int,
-    unit_interval,
-    user_errors,
-)
 from gpumap.geometry import RULES
 
 from .metrics import evaluate
-from .scenes import SCENES, Scene, make_scene
-from .sonar import OCCUPIED_THRESHOLD, Ping, SonarSimulator
+from .scenes import Scene, make_scene
+from .sonar import Ping, SonarSimulator
 from .truth import Truth, ground_truth_masks, occupancy, points_to_voxels
 from .variation import SonarVariation
 
-__all__ = ["main", "run_demo"]
+__all__ = ["VARIATIONS", "run_demo"]
 
 RANGE_SIGMA_M = 0.01
 BEARING_SIGMA_RAD = math.radians(0.3)
@@ -58,53 +43,6 @@ BEARING_SIGMA_RAD = math.radians(0.3)
 DEFAULT_VOXEL_M = {"survey": 0.05}
 #: ``--variation`` names -> the simulated sonar's view-to-view variation.
 VARIATIONS = {"none": SonarVariation.none, "real_tank": SonarVariation.real_tank}
-
-
-def _parser() -> argparse.ArgumentParser:
-    p = ArgumentParser(prog="gpumap demo", description=(
-        "simulate the tank (or --scene), map it with the min-max filter, and score the map against truth"))
-    p.add_argument("--scene", default="tank", choices=sorted(SCENES),
-                   help="simulated scene: tank (the paper's), circle (four objects seen from five sides) "
-                        "or survey (a long seabed strip); default tank")
-    p.add_argument("--voxel-size", type=positive_float, default=None,
-                   help="voxel edge, metres (default: 0.03; 0.05 for the survey scene)")
-    p.add_argument("--backend", type=backend_name, default="auto",
-                   help=BACKEND_HELP)
-    p.add_argument("--method", default="gather", choices=["gather", "template"],
-                   help=METHOD_HELP)
-    p.add_argument("--out", type=output_dir, default="demo_out",
-                   help="output folder; its files are replaced as one set")
-    p.add_argument("--pose-noise", type=nonnegative_float, default=None, metavar="SIGMA",
-                   help="odometry noise per step (m and rad); adds odometry and EKF rows")
-    p.add_argument("--pings", type=positive_int, default=None,
-                   help="use only this many pings (evenly spaced)")
-    p.add_argument("--threshold", type=unit_interval, default=OCCUPIED_THRESHOLD,
-                   help="occupied intensity, in (0, 1]")
-    p.add_argument("--rule", default="evidence", choices=list(RULES),
-                   help="how views combine: 'evidence' (occupied unless its clear views show it bright "
-                        "in fewer than a fifth of them), 'visible' (carved by 2 clear dark views) or "
-                        "'plain' (the paper's min); the other rules are always mapped too, for the "
-                        "side-by-side 'rules' rows")
-    p.add_argument("--shadow-m", type=nonnegative_float, default=0.0, metavar="M",
-                   help="acoustic-shadow allowance (metres): returns also count up to M behind them; "
-                        "0 = the paper's min-max")
-    p.add_argument("--seed", type=nonnegative_int, default=0,
-                   help="random seed of the simulated sonar noise and odometry (default 0)")
-    p.add_argument("--variation", default="none", choices=sorted(VARIATIONS),
-                   help="view-to-view variation of the simulated sonar: none (default) or real_tank "
-                        "(speckle, per-ping gain, pose jitter and dropouts measured on the real tank run)")
-    p.add_argument("--sparse", action="store_true",
-                   help="allocate the map's blocks only where pings look (sparse, bounded by the "
-                        "scene's grid; the same values as the dense grid) and report its memory")
-    p.add_argument("--plan", type=nonnegative_int, default=0, metavar="N",
-                   help="after the trajectory, add N planned next best views and, for comparison, N evenly "
-                        "spread rolled views and N random ones; writes their curves (plan block of "
-                        "metrics.json) and pictures of the confidence layer and the chosen poses")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    from gpumap.viewer.cli import add_view_args
-
-    add_view_args(p)
-    return p
 
 
 def _progress(it, disable: bool, **kw):
@@ -343,8 +281,8 @@ def _rule(rule: str | None, method: str) -> str:
 def run_demo(args: argparse.Namespace) -> dict:
     """Run the demo for parsed ``args``; returns the metrics written to ``metrics.json``.
 
-    With ``args.view`` / ``args.record`` (:func:`gpumap.viewer.cli.add_view_args`) the mapping
-    at true poses is shown live / recorded; the :class:`~gpumap.viewer.cli.Session` is
+    With ``args.view`` / ``args.record`` (:func:`gpumap.commands.common.add_view_args`) the mapping
+    at true poses is shown live / recorded; the :class:`~gpumap.viewer.session.Session` is
     appended to ``args.view_sessions`` when there is one (the caller serves it on after the
     outputs are written).
     """
@@ -476,7 +414,7 @@ def run_demo(args: argparse.Namespace) -> dict:
 def _view_session(args: argparse.Namespace, scene: Scene, truth: Truth, detectable: np.ndarray,
                   sessions: list | None):
     """The live view / recording of the true-pose mapping, with the truth beside the map; or None."""
-    from gpumap.viewer.cli import Session
+    from gpumap.viewer.session import Session
 
     session = Session.open(args, scene.sonar_spec, scene.grid, args.threshold,
                            title=f"gpumap demo ({scene.name}, {scene.grid.voxel_size_m * 100:g} cm)")
@@ -559,75 +497,3 @@ def _figures(out: Path, scene: Scene, truth: Truth, mapper, sample: Ping, histor
     fig.tight_layout()
     fig.savefig(out / "error_by_views.png", dpi=90)
     plt.close(fig)
-
-
-#: Every file ``gpumap demo`` writes into ``--out``: one run's set replaces the last one's.
-OUTPUTS = ("metrics.json", "map.npz", "sonar_image.png", "map_vs_truth.png", "error_by_views.png",
-           "height_map.png", "errors_by_object.png", "plan_curves.png", "plan_confidence.png",
-           "plan_poses.png")
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``gpumap demo``; returns the exit status.
-
-    Bad flags exit with status 2 (``SystemExit``) before any work; bad input found later (a
-    backend that cannot run here) prints one line and returns 2. The outputs replace those
-    in ``--out`` as one set, only once all are written.
-    """
-    from gpumap.viewer.cli import check_view_args
-
-    parser = _parser()
-    args = parser.parse_args(argv)
-    check_view_args(parser, args)
-    out = args.out
-    sessions: list = []
-    try:
-        with output_set(out, OUTPUTS) as tmp:  # all of them appear in --out together, or none
-            m = run_demo(argparse.Namespace(**{**vars(args), "out": tmp, "view_sessions": sessions}))
-    except user_errors() as e:
-        for s in sessions:
-            s.abort()
-        print(error_line("gpumap demo", e), file=sys.stderr)
-        return 2
-    except BaseException:
-        for s in sessions:
-            s.abort()
-        raise
-    print(json.dumps({k: m[k] for k in ("scene", "backend", "rule", "voxel_size_m", "images", "ms_per_image",
-                                         "demo_s")}, indent=1))
-    head = ("rule", "missed", "obj missed", "seen free", "phantom", "water free")
-    print(f"{head[0]:8s} " + " ".join(f"{h:>10s}" for h in head[1:]) + " pipe found")
-    for name, row in m["rules"].items():
-        print(f"{name:8s} {row['miss_rate']:10.1%} {row['miss_rate_objects']:10.1%} "
-              f"{row['false_negative_rate_detectable']:10.1%} {row['false_positive_rate_far']:10.1%} "
-              f"{row['free_carved_fraction']:10.1%} {row['pipe_found']}")
-    print("missed: surface voxels some ping could detect that the map does not call occupied (free or "
-          "unknown); obj missed: the same for the small objects; seen free: detectable surface the map "
-          "observed and calls free; phantom: water more than one voxel from a surface called occupied; "
-          "water free: water voxels called free (metrics.json; README: what the numbers mean)")
-    if "memory" in m:
-        mem = m["memory"]
-        dense = [f"dense grid {mem['dense_grid_bytes'] / 2**20:.1f} MiB"]
-        if "dense_water_column_bytes" in mem:
-            dense.append(f"dense to the surface {mem['dense_water_column_bytes'] / 2**20:.1f} MiB")
-        print(f"map memory {mem['map_bytes'] / 2**20:.1f} MiB ({mem['storage']}); observed "
-              f"{mem['observed_voxels']} voxels x {mem['bytes_per_voxel']} B = "
-              f"{mem['observed_bytes'] / 2**20:.1f} MiB; " + "; ".join(dense))
-    if "pose_noise" in m:
-        for name, row in m["pose_noise"]["rows"].items():
-            print(f"{name:9s} missed {row.get('miss_rate', float('nan')):.3f} "
-                  f"phantom {row.get('false_positive_rate_far', float('nan')):.3f} "
-                  f"pose err {row.get('translation_error_mean_m', float('nan')):.3f} m")
-    if "plan" in m:
-        from .plan_demo import print_plan
-
-        print_plan(m["plan"])
-    written = [n for n in OUTPUTS if (Path(out) / n).exists()]
-    print(f"wrote {', '.join(written)} to {Path(out).resolve()}")
-    for s in sessions:
-        s.serve()
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

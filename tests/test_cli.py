@@ -19,9 +19,11 @@ import numpy as np
 import pytest
 from conftest import DATA, needs_data
 
-import gpumap.io.ply
-import gpumap.replay
-from gpumap import cli
+import gpumap.commands.demo
+import gpumap.commands.replay
+from gpumap import commands as cli
+from gpumap.atomic import output_set
+from gpumap.commands import common
 from gpumap.errors import BackendUnavailableError
 from gpumap.io import FormatError
 from gpumap.io.oculus import encode_simple_ping
@@ -45,7 +47,7 @@ def no_work(monkeypatch):
     def started(*a, **k):
         raise AssertionError("work started before the flags were checked")
 
-    monkeypatch.setattr(gpumap.replay, "_replay", started)
+    monkeypatch.setattr(gpumap.commands.replay, "_replay", started)
     monkeypatch.setattr(gpumap.sim.demo, "run_demo", started)
     import bench.__main__
 
@@ -140,7 +142,7 @@ def test_cli_process_prints_one_line_and_no_traceback(tmp_path: Path) -> None:
     """The real entry point, in a child process: stderr is exactly one line."""
     for args in (["replay", str(tmp_path), "--stride", "0"], ["demo", "--pings", "0"], ["nope"],
                  ["replay", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]):
-        r = subprocess.run([sys.executable, "-m", "gpumap.cli", *args], capture_output=True, text=True,
+        r = subprocess.run([sys.executable, "-m", "gpumap.commands", *args], capture_output=True, text=True,
                            cwd=ROOT, timeout=60)
         assert r.returncode == 2, (args, r.stderr)
         lines = r.stderr.strip().splitlines()
@@ -156,7 +158,7 @@ def test_gpumap_errors_become_one_line(exc, tmp_path, capsys, monkeypatch) -> No
         raise exc
 
     out = tmp_path / "o"
-    monkeypatch.setattr(gpumap.replay, "_replay", fail)
+    monkeypatch.setattr(gpumap.commands.replay, "_replay", fail)
     monkeypatch.setattr(gpumap.sim.demo, "run_demo", fail)
     for verb, path in (("replay", [str(tmp_path)]), ("demo", [])):
         rc, err = _run([verb, *path, "--out", str(out)], capsys)
@@ -170,14 +172,14 @@ def test_bugs_keep_their_traceback_and_ctrl_c_is_one_line(tmp_path, capsys, monk
     def bug(*a, **k):
         raise RuntimeError("a bug")
 
-    monkeypatch.setattr(gpumap.replay, "_replay", bug)
+    monkeypatch.setattr(gpumap.commands.replay, "_replay", bug)
     with pytest.raises(RuntimeError, match="a bug"):
         cli.main(["replay", str(tmp_path), "--out", str(tmp_path / "o")])
 
     def interrupted(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(gpumap.replay, "_replay", interrupted)
+    monkeypatch.setattr(gpumap.commands.replay, "_replay", interrupted)
     rc, err = _run(["replay", str(tmp_path), "--out", str(tmp_path / "o")], capsys)
     assert rc == 130 and err == ["gpumap replay: interrupted"]
 
@@ -208,7 +210,7 @@ def test_out_onto_a_file_is_refused_at_once(verb, tmp_path, capsys, monkeypatch)
 def test_output_set_refuses_a_file(tmp_path) -> None:
     f = tmp_path / "taken"
     f.write_bytes(b"x")
-    with pytest.raises(ValueError, match="is a file"), cli.output_set(f):
+    with pytest.raises(ValueError, match="is a file"), output_set(f):
         pass
     assert f.read_bytes() == b"x"
 
@@ -227,7 +229,7 @@ def previous(tmp_path_factory) -> tuple[Path, dict[str, bytes]]:
     if DATA is None:
         pytest.skip("shared/data not found")
     out = tmp_path_factory.mktemp("previous") / "out"
-    assert gpumap.replay.main([str(DATA / "oasis_tank"), *SMALL, "--out", str(out)]) == 0
+    assert gpumap.commands.replay.main([str(DATA / "oasis_tank"), *SMALL, "--out", str(out)]) == 0
     snap = _snapshot(out)
     assert set(snap) == {"map.npz", "occupied.ply", "views.png", "floor_slice.png", "summary.json"}
     return out, snap
@@ -273,9 +275,9 @@ def _pictures_interrupted(*a, **k):
 def test_interrupted_replay_leaves_the_previous_outputs(step, previous, old_out, monkeypatch,
                                                         tmp_path) -> None:
     if step == "after map.npz":
-        monkeypatch.setattr(gpumap.io.ply, "write_ply", _ply_interrupted)
+        monkeypatch.setattr(gpumap.commands.replay, "write_ply", _ply_interrupted)
     elif step == "in the pictures":
-        monkeypatch.setattr(gpumap.replay, "save_pictures", _pictures_interrupted)
+        monkeypatch.setattr(gpumap.commands.replay, "save_pictures", _pictures_interrupted)
     elif step == "before summary.json":  # the last file: everything else is written
         real = json.dumps
 
@@ -286,8 +288,8 @@ def test_interrupted_replay_leaves_the_previous_outputs(step, previous, old_out,
     else:  # Ctrl-C half way through moving the new files in: every move is undone
         _replace_call(monkeypatch, old_out, 2, _interrupt)
     with pytest.raises(KeyboardInterrupt):
-        gpumap.replay.main([str(DATA / "oasis_tank"), *SMALL, "--threshold", "0.3",
-                            "--out", str(old_out)])
+        gpumap.commands.replay.main([str(DATA / "oasis_tank"), *SMALL, "--threshold", "0.3",
+                                     "--out", str(old_out)])
     assert _snapshot(old_out) == previous[1]  # byte-identical, no partial folder left inside
     assert os.listdir(tmp_path) == ["out"]
 
@@ -298,7 +300,7 @@ def test_ctrl_c_during_the_swap_waits_for_the_complete_new_set(old_out, monkeypa
         pytest.skip("signals reach the main thread only")
     _replace_call(monkeypatch, old_out, 1, lambda: os.kill(os.getpid(), signal.SIGINT))
     with pytest.raises(KeyboardInterrupt):
-        gpumap.replay.main([str(DATA / "oasis_tank"), *SMALL, "--threshold", "0.3", "--no-pictures",
+        gpumap.commands.replay.main([str(DATA / "oasis_tank"), *SMALL, "--threshold", "0.3", "--no-pictures",
                             "--out", str(old_out)])
     s = json.loads((old_out / "summary.json").read_text())
     assert s["threshold"] == 0.3  # the new set, whole (and the old pictures gone with the old set)
@@ -308,8 +310,8 @@ def test_ctrl_c_during_the_swap_waits_for_the_complete_new_set(old_out, monkeypa
 @needs_data
 def test_replay_replaces_the_whole_set_and_keeps_other_files(old_out, previous, capsys) -> None:
     (old_out / "notes.txt").write_text("mine")
-    assert gpumap.replay.main([str(DATA / "oasis_tank"), *SMALL, "--threshold", "0.3", "--no-pictures",
-                               "--out", str(old_out)]) == 0
+    assert gpumap.commands.replay.main([str(DATA / "oasis_tank"), *SMALL, "--threshold", "0.3",
+                                        "--no-pictures", "--out", str(old_out)]) == 0
     snap = _snapshot(old_out)
     # the old run's pictures do not outlive it; files that are not replay's stay
     assert set(snap) == {"map.npz", "occupied.ply", "summary.json", "notes.txt"}
@@ -334,17 +336,17 @@ def _fake_demo(files: dict[str, bytes], fail: bool):
 
 def test_interrupted_demo_leaves_the_previous_outputs(tmp_path, monkeypatch, capsys) -> None:
     out = tmp_path / "demo"
-    old = {name: f"old {name}".encode() for name in gpumap.sim.demo.OUTPUTS}
+    old = {name: f"old {name}".encode() for name in gpumap.commands.demo.OUTPUTS}
     monkeypatch.setattr(gpumap.sim.demo, "run_demo", _fake_demo(old, fail=False))
-    assert gpumap.sim.demo.main(["--out", str(out), "--no-progress"]) == 0
+    assert gpumap.commands.demo.main(["--out", str(out), "--no-progress"]) == 0
     assert _snapshot(out) == old
-    new = {name: f"new {name}".encode() for name in gpumap.sim.demo.OUTPUTS}
+    new = {name: f"new {name}".encode() for name in gpumap.commands.demo.OUTPUTS}
     monkeypatch.setattr(gpumap.sim.demo, "run_demo", _fake_demo(new, fail=True))
     with pytest.raises(KeyboardInterrupt):
-        gpumap.sim.demo.main(["--out", str(out), "--no-progress"])
+        gpumap.commands.demo.main(["--out", str(out), "--no-progress"])
     assert _snapshot(out) == old and os.listdir(tmp_path) == ["demo"]
     monkeypatch.setattr(gpumap.sim.demo, "run_demo", _fake_demo(new, fail=False))
-    assert gpumap.sim.demo.main(["--out", str(out), "--no-progress"]) == 0
+    assert gpumap.commands.demo.main(["--out", str(out), "--no-progress"]) == 0
     assert _snapshot(out) == new
     capsys.readouterr()
 
@@ -352,19 +354,19 @@ def test_interrupted_demo_leaves_the_previous_outputs(tmp_path, monkeypatch, cap
 def _parsers():
     import gpumap.bench.__main__ as bench
 
-    import gpumap.export_cli
-    import gpumap.merge_cli
-    import gpumap.plan_cli
-    import gpumap.refine_cli
-    import gpumap.ros.node
-    import gpumap.ros.play
-    import gpumap.viewer.cli
+    import gpumap.commands.export
+    import gpumap.commands.merge
+    import gpumap.commands.plan
+    import gpumap.commands.refine
+    import gpumap.commands.ros
+    import gpumap.commands.ros_play
+    import gpumap.commands.view
 
-    return {"demo": gpumap.sim.demo._parser(), "replay": gpumap.replay._parser(),
-            "view": gpumap.viewer.cli._parser(), "export": gpumap.export_cli._parser(),
-            "merge": gpumap.merge_cli._parser(), "refine": gpumap.refine_cli._parser(),
-            "plan": gpumap.plan_cli._parser(),
-            "bench": bench._parser(), "ros": gpumap.ros.node._parser(), "ros-play": gpumap.ros.play._parser()}
+    c = gpumap.commands
+    return {"demo": c.demo._parser(), "replay": c.replay._parser(), "view": c.view._parser(),
+            "export": c.export._parser(), "merge": c.merge._parser(), "refine": c.refine._parser(),
+            "plan": c.plan._parser(), "bench": bench._parser(), "ros": c.ros._parser(),
+            "ros-play": c.ros_play._parser()}
 
 
 def test_every_option_has_a_plain_help_line() -> None:
@@ -400,11 +402,11 @@ def test_an_output_file_that_exists_is_replaced_not_refused(tmp_path) -> None:
     the file is replaced; refused only where its folder cannot hold it."""
     f = tmp_path / "map.bt"
     f.write_bytes(b"old")
-    assert cli.output_file(str(f)) == f
+    assert common.output_file(str(f)) == f
     with pytest.raises(argparse.ArgumentTypeError, match="is a file"):
-        cli.output_file(str(f / "inside.bt"))
+        common.output_file(str(f / "inside.bt"))
     with pytest.raises(argparse.ArgumentTypeError, match="is a folder"):
-        cli.output_file(str(tmp_path))
+        common.output_file(str(tmp_path))
 
 
 def test_third_party_info_logs_stay_quiet() -> None:
@@ -445,7 +447,7 @@ def test_info_names_backends_as_mappers_do_and_no_cuda_warning_on_a_cpu_machine(
     assert gpumap.MinMaxMapper(spec, grid).backend == listed[0]
     if cuda_driver_loadable():
         pytest.skip("this machine has a CUDA driver: Warp has nothing to warn about")
-    r = subprocess.run([sys.executable, "-m", "gpumap.cli", "info"], capture_output=True, text=True,
+    r = subprocess.run([sys.executable, "-m", "gpumap.commands", "info"], capture_output=True, text=True,
                        cwd=ROOT, timeout=300)
     assert r.returncode == 0, r.stderr
     assert "CUDA driver" not in r.stderr + r.stdout, r.stderr

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import json
 
-from gpumap.sim.demo import main
-
 import gpumap
+from gpumap.commands.demo import main
 
 
 def test_demo_end_to_end(tmp_path):

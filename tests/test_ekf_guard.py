@@ -200,7 +200,7 @@ def test_trust_comes_after_hold_consistent_updates_in_a_row_and_goes_at_the_firs
 @needs_data
 @pytest.mark.parametrize("unguarded", [False, True])
 def test_replay_ekf_reports_how_much_it_trusted_the_pings(tmp_path, capsys, unguarded) -> None:
-    from gpumap.replay import main
+    from gpumap.commands.replay import main
 
     out = tmp_path / "o"
     with warnings.catch_warnings():

@@ -242,7 +242,7 @@ def test_compare_maps_counts_unknown_as_not_occupied():
 
 @needs_data
 def test_replay_ekf_cli(tmp_path):
-    from gpumap.replay import main
+    from gpumap.commands.replay import main
 
     out = tmp_path / "o"
     with warnings.catch_warnings():

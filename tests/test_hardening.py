@@ -69,7 +69,7 @@ def test_replay_frames_split_a_recording_that_merge_then_joins(tmp_path) -> None
     rec = str(DATA / "oasis_tank")
     common = ["--max-frames", "6", "--voxel-size", "0.1", "--backend", "numpy", "--no-pictures",
               "--no-progress", "--grid=-1,-2,-1.6,2.5,2.2,1.4"]
-    from gpumap.cli import main
+    from gpumap.commands import main
 
     assert main(["replay", rec, "--frames", "0:12:2", "--out", str(tmp_path / "full"), *common]) == 0
     assert main(["replay", rec, "--frames", "0:6:2", "--out", str(tmp_path / "a"), *common]) == 0
@@ -79,7 +79,7 @@ def test_replay_frames_split_a_recording_that_merge_then_joins(tmp_path) -> None
     out = tmp_path / "m.npz"
     assert main(["merge", str(out), str(tmp_path / "a" / "map.npz"), str(tmp_path / "b" / "map.npz")]) == 0
     np.testing.assert_array_equal(load_map(out, backend="numpy").raw_values(), full.raw_values())
-    r = subprocess.run([sys.executable, "-m", "gpumap.cli", "merge", str(out),
+    r = subprocess.run([sys.executable, "-m", "gpumap.commands", "merge", str(out),
                         str(tmp_path / "full" / "map.npz"), str(tmp_path / "a" / "map.npz")],
                        capture_output=True, text=True)
     assert r.returncode == 2, r.stderr
@@ -88,7 +88,7 @@ def test_replay_frames_split_a_recording_that_merge_then_joins(tmp_path) -> None
 
 @pytest.mark.parametrize("bad", ["5", "3:2", "-1:4", "1:4:0", "a:b", "1:2:3:4"])
 def test_replay_frames_refuses_what_is_not_a_range(bad, capsys) -> None:
-    from gpumap.cli import main
+    from gpumap.commands import main
 
     with pytest.raises(SystemExit) as e:
         main(["replay", "nowhere", "--frames", bad])
@@ -218,8 +218,8 @@ def _flags(parser) -> set[str]:
 def test_refine_grid_error_names_only_refine_flags(capsys) -> None:
     import re
 
-    from gpumap.cli import main
-    from gpumap.refine_cli import _parser
+    from gpumap.commands import main
+    from gpumap.commands.refine import _parser
 
     rc = main(["refine", str(DATA / "oasis_tank"), "--voxel-size", "0.002", "--max-frames", "3",
                "--no-progress", "--out", "/nonexistent-never-written"])
@@ -232,7 +232,7 @@ def test_refine_grid_error_names_only_refine_flags(capsys) -> None:
 def test_view_without_the_viewer_names_no_flag_it_lacks(monkeypatch, capsys, tmp_path) -> None:
     import importlib.util
 
-    from gpumap.viewer import cli as vcli
+    from gpumap.commands import view as vcli
 
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec",
@@ -256,7 +256,7 @@ def test_export_and_merge_say_what_is_wrong_with_a_map_file_in_words(content, tm
     else:
         bad.write_bytes(content)
     for argv in (["export", str(bad), str(tmp_path / "o.ply")], ["merge", str(tmp_path / "o.npz"), str(bad)]):
-        r = subprocess.run([sys.executable, "-m", "gpumap.cli", *argv], capture_output=True, text=True)
+        r = subprocess.run([sys.executable, "-m", "gpumap.commands", *argv], capture_output=True, text=True)
         assert r.returncode == 2, r.stderr
         assert "Expected a gpumap map file" in r.stderr
         for raw in ("BadZipFile(", "KeyError(", "Traceback"):
@@ -282,7 +282,7 @@ _QUICK = ["--voxel-size", "0.1", "--backend", "numpy", "--no-pictures", "--no-pr
 
 @needs_data
 def test_a_grid_no_ping_sees_warns_and_exits_3(tmp_path, capsys) -> None:
-    from gpumap.cli import main
+    from gpumap.commands import main
 
     rc = main(["replay", str(_tank_copy(tmp_path, 3)), "--grid=100,100,100,101,101,101", *_QUICK,
                "--out", str(tmp_path / "out")])
@@ -293,7 +293,7 @@ def test_a_grid_no_ping_sees_warns_and_exits_3(tmp_path, capsys) -> None:
 
 @needs_data
 def test_skip_bad_frames_skips_a_truncated_picture_and_counts_it(tmp_path, capsys) -> None:
-    from gpumap.cli import main
+    from gpumap.commands import main
 
     tank = _tank_copy(tmp_path)
     bad = sorted((tank / "sonar").glob("*.png"))[2]

@@ -64,7 +64,7 @@ def test_check_names_the_figure_and_the_cap() -> None:
 
 @needs_data
 def test_replay_refuses_a_grid_over_the_cap_before_mapping(tmp_path, capsys) -> None:
-    from gpumap.cli import main
+    from gpumap.commands import main
 
     out = tmp_path / "out"
     rc = main(["replay", str(DATA / "oasis_tank"), "--grid=-30,-30,-15,30,30,15", "--max-memory", "4G",

@@ -145,7 +145,7 @@ def test_files_and_states_merge_too(tmp_path):
 @pytest.mark.parametrize("kind", ["dense-evidence", "dense-visible", "dense-plain", "sparse-evidence"])
 def test_real_tank_pings_random_split(backend, kind):
     from gpumap.io import open_fan_folder
-    from gpumap.replay import auto_grid
+    from gpumap.spec import auto_grid
 
     frames = list(open_fan_folder(DATA / "oasis_tank", stride=4))
     pings = [(f.image, f.T_W_S) for f in frames]
@@ -244,7 +244,7 @@ def test_sparse_merge_over_max_bytes_raises_unchanged():
 def test_merge_command_writes_the_map_of_all_pings(tmp_path, capsys):
     import json
 
-    from gpumap.cli import main
+    from gpumap.commands import main
 
     pings = _random_pings(5, 8)
     parts = [_dense("numpy", pings[:3]).save(tmp_path / "a.npz"),
@@ -272,7 +272,7 @@ def test_merge_command_writes_the_map_of_all_pings(tmp_path, capsys):
 def test_export_reads_sparse_map_files_too(tmp_path, capsys):
     import json
 
-    from gpumap.cli import main
+    from gpumap.commands import main
     from gpumap.io import read_ply
 
     m = _sparse("numpy", _random_pings(3, 1))

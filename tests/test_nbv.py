@@ -266,7 +266,7 @@ def test_demo_plan_writes_three_arms(tmp_path):
     """``gpumap demo --plan`` end to end on a coarse grid: three arms, one curve row per ping."""
     import json
 
-    from gpumap.sim.demo import main
+    from gpumap.commands.demo import main
 
     out = tmp_path / "demo"
     rc = main(["--voxel-size", "0.06", "--pings", "5", "--backend", "numpy", "--out", str(out),

@@ -122,7 +122,7 @@ def test_bt_empty_map_and_bad_input(tmp_path):
 
 @pytest.fixture(scope="module")
 def demo_map(tmp_path_factory):
-    from gpumap.sim.demo import main
+    from gpumap.commands.demo import main
 
     out = tmp_path_factory.mktemp("demo")
     assert main(["--voxel-size", "0.06", "--pings", "4", "--backend", "numpy", "--out", str(out),
@@ -134,7 +134,7 @@ def demo_map(tmp_path_factory):
 def test_demo_map_bt_loads_in_octomap(demo_map, tmp_path, capsys):
     import pyoctomap
 
-    from gpumap.cli import main
+    from gpumap.commands import main
     from gpumap.mapper import MinMaxMapper
 
     m = MinMaxMapper.load(demo_map, backend="numpy")
@@ -166,7 +166,7 @@ def test_demo_map_bt_loads_in_octomap(demo_map, tmp_path, capsys):
 
 
 def test_export_verb_refuses_other_suffix(demo_map, tmp_path, capsys):
-    from gpumap.cli import main
+    from gpumap.commands import main
 
     with pytest.raises(SystemExit) as e:
         main(["export", str(demo_map), str(tmp_path / "m.txt")])

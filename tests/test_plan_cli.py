@@ -16,8 +16,8 @@ def test_plan_writes_the_best_views_within_the_wrist_limits(tmp_path: Path, caps
     """A point reflector seen level (test_nbv): its elevation arc is unconfirmed, and a rolled view
     settles it. The plan's gains are the map's own gains of the written poses, best first, and every
     pose lies within the limits around its anchor."""
-    from gpumap.cli import main
-    from gpumap.plan_cli import pose_from_xyz_ypr_deg, ypr_deg
+    from gpumap.commands import main
+    from gpumap.commands.plan import pose_from_xyz_ypr_deg, ypr_deg
 
     spec = gpumap.SonarSpec.uniform(hfov_deg=60, vfov_deg=20, n_beams=64, n_bins=100, range_min_m=0.1,
                                     range_max_m=1.5)
@@ -55,7 +55,7 @@ def test_plan_writes_the_best_views_within_the_wrist_limits(tmp_path: Path, caps
 
 
 def test_plan_says_what_is_missing(tmp_path: Path, capsys) -> None:
-    from gpumap.cli import main
+    from gpumap.commands import main
 
     spec = gpumap.SonarSpec.uniform(n_beams=8, n_bins=10)
     m = gpumap.MinMaxMapper(spec, gpumap.GridSpec((0, -1, -1), (2, 1, 1), 0.2), backend="numpy")
@@ -72,9 +72,9 @@ def test_plan_says_what_is_missing(tmp_path: Path, capsys) -> None:
 def test_plan_rebuilds_the_layer_from_the_maps_own_frames(tmp_path: Path, capsys) -> None:
     """A map saved without the layer: its recording's frames rebuild it (the same values, exactly)
     and the anchors are the recording's poses; other frames are refused."""
-    from gpumap.cli import main
+    from gpumap.commands import main
     from gpumap.refine import recording_frames
-    from gpumap.replay import auto_grid
+    from gpumap.spec import auto_grid
 
     rec = DATA / "oasis_tank"
     spec, images, poses = recording_frames(rec, 12)

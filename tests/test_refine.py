@@ -163,7 +163,7 @@ def test_roc_auc_and_heldout_scores() -> None:
 
 @needs_data
 def test_cli_refines_the_real_tank(tmp_path: Path, capsys) -> None:
-    from gpumap.cli import main
+    from gpumap.commands import main
 
     out = tmp_path / "out"
     assert (
@@ -210,7 +210,7 @@ def test_cli_says_a_missing_cuda_device_before_any_work(tmp_path: Path, capsys) 
     """--device cuda on a machine without CUDA: refused first (not after reading and mapping the
     recording, which here does not even exist)."""
     from gpumap.backends import _warp
-    from gpumap.cli import main
+    from gpumap.commands import main
 
     if _warp()[0].is_cuda_available():
         pytest.skip("this machine has a CUDA device")

@@ -378,7 +378,7 @@ def _gpumap(*args: str, ns: str, log: Path) -> subprocess.Popen:
         i = args.index("--ros-args")
         ours, ros = list(args[:i]), ros + list(args[i + 1:])
     f = open(log, "w")  # noqa: SIM115 - closed with the process
-    return subprocess.Popen([sys.executable, "-m", "gpumap.cli", *ours, *ros], stdout=f,
+    return subprocess.Popen([sys.executable, "-m", "gpumap.commands", *ours, *ros], stdout=f,
                             stderr=subprocess.STDOUT, env=_env(DOMAIN), start_new_session=True)
 
 

@@ -287,7 +287,7 @@ def _ply_points(path: Path) -> np.ndarray:
 
 
 def test_export_writes_the_layers_of_a_refined_map(refined, tmp_path: Path, capsys) -> None:
-    from gpumap.cli import main
+    from gpumap.commands import main
 
     m, res = refined
     path = res.save(tmp_path / "refined.npz")
@@ -314,7 +314,7 @@ def test_export_writes_the_layers_of_a_refined_map(refined, tmp_path: Path, caps
 
 def test_view_reads_the_layers_of_a_refined_map(refined, tmp_path: Path) -> None:
     from gpumap.refine import OCCUPIED_LEVEL
-    from gpumap.viewer.cli import map_layer
+    from gpumap.viewer.session import map_layer
 
     m, res = refined
     path = res.save(tmp_path / "refined.npz")
@@ -333,9 +333,9 @@ def test_view_reads_the_layers_of_a_refined_map(refined, tmp_path: Path) -> None
 # ---------------------------------------------------------------------- 3. the CLI from a saved map
 @needs_data
 def test_cli_refines_a_saved_map_and_says_what_it_wrote(tmp_path: Path, capsys) -> None:
-    from gpumap.cli import main
+    from gpumap.commands import main
     from gpumap.refine import load_refined, recording_frames
-    from gpumap.replay import auto_grid
+    from gpumap.spec import auto_grid
 
     rec = DATA / "oasis_tank"
     spec, images, poses = recording_frames(rec, 12)
@@ -361,7 +361,8 @@ def test_cli_refines_a_saved_map_and_says_what_it_wrote(tmp_path: Path, capsys) 
 
 def test_gpumap_view_serves_either_layer_of_a_refined_map(refined, tmp_path: Path) -> None:
     pytest.importorskip("viser")
-    from gpumap.viewer.cli import _parser, _view_map
+    from gpumap.commands.view import _parser
+    from gpumap.viewer.session import view_map as _view_map
 
     _, res = refined
     path = res.save(tmp_path / "refined.npz")

@@ -249,7 +249,7 @@ def test_survey_sonar_sees_the_seabed(scene):
 
 
 def test_demo_survey_reports_memory_and_sparse_maps_the_same(tmp_path):
-    from gpumap.sim.demo import main
+    from gpumap.commands.demo import main
 
     args = ["--scene", "survey", "--voxel-size", "0.2", "--pings", "4", "--backend", "numpy", "--no-progress"]
     assert main([*args, "--out", str(tmp_path / "dense")]) == 0

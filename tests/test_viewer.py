@@ -111,7 +111,7 @@ def test_map_diff_reports_changes_only():
 
 
 def test_view_flag_without_viser_is_one_line(monkeypatch, capsys):
-    from gpumap.sim import demo
+    from gpumap.commands import demo
 
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda n, *a: None if n == "viser" else real(n, *a))
@@ -124,8 +124,8 @@ def test_view_flag_without_viser_is_one_line(monkeypatch, capsys):
 
 @needs_data
 def test_replay_record_holds_every_ping(tmp_path):
+    from gpumap.commands.replay import main
     from gpumap.mapper import MinMaxMapper
-    from gpumap.replay import main
 
     rec_path = tmp_path / "tank.gpumap-rec"
     assert main([str(DATA / "oasis_tank"), "--voxel-size", "0.08", "--max-frames", "12", "--no-progress",
@@ -267,8 +267,9 @@ def test_demo_view_renders_in_chromium_and_records(tmp_path):
     port = _free_port()
     rec_path = tmp_path / "demo.gpumap-rec"
     n = 6
-    proc, _ = _start([sys.executable, "-m", "gpumap.cli", "demo", "--voxel-size", "0.08", "--pings", str(n),
-                      "--backend", "numpy", "--no-progress", "--out", str(tmp_path / "out"), "--view",
+    proc, _ = _start([sys.executable, "-m", "gpumap.commands", "demo", "--voxel-size", "0.08",
+                      "--pings", str(n), "--backend", "numpy", "--no-progress",
+                      "--out", str(tmp_path / "out"), "--view",
                       "--view-port", str(port), "--view-hold", "120", "--record", str(rec_path),
                       "--view-every", "2"], ready="serving the view")
     try:
@@ -288,12 +289,12 @@ def test_demo_view_renders_in_chromium_and_records(tmp_path):
 @needs_viser
 @needs_chromium
 def test_view_saved_map_in_chromium(tmp_path):
-    from gpumap.sim.demo import main
+    from gpumap.commands.demo import main
 
     assert main(["--voxel-size", "0.08", "--pings", "3", "--backend", "numpy", "--no-progress",
                  "--out", str(tmp_path / "out")]) == 0
     port = _free_port()
-    proc, _ = _start([sys.executable, "-m", "gpumap.cli", "view", str(tmp_path / "out" / "map.npz"),
+    proc, _ = _start([sys.executable, "-m", "gpumap.commands", "view", str(tmp_path / "out" / "map.npz"),
                       "--view-port", str(port), "--view-hold", "120"], ready="serving")
     try:
         png, errors = _chromium_page(f"http://127.0.0.1:{port}", wait_s=60, done=_looks_rendered)
@@ -306,7 +307,7 @@ def test_view_saved_map_in_chromium(tmp_path):
 
 def test_demo_record_with_pose_noise_keeps_paths_and_landmarks(tmp_path):
     """No viewer needed to record; the EKF rows add the three paths and the landmarks with covariances."""
-    from gpumap.sim.demo import main
+    from gpumap.commands.demo import main
 
     rec_path = tmp_path / "pn.gpumap-rec"
     assert main(["--voxel-size", "0.1", "--pings", "5", "--backend", "numpy", "--no-progress",
@@ -328,7 +329,8 @@ def test_saved_map_view_shows_no_empty_ping_panels(tmp_path):
     """gpumap view MAP.npz: a saved map has no ping, so the view has no polar / fan image panels
     (a recording's view keeps them)."""
     import gpumap
-    from gpumap.viewer.cli import _parser, _view_map
+    from gpumap.commands.view import _parser
+    from gpumap.viewer.session import view_map as _view_map
 
     spec = gpumap.SonarSpec.uniform(hfov_deg=60, vfov_deg=12, n_beams=16, n_bins=20, range_min_m=0.1,
                                     range_max_m=1.0)

@@ -18,7 +18,8 @@ pytest.importorskip("distributed")
 from distributed import Client, LocalCluster  # noqa: E402
 
 import gpumap  # noqa: E402
-from gpumap.replay import main, run_replay  # noqa: E402
+from gpumap.commands.replay import main  # noqa: E402
+from gpumap.replay import run_replay  # noqa: E402
 from gpumap.workers import run_replay_workers  # noqa: E402
 
 

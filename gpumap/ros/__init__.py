@@ -10,7 +10,9 @@ The ROS 2 wheels (Kilted, from PyPI) come with the ``[ros]`` extra:
 - :mod:`gpumap.ros.convert`: ROS messages to and from arrays (images, poses, point clouds,
   the 2-D obstacle projection, marker blocks); it imports the message packages lazily.
 
-:mod:`gpumap.ros.node` (the node) and :mod:`gpumap.ros.play` (the player) need ``rclpy``.
+:mod:`gpumap.ros.node` (the node) and :mod:`gpumap.ros.play` (the player's recordings) need
+``rclpy``; the commands that run them are :mod:`gpumap.commands.ros` and
+:mod:`gpumap.commands.ros_play`.
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["FASTDDS_PROFILE", "ROS_EXTRA_HINT", "require_ros", "start_ros_cli", "use_gpumap_fastdds_profile"]
+__all__ = ["FASTDDS_PROFILE", "ROS_EXTRA_HINT", "require_ros", "split_ros_args", "start_ros_cli",
+           "use_gpumap_fastdds_profile"]
 
 #: Fast DDS profile for sonar-sized messages (a 32 MiB shared-memory segment; see the file).
 FASTDDS_PROFILE = Path(__file__).with_name("fastdds_shm.xml")
@@ -69,3 +72,12 @@ def start_ros_cli(prog: str) -> bool:
         return False
     use_gpumap_fastdds_profile()
     return True
+
+
+def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
+    """``argv`` split at ``--ros-args``: (the command's own flags, the ROS arguments from
+    ``--ros-args`` on)."""
+    if "--ros-args" in argv:
+        i = argv.index("--ros-args")
+        return argv[:i], argv[i:]
+    return argv, []

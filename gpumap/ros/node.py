@@ -55,7 +55,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpumap.ros import require_ros, start_ros_cli
+from gpumap.ros import require_ros
 from gpumap.ros.convert import (
     BadMessage,
     MarkerBlocks,
@@ -70,7 +70,7 @@ from gpumap.ros.convert import (
 from gpumap.ros.live import LiveMapper, health
 from gpumap.spec import GridSpec, SonarSpec
 
-__all__ = ["NODE_NAME", "PARAMETERS", "main", "make_node", "sonar_spec_from_params"]
+__all__ = ["NODE_NAME", "PARAMETERS", "make_node", "ros_arguments", "sonar_spec_from_params"]
 
 NODE_NAME = "gpumap"
 
@@ -455,59 +455,3 @@ def ros_arguments(params_file, ros_args: list[str]) -> list[str]:
     if params_file is None:
         return list(ros_args)
     return ["--ros-args", "--params-file", str(params_file), *ros_args[1:]]
-
-
-def _split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
-    if "--ros-args" in argv:
-        i = argv.index("--ros-args")
-        return argv[:i], argv[i:]
-    return argv, []
-
-
-def _parser():
-    from gpumap.cli import ArgumentParser, existing_file
-
-    p = ArgumentParser(prog="gpumap ros", description=(
-        "A ROS 2 node (named gpumap) that maps live sonar pings: subscribes sonar/image and sonar/pose, "
-        "publishes ~/occupied_cloud, ~/occupied_markers, ~/projected_map and /diagnostics, serves "
-        "~/save_map and ~/reset. Parameters go after --ros-args as in any ROS 2 node "
-        "(-p name:=value, --params-file FILE); gpumap ros --list-params prints them all."))
-    p.add_argument("--params-file", type=existing_file, default=None, metavar="FILE",
-                   help="YAML parameter file, the same as --ros-args --params-file FILE")
-    p.add_argument("--list-params", action="store_true",
-                   help="print every parameter with its default and exit")
-    return p
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``gpumap ros``: run the node until Ctrl-C or SIGTERM."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    ours, ros_args = _split_ros_args(argv)
-    a = _parser().parse_args(ours)
-    if a.list_params:
-        for name, (default, desc) in PARAMETERS.items():
-            print(f"{name} (default {default!r}): {desc}")
-        return 0
-    if not start_ros_cli("gpumap ros"):
-        return 2
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
-
-    rclpy.init(args=["gpumap_ros", *ros_arguments(a.params_file, ros_args)])
-    node = None
-    try:
-        node = make_node()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            t0 = time.monotonic()
-            node.shutdown()
-            s = node.diagnostics()
-            print(f"gpumap ros: stopped after {s['integrated']} pings mapped; rejected {s['rejected']}, "
-                  f"skipped {s['skipped']}, dropped {s['dropped']} (shutdown {time.monotonic() - t0:.2f} s)",
-                  file=sys.stderr)
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0

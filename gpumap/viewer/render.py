@@ -1,17 +1,19 @@
 """Pictures people read: voxel maps shaded in 3-D (pyrender, offscreen), height maps, per-object errors.
 
 Needs only gpumap's own dependencies (pyrender with EGL, matplotlib), not the ``[viewer]``
-extra. Used by ``gpumap demo`` and ``gpumap replay`` for their PNGs.
+extra. Used by ``gpumap demo`` and ``gpumap replay`` for their PNGs (:func:`save_pictures`: a
+map's ``views.png`` and ``floor_slice.png``).
 """
 
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["exposed_faces_mesh", "height_map", "look_at", "render_voxels"]
+__all__ = ["exposed_faces_mesh", "height_map", "look_at", "render_voxels", "save_pictures"]
 
 # the six face directions and the four corners of each face (unit cube centred at 0)
 _DIRS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
@@ -247,8 +249,6 @@ def demo_pictures(
     from gpumap.sim.metrics import miss_by_object, phantom_far
 
     matplotlib.use("Agg")
-    from pathlib import Path
-
     import matplotlib.pyplot as plt
     from scipy import ndimage
 
@@ -444,3 +444,45 @@ def replay_views(
     fig.subplots_adjust(left=0.01, right=0.95, top=0.88, bottom=0.1)
     fig.savefig(path)
     plt.close(fig)
+
+
+def save_pictures(values: np.ndarray, grid: Any, threshold: float, out: Path,
+                  title: str = "", positions: np.ndarray | None = None) -> dict:
+    """Write ``views.png`` (occupied voxels shaded in 3-D, colour = height, beside a top-down
+    height map with a colour bar; ``positions`` (P, 3): the sonar's path) and ``floor_slice.png``.
+
+    Returns
+    -------
+    dict
+        ``floor_z_m`` (height of the slice) and the file names.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    occ = np.isfinite(values) & (values >= threshold)
+    # the occupied voxels shaded in 3-D (pyrender offscreen) beside a top-down height map
+    replay_views(out / "views.png", values, grid, threshold, title=title, positions=positions)
+
+    # floor: the horizontal layer with the most occupied voxels in the lower half of the box
+    counts = occ.sum(axis=(0, 1))
+    nz = values.shape[2]
+    k_floor = int(np.argmax(counts[: max(1, nz // 2)])) if counts.any() else nz // 4
+    z = grid.min_corner_m[2] + (k_floor + 0.5) * grid.voxel_size_m
+    fig, ax = plt.subplots(figsize=(5.5, 4.5), dpi=80)
+    sl = values[:, :, k_floor].T
+    cmap = matplotlib.colormaps["magma"].with_extremes(bad="#3060a0")
+    lo, hi = grid.min_corner_m, grid.max_corner_m
+    im = ax.imshow(sl, origin="lower", cmap=cmap, vmin=0, vmax=1,
+                   extent=(lo[0], lo[0] + values.shape[0] * grid.voxel_size_m,
+                           lo[1], lo[1] + values.shape[1] * grid.voxel_size_m))
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"slice z = {z:.3f} m (blue = never observed)", fontsize=9)
+    fig.colorbar(im, ax=ax, label="min-max value")
+    fig.tight_layout()
+    fig.savefig(out / "floor_slice.png")
+    plt.close(fig)
+    del hi
+    return {"floor_z_m": z, "pictures": ["views.png", "floor_slice.png"]}

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpumap.cli import (
+from gpumap.commands.common import (
     BACKEND_HELP,
     ArgumentParser,
     backend_name,

@@ -12,8 +12,8 @@ refined file holds two layers, exported apart:
 ``--layer surface|safe`` writes that layer to ``OUT``; without it both are written, to
 ``NAME.surface.EXT`` and ``NAME.safe.EXT`` beside ``OUT``.
 
-The command lives here, beside :mod:`gpumap.cli`, so that the readers and writers of
-:mod:`gpumap.io` never import the command line (no ``cli`` <-> ``io.octomap`` cycle).
+The command lives here, above the library, so that the readers and writers of
+:mod:`gpumap.io` never import the command line (no ``commands`` <-> ``io.octomap`` cycle).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpumap.cli import ArgumentParser, existing_file, output_file, unit_interval
+from gpumap.commands.common import ArgumentParser, existing_file, output_file, unit_interval
 
 __all__ = ["LAYERS", "main"]
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 
-from gpumap.cli import ArgumentParser, existing_file, output_file
+from gpumap.commands.common import ArgumentParser, existing_file, output_file
 
 __all__ = ["main"]
 

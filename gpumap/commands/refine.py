@@ -24,14 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
-from gpumap.cli import (
+from gpumap.atomic import output_set
+from gpumap.commands.common import (
     BACKEND_HELP,
     ArgumentParser,
     backend_name,
     error_line,
     existing_file,
     output_dir,
-    output_set,
     positive_float,
     positive_int,
     unit_interval,
@@ -105,16 +105,6 @@ def _parser() -> ArgumentParser:
     return ap
 
 
-def load_frames(
-    path: str, stride: int = 1, max_frames: int | None = None
-) -> tuple[object, np.ndarray, np.ndarray]:
-    """(spec, images (N, n_bins, n_beams), poses (N, 4, 4)): :func:`gpumap.refine.recording_frames`
-    (kept here by name for older callers)."""
-    from gpumap.refine import recording_frames
-
-    return recording_frames(path, stride, max_frames)
-
-
 def main(argv: list[str] | None = None) -> int:
     p = _parser()
     a = p.parse_args(argv)
@@ -125,7 +115,8 @@ def main(argv: list[str] | None = None) -> int:
                         f"threshold are used), but got {v}")
     import gpumap
     from gpumap.refine import RefineOptions, map_frames, pick_device, recording_frames, refine, refine_saved
-    from gpumap.replay import DEFAULT_THRESHOLD, auto_grid
+    from gpumap.replay import DEFAULT_THRESHOLD
+    from gpumap.spec import auto_grid
 
     progress = not a.no_progress
     try:

@@ -1,16 +1,16 @@
-"""Command-line glue of the viewer: ``--view``/``--record`` of ``demo`` and ``replay``; ``gpumap view``.
+"""A run's live view and recording (:class:`Session`, behind ``--view``/``--record`` of ``demo``
+and ``replay``), and what ``gpumap view PATH`` serves of a file.
 
-``gpumap view PATH`` serves a saved map (``map.npz``: its occupied voxels, coloured by value
-or height, threshold adjustable), a refined map (``refined.npz`` of ``gpumap refine``: its
+:func:`view_map` serves a saved map (``map.npz``: its occupied voxels, coloured by value
+or height, threshold adjustable) or a refined map (``refined.npz`` of ``gpumap refine``: its
 ``--layer surface``, the refined occupancy from 0.5, or ``--layer safe``, the map's occupied
-voxels) or a recording (``*.gpumap-rec``: a ping slider and a play
+voxels); :func:`view_recording` a recording (``*.gpumap-rec``: a ping slider and a play
 button replay the run: images, pose, trajectory and the map as it was at that ping).
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 import threading
 import time
@@ -19,82 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from gpumap.viewer import MISSING_VIEWER
-
-__all__ = ["Session", "add_view_args", "check_view_args", "main", "map_layer"]
-
-
-def _port(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"Expected a port number, but got {text!r}") from None
-    if not 0 <= v <= 65535:
-        raise argparse.ArgumentTypeError(f"Expected a port in 0..65535 (0 = any free one), but got {text!r}")
-    return v
-
-
-def _seconds(text: str) -> float:
-    from gpumap.cli import nonnegative_float
-
-    return nonnegative_float(text)
-
-
-def add_view_args(p: argparse.ArgumentParser, record: bool = True, live: bool = True) -> None:
-    """Add ``--view``, ``--view-host``, ``--view-port``, ``--view-every``, ``--view-hold``, ``--record``
-    (``live=False``, for ``gpumap view``: only the address and ``--view-hold``; it always serves,
-    and a saved map or a recording has no pings arriving to refresh on)."""
-    from gpumap.cli import output_file, positive_int
-
-    extra = "(optional extra: pip install 'gpumap[viewer]')"
-    g = p.add_argument_group(f"live view {extra}" if live else f"view {extra}")
-    if live:
-        g.add_argument(
-            "--view",
-            action="store_true",
-            help="serve a live 3-D view of the map as it grows (open the printed address in a browser)",
-        )
-    g.add_argument(
-        "--view-host",
-        default="127.0.0.1",
-        metavar="ADDR",
-        help="address the view binds to (default 127.0.0.1: this machine only; 0.0.0.0 lets "
-        "another machine, e.g. the ship's laptop, connect)",
-    )
-    g.add_argument("--view-port", type=_port, default=8080, metavar="PORT", help="default 8080")
-    if live:
-        g.add_argument(
-            "--view-every",
-            type=positive_int,
-            default=10,
-            metavar="N",
-            help="refresh the map's voxels at most every N pings (and at most twice a second)",
-        )
-    g.add_argument(
-        "--view-hold",
-        type=_seconds,
-        default=None,
-        metavar="SECONDS",
-        help=("after the run, keep serving this long (default: until Ctrl-C)" if live else
-              "serve this long, then exit (default: until Ctrl-C)"),
-    )
-    if record:
-        g.add_argument(
-            "--record",
-            type=output_file,
-            default=None,
-            metavar="FILE",
-            help="keep a recording (pings, poses, the map's changes; no viewer needed) that "
-            "'gpumap view FILE' plays back",
-        )
-
-
-def check_view_args(p: argparse.ArgumentParser, a: argparse.Namespace) -> None:
-    """Refuse ``--view`` up front (one line, exit 2) when viser is not installed."""
-    if getattr(a, "view", False) and importlib.util.find_spec("viser") is None:
-        # gpumap view always serves: it has no --view flag to name
-        has_flag = any("--view" in act.option_strings for act in p._actions)
-        p.error(f"argument --view: {MISSING_VIEWER}" if has_flag else MISSING_VIEWER)
+__all__ = ["Session", "map_layer", "view_map", "view_recording"]
 
 
 class Session:
@@ -200,29 +125,6 @@ class Session:
             pass
 
 
-# ---------------------------------------------------------------------- gpumap view
-def _parser() -> argparse.ArgumentParser:
-    from gpumap.cli import ArgumentParser, existing_file, unit_interval
-
-    p = ArgumentParser(
-        prog="gpumap view",
-        description="serve a saved map (map.npz) or a recording (--record FILE) in the browser view",
-    )
-    p.add_argument("path", type=existing_file,
-                   help="map.npz (gpumap demo/replay), refined.npz (gpumap refine) or a recording")
-    p.add_argument(
-        "--threshold",
-        type=unit_interval,
-        default=None,
-        help="occupied if value >= this (default: the map's own threshold; a refined map's surface: 0.5)",
-    )
-    p.add_argument("--layer", choices=("surface", "safe"), default=None,
-                   help="refined.npz only: surface (the refined occupancy, the default) or safe (the map's "
-                   "occupied voxels)")
-    add_view_args(p, record=False, live=False)
-    return p
-
-
 def map_layer(path: str | Path, layer: str | None = None, threshold: float | None = None) -> dict[str, Any]:
     """What ``gpumap view`` shows of a map file: ``spec``, ``grid``, ``values`` ((nx, ny, nz)
     float32, NaN unknown), ``threshold``, ``confidence`` (the map's layer or None), ``n_pings``,
@@ -258,7 +160,9 @@ def map_layer(path: str | Path, layer: str | None = None, threshold: float | Non
             "n_pings": int(m.n_integrated), "layer": None}
 
 
-def _view_map(path: Path, a: argparse.Namespace) -> Any:
+def view_map(path: Path, a: argparse.Namespace) -> Any:
+    """Serve the map file ``path`` (:func:`map_layer` of ``a.layer``, ``a.threshold``) at
+    ``a.view_host``:``a.view_port``, with a threshold slider; the viewer."""
     from gpumap.viewer.live import MapViewer
 
     d = map_layer(path, getattr(a, "layer", None), a.threshold)
@@ -281,7 +185,9 @@ def _view_map(path: Path, a: argparse.Namespace) -> Any:
     return v
 
 
-def _view_recording(path: Path, a: argparse.Namespace) -> Any:
+def view_recording(path: Path, a: argparse.Namespace) -> Any:
+    """Serve the recording ``path`` (``--record``) at ``a.view_host``:``a.view_port``: a ping
+    slider and a play button; the viewer."""
     from gpumap.viewer.live import MapViewer
     from gpumap.viewer.recording import read_recording
 
@@ -344,32 +250,3 @@ def _view_recording(path: Path, a: argparse.Namespace) -> Any:
     return v
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``gpumap view PATH``; returns the exit status."""
-    p = _parser()
-    a = p.parse_args(argv)
-    a.view = True
-    check_view_args(p, a)
-    path = Path(a.path)
-    import zipfile
-
-    try:
-        with zipfile.ZipFile(path) as zf:
-            names = set(zf.namelist())
-    except zipfile.BadZipFile:
-        raise ValueError(f"Expected a map (map.npz) or a gpumap recording, but {path} is not a zip") from None
-    if "meta.json" in names and a.layer is not None:
-        p.error("argument --layer: Expected a refined map (gpumap refine's refined.npz) with --layer, but "
-                f"{str(path)!r} is a recording")
-    v = _view_recording(path, a) if "meta.json" in names else _view_map(path, a)
-    print(
-        f"gpumap view: serving {path} at {v.url} "
-        + ("until Ctrl-C" if a.view_hold is None else f"for {a.view_hold:g} s"),
-        file=sys.stderr,
-        flush=True,
-    )
-    try:
-        v.wait(a.view_hold)
-    except KeyboardInterrupt:
-        pass
-    return 0

@@ -1,0 +1,468 @@
+"""``gpumap replay``: stream a recording through the min-max mapper and write what it built.
+
+Usage::
+
+    gpumap replay PATH [--voxel-size 0.05] [--backend auto] [--method gather] [--out DIR]
+                       [--grid auto|xmin,ymin,zmin,xmax,ymax,zmax] [--threshold 0.4|auto]
+                       [--static] [--stride N] [--max-frames N] [--vfov-deg D]
+                       [--flip-lr] [--flip-ud] [--no-pictures]
+                       [--rule evidence|visible|plain] [--compare-rules]
+
+Writes into ``--out`` (default ``replay_out/``): ``map.npz`` (``MinMaxMapper.save``),
+``occupied.ply`` (occupied voxel centres with their value as ``intensity``), ``views.png``
+(3-D render from three viewpoints), ``floor_slice.png`` (horizontal slice through the
+densest low layer: the floor) and ``summary.json``; prints images/s.
+The files are written into a temporary folder and replace an earlier run's as one set
+(:func:`gpumap.atomic.output_set`): an interrupted run leaves the old set or the new one, whole.
+Every flag is checked before the recording is read (bad ones exit with status 2 and one line).
+
+``--rule`` picks how views combine (``MinMaxMapper``'s ``rule``); the mapper counts a view
+as bright from ``--threshold`` on. ``--compare-rules`` replays the same frames under every
+rule and adds ``rules.png`` (the two maps side by side, and where they differ) and a
+``rule_comparison`` section to ``summary.json`` (see :func:`compare_rules`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from gpumap.atomic import output_set
+from gpumap.commands.common import (
+    BACKEND_HELP,
+    METHOD_HELP,
+    ArgumentParser,
+    add_view_args,
+    backend_name,
+    check_view_args,
+    error_line,
+    frame_range,
+    grid_box,
+    memory_size,
+    nonnegative_float,
+    nonnegative_int,
+    output_dir,
+    positive_float,
+    positive_int,
+    refuse_without,
+    threshold_or_auto,
+    user_errors,
+    vfov_deg,
+)
+from gpumap.io.ply import write_ply
+from gpumap.replay import (
+    DEFAULT_THRESHOLD,
+    RULES,
+    compare_rules,
+    otsu_threshold,
+    replay_rules,
+    run_replay,
+    select_frames,
+)
+from gpumap.spec import GridSpec, SonarSpec
+from gpumap.viewer.render import save_pictures
+
+__all__ = ["EMPTY_MAP_STATUS", "OUTPUTS", "main"]
+
+#: Every file ``gpumap replay`` can write into ``--out``: one run's set replaces the last one's.
+OUTPUTS = ("map.npz", "occupied.ply", "views.png", "floor_slice.png", "rules.png", "summary.json")
+
+
+def _parser() -> ArgumentParser:
+    ap = ArgumentParser(prog="gpumap replay",
+                        description="stream a recording through the min-max mapper and write what it built")
+    ap.add_argument("path", help="recording: Oculus .raw/.oculus, ARIS .aris, fan folder, ROS bag")
+    ap.add_argument("--voxel-size", type=positive_float, default=0.05, help="metres (default 0.05)")
+    ap.add_argument("--backend", type=backend_name, default="auto",
+                    help=BACKEND_HELP)
+    ap.add_argument("--method", default="gather", choices=["gather", "template"],
+                    help=METHOD_HELP)
+    ap.add_argument("--out", type=output_dir, default="replay_out",
+                    help="output folder (default replay_out); its files are replaced as one set")
+    ap.add_argument("--grid", type=grid_box, default="auto",
+                    help="auto or xmin,ymin,zmin,xmax,ymax,zmax (m); write --grid=-1,... when it "
+                         "starts with a minus sign")
+    ap.add_argument("--threshold", type=threshold_or_auto, default=DEFAULT_THRESHOLD,
+                    help=f"occupied if value >= this, in (0, 1] (default {DEFAULT_THRESHOLD}; on the "
+                         "OASIS tank views agree above it), also the mapper's bright threshold (its "
+                         "'threshold': the visible rule's returns and shadows); 'auto' = Otsu over "
+                         "observed voxels, known only after the run, so the mapper then uses "
+                         f"{DEFAULT_THRESHOLD}")
+    ap.add_argument("--rule", default=None, choices=list(RULES),
+                    help="how views combine: 'evidence' (default; occupied unless the clear views "
+                         "show, at 95 %% confidence, that the voxel is bright in fewer than a fifth "
+                         "of them: holds however many pings come), 'visible' (carved by 2 clear dark "
+                         "views) or "
+                         "'plain' (the paper's min over views: a ping carves its acoustic shadow). "
+                         "--method template supports only 'plain' and defaults to it")
+    ap.add_argument("--compare-rules", action="store_true",
+                    help="also replay the frames under the other rules and write rules.png (the "
+                         "chosen rule and plain "
+                         "maps side by side, and where they differ) and a 'rule_comparison' "
+                         "section in summary.json (needs --method gather)")
+    ap.add_argument("--static", action="store_true",
+                    help="map every ping at one fixed (identity) pose: for pose-less recordings")
+    ap.add_argument("--frames", type=frame_range, default=None, metavar="START:STOP[:STEP]",
+                    help="only the recording's frames START to STOP-1 (counted from 0, every STEP-th; "
+                         "START or STOP may be left out), before --stride and --max-frames: split a "
+                         "recording into maps of disjoint pings that gpumap merge can join")
+    ap.add_argument("--max-memory", type=memory_size, default=None, metavar="SIZE",
+                    help="the most memory the run may take, e.g. 8G or 512M (default: 90%% of what is "
+                         "available); a grid that needs more is refused before anything is allocated, "
+                         "with the figure (measured bytes a voxel per rule: gpumap/memory.py)")
+    ap.add_argument("--skip-bad-frames", action="store_true",
+                    help="fan folders: skip a picture that cannot be read (truncated, corrupt) instead "
+                         "of stopping; each is counted in the printed line and in summary.json")
+    ap.add_argument("--stride", type=positive_int, default=1, help="use every N-th frame")
+    ap.add_argument("--max-frames", type=positive_int, default=None,
+                    help="stop after this many frames (after --stride); default all")
+    ap.add_argument("--vfov-deg", type=vfov_deg, default=None, help="vertical aperture override")
+    ap.add_argument("--flip-lr", action="store_true", help="fan folders: mirror columns")
+    ap.add_argument("--flip-ud", action="store_true", help="fan folders: mirror rows")
+    ap.add_argument("--no-pictures", action="store_true",
+                    help="write the map and summary only, not views.png and floor_slice.png")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    # the old spelling, still accepted (not shown): one spelling for the same idea across commands
+    ap.add_argument("--quiet", dest="no_progress", action="store_true", help=argparse.SUPPRESS)
+    add_worker_args(ap)
+    add_view_args(ap)
+    add_ekf_args(ap)
+    return ap
+
+
+REPLAY_REMEDY = "use a larger --voxel-size or a smaller --grid, or set the cap (--max-memory)"
+
+
+def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]:
+    """Parse and check every flag, alone and together, before any work; exit 2 on a bad one."""
+    ap = _parser()
+    a = ap.parse_args(argv)
+    check_view_args(ap, a)
+    check_worker_args(ap, a)
+    check_ekf_args(ap, a)
+    if a.frames is not None and a.ekf:
+        ap.error("argument --frames: Expected it without --ekf (the EKF replay reads the whole "
+                 "recording), but got both")
+    if a.method == "template" and a.rule not in (None, "plain"):
+        ap.error("argument --rule: Expected rule='plain' with --method template (the template "
+                 f"method's duplicate points cannot count views once), but got --rule {a.rule}")
+    if a.compare_rules and a.method != "gather":
+        ap.error(f"argument --compare-rules: Expected --method gather (the other rules need it), "
+                 f"but got --method {a.method}")
+    grid = None
+    if a.grid is not None:
+        try:
+            grid = GridSpec(a.grid[:3], a.grid[3:], a.voxel_size)
+        except ValueError as e:
+            ap.error(f"argument --grid: {e}")
+    return a, grid
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``gpumap replay``; returns the process exit status.
+
+    Bad flags exit with status 2 (``SystemExit``) before anything is read; bad input found
+    later (an unreadable recording, no poses, a backend that cannot run, a grid that would not
+    fit in memory) prints one line and returns 2. A run in which no ping observed any voxel of
+    the grid writes its outputs, warns, and returns :data:`EMPTY_MAP_STATUS` (3). The outputs
+    replace those in ``--out`` as one set, only once all are written.
+    """
+    a, grid = _parse(argv)
+    a.view_sessions = []  # the live view / recording, if asked for (gpumap.viewer)
+    try:
+        stats, grid_out = _replay(a, grid)
+    except user_errors() as e:
+        for s in a.view_sessions:
+            s.abort()
+        print(error_line("gpumap replay", e), file=sys.stderr)
+        return 2
+    except BaseException:
+        for s in a.view_sessions:
+            s.abort()
+        raise
+    thr = stats["threshold"]
+    if stats.get("workers"):  # gpumap.workers: say so, and the wall time with the cluster's start
+        how = (f"{stats['frames']} images in {stats['workers']} Dask workers on {stats['backend']} "
+               f"({stats['split']} split) in {stats['seconds_wall']:.2f} s wall, of which "
+               f"{stats['seconds_cluster']:.2f} s starting the cluster and "
+               f"{stats['seconds_gather'] + stats['seconds_merge']:.2f} s gathering and merging the maps")
+    else:
+        how = (f"{stats['frames']} images on {stats['backend']} in "
+               f"{stats['seconds_total']:.2f} s: {stats['images_per_s']:.1f} images/s overall "
+               f"(read + convert + integrate), {stats['integrate_per_s']:.1f} images/s counting only "
+               f"the time spent in integrate() (device kernels overlap the reading)")
+    print(f"gpumap replay: {how}; "
+          f"grid {tuple(stats['grid_shape'])} at {grid_out.voxel_size_m} m; "
+          f"{stats['occupied_voxels']} occupied (>= {thr:.3f}, {stats['rule']} rule) of "
+          f"{stats['observed_voxels']} observed voxels"
+          + (f"; skipped {stats['skipped_bad_frames']} unreadable frames" if stats.get("skipped_bad_frames")
+             else "") + f"; wrote {a.out}/")
+    if a.compare_rules:
+        print(f"gpumap replay: rules: {stats['rule_comparison']['text']}")
+    if stats["skipped_no_pose"] or stats["skipped_spec"]:
+        print(f"gpumap replay: skipped {stats['skipped_no_pose']} frames without a pose and "
+              f"{stats['skipped_spec']} whose sonar geometry differs from the first",
+              file=sys.stderr)
+    if stats.get("skipped_bad_frames"):
+        print(f"gpumap replay: skipped {stats['skipped_bad_frames']} frames that could not be read "
+              f"(--skip-bad-frames; the first: {stats['bad_frames'][0]}); summary.json lists them",
+              file=sys.stderr)
+    for s in a.view_sessions:
+        s.serve()
+    if stats["observed_voxels"] == 0:
+        # the outputs are written (summary.json says what was mapped where), but an empty map is
+        # almost always a --grid that misses the pings or wrong poses: a script must not carry on
+        print(f"gpumap replay: warning: no ping observed any voxel of the grid "
+              f"{tuple(stats['grid_shape'])} ({stats['frames']} pings mapped): check --grid against "
+              f"the sonar's positions and its range (exit status {EMPTY_MAP_STATUS})", file=sys.stderr)
+        return EMPTY_MAP_STATUS
+    return 0
+
+
+#: Exit status of ``gpumap replay`` when no ping observed any voxel of the grid (outputs written).
+EMPTY_MAP_STATUS = 3
+
+
+def _view_hook(a: argparse.Namespace, threshold: float):
+    """``on_ping`` for :func:`run_replay` feeding ``--view``/``--record`` (None without them).
+
+    The session opens at the first ping (when the grid and the sonar are known) and follows
+    only the first mapper it sees: with ``--compare-rules``, the chosen rule's run.
+    """
+    if not (getattr(a, "view", False) or getattr(a, "record", None) is not None):
+        return None
+    from gpumap.viewer.session import Session
+
+    state: dict = {}
+
+    def on_ping(image, T_W_S, mapper) -> None:
+        if "mapper" not in state:
+            state["mapper"] = mapper
+            s = Session(a, mapper.spec, mapper.grid, threshold,
+                        title=f"gpumap replay {Path(a.path).name} ({mapper.grid.voxel_size_m * 100:g} cm)")
+            a.view_sessions.append(s)
+            state["session"] = s
+        if mapper is state["mapper"]:
+            state["session"].ping(image, T_W_S, mapper)
+
+    return on_ping
+
+
+def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpec]:
+    """Map the recording of parsed flags ``a``; write the output set; ``(summary, grid)``."""
+    if a.ekf:  # odometry + EKF on the pings, three maps (gpumap.ekf_replay)
+        return replay_with_ekf(a, grid)
+    from gpumap.io import open_recording
+
+    kwargs: dict = {}
+    p = Path(a.path)
+    if a.flip_lr or a.flip_ud or (a.vfov_deg is not None and p.is_dir()
+                                  and not (p / "metadata.yaml").exists()):
+        from gpumap.io.fan import OASIS_SPEC, FanGeometry
+
+        kwargs["geom"] = FanGeometry(flip_lr=a.flip_lr, flip_ud=a.flip_ud)
+        if a.vfov_deg is not None:
+            kwargs["spec"] = SonarSpec(OASIS_SPEC.range_min_m, OASIS_SPEC.range_max_m,
+                                       OASIS_SPEC.n_bins, OASIS_SPEC.bearings_rad,
+                                       math.radians(a.vfov_deg))
+    elif a.vfov_deg is not None:
+        kwargs["vfov_deg"] = a.vfov_deg
+    stride = a.stride
+    if p.is_dir() and not (p / "metadata.yaml").exists() and a.frames is None:
+        kwargs["stride"] = stride  # the fan reader skips pictures without decoding them
+        stride = 1
+    bad: list[str] = []
+    if a.skip_bad_frames:
+        if not (p.is_dir() and not (p / "metadata.yaml").exists()):
+            raise ValueError(f"Expected a folder of fan pictures with --skip-bad-frames (the one format "
+                             f"whose frames can be skipped one by one), but {a.path} is not one")
+        kwargs["on_bad"] = lambda e: bad.append(str(e))
+    rec = open_recording(a.path, **kwargs)
+    if a.frames is not None:
+        rec = select_frames(rec, a.frames)
+    mapper_thr = DEFAULT_THRESHOLD if a.threshold == "auto" else a.threshold
+    rule = a.rule or ("evidence" if a.method == "gather" else "plain")
+    replay_kw = dict(voxel_size_m=a.voxel_size, backend=a.backend, method=a.method,
+                     static=a.static, stride=stride, max_frames=a.max_frames,
+                     progress=not a.no_progress, threshold=mapper_thr, max_memory=a.max_memory,
+                     memory_remedy=REPLAY_REMEDY)
+    positions: list = []
+    replay_kw["on_ping"] = _view_hook(a, mapper_thr)
+    if a.compare_rules:
+        # the chosen rule first: it sizes the grid, and its run's timings are the ones reported
+        order = (rule, *[r for r in RULES if r != rule])
+        runs = replay_rules(rec, rules=order, grid=grid, positions=positions, **replay_kw)
+        mapper, stats = runs[rule]
+    elif a.workers:  # gpumap.workers: the same map, mapped in Dask workers and merged
+        from gpumap.workers import run_replay_workers
+
+        replay_kw.pop("on_ping")
+        replay_kw.pop("max_memory")  # each worker holds its own map (gpumap.workers)
+        replay_kw.pop("memory_remedy")
+        mapper, stats = run_replay_workers(rec, workers=a.workers, scheduler=a.scheduler, grid=grid,
+                                           rule=a.rule, positions=positions, **replay_kw)
+    else:
+        mapper, stats = run_replay(rec, grid=grid, rule=a.rule, positions=positions, **replay_kw)
+    for s in getattr(a, "view_sessions", ()):
+        s.finish(mapper)
+    if a.skip_bad_frames:
+        stats["skipped_bad_frames"] = len(bad)
+        stats["bad_frames"] = bad[:100]  # the first hundred errors, each naming its file
+    values = mapper.values()
+    thr = otsu_threshold(values) if a.threshold == "auto" else float(a.threshold)
+    occ = np.isfinite(values) & (values >= thr)
+    stats["threshold"] = thr
+    stats["occupied_voxels"] = int(occ.sum())
+    stats["observed_voxels"] = int(np.isfinite(values).sum())
+    with output_set(a.out, OUTPUTS) as out:  # all of them appear in --out together, or none
+        mapper.save(out / "map.npz")
+        write_ply(out / "occupied.ply", mapper.grid.centers(np.argwhere(occ)), values[occ])
+        if not a.no_pictures:
+            stats.update(save_pictures(values, mapper.grid, thr, out,
+                                       title=f"{Path(a.path).name} ({stats['rule']} rule)",
+                                       positions=np.asarray(positions).reshape(-1, 3) if positions else None))
+        if a.compare_rules:
+            other = {r: m.values() for r, (m, _) in runs.items() if r != rule}
+            cmp_ = compare_rules({rule: values, **other}, mapper.grid, thr,
+                                 np.asarray(positions).reshape(-1, 3),
+                                 None if a.no_pictures else out / "rules.png", title=Path(a.path).name,
+                                 rule=None if rule == "plain" else rule)
+            cmp_["runs"] = {r: {k: st[k] for k in ("frames", "backend", "seconds_total",
+                                                     "images_per_s", "integrate_per_s")}
+                            for r, (_, st) in runs.items()}
+            stats["rule_comparison"] = cmp_
+        (out / "summary.json").write_text(json.dumps(stats, indent=2))
+    return stats, mapper.grid
+
+
+
+# ------------------------------------------------------------------------------ --workers
+def add_worker_args(ap) -> None:
+    """``--workers`` and ``--scheduler`` on ``gpumap replay``'s parser."""
+    ap.add_argument("--workers", type=positive_int, default=None,
+                    help="map in N Dask workers (one mapper each, pings split among them in batches "
+                         "of 32) and merge their maps: the same map as one process, bit for bit "
+                         "(needs the workers extra: pip install 'gpumap[workers]')")
+    ap.add_argument("--scheduler", default=None,
+                    help="address of a running Dask scheduler (e.g. tcp://10.0.0.5:8786) whose "
+                         "workers map; default: start N local worker processes (needs --workers)")
+
+
+def check_worker_args(ap, a) -> None:
+    """Refuse flag combinations the worker run does not support (exit 2, before any work)."""
+    if a.scheduler is not None and not a.workers:
+        ap.error("argument --scheduler: Expected --workers N with it, but --workers is missing")
+    if a.workers:
+        for flag, on in (("--view", getattr(a, "view", False)),
+                         ("--record", getattr(a, "record", None) is not None),
+                         ("--compare-rules", a.compare_rules),
+                         ("--ekf", getattr(a, "ekf", False))):
+            if on:
+                ap.error(f"argument --workers: Expected no {flag} with it (the workers' maps are only "
+                         f"whole once merged), but got {flag}")
+
+
+# ------------------------------------------------------------------------------ --ekf
+def add_ekf_args(ap: argparse.ArgumentParser) -> None:
+    """The replay's EKF options."""
+    ap.add_argument("--ekf", action="store_true",
+                    help="run the EKF on the pings: odometry made from the recorded poses with "
+                         "drift (--odometry-noise), point returns found in the images and "
+                         "associated; map with the EKF's poses and compare with the recorded-pose "
+                         "map (writes ekf_paths.png, ekf_measurements.png, an 'ekf' summary section)")
+    ap.add_argument("--odometry-noise", type=nonnegative_float, nargs=2, default=None,
+                    metavar=("TRANS_M", "ROT_RAD"),
+                    help="with --ekf: standard deviation of each odometry step's error per "
+                         "translation axis (metres) and per rotation axis (radians) (default "
+                         "0.005 0.005, the demo's --pose-noise 0.005)")
+    ap.add_argument("--seed", type=nonnegative_int, default=None,
+                    help="with --ekf: seed of the odometry drift (default 0)")
+    ap.add_argument("--ekf-unguarded", action="store_true",
+                    help="with --ekf: no innovation-consistency guard; every accepted return "
+                         "corrects the pose even when the pings' innovations do not fit the model "
+                         "(on the real tank this ends worse than odometry; for comparison only)")
+
+
+def check_ekf_args(ap: argparse.ArgumentParser, a: argparse.Namespace) -> None:
+    """--odometry-noise and --seed only with --ekf (exit 2, before any work); fill their defaults."""
+    refuse_without(ap, "--ekf", a.ekf, {"--odometry-noise": a.odometry_noise is not None,
+                                         "--seed": a.seed is not None,
+                                         "--ekf-unguarded": bool(getattr(a, "ekf_unguarded", False))})
+    a.odometry_noise = (0.005, 0.005) if a.odometry_noise is None else a.odometry_noise
+    a.seed = 0 if a.seed is None else a.seed
+
+
+#: Files ``--ekf`` writes besides the replay's own.
+EKF_OUTPUTS = ("ekf_paths.png", "ekf_measurements.png")
+
+
+def _two_decimals(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2f}"
+
+
+def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
+    """``gpumap replay --ekf``: run and write into ``a.out``; ``(stats, grid)`` for replay's summary."""
+    from gpumap.ekf_replay import (
+        measurements_picture,
+        paths_picture,
+        run_ekf_replay,
+    )
+    from gpumap.io import open_recording
+
+    if a.static:
+        raise ValueError("Expected a recording with poses for --ekf (they are its reference), but got "
+                         "--static")
+    other = [f for f, on in (("--compare-rules", a.compare_rules), ("--view", getattr(a, "view", False)),
+                             ("--record", getattr(a, "record", None) is not None)) if on]
+    if other:
+        raise ValueError(f"Expected --ekf alone (it makes three maps of its own), but got it with "
+                         f"{' and '.join(other)}")
+    rec = open_recording(a.path)
+    thr = DEFAULT_THRESHOLD if a.threshold == "auto" else float(a.threshold)
+    t0 = time.perf_counter()
+    res = run_ekf_replay(rec, odometry_noise=tuple(a.odometry_noise), seed=a.seed, voxel_size_m=a.voxel_size,
+                         grid=grid, backend=a.backend, threshold=thr, rule=a.rule, stride=a.stride,
+                         max_frames=a.max_frames, progress=not a.no_progress,
+                         guard=not getattr(a, "ekf_unguarded", False))
+    mapper = res["maps"]["ekf"]
+    values = res["values"]["ekf"]
+    occ = np.isfinite(values) & (values >= thr)
+    s = res["summary"]
+    stats = {"frames": s["frames"], "backend": mapper.backend, "rule": mapper.rule, "threshold": thr,
+             "seconds_total": time.perf_counter() - t0, "grid": res["grid"].to_dict(),
+             "grid_shape": list(res["grid"].shape), "occupied_voxels": int(occ.sum()),
+             "observed_voxels": int(np.isfinite(values).sum()), "skipped_no_pose": 0, "skipped_spec": 0,
+             "ekf": s}
+    stats["images_per_s"] = stats["frames"] / stats["seconds_total"]
+    stats["integrate_per_s"] = stats["frames"] / max(s["ms_per_ping"]["map_seconds"]["ekf"], 1e-9)
+    with output_set(a.out, (*OUTPUTS, *EKF_OUTPUTS)) as out:
+        mapper.save(out / "map.npz")
+        write_ply(out / "occupied.ply", mapper.grid.centers(np.argwhere(occ)), values[occ])
+        if not a.no_pictures:
+            stats.update(save_pictures(values, mapper.grid, thr, out,
+                                       title=f"{Path(a.path).name} (EKF poses)",
+                                       positions=res["loop"].poses[:, :3, 3]))
+            paths_picture(res, out / "ekf_paths.png", title=Path(a.path).name)
+            stats["ekf"]["measurements_picture_ping"] = measurements_picture(
+                res, out / "ekf_measurements.png")
+        (out / "summary.json").write_text(json.dumps(stats, indent=2))
+    e, o = s["pose_error"]["ekf"], s["pose_error"]["odometry"]
+    tr = s["trust"]
+    mo, me = s["map_vs_recorded"]["odometry"], s["map_vs_recorded"]["ekf"]
+    print(f"gpumap replay --ekf: position error mean {100 * o['position_m']['mean']:.1f} cm (odometry) "
+          f"-> {100 * e['position_m']['mean']:.1f} cm (EKF), heading "
+          f"{np.degrees(o['heading_rad']['mean']):.2f} -> {np.degrees(e['heading_rad']['mean']):.2f} deg; "
+          f"map vs recorded-pose map, voxels disagreeing {mo['disagree']} (odometry) -> "
+          f"{me['disagree']} (EKF); {s['tracks']['confirmed']} tracks confirmed; "
+          f"trust in the pings: {tr['fused_with_pose']} returns fused with the pose, "
+          f"{tr['fused_features_only']} into their features only, {tr['gated']} gated, "
+          f"{100 * tr['pings_pose_corrected_share']:.0f} % of pings corrected the pose, windowed NIS per dof "
+          f"{_two_decimals(tr['window_nis_per_dof']['median'])} (median); "
+          f"{s['ms_per_ping']['total_mean']:.1f} ms per ping (front-end + EKF)")
+    return stats, mapper.grid
