@@ -49,20 +49,10 @@ class PlaneUpdateResult:
 
 
 def fuse_plane_ranges(
-    T: np.ndarray,
-    P: np.ndarray,
-    S_feat: np.ndarray,
-    G: np.ndarray,
-    n_gauge: int,
-    T_W_S: np.ndarray,
-    pose_rows: np.ndarray,
-    gate: float,
-    origins_S: np.ndarray,
-    directions_S: np.ndarray,
-    ranges_m: np.ndarray,
-    plane_n_W: np.ndarray,
-    plane_d_m: float,
-    range_sigma_m: float,
+    T: np.ndarray, P: np.ndarray, S_feat: np.ndarray, G: np.ndarray, n_gauge: int,  # the filter's state
+    T_W_S: np.ndarray, pose_rows: np.ndarray, gate: float,  # read from it: pose, pose rows, 1-dof gate
+    origins_S: np.ndarray, directions_S: np.ndarray, ranges_m: np.ndarray,  # the rays and the plane,
+    plane_n_W: np.ndarray, plane_d_m: float, range_sigma_m: float,  # as update_plane_ranges takes them
 ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None, PlaneUpdateResult]:
     """One plane-range update of the filter's state (:meth:`~gpumap.ekf.filter.SonarEKF.update_plane_ranges`).
 
