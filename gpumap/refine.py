@@ -128,7 +128,6 @@ def _check_images_poses(
     return a, P
 
 
-
 def pick_device(device: str = "auto") -> tuple[str, str]:
     """``(device, why)``: the Warp device refinement runs on, and why, logged at INFO.
 
@@ -401,7 +400,6 @@ def refine_saved(
     res.stats["pings_in_map"] = held
     res.stats["map_path"] = str(map_path)
     return res
-
 
 
 class _CallableModule(types.ModuleType):

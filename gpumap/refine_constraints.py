@@ -30,7 +30,6 @@ def _as_float(images: np.ndarray) -> np.ndarray:
     )
 
 
-
 def carved_voxels(
     rule: str,
     evidence: dict[str, np.ndarray],

@@ -78,7 +78,6 @@ class RefineOptions:
         return asdict(self)
 
 
-
 # ---------------------------------------------------------------------- the optimiser
 class _Fit:
     """Warp arrays of one fit: the field, its bounds and Adam moments, the measured images."""

@@ -56,7 +56,6 @@ def field_from_occupancy(occupancy: np.ndarray, kappa: float) -> np.ndarray:
         return (-np.log1p(-q) / float(kappa)).astype(np.float32)
 
 
-
 @dataclass
 class RefineResult:
     """What :func:`~gpumap.refine.refine` returns (and :func:`load_refined` reads back).

@@ -107,7 +107,6 @@ class UpdateResult:
         return 2 * len(self.accepted_ids)
 
 
-
 @dataclass(frozen=True)
 class InnovationStats:
     """What :meth:`SonarEKF.innovation_stats` found in the recent innovations.
