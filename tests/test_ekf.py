@@ -1033,6 +1033,27 @@ def test_plane_ranges_move_correlated_features() -> None:
     _assert_healthy(ekf)
 
 
+def test_the_plane_step_is_pure_and_its_result_type_is_importable_from_the_filter() -> None:
+    """gpumap.ekf.plane (issue 32): fuse_plane_ranges changes none of the state it is given; the
+    filter's method is that step; PlaneUpdateResult stays importable from gpumap.ekf.filter."""
+    import gpumap.ekf.filter
+    from gpumap.ekf.plane import PlaneUpdateResult, fuse_plane_ranges
+
+    assert gpumap.ekf.filter.PlaneUpdateResult is PlaneUpdateResult is gpumap.ekf.PlaneUpdateResult
+    ekf, _ = _filter_with_features()
+    o, u = _dvl_rays_S()
+    r = _plane_ranges(ekf.pose, o, u) + 0.02
+    state = [a.copy() for a in (ekf._T, ekf._P, ekf._S, ekf._G)]
+    new, res = fuse_plane_ranges(*state, ekf._ng, ekf.pose, ekf._pose_rows(), ekf._gate1,
+                                 o, u, r, FLOOR_N, FLOOR_D, 0.01)
+    for a, b in zip(state, (ekf._T, ekf._P, ekf._S, ekf._G), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert len(res.accepted) == 4 and new is not None
+    assert ekf.update_plane_ranges(o, u, r, FLOOR_N, FLOOR_D, 0.01) == res
+    for a, b in zip(new, (ekf._T, ekf._P, ekf._S, ekf._G), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def _bad_plane_updates():
     o, u = _dvl_rays_S()
     r = np.full(4, 0.5)

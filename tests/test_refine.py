@@ -69,6 +69,18 @@ def _fp_fn(occ: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     return float((o[obs & ~near] > 0).mean()), float((o[obs & truth] <= 0).mean())
 
 
+def test_every_name_of_the_refine_modules_is_importable_from_gpumap_refine() -> None:
+    """refine.py split by concept (issue 32): each module's names stay importable from
+    gpumap.refine, the same objects."""
+    import gpumap.refine as mod
+    from gpumap import refine_constraints, refine_fit, refine_heldout, refined_map
+
+    for home in (refined_map, refine_constraints, refine_fit, refine_heldout):
+        for name in home.__all__:
+            assert getattr(mod, name) is getattr(home, name), (home.__name__, name)
+    assert set(mod.__all__) | {"REFINE_RULES", "REFINED_VERSION", "MAP_CHUNK"} <= set(vars(mod))
+
+
 def test_refine_removes_phantoms_and_keeps_the_hard_constraints(scene) -> None:
     spec, grid, truth, poses, images = scene
     m = _mapper(spec, grid, images, poses)

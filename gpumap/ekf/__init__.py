@@ -88,8 +88,9 @@ Modules
 -------
 :mod:`~gpumap.ekf.measurement` (range/azimuth and plane-range models), :mod:`~gpumap.ekf.motion`
 (odometry), :mod:`~gpumap.ekf.initialisation` (anchored features, triangulation),
-:mod:`~gpumap.ekf.filter` (:class:`SonarEKF`), :mod:`~gpumap.ekf.batch` (the MAP of the same
-model over a whole sweep: the filter's yardstick, and a smoother); for real pings (issue #23)
+:mod:`~gpumap.ekf.filter` (:class:`SonarEKF`), :mod:`~gpumap.ekf.plane` (its update from ranges
+to a known plane), :mod:`~gpumap.ekf.batch` (the MAP of the same model over a whole sweep: the
+filter's yardstick, and a smoother); for real pings (issue #23)
 :mod:`~gpumap.ekf.frontend` (point returns found in a polar image, with covariances),
 :mod:`~gpumap.ekf.association` (which feature each return belongs to: tracks) and
 :mod:`~gpumap.ekf.loop` (odometry, detection, association and filter, ping by ping);

@@ -18,7 +18,6 @@ import numpy as np
 from gpumap.ekf._checks import (
     _check_cov,
     _check_ids,
-    _check_matrix3,
     _check_vector,
     _chi2_2dof,
     _chi2_quantile,
@@ -27,22 +26,19 @@ from gpumap.ekf._checks import (
 from gpumap.ekf.guard import TrustGuard
 from gpumap.ekf.initialisation import anchor_jacobian
 from gpumap.ekf.measurement import (
-    MIN_PLANE_COS,
     _anchored_to_world,
     _linearize,
-    plane_range_model,
     wrap_angle,
 )
-from gpumap.ekf.motion import _inject, _inject_gauge, _renormalized, motion_jacobian
+from gpumap.ekf.motion import _inject_gauge, _renormalized, motion_jacobian
+from gpumap.ekf.plane import PlaneUpdateResult, fuse_plane_ranges
 from gpumap.ekf.update import (
     _apply,
-    _cho_solve,
     _elevation_var_given_pose,
     _hp,
     _iterate,
     _nis_2x2,
     _Returns,
-    _robust_cholesky,
     _s_blocks,
 )
 from gpumap.errors import check_finite_scalar, check_pose
@@ -80,31 +76,6 @@ def _blas_limited(method):
 
 
 @dataclass(frozen=True)
-class PlaneUpdateResult:
-    """What :meth:`SonarEKF.update_plane_ranges` did with each ray (indices into its input).
-
-    Attributes
-    ----------
-    accepted : tuple of int
-        Rays that passed the gate and were fused.
-    rejected : dict of int to float
-        Rays that failed the chi-square (1 dof) gate, with their NIS.
-    skipped : tuple of int
-        Rays with a NaN range (no return).
-    degenerate : tuple of int
-        Rays (nearly) parallel to the plane or whose predicted hit lies behind the origin.
-    nis : float or None
-        Joint NIS of the accepted rays (``dof = len(accepted)``); None if none was fused.
-    """
-
-    accepted: tuple[int, ...] = ()
-    rejected: dict[int, float] = field(default_factory=dict)
-    skipped: tuple[int, ...] = ()
-    degenerate: tuple[int, ...] = ()
-    nis: float | None = None
-
-
-@dataclass(frozen=True)
 class UpdateResult:
     """What :meth:`SonarEKF.update` did with each return.
 
@@ -134,7 +105,6 @@ class UpdateResult:
     def nis_dof(self) -> int:
         """Degrees of freedom of :attr:`nis`."""
         return 2 * len(self.accepted_ids)
-
 
 
 @dataclass(frozen=True)
@@ -766,78 +736,13 @@ class SonarEKF:
         -------
         PlaneUpdateResult
         """
-        o = _check_matrix3(origins_S, None, "origins_S")
-        m = o.shape[0]
-        u = _check_matrix3(directions_S, m, "directions_S")
-        un = np.linalg.norm(u, axis=1)
-        if m and float(np.abs(un - 1.0).max()) > 1e-6:
-            raise ValueError(f"Expected unit vectors in 'directions_S', but got norms from "
-                             f"{float(un.min()):.6g} to {float(un.max()):.6g}")
-        rng_m = _real_array(ranges_m, "ranges_m")
-        if rng_m.shape != (m,):
-            raise ValueError(f"Expected shape ({m},) for 'ranges_m', but got {rng_m.shape}")
-        if np.any(np.isinf(rng_m)):
-            raise ValueError("Expected finite values or NaN (no return) in 'ranges_m', but got inf")
-        valid = ~np.isnan(rng_m)
-        if np.any(rng_m[valid] <= 0):
-            raise ValueError(f"Expected ranges_m > 0, but got minimum {float(rng_m[valid].min())}")
-        n_W = _check_vector(plane_n_W, 3, "plane_n_W")
-        nn = float(np.linalg.norm(n_W))
-        if not nn > 0:
-            raise ValueError("Expected a non-zero 'plane_n_W', but got the zero vector")
-        d = check_finite_scalar(plane_d_m, "plane_d_m") / nn
-        n_W = n_W / nn
-        sr = check_finite_scalar(range_sigma_m, "range_sigma_m")
-        if not sr > 0:
-            raise ValueError(f"Expected range_sigma_m > 0, but got {sr}")
-
-        skipped = tuple(int(i) for i in np.flatnonzero(~valid))
-        r_hat, H, cos_inc = plane_range_model(self.pose, o, u, n_W, d)
-        ok = valid & (np.abs(cos_inc) >= MIN_PLANE_COS) & np.isfinite(r_hat) & (r_hat > 0)
-        degenerate = tuple(int(i) for i in np.flatnonzero(valid & ~ok))
-        idx = np.flatnonzero(ok)
-        if idx.size == 0:
-            return PlaneUpdateResult(skipped=skipped, degenerate=degenerate)
-        P = self._P
-        nu = rng_m[idx] - r_hat[idx]
-        Hp = H[idx] @ self._pose_rows()  # (a, N): pose and gauge; the features' columns are zero
-        var = sr * sr
-        s_ii = np.einsum("ij,ij->i", Hp @ P, Hp) + var
-        d2 = nu * nu / s_ii
-        rejected = {int(idx[j]): float(d2[j]) for j in np.flatnonzero(~(d2 <= self._gate1))}
-        keep = np.flatnonzero(d2 <= self._gate1)
-        if keep.size == 0:
-            return PlaneUpdateResult(rejected=rejected, skipped=skipped, degenerate=degenerate)
-        Hp, nu = Hp[keep], nu[keep]
-        HP = Hp @ P  # (a, N)
-        S = HP @ Hp.T
-        S[np.diag_indices(keep.size)] += var
-        S = 0.5 * (S + S.T)
-        cho = _robust_cholesky(S)
-        KT = _cho_solve(cho, HP)  # (a, N) = K^T, no inverse
-        nis = float(nu @ _cho_solve(cho, nu))
-        dx = KT.T @ nu
-        # Joseph form (I - K H) P (I - K H)^T + K R K^T with H = [Hp, 0].
-        AP = P - KT.T @ HP
-        Pn = AP - (AP @ Hp.T) @ KT + var * (KT.T @ KT)
-        T, Pn = _inject(self._T, Pn, dx[:6])
-        G = self._G
-        if self._ng:
-            G, Pn = _inject_gauge(G, Pn, dx[-6:])
-        S_f = self._S + dx[6 : Pn.shape[0] - self._ng].reshape(-1, 3)
-        S_f[:, 1] = wrap_angle(S_f[:, 1])
-        if not (np.all(np.isfinite(Pn)) and np.all(np.isfinite(T)) and np.all(np.isfinite(S_f))
-                and np.all(np.isfinite(G))):
-            raise FloatingPointError(
-                "update_plane_ranges produced non-finite values; the filter is unchanged")
-        self._T, self._P, self._S, self._G = T, Pn, S_f, G
-        return PlaneUpdateResult(
-            accepted=tuple(int(i) for i in idx[keep]),
-            rejected=rejected,
-            skipped=skipped,
-            degenerate=degenerate,
-            nis=nis,
+        state, res = fuse_plane_ranges(
+            self._T, self._P, self._S, self._G, self._ng, self.pose, self._pose_rows(), self._gate1,
+            origins_S, directions_S, ranges_m, plane_n_W, plane_d_m, range_sigma_m,
         )
+        if state is not None:
+            self._T, self._P, self._S, self._G = state
+        return res
 
     def innovation_stats(self) -> InnovationStats | None:
         """NIS and measurement noise estimated from the last ``nis_window`` fused returns.
