@@ -44,7 +44,7 @@ def test_required_backend_is_present_and_maps(name):
 def test_opencl_takes_the_first_device_that_builds(monkeypatch):
     """Two platforms for one CPU, the first unable to compile (bundled PoCL on a processor its LLVM
     does not know): the backend must skip it, and fail with every reason when none builds."""
-    from gpumap import backends
+    from gpumap.backends import opencl_backend as backends  # where the device search looks them up
     from gpumap.errors import BackendUnavailableError
 
     broken, good = object(), object()

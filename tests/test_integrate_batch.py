@@ -154,6 +154,26 @@ def test_union_groups_split_far_apart_boxes_and_long_runs(monkeypatch):
     assert gpumap.backends._union_groups(params, n_threads) == [(0, 4), (4, 8)]
 
 
+def test_knobs_set_on_the_package_reach_the_backends(monkeypatch):
+    """gpumap.workers and bench/ab.py set gpumap.backends.CPU_THREADS and GPU_CHUNK, and tests
+    patch the others there: each lands in gpumap.backends.base, where the backends read it."""
+    from gpumap.backends import base
+
+    for name, value in (("CPU_THREADS", 1), ("GPU_CHUNK", 5), ("CPU_CHUNK", 7), ("BATCH_MAX", 3),
+                        ("BATCH_BOX_VOXELS_MAX", 11), ("COPY_THREADS", 3), ("COPY_SPLIT_BYTES", 0)):
+        before = getattr(base, name)
+        monkeypatch.setattr(gpumap.backends, name, value)
+        assert getattr(base, name) == value and getattr(gpumap.backends, name) == value, name
+        assert name not in vars(gpumap.backends), name  # never a copy that could go stale
+        monkeypatch.undo()
+        assert getattr(base, name) == before and getattr(gpumap.backends, name) == before, name
+    if "warp-cpu" in gpumap.available_backends():  # and a backend made afterwards follows them
+        monkeypatch.setattr(gpumap.backends, "CPU_THREADS", 1)
+        monkeypatch.setattr(gpumap.backends, "CPU_CHUNK", 7)
+        be = gpumap.backends.make_backend("warp-cpu", SPEC)
+        assert be._pool is None and be.chunk == 7
+
+
 def test_empty_batch_is_a_no_op():
     m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")
     m.integrate_batch(np.zeros((0, *SPEC.image_shape), np.float32), np.zeros((0, 4, 4)))

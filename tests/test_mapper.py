@@ -405,13 +405,13 @@ def test_opencl_refuses_a_grid_beyond_its_largest_buffer():
 def test_named_backend_never_falls_back(monkeypatch):
     """With Warp and OpenCL made unavailable (on any machine, GPUs or not), each backend named
     raises with its reason, while ``auto`` falls back to numpy."""
-    from gpumap import backends
+    from gpumap.backends import opencl_backend, warp_backend
 
     def no_warp():
         raise gpumap.BackendUnavailableError("warp-lang cannot be imported: test")
 
-    monkeypatch.setattr(backends, "_warp", no_warp)
-    monkeypatch.setattr(backends, "opencl_devices", lambda kind: [])
+    monkeypatch.setattr(warp_backend, "_warp", no_warp)
+    monkeypatch.setattr(opencl_backend, "opencl_devices", lambda kind: [])
     for name in ("warp-cuda", "warp-cpu", "opencl", "opencl-gpu", "opencl-cpu"):
         why = "warp-lang cannot" if "warp" in name else "(?i)opencl"
         with pytest.raises(gpumap.BackendUnavailableError, match=why):

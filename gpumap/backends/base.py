@@ -1,0 +1,225 @@
+"""What every backend shares: the :class:`Backend` interface, the backends' names, the
+constants of the image and block layouts, and the knobs a run may turn.
+
+The knobs (:data:`TUNABLES`: how GPUs and CPUs split a gather, how a batch is folded and
+staged) are read from this module when a backend or a batch needs them, so setting one on
+:mod:`gpumap.backends` (which sets it here) changes what later work does.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+
+import numpy as np
+
+BACKENDS = ("numpy", "warp-cpu", "warp-cuda", "opencl", "opencl-gpu", "opencl-cpu")
+AUTO_ORDER = ("warp-cuda", "opencl-gpu", "opencl-cpu", "warp-cpu", "numpy")
+
+U8_SCALE = np.float32(1.0 / 255.0)  # 8-bit pings: intensity = byte * U8_SCALE, on every backend
+# Image upload slots: the host may prepare this many pings ahead of the device.
+N_SLOTS = 4
+GPU_CHUNK = 16  # voxels of a column per gather thread on GPUs
+#: Threads a CPU backend's gather may use (warp-cpu splits its launch; PoCL uses every core).
+CPU_THREADS = min(2, os.cpu_count() or 1)
+CPU_CHUNK = 1 << 30  # on CPUs, the whole column
+
+#: Pings a GPU folds per launch (more are split); buffers grow to the largest batch seen.
+BATCH_MAX = 64
+#: Pings whose boxes hold more voxels than this on average go one launch each: at that size
+#: a launch's fixed cost is small, and one launch per ping ran faster on an H100 (5 mm, tank).
+BATCH_BOX_VOXELS_MAX = 16_000_000
+
+#: Threads that fill a GPU batch's staging buffer, and the bytes from which they are used.
+COPY_THREADS = max(1, min(4, (os.cpu_count() or 1) // 2))
+COPY_SPLIT_BYTES = 4 << 20
+
+#: The knobs above that a run may set (on this module, or on :mod:`gpumap.backends`, which
+#: passes them on): read here when they are used, never copied.
+TUNABLES = ("GPU_CHUNK", "CPU_CHUNK", "CPU_THREADS", "BATCH_MAX", "BATCH_BOX_VOXELS_MAX", "COPY_THREADS",
+            "COPY_SPLIT_BYTES")
+
+
+@functools.cache
+def _cpu_pool():
+    """One worker thread, shared by every warp-cpu mapper, for the second half of a gather."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    return ThreadPoolExecutor(1, thread_name_prefix="gpumap-cpu")
+
+
+@functools.cache
+def _copy_pool():
+    """Threads for filling page-locked staging buffers (NumPy copies release the GIL)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    return ThreadPoolExecutor(COPY_THREADS, thread_name_prefix="gpumap-copy")
+
+
+def _copy_rows(dst: np.ndarray, src: np.ndarray) -> None:
+    """``dst[...] = src`` along the first axis, on COPY_THREADS threads when it is large."""
+    n = src.shape[0]
+    if COPY_THREADS < 2 or src.nbytes < COPY_SPLIT_BYTES or n < 2:
+        np.copyto(dst, src)
+        return
+    cuts = np.linspace(0, n, min(n, COPY_THREADS) + 1).astype(int)
+    pool = _copy_pool()
+    futs = [pool.submit(np.copyto, dst[a:b], src[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+    for f in futs:
+        f.result()
+
+
+class GridTooLargeError(ValueError):
+    """The map does not fit in the memory a backend can allocate (the message says how much)."""
+
+
+class Backend:
+    """Owns one mapper's map storage and the per-ping device buffers.
+
+    The map lives in a *pool* of ``cap`` blocks of ``V = B B Bz`` voxels (slot ``s`` holds voxels
+    ``[s V, (s + 1) V)``, local order ``(i, j, k)``, ``k`` fastest): ``grid`` float32
+    (the min over every view, ``+inf`` never observed), and for the visible and evidence rules
+    ``bright`` float32 and ``count`` uint64 (two packed view counts), plus a ``seen`` byte per
+    slot. A dense coarse *index* (int32 per block of a box, -1 none) maps a block to its slot;
+    the kernels address every voxel through it (:func:`gpumap.kernels.minmax.gather_column`).
+    The host (the mapper) decides which blocks exist: all of a bounded box up front, or those a
+    ping can reach.
+    """
+
+    name: str
+    device: str
+
+    def _setup_pool(self, visible: bool, B: int, Bz: int | None) -> None:
+        Bz = B if Bz is None else Bz
+        self.visible, self.B, self.Bz, self.BV = visible, B, Bz, B * B * Bz
+        self.cap = 0
+        self.blk_lo = np.zeros(3, np.int32)
+        self.blk_n = np.zeros(3, np.int32)
+
+    def _block_params(self, params: np.ndarray) -> None:
+        params["blk_lo"] = self.blk_lo
+        params["blk_n"] = self.blk_n
+        params["blk"] = self.B
+        params["blk_z"] = self.Bz
+
+    def grow(self, cap: int) -> None:
+        """Make room for ``cap`` slots (new ones never observed), keeping the first ``self.cap``."""
+        raise NotImplementedError
+
+    def set_index(self, index: np.ndarray, lo_voxel: np.ndarray) -> None:
+        """Replace the coarse index with ``index`` ((n0, n1, n2) int32 slots, -1 none) whose first
+        block starts at voxel ``lo_voxel`` ((3,) int)."""
+        self.blk_lo = np.asarray(lo_voxel, np.int32).copy()
+        self.blk_n = np.asarray(index.shape, np.int32)
+        self._upload_index(np.ascontiguousarray(index, np.int32).ravel())
+
+    def _upload_index(self, flat: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def set_blocks(self, slots: np.ndarray, lins: np.ndarray) -> None:
+        """``index[lins] = slots`` ((n,) int32 each); each slot >= 0 becomes a never-observed
+        block (seen 0); slot -1 frees the entry."""
+        raise NotImplementedError
+
+    def integrate(self, params: np.ndarray, image: np.ndarray, method: str, n_threads: int) -> None:
+        """Apply one ping. ``image`` is (n_bins, n_beams) uint8 or float32 in [0, 1]."""
+        raise NotImplementedError
+
+    def integrate_batch(
+        self, params: np.ndarray, images: np.ndarray, method: str, n_threads: np.ndarray
+    ) -> None:
+        """Apply B pings: ``params`` (B,) PING_DTYPE, ``images`` (B, n_bins, n_beams) uint8 or
+        float32, ``n_threads`` (B,) ints. The same map as B calls of :meth:`integrate`: with
+        ``batch_kernels`` (GPUs; tests may set it on warp-cpu) groups of pings whose boxes overlap
+        go to ``_launch_batch``, else the pings are applied one by one."""
+        # batch_kernels: only backends with a _launch_batch have it
+        fold = getattr(self, "batch_kernels", False) and method == "gather"
+        if not fold or not _fold_in_batches(params, n_threads):
+            for b in range(params.shape[0]):
+                self.integrate(params[b, ...], images[b], method, int(n_threads[b]))
+            return
+        _check_rule(params[0, ...], self.visible)
+        params["chunk"] = self.chunk
+        for b0, b1 in _union_groups(params, n_threads):
+            self._launch_batch(params[b0:b1], images[b0:b1], n_threads[b0:b1])
+
+    def read(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """Copies of the pool: ``grid`` (cap B B Bz,) float32, ``bright`` and ``count`` (visible
+        rule; None for the plain rule)."""
+        raise NotImplementedError
+
+    def write(self, grid: np.ndarray, bright: np.ndarray | None, count: np.ndarray | None) -> None:
+        """Replace the whole pool (arrays as :meth:`read` gives them)."""
+        raise NotImplementedError
+
+    def read_blocks(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """Copies of blocks ``slots``: ``grid`` and for the visible rule ``bright`` and ``count``,
+        (n, B B Bz) each (None for the plain rule)."""
+        rows = np.asarray(slots, np.int64)
+        return tuple(None if a is None else a.reshape(-1, self.BV)[rows] for a in self.read())
+
+    def write_blocks(self, slots: np.ndarray, grid, bright, count) -> None:
+        """Blocks ``slots`` take these values ((n, B B Bz) each) and are marked seen."""
+        g, b, c = self.read()
+        rows = np.asarray(slots, np.int64)
+        g.reshape(-1, self.BV)[rows] = np.asarray(grid).reshape(-1, self.BV)
+        if self.visible:
+            b.reshape(-1, self.BV)[rows] = np.asarray(bright).reshape(-1, self.BV)
+            c.reshape(-1, self.BV)[rows] = np.asarray(count).reshape(-1, self.BV)
+        seen = self.read_seen()
+        seen[slots] = 1
+        self.write(g, b, c)
+        self._write_seen(seen)
+
+    def read_seen(self) -> np.ndarray:
+        """(cap,) uint8 copy: 1 where a kernel has observed a voxel of the slot's block."""
+        raise NotImplementedError
+
+    def _write_seen(self, seen: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def read_err(self) -> int:
+        """1 if a kernel met an observed voxel without a block (a bug), else 0."""
+        raise NotImplementedError
+
+    def synchronize(self) -> None:
+        pass
+
+
+def _check_rule(params: np.ndarray, visible: bool) -> None:
+    """A backend built without the visible rule's evidence must never run its update (the
+    kernels would write past one-element stand-in buffers)."""
+    if int(params["rule"]) != 0 and not visible:
+        raise ValueError(
+            "Expected a backend built with visible=True for rule='visible' or 'evidence' parameters")
+
+
+def _fold_in_batches(params: np.ndarray, n_threads: np.ndarray) -> bool:
+    """Whether the batch kernels pay off for these pings (see BATCH_BOX_VOXELS_MAX)."""
+    live = n_threads > 0
+    if not live.any():
+        return False
+    vol = np.prod(params["box_n"][live].astype(np.float64), axis=1)
+    return float(vol.mean()) <= BATCH_BOX_VOXELS_MAX
+
+
+def _union_groups(params: np.ndarray, n_threads: np.ndarray, slack: float = 2.0) -> list[tuple[int, int]]:
+    """Split a batch into runs of pings whose boxes' union box holds at most ``slack`` times
+    the voxels of the boxes themselves (far-apart pings would make threads walk empty space)."""
+    lo = params["box_lo"].astype(np.int64)
+    hi = lo + params["box_n"].astype(np.int64)
+    vol = np.where(n_threads > 0, np.prod(hi - lo, axis=1), 0)
+    out, start = [], 0
+    ulo, uhi, total = None, None, 0
+    for b in range(params.shape[0]):
+        if vol[b] == 0:
+            continue
+        nlo = lo[b] if ulo is None else np.minimum(ulo, lo[b])
+        nhi = hi[b] if uhi is None else np.maximum(uhi, hi[b])
+        if ulo is not None and (np.prod(nhi - nlo) > slack * (total + vol[b]) or b - start >= BATCH_MAX):
+            out.append((start, b))
+            start, nlo, nhi, total = b, lo[b], hi[b], 0
+        ulo, uhi, total = nlo, nhi, total + vol[b]
+    if ulo is not None:
+        out.append((start, params.shape[0]))
+    return out
