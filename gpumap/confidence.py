@@ -37,16 +37,22 @@ map values the layer depends on the order of the pings; :meth:`~gpumap.MinMaxMap
 applies its pings in order and gives the layer of the same sequence of ``integrate`` calls.
 
 :func:`confirm_ping` is the plain NumPy pass (the reference); it is also what the mapper
-runs, on the host, on every backend (the map values are read back once per ping).
+runs, on the host, on every backend (the map values are read back once per ping), through the
+mapper's :class:`ConfidenceLayer`, which keeps the layer and scores view gains against it
+(:mod:`gpumap.nbv`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from gpumap.errors import check_finite_scalar
+from gpumap.integrator import check_poses
 from gpumap.reference import beam_index_lo, beam_span, voxel_ping_values
+from gpumap.spec import GridSpec, SonarSpec
 
-__all__ = ["APERTURE_MARGIN", "TUBE_VOXELS", "confirm_ping"]
+__all__ = ["APERTURE_MARGIN", "TUBE_VOXELS", "ConfidenceLayer", "check_candidates", "confirm_ping",
+           "voxel_states"]
 
 _F = np.float32
 
@@ -189,3 +195,81 @@ def confirm_ping(
         own += hit
     alone = (_rect(S_riv, b0, b1, j0, j1) == own) & lit
     return np.sort(flat[cand][alone])
+
+
+def voxel_states(values: np.ndarray, confirmed: np.ndarray, threshold: float) -> np.ndarray:
+    """(n,) uint8 state of each voxel from its map value (``+inf`` unknown) and confirmed flag:
+    0 unknown, 1 free, 2 occupied and unconfirmed, 3 occupied and confirmed
+    (:meth:`gpumap.MinMaxMapper.confidence`)."""
+    out = np.where(np.isinf(values), 0, np.where(values < np.float32(threshold), 1, 2)).astype(np.uint8)
+    out[(out == 2) & (confirmed == 1)] = 3
+    return out
+
+
+def check_candidates(T_W_S_candidates: object, unknown_weight: object) -> tuple[np.ndarray, float]:
+    """Candidate poses (K, 4, 4) float64 and the weight of unknown voxels for a view gain,
+    checked, or raise saying what came."""
+    w = check_finite_scalar(unknown_weight, "unknown_weight")
+    if w < 0:
+        raise ValueError(f"Expected unknown_weight >= 0, but got {w}")
+    if isinstance(T_W_S_candidates, np.ma.MaskedArray):
+        raise TypeError("Expected a plain array for 'T_W_S_candidates', but got a masked array")
+    Ts = np.asarray(T_W_S_candidates)
+    if Ts.ndim != 3 or Ts.shape[1:] != (4, 4):
+        raise ValueError(f"Expected T_W_S_candidates of shape (K, 4, 4), but got {Ts.shape}")
+    return check_poses(Ts), w
+
+
+class ConfidenceLayer:
+    """The confidence layer of a map of ``n_voxels`` (a bounded grid): per voxel, whether a ping
+    confirmed it (``confirmed``, uint8 0 or 1) and the elevation-arc directions pings observed it
+    along (``arcs``, uint16 masks of :data:`gpumap.nbv.PAIR_STEPS` bits), both flat in the grid's
+    C order, updated by :meth:`confirm` after each ping's update."""
+
+    def __init__(self, n_voxels: int) -> None:
+        self.confirmed = np.zeros(n_voxels, np.uint8)
+        self.arcs = np.zeros(n_voxels, np.uint16)
+        self._static = None  # (beam edges, the rivals' half aperture, the widened aperture's corners)
+        self._gain_runner = None  # made on the first view gain, on the map's backend
+
+    def reset(self) -> None:
+        """Nothing confirmed, no arc observed."""
+        self.confirmed[:] = 0
+        self.arcs[:] = 0
+
+    def confirm(self, integrator, T: np.ndarray, pad: float, img: np.ndarray, read_values,
+                voxel_size_m: float) -> None:
+        """The confidence pass of one ping (pose ``T``, footprint pad ``pad`` m, image ``img``),
+        after its update: ``integrator`` (:class:`gpumap.integrator.Integrator`) makes its record,
+        ``read_values()`` gives the map's values then (flat or not, ``+inf`` unknown)."""
+        from gpumap.geometry import beam_tan_edges
+
+        if img.dtype == np.uint8:
+            from gpumap.backends import U8_SCALE
+
+            img = img.astype(np.float32) * U8_SCALE
+        if self._static is None:
+            sp = integrator.spec
+            half = min(0.5 * sp.vfov_rad * (1.0 + APERTURE_MARGIN), 0.49 * np.pi)
+            wide = SonarSpec(sp.range_min_m, sp.range_max_m, sp.n_bins, sp.bearings_rad, 2.0 * half)
+            self._static = (beam_tan_edges(sp), half, wide.fov_corners_S())
+        edges, half, pts = self._static
+        # the box that holds the rivals: the widened aperture's
+        params, _ = integrator.ping_params(T[None], np.array([pad]), fov_pts=pts)
+        values = read_values().ravel()
+        flat = confirm_ping(params[0], img, edges, values, half, TUBE_VOXELS * voxel_size_m, self.arcs)
+        self.confirmed[flat] = 1
+
+    def view_gain(self, Ts: np.ndarray, unknown_weight: float, values: np.ndarray, threshold: float,
+                  grid: GridSpec, backend, params: np.ndarray) -> np.ndarray:
+        """(K,) float64 gains of checked candidate poses ``Ts`` (:func:`check_candidates`) against
+        the map's ``values`` ((nx, ny, nz) over ``grid``, ``+inf`` unknown), on ``backend`` (the
+        map's :class:`gpumap.backends.Backend`), with the map's static ping record ``params``
+        (:mod:`gpumap.nbv`)."""
+        from gpumap.nbv import GainRunner, _fov, gain_points, poses_to_rows
+
+        pts = gain_points(values, self.confirmed.reshape(grid.shape) == 1, threshold, grid, self.arcs)
+        if self._gain_runner is None:
+            self._gain_runner = GainRunner(backend)
+        settle, unknown = self._gain_runner(poses_to_rows(Ts), pts, _fov(params))
+        return settle.astype(np.float64) + unknown_weight * unknown.astype(np.float64)

@@ -1,181 +1,61 @@
 """The min-max occupancy mapper: the public entry point of gpumap.
 
-One :class:`MinMaxMapper` serves a fixed box and an open world. Its map lives in *blocks* of
-``B x B x Bz`` voxels on the backend's device: a *pool* of slots (per voxel
-float32 ``min_all``, and for the evidence and visible rules float32 ``bright`` and uint64 ``count``
-(two packed view counts): 16 bytes; 4 for the plain rule) and a dense coarse *index* of int32
-slots, one per block of a box (``-1`` = no block; 4 bytes per 512 voxels). Every kernel
-addresses a voxel through the index: its block's slot times its size plus its place in the
-block (an O(1) read: no hash, no probing, nothing OpenCL 1.2 lacks), in one kernel family for
-every storage (``gpumap.kernels.minmax``).
+One :class:`MinMaxMapper` serves a fixed box and an open world, as a facade over parts that each
+own one concern (and are tested alone):
 
-- **A bounded box** (a :class:`~gpumap.GridSpec`): every block of the box is allocated up front
-  and the index is the identity, so a ping costs no block search (the dense grid's speed).
-- **On demand** (a :class:`~gpumap.SparseSpec`, bounded or not, or ``sparse=True``): per ping
-  the host finds, vectorised in NumPy over the (i, j) *block columns* of the ping's box, the
-  z-range of blocks that the field of view can reach (the kernels' ``column_range`` bound,
-  widened to a block column's footprint and padded against float32 rounding, so it is
-  conservative), gives new blocks a slot (the pool grows by 1.5x) and grows an unbounded map's
-  index when pings leave it. The kernels flag any observed voxel that found no block (``err``,
-  :meth:`MinMaxMapper.check`): the tests check it never happens. Each block carries a "seen"
-  byte set by the kernels; before the pool grows, and before reads and saves, blocks no ping
-  observed are freed. ``max_bytes`` bounds the pool plus the index: a ping that needs more
-  raises :class:`MapMemoryError` before it changes the map (``evict=None``), or with
-  ``evict="farthest"`` frees the blocks farthest from the sonar that the ping does not touch.
+- :mod:`gpumap.storage` (:class:`~gpumap.storage.BlockStorage`): the map's blocks of voxels on
+  the backend's device and the coarse index that finds them: all blocks of a bounded box up
+  front (a :class:`~gpumap.GridSpec`: no per-ping block search, the dense grid's speed), or on
+  demand (a :class:`~gpumap.SparseSpec`, bounded or not, or ``sparse=True``: memory grows with
+  what the sonar has seen, under ``max_bytes``); reads, writes and dense boxes.
+- :mod:`gpumap.integrator` (:class:`~gpumap.integrator.Integrator`): a ping's checks and record,
+  the blocks it may observe (on demand), the kernels' launches (:mod:`gpumap.backends`).
+- :mod:`gpumap.rules`: how the per-voxel state reads as values (the rule and its read-time
+  options) and how two states merge.
+- :mod:`gpumap.confidence` (:class:`~gpumap.confidence.ConfidenceLayer`): the optional
+  confidence layer and the view gain scored against it (:mod:`gpumap.nbv`).
+- :mod:`gpumap.mapfile`: map files (:meth:`MinMaxMapper.save`, :meth:`MinMaxMapper.load`),
+  every format version; :mod:`gpumap.mapstate` and :mod:`gpumap.merge`: merging maps.
 
-Both give the same values, bit for bit, wherever both have voxels: the same per-voxel code runs
-on the same voxel centres. Considered and not chosen: Warp's NanoVDB volumes (CUDA only, one
-value type per tree, a tree walk per voxel), and an open-addressing hash on the device (would
-lift the coarse index's one limit, that it spans the box of everything mapped: a 10 km transit
-at 5 cm needs a 2 GB index; not needed for a survey area).
+Both storages give the same values, bit for bit, wherever both have voxels: the same per-voxel
+code runs on the same voxel centres.
 """
 
 from __future__ import annotations
 
-import functools
-import json
 import logging
-import math
 import os
-import struct
-import threading
-import tokenize
-import zipfile
-import zlib
 from pathlib import Path
 
 import numpy as np
 
-from gpumap.atomic import atomic_write
-from gpumap.backends import AUTO_ORDER, BACKENDS, Backend, GridTooLargeError, make_backend
+from gpumap.backends import BACKENDS
 from gpumap.backends import available_backends as _available
-from gpumap.errors import (
-    BackendUnavailableError,
-    FormatError,
-    LimitError,
-    check_carve_views,
-    check_finite_scalar,
-    check_pose,
-)
-from gpumap.geometry import BRIGHT_SHARE, RULES, SHARE_Z, make_template_S, pose_pad_m, static_params
-from gpumap.memory import STATE_BYTES
-from gpumap.pings import PingPrints, read_prints
-from gpumap.spec import _MAX_VOXEL_INDEX, GridSpec, SonarSpec, SparseSpec, _vec3
+from gpumap.confidence import ConfidenceLayer, check_candidates, voxel_states
+from gpumap.errors import check_finite_scalar, check_pose
+from gpumap.geometry import BRIGHT_SHARE, RULES, SHARE_Z, make_template_S
+from gpumap.integrator import METHODS, Integrator, check_pose_cov
+from gpumap.mapfile import FILE_FORMAT, FILE_VERSION, SPARSE_FILE_FORMAT  # noqa: F401 (see below)
+from gpumap.mapfile import load as load_file
+from gpumap.mapfile import save as save_file
+from gpumap.mapstate import as_state, check_other, merge_state
+from gpumap.pings import PingPrints
+from gpumap.rules import ValueRule, rule_values  # noqa: F401 (see below)
+from gpumap.spec import GridSpec, SonarSpec, SparseSpec, _vec3
+from gpumap.storage import BLOCK, GROWTH, BlockStorage, MapMemoryError, local_offsets  # noqa: F401 (see below)
 
+# FILE_FORMAT, FILE_VERSION, SPARSE_FILE_FORMAT, BLOCK, GROWTH and rule_values, imported above, stay
+# names of this module, as they were before the mapper's parts had modules of their own.
 __all__ = ["MapMemoryError", "MinMaxMapper", "available_backends"]
 
 log = logging.getLogger("gpumap")
 
-METHODS = ("gather", "template")
-_ONE_BITS = np.uint32(0x3F800000)  # the bits of float32 1.0
-FILE_FORMAT = "gpumap.MinMaxMapper"
-# 5: the evidence rule (``count`` uint64: clear dark and bright views; bright_share, share_z);
-# 4: blocks (``blocks`` and per-block arrays) for every storage; 3: the optional confidence layer
-# (confirmed); 2: the visible rule's evidence (bright, count) and the rule; 1 to 3 are dense
-# arrays over the grid, and still load, as do files of the former SparseMinMaxMapper
-FILE_VERSION = 5
-SPARSE_FILE_FORMAT = "gpumap.SparseMinMaxMapper"  # written until version 4 took its place
-BLOCK = 8  # voxels per block edge of a bounded box (a SparseSpec says its own)
-GROWTH = 1.5  # an on-demand pool grows by this factor (at least to what a ping needs)
-_CANDIDATE_GROUP = 8  # pings per vectorised block test
-_MAX_INDEX_BLOCKS = 2**31 - 1
-_MAX_BOX_VOXELS = 2**31 - 1
-_MAX_POOL_VOXELS = 2**31 - 1  # kernels address the pool with int32
-
-
 _ANNOUNCED: set[tuple[str, str]] = set()  # the (backend, device) pairs "auto" has logged in this process
-
-
-class MapMemoryError(GridTooLargeError):
-    """A ping (or a spec) needs more memory than the cap or the device allows; the map is unchanged."""
 
 
 def available_backends() -> list[str]:
     """Backends that run on this machine, in the order ``backend="auto"`` tries them."""
     return _available()
-
-
-def rule_values(rule: str, min_all: np.ndarray, bright, count, carve_views: int, bright_share: float,
-                share_z: float) -> np.ndarray:
-    """A map's values from its per-voxel state, by ``rule`` (:mod:`gpumap.reference`)."""
-    from gpumap.reference import evidence_values, visible_values
-
-    if rule == "visible":
-        return visible_values(min_all, bright, count, carve_views)
-    if rule == "evidence":
-        return evidence_values(min_all, bright, count, bright_share, share_z)
-    return min_all
-
-
-def _free_memory_bytes(name: str) -> int | None:
-    """Best guess of the memory a grid may take on the backend ``name`` (None if unknown)."""
-    try:
-        if name in ("numpy", "warp-cpu") or name.startswith("opencl"):
-            with open("/proc/meminfo") as f:
-                for line in f:
-                    if line.startswith("MemAvailable:"):
-                        return int(line.split()[1]) * 1024
-        if name == "warp-cuda":
-            from gpumap.backends import _warp
-
-            wp, _ = _warp()  # initialised quietly, as the backend does
-            return int(wp.get_device("cuda:0").free_memory)
-    except Exception:  # the check is advisory; the allocation itself still fails loudly
-        return None
-    return None
-
-
-def _check_pose_cov(pose_cov: object) -> np.ndarray:
-    """(6, 6) finite, symmetric, positive semi-definite float64, or raise saying what came."""
-    if isinstance(pose_cov, np.ma.MaskedArray):
-        raise TypeError("Expected a plain array for 'pose_cov', but got a masked array")
-    C = np.asarray(pose_cov)
-    if C.shape != (6, 6) or C.dtype.kind not in "fiu":
-        raise ValueError(f"Expected pose_cov of shape (6, 6) real, but got {C.shape} {C.dtype}")
-    C = C.astype(np.float64)
-    scale = max(1.0, float(np.abs(C).max())) if np.all(np.isfinite(C)) else np.inf
-    if not np.isfinite(scale) or not np.allclose(C, C.T, rtol=0.0, atol=1e-9 * scale):
-        raise ValueError("Expected a finite, symmetric pose_cov, but got one that is not")
-    C = 0.5 * (C + C.T)
-    if np.linalg.eigvalsh(C)[0] < -1e-12 * scale:
-        raise ValueError("Expected a positive semi-definite pose_cov, but it has a negative eigenvalue")
-    return C
-
-
-def _check_poses(Ts: np.ndarray) -> np.ndarray:
-    """(B, 4, 4) float64 copy of ``Ts`` after :func:`gpumap.errors.check_pose`'s checks, in
-    whole-array form; the first pose that fails is handed to check_pose for its message."""
-    if np.iscomplexobj(Ts) or Ts.dtype.kind not in "fiub":
-        raise TypeError(f"Expected real entries in 'T_W_S', but got dtype {Ts.dtype}")
-    a = np.array(Ts, dtype=np.float64)
-    if a.shape[0] == 0:
-        return a
-    atol = 1e-5
-    R = a[:, :3, :3]
-    G = np.einsum("bki,bkj->bij", R, R) - np.eye(3)
-    c0, c1, c2 = R[:, :, 0], R[:, :, 1], R[:, :, 2]
-    det = np.einsum("bi,bi->b", np.cross(c0, c1), c2)
-    with np.errstate(invalid="ignore"):
-        bad = (
-            ~np.isfinite(a).all(axis=(1, 2))
-            | (np.abs(a[:, 3] - (0.0, 0.0, 0.0, 1.0)) > atol).any(axis=1)
-            | (np.abs(G).max(axis=(1, 2)) > atol)
-            | (det < 0)
-        )
-    for k in np.flatnonzero(bad):  # raises with check_pose's message (or the pose passes)
-        a[k] = check_pose(Ts[k], f"T_W_S[{k}]")
-    return a
-
-
-def _evidence_empty(n: int) -> tuple[np.ndarray, np.ndarray]:
-    return np.full(n, np.inf, dtype=np.float32), np.zeros(n, dtype=np.uint8)
-
-
-@functools.cache
-def _local(B: int, Bz: int) -> np.ndarray:
-    """(B B Bz, 3) int64 local voxel offsets of a block, in storage order."""
-    a = np.arange(B * B * Bz)
-    return np.stack([a // (B * Bz), (a // Bz) % B, a % Bz], axis=1)
 
 
 class MinMaxMapper:
@@ -374,237 +254,86 @@ class MinMaxMapper:
                              "sparse=True): a GridSpec's blocks are all allocated up front")
         self.spec, self.sparse = spec, space
         self.method, self.rule, self.threshold, self.shadow_m = method, rule, thr, shadow
-        self.carve_views = carve_views
-        self.bright_share = bright_share
-        self.share_z = share_z
-        self._use_table = None if footprint_max == "auto" else footprint_max == "table"
+        self.value_rule = ValueRule(rule, carve_views, bright_share, share_z)  # checks the read-time options
         self.max_bytes = None if max_bytes is None else int(max_bytes)
         self.evict = evict
         self.n_integrated = 0
         self.pings = PingPrints()  # a fingerprint per integrated ping (gpumap.pings)
-        self._empty = True  # no ping, merge or load has gone into the map since it was made or reset
-        self._stateful = rule != "plain"  # the visible and evidence rules keep bright and count
-        # a bounded box's blocks are BLOCK x BLOCK columns of the grid's height (one index read per
-        # column in the kernels, which then walk contiguous voxels: the dense grid's speed); blocks
-        # on demand are cubes of the SparseSpec's edge
-        B = BLOCK if space is None else space.block
-        Bz = int(grid.shape[2]) if space is None else B
-        self.B, self.Bz, self.BV = B, Bz, B * B * Bz
-        self._bs = np.array([B, B, Bz], np.int64)
-        self.bytes_per_voxel = STATE_BYTES[rule]  # gpumap.memory's one table of the rules' state
-        self._block_bytes = self.BV * self.bytes_per_voxel + 1  # + the seen byte
-        if space is None:
-            self._grid = grid
-            self._voxel, self._origin = grid.voxel_size_m, np.asarray(grid.min_corner_m, np.float64)
-            self._dims = np.asarray(grid.shape, np.int64)
-            pgrid = grid
-        else:
-            self._grid = None  # the bounds' grid, or the box of the blocks (see the property)
-            self._voxel, self._origin = space.voxel_size_m, np.asarray(space.origin, np.float64)
-            self._dims = None if space.bounds is None else np.asarray(space.shape, np.int64)
-            o, s = space.origin, space.voxel_size_m
-            pgrid = GridSpec(o, tuple(x + B * s for x in o), s)
-        self._params = static_params(spec, pgrid, shadow, rule, thr)
-        self._rho0, self._near0 = float(self._params["rho"]), float(self._params["near"])
-        self._fov_pts_S = spec.fov_corners_S()
-        self._template = make_template_S(spec, grid.voxel_size_m) if method == "template" else None
-        if self._template is not None:
-            self._params["n_points"] = self._template.shape[0]
-        self._staging = np.empty(spec.image_shape, dtype=np.float32)
-        # One ping at a time: integrate, reads and writes hold this lock, so threads sharing a
-        # mapper serialize (and, every update being a min or a count, get the map one thread
-        # would have made).
-        self._lock = threading.RLock()
-        # the coarse index: block (lo_b + (a, b, c)) -> slot, -1 none
-        self._lo_b = np.zeros(3, np.int64)
-        nb = np.zeros(3, np.int64) if self._dims is None else -(-self._dims // self._bs)
-        if self._dims is not None:
-            self._check_index_size(nb, "the bounds")
-        n_blocks = int(np.prod(nb))
-        if space is None:  # every block of the box, slot = index entry (the identity)
-            if n_blocks * self.BV > _MAX_POOL_VOXELS:
-                raise GridTooLargeError(
-                    f"Expected at most {_MAX_POOL_VOXELS} voxels in the grid's blocks, but {grid.shape} "
-                    f"voxels take {n_blocks} blocks of {B} x {B} x {Bz}"
-                )
-            self._index = np.arange(n_blocks, dtype=np.int32).reshape(tuple(int(x) for x in nb))
-            cap = n_blocks
-            self._coords = self._unravel(np.arange(n_blocks))
-            self._used = np.ones(cap, bool)
-            self._free = np.zeros(0, np.int64)
-        else:
-            self._index = np.full(tuple(int(x) for x in nb), -1, np.int32)
-            cap = int(initial_blocks)
-            if self.max_bytes is not None:
-                cap = max(1, min(cap, (self.max_bytes - self._index.nbytes) // self._block_bytes))
-            self._coords = np.zeros((cap, 3), np.int64)
-            self._used = np.zeros(cap, bool)
-            self._free = np.arange(cap - 1, -1, -1, dtype=np.int64)  # a stack: pop from the end
-        self._backend = self._make_backend(backend, cap)
-        self._backend.set_index(self._index, self._lo_b * self._bs)
-        n_vox = 0 if space is not None or not confidence else grid.n_voxels
-        self._confirmed = np.zeros(n_vox, np.uint8) if confidence else None
-        # the elevation-arc directions (gpumap.nbv.PAIR_STEPS bits) each voxel was observed along
-        self._arcs = np.zeros(n_vox, np.uint16) if confidence else None
-        self._gain_runner = None
+        template = make_template_S(spec, grid.voxel_size_m) if method == "template" else None
+        #: The map's blocks (:class:`~gpumap.storage.BlockStorage`), its backend and its lock.
+        self.storage = BlockStorage(spec, grid if space is None else space, self.value_rule, backend,
+                                    template=template,
+                                    use_table=None if footprint_max == "auto" else footprint_max == "table",
+                                    max_bytes=self.max_bytes, evict=evict, initial_blocks=initial_blocks)
+        st = self.storage
+        self.B, self.Bz, self.BV, self.bytes_per_voxel = st.B, st.Bz, st.BV, st.bytes_per_voxel
+        #: What applies pings to the storage (:class:`~gpumap.integrator.Integrator`).
+        self.integrator = Integrator(spec, st, method, template, shadow, rule, thr)
+        #: The confidence layer (:class:`~gpumap.confidence.ConfidenceLayer`), or None without one.
+        self.confidence_layer = ConfidenceLayer(grid.n_voxels) if confidence else None
         # auto says what it picked, once a process (a command makes several mappers); a backend asked
         # for by name is what the caller already knows
-        said = (self._backend.name, self._backend.device)
+        said = (st.backend.name, st.backend.device)
         (log.info if backend == "auto" and said not in _ANNOUNCED else log.debug)(
-            "gpumap: backend %s on %s", self._backend.name, self._backend.device)
+            "gpumap: backend %s on %s", st.backend.name, st.backend.device)
         _ANNOUNCED.add(said)
-
-    # ------------------------------------------------------------------ setup
-    def _check_index_size(self, nb: np.ndarray, what: str) -> None:
-        n = int(np.prod(nb))
-        need = 4 * n
-        if n > _MAX_INDEX_BLOCKS:
-            raise MapMemoryError(
-                f"Expected at most {_MAX_INDEX_BLOCKS} blocks in the coarse index, but {what} span "
-                f"{tuple(int(x) for x in nb)} blocks of {self.BV} voxels"
-            )
-        if self.max_bytes is not None and need + self._block_bytes > self.max_bytes:
-            raise MapMemoryError(
-                f"Expected the coarse index of {what} to fit under max_bytes={self.max_bytes}, but it "
-                f"needs {need} bytes ({tuple(int(x) for x in nb)} blocks) plus at least one block of "
-                f"{self._block_bytes}"
-            )
-        free = _free_memory_bytes("numpy")
-        if free is not None and 2 * need > free:
-            raise MapMemoryError(
-                f"Expected a coarse index that fits in memory, but {what} need {need / 2**30:.2f} GiB "
-                f"(twice that while growing) and {free / 2**30:.2f} GiB are free"
-            )
-
-    def _make_backend(self, backend: str, cap: int) -> Backend:
-        names = AUTO_ORDER if backend == "auto" else (backend,)
-        errors = []
-        for name in names:
-            need = cap * self.BV * self.bytes_per_voxel
-            free = _free_memory_bytes(name)
-            if self.sparse is None and free is not None and need > free:
-                msg = (
-                    f"Expected a grid that fits in memory, but {self.grid.shape} voxels at "
-                    f"voxel_size_m={self.grid.voxel_size_m} need {need / 2**30:.2f} GiB and "
-                    f"{name} has {free / 2**30:.2f} GiB free ({self.bytes_per_voxel} bytes a voxel, "
-                    f"in blocks of {self.B} x {self.B} x {self.Bz})"
-                )
-                if backend != "auto":
-                    raise ValueError(msg)
-                errors.append(f"{name}: {msg}")
-                continue
-            try:
-                return make_backend(name, self.spec, self._template, self._use_table, visible=self._stateful,
-                                    B=self.B, Bz=self.Bz, cap=cap)
-            except (BackendUnavailableError, GridTooLargeError) as e:
-                if backend != "auto":
-                    raise
-                errors.append(f"{name}: {e}")
-        raise BackendUnavailableError("No backend could run: " + "; ".join(errors))
 
     # ------------------------------------------------------------------ properties
     @property
     def backend(self) -> str:
         """The backend in use, as ``gpumap info`` names it: ``"warp-cuda"``, ``"warp-cpu"``,
         ``"opencl-gpu"``, ``"opencl-cpu"`` or ``"numpy"`` (``"auto"`` and ``"opencl"`` resolve to one)."""
-        return self._backend.name
+        return self.storage.backend.name
 
     @property
     def device(self) -> str:
         """The device the backend runs on, in words."""
-        return self._backend.device
+        return self.storage.backend.device
 
     @property
     def carve_views(self) -> int:
         """Visible rule: clear dark views that carve a voxel once seen bright (see the class)."""
-        return self._carve_views
+        return self.value_rule.carve_views
 
     @carve_views.setter
     def carve_views(self, n: int) -> None:
-        self._carve_views = check_carve_views(n)
+        self.value_rule.carve_views = n
 
     @property
     def bright_share(self) -> float:
         """Evidence rule: the share of bright views below which a voxel is free (see the class)."""
-        return self._bright_share
+        return self.value_rule.bright_share
 
     @bright_share.setter
     def bright_share(self, p: float) -> None:
-        p = check_finite_scalar(p, "bright_share")
-        if not 0.0 < p <= 1.0:
-            raise ValueError(f"Expected bright_share in (0, 1], but got {p}")
-        self._bright_share = p
+        self.value_rule.bright_share = p
 
     @property
     def share_z(self) -> float:
         """Evidence rule: the one-sided normal quantile of the confidence that frees a voxel."""
-        return self._share_z
+        return self.value_rule.share_z
 
     @share_z.setter
     def share_z(self, z: float) -> None:
-        z = check_finite_scalar(z, "share_z")
-        if not 0.0 <= z <= 10.0:
-            raise ValueError(f"Expected share_z in [0, 10], but got {z}")
-        self._share_z = z
-
-    def _rule_values(self, min_all: np.ndarray, bright, count) -> np.ndarray:
-        """The map's values from its state, by the rule (the plain rule's are ``min_all``)."""
-        return rule_values(self.rule, min_all, bright, count, self.carve_views, self.bright_share,
-                           self.share_z)
+        self.value_rule.share_z = z
 
     @property
     def grid(self) -> GridSpec:
         """The :class:`GridSpec` that :meth:`values` covers: the box, or for an unbounded map the
         box of its blocks (one voxel at the origin while empty)."""
-        if self._grid is not None:
-            return self._grid
-        if self._dims is not None:
-            return self.sparse.grid
-        with self._lock:
-            self._settle()
-            i0, i1 = self._whole_box()
-        return self._box_grid(i0, i1)
+        return self.storage.grid
+
+    @property
+    def _params(self) -> np.ndarray:
+        """The static ping record (:attr:`gpumap.integrator.Integrator.params`; ``bench/nbv.py`` reads it)."""
+        return self.integrator.params
+
+    @property
+    def _arcs(self) -> np.ndarray | None:
+        """The confidence layer's arc masks, or None (``bench/nbv.py`` reads them)."""
+        return None if self.confidence_layer is None else self.confidence_layer.arcs
 
     # ------------------------------------------------------------------ update
-    def _check_image(self, image: object) -> np.ndarray:
-        """The image as C-contiguous uint8 (backends scale it by 1/255, GPUs after the upload)
-        or float32 in [0, 1]: ``image`` itself when it already is, else a conversion in the
-        mapper's staging buffer. Raises on anything else."""
-        if not isinstance(image, np.ndarray):
-            raise TypeError(f"Expected a numpy array for 'image', but got {type(image).__name__}")
-        if isinstance(image, np.ma.MaskedArray):  # its data under the mask could be anything
-            raise TypeError(
-                "Expected a plain numpy array for 'image', but got a masked array: fill it first "
-                "(image.filled(0.0) treats masked cells as no return)"
-            )
-        if image.shape != self.spec.image_shape:
-            raise ValueError(
-                f"Expected image of shape {self.spec.image_shape} (n_bins, n_beams) for 'image', "
-                f"but got {image.shape}"
-            )
-        out = self._staging
-        if image.dtype == np.uint8:  # every byte is a valid intensity; backends widen it
-            return np.ascontiguousarray(image)
-        if image.dtype == np.float32 and image.flags.c_contiguous:
-            # One pass: as unsigned bits, every float in [+0, 1] is <= 0x3F800000, while
-            # negatives (sign bit), NaN and inf are all above it.
-            if image.view(np.uint32).max() <= _ONE_BITS:
-                return image
-        elif image.dtype not in (np.float32, np.float64):
-            raise TypeError(f"Expected image of dtype float32 or uint8 for 'image', but got {image.dtype}")
-        bad = ~np.isfinite(image)
-        if bad.any():
-            r, c = np.argwhere(bad)[0]
-            raise ValueError(
-                f"Expected finite intensities in 'image', but got {image[r, c]} at (bin {r}, beam {c})"
-                f" and {int(bad.sum()) - 1} more"
-            )
-        lo, hi = image.min(), image.max()
-        if not (lo >= 0.0 and hi <= 1.0):
-            raise ValueError(f"Expected intensities in [0, 1] in 'image', but got range [{lo}, {hi}]")
-        np.add(image, np.float32(0.0), out=out, casting="same_kind")  # -0.0 -> +0.0, float64 -> 32
-        return out
-
     def integrate(
         self,
         image: np.ndarray,
@@ -636,74 +365,15 @@ class MinMaxMapper:
         """
         T = check_pose(T_W_S, "T_W_S")
         pads = np.zeros(1)
-        with self._lock:  # the staging buffer is the mapper's own
-            img = self._check_image(image)
+        with self.storage.lock:  # the integrator's staging buffer is the mapper's own
+            img = self.integrator.check_image(image)
             if pose_cov is not None:
-                pads[0] = self._pose_pad(_check_pose_cov(pose_cov), pose_sigmas)
-            params, n_threads = self._ping_params(T[None], pads)
-            self._prepare(params, T[None], n_threads)
-            self._empty = False
-            self._backend.integrate(params[0, ...], img, self.method, int(n_threads[0]))
-            if self._confirmed is not None:
+                pads[0] = self.integrator.pose_pad(check_pose_cov(pose_cov), pose_sigmas)
+            self.integrator.integrate(img, T, pads)
+            if self.confidence_layer is not None:
                 self._confirm(T, pads[0], img)
             self.n_integrated += 1  # under the lock
             self.pings.add(img, T)
-
-    def _pose_pad(self, C: np.ndarray, pose_sigmas: float) -> float:
-        k = check_finite_scalar(pose_sigmas, "pose_sigmas")
-        if k < 0:
-            raise ValueError(f"Expected pose_sigmas >= 0, but got {k}")
-        return pose_pad_m(C, self.spec.range_max_m, k)
-
-    def _ping_params(self, Ts: np.ndarray, pads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(B,) PING_DTYPE records and gather column counts for checked poses ``Ts`` (B, 4, 4)
-        and footprint pads (B,) m, in whole-array NumPy (the work of
-        :func:`gpumap.geometry.ping_params` and :func:`~gpumap.geometry.set_footprint_pad`,
-        vectorised: one code path for a ping and a batch, and for every storage, so all give
-        the same records). An unbounded map's boxes are not clipped; a pose whose box would
-        leave int32 voxel indices raises ``ValueError``."""
-        B = Ts.shape[0]
-        P = np.empty(B, dtype=self._params.dtype)
-        P[...] = self._params
-        R = Ts[:, :3, :3]
-        t = Ts[:, :3, 3]
-        Rt = R.transpose(0, 2, 1)
-        P["R"] = R.reshape(B, 9)
-        P["t"] = t
-        P["A"] = Rt.reshape(B, 9)
-        # -(R^T t), each entry summed in a fixed order
-        P["b"] = -(R[:, 0, :] * t[:, 0:1] + R[:, 1, :] * t[:, 1:2] + R[:, 2, :] * t[:, 2:3])
-        if np.any(pads != 0.0):
-            P["rho"] = self._rho0 + pads
-            P["near"] = self._near0 + pads
-            win = np.floor((P["rho"].astype(np.float64) + P["near"]) * P["inv_dr"].astype(np.float64)) + 2
-            P["win"] = np.minimum(win, self.spec.n_bins)
-        pts = self._fov_pts_S  # (m, 3): the box, padded by a voxel, holds every visible centre
-        W = (pts[None, :, 0:1] * Rt[:, None, 0, :] + pts[None, :, 1:2] * Rt[:, None, 1, :]
-             + pts[None, :, 2:3] * Rt[:, None, 2, :])
-        s = self._voxel
-        q0 = (W.min(axis=1) + t - self._origin) / s
-        q1 = (W.max(axis=1) + t - self._origin) / s
-        dims = self._dims
-        if dims is None:
-            far = np.maximum(np.abs(q0).max(axis=1), np.abs(q1).max(axis=1)) > _MAX_VOXEL_INDEX - 2 * self.B
-            if far.any():
-                k = int(np.argmax(far))
-                raise ValueError(
-                    f"Expected a sonar pose within {(_MAX_VOXEL_INDEX - 2 * self.B) * s:.4g} m of the map "
-                    f"origin {tuple(self._origin)} (voxel indices fit in int32), but T_W_S[{k}] puts it at "
-                    f"{t[k].tolist()}"
-                )
-            i0 = np.floor(q0).astype(np.int64) - 1
-            i1 = np.floor(q1).astype(np.int64) + 1
-        else:
-            i0 = np.minimum(np.maximum(np.floor(q0).astype(np.int64) - 1, 0), dims)
-            i1 = np.minimum(np.maximum(np.floor(q1).astype(np.int64) + 1, -1), dims - 1)
-        n = np.maximum(i1 - i0 + 1, 0)
-        P["box_lo"] = i0
-        P["box_n"] = n
-        n_threads = np.where(n[:, 2] > 0, n[:, 0] * n[:, 1], 0)
-        return P, n_threads
 
     def integrate_batch(
         self,
@@ -735,423 +405,38 @@ class MinMaxMapper:
         it raises ``ValueError``/``TypeError`` saying which ping (or :class:`MapMemoryError`),
         and the map is left untouched.
         """
-        imgs = self._check_images(images)
+        imgs, Ts, pads = self.integrator.check_batch(images, T_W_S, pose_cov, pose_sigmas)
         B = imgs.shape[0]
-        if isinstance(T_W_S, np.ma.MaskedArray):
-            raise TypeError("Expected a plain array for 'T_W_S', but got a masked array (fill it first)")
-        Ts = np.asarray(T_W_S)
-        if Ts.shape != (B, 4, 4):
-            raise ValueError(
-                f"Expected T_W_S of shape ({B}, 4, 4) for {B} images, but got {Ts.shape}"
-            )
-        Ts = _check_poses(Ts)
-        pads = np.zeros(B)
-        if pose_cov is not None:
-            C = pose_cov if isinstance(pose_cov, np.ma.MaskedArray) else np.asarray(pose_cov)
-            shape = getattr(C, "shape", None)
-            if shape == (B, 6, 6) and B:
-                covs = [_check_pose_cov(C[b]) for b in range(B)]
-                pads = np.array([self._pose_pad(c, pose_sigmas) for c in covs])
-            elif shape == (6, 6):
-                pads[:] = self._pose_pad(_check_pose_cov(C), pose_sigmas)
-            else:
-                raise ValueError(f"Expected pose_cov of shape (6, 6) or ({B}, 6, 6), but got {shape}")
         if B == 0:
             return
-        with self._lock:
-            if self._confirmed is not None:  # the layer follows the pings in order: one at a time
-                self._empty = False
+        with self.storage.lock:
+            if self.confidence_layer is not None:  # the layer follows the pings in order: one at a time
                 for b in range(B):
-                    params, n_threads = self._ping_params(Ts[b:b + 1], pads[b:b + 1])
-                    self._backend.integrate(params[0, ...], imgs[b], self.method, int(n_threads[0]))
+                    self.integrator.integrate(imgs[b], Ts[b], pads[b : b + 1])
                     self._confirm(Ts[b], pads[b], imgs[b])
                     self.n_integrated += 1
                     self.pings.add(imgs[b], Ts[b])
                 return
-            params, n_threads = self._ping_params(Ts, pads)
-            self._prepare(params, Ts, n_threads)
-            self._empty = False
-            self._backend.integrate_batch(params, imgs, self.method, n_threads)
+            self.integrator.integrate_batch(imgs, Ts, pads)
             self.n_integrated += B
             self.pings.add_batch(imgs, Ts)
 
-    def _check_images(self, images: object) -> np.ndarray:
-        """(B, n_bins, n_beams) C-contiguous uint8 or float32 in [0, 1] (converted if needed)."""
-        if not isinstance(images, np.ndarray):
-            raise TypeError(f"Expected a numpy array for 'images', but got {type(images).__name__}")
-        if isinstance(images, np.ma.MaskedArray):
-            raise TypeError(
-                "Expected a plain numpy array for 'images', but got a masked array: fill it first"
-            )
-        if images.ndim != 3 or images.shape[1:] != self.spec.image_shape:
-            raise ValueError(
-                f"Expected images of shape (B, {self.spec.image_shape[0]}, {self.spec.image_shape[1]}) "
-                f"(pings, n_bins, n_beams) for 'images', but got {images.shape}"
-            )
-        if images.dtype == np.uint8:
-            return np.ascontiguousarray(images)
-        if images.dtype == np.float32 and images.flags.c_contiguous:
-            if images.size == 0 or images.view(np.uint32).max() <= _ONE_BITS:  # see _check_image
-                return images
-        elif images.dtype not in (np.float32, np.float64):
-            raise TypeError(f"Expected images of dtype float32 or uint8 for 'images', but got {images.dtype}")
-        bad = ~np.isfinite(images)
-        if bad.any():
-            b, r, c = np.argwhere(bad)[0]
-            raise ValueError(
-                f"Expected finite intensities in 'images', but got {images[b, r, c]} at (ping {b}, bin {r}, "
-                f"beam {c}) and {int(bad.sum()) - 1} more"
-            )
-        lo, hi = images.min(), images.max()
-        if not (lo >= 0.0 and hi <= 1.0):
-            b = int(np.argmax(((images < 0) | (images > 1)).reshape(images.shape[0], -1).any(1)))
-            raise ValueError(
-                f"Expected intensities in [0, 1] in 'images', but got range [{lo}, {hi}] (first at ping {b})"
-            )
-        out = np.empty(images.shape, np.float32)
-        np.add(images, np.float32(0.0), out=out, casting="same_kind")  # -0.0 -> +0.0, float64 -> 32
-        return out
-
-    def _prepare(self, params: np.ndarray, Ts: np.ndarray, n_threads: np.ndarray) -> None:
-        """On demand: give every block the pings (records ``params``, poses ``Ts``) may observe a
-        voxel of a slot, before any of them is applied (raises with the map unchanged)."""
-        if self.sparse is None:
-            return
-        live = n_threads > 0
-        if not live.any():
-            return
-        lo = params["box_lo"][live].astype(np.int64)
-        hi = lo + params["box_n"][live].astype(np.int64) - 1
-        if self._dims is None:  # the kernels read the index over the whole box
-            self._ensure_index(lo.min(axis=0) // self.B, hi.max(axis=0) // self.B)
-        Tl = Ts[live]
-        # the block test runs on the union box of a group of pings: small groups keep far-apart
-        # pings from making it walk empty columns
-        g = _CANDIDATE_GROUP
-        lins = [self._candidate_lins(lo[i : i + g], hi[i : i + g], Tl[i : i + g])
-                for i in range(0, len(Tl), g)]
-        self._allocate(np.concatenate(lins), Tl[-1, :3, 3])
-
-    def _candidate_lins(self, lo: np.ndarray, hi: np.ndarray, Ts: np.ndarray) -> np.ndarray:
-        """Index entries (int64, into the flattened coarse index; repeats across pings) of the
-        blocks that may hold a voxel centre one of the pings observes: per block column of a
-        ping's voxel box (``lo``..``hi``, (P, 3) each), the z-range that its field of view's
-        range sphere, azimuth half-planes, elevation slab and ``x > 0`` allow anywhere in the
-        column (float64, padded against float32 rounding), as blocks. Vectorised over the P
-        pings on the block columns of their union box. The index must cover every box."""
-        B, s = self.B, self._voxel
-        o = self._origin
-        b0, b1 = lo // B, hi // B  # (P, 3)
-        bx = np.arange(b0[:, 0].min(), b1[:, 0].max() + 1)
-        by = np.arange(b0[:, 1].min(), b1[:, 1].max() + 1)
-        cx = (o[0] + (bx + 0.5) * (B * s))[None, :, None]  # (1, nx, 1)
-        cy = (o[1] + (by + 0.5) * (B * s))[None, None, :]  # (1, 1, ny)
-        t = Ts[:, :3, 3]  # (P, 3)
-        A = np.transpose(Ts[:, :3, :3], (0, 2, 1))  # rotation of T_S_W
-        bb = -np.einsum("pij,pj->pi", A, t)
-        rmax = self.spec.range_max_m
-        pad = 1e-4 * (1.0 + rmax + np.abs(t).max(axis=1)) + 0.01 * s  # (P,)
-        hd = B * s / math.sqrt(2.0) + pad  # the column's voxel centres lie within hd of (cx, cy)
-        t3 = t[:, :, None, None]
-        dmin = np.maximum(np.hypot(cx - t3[:, 0], cy - t3[:, 1]) - hd[:, None, None], 0.0)
-        q = ((rmax + pad) ** 2)[:, None, None] - dmin * dmin
-        ok = q > 0
-        w = np.sqrt(np.maximum(q, 0.0))
-        z0, z1 = t3[:, 2] - w, t3[:, 2] + w
-        wd = self._params["wedge"].astype(np.float64)
-        slab = float(self._params["slab"])
-        # g . w + g0 >= 0 for some w in the column at height z: alpha(column) + beta z >= 0
-        G = np.stack(
-            [
-                wd[0] * A[:, 0] + wd[1] * A[:, 1],
-                wd[2] * A[:, 0] + wd[3] * A[:, 1],
-                -A[:, 2],
-                A[:, 2],
-                A[:, 0],
-            ],
-            axis=1,
-        )  # (P, 5, 3)
-        g0 = np.stack(
-            [
-                wd[0] * bb[:, 0] + wd[1] * bb[:, 1],
-                wd[2] * bb[:, 0] + wd[3] * bb[:, 1],
-                slab - bb[:, 2],
-                slab + bb[:, 2],
-                bb[:, 0],
-            ],
-            axis=1,
-        )  # (P, 5)
-        base = g0 + hd[:, None] * np.hypot(G[..., 0], G[..., 1]) + pad[:, None]
-        alpha = (
-            base[..., None, None] + G[..., 0, None, None] * cx[:, None] + G[..., 1, None, None] * cy[:, None]
-        )
-        beta = G[..., 2]  # (P, 5)
-        up, down = beta > 1e-12, beta < -1e-12
-        level = ~(up | down)
-        zc = -alpha / np.where(level, 1.0, beta)[..., None, None]
-        z0 = np.maximum(z0, np.where(up[..., None, None], zc, -np.inf).max(axis=1))
-        z1 = np.minimum(z1, np.where(down[..., None, None], zc, np.inf).min(axis=1))
-        if level.any():
-            ok &= np.where(level[..., None, None], alpha >= 0, True).all(axis=1)
-        # the ping's own box: columns outside it and voxels above or below it hold nothing
-        ok &= ((bx[None, :] >= b0[:, 0, None]) & (bx[None, :] <= b1[:, 0, None]))[:, :, None]
-        ok &= ((by[None, :] >= b0[:, 1, None]) & (by[None, :] <= b1[:, 1, None]))[:, None, :]
-        k0 = np.maximum(np.floor((z0 - o[2]) / s - 0.5).astype(np.int64) - 1, lo[:, 2, None, None])
-        k1 = np.minimum(np.ceil((z1 - o[2]) / s - 0.5).astype(np.int64) + 1, hi[:, 2, None, None])
-        ok &= k0 <= k1
-        bz0 = k0 // B
-        n = np.where(ok, k1 // B - bz0 + 1, 0).ravel()
-        nb = self._index.shape
-        lb = self._lo_b
-        col = (
-            (((bx - lb[0])[:, None] * nb[1] + (by - lb[1])[None, :]) * nb[2])[None] + (bz0 - lb[2])
-        ).ravel()
-        return np.repeat(col - (np.cumsum(n) - n), n) + np.arange(int(n.sum()))
-
-    def _unravel(self, lins: np.ndarray) -> np.ndarray:
-        """(m,) index entries -> (m, 3) int64 block coordinates."""
-        nb = self._index.shape
-        return np.stack([lins // (nb[1] * nb[2]), (lins // nb[2]) % nb[1], lins % nb[2]], axis=1) + self._lo_b
-
-    def _ensure_index(self, need_lo: np.ndarray, need_hi: np.ndarray) -> None:
-        """Grow an unbounded map's coarse index to hold blocks need_lo..need_hi (inclusive)."""
-        cur_lo = self._lo_b
-        cur_hi = self._lo_b + np.asarray(self._index.shape) - 1
-        if self._index.size and np.all(need_lo >= cur_lo) and np.all(need_hi <= cur_hi):
-            return
-        if self._index.size == 0:
-            new_lo, new_hi = need_lo - 2, need_hi + 2
-        else:
-            ext = cur_hi - cur_lo + 1
-            margin = np.maximum(4, ext // 2)
-            new_lo = np.where(need_lo < cur_lo, np.minimum(need_lo, cur_lo - margin), cur_lo)
-            new_hi = np.where(need_hi > cur_hi, np.maximum(need_hi, cur_hi + margin), cur_hi)
-        nb = new_hi - new_lo + 1
-        self._check_index_size(nb, "the pings so far")
-        if self.max_bytes is not None:
-            used = self._backend.cap * self._block_bytes + 4 * int(np.prod(nb))
-            if used > self.max_bytes:
-                raise MapMemoryError(
-                    f"Expected the map to stay under max_bytes={self.max_bytes}, but its coarse index must "
-                    f"grow to {tuple(int(x) for x in nb)} blocks ({4 * int(np.prod(nb))} bytes) beside a "
-                    f"pool of {self._backend.cap * self._block_bytes} bytes"
-                )
-        new = np.full(tuple(int(x) for x in nb), -1, np.int32)
-        if self._index.size:
-            a = cur_lo - new_lo
-            e = a + np.asarray(self._index.shape)
-            new[a[0] : e[0], a[1] : e[1], a[2] : e[2]] = self._index
-        self._index, self._lo_b = new, new_lo
-        self._backend.set_index(new, new_lo * self._bs)
-
-    def _lins(self, coords: np.ndarray) -> np.ndarray:
-        r = coords - self._lo_b
-        nb = self._index.shape
-        return (r[:, 0] * nb[1] + r[:, 1]) * nb[2] + r[:, 2]
-
-    def _allocate(self, lins: np.ndarray, sonar_t: np.ndarray) -> None:
-        """Give every candidate block (index entries ``lins``, repeats allowed) without one a
-        slot (growing, reclaiming or evicting)."""
-        if len(lins) == 0:
-            return
-        flat = self._index.reshape(-1)
-        new_lins = np.unique(lins[flat[lins] < 0])
-        if len(new_lins) > len(self._free):
-            self._reclaim()
-            new_lins = np.unique(lins[flat[lins] < 0])
-            if len(new_lins) > len(self._free):
-                self._grow(len(new_lins) - len(self._free), lins, sonar_t)
-        n_new = len(new_lins)
-        if n_new == 0:
-            return
-        k = len(self._free) - n_new
-        slots = self._free[k:][::-1]
-        self._free = self._free[:k]
-        flat[new_lins] = slots
-        self._coords[slots] = self._unravel(new_lins)
-        self._used[slots] = True
-        self._backend.set_blocks(slots, new_lins)
-
-    def _grow(self, more: int, keep_lins: np.ndarray, sonar_t: np.ndarray) -> None:
-        cap = self._backend.cap
-        want = max(cap + more, int(math.ceil(cap * GROWTH)))
-        if self.max_bytes is not None:
-            limit = (self.max_bytes - self._index.nbytes) // self._block_bytes
-            if want > limit:
-                want = max(cap + more, limit)
-            if want > limit:
-                if self.evict == "farthest":
-                    self._evict(more - (limit - cap), keep_lins, sonar_t)
-                    if limit > cap:
-                        self._grow_to(limit)
-                    return
-                raise MapMemoryError(
-                    f"Expected the map to stay under max_bytes={self.max_bytes}, but this ping needs "
-                    f"{cap + more} blocks of {self._block_bytes} bytes ({(cap + more) * self._block_bytes} "
-                    f"bytes) plus a {self._index.nbytes}-byte index; the map is unchanged "
-                    f"(raise max_bytes or pass evict='farthest')"
-                )
-        self._grow_to(want)
-
-    def _grow_to(self, cap: int) -> None:
-        old = self._backend.cap
-        if cap <= old:
-            return
-        try:
-            self._backend.grow(cap)
-        except MapMemoryError:
-            raise
-        except Exception as e:  # the device's allocation failed: the old pool is still in place
-            raise MapMemoryError(
-                f"Expected the device to hold {cap} blocks ({cap * self._block_bytes / 2**30:.2f} GiB), "
-                f"but growing the pool failed: {e}"
-            ) from e
-        self._coords = np.concatenate([self._coords, np.zeros((cap - old, 3), np.int64)])
-        self._used = np.concatenate([self._used, np.zeros(cap - old, bool)])
-        self._free = np.concatenate([np.arange(cap - 1, old - 1, -1, dtype=np.int64), self._free])
-
-    def _free_slots(self, slots: np.ndarray) -> None:
-        if len(slots) == 0:
-            return
-        lins = self._lins(self._coords[slots])
-        self._index.reshape(-1)[lins] = -1
-        self._used[slots] = False
-        self._free = np.concatenate([self._free, slots[::-1]])
-        self._backend.set_blocks(np.full(len(slots), -1, np.int32), lins.astype(np.int32))
-
-    def _reclaim(self) -> None:
-        """Free blocks that no ping has observed a voxel of (allocated by the conservative test);
-        a bounded box keeps all of its blocks."""
-        if self.sparse is None:
-            return
-        seen = self._backend.read_seen()
-        dead = np.flatnonzero(self._used & (seen[: len(self._used)] == 0))
-        self._free_slots(dead)
-
-    def _evict(self, n: int, keep_lins: np.ndarray, sonar_t: np.ndarray) -> None:
-        used = np.flatnonzero(self._used)
-        keep = np.isin(self._lins(self._coords[used]), keep_lins)
-        cand = used[~keep]
-        if len(cand) < n:
-            raise MapMemoryError(
-                f"Expected max_bytes={self.max_bytes} to hold at least one ping's blocks, but this ping "
-                f"alone needs {int(keep.sum()) + n} blocks and {len(cand)} others can be evicted"
-            )
-        c = self._origin + (self._coords[cand] + 0.5) * self._bs * self._voxel
-        d = np.linalg.norm(c - sonar_t, axis=1)
-        self._free_slots(cand[np.argsort(-d, kind="stable")[:n]])
-
     def synchronize(self) -> None:
         """Wait until every ping handed to :meth:`integrate` is in the map (GPU backends run async)."""
-        with self._lock:
-            self._backend.synchronize()
+        self.storage.synchronize()
 
     def check(self) -> None:
         """Raise ``RuntimeError`` if a kernel found an observed voxel without a block (a bug:
         the host's block test must be conservative)."""
-        with self._lock:
-            if self._backend.read_err():
-                raise RuntimeError(
-                    "gpumap: an observed voxel had no block (non-conservative block test)"
-                )
+        self.storage.check()
 
     # ------------------------------------------------------------------ reading
-    def _settle(self) -> None:
-        """Before a read: raise on a kernel error, free blocks no ping has observed."""
-        self.check()
-        self._reclaim()
-
-    def _blocks(self, values: bool = True, seen_only: bool = False
-                ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """Used blocks' coords (n, 3) int64 (lexicographic order) and their (n, B B Bz) arrays:
-        ``min_all``, ``values`` (unless ``values`` is False) and for the visible rule ``bright``
-        and ``count``. ``seen_only``: only the blocks that hold something (observed, merged or
-        loaded: the seen flag), read block by block."""
-        self.check()
-        keep = self._used & self._holding(np.arange(len(self._used))) if seen_only else self._used
-        if self.sparse is None and keep.all():  # every block, slot = index entry: the pool as it is
-            coords = self._coords
-            arrays = [None if a is None else a.reshape(-1, self.BV) for a in self._backend.read()]
-        else:
-            slots = np.flatnonzero(keep)
-            coords = self._coords[slots]
-            if self.sparse is not None:  # slot order is coordinate order only for a bounded box
-                order = np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0]))
-                slots, coords = slots[order], coords[order]
-            arrays = self._backend.read_blocks(slots)
-        out = dict(zip(("min_all", "bright", "count"), arrays, strict=True))
-        if not self._stateful:
-            del out["bright"], out["count"]
-        if self._stateful and values:
-            out["values"] = self._rule_values(out["min_all"], out["bright"], out["count"])
-        elif values:
-            out["values"] = out["min_all"]
-        return coords, out
-
-    def _holding(self, slots: np.ndarray) -> np.ndarray:
-        """(n,) bool: which of ``slots`` hold something (an observed, merged or loaded voxel: the
-        seen flag, set by every kernel, merge and load)."""
-        return self._backend.read_seen()[slots] != 0
-
-    def _whole_box(self) -> tuple[np.ndarray, np.ndarray]:
-        if self._dims is not None:
-            return np.zeros(3, np.int64), self._dims - 1
-        used = np.flatnonzero(self._used)
-        if len(used) == 0:
-            return np.zeros(3, np.int64), np.zeros(3, np.int64)
-        c = self._coords[used]
-        return c.min(axis=0) * self._bs, (c.max(axis=0) + 1) * self._bs - 1
-
-    def _box_grid(self, i0: np.ndarray, i1: np.ndarray) -> GridSpec:
-        s = self._voxel
-        return GridSpec(tuple(self._origin + i0 * s), tuple(self._origin + (i1 + 1) * s), s)
-
-    def _dense(self, i0: np.ndarray, i1: np.ndarray, names: tuple[str, ...],
-               blocks: tuple | None = None) -> dict[str, np.ndarray]:
-        """Arrays over voxel indices i0..i1 (inclusive): +inf / 0 where no block (``blocks``:
-        :meth:`_blocks`' result, read here if None)."""
-        shape = tuple(int(x) for x in i1 - i0 + 1)
-        if min(shape) <= 0:
-            return {n: np.zeros((0, 0, 0), np.uint64 if n == "count" else np.float32) for n in names}
-        if int(np.prod(shape)) > _MAX_BOX_VOXELS:
-            raise ValueError(f"Expected a box of at most {_MAX_BOX_VOXELS} voxels, but got {shape}")
-        coords, data = self._blocks() if blocks is None else blocks
-        B, Bz, bs = self.B, self.Bz, self._bs
-        b0, b1 = i0 // bs, i1 // bs
-        nb = tuple(int(x) for x in b1 - b0 + 1)
-        sel = np.all((coords >= b0) & (coords <= b1), axis=1)
-        r = coords[sel] - b0
-        whole = len(r) == int(np.prod(nb))  # every block of the box, in coordinate order
-        out = {}
-        for n in names:
-            dt = data[n].dtype  # where no block: +inf for values, 0 for counts and flags
-            fill = np.inf if dt.kind == "f" else 0
-            if whole:
-                V = data[n][sel].reshape(*nb, B, B, Bz)
-            else:
-                V = np.full((*nb, B, B, Bz), fill, dt)
-                V[r[:, 0], r[:, 1], r[:, 2]] = data[n][sel].reshape(-1, B, B, Bz)
-            V = V.transpose(0, 3, 1, 4, 2, 5).reshape(*(x * e for x, e in zip(nb, bs, strict=True)))
-            a = i0 - b0 * bs
-            out[n] = np.ascontiguousarray(
-                V[a[0] : a[0] + shape[0], a[1] : a[1] + shape[1], a[2] : a[2] + shape[2]]
-            )
-        return out
-
-    def _to_pool_order(self, a: np.ndarray, fill) -> np.ndarray:
-        """A bounded box's (nx, ny, nz) array as (n_blocks, B B Bz) in slot order (``fill`` past the box)."""
-        B, Bz = self.B, self.Bz
-        nb = self._index.shape
-        V = np.full((nb[0] * B, nb[1] * B, nb[2] * Bz), fill, a.dtype)
-        V[: a.shape[0], : a.shape[1], : a.shape[2]] = a
-        return np.ascontiguousarray(
-            V.reshape(nb[0], B, nb[1], B, nb[2], Bz).transpose(0, 2, 4, 1, 3, 5)).reshape(-1, self.BV)
-
     def raw_values(self) -> np.ndarray:
         """(nx, ny, nz) float32 copy of the map values over :attr:`grid`, ``+inf`` = never observed."""
-        with self._lock:
-            self._settle()
-            return self._dense(*self._whole_box(), ("values",))["values"]
+        st = self.storage
+        with st.lock:
+            st.settle()
+            return st.dense(*st.whole_box(), ("values",))["values"]
 
     def values(self) -> np.ndarray:
         """(nx, ny, nz) float32 copy over :attr:`grid`, ``NaN`` = never observed, else in [0, 1]."""
@@ -1167,14 +452,15 @@ class MinMaxMapper:
         plain rule."""
         from gpumap.reference import split_counts
 
-        if not self._stateful:
+        if self.rule == "plain":
             raise ValueError(
                 "Expected a mapper with rule='visible' or 'evidence' for evidence(), "
                 f"but its rule is {self.rule!r}"
             )
-        with self._lock:
-            self._settle()
-            out = self._dense(*self._whole_box(), ("min_all", "bright", "count"))
+        st = self.storage
+        with st.lock:
+            st.settle()
+            out = st.dense(*st.whole_box(), ("min_all", "bright", "count"))
         out["count"], out["hits"] = split_counts(out["count"])
         return out
 
@@ -1190,31 +476,33 @@ class MinMaxMapper:
         lo, hi = np.asarray(_vec3(lo_m, "lo_m")), np.asarray(_vec3(hi_m, "hi_m"))
         if np.any(hi < lo):
             raise ValueError(f"Expected hi_m >= lo_m on every axis, but got {lo.tolist()} and {hi.tolist()}")
-        s = self._voxel
-        i0 = np.ceil((lo - self._origin) / s - 0.5).astype(np.int64)
-        i1 = np.floor((hi - self._origin) / s - 0.5).astype(np.int64)
-        if self._dims is not None:
-            i0, i1 = np.maximum(i0, 0), np.minimum(i1, self._dims - 1)
+        st = self.storage
+        s = st.voxel
+        i0 = np.ceil((lo - st.origin) / s - 0.5).astype(np.int64)
+        i1 = np.floor((hi - st.origin) / s - 0.5).astype(np.int64)
+        if st.dims is not None:
+            i0, i1 = np.maximum(i0, 0), np.minimum(i1, st.dims - 1)
         if np.any(i1 < i0):
             raise ValueError(
                 f"Expected a box holding at least one voxel centre, but {lo.tolist()}-{hi.tolist()} "
                 "holds none (inside the bounds)"
             )
-        with self._lock:
-            self._settle()
-            v = self._dense(i0, i1, ("values",))["values"]
+        with st.lock:
+            st.settle()
+            v = st.dense(i0, i1, ("values",))["values"]
         v[np.isinf(v)] = np.nan
-        return self._box_grid(i0, i1), v
+        return st.box_grid(i0, i1), v
 
     def occupied_points(self, threshold: float, center_m=None, radius_m: float | None = None) -> np.ndarray:
         """(N, 3) float64 world centres (metres) of observed voxels with value >= ``threshold``,
         in the grid's order (x index, then y, then z); with ``center_m`` ((3,) point, or a
         (4, 4) pose whose position is taken) and ``radius_m``, only those within that distance."""
         thr = np.float32(check_finite_scalar(threshold, "threshold"))
-        with self._lock:
-            self._settle()
-            coords, data = self._blocks()
-        bs, s = self._bs, self._voxel
+        st = self.storage
+        with st.lock:
+            st.settle()
+            coords, data = st.blocks()
+        bs, s = st.bs, st.voxel
         c = None
         if center_m is not None or radius_m is not None:
             if center_m is None or radius_m is None:
@@ -1224,15 +512,15 @@ class MinMaxMapper:
             r = check_finite_scalar(radius_m, "radius_m")
             if r < 0:
                 raise ValueError(f"Expected radius_m >= 0, but got {r}")
-            mid = self._origin + (coords + 0.5) * bs * s
+            mid = st.origin + (coords + 0.5) * bs * s
             near = np.linalg.norm(mid - c, axis=1) <= r + float(np.linalg.norm(bs)) / 2 * s
             coords, vals = coords[near], data["values"][near]
         else:
             vals = data["values"]
         blk, loc = np.nonzero(np.isfinite(vals) & (vals >= thr))
-        idx = coords[blk] * bs + _local(self.B, self.Bz)[loc]
+        idx = coords[blk] * bs + local_offsets(st.B, st.Bz)[loc]
         idx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
-        pts = self._origin + (idx + 0.5) * s
+        pts = st.origin + (idx + 0.5) * s
         if c is not None:
             pts = pts[np.linalg.norm(pts - c, axis=1) <= r]
         return pts
@@ -1246,66 +534,22 @@ class MinMaxMapper:
         ``pool_bytes`` (the allocated pool, spare slots included, +1 byte per slot);
         ``index_bytes``; ``total_bytes`` (pool + index); ``dense_bytes``: a dense grid over the
         same box (the bounds, or the box of the blocks) at the same bytes per voxel."""
-        with self._lock:
-            self.synchronize()
-            self._reclaim()
-            coords, data = self._blocks()
-            n_obs = int(np.isfinite(data["min_all"]).sum())
-            i0, i1 = self._whole_box()
-            n = len(coords)
-            bpv = self.bytes_per_voxel
-            cap = self._backend.cap
-            dense = int(np.prod(i1 - i0 + 1)) * bpv if n or self._dims is not None else 0
-            return {
-                "blocks": n,
-                "block_size": self.B if self.Bz == self.B else [self.B, self.B, self.Bz],
-                "observed_voxels": n_obs,
-                "bytes_per_voxel": bpv,
-                "block_bytes": n * self.BV * bpv,
-                "observed_bytes": n_obs * bpv,
-                "block_over_observed": (n * self.BV / n_obs) if n_obs else None,
-                "pool_blocks": cap,
-                "pool_bytes": cap * self._block_bytes,
-                "index_bytes": int(self._index.nbytes),
-                "total_bytes": cap * self._block_bytes + int(self._index.nbytes),
-                "dense_bytes": dense,
-            }
+        return self.storage.memory_stats()
 
     # ------------------------------------------------------------------ confidence and view gain
-    def _need_confidence(self, what: str) -> None:
+    def _need_confidence(self, what: str) -> ConfidenceLayer:
         if self.sparse is not None:
             raise NotImplementedError(
                 f"Expected a gpumap.MinMaxMapper on a GridSpec with confidence=True for {what}(); a map that "
                 "allocates blocks on demand has no confidence layer yet"
             )
-        if self._confirmed is None:
+        if self.confidence_layer is None:
             raise ValueError(f"Expected a mapper made with confidence=True for {what}(), but it has none")
+        return self.confidence_layer
 
     def _confirm(self, T: np.ndarray, pad: float, img: np.ndarray) -> None:
         """The confidence pass of one ping, after its update (see :mod:`gpumap.confidence`)."""
-        from gpumap.confidence import APERTURE_MARGIN, TUBE_VOXELS, confirm_ping
-        from gpumap.geometry import beam_tan_edges
-
-        if img.dtype == np.uint8:
-            from gpumap.backends import U8_SCALE
-
-            img = img.astype(np.float32) * U8_SCALE
-        if not hasattr(self, "_conf_static"):
-            sp = self.spec
-            half = min(0.5 * sp.vfov_rad * (1.0 + APERTURE_MARGIN), 0.49 * np.pi)
-            wide = SonarSpec(sp.range_min_m, sp.range_max_m, sp.n_bins, sp.bearings_rad, 2.0 * half)
-            self._conf_static = (beam_tan_edges(sp), half, wide.fov_corners_S())
-        edges, half, pts = self._conf_static
-        keep = self._fov_pts_S
-        self._fov_pts_S = pts  # the box that holds the rivals (the widened aperture)
-        try:
-            params, _ = self._ping_params(T[None], np.array([pad]))
-        finally:
-            self._fov_pts_S = keep
-        values = self.raw_values().ravel()
-        flat = confirm_ping(params[0], img, edges, values, half, TUBE_VOXELS * self.grid.voxel_size_m,
-                            self._arcs)
-        self._confirmed[flat] = 1
+        self.confidence_layer.confirm(self.integrator, T, pad, img, self.raw_values, self.grid.voxel_size_m)
 
     def confidence(self) -> np.ndarray:
         """(nx, ny, nz) uint8 state of each voxel: 0 unknown, 1 free, 2 occupied and unconfirmed
@@ -1313,13 +557,11 @@ class MinMaxMapper:
         confirmed (some view resolved it in elevation; see :mod:`gpumap.confidence` for the exact
         rule). Occupied means a value ``>= threshold``; confidence never changes a value, so it
         never turns an occupied voxel free. Needs ``confidence=True``."""
-        self._need_confidence("confidence")
-        with self._lock:
+        layer = self._need_confidence("confidence")
+        with self.storage.lock:
             v = self.raw_values().ravel()
-            conf = self._confirmed.copy()
-        out = np.where(np.isinf(v), 0, np.where(v < np.float32(self.threshold), 1, 2)).astype(np.uint8)
-        out[(out == 2) & (conf == 1)] = 3
-        return out.reshape(self.grid.shape)
+            conf = layer.confirmed.copy()
+        return voxel_states(v, conf, self.threshold).reshape(self.grid.shape)
 
     def view_gain(self, T_W_S_candidates: np.ndarray, unknown_weight: float = 1.0) -> np.ndarray:
         """(K,) float64 gain of each candidate sonar pose ((K, 4, 4) float), from the map alone.
@@ -1333,105 +575,29 @@ class MinMaxMapper:
         Runs on the mapper's backend; every backend gives the NumPy reference's gains exactly.
         Needs ``confidence=True``. Raises on bad poses, with the map unchanged.
         """
-        from gpumap.nbv import GainRunner, _fov, gain_points, poses_to_rows
-
-        self._need_confidence("view_gain")
-        w = check_finite_scalar(unknown_weight, "unknown_weight")
-        if w < 0:
-            raise ValueError(f"Expected unknown_weight >= 0, but got {w}")
-        if isinstance(T_W_S_candidates, np.ma.MaskedArray):
-            raise TypeError("Expected a plain array for 'T_W_S_candidates', but got a masked array")
-        Ts = np.asarray(T_W_S_candidates)
-        if Ts.ndim != 3 or Ts.shape[1:] != (4, 4):
-            raise ValueError(f"Expected T_W_S_candidates of shape (K, 4, 4), but got {Ts.shape}")
-        Ts = _check_poses(Ts)
-        with self._lock:
-            pts = gain_points(self.raw_values(), self._confirmed.reshape(self.grid.shape) == 1,
-                              self.threshold, self.grid, self._arcs)
-            if self._gain_runner is None:
-                self._gain_runner = GainRunner(self._backend)
-            settle, unknown = self._gain_runner(poses_to_rows(Ts), pts, _fov(self._params))
-        return settle.astype(np.float64) + w * unknown.astype(np.float64)
+        layer = self._need_confidence("view_gain")
+        Ts, w = check_candidates(T_W_S_candidates, unknown_weight)
+        with self.storage.lock:
+            return layer.view_gain(Ts, w, self.raw_values(), self.threshold, self.grid, self.storage.backend,
+                                   self.integrator.params)
 
     # ------------------------------------------------------------------ reset, merge
     def reset(self) -> None:
         """Forget every ping: all voxels unknown again (on demand: no blocks; the pool keeps its size)."""
-        with self._lock:
-            if self._confirmed is not None:
-                self._confirmed[:] = 0
-                self._arcs[:] = 0
-            if self.sparse is None:  # every block back to never observed, the index unchanged
-                slots = np.arange(self._backend.cap, dtype=np.int32)
-                self._backend.set_blocks(slots, slots)
-            else:
-                self._free_slots(np.flatnonzero(self._used))
+        with self.storage.lock:
+            if self.confidence_layer is not None:
+                self.confidence_layer.reset()
+            self.storage.clear()
             self.n_integrated = 0
             self.pings.clear()
-            self._empty = True
 
     def merge(self, other) -> None:
         """Add the pings of ``other`` (a map of the same grid and options built from other pings:
         a mapper, a :class:`gpumap.merge.MapState` or a map file) to this map, in place; the result
         equals one mapper that integrated all of them, bit for bit (:mod:`gpumap.merge`). Never
         evicts: past ``max_bytes`` it raises :class:`MapMemoryError` with the map unchanged."""
-        from gpumap.merge import merge_into
-
-        merge_into(self, other)
-
-    def _put_blocks(self, coords: np.ndarray, arrays: dict, combine: bool) -> None:
-        """Blocks ``coords`` ((n, 3) int64, distinct, inside the bounds) take ``arrays``
-        (``min_all`` and for the visible rule ``bright``, ``count``: (n, B B Bz) each), merged with
-        what they hold when ``combine`` (:func:`gpumap.merge._combine_into`). Allocates missing
-        blocks (never evicts); raises :class:`MapMemoryError` past ``max_bytes``, unchanged."""
-        from gpumap.merge import _combine_into
-
-        if not len(coords):
-            return
-        self.synchronize()
-        self._settle()
-        if self._dims is None:  # an unbounded map's index must span the blocks
-            self._ensure_index(coords.min(axis=0), coords.max(axis=0))
-        lins = self._lins(coords)
-        flat = self._index.reshape(-1)
-        new = flat[lins] < 0
-        n_new = int(new.sum())
-        short = n_new - len(self._free)
-        if short > 0:
-            cap = self._backend.cap + short
-            if self.max_bytes is not None:
-                need = cap * self._block_bytes + self._index.nbytes
-                if need > self.max_bytes:
-                    raise MapMemoryError(
-                        f"Expected the map to stay under max_bytes={self.max_bytes}, but it needs {cap} "
-                        f"blocks of {self._block_bytes} bytes plus a {self._index.nbytes}-byte index "
-                        f"({need} bytes); the map is unchanged (merge never evicts)"
-                    )
-            self._grow_to(cap)
-        if n_new:
-            k = len(self._free) - n_new
-            slots_new = self._free[k:][::-1]
-            self._free = self._free[:k]
-            flat[lins[new]] = slots_new
-            self._coords[slots_new] = coords[new]
-            self._used[slots_new] = True
-            self._backend.set_blocks(slots_new.astype(np.int32), lins[new].astype(np.int32))
-        slots = flat[lins].astype(np.int64)
-        names = ("min_all", "bright", "count") if self._stateful else ("min_all",)
-        mine = {k: arrays[k] for k in names}
-        if combine and n_new < len(coords):
-            # only blocks that already hold something are read and combined (a block never observed,
-            # merged or loaded has seen 0); the others take the arrays as they are
-            held = self._holding(slots)
-            if held.any():
-                part = dict(zip(("min_all", "bright", "count"), self._backend.read_blocks(slots[held]),
-                                strict=True))
-                part = {k: part[k] for k in names}
-                _combine_into(part, {k: v[held] for k, v in mine.items()}, self.rule)
-                self._backend.write_blocks(slots[held], part["min_all"], part.get("bright"),
-                                           part.get("count"))
-                slots, mine = slots[~held], {k: v[~held] for k, v in mine.items()}
-        self._backend.write_blocks(slots, mine["min_all"], mine.get("bright"), mine.get("count"))
-        self._empty = False
+        check_other(self, other)
+        merge_state(self, as_state(other, MinMaxMapper))
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | os.PathLike) -> Path:
@@ -1446,47 +612,7 @@ class MinMaxMapper:
         threshold, carve_views, shadow_m and the ping count, under a format name and version
         checked by :meth:`load`; ``pings`` (n,) uint64, the pings' fingerprints (:mod:`gpumap.pings`).
         """
-        path = Path(path)
-        if path.suffix != ".npz":
-            path = path.with_suffix(path.suffix + ".npz") if path.suffix else path.with_suffix(".npz")
-        B, Bz = self.B, self.Bz
-        with self._lock:  # one consistent snapshot, even while other threads integrate
-            self.synchronize()
-            self._settle()
-            coords, data = self._blocks()
-            keep = np.isfinite(data["min_all"]).any(axis=1)
-            arrays = {"blocks": coords[keep].astype(np.int32), "values": data["values"][keep]}
-            if self._stateful:
-                arrays.update({k: data[k][keep] for k in ("min_all", "bright", "count")})
-            if self._confirmed is not None:
-                shape = self.grid.shape
-                arrays["confirmed"] = self._to_pool_order(self._confirmed.reshape(shape), 0)[keep]
-                arrays["arcs"] = self._to_pool_order(self._arcs.reshape(shape), 0)[keep]
-            n_integrated = self.n_integrated
-            arrays["pings"] = self.pings.array()
-        arrays = {k: v if k in ("blocks", "pings") else v.reshape(-1, B, B, Bz) for k, v in arrays.items()}
-        meta = {
-            "format": FILE_FORMAT,
-            "version": FILE_VERSION,
-            "spec": self.spec.to_dict(),
-            "grid": self.grid.to_dict() if self.sparse is None else None,
-            "sparse": None if self.sparse is None else self.sparse.to_dict(),
-            "block": [B, B, Bz],
-            "method": self.method,
-            "shadow_m": self.shadow_m,
-            "rule": self.rule,
-            "threshold": self.threshold,
-            "carve_views": self.carve_views,
-            "bright_share": self.bright_share,
-            "share_z": self.share_z,
-            "n_integrated": n_integrated,
-            "backend": self.backend,
-            "confidence": self._confirmed is not None,
-        }
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_write(path) as f:
-            np.savez_compressed(f, **arrays, meta=np.array(json.dumps(meta)))
-        return path
+        return save_file(self, path)
 
     @classmethod
     def load(cls, path: str | os.PathLike, backend: str = "auto", **kw) -> MinMaxMapper:
@@ -1504,251 +630,4 @@ class MinMaxMapper:
         :class:`~gpumap.errors.LimitError` when the map would not fit in memory) saying what
         was expected and what came.
         """
-        path = Path(path)
-        try:
-            with zipfile.ZipFile(path) as zf:
-                members = {i.filename: i for i in zf.infolist()}
-                if "meta.npy" not in members or not {"values.npy", "blocks.npy"} & set(members):
-                    raise FormatError(
-                        f"Expected a gpumap map file with 'meta' and 'blocks' (or 'meta' and 'values', "
-                        f"versions 1 to 3), but {path} has "
-                        f"{sorted(n.removesuffix('.npy') for n in members)}"
-                    )
-                headers = {
-                    n: _npy_header(zf, info, path) for n, info in members.items() if n.endswith(".npy")
-                }
-                if members["meta.npy"].file_size > _META_MAX_BYTES:
-                    raise FormatError(
-                        f"Expected map metadata under {_META_MAX_BYTES} bytes in {path}, "
-                        f"but it declares {members['meta.npy'].file_size}"
-                    )
-                with zf.open("meta.npy") as f:
-                    meta = json.loads(str(np.lib.format.read_array(f, allow_pickle=False)))
-                spec, space, opts, n_integrated, dense_file = _check_meta(meta, path)
-                # before version 5 'count' was the visible rule's uint8 dark count
-                count_dt = np.uint64 if meta.get("version") == FILE_VERSION else np.uint8
-                prints = read_prints(zf, members, headers, n_integrated, path)
-                if cls._on_demand and not isinstance(space, SparseSpec):
-                    raise FormatError(f"Expected a sparse map file (blocks on demand) for {cls.__name__}, "
-                                      f"but {path} holds a map of a bounded grid: load it with MinMaxMapper")
-                names = ("values", "min_all", "bright", "count") if opts["rule"] != "plain" else ("values",)
-                if opts["confidence"]:
-                    names = (*names, "confirmed", "arcs")
-                if dense_file:  # versions 1 to 3: arrays over the grid
-                    n_blocks, shape = None, space.shape
-                else:
-                    bshape, bdt = headers.get("blocks.npy", (None, None))
-                    if bshape is None or len(bshape) != 2 or bshape[1] != 3 or bdt != np.dtype(np.int32):
-                        raise FormatError(
-                            f"Expected 'blocks' of shape (n, 3) int32 in {path}, but got "
-                            f"{'nothing' if bshape is None else f'{bshape} {bdt}'}"
-                        )
-                    if isinstance(space, SparseSpec):
-                        B, Bz = space.block, space.block
-                    else:  # as a mapper of this grid lays its blocks out
-                        B, Bz = BLOCK, int(space.shape[2])
-                    if meta.get("block", [B, B, Bz]) != [B, B, Bz]:
-                        raise FormatError(f"Expected blocks of {[B, B, Bz]} voxels in {path}, but its "
-                                          f"metadata says {meta.get('block')!r}")
-                    n_blocks = bshape[0]
-                    shape = (n_blocks, B, B, Bz)
-                for name in names:
-                    dt = {"count": count_dt, "confirmed": np.uint8, "arcs": np.uint16}.get(name, np.float32)
-                    got, dtype = headers.get(f"{name}.npy", (None, None))
-                    if got != shape or dtype != np.dtype(dt):
-                        raise FormatError(
-                            f"Expected '{name}' of shape {shape} {np.dtype(dt)} in {path}, "
-                            f"but got {'nothing' if got is None else f'{got} {dtype}'}"
-                        )
-                size = {"count": 8, "confirmed": 1, "arcs": 2}
-                need = sum(int(np.prod(shape)) * size.get(n, 4) for n in names)
-                free = _free_memory_bytes("numpy")
-                if free is not None and 2 * need > free:
-                    raise LimitError(
-                        f"Expected a map that fits in memory, but {path} holds {need / 2**30:.2f} GiB "
-                        f"(twice that while loading) and {free / 2**30:.2f} GiB are free"
-                    )
-                arrays = {}
-                for name in (*names, *(() if dense_file else ("blocks",))):
-                    with zf.open(f"{name}.npy") as f:
-                        arrays[name] = np.lib.format.read_array(f, allow_pickle=False)
-                if "count" in arrays:  # the packed view counts (an old file's dark count, no bright count)
-                    arrays["count"] = arrays["count"].astype(np.uint64)
-        except (OSError, EOFError, zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError,
-                zlib.error, tokenize.TokenError, SyntaxError, NotImplementedError, struct.error) as e:
-            # damaged deflate data, a damaged .npy header dict, an unknown zip compression
-            raise FormatError(
-                f"Expected a gpumap map file (.npz) at {path}, but it cannot be read "
-                f"({type(e).__name__}: {e})"
-            ) from e
-        if dense_file:
-            _check_map_values(arrays, opts, path)
-            m = cls(spec, space, backend=backend, **opts, **kw)
-            pool = {k: m._to_pool_order(arrays[k], 0 if k == "count" else np.inf).ravel()
-                    for k in (("min_all", "bright", "count") if opts["rule"] != "plain" else ("values",))}
-            with m._lock:
-                grid = pool["min_all"] if opts["rule"] != "plain" else pool["values"]
-                m._backend.write(grid, pool.get("bright"), pool.get("count"))
-                m._backend._write_seen(np.ones(m._backend.cap, np.uint8))  # merges combine with them
-                m._empty = False
-                if opts["confidence"]:
-                    m._confirmed[:] = arrays["confirmed"].ravel()
-                    m._arcs[:] = arrays["arcs"].ravel()
-                m.n_integrated = n_integrated
-                m.pings = prints
-            return m
-        coords = arrays.pop("blocks").astype(np.int64)
-        n = len(coords)
-        bs = np.array([B, B, Bz], np.int64)
-        flat = {k: v.reshape(n, B * B * Bz) for k, v in arrays.items()}
-        _check_map_values(flat, opts, path)
-        if n and len(np.unique(coords, axis=0)) != n:
-            raise FormatError(f"Expected each block once in {path}, but some repeat")
-        if np.abs(coords).max(initial=0) * max(B, Bz) > _MAX_VOXEL_INDEX - 2 * max(B, Bz):
-            raise FormatError(f"Expected block coordinates within +-{_MAX_VOXEL_INDEX // B - 2} in {path}")
-        obs = np.isfinite(flat["min_all" if opts["rule"] != "plain" else "values"])
-        if not obs.any(axis=1).all():
-            raise FormatError(f"Expected every block in {path} to hold an observed voxel, but some hold none")
-        dims = space.shape
-        if dims is not None and n:
-            idx = coords[:, None, :] * bs + _local(B, Bz)[None]
-            outside = np.any((idx < 0) | (idx >= np.asarray(dims)), axis=2)
-            if np.any(outside & obs) or np.any(coords < 0) or np.any(coords * bs >= np.asarray(dims)):
-                raise FormatError(
-                    f"Expected observed voxels only inside the bounds in {path}, but some lie outside"
-                )
-        if isinstance(space, SparseSpec):
-            kw = {"initial_blocks": max(1, n), **kw}
-        m = cls(spec, space, backend=backend, **opts, **kw)
-        src = {"min_all": flat["min_all" if opts["rule"] != "plain" else "values"]}
-        if opts["rule"] != "plain":
-            src["bright"], src["count"] = flat["bright"], flat["count"]
-        with m._lock:
-            m._put_blocks(coords, src, combine=False)
-            if opts["confidence"]:  # host arrays over the grid, from the file's blocks
-                layer = m._dense(*m._whole_box(), ("confirmed", "arcs"), blocks=(coords, flat))
-                m._confirmed[:] = layer["confirmed"].ravel()
-                m._arcs[:] = layer["arcs"].ravel()
-            m.n_integrated = n_integrated
-            m.pings = prints
-        return m
-
-
-# Map metadata is a small JSON document; anything larger is not one of ours.
-_META_MAX_BYTES = 1 << 20
-# deflate's largest expansion is about 1032 : 1; a member that claims more is a bomb.
-_DEFLATE_MAX_RATIO = 1100
-
-
-def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path) -> tuple[tuple, np.dtype]:
-    """(shape, dtype) of one .npy member from its header, checked against its sizes."""
-    with zf.open(info) as f:
-        version = np.lib.format.read_magic(f)
-        if version == (1, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
-        elif version in ((2, 0), (3, 0)):
-            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
-        else:
-            raise FormatError(f"Expected .npy version 1-3 for {info.filename} in {path}, but got {version}")
-        header_bytes = f.tell()
-    data_bytes = -1 if dtype.hasobject else int(np.prod(shape, dtype=object)) * dtype.itemsize
-    if data_bytes < 0 or fortran or info.file_size != header_bytes + data_bytes:
-        raise FormatError(
-            f"Expected {info.filename} in {path} to hold its declared {shape} {dtype} array "
-            f"({header_bytes + max(data_bytes, 0)} bytes, C order), but the archive says {info.file_size}"
-        )
-    bomb = info.file_size > _DEFLATE_MAX_RATIO * info.compress_size + 4096
-    if info.compress_type != zipfile.ZIP_STORED and bomb:
-        raise FormatError(
-            f"Expected {info.filename} in {path} to inflate at most {_DEFLATE_MAX_RATIO}:1, but it declares "
-            f"{info.file_size} bytes from {info.compress_size}: refused before inflating"
-        )
-    return tuple(shape), dtype
-
-
-def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec | SparseSpec, dict, int, bool]:
-    """The sonar spec, the grid (a GridSpec, or a SparseSpec for a map on demand), the constructor
-    options, the ping count of a map file's metadata, and whether it holds dense arrays over the
-    grid (versions 1 to 3) rather than blocks."""
-    if not isinstance(meta, dict):
-        raise FormatError(f"Expected a JSON object as map metadata in {path}, but got {type(meta).__name__}")
-    fmt, version = meta.get("format"), meta.get("version")
-    if fmt not in (FILE_FORMAT, SPARSE_FILE_FORMAT):
-        raise FormatError(f"Expected format {FILE_FORMAT!r} in {path}, but got {fmt!r}")
-    if (fmt == FILE_FORMAT and version not in (1, 2, 3, 4, FILE_VERSION)) or (
-            fmt == SPARSE_FILE_FORMAT and version != 1):
-        raise FormatError(
-            f"Expected file version 1 to {FILE_VERSION} in {path} ({fmt}), but got {version!r}"
-        )
-    sparse_file = fmt == SPARSE_FILE_FORMAT or (
-        version in (4, FILE_VERSION) and meta.get("sparse") is not None)
-    try:
-        spec = SonarSpec.from_dict(meta["spec"])
-        space = SparseSpec.from_dict(meta["sparse"]) if sparse_file else GridSpec.from_dict(meta["grid"])
-    except (KeyError, TypeError, ValueError, OverflowError, IndexError) as e:
-        raise FormatError(
-            f"Expected a sonar spec and a grid spec (a sparse spec on demand) in the metadata of {path}, "
-            f"but: {e!r}"
-        ) from e
-    n = meta.get("n_integrated")
-    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-        raise FormatError(f"Expected a non-negative integer n_integrated in {path}, but got {n!r}")
-    rule = meta.get("rule", "plain")  # version 1 maps are plain min-max
-    opts = {
-        "method": meta.get("method"),
-        "shadow_m": meta.get("shadow_m", 0.0),
-        "rule": rule,
-        "threshold": meta.get("threshold", 0.1),
-        "carve_views": meta.get("carve_views", 2),
-        "bright_share": meta.get("bright_share", BRIGHT_SHARE),
-        "share_z": meta.get("share_z", SHARE_Z),
-        "confidence": meta.get("confidence", False),  # versions 1 and 2 have no confidence layer
-    }
-    if opts["method"] not in METHODS or rule not in RULES or (sparse_file and opts["method"] != "gather"):
-        raise FormatError(
-            f"Expected method in {METHODS} ('gather' on demand) and rule in {RULES} in {path}, but got "
-            f"{opts['method']!r} and {rule!r}"
-        )
-    if not isinstance(opts["confidence"], bool) or (sparse_file and opts["confidence"]):
-        raise FormatError(f"Expected a bool for confidence (False on demand) in {path}, but got "
-                          f"{opts['confidence']!r}")
-    for key in ("shadow_m", "threshold"):
-        if isinstance(opts[key], bool) or not isinstance(opts[key], (int, float)):
-            raise FormatError(f"Expected a number for {key} in {path}, but got {opts[key]!r}")
-    cv = opts["carve_views"]
-    if isinstance(cv, bool) or not isinstance(cv, int) or not 1 <= cv <= 255:
-        raise FormatError(f"Expected carve_views in 1..255 in {path}, but got {cv!r}")
-    p, z = opts["bright_share"], opts["share_z"]
-    if any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in (p, z)) or not (
-            0.0 < p <= 1.0 and 0.0 <= z <= 10.0):
-        raise FormatError(f"Expected bright_share in (0, 1] and share_z in [0, 10] in {path}, but got "
-                          f"{p!r} and {z!r}")
-    return spec, space, opts, n, fmt == FILE_FORMAT and version not in (4, FILE_VERSION)
-
-
-def _check_map_values(arrays: dict[str, np.ndarray], opts: dict, path: Path) -> None:
-    """Values a map can hold: finite in [0, 1] or +inf; the visible rule's state consistent."""
-    for name in ("values", "min_all", "bright"):
-        if name not in arrays:
-            continue
-        a = arrays[name]
-        fin = np.isfinite(a)
-        bad = ~(fin | (a == np.inf)) | (fin & ((a < 0) | (a > 1)))
-        if bad.any():
-            i = np.unravel_index(int(np.argmax(bad)), a.shape)
-            raise FormatError(
-                f"Expected '{name}' in [0, 1] or +inf (never observed) in {path}, but got {a[i]} at "
-                f"{tuple(int(x) for x in i)} and {int(bad.sum()) - 1} more"
-            )
-    if "confirmed" in arrays and np.any(arrays["confirmed"] > 1):
-        raise FormatError(f"Expected 'confirmed' flags of 0 or 1 in {path}, but some are larger")
-    if "arcs" in arrays and np.any(arrays["arcs"] >= 1 << 13):
-        raise FormatError(f"Expected 13-bit 'arcs' masks in {path}, but some have higher bits")
-    if opts["rule"] != "plain":
-        unseen = np.isinf(arrays["min_all"])
-        if np.any(unseen & (np.isfinite(arrays["bright"]) | (arrays["count"] > 0))):
-            raise FormatError(f"Expected no evidence on never-observed voxels in {path}, but some have it")
-        want = rule_values(opts["rule"], arrays["min_all"], arrays["bright"], arrays["count"],
-                           opts["carve_views"], opts["bright_share"], opts["share_z"])
-        if not np.array_equal(want, arrays["values"]):
-            raise FormatError(f"Expected 'values' in {path} to follow from its state, but they disagree")
+        return load_file(cls, path, backend, kw, on_demand=cls._on_demand)

@@ -18,7 +18,8 @@ that keeps more state per voxel is priced from its entry in :data:`STATE_BYTES`
 alone (the one table to change when a rule's arrays change), and :func:`run_bytes` is what
 ``gpumap replay`` checks, before the mapper allocates anything, against the memory the machine
 has available (``MemAvailable``), less :data:`HEADROOM`, or against ``--max-memory``. The
-mapper itself checks its state alone against the device's free memory when it allocates.
+mapper itself checks its state alone against the device's free memory
+(:func:`free_memory_bytes`) when it allocates.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ __all__ = [
     "available_bytes",
     "bytes_per_voxel",
     "check_run_fits",
+    "free_memory_bytes",
     "parse_size",
     "run_bytes",
 ]
@@ -80,6 +82,22 @@ def available_bytes() -> int | None:
                 if line.startswith("MemAvailable:"):
                     return int(line.split()[1]) * 1024
     except OSError:
+        return None
+    return None
+
+
+def free_memory_bytes(backend: str) -> int | None:
+    """Best guess of the memory a map may take on the backend ``backend`` (None if unknown): the
+    machine's available memory for CPU backends, the GPU's free memory for ``warp-cuda``."""
+    try:
+        if backend in ("numpy", "warp-cpu") or backend.startswith("opencl"):
+            return available_bytes()
+        if backend == "warp-cuda":
+            from gpumap.backends import _warp
+
+            wp, _ = _warp()  # initialised quietly, as the backend does
+            return int(wp.get_device("cuda:0").free_memory)
+    except Exception:  # the check is advisory; the allocation itself still fails loudly
         return None
     return None
 

@@ -141,7 +141,7 @@ def _fov(params: np.ndarray) -> tuple[float, float, float, float, float]:
 
 def poses_to_rows(Ts: np.ndarray) -> np.ndarray:
     """(K, 4, 4) float64 checked poses -> (K, 12) float32 rows of ``A = R^T`` and ``b = -R^T t``,
-    rounded as :meth:`MinMaxMapper._ping_params` rounds a ping's."""
+    rounded as :meth:`gpumap.integrator.Integrator.ping_params` rounds a ping's."""
     R = Ts[:, :3, :3]
     t = Ts[:, :3, 3]
     out = np.empty((Ts.shape[0], 12), np.float32)

@@ -60,9 +60,9 @@ def _sequential(backend, rule, imgs, poses, covs=None, **kw) -> gpumap.MinMaxMap
 
 def _batch_kernels(m: gpumap.MinMaxMapper) -> gpumap.MinMaxMapper:
     """Make a CPU backend fold batches with the GPU batch kernels (warp-cpu, opencl-cpu)."""
-    if not hasattr(m._backend, "batch_kernels"):
+    if not hasattr(m.storage.backend, "batch_kernels"):
         pytest.skip(f"{m.backend} has no batch kernels")
-    m._backend.batch_kernels = True
+    m.storage.backend.batch_kernels = True
     return m
 
 
@@ -91,7 +91,7 @@ def test_uint8_batch_equals_sequential(backend, rule, monkeypatch):
     ref = _state(_sequential(backend, rule, u8, poses))
     for kernels in (False, True):
         m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule=rule)
-        if kernels and hasattr(m._backend, "batch_kernels"):
+        if kernels and hasattr(m.storage.backend, "batch_kernels"):
             _batch_kernels(m)
         m.integrate_batch(u8, poses)
         _assert_same(_state(m), ref)
@@ -108,7 +108,7 @@ def test_batch_with_pose_cov_equals_sequential(backend, rule):
     covs = np.asarray(covs)
     ref = _state(_sequential(backend, rule, imgs, poses, covs))
     m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule=rule)
-    if hasattr(m._backend, "batch_kernels"):
+    if hasattr(m.storage.backend, "batch_kernels"):
         _batch_kernels(m)
     m.integrate_batch(imgs, poses, pose_cov=covs)
     _assert_same(_state(m), ref)
@@ -132,7 +132,7 @@ def test_split_batches_far_apart_and_over_the_launch_cap(backend, rule, monkeypa
     poses[4:, 0, 3] += 1.2  # the last four pings 1.2 m away along x
     ref = _state(_sequential(backend, rule, imgs, poses))
     m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule=rule)
-    if hasattr(m._backend, "batch_kernels"):
+    if hasattr(m.storage.backend, "batch_kernels"):
         _batch_kernels(m)
     m.integrate_batch(imgs, poses)
     _assert_same(_state(m), ref)
@@ -228,9 +228,9 @@ def test_first_bright_per_cell_equals_per_beam(backend):
     imgs, poses = _pings(5, seed=7)
     ref = _state(_sequential(backend, "visible", imgs, poses))
     m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule="visible")
-    if not hasattr(m._backend, "first_bright_cells"):
+    if not hasattr(m.storage.backend, "first_bright_cells"):
         pytest.skip(f"{m.backend} has one first-bright path")
-    m._backend.first_bright_cells = not m._backend.first_bright_cells  # the other path
+    m.storage.backend.first_bright_cells = not m.storage.backend.first_bright_cells  # the other path
     for k in range(len(imgs)):
         m.integrate(imgs[k], poses[k])
     _assert_same(_state(m), ref)

@@ -73,8 +73,8 @@ def test_dense_files_of_versions_1_to_3_load(tmp_path, version):
         arrays.update(_old_evidence(m))
     extra = {}
     if version == 3:
-        arrays["confirmed"] = m._confirmed.reshape(GRID.shape).copy()
-        arrays["arcs"] = m._arcs.reshape(GRID.shape).copy()
+        arrays["confirmed"] = m.confidence_layer.confirmed.reshape(GRID.shape).copy()
+        arrays["arcs"] = m.confidence_layer.arcs.reshape(GRID.shape).copy()
         extra["confidence"] = True
         assert (arrays["confirmed"] == 1).any()  # the layer holds something to get back
     _write(tmp_path / "old.npz", _meta(m, version, **extra), **arrays)
@@ -133,7 +133,7 @@ def test_version_5_round_trip_holds_only_observed_blocks(tmp_path, sparse):
         blocks, values = z["blocks"], z["values"]
         assert json.loads(str(z["meta"]))["version"] == 5
         assert z["count"].dtype == np.uint64
-    assert 0 < len(blocks) < int(np.prod(m._index.shape))  # only blocks with an observed voxel
+    assert 0 < len(blocks) < int(np.prod(m.storage.index.shape))  # only blocks with an observed voxel
     assert np.isfinite(values.reshape(len(blocks), -1)).any(axis=1).all()
     got = gpumap.MinMaxMapper.load(path, backend="numpy")
     assert (got.sparse is None) == (not sparse)
@@ -147,15 +147,18 @@ def test_a_bounded_box_allocates_every_block_up_front_and_never_searches(monkeyp
     grid's height, slot = index entry) and integrates without the per-ping block search."""
     m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.1)
     nb = (-(-GRID.shape[0] // 8), -(-GRID.shape[1] // 8), 1)
-    assert m._index.shape == nb and (m.B, m.Bz) == (8, GRID.shape[2])
-    np.testing.assert_array_equal(m._index.ravel(), np.arange(int(np.prod(nb))))
+    assert m.storage.index.shape == nb and (m.B, m.Bz) == (8, GRID.shape[2])
+    np.testing.assert_array_equal(m.storage.index.ravel(), np.arange(int(np.prod(nb))))
     assert m.memory_stats()["pool_blocks"] == int(np.prod(nb))
 
     def searched(*a, **k):
         raise AssertionError("a bounded box searched for blocks")
 
-    monkeypatch.setattr(gpumap.MinMaxMapper, "_candidate_lins", searched)
-    monkeypatch.setattr(gpumap.MinMaxMapper, "_allocate", searched)
+    from gpumap.integrator import Integrator
+    from gpumap.storage import BlockStorage
+
+    monkeypatch.setattr(Integrator, "candidate_lins", searched)
+    monkeypatch.setattr(BlockStorage, "allocate", searched)
     for img, T in PINGS:
         m.integrate(img, T)
     imgs = np.stack([img for img, _ in PINGS])

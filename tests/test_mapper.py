@@ -374,11 +374,11 @@ def test_bad_specs_are_refused_with_the_reason():
 
 
 def test_grid_too_big_for_memory_says_how_much_it_needs(monkeypatch):
-    from gpumap import mapper as mapper_mod
+    from gpumap import memory
 
     grid = gpumap.GridSpec((0, 0, 0), (10, 10, 10), 0.01)  # 1e9 voxels = 3.73 GiB of float32
-    assert mapper_mod._free_memory_bytes("numpy") > 0  # this machine's own figure is readable
-    monkeypatch.setattr(mapper_mod, "_free_memory_bytes", lambda name: 2**30)  # 1 GiB free
+    assert memory.free_memory_bytes("numpy") > 0  # this machine's own figure is readable
+    monkeypatch.setattr(memory, "free_memory_bytes", lambda name: 2**30)  # 1 GiB free
     with pytest.raises(ValueError, match=r"need 3\.73 GiB and numpy has 1\.00 GiB free"):
         gpumap.MinMaxMapper(SPEC, grid, backend="numpy", rule="plain")
     # the evidence rule keeps 12 more bytes per voxel (bright float32, count uint64): 16 / 4 as much
@@ -469,8 +469,8 @@ def test_gpu_table_builders_match_cpu_ones():
     img = (RNG.random(SPEC.image_shape) ** 3).astype(np.float32)
     have = available_backends()
     m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain")  # the backends below hold no evidence
-    params = m._params
-    n_cols = ping_params(params, T_A, m._fov_pts_S, GRID)
+    params = m.integrator.params
+    n_cols = ping_params(params, T_A, m.integrator.fov_pts_S, GRID)
     n_levels = int(params["n_levels"])
     plane = SPEC.n_bins * SPEC.n_beams
     tables = {}
@@ -530,7 +530,7 @@ def test_gather_in_short_column_chunks_matches_reference(name, chunk):
     imgs = [(RNG.random(SPEC.image_shape) ** 4).astype(np.float32) for _ in range(2)]
     ref = integrate("numpy", zip(imgs, [T_A, T_B], strict=True)).raw_values()
     m = gpumap.MinMaxMapper(SPEC, GRID, backend=name)
-    m._backend.chunk = chunk
+    m.storage.backend.chunk = chunk
     for img, T in zip(imgs, [T_A, T_B], strict=True):
         m.integrate(img, T)
     np.testing.assert_array_equal(m.raw_values(), ref)

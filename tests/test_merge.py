@@ -50,7 +50,7 @@ def _state(m) -> dict:
         out.update(m.evidence())
     if m.sparse is not None:
         m.memory_stats()
-        out["blocks"] = sorted(tuple(c) for c in m._coords[m._used])
+        out["blocks"] = sorted(tuple(c) for c in m.storage.coords[m.storage.used])
     return out
 
 
@@ -200,7 +200,7 @@ def test_mismatches_are_refused_and_leave_the_map_unchanged():
     _assert_same(_state(m), before)
     # blocks outside the grid, or one block twice: refused, the map unchanged
     blocks = st.arrays["blocks"].copy()
-    shifts = (np.array([m._index.shape[0], 0, 0]), -np.array([0, 0, blocks[:, 2].max() + 1]))
+    shifts = (np.array([m.storage.index.shape[0], 0, 0]), -np.array([0, 0, blocks[:, 2].max() + 1]))
     for bad_blocks in (*(blocks + d for d in shifts), np.concatenate([blocks[:1], blocks[:-1]])):
         with pytest.raises(ValueError, match="inside the map's bounds"):
             m.merge(MapState(st.kind, st.options, 1, {**st.arrays, "blocks": bad_blocks}))
@@ -232,7 +232,8 @@ def test_sparse_merge_over_max_bytes_raises_unchanged():
     b = _sparse("numpy", pings[1:])
     na, nb = len(_state(a)["blocks"]), len(_state(b)["blocks"])
     capped = SparseMinMaxMapper(SPEC, BOUNDED, backend="numpy", threshold=0.1, initial_blocks=1,
-                                max_bytes=a._index.nbytes + (na + 1) * a._block_bytes, evict="farthest")
+                                max_bytes=a.storage.index.nbytes + (na + 1) * a.storage.block_bytes,
+                                evict="farthest")
     capped.merge(a)  # fits
     before = _state(capped)
     assert nb > 1

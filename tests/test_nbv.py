@@ -93,8 +93,8 @@ def test_confirmed_flag_never_frees_and_batch_equals_sequence(backend):
 
 def _state_mapper(backend: str, values: np.ndarray) -> gpumap.MinMaxMapper:
     m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule="plain", confidence=True)
-    pool = m._to_pool_order(np.ascontiguousarray(values, np.float32), np.inf)  # a hand-made map state
-    m._backend.write(pool.ravel(), None, None)
+    pool = m.storage.to_pool_order(np.ascontiguousarray(values, np.float32), np.inf)  # a hand-made map state
+    m.storage.backend.write(pool.ravel(), None, None)
     return m
 
 
@@ -111,7 +111,7 @@ def test_gain_counts_a_voxel_whose_arc_neighbours_are_free():
     i, j, k = _target_index()
     v[i, j, :] = 0.5  # a vertical column of occupied voxels through the target
     m = _state_mapper("numpy", v)
-    m._arcs[:] = (1 << 13) - 1
+    m.confidence_layer.arcs[:] = (1 << 13) - 1
     cand = np.stack([_look_at_target(), _look_at_target(math.pi / 2), _look_at_target(math.pi / 4)])
     g = m.view_gain(cand, unknown_weight=0.0)
     n_col = GRID.shape[2]
@@ -136,7 +136,7 @@ def test_gain_counts_a_new_arc_direction_next_to_free_space():
     i, _, _ = _target_index()
     v[i, :, :] = 0.5
     m = _state_mapper("numpy", v)
-    m._arcs[:] = 1 << _bit((0, 0, 1))
+    m.confidence_layer.arcs[:] = 1 << _bit((0, 0, 1))
     cand = np.stack([_look_at_target(), _look_at_target(math.pi / 2)])
     g = m.view_gain(cand, unknown_weight=0.0)
     idx = np.argwhere(v > 0.1)
@@ -144,7 +144,7 @@ def test_gain_counts_a_new_arc_direction_next_to_free_space():
     T = cand[1]
     seen = SPEC.in_fov((c - T[:3, 3]) @ T[:3, :3])
     assert g[0] == 0 and g[1] == seen.sum() > 10
-    m._arcs[:] |= 1 << _bit((0, 1, 0))
+    m.confidence_layer.arcs[:] |= 1 << _bit((0, 1, 0))
     assert m.view_gain(cand[1:], unknown_weight=0.0)[0] < 0.1 * seen.sum()  # only arcs off the y step
 
 
@@ -153,10 +153,10 @@ def test_confidence_pass_records_the_arc_directions():
     f = np.ravel_multi_index(_target_index(), GRID.shape)
     T1 = _look_at_target()
     m.integrate(_echo_image(T1), T1)
-    assert m._arcs[f] == 1 << _bit((0, 0, 1))  # level: the arc is vertical
+    assert m.confidence_layer.arcs[f] == 1 << _bit((0, 0, 1))  # level: the arc is vertical
     T2 = _look_at_target(math.pi / 2)
     m.integrate(_echo_image(T2), T2)
-    assert m._arcs[f] == (1 << _bit((0, 0, 1))) | (1 << _bit((0, 1, 0)))  # rolled: horizontal
+    assert m.confidence_layer.arcs[f] == (1 << _bit((0, 0, 1))) | (1 << _bit((0, 1, 0)))  # rolled: horizontal
 
 
 def test_gain_counts_unknown_blocks():
@@ -185,8 +185,8 @@ def test_view_gain_matches_reference_on_every_backend(backend):
         m.integrate(img, T)
     Ts = np.concatenate([candidate_poses(_look_at_target(), 150, seed=s) for s in range(2)])
     g = m.view_gain(Ts, unknown_weight=0.5)
-    pts = gain_points(m.raw_values(), m.confidence() == 3, m.threshold, GRID, m._arcs)
-    settle, unknown = view_gain_reference(poses_to_rows(Ts), pts, _fov(m._params))
+    pts = gain_points(m.raw_values(), m.confidence() == 3, m.threshold, GRID, m.confidence_layer.arcs)
+    settle, unknown = view_gain_reference(poses_to_rows(Ts), pts, _fov(m.integrator.params))
     assert (settle > 0).any() and (unknown > 0).any()
     np.testing.assert_array_equal(g, settle + 0.5 * unknown)
 
@@ -224,8 +224,8 @@ def test_confidence_saved_and_loaded(tmp_path):
     p = m.save(tmp_path / "m.npz")
     back = gpumap.MinMaxMapper.load(p, backend="numpy")
     np.testing.assert_array_equal(back.confidence(), m.confidence())
-    np.testing.assert_array_equal(back._arcs, m._arcs)
-    assert m._arcs.any()
+    np.testing.assert_array_equal(back.confidence_layer.arcs, m.confidence_layer.arcs)
+    assert m.confidence_layer.arcs.any()
     # a map without the layer still saves and loads without it
     n = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")
     n.integrate(_echo_image(T), T)

@@ -42,8 +42,8 @@ def _sparse(backend, pings, sparse=BOUNDED, rule="visible", spec=SPEC, **kw):
 
 def _in_grid(m: SparseMinMaxMapper, grid: gpumap.GridSpec, name: str = "values") -> np.ndarray:
     """The sparse map's ``name`` over the dense grid's voxels (+inf / 0 where no block)."""
-    i0 = np.round((np.asarray(grid.min_corner_m) - m._origin) / grid.voxel_size_m).astype(np.int64)
-    return m._dense(i0, i0 + np.asarray(grid.shape) - 1, (name,))[name]
+    i0 = np.round((np.asarray(grid.min_corner_m) - m.storage.origin) / grid.voxel_size_m).astype(np.int64)
+    return m.storage.dense(i0, i0 + np.asarray(grid.shape) - 1, (name,))[name]
 
 
 def _assert_same(sparse: SparseMinMaxMapper, dense: gpumap.MinMaxMapper) -> None:
@@ -65,7 +65,7 @@ def _blocks_of_observed(dense: gpumap.MinMaxMapper, B: int) -> set:
 def _block_set(m: SparseMinMaxMapper) -> set:
     """The blocks the map holds (memory_stats first frees those allocated but never observed)."""
     m.memory_stats()
-    return {tuple(c) for c in m._coords[m._used]}
+    return {tuple(c) for c in m.storage.coords[m.storage.used]}
 
 
 # ------------------------------------------------------------------------------ identical maps
@@ -178,7 +178,7 @@ def test_memory_counts_only_blocks_with_an_observed_voxel():
     m = _sparse("numpy", pings, UNBOUNDED)
     st = m.memory_stats()
     obs = np.argwhere(m.observed())
-    i0 = np.round((np.asarray(m.grid.min_corner_m) - m._origin) / S).astype(np.int64)
+    i0 = np.round((np.asarray(m.grid.min_corner_m) - m.storage.origin) / S).astype(np.int64)
     blocks = {tuple(b) for b in (obs + i0) // 8}
     assert st["blocks"] == len(blocks) == len(_block_set(m))
     assert st["observed_voxels"] == len(obs)
