@@ -26,42 +26,22 @@ import types
 
 import numpy as np
 
-from gpumap.backends import base, opencl_backend, warp_backend
-from gpumap.backends.base import (
-    AUTO_ORDER,
-    BACKENDS,
-    N_SLOTS,
-    TUNABLES,
-    U8_SCALE,
-    Backend,
-    GridTooLargeError,
-    _union_groups,  # noqa: F401 (a private name imported from here)
-)
+from gpumap.backends import base, opencl_backend, tables, warp_backend
+from gpumap.backends.base import AUTO_ORDER, BACKENDS, N_SLOTS, TUNABLES, U8_SCALE, Backend, GridTooLargeError
 from gpumap.backends.numpy_backend import NumpyBackend
-from gpumap.backends.opencl_backend import (
-    OpenCLBackend,
-    _opencl,  # noqa: F401 (a private name imported from here)
-    _opencl_context,  # noqa: F401 (a private name imported from here)
-    opencl_devices,
-    usable_opencl_device,
-)
-from gpumap.backends.tables import (
-    build_table_host,
-    opencl_host_table,
-    table_rows,
-    table_size,
-    warp_host_table,
-)
-from gpumap.backends.warp_backend import (
-    WarpBackend,
-    _warp,  # noqa: F401 (a private name imported from here)
-    _warp_params,  # noqa: F401 (a private name imported from here)
-    cuda_driver_loadable,
-    warp_launch_halves,
-    warp_upload_image,
-)
+from gpumap.backends.opencl_backend import OpenCLBackend, opencl_devices, usable_opencl_device
+from gpumap.backends.tables import build_table_host, opencl_host_table, table_rows, table_size
+from gpumap.backends.warp_backend import WarpBackend, cuda_driver_loadable
 from gpumap.errors import BackendUnavailableError
 from gpumap.spec import SonarSpec
+
+# more names of the one module this package was, importable from here as they were (gpumap's
+# modules and tests import some of the private ones)
+warp_host_table = tables.warp_host_table
+warp_launch_halves, warp_upload_image = warp_backend.warp_launch_halves, warp_backend.warp_upload_image
+_warp, _warp_params = warp_backend._warp, warp_backend._warp_params
+_opencl, _opencl_context = opencl_backend._opencl, opencl_backend._opencl_context
+_union_groups = base._union_groups
 
 __all__ = [
     "AUTO_ORDER", "BACKENDS", "BATCH_BOX_VOXELS_MAX", "BATCH_MAX", "COPY_SPLIT_BYTES", "COPY_THREADS",

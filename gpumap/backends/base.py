@@ -143,6 +143,17 @@ class Backend:
         for b0, b1 in _union_groups(params, n_threads):
             self._launch_batch(params[b0:b1], images[b0:b1], n_threads[b0:b1])
 
+    def _next_batch(self, params: np.ndarray) -> tuple[int, dict, int]:
+        """For a batch of ``params`` (block fields filled here): its size, the batch buffers
+        (``_batch_buffers``) and the host slot it fills (batch k+1's while batch k's upload may
+        still run)."""
+        B = params.shape[0]
+        self._block_params(params)
+        bb = self._batch_buffers(B)
+        s = bb["slot"]
+        bb["slot"] = 1 - s
+        return B, bb, s
+
     def read(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         """Copies of the pool: ``grid`` (cap B B Bz,) float32, ``bright`` and ``count`` (visible
         rule; None for the plain rule)."""

@@ -361,11 +361,7 @@ class OpenCLBackend(Backend):
 
     def _launch_batch(self, params, images, n_threads):
         cl = self.cl
-        B = params.shape[0]
-        self._block_params(params)
-        bb = self._batch_buffers(B)
-        s = bb["slot"]
-        bb["slot"] = 1 - s
+        B, bb, s = self._next_batch(params)
         if bb["uploads"][s] is not None:
             for ev in bb["uploads"][s]:
                 ev.wait()

@@ -381,11 +381,7 @@ class WarpBackend(Backend):
 
     def _launch_batch(self, params, images, n_threads):
         wp, k = self.wp, self.k
-        B = params.shape[0]
-        self._block_params(params)
-        bb = self._batch_buffers(B)
-        s = bb["slot"]
-        bb["slot"] = 1 - s
+        B, bb, s = self._next_batch(params)
         if bb["events"][s] is not None:
             wp.synchronize_event(bb["events"][s])
         hp = bb["host_P"][s]
