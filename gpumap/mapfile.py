@@ -96,15 +96,8 @@ def load(cls, path: str | os.PathLike, backend: str = "auto", kw: dict | None = 
     constructor options (``max_bytes``, ``evict`` for a map on demand); ``on_demand``: ``cls``
     holds only maps on demand (a bounded grid's file is refused).
 
-    Checked before anything large is read or allocated: the metadata (format, version,
-    every field's type and range), each array's declared shape and dtype, and each
-    member's declared size against what its compressed bytes can hold (deflate inflates at
-    most ~1,000 : 1), so a small file cannot make it allocate gigabytes. Then the blocks
-    (unique, inside the bounds, each with an observed voxel) and the values: finite in
-    [0, 1] or ``+inf`` (never observed), and for the visible rule consistent with its
-    state. Raises :class:`~gpumap.errors.FormatError` (a ``ValueError``;
-    :class:`~gpumap.errors.LimitError` when the map would not fit in memory) saying what
-    was expected and what came.
+    Everything is checked before anything large is read or allocated, and raises
+    :class:`~gpumap.errors.FormatError` (see :meth:`gpumap.MinMaxMapper.load`).
     """
     kw = {} if kw is None else kw
     path = Path(path)

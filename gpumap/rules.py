@@ -29,48 +29,43 @@ def rule_values(rule: str, min_all: np.ndarray, bright, count, carve_views: int,
     return min_all
 
 
+def _check_bright_share(p: object) -> float:
+    p = check_finite_scalar(p, "bright_share")
+    if not 0.0 < p <= 1.0:
+        raise ValueError(f"Expected bright_share in (0, 1], but got {p}")
+    return p
+
+
+def _check_share_z(z: object) -> float:
+    z = check_finite_scalar(z, "share_z")
+    if not 0.0 <= z <= 10.0:
+        raise ValueError(f"Expected share_z in [0, 10], but got {z}")
+    return z
+
+
+def _option(name: str, check, doc: str) -> property:
+    """A read-time option of :class:`ValueRule`, ``check``-ed whenever it is set."""
+    return property(lambda self: getattr(self, f"_{name}"),
+                    lambda self, value: setattr(self, f"_{name}", check(value)), doc=doc)
+
+
 class ValueRule:
     """A rule (``"evidence"``, ``"visible"`` or ``"plain"``) with its read-time options, each
     checked when it is set (see :class:`gpumap.MinMaxMapper` for their meaning)."""
+
+    carve_views = _option("carve_views", check_carve_views,
+                          "Visible rule: clear dark views that carve a voxel once seen bright, in 1..255.")
+    bright_share = _option("bright_share", _check_bright_share,
+                           "Evidence rule: the share of bright views, in (0, 1], below which a voxel is "
+                           "free.")
+    share_z = _option("share_z", _check_share_z, "Evidence rule: the one-sided normal quantile, in [0, 10], "
+                      "of the confidence that frees a voxel.")
 
     def __init__(self, rule: str, carve_views: int, bright_share: float, share_z: float) -> None:
         self.rule = rule
         self.carve_views = carve_views
         self.bright_share = bright_share
         self.share_z = share_z
-
-    @property
-    def carve_views(self) -> int:
-        """Visible rule: clear dark views that carve a voxel once seen bright, in 1..255."""
-        return self._carve_views
-
-    @carve_views.setter
-    def carve_views(self, n: int) -> None:
-        self._carve_views = check_carve_views(n)
-
-    @property
-    def bright_share(self) -> float:
-        """Evidence rule: the share of bright views, in (0, 1], below which a voxel is free."""
-        return self._bright_share
-
-    @bright_share.setter
-    def bright_share(self, p: float) -> None:
-        p = check_finite_scalar(p, "bright_share")
-        if not 0.0 < p <= 1.0:
-            raise ValueError(f"Expected bright_share in (0, 1], but got {p}")
-        self._bright_share = p
-
-    @property
-    def share_z(self) -> float:
-        """Evidence rule: the one-sided normal quantile, in [0, 10], of the confidence that frees a voxel."""
-        return self._share_z
-
-    @share_z.setter
-    def share_z(self, z: float) -> None:
-        z = check_finite_scalar(z, "share_z")
-        if not 0.0 <= z <= 10.0:
-            raise ValueError(f"Expected share_z in [0, 10], but got {z}")
-        self._share_z = z
 
     def values(self, min_all: np.ndarray, bright, count) -> np.ndarray:
         """The values of a state (the plain rule's are ``min_all`` itself)."""
