@@ -254,7 +254,8 @@ class MinMaxMapper:
                              "sparse=True): a GridSpec's blocks are all allocated up front")
         self.spec, self.sparse = spec, space
         self.method, self.rule, self.threshold, self.shadow_m = method, rule, thr, shadow
-        self.value_rule = ValueRule(rule, carve_views, bright_share, share_z)  # checks the read-time options
+        #: The rule with its read-time options (:class:`~gpumap.rules.ValueRule`: checks them when set).
+        self.value_rule = ValueRule(rule, carve_views, bright_share, share_z)
         self.max_bytes = None if max_bytes is None else int(max_bytes)
         self.evict = evict
         self.n_integrated = 0
