@@ -9,7 +9,7 @@ return that tells clear views for the visibility-aware rule. Arguments, in order
 parameters, the image, the tangents of the beam edges, the beam look-up table, the max table
 (empty: none), the first bright bin per beam (empty: plain rule), [the template,] the grid
 [, the bright minimum and the clear-dark count (visible rule; empty otherwise)]. The host
-(``gpumap/backends.py``) owns arrays, devices and launches.
+(the ``gpumap/backends/`` package) owns arrays, devices and launches.
 """
 
 import warp as wp
