@@ -308,9 +308,10 @@ def bench_parser(module: str, doc: str | None, *, prog: str | None = None, out: 
     if voxel is not None:
         many = not isinstance(voxel, (int, float))
         ap.add_argument("--voxel-size", "--voxel", *(["--voxel-sizes"] if many else []), dest="voxel",
-                        type=float, nargs="+" if many else None, default=list(voxel) if many else voxel,
+                        type=float, nargs="+" if many else None,
+                        default=(list(voxel) or None) if many else voxel,
                         help=f"voxel edge{'s' if many else ''}, metres (default "
-                        f"{' '.join(map(str, voxel)) if many else voxel})")
+                        f"{(' '.join(map(str, voxel)) or 'by target') if many else voxel})")
     if seed is not None:
         ap.add_argument("--seed", type=int, default=seed, help=f"random seed (default {seed})")
     if progress:
