@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 if __package__:  # bench.ab; run as a script (the worker), only gpumap and the harness by path are imported
+    from . import common
     from .common import CpuShare, Section, bench_parser, idle_check, refuse, run_header, spread, write_json
 
 WARMUP = 3
@@ -103,16 +104,7 @@ def _run(root: Path, tree: Path, job: dict) -> dict:
 
 def markdown(docs: list[tuple[str, dict]], folder: Path) -> str:
     """The BENCHMARKS.md block of ``ab_*.json`` results: one row per (file, voxel, backend)."""
-    out = [SECTION.heading, "",
-           "`python -m bench.ab --a OTHER_CHECKOUT ...` times two source trees side by side (module "
-           "docstring); tree A is the commit before the change a file measures, B the change: the one "
-           "mapper over blocks (issue #24) in the first files, the evidence rule (issue #28) in "
-           "`ab_*_evidence.json`. "
-           "Images/s: median (min-max) of the rounds; every run of both trees gave the same map (digest; "
-           "'same views': trees with different default rules folded the same min over every view). "
-           "This block: `python -m bench.ab --report BENCHMARKS.md` (after `python -m bench.report`).",
-           "", "| file | device | voxel | backend | pings | batch | A img/s | B img/s | B / A | same map |",
-           "|---|---|---|---|---|---|---|---|---|---|"]
+    out = [common.template("ab")]
     for name, d in docs:
         for r in d["rows"]:
             same = "yes" if r.get("digest", "values") == "values" else "same views"

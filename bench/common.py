@@ -624,6 +624,17 @@ def put_block(path: str | os.PathLike, begin: str, end: str, body: str, section:
     path.write_text(put_text(path.read_text() if path.exists() else "", begin, end, body, section))
 
 
+TEMPLATES = Path(__file__).with_name("templates.md")
+
+
+def template(name: str, **values: Any) -> str:
+    """The fixed text of a generated block, ``<!-- template:NAME -->`` of bench/templates.md (to the next
+    such line, without its last newline), with ``values`` filled in by ``str.format``: the wording lives
+    there, the figures come from the results files."""
+    text = TEMPLATES.read_text().split(f"<!-- template:{name} -->\n", 1)[1].split("\n<!-- template:", 1)[0]
+    return text.rstrip("\n").format_map(values)
+
+
 def fnum(x: Any, fmt: str = ".3g", none: str = "–") -> str:
     """A table cell: ``x`` formatted, ``none`` for None or not finite, yes/no for a bool."""
     if x is None or (isinstance(x, float) and not math.isfinite(x)):

@@ -479,88 +479,30 @@ def _cell(v: float, band: list[float] | None = None, limit: float | None = None,
 def batch_markdown(summary: dict, folder: Path | None = None) -> str:
     """The BENCHMARKS.md section for an ``ekf_vs_batch.json`` summary."""
     cls, run, m = summary["classes"], summary["run"], summary["machine"]
-    S, git = cls[0]["seeds"], m.get("git", {})
-    L = [SECTION.heading, "",
-         f"`{run['command']}`: {run['seconds']:.0f} s on {m['cpu_model']} ({m['affinity_cpus']} cores), "
-         f"{run['date']}; commit `{str(git.get('commit'))[:10]}` with modified "
-         f"{', '.join(f'`{f}`' for f in git.get('modified', [])) or 'nothing'} (`gpumap/ekf/*.py` sha256 "
-         f"`{next(iter(run['sha256'].values()))[:12]}`); numbers in `bench/results/ekf_vs_batch.json`, "
-         "every seed's in `ekf_vs_batch_seeds.jsonl`. `python -m bench.report` rewrites this file "
-         "without this section: rerun the command after it.",
-         "", *_headline(cls), *_speed_line(summary.get("speed")), "",
-         f"Each class: {S} seeds, the same returns, odometry and noise model for every estimator. "
-         "**EKF arc / tri**: `SonarEKF(init='arc' | 'triangulate')` with its defaults (second-order "
-         "elevation term, updates and gate relinearised while a feature's elevation is uncertain; "
-         "tri also scans 5 starting elevations along the arc), gate 0.999, final estimate; "
-         "**batch**: `gpumap.ekf.batch` MAP of the same model (elevation prior `N(0, vfov^2/12)` where "
-         "first seen; first pose held, as the EKF's), quadratic loss; **huber**: the same with a Huber "
-         "loss at 3 sigma on the returns; **odo**: dead reckoning. Landmark error: mean distance "
-         "to the truth (mm), averaged over the seeds; **arc/b, tri/b**: EKF over batch, ratio of "
-         "the means (issue target <= 1.1, bold above), in brackets the seeds where the EKF was "
-         "above 1.1x the batch. Scenes other than the prism: points 2-3 m ahead at 60-95 % of the "
-         "half elevation aperture (near the top or bottom edge), azimuth within 90 % of the half "
-         "aperture; the prism's trajectory (boresight on a point 2.5 m ahead, sway +-0.4 m, rise "
-         "0.25 m, advance 0.3 m, roll 0 -> 70 deg unless named); hfov x vfov 32 x 20 deg unless "
-         "named; range sigma 3 mm, bearing sigma 0.1 deg; odometry sigma q = 2 % of the "
-         "translation unless named (rotation q/2 % of the angle + q mrad/m).",
-         "",
-         "| class | views | points | returns | EKF arc mm | EKF tri mm | batch mm | huber mm | arc/b "
-         "| tri/b | final position mm: odo / arc / tri / batch "
-         "| final rotation deg: odo / arc / tri / batch |",
-         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"]
-    for c in cls:
-        sc = c["scenario"]
-        pos = " / ".join(f"{c[e]['pos_mm']:.1f}" for e in ESTIMATORS[:4])
-        rot = " / ".join(f"{c[e]['rot_deg']:.2f}" for e in ESTIMATORS[:4])
-        L.append(f"| {sc['name']} | {sc['n_views']} | {8 if sc['prism'] else sc['n_points']} | "
-                 f"{c['returns_mean']:.0f} | {c['ekf_arc']['lm_mm']:.1f} | "
-                 f"{c['ekf_triangulate']['lm_mm']:.1f} | "
-                 f"{c['batch']['lm_mm']:.1f} | {c['batch_huber']['lm_mm']:.1f} | "
-                 f"{_cell(c['ratio_arc_to_batch'], limit=1.1)} ({c['seeds_arc_above_1.1x_batch']}) | "
-                 f"{_cell(c['ratio_triangulate_to_batch'], limit=1.1)} "
-                 f"({c['seeds_triangulate_above_1.1x_batch']}) | {pos} | {rot} |")
-    band = cls[0]["batch"]["pose_nees_band95"]
-    L += ["",
-          "Consistency: NEES and NIS divided by their degrees of freedom and pooled over the seeds "
-          "(sum / summed dof); bold with an arrow where outside the two-sided 95 % chi-square band "
-          f"(`scipy.stats.chi2`; pose: [{band[0]:.2f}, {band[1]:.2f}]; the landmark and NIS bands, "
-          "with more dof, are narrower and in the JSON). Pose NEES: last pose, 6 dof. Landmark NEES, "
-          "all features jointly: **anchored**, in ``(r, az, el)`` of the estimated pose where each "
-          "was first seen (the EKF's own state, `sim.prism.nees`; the batch's Cartesian covariance "
-          "pushed through the same map), and **world** ``(x, y, z)`` (EKF: its first-order "
-          "`covariance`). A Cartesian Gaussian cannot follow the elevation arc: a point seen at "
-          "elevation 9 deg but placed at 0 sits ~3 cm off the tangent along the range (10 range "
-          "sigmas), so world NEES blows up for any estimator wherever elevation stays weakly "
-          "observed. NIS: EKF, the summed NIS of the fused returns (gated ones left out); batch, "
-          "its residual chi-square over residuals minus unknowns (the same quantity for a linear "
-          "model; for huber still unrobustified, so the outlier's own residual is in it). Odometry "
-          "has no features and no innovations.",
-          "",
-          "| class | pose NEES/6: odo / arc / tri / batch / huber | landmark NEES/dof anchored: arc / tri "
-          "/ batch / huber | landmark NEES/dof world: arc / tri / batch / huber "
-          "| NIS/dof: arc / tri / batch / huber | gated returns: arc / tri "
-          "| seeds warned (NIS monitor): arc / tri | bearing sigma from innovations, deg |",
-          "|---|---|---|---|---|---|---|---|"]
-    for c in cls:
-        def cells(key: str, ests: tuple = ESTIMATORS[1:], c: dict = c) -> str:
-            return " / ".join(_cell(c[e][f"{key}_norm"], c[e][f"{key}_band95"]) for e in ests)
+    git = m.get("git", {})
 
-        L.append(f"| {c['scenario']['name']} | {cells('pose_nees', ESTIMATORS)} | "
-                 f"{cells('lm_nees_anchored')} | "
-                 f"{cells('lm_nees')} | {cells('nis')} | "
-                 f"{c['ekf_arc']['gated_returns']} / {c['ekf_triangulate']['gated_returns']} | "
-                 f"{c['ekf_arc']['seeds_nis_warned']} / {c['ekf_triangulate']['seeds_nis_warned']} | "
-                 f"{c['ekf_arc']['bearing_sigma_est_deg']:.3f} |")
-    L += ["", "NIS monitor: `SonarEKF(nis_window=100)` pools the last 100 fused returns; it warns "
-          "(`RuntimeWarning`) when their NIS/dof leaves the 99.99 % band, and "
-          "`innovation_stats()` estimates the noise (Mehra: mean(nu nu^T) - mean(H P H^T)); the "
-          "configured bearing sigma is 0.100 deg, the last column is the median over seeds of the "
-          "arc filter's estimate at the end of the run."]
-    L += ["", "Where the EKF misses issue #11's targets in this run (computed from the JSON, nothing was "
-          "tuned; the batch's value in brackets where it misses too, i.e. where the model, not the "
-          "filter, is what fails):", ""]
-    L += _shortfalls(cls) or ["- nowhere"]
-    return "\n".join(L) + "\n"
+    def cells(c: dict, key: str, ests: tuple = ESTIMATORS[1:]) -> str:
+        return " / ".join(_cell(c[e][f"{key}_norm"], c[e][f"{key}_band95"]) for e in ests)
+
+    accuracy = [f"| {c['scenario']['name']} | {c['scenario']['n_views']} | "
+                f"{8 if c['scenario']['prism'] else c['scenario']['n_points']} | {c['returns_mean']:.0f} | "
+                + " | ".join(f"{c[e]['lm_mm']:.1f}" for e in ESTIMATORS[1:]) + " | "
+                + " | ".join(f"{_cell(c[f'ratio_{i}_to_batch'], limit=1.1)} "
+                             f"({c[f'seeds_{i}_above_1.1x_batch']})" for i in ("arc", "triangulate")) + " | "
+                + " / ".join(f"{c[e]['pos_mm']:.1f}" for e in ESTIMATORS[:4]) + " | "
+                + " / ".join(f"{c[e]['rot_deg']:.2f}" for e in ESTIMATORS[:4]) + " |" for c in cls]
+    consistency = [f"| {c['scenario']['name']} | {cells(c, 'pose_nees', ESTIMATORS)} | "
+                   f"{cells(c, 'lm_nees_anchored')} | {cells(c, 'lm_nees')} | {cells(c, 'nis')} | "
+                   f"{c['ekf_arc']['gated_returns']} / {c['ekf_triangulate']['gated_returns']} | "
+                   f"{c['ekf_arc']['seeds_nis_warned']} / {c['ekf_triangulate']['seeds_nis_warned']} | "
+                   f"{c['ekf_arc']['bearing_sigma_est_deg']:.3f} |" for c in cls]
+    return common.template(
+        "ekf", run=run, m=m, commit=str(git.get("commit"))[:10],
+        modified=", ".join(f"`{f}`" for f in git.get("modified", [])) or "nothing",
+        sha=next(iter(run["sha256"].values()))[:12],
+        headline="\n".join(_headline(cls) + _speed_line(summary.get("speed"))),
+        seeds=cls[0]["seeds"], accuracy="\n".join(accuracy), band=cls[0]["batch"]["pose_nees_band95"],
+        consistency="\n".join(consistency), shortfalls="\n".join(_shortfalls(cls) or ["- nowhere"])) + "\n"
 
 
 SECTION = Section("ekf", "## EKF against the batch MAP (issue #11)", "ekf_vs_batch.json", batch_markdown)

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import common
 from .common import Section, bench_parser, load_average, oasis_tank_dir, render_pings, write_json
 
 NOISES = (0.005, 0.02)
@@ -230,81 +231,30 @@ def markdown(d: dict, folder: Path | None = None) -> str:
     def mm(x):
         return "–" if x is None else f"{x['mean']:.2f} ({x['min']:.2f}–{x['max']:.2f})"
 
-    L = [SECTION.heading, "",
-         f"Written by `python -m bench.frontend` into `bench/results/frontend.json` ({d['date']}, "
-         f"{d['seconds']:.0f} s; command `{d['command']}`). Drift model: {d['drift_model']}. "
-         "Times are host CPU on the shared 2-core machine, loaded (load average "
-         f"{d['loadavg_start'][0]:.1f} at the start, {d['loadavg_end'][0]:.1f} at the end).", "",
-         "**Simulator, returns without ids** (the features' true range and azimuth with the demo's "
-         "noise, shuffled, through `FeatureTracker`; the same EKF given the true ids as reference; both "
-         "with the scene's DVL as in `gpumap demo`). Precision/recall *all*: every return a confirmed "
-         "track took, tentative ones included, against the true feature that made most of that "
-         "track's returns; *fused*: only returns fused into the EKF. Ratios: tracker EKF over true-id "
-         "EKF (mean position error, mean heading error; feature error over the tracker's live "
-         "features and the true-id EKF's estimates of the same features); mean (min–max) over seeds.", "",
-         "| scene, drift | precision all | recall all | precision fused | recall fused | position | heading "
-         "| features |", "|---|---|---|---|---|---|---|---|"]
-    for v in d["sim"].values():
-        sm = v["summary"]
-        L.append(f"| {v['scene']}, {v['noise']} | "
-                 + " | ".join(pc(sm[k]["mean"]) for k in ("precision_all", "recall_all", "precision_fused",
-                                                           "recall_fused")) + " | "
-                 + " | ".join(mm(sm[f"{k}_ratio_tracker_to_true_ids"]) for k in ("pose", "heading",
-                                                                                 "feature"))
-                 + " |")
-    L += ["", "**Detector on the simulated images** (`PointDetector` defaults): a true visible feature "
-          "counts as found when a return lies within 2 cells of it; NEES of those returns against "
-          "the true feature with the stated covariance (2 dof: mean 2 if right).", "",
-          "| scene | visible features | found | returns | near a feature | NEES mean "
-          "| ms per ping (mean, p95) |",
-          "|---|---|---|---|---|---|---|"]
-    for name, v in d["sim_detector"].items():
-        ne = "–" if v["nees_mean_2dof"] is None else f"{v['nees_mean_2dof']:.1f}"
-        L.append(f"| {name} | {v['visible_features']} | {pc(v['found_fraction'])} | {v['detections']} "
-                 f"| {pc(v['near_a_feature_fraction'])} | {ne} | {v['ms_per_ping_mean']:.1f}, "
-                 f"{v['ms_per_ping_p95']:.1f} |")
-    L += ["", "**Real tank** (`gpumap replay ../shared/data/oasis_tank --ekf`, 123 frames, 5 cm, "
-          "`warp-cpu`): EKF error over odometry error against the arm's poses (mean over the run), "
-          "voxels where the map disagrees with the recorded-pose map (occupied >= 0.4 in exactly one; "
-          "unknown counts as not occupied), share of the tracks' returns consistent with one fixed "
-          "point seen from the recorded poses, front-end + association + EKF ms per ping; mean "
-          "(min–max) over seeds.", "",
-          "| drift | position EKF/odometry | heading EKF/odometry | disagreeing voxels, odometry map | "
-          "disagreeing voxels, EKF map | returns consistent | ms per ping |", "|---|---|---|---|---|---|---|"]
-    for noise, v in d["real_tank"]["summary"].items():
-        L.append(f"| {noise} | {mm(v['position_ratio'])} | {mm(v['heading_ratio'])} "
-                 f"| {v['map_disagree_odometry']['mean']:.0f} | {v['map_disagree_ekf']['mean']:.0f} "
-                 f"| {mm(v.get('track_consistency'))} | {mm(v['ms_per_ping'])} |")
+    rates = ("precision_all", "recall_all", "precision_fused", "recall_fused")
+    ratios = ("pose", "heading", "feature")
+    sim = [f"| {v['scene']}, {v['noise']} | " + " | ".join(pc(v["summary"][k]["mean"]) for k in rates) + " | "
+           + " | ".join(mm(v["summary"][f"{k}_ratio_tracker_to_true_ids"]) for k in ratios) + " |"
+           for v in d["sim"].values()]
+    det = [f"| {name} | {v['visible_features']} | {pc(v['found_fraction'])} | {v['detections']} "
+           f"| {pc(v['near_a_feature_fraction'])} | "
+           f"{'–' if v['nees_mean_2dof'] is None else format(v['nees_mean_2dof'], '.1f')} | "
+           f"{v['ms_per_ping_mean']:.1f}, {v['ms_per_ping_p95']:.1f} |"
+           for name, v in d["sim_detector"].items()]
+    real = [f"| {noise} | {mm(v['position_ratio'])} | {mm(v['heading_ratio'])} "
+            f"| {v['map_disagree_odometry']['mean']:.0f} | {v['map_disagree_ekf']['mean']:.0f} "
+            f"| {mm(v.get('track_consistency'))} | {mm(v['ms_per_ping'])} |"
+            for noise, v in d["real_tank"]["summary"].items()]
     r0 = d["real_tank"]["runs"][0]
     st = r0.get("recorded_step_median")
-    if st:
-        L += ["", f"The tank's frames are every 10th of the recording: the arm moves a median "
-              f"{100 * st['translation_m']:.1f} cm and {st['rotation_deg']:.0f} deg between them, and "
-              f"the detector finds {r0['measurements']['per_ping_mean']:.1f} compact returns per ping."]
-    L += ["", "What these say. In the simulator the tracker alone is measured on the features' own "
-          "returns: the detector finds few of the scene's listed features in the rendered images (they "
-          "are corners and tops on larger surfaces, not compact echoes), so a detector-driven simulated "
-          "run would not test association against known ids. At the demo's 0.005 drift association "
-          "is near perfect; the tracker's EKF loses to the true-id EKF mainly through the returns it "
-          "does not fuse (the two of each tentative track, the ambiguous ones, and features "
-          "re-started after a track ends). At 0.02 the tank's close feature pairs (a basket corner's "
-          "top and foot, the rock's extremes) fall in each other's gates and are confused. On the "
-          "real tank few returns repeat as one fixed scatterer, so the EKF gets little and stays near "
-          "odometry at 0.005, and at 0.02 its wider gates let wrong returns in. Tried and not kept: "
-          "confirming tracks after 2 returns or ending them after 8 misses (better in the simulator, "
-          "worse than odometry on the real tank); a wider covariance floor for the returns (no gain); "
-          "two whole-ping registrations against the EKF-pose map, an ICP in polar coordinates (each "
-          "bright cell matched to the map voxel of its azimuth bin nearest in range) and a direct "
-          "alignment (the pose that puts the map's occupied voxels on bright cells): started from the "
-          "arm's pose moved by a few centimetres and degrees, both ended further from it in most "
-          "pings, because the min-max map's elevation stretch lets many poses explain a ping and "
-          "neither scores voxels predicted bright where the ping is dark. A probe of plane ranges: "
-          "each beam's first echo, put on the aperture's lowest ray at the arm's pose, does not fit one "
-          "level floor (the implied heights spread by tens of centimetres within a ping), so fusing "
-          "the floor like the DVL needs a model of where in the aperture the first echo comes from, "
-          "and heading would need a wall besides. Next: that plane model, and a registration that "
-          "scores dark cells too."]
-    return "\n".join(L)
+    steps = "" if not st else (
+        f"\n\nThe tank's frames are every 10th of the recording: the arm moves a median "
+        f"{100 * st['translation_m']:.1f} cm and {st['rotation_deg']:.0f} deg between them, and the "
+        f"detector finds {r0['measurements']['per_ping_mean']:.1f} compact returns per ping.")
+    return common.template("frontend", date=d["date"], seconds=d["seconds"], command=d["command"],
+                           drift_model=d["drift_model"], load0=d["loadavg_start"][0],
+                           load1=d["loadavg_end"][0], sim="\n".join(sim), detector="\n".join(det),
+                           real="\n".join(real), steps=steps)
 
 
 SECTION = Section("frontend", "## The EKF on real pings: front-end, association, loop (issue #23)",

@@ -101,14 +101,8 @@ def run_scene(name: str, checkpoints: tuple[int, ...], voxel_m: float, variation
 def markdown(res: dict, folder: Path) -> str:
     """The BENCHMARKS.md section of a ``long_run.json``: per scene and rule, the misses of the
     objects and of every detectable surface and the far phantoms at each checkpoint."""
-    m, v = res["machine"], res["variation"]
-    out = [SECTION.heading, "",
-           f"`{res['command'].strip()}` ({res['created']}, {m.get('cpu_model')} x{m.get('cpu_count')}, "
-           f"{res['duration_s']:.0f} s): the simulated tank (a sweep) and circle (an orbit) at 3 cm, "
-           f"{res['checkpoints'][-1]} pings with the `{v['name']}` variation fitted to the real run's "
-           "frames 0-799 (`python -m bench variation`), uint8 pings at their nominal poses. Per "
-           "checkpoint: objects missed / all detectable surface missed / far water called occupied. "
-           "`evidence@S`: the default rule's counts decided at bright_share S (read-time).", "",
+    out = [common.template("long-run", command=res["command"].strip(), res=res, m=res["machine"],
+                           last=res["checkpoints"][-1]), "",
            "| scene | rule | " + " | ".join(f"{c} pings" for c in res["checkpoints"]) + " |",
            "|---|---|" + "---|" * len(res["checkpoints"])]
     for name, sc in res["scenes"].items():

@@ -29,6 +29,7 @@ import numpy as np
 
 import gpumap
 
+from . import common
 from .common import TMP, Section, bench_parser, load_average, merge_json, render_pings
 
 MAP = TMP / "nbv_tank_map.npz"
@@ -109,21 +110,13 @@ def speed(repeat: int) -> dict:
 
 def markdown(data: dict, folder: Path) -> str:
     """The BENCHMARKS.md block of a results file (every figure read from it)."""
-    out = [SECTION.heading, "",
-           "From `bench/results/nbv.json` (`python -m bench.nbv`; true poses, threshold 0.1, the "
-           "visible rule). After the trajectory, 10 views per arm; last row of each curve. FP far "
-           "voxels: occupied voxels more than a voxel from any surface (the rate's numerator: a "
-           "view that only adds observed water lowers the rate, not this count). Confidence: of "
-           "the far occupied voxels, the share that is unconfirmed; of the confirmed voxels, the "
-           "share that is far.", ""]
+    out = [common.template("nbv-intro"), ""]
     for key, title in (("quality", "planner gain as the demo runs it (unknown_weight 0)"),
                        ("quality_unknown_weight_1",
                         "planner gain counting never-observed voxels too (unknown_weight 1)")):
         if key not in data:
             continue
-        out += [f"**{title}**", "",
-                "| scene | voxel | pings | arm | FP far | FP far voxels | FN objects | worst top | confirmed "
-                "(far) | far occupied unconfirmed |", "|---|---|---|---|---|---|---|---|---|---|"]
+        out += [f"**{title}**", "", common.template("nbv-quality-head")]
         for scene, q in data[key].items():
             c0 = q["arms"]["planned"]["curve"][0]
             out.append(f"| {scene} | {100 * q['voxel_size_m']:g} cm | {c0['pings']} | trajectory | "
@@ -140,9 +133,7 @@ def markdown(data: dict, folder: Path) -> str:
                            f"({100 * cf['confirmed_far_fraction']:.1f} %) | "
                            f"{100 * cf['far_occupied_unconfirmed_fraction']:.1f} % |")
         out.append("")
-    out += ["**view_gain, 10,000 candidates, tank map at 3 cm** (best of repeated calls; load average "
-            "of the machine beside it; equal: the gains equal the NumPy reference's exactly)", "",
-            "| run | backend | device | seconds | equal | load (1, 5, 15 min) |", "|---|---|---|---|---|---|"]
+    out.append(common.template("nbv-speed-head"))
     for sec, sp in data.get("speed", {}).items():
         for b, r in sp["rows"].items():
             if "seconds" not in r:

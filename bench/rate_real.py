@@ -151,16 +151,7 @@ def main(argv: list[str] | None = None) -> int:
 def markdown(res: dict, folder: Path) -> str:
     """The BENCHMARKS.md section of a ``rate_real.json``."""
     m = res["machine"]
-    out = [SECTION.heading, "",
-           f"`python -m bench rate_real` ({res['created']}, {m.get('cpu_model')} x{m.get('cpu_count')}, load "
-           f"{m.get('load_avg_start')} at the start, backend {res['backend']}): frames 0-799 of the full run "
-           f"mapped at 5 cm, threshold {res['threshold']:g}; {res['judged_frames']} held-out frames 800-1222 "
-           "judged by first returns (`gpumap.first_return`: per beam with a return, the map's nearest "
-           "occupied voxel in its fan within 2 voxels of the measured one = agrees, nearer = phantom in "
-           "front, farther or none = missing; unknown voxels count as missing). Occupied voxels also on "
-           f"the {res['common_observed']:,} voxels every map observes.", "",
-           "| rule | frames mapped | occupied | occupied (common region) | agrees | phantom in front | "
-           "missing |", "|---|---|---|---|---|---|---|"]
+    out = [common.template("rate-real", res=res, m=m, load=m.get("load_avg_start"))]
     for rule, r in res["rules"].items():
         for s in STRIDES:
             x = r[f"every_{s}"]
@@ -176,12 +167,8 @@ def markdown(res: dict, folder: Path) -> str:
             f"![held-out first returns]({folder.as_posix()}/rate_real.png)"]
     t = res.get("tuning")
     if t:
-        out += ["", f"How the evidence rule's settings were chosen, on frames 0-799 only: frames "
-                f"{t['mapped_frames'][0]}-{t['mapped_frames'][1] - 1} mapped, every 5th of frames "
-                f"{t['judged_frames'][0]}-{t['judged_frames'][1] - 1} judged. Agrees / phantom in front / "
-                "missing at every frame, and the occupied voxels at every 10th, 3rd and every frame:", "",
-                "| bright_share | share_z | agrees | phantom | missing | occupied 10th / 3rd / all |",
-                "|---|---|---|---|---|---|"]
+        out += ["", common.template("rate-real-tuning", t=t, last_mapped=t["mapped_frames"][1] - 1,
+                                    last_judged=t["judged_frames"][1] - 1)]
         for row in t["rows"]:
             f = row["every_1"]
             occ = " / ".join(f"{row[f'every_{s}']['occupied']:,}" for s in STRIDES)

@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from . import common
 from .common import bench_parser
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -144,19 +145,9 @@ def rules_real_block() -> str:
     vis, pl = c["rules"][rule], c["rules"]["plain"]
     others = ", ".join(f"the {r} rule {x['occupied_voxels']:,}" for r, x in c["rules"].items()
                        if r not in ("plain", rule))
-    return (
-        f"The maps observe {'exactly the same' if c['observed_equal'] else 'not the same'} "
-        f"{vis['observed_voxels']:,} voxels; the plain rule calls "
-        f"{pl['occupied_voxels']:,} occupied, the {rule} rule {vis['occupied_voxels']:,} ({others}), and "
-        f"{c['plain_only']:,} voxels are occupied under the plain rule but free under the {rule} one "
-        f"(by construction its value is never below the plain one). The {c['rule_only']:,} voxels "
-        f"only the {rule} rule keeps lie further from the sonar (median {rng['rule_only'][1]:.2f} m "
-        f"against {rng['both'][1]:.2f} m) and low: {100 * vo['at']:.0f} % at the tank floor, which the plain "
-        f"rule erases wherever one grazing view was dark, {100 * vo['below']:.0f} % below it (shadow that no "
-        f"view saw clearly) and {100 * vo['above']:.0f} % above it (the elevation stretch that only a clear "
-        f"view can carve). Threshold {c['threshold']:g}; from `bench/results/rules_real_tank.json` "
-        f"(`python -m bench.rules_real`)."
-    )
+    return common.template("readme-rules-real", same="exactly the same" if c["observed_equal"] else
+                           "not the same", vis=vis, pl=pl, rule=rule, others=others, c=c, rng=rng,
+                           **{k: 100 * vo[k] for k in ("at", "below", "above")})
 
 
 BLOCKS = {"readme-summary": summary_block, "readme-rules-real": rules_real_block}

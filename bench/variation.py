@@ -193,13 +193,8 @@ def markdown(res: dict, folder: Path) -> str:
     q, per = res["side_by_side"]["bright_share_quantiles"], res["side_by_side"]["persistence"]
     names = {"real": "real, frames 0-799", "sim_real_tank": "simulator, real_tank",
              "sim_none": "simulator, none"}
-    out = [SECTION.heading, "",
-           f"`{res['command'].strip()}` ({res['created']}): per surface voxel, the share of its clear views "
-           "that are bright (footprint max >= threshold), quantiles 10/25/50/75/90, and how a voxel's "
-           "bright/dark state persists from one view to the next. Distance to the real quantiles: "
-           + ", ".join(f"{k} {v:.3f}" for k, v in res["distance_to_real"].items()) + ".", "",
-           "| | q10 | q25 | q50 | q75 | q90 | P(bright after bright) | P(dark after dark) |",
-           "|---|---|---|---|---|---|---|---|"]
+    out = [common.template("variation", command=res["command"].strip(), res=res,
+                           distances=", ".join(f"{k} {v:.3f}" for k, v in res["distance_to_real"].items()))]
     for k, label in names.items():
         if k in q:
             p = per.get(k, {})
