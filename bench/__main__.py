@@ -3,10 +3,6 @@
     python -m bench --list                 # the benchmarks, one line each
     python -m bench speed --gpu ...        # the same as python -m bench.speed --gpu ...
     python -m bench [options]              # the speed-against-error sweep (python -m bench sweep)
-
-Each name is a module of ``bench/`` with a ``main(argv)``. Without a name (the first argument an
-option, or none) this runs the sweep of :mod:`bench.sweep`, as ``gpumap bench`` does: its options are
-the sweep's, plus ``--list``.
 """
 
 from __future__ import annotations
@@ -38,7 +34,6 @@ BENCHMARKS: dict[str, str] = {
     "ekf_bench": "the EKF on the prism simulation (NEES, odometry sweep, update cost; --vs-batch)",
     "ekf_real": "the EKF on the full real tank: EKF/odometry per variant, drift, seed; dev and held-out",
     "frontend": "the EKF front end: detection, association and the EKF loop, simulated and real",
-    "sim_bench": "the sonar simulator's images/s (and the DVL's pings/s) on this machine",
     "viewer_cost": "what the live view and the recorder cost gpumap replay of the real tank",
     "ros_bench": "the ROS 2 node's sustained rates and latency over Fast DDS on the real tank",
     "report": "the results files -> BENCHMARKS.md and its plots (--check compares only)",

@@ -2,18 +2,9 @@
 
     python -m bench.ab --a /path/to/other/checkout --voxel-size 0.03 0.01 --backend opencl-cpu warp-cpu
 
-Tree B is this checkout unless ``--b`` says otherwise. Each round runs every (voxel, backend) once
-per tree, in fresh processes, A first in even rounds and B first in odd ones, so neither tree always
-meets a warm or a cold machine first. A run maps the synthetic tank of :mod:`bench.common` (512 beams
-x 400 bins, 0.1-2 m, the 4 x 3 x 1 m grid, a wrist trajectory, speckled pings; taken from this
-tree's harness, so both trees map the same pings): warm-up pings, then ``--images`` pings back to
-back with one synchronize at the end (images/s; ``--batch K`` hands them over K at a time with
-``integrate_batch``). Both trees must give the same map: a digest of the values after the timed
-pings is compared, and a mismatch fails the run. The machine must be idle at the start (load and
-other processes' cores); their share is recorded per run, and a run where they took more than
-``--max-others`` cores is marked. Writes ``bench/results/ab_<tag>.json``: per row each tree's median
-images/s and spread, and B's median over A's; ``--report BENCHMARKS.md`` writes the table of every
-such file there.
+Tree B is this checkout unless ``--b`` says otherwise; both must give the same map (a digest of its
+values). Writes ``bench/results/ab_<tag>.json``; ``--report BENCHMARKS.md`` writes the table of every
+such file there (bench/README.md tells more).
 """
 
 from __future__ import annotations

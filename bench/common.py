@@ -1,17 +1,6 @@
-"""The one harness of every benchmark: command line, machine and load, timing, inputs, results
-files, BENCHMARKS.md sections and plots.
-
-A benchmark module under ``bench/`` keeps only its own scene, measurement and table. It builds its
-parser with :func:`bench_parser` (the common flags --out, --backend, --voxel-size, --seed,
---no-progress, --tag, --report by keyword), times a mapper with :func:`warm_up`, :func:`synced_ms`
-and :func:`stream_rate` (:class:`CpuShare` for what other processes took meanwhile; :func:`idle_check`
-where a figure needs an idle machine), reads its inputs with :func:`oasis_tank_dir`,
-:func:`render_pings`, :func:`load_ping_arrays` or the synthetic tank (:func:`tank_spec`), writes
-its results with :func:`run_header` and :func:`write_json` (:func:`merge_json` for a file of
-sections), and declares its block of BENCHMARKS.md as a :class:`Section` (rendered from the results
-files alone: ``python -m bench.report`` rewrites every one). ``python -m bench NAME`` runs any of
-them. This module imports nothing of gpumap or of bench at load time: ``bench.ab``'s worker loads
-it by path beside a foreign source tree.
+"""The one harness of every benchmark (bench/README.md tells the layout): command line, machine and
+load, timing, inputs, results files, BENCHMARKS.md blocks and plots. It imports nothing of gpumap or
+bench at load time: ``bench.ab``'s worker loads it by path beside a foreign source tree.
 """
 
 from __future__ import annotations

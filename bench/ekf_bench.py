@@ -1,17 +1,8 @@
-"""EKF bench: the prism simulation of Mai et al. (Fig. 7, Fig. 8b) over many seeds, NEES
-consistency, an odometry-noise sweep, and the cost of an update vs the number of features;
-and (``--vs-batch``, issue #11) the EKF against the batch MAP of the same model and odometry.
+"""EKF bench: the prism simulation of Mai et al. (Fig. 7, Fig. 8b) over many seeds, and (``--vs-batch``,
+issue #11) the EKF against the batch MAP of the same model and odometry (bench/README.md tells more).
 
-Run::
-
-    .venv/bin/python -m bench.ekf_bench --out DIR [--seeds 50]
+    .venv/bin/python -m bench.ekf_bench --out DIR [--seeds 50]      # DIR/ekf_bench.json and figures
     .venv/bin/python -m bench.ekf_bench --vs-batch --out bench/results [--batch-seeds 20]
-
-The first writes ``DIR/ekf_bench.json`` and PNG figures (``ekf_fig7_pose_error.png``,
-``ekf_fig8b_feature_error.png``, ``ekf_nees.png``, ``ekf_cost.png``, ``ekf_scene.png``). The second
-writes ``DIR/ekf_vs_batch.json`` (per seed: ``ekf_vs_batch_seeds.jsonl``) and the section "EKF against
-the batch MAP (issue #11)" of ``BENCHMARKS.md`` (``--benchmarks``; ``--report`` writes it from the
-results alone).
 """
 
 from __future__ import annotations

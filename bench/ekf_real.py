@@ -1,10 +1,4 @@
-"""The EKF on the full real tank run at the sonar's own rate: EKF against odometry, per variant.
-
-Issue 29. Odometry drifts from the recording's poses (``gpumap.ekf.loop.drifting_odometry``); each
-variant (``plain``: no guard; ``guarded``: ``TrustGuard``, what ``gpumap replay --ekf`` runs; ``_r4``:
-the detector's covariances times 4) runs on frames 0..split-1 (``dev``), split..end (``heldout``) and
-all (``full``) for every drift and seed; a simulated ``prism`` section says what the guard costs where
-the model is right and saves where returns slide like glints (bench/README.md tells more).
+"""The EKF on the full real tank run at the sonar's own rate: EKF against odometry, per variant (issue 29).
 
     .venv/bin/python -m bench ekf_real --out bench/results      # writes ekf_real.json
 """

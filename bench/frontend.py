@@ -1,27 +1,9 @@
 """EKF front-end bench (issue #23): measurements found in pings, association, the EKF loop.
 
-Run::
-
     .venv/bin/python -m bench.frontend [--seeds 5] [--out bench/results] [--no-progress]
 
-Writes ``OUT/frontend.json`` with
-
-- ``sim``: per scene (tank, survey) and odometry noise (0.005 and 0.02 per step, the demo's two
-  levels, on every translation and rotation axis), over ``--seeds`` drift seeds: the EKF fed the
-  simulator's feature returns **without their ids** (shuffled, with the demo's noise, 1 cm and 0.3
-  deg) through :class:`gpumap.ekf.association.FeatureTracker`, against the same EKF given the true
-  ids, both with the scene's DVL as in ``gpumap demo``. Association precision and recall (each
-  return's track against the true feature that made most of that track's returns: ``all`` counts
-  every return a track took, tentative ones included; ``fused`` only the returns fused into the
-  EKF), pose errors (mean position, mean heading) and feature errors (the tracker's live features
-  against the true-id EKF's estimates of the same true features), and their ratios.
-- ``sim_detector``: the detector (:class:`gpumap.ekf.frontend.PointDetector`) on the simulated
-  images: how many visible true features it finds within 2 cells, how many of its returns lie
-  within 2 cells of one, and the normalised squared error of those returns (2 dof, mean 2 when the
-  stated covariance is right).
-- ``real_tank``: ``gpumap replay --ekf`` on ``../shared/data/oasis_tank`` at both noise levels and
-  ``--seeds`` seeds: odometry and EKF pose errors against the arm's poses, each map against the
-  recorded-pose map, tracks, ms per ping (loaded 2-core CPU; load average kept).
+Writes ``OUT/frontend.json``: ``sim`` (the tracker's EKF on the simulator's returns without ids against
+the true-id EKF), ``sim_detector``, ``real_tank`` (bench/README.md tells more).
 """
 
 from __future__ import annotations

@@ -1,17 +1,7 @@
 """``python -m bench long_run``: every mapping rule over a long simulated run with realistic variation.
 
-The tank and circle scenes are flown at a sonar's own rate (:func:`gpumap.sim.scenes.long_run_scene`:
-the arm sweeping the tank, an orbit of the circle's objects; up to 1,000 pings, a minute and a half at
-10 Hz) with :meth:`gpumap.sim.variation.SonarVariation.real_tank` (speckle, per-ping gain, pose jitter
-and dropouts fitted to the real OASIS run by ``python -m bench variation``). Each ping, quantized to
-uint8 as the Oculus delivers, goes at its reported (nominal) pose into one 3 cm map per rule in
-``gpumap.geometry.RULES``. After 40, 100, 200, 500 and 1,000 pings every map is scored
-(:func:`gpumap.sim.metrics.evaluate`, at the simulator's threshold) against the truth and what the
-pings so far could detect: ``miss_rate_objects`` and ``miss_rate`` (FN) and
-``false_positive_rate_far`` (phantoms more than a voxel from any surface). A rule that erodes real
-surfaces shows it as a miss rate that rises with pings. Writes ``bench/results/long_run.json`` and
-``long_run.png`` (``--quick``: 60 pings, ``long_run_quick.*``; another ``--voxel-size``:
-``long_run_<mm>mm.*``). Takes ~15 min on 2 cores (the simulator's rendering dominates).
+Writes ``bench/results/long_run.json`` and ``long_run.png`` (``--quick``: ``long_run_quick.*``; another
+``--voxel-size``: ``long_run_<mm>mm.*``); ~15 min on 2 cores (bench/README.md tells more).
 """
 
 from __future__ import annotations

@@ -1,11 +1,6 @@
 """Peak memory of ``gpumap replay`` against the grid's voxel count, per backend and rule.
 
     python -m bench.memory [--recording PATH] [--out bench/results/memory_cpu_2c.json]
-
-Each point is one ``gpumap replay`` of the first frames of a recording on a box of a given size, in a
-child process whose peak resident set is recorded; per (backend, rule) the slope between the two
-largest boxes is the bytes per voxel (the figures :mod:`gpumap.memory` holds; ``tests/test_memory.py``
-checks they agree with the file written here).
 """
 
 from __future__ import annotations

@@ -1,21 +1,7 @@
 """Next best views: planned vs evenly spread rolled vs random views, and the view gain's speed.
 
     python -m bench.nbv [--scenes tank,circle,survey] [--plan 10] [--section cpu]
-                        [--out bench/results/nbv.json]
     python -m bench.nbv --speed-only --section gpu      # view_gain timing only (needs the saved map)
-
-Quality (``quality`` block, per scene; ``quality_unknown_weight_W`` with ``--unknown-weight W``): the
-scene's trajectory pings at true poses, then ``--plan`` views three ways (:mod:`gpumap.sim.plan_demo`:
-planned, evenly spread rolled, random), with FP far, FN (objects, detectable), the worst object top
-after every ping, and the confidence layer's split of the final maps. Voxel edge: 3 cm (tank, circle),
-10 cm (survey, and 45 of its pings spread evenly over the lawnmower: the three arms' host confidence
-passes on the 24 M-voxel 5 cm grid with every ping take too long for this bench).
-
-Speed (``speed`` block, under ``--section``): ``view_gain`` of 10,000 candidates (around the tank
-trajectory's poses, :func:`gpumap.nbv.candidate_poses` within the demo's wrist limits) on the tank map
-at 3 cm after its 40 pings (saved by the quality run to ``bench/results/tmp/nbv_tank_map.npz``), on
-every backend here; best of ``--repeat`` calls after one warm-up call, the load average beside it, and
-whether the gains equal the NumPy reference's exactly.
 """
 
 from __future__ import annotations

@@ -1,13 +1,5 @@
 """``python -m bench.peer_ratio``: gpumap against the public OASIS code, measured fairly.
 
-Both map the same real tank frames (frames 1..N after a warm-up frame) at the OASIS voxel size (5.03
-cm), in turn, ``--repeats`` times, so that a change of load hits both: the public code's
-``update_voxel_grid`` on its own input (the Cartesian fan PNG, grey), gpumap's ``integrate`` +
-``synchronize`` on the polar uint8 image. The public code is multithreaded and slows down far more
-than gpumap when other processes hold cores, so the run is refused on a busy machine (exit status 3;
-``--allow-loaded`` runs it and marks it not valid) and valid only if other processes stayed under
-``--max-others`` cores, pooled over the passes, and after. Only a valid run is a headline.
-
     python -m bench.peer_ratio --oasis-src /path/to/oasis_iros          # on an idle machine
 """
 

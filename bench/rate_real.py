@@ -1,19 +1,7 @@
 """``python -m bench rate_real``: the rules on the real tank run at the sonar's own rate.
 
-The full OASIS tank run (1,223 Oculus M3000d frames, ``oasis_tank_full``; see
-``shared/data/README.md`` for how to get its images) is split by time: frames 0-799 are mapped (at
-every 10th, every 3rd and every frame), frames 800-1222 are held out. For each rule and rate it
-records the occupied and observed voxels (also within the region all three rates observe: a map that
-leaves voxels unknown is not flattered by it); the **first-return judge** on the held-out frames
-(:mod:`gpumap.first_return`: per beam, the measured nearest bright bin against the map's nearest
-occupied voxel in that beam's fan; no intensity model): agreement, phantoms in front, surfaces
-missing; and the occupied voxels as frames accumulate at the full rate (the curve must settle).
-
-The evidence rule's two read-time settings were chosen on frames 0-799 alone: frames 0-599 mapped,
-600-799 judged (``tuning``, every setting of a small grid), never on the held-out frames. The
-defaults, ``bright_share`` 0.2 and ``share_z`` 1.645, come from this table and ``bench.long_run``'s
-(simulated objects must not erode over 1,000 pings). Writes ``bench/results/rate_real.json`` and
-``rate_real.png``. About 10 minutes on 2 cores.
+Frames 0-799 of the full run mapped (every 10th, 3rd, every frame), frames 800-1222 held out and judged
+by first returns. Writes ``bench/results/rate_real.json`` and ``rate_real.png``; ~10 min on 2 cores.
 """
 
 from __future__ import annotations

@@ -1,10 +1,5 @@
 """``python -m bench.readme``: the README's figures, written from the results files.
 
-Every number the README quotes sits between ``<!-- begin:readme-NAME -->`` and ``<!-- end:readme-NAME
--->`` markers and is rendered here from a file under ``bench/results`` (each row names its file), so a
-figure cannot drift from its measurement: rerun the benchmark, then this (``--check`` only compares,
-exit 1 when the README is stale; ``tests/test_readme.py`` runs that check).
-
     python -m bench.readme            # rewrite the marked blocks of README.md
     python -m bench.readme --check    # exit 1 if a block differs from what the files give
 """

@@ -2,9 +2,6 @@
 
     python -m bench.refine                                   # tank, circle, oasis at 3 cm, CPU
     python -m bench.refine --cases oasis --voxel-sizes 0.05 0.03 --device cuda
-
-Writes ``bench/results/refine.json`` (rows merged by case, voxel size and device; ``--section NAME``:
-under ``runs.NAME`` instead). bench/README.md tells what is scored and how.
 """
 
 from __future__ import annotations
@@ -48,7 +45,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--data", type=Path, default=None,
                    help="folder holding oasis_tank (default: shared/data beside the checkout)")
     p.add_argument("--section", default=None,
-                   help="write the rows under runs.NAME of --out instead (candidates)")
+                   help="merge the rows into runs.NAME of --out instead (candidates)")
     p.add_argument("--rescore-maps", type=Path, default=None,
                    help="no mapping: score the maps a --save-maps run wrote (refined at several cuts, banded "
                    "by 0-3 voxels) and add them to the matching rows of --out as 'truth_frontier'")
@@ -214,13 +211,14 @@ def main(argv: list[str] | None = None) -> int:
             row["seconds_total"], row["load_after"] = time.perf_counter() - t0, load_average()
             rows.append(row)
             print(json.dumps(row, default=float)[:2000], flush=True)
-    if a.section is not None:
-        merge_json(a.out, ["runs", a.section], rows)
-        return 0
-    old = json.loads(a.out.read_text()) if a.out.exists() else {"rows": []}
+    doc = json.loads(a.out.read_text()) if a.out.exists() else {}
+    old = doc.get("runs", {}).get(a.section, []) if a.section else doc.get("rows", [])
     new = {(n["case"], n["voxel_size_m"], n.get("device")) for n in rows}
-    keep = [r for r in old.get("rows", []) if (r["case"], r["voxel_size_m"], r.get("device")) not in new]
-    write_json(a.out, {"machine": machine_info(), "rows": keep + rows})
+    keep = [r for r in old if (r["case"], r["voxel_size_m"], r.get("device")) not in new]
+    if a.section:
+        merge_json(a.out, ["runs", a.section], keep + rows)
+    else:
+        write_json(a.out, {"machine": machine_info(), "rows": keep + rows})
     return 0
 
 

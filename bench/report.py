@@ -1,15 +1,10 @@
 """``python -m bench.report``: the results in ``bench/results`` -> ``BENCHMARKS.md`` and its plots.
 
-The file's head is the speed-against-error sweep of ``python -m bench`` (every ``gpumap-bench/``
-JSON, merged across machines, with its PNG plots) and the speed on the real tank frames
-(``speed_*.json`` of ``python -m bench.speed``). What others wrote is kept verbatim: sections the
-report does not generate (such as the visibility section) and blocks between ``<!-- begin:NAME -->``
-/ ``<!-- end:NAME -->`` markers. Then every benchmark's block (its :class:`bench.common.Section`:
-ab, ekf_bench, frontend, nbv, rate_real, variation, long_run) is rendered anew from its results
-file, so the whole file follows from ``bench/results`` without measuring anything.
-
     python -m bench.report [--results bench/results] [--out BENCHMARKS.md]
     python -m bench.report --check      # exit 1 if BENCHMARKS.md differs from what the files give
+
+The head (the sweep and the real-frame speed) is written here; what others wrote is kept verbatim, and
+every benchmark's marked block (its ``Section``) is rendered anew from its results file.
 """
 
 from __future__ import annotations

@@ -1,10 +1,4 @@
-"""The ROS 2 node's rates over Fast DDS: ``python -m bench.ros_bench`` -> ``bench/results/ros.json``.
-
-Per voxel size, ``gpumap ros`` and ``gpumap ros-play`` run as two processes on the real OASIS tank, a
-fresh node per play rate; a listener here records the node's ``/diagnostics`` and when the first cloud
-holding each ping arrived (latency = cloud received - ping sent, across both processes and the
-middleware). A rate is *sustained* when every ping was mapped (bench/README.md tells more).
-"""
+"""The ROS 2 node's rates over Fast DDS: ``python -m bench.ros_bench`` -> ``bench/results/ros.json``."""
 
 from __future__ import annotations
 

@@ -1,8 +1,7 @@
 """``python -m bench.rules_real``: both mapping rules on the real OASIS tank, into a results file.
 
-Runs ``gpumap replay shared/data/oasis_tank --voxel-size 0.05 --compare-rules`` (the README's command)
-and keeps its ``rule_comparison`` with the machine in ``bench/results/rules_real_tank.json``, from which
-``python -m bench.readme`` writes the README's paragraph on the rules. Takes ~10 s.
+``gpumap replay shared/data/oasis_tank --voxel-size 0.05 --compare-rules``, kept with the machine in
+``bench/results/rules_real_tank.json`` (the README's paragraph on the rules comes from it). ~10 s.
 """
 
 from __future__ import annotations

@@ -1,11 +1,6 @@
 """Sparse vs dense maps: memory and images per second on the tank and survey pings.
 
     python -m bench.sparse [--backends warp-cpu,opencl-cpu] [--section cpu] [--out bench/results/sparse.json]
-
-Each row maps a fresh map from every ping of the tank's (``bench/results/tmp/tank_pings.npz``, written
-by ``python -m bench --save-pings``) or the survey's set (``--render-survey``) in back-to-back streams
-and reports images/s, the map's memory and whether the sparse map equals the dense one bit for bit;
-results are merged into ``--out`` under ``--section`` (bench/README.md tells more).
 """
 
 from __future__ import annotations

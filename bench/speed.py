@@ -1,7 +1,6 @@
 """``python -m bench.speed``: latency and throughput on the real OASIS tank frames, and the public
-OASIS implementation side by side, in one run; ``--synthetic``: images/s per voxel size, backend and
-method on the synthetic tank's speckle pings; ``--gpu-check``: the GPU backends against the NumPy
-oracle and their speed, per rule, on the simulated tank pings (bench/README.md tells more).
+OASIS code beside them; ``--synthetic``: the synthetic tank; ``--gpu-check``: the GPU backends against
+the NumPy oracle on simulated tank pings (bench/README.md tells more).
 
     python -m bench.speed --oasis-src /path/to/oasis_iros          # CPU machine
     python -m bench.speed --gpu --frames-from bench/results/tmp/oasis_polar.npz --out $OUT
@@ -314,6 +313,7 @@ def gpu_check(a) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = bench_parser("speed", __doc__, out="bench/results", backend=(), voxel=(), tag="")
     ap.add_argument("--frames-from", type=Path, default=None, help="cached frames (.npz) of this module")
+    ap.add_argument("--max-frames", type=int, default=None, help="map only the first N frames")
     ap.add_argument("--gpu", action="store_true", help="GPU backends (warp-cuda, opencl-gpu) at 3, 1, 0.5 cm")
     ap.add_argument("--rule", nargs="+", default=["visible", "plain"], help="mapping rules (default both)")
     ap.add_argument("--batch", type=int, default=64, help="frames per integrate_batch call (GPUs)")
@@ -332,6 +332,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.synthetic or a.gpu_check:
         return synthetic(a) if a.synthetic else gpu_check(a)
     fr = load_frames(a.frames_from or CACHE)
+    fr = Frames(fr.images[: a.max_frames], fr.poses[: a.max_frames], fr.spec, fr.pngs, fr.polar_ms)
     avail = gpumap.available_backends()
     here = GPU_BACKENDS if a.gpu else ("warp-cpu", "opencl-cpu", "numpy")
     backends = a.backend or [b for b in here if b in avail]

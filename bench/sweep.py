@@ -1,8 +1,6 @@
 """``python -m bench`` (``gpumap bench``, ``python -m bench sweep``): speed against error on the
-simulated tank, in one run: every backend, voxel size and method of gpumap and the baselines of
-:mod:`bench.baselines` on the same pings, scored against ground truth; then scaling (time against
-voxels in view and image size, the EKF's update cost). Writes ``bench/results/<machine-tag>.json``;
-``python -m bench.report`` turns every such file into BENCHMARKS.md (bench/README.md tells more).
+simulated tank, every backend, voxel size, method and baseline on the same pings; writes
+``bench/results/<machine-tag>.json`` (bench/README.md tells more).
 """
 
 from __future__ import annotations

@@ -1,25 +1,7 @@
 """``python -m bench variation``: how much a surface voxel's views vary, real tank against simulator.
 
-Real (``--data``, default the full-rate ``oasis_tank_full`` recording, frames 0-799 only: frames
-800-1222 are held out): the surface voxels are those occupied (>= 0.4, the replay's threshold) in the
-visible rule's map of every 10th frame at 5 cm; then every frame 0-799 is scored against them with
-:class:`gpumap.sim.variation.VariationStats` (the footprint max as the mapper computes it, per voxel
-and per view): the share of bright views per voxel (quantiles, histogram), by range and by incidence
-(normals by PCA of the neighbouring surface voxels), the frame-to-frame persistence of a voxel's
-bright/dark state and the per-ping gain.
-
-Simulated: the tank swept at the sonar's rate (:func:`gpumap.sim.scenes.long_run_scene`, 5 cm),
-pings quantized to uint8, scored the same way at the simulator's threshold (0.1) against the truth's
-surface voxels chosen as the real ones are (those some ping could detect are reported too), once
-without variation and once with :meth:`SonarVariation.real_tank`. ``--fit`` instead scores candidate
-variations and reports the one whose bright-share quantiles are nearest the real ones, in
-``bench/results/variation_fit.json`` (the preset is then copied into
-:data:`gpumap.sim.variation.REAL_TANK` by hand; the file says whether they agree).
-
-Writes ``bench/results/variation_real.json`` and ``variation_real.png``. ``--held-out`` instead
-measures the held-out frames 800-1222 the same way (nothing is tuned on them) beside the simulated
-figures already in ``variation_real.json``: ``variation_held_out.json``. Takes ~3 min on 2 cores
-(``--fit``: ~1 min more per candidate).
+Writes ``bench/results/variation_real.json`` and ``.png``; ``--fit``: ``variation_fit.json``;
+``--held-out``: ``variation_held_out.json``. ~3 min on 2 cores (bench/README.md tells more).
 """
 
 from __future__ import annotations

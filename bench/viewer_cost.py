@@ -1,10 +1,6 @@
 """What watching costs: ``gpumap replay`` of the real tank at 5 cm with and without the live view.
 
     python -m bench.viewer_cost [--data ../shared/data/oasis_tank] [--repeat 3]
-
-Alternates no view, ``--view`` without and with a headless Chromium connected, and ``--record``; each
-row is the best of ``--repeat`` runs of ``seconds_total`` and of the process's CPU seconds. Writes
-``bench/results/viewer_cost.json`` (bench/README.md tells more).
 """
 
 from __future__ import annotations

@@ -1,13 +1,7 @@
 """``python -m bench.visibility``: the visible rule against the paper's plain min-max (issue #10).
 
     python -m bench.visibility                                   # tank and circle, 5 to 1 cm
-    python -m bench.visibility --scenes circle --voxel-sizes 0.03 --backend numpy
     python -m bench.visibility --carve-sweep 1 2 3 4 --voxel-sizes 0.03 0.02   # quality only
-
-Every rule maps each scene's uint8 pings at true poses per voxel size; integrate + synchronize is timed
-and the map scored; the FN-against-FP curve re-reads the same map at other thresholds (3 cm plots in
-``docs/visibility_fn_fp_<scene>.png``). ``--carve-sweep`` re-reads the visible map at each
-``carve_views`` and writes ``bench/results/visibility_carve.json`` (bench/README.md tells more).
 """
 
 from __future__ import annotations

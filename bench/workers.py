@@ -1,13 +1,6 @@
 """Worker overhead: the survey mapped by one process against N Dask workers on the same cores.
 
-    python -m bench.workers [--backend warp-cpu] [--voxel-size 0.05] [--workers 2] [--reps 3]
-                            [--sparse] [--worker-threads N] [--passes K] [--split space|pings]
-                            [--section NAME] [--out bench/results/workers.json]
-
-Each repetition times, back to back, ``gpumap.replay.run_replay`` in this process and
-``gpumap.workers.run_replay_workers`` on a running LocalCluster of single-threaded workers, on the
-survey's 200 pings (rendered to ``bench/results/tmp/survey_pings.npz`` first if missing); the first
-also checks that both maps are equal bit for bit (bench/README.md tells more).
+    python -m bench.workers [--workers 2] [--reps 3] [--sparse] [--worker-threads N] [--section NAME]
 """
 
 from __future__ import annotations
