@@ -44,9 +44,10 @@ def slug(text: str) -> str:
 def _cpu_model() -> str:
     try:
         with open("/proc/cpuinfo") as f:
-            return next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), "unknown")
+            model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), None)
     except OSError:
-        return platform.processor() or "unknown"
+        model = None
+    return model or platform.processor() or "unknown"
 
 
 def _version(mod: str) -> str | None:
@@ -380,10 +381,12 @@ def linear_fit(x: Sequence[float], y: Sequence[float]) -> dict[str, float]:
 
 
 # ------------------------------------------------------------------------------ inputs
-def _data_dir(*names: str, need: str = "sonar_poses.csv") -> Path | None:
+def _data_dir(name: str, need: str = "sonar_poses.csv") -> Path | None:
+    """The first folder ``name`` (a path relative to a folder above this file, or to its parent) with the
+    recording's poses and ``need``."""
     for up in Path(__file__).resolve().parents:
-        for cand in (up / n for n in names):
-            if (cand / need).exists() and (cand / "sonar_poses.csv").is_file():
+        for cand in (up / name, up.parent / name):
+            if (cand / "sonar_poses.csv").is_file() and (cand / need).exists():
                 return cand
     return None
 
@@ -391,14 +394,15 @@ def _data_dir(*names: str, need: str = "sonar_poses.csv") -> Path | None:
 def oasis_tank_dir() -> Path | None:
     """``shared/data/oasis_tank`` (the real Oculus M3000d tank recording) beside the checkout, as
     CI has it, or above it; None where it is not there."""
-    return _data_dir("shared/data/oasis_tank", "../shared/data/oasis_tank")
+    return _data_dir("shared/data/oasis_tank")
 
 
 def oasis_full_dir() -> Path | None:
     """The full-rate OASIS tank recording (``oasis_tank_full/`` with ``sonar/*.png``, written by
     ``shared/data/oasis_tank_full/get_images.sh``) beside the checkout or above it; None where its
     images are not there (``shared/data/oasis_tank_full`` itself holds only the poses)."""
-    return _data_dir("oasis_tank_full", "shared/data/oasis_tank_full", need="sonar")
+    full = _data_dir("oasis_tank_full", need="sonar")
+    return full or _data_dir("shared/data/oasis_tank_full", need="sonar")
 
 
 def quantize(image: np.ndarray) -> np.ndarray:
