@@ -28,8 +28,8 @@ OASIS_PUBLISHED_MS: dict[float, float] = {0.05: 82.0, 0.03: 329.0, 0.01: 7200.0}
 #: The Oculus M1200d's maximum ping rate (paper, Table I footnote).
 SONAR_RATE_HZ = 10.0
 #: Speed targets (issue 6): (device class, voxel size m, images/s).
-TARGETS: list[tuple[str, float, float]] = [("cpu", 0.03, 100.0), ("cpu", 0.01, 10.0), ("gpu", 0.01, 5000.0),
-                                           ("gpu", 0.005, 1000.0)]
+TARGETS: list[tuple[str, float, float]] = [
+    ("cpu", 0.03, 100.0), ("cpu", 0.01, 10.0), ("gpu", 0.01, 5000.0), ("gpu", 0.005, 1000.0)]
 GPU_BACKENDS = ("warp-cuda", "opencl-gpu")
 #: Scratch inputs the benchmarks cache (git-ignored): ping files, converted frames, saved maps.
 TMP = Path("bench/results/tmp")
@@ -485,8 +485,8 @@ def trajectory(n: int) -> list[np.ndarray]:
         yaw = 0.3 * np.sin(2 * np.pi * u)
         cp, sp, cy, sy = np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
         T = np.eye(4)
-        T[:3, :3] = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ np.array([[cp, 0, sp], [0, 1, 0],
-                                                                                  [-sp, 0, cp]])
+        Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+        T[:3, :3] = Rz @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
         T[:3, 3] = (-1.4, 0.0 if u < 0.5 else 0.8 * (u - 0.5), 0.35)
         out.append(T)
     return out

@@ -81,8 +81,8 @@ def prism_section(seeds: list[int], slide: float = 0.5) -> dict:
             ratios, pose_updates = [], []
             for seed in seeds:
                 g = TrustGuard() if variant == "guarded" else None
-                ratios.append(position_ratio(simulate(seed, cfg), g, slide if case == "sliding" else 0.0,
-                                             seed)[0])
+                s = slide if case == "sliding" else 0.0
+                ratios.append(position_ratio(simulate(seed, cfg), g, s, seed)[0])
                 pose_updates.append(0 if g is None else g.pose_updates)
             out[f"{case}|{variant}"] = {"seeds": seeds, "ratio_position": ratios,
                                         "ratio_position_mean": float(np.mean(ratios)),

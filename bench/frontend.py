@@ -119,8 +119,8 @@ def _sim_run(sc, pings, noise: float, seed: int, tracker_kwargs: dict | None = N
         "precision_all": tp_all / max(tp_all + fp_all, 1), "recall_all": tp_all / max(total, 1),
         "precision_fused": tp_f / max(tp_f + fp_f, 1), "recall_fused": tp_f / max(total, 1), "returns": total,
         **{f"{k}_mean_{u}": {"odometry": e_odo[f"{k}_{u}"]["mean"], "true_ids": e_tid[f"{k}_{u}"]["mean"],
-                             "tracker": e_trk[f"{k}_{u}"]["mean"]} for k, u in (("position", "m"),
-                                                                                ("heading", "rad"))},
+                             "tracker": e_trk[f"{k}_{u}"]["mean"]}
+           for k, u in (("position", "m"), ("heading", "rad"))},
         "feature_mean_m": {"true_ids": float(np.mean(f_tid)) if same else None,
                            "tracker": float(np.mean(f_trk)) if same else None, "features": len(same)},
         "tracks": res.tracker.lifetimes(), "ms_track_ekf_mean": float(res.ms_track.mean()),
@@ -273,8 +273,8 @@ def main(argv: list[str] | None = None) -> int:
         for noise in NOISES:
             rows = [_sim_run(sc, pings, noise, seed) for seed in range(a.seeds)]
             summ = {k: _summarise(rows, f) for k, f in SIM_SUMMARY.items()}
-            out["sim"][f"{name}_{noise}"] = {"scene": name, "noise": noise, "seeds": a.seeds, "summary": summ,
-                                             "runs": rows}
+            out["sim"][f"{name}_{noise}"] = {"scene": name, "noise": noise, "seeds": a.seeds,
+                                             "summary": summ, "runs": rows}
             if not a.no_progress:
                 means = {k: v and round(v["mean"], 3) for k, v in summ.items()}
                 print(f"sim {name} noise {noise}: " + json.dumps(means), file=sys.stderr)

@@ -17,6 +17,7 @@ from .common import bench_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
+JUDGED = ("agreement", "phantom_rate", "missing_rate")
 
 
 def _load(name: str) -> dict[str, Any] | None:
@@ -88,8 +89,7 @@ def summary_rows() -> list[tuple[str, str, str]]:
             r = rate["rules"][rule]
             rows.append((f"... held-out frames 800-1222, first returns the {rule} map agrees with / "
                          "phantoms in front / misses: every 10th, every frame",
-                         ", ".join(" / ".join(_pct(j[k]) for k in ("agreement", "phantom_rate",
-                                                                   "missing_rate"))
+                         ", ".join(" / ".join(_pct(j[k]) for k in JUDGED)
                                    for j in (r["every_10"]["judge"], r["every_1"]["judge"])),
                          "rate_real.json"))
     lr = _load("long_run.json")

@@ -126,8 +126,8 @@ def _baseline_table(res: dict) -> list[str]:
            "| published: paper Table I | published: OASIS code |",
            "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for v in sorted({r["voxel_size_m"] for r in rows}, reverse=True):
-        group = ([best[v]] if v in best else []) + sorted((r for r in rows if r["voxel_size_m"] == v),
-                                                          key=lambda r: r["kind"])
+        others = sorted((r for r in rows if r["voxel_size_m"] == v), key=lambda r: r["kind"])
+        group = ([best[v]] if v in best else []) + others
         for r in group:
             name = (_series(res, r) if r.get("kind") != "gpumap"
                     else f"**gpumap {r['backend']} {r['method']}** (fastest)")

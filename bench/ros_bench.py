@@ -168,9 +168,9 @@ def main(argv: list[str] | None = None) -> int:
                     break
             ok = [r["achieved_hz"] for r in rows if r["sustained"]]
             rec = next((r for r in rows if r["requested_hz"] == 10), None)
+            lat = None if rec is None else [rec["latency_ms_p50"], rec["latency_ms_p99"]]
             res["runs"][f"{vs}"] = {"rows": rows, "max_sustained_achieved_hz": max(ok) if ok else None,
-                                    "latency_at_10hz_ms": None if rec is None else [rec["latency_ms_p50"],
-                                                                                    rec["latency_ms_p99"]]}
+                                    "latency_at_10hz_ms": lat}
     write_json(a.out, res)
     print(f"wrote {a.out}")
     return 0

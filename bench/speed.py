@@ -368,8 +368,8 @@ def main(argv: list[str] | None = None) -> int:
                 print({k: row.get(k) for k in keys}, row.get("latency", {}).get("p99_ms"), flush=True)
     on_gpu = [b for b in backends if b in GPU_BACKENDS]
     if on_gpu:
-        res["oracle_diff_5cm"] = oracle_check(fr.spec, oasis_grid(10 * OASIS_RES_M), fr.images, fr.poses,
-                                              on_gpu)
+        grid = oasis_grid(10 * OASIS_RES_M)
+        res["oracle_diff_5cm"] = oracle_check(fr.spec, grid, fr.images, fr.poses, on_gpu)
         print("oracle", res["oracle_diff_5cm"], flush=True)
     tag = a.tag or common.machine_tag(res["machine"], bool(on_gpu))
     print(f"wrote {write_json(common.tagged_path(a.out, 'speed_', tag), res, digits=4)}")

@@ -140,8 +140,8 @@ def side_by_side(real: dict, sims: dict[str, dict]) -> dict:
                 r |= {f"sim_{name}": s[key][b]["pooled_bright"], f"sim_{name}_views": s[key][b]["views"]}
             rows.append(r)
         out[f"pooled_bright_{key}"] = rows
-    out["persistence"] = {"real": real["persistence"], **{f"sim_{n}": s["persistence"] for n,
-                                                          s in sims.items()}}
+    sim_persistence = {f"sim_{n}": s["persistence"] for n, s in sims.items()}
+    out["persistence"] = {"real": real["persistence"], **sim_persistence}
     return out
 
 
@@ -253,8 +253,8 @@ def main(argv: list[str] | None = None) -> int:
                "distance_to_real": {n: quantile_distance(real, s) for n, s in prev["sim"].items()}}
         name = "variation_held_out.json"
     else:
-        res = {**head, "real": {"data": str(data), **real}, "sim": sims, "side_by_side": side_by_side(real,
-                                                                                                      sims),
+        res = {**head, "real": {"data": str(data), **real}, "sim": sims,
+               "side_by_side": side_by_side(real, sims),
                "distance_to_real": {n: quantile_distance(real, s) for n, s in sims.items()}}
         name = "variation_real.json"
         plot(a.out / "variation_real.png", real, sims)

@@ -86,8 +86,8 @@ def main(argv: list[str] | None = None) -> int:
             row = {"rep": rep, "cold_workers": rep == 0, "frames": s1["frames"],
                    "one_wall_s": round(wall_one, 3),
                    "one_setup_s": round(s1["seconds_setup"], 3), "workers_wall_s": round(wall_w, 3),
-                   **{f"workers_{k}_s": round(sw[f"seconds_{k}"], 3) for k in ("setup", "map", "gather",
-                                                                               "merge")},
+                   **{f"workers_{k}_s": round(sw[f"seconds_{k}"], 3)
+                      for k in ("setup", "map", "gather", "merge")},
                    "per_worker": [{k: (round(v, 3) if isinstance(v, float) else v) for k, v in w.items()}
                                   for w in sw["per_worker"]],
                    "overhead": round(wall_w / wall_one - 1.0, 4), "loadavg_before_one": load0,
