@@ -3,10 +3,6 @@
     python -m bench --list                 # the benchmarks, one line each
     python -m bench speed --gpu ...        # the same as python -m bench.speed --gpu ...
     python -m bench [options]              # the speed-against-error sweep (python -m bench sweep)
-
-Each name is a module of ``bench/`` with a ``main(argv)``; ``python -m bench.NAME`` runs it
-too. Without a name (the first argument an option, or none) this runs the sweep of
-:mod:`bench.sweep`, as ``gpumap bench`` does: its options are the sweep's, plus ``--list``.
 """
 
 from __future__ import annotations
@@ -22,8 +18,8 @@ from .sweep import run, write_result
 BENCHMARKS: dict[str, str] = {
     "ab": "two source trees timed side by side: a bounded map's speed, alternating runs in one session",
     "sweep": "speed against error on the simulated tank: every backend, voxel size, method and baseline",
-    "speed": "latency and throughput on the real OASIS tank frames, and the public OASIS code beside it",
-    "mapper_speed": "images/s per voxel size, backend and method on synthetic speckle pings",
+    "speed": "latency and throughput on the real OASIS tank frames and the public OASIS code beside it; "
+             "--synthetic, --gpu-check",
     "peer_ratio": "gpumap against the public OASIS code, in turn, refused on a loaded machine",
     "sparse": "sparse against dense maps: memory and images/s on the tank and survey pings",
     "memory": "peak memory of gpumap replay against the grid's voxels, per backend and rule",
@@ -38,10 +34,9 @@ BENCHMARKS: dict[str, str] = {
     "ekf_bench": "the EKF on the prism simulation (NEES, odometry sweep, update cost; --vs-batch)",
     "ekf_real": "the EKF on the full real tank: EKF/odometry per variant, drift, seed; dev and held-out",
     "frontend": "the EKF front end: detection, association and the EKF loop, simulated and real",
-    "sim_bench": "the sonar simulator's images/s (and the DVL's pings/s) on this machine",
     "viewer_cost": "what the live view and the recorder cost gpumap replay of the real tank",
     "ros_bench": "the ROS 2 node's sustained rates and latency over Fast DDS on the real tank",
-    "report": "the results files -> BENCHMARKS.md and its plots",
+    "report": "the results files -> BENCHMARKS.md and its plots (--check compares only)",
     "readme": "the README's figures, written from the results files (--check compares only)",
 }
 
@@ -57,17 +52,15 @@ def _parser() -> argparse.ArgumentParser:
 def listing() -> str:
     """What ``--list`` prints: each name and its line."""
     width = max(map(len, BENCHMARKS))
-    lines = ["python -m bench NAME [options]   (python -m bench NAME --help for its options)", ""]
-    lines += [f"  {name:<{width}}  {line}" for name, line in BENCHMARKS.items()]
-    return "\n".join(lines)
+    return "\n".join(["python -m bench NAME [options]   (python -m bench NAME --help for its options)", ""]
+                     + [f"  {name:<{width}}  {line}" for name, line in BENCHMARKS.items()])
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m bench`` and ``gpumap bench``."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in BENCHMARKS and argv[0] != "sweep":
-        mod = importlib.import_module(f".{argv[0]}", __package__)
-        return int(mod.main(argv[1:]) or 0)
+        return int(importlib.import_module(f".{argv[0]}", __package__).main(argv[1:]) or 0)
     if argv and argv[0] == "sweep":
         argv = argv[1:]
     elif argv and not argv[0].startswith("-"):

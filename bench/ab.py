@@ -1,24 +1,16 @@
 """Two source trees timed side by side: a bounded map's speed, in alternating runs of one session.
 
-    python -m bench.ab --a /path/to/other/checkout --voxel 0.03 0.01 --backend opencl-cpu warp-cpu
+    python -m bench.ab --a /path/to/other/checkout --voxel-size 0.03 0.01 --backend opencl-cpu warp-cpu
 
-Tree B is this checkout unless ``--b`` says otherwise. Each round runs every (voxel, backend)
-once per tree, in fresh processes, A first in even rounds and B first in odd ones, so neither
-tree always meets a warm or a cold machine first. A run is the tank set-up of
-:mod:`bench.mapper_speed` (512 beams x 400 bins, 0.1-2 m, the 4 x 3 x 1 m grid, a wrist
-trajectory, speckled pings): warm-up pings, then ``--images`` pings back to back with one
-synchronize at the end (images/s; ``--batch K`` hands them over K at a time with
-``integrate_batch``). Both trees must give the same map: a digest of the values after the timed
-pings is compared, and a mismatch fails the run. The machine must be idle at the start (load
-and other processes' cores, as :mod:`bench.peer_ratio` checks); the other processes' share is
-recorded per run, and a run where they took more than ``--max-others`` cores is marked.
-Writes ``bench/results/ab_<tag>.json``: per row each tree's median images/s and spread, and
-B's median over A's; ``--report BENCHMARKS.md`` writes the table of every such file there.
+Tree B is this checkout unless ``--b`` says otherwise; both must give the same map (a digest of its
+values). Writes ``bench/results/ab_<tag>.json``; ``--report BENCHMARKS.md`` writes the table of every
+such file there (bench/README.md tells more).
 """
 
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import os
 import subprocess
@@ -28,6 +20,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+if __package__:  # bench.ab; run as a script (the worker), only gpumap and the harness by path are imported
+    from . import common
+    from .common import CpuShare, Section, bench_parser, idle_check, refuse, run_header, spread, write_json
 
 WARMUP = 3
 
@@ -45,126 +41,87 @@ def _package(tree: Path, into: Path) -> Path:
     return into
 
 
-def _worker(a) -> None:
-    """One timed run in this process (this file run as a script, importing gpumap from the tree
-    on PYTHONPATH: only gpumap and bench.mapper_speed's set-up, which both trees have); prints
-    one JSON line."""
-    from gpumap.bench.mapper_speed import images, tank_grid, tank_spec, trajectory
-
+def _worker(job: dict) -> None:
+    """One timed run in this process (this file run as a script: gpumap from the tree on
+    PYTHONPATH, the synthetic tank from this file's harness, loaded by path); prints one JSON line."""
+    spec_ = importlib.util.spec_from_file_location("bench_harness", Path(__file__).with_name("common.py"))
+    c = sys.modules["bench_harness"] = importlib.util.module_from_spec(spec_)
+    spec_.loader.exec_module(c)
     import gpumap
 
-    if a.gpu_chunk:
+    if job["gpu_chunk"]:
         import gpumap.backends
 
-        gpumap.backends.GPU_CHUNK = a.gpu_chunk
-    spec, grid = tank_spec(), tank_grid(a.voxel[0])
-    n = a.images
-    imgs, poses = images(spec, min(n, 16)), trajectory(n)
-    m = gpumap.MinMaxMapper(spec, grid, backend=a.backend[0], **({"rule": a.rule} if a.rule else {}))
+        gpumap.backends.GPU_CHUNK = job["gpu_chunk"]
+    n, batch, spec = job["images"], job["batch"], c.tank_spec()
+    imgs, poses = c.speckle(spec, min(n, 16)), c.trajectory(n)
+    m = gpumap.MinMaxMapper(spec, c.tank_grid(job["voxel"]), backend=job["backend"],
+                            **({"rule": job["rule"]} if job["rule"] else {}))
     for k in range(WARMUP):
         m.integrate(imgs[k], poses[k])
     m.synchronize()
     m.reset()
-    batch = a.batch
     stack = np.stack(imgs)
     t = time.perf_counter()
-    if batch:
-        for k0 in range(0, n, batch):
+    for k0 in range(0, n, batch or 1):
+        if batch:
             ks = np.arange(k0, min(n, k0 + batch))
             m.integrate_batch(stack[ks % len(imgs)], np.stack([poses[k] for k in ks]))
-    else:
-        for k in range(n):
-            m.integrate(imgs[k % len(imgs)], poses[k])
+        else:
+            m.integrate(imgs[k0 % len(imgs)], poses[k0])
     m.synchronize()
     dt = time.perf_counter() - t
-    # --digest min_all: the min over every view, which every rule keeps (trees whose default
-    # rules differ: the same views were folded, though the rules then read them differently)
-    v = m.evidence()["min_all"] if a.digest == "min_all" and m.rule != "plain" else m.raw_values()
+    # digest min_all: the min over every view, which every rule keeps (trees whose default rules
+    # differ: the same views were folded, though the rules then read them differently)
+    v = m.evidence()["min_all"] if job["digest"] == "min_all" and m.rule != "plain" else m.raw_values()
     print(json.dumps({"images_per_s": n / dt, "backend": m.backend, "device": m.device,
                       "gpumap_file": gpumap.__file__, "observed": int(np.isfinite(v).sum()),
                       "digest": hashlib.sha256(v.tobytes()).hexdigest()[:16]}), flush=True)
 
 
-def _run(root: Path, tree: Path, voxel: float, backend: str, n: int, batch: int, chunk: int = 0,
-         digest: str = "values", rule: str = "") -> dict:
-    from gpumap.bench.common import CpuShare
-
-    cmd = [sys.executable, "-P", str(Path(__file__).resolve()), "--worker", "--voxel", str(voxel),
-           "--backend", backend, "--images", str(n), "--batch", str(batch), "--gpu-chunk", str(chunk),
-           "--digest", digest, "--rule", rule]
+def _run(root: Path, tree: Path, job: dict) -> dict:
     path = os.pathsep.join(x for x in (str(root), os.environ.get("PYTHONPATH")) if x)
-    env = {**os.environ, "PYTHONPATH": path}
     with CpuShare() as share:
-        p = subprocess.run(cmd, env=env, cwd=root, capture_output=True, text=True, timeout=3600)
+        p = subprocess.run([sys.executable, "-P", str(Path(__file__).resolve()), "--worker", json.dumps(job)],
+                           env={**os.environ, "PYTHONPATH": path}, cwd=root, capture_output=True, text=True,
+                           timeout=3600)
     if p.returncode != 0:
-        raise RuntimeError(f"{tree} {backend} {voxel}: {p.stderr.strip()[-2000:]}")
+        raise RuntimeError(f"{tree} {job['backend']} {job['voxel']}: {p.stderr.strip()[-2000:]}")
     out = json.loads(p.stdout.strip().splitlines()[-1])
     if not str(Path(out["gpumap_file"]).resolve()).startswith(str(tree.resolve())):
         raise RuntimeError(f"Expected gpumap imported from {tree}, but it came from {out['gpumap_file']}")
-    out["others_cores"] = share.others_cores
-    return out
+    return out | {"others_cores": share.others_cores}
 
 
-BEGIN, END = "<!-- begin:ab -->", "<!-- end:ab -->"
-SECTION = "## One mapper over blocks: speed against the two mappers it replaced (issue #24)"
-
-
-def markdown(docs: list[tuple[str, dict]]) -> str:
+def markdown(docs: list[tuple[str, dict]], folder: Path) -> str:
     """The BENCHMARKS.md block of ``ab_*.json`` results: one row per (file, voxel, backend)."""
-    out = [SECTION, "",
-           "`python -m bench.ab --a OTHER_CHECKOUT ...` times two source trees side by side (module "
-           "docstring); tree A is the commit before the change a file measures, B the change: the one "
-           "mapper over blocks (issue #24) in the first files, the evidence rule (issue #28) in "
-           "`ab_*_evidence.json`. "
-           "Images/s: median (min-max) of the rounds; every run of both trees gave the same map (digest; "
-           "'same views': trees with different default rules folded the same min over every view). "
-           "This block: `python -m bench.ab --report BENCHMARKS.md` (after `python -m bench.report`).",
-           "", "| file | device | voxel | backend | pings | batch | A img/s | B img/s | B / A | same map |",
-           "|---|---|---|---|---|---|---|---|---|---|"]
+    out = [common.template("ab")]
     for name, d in docs:
         for r in d["rows"]:
             same = "yes" if r.get("digest", "values") == "values" else "same views"
             a, b = r["a"]["images_per_s"], r["b"]["images_per_s"]
-            out.append(
-                f"| `{name}` | {r['device']} | {r['voxel_size_m'] * 100:g} cm | {r['backend']} | "
-                f"{r['images']} | {r['batch'] or '-'} | {a['median']:.1f} ({a['min']:.0f}-{a['max']:.0f}) | "
-                f"{b['median']:.1f} ({b['min']:.0f}-{b['max']:.0f}) | {r['b_over_a']:.3f} | "
-                f"{same if r['same_map'] else '**no**'} |")
+            out.append(f"| `{name}` | {r['device']} | {r['voxel_size_m'] * 100:g} cm | {r['backend']} | "
+                       f"{r['images']} | {r['batch'] or '-'} | "
+                       f"{a['median']:.1f} ({a['min']:.0f}-{a['max']:.0f}) | "
+                       f"{b['median']:.1f} ({b['min']:.0f}-{b['max']:.0f}) | {r['b_over_a']:.3f} | "
+                       f"{same if r['same_map'] else '**no**'} |")
     return "\n".join(out)
 
 
-def report(folder: Path, benchmarks: Path) -> None:
-    docs = [(p.name, json.loads(p.read_text())) for p in sorted(folder.glob("ab_*.json"))]
-    from gpumap.bench.common import put_block
-
-    put_block(benchmarks, BEGIN, END, markdown(docs), section=SECTION)
+SECTION = Section("ab", "## One mapper over blocks: speed against the two mappers it replaced (issue #24)",
+                  "ab_*.json", markdown) if __package__ else None
 
 
 def main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    if argv is None:
-        argv = sys.argv[1:]
-    if "--worker" in argv:
-        w = argparse.ArgumentParser()
-        w.add_argument("--worker", action="store_true")
-        w.add_argument("--voxel", type=float, nargs=1)
-        w.add_argument("--backend", nargs=1)
-        w.add_argument("--images", type=int)
-        w.add_argument("--batch", type=int)
-        w.add_argument("--gpu-chunk", type=int, default=0)
-        w.add_argument("--digest", default="values")
-        w.add_argument("--rule", default="")
-        _worker(w.parse_args(argv))
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--worker"]:
+        _worker(json.loads(argv[1]))
         return 0
-    from gpumap.bench.common import bench_parser, idle_check, run_header, spread, write_json
-
-    ap = bench_parser("bench.ab", __doc__)
-    ap.add_argument("--a", type=Path, help="the other source tree (a checkout with gpumap/, kernels/, sim/, "
-                    "bench/)")
+    ap = bench_parser("ab", __doc__, out="bench/results", voxel=[0.03, 0.01],
+                      backend=["opencl-cpu", "warp-cpu"], tag="cpu", report="ab_*.json")
+    ap.add_argument("--a", type=Path,
+                    help="the other source tree (a checkout with gpumap/, kernels/, sim/, bench/)")
     ap.add_argument("--b", type=Path, default=Path.cwd(), help="the tree compared with it (default: here)")
-    ap.add_argument("--voxel", type=float, nargs="+", default=[0.03, 0.01], help="voxel edges, metres")
-    ap.add_argument("--backend", nargs="+", default=["opencl-cpu", "warp-cpu"], help="backends, by name")
     ap.add_argument("--images", type=int, default=0, help="pings per run (default 200 at >= 2 cm, else 60)")
     ap.add_argument("--batch", type=int, default=0,
                     help="hand pings over this many at a time (0: one by one)")
@@ -179,36 +136,30 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-others", type=float, default=0.25,
                     help="cores other processes may take (at the start, and per run before it is marked)")
     ap.add_argument("--force", action="store_true", help="run on a loaded machine (results marked invalid)")
-    ap.add_argument("--tag", default="cpu", help="results file: bench/results/ab_TAG.json")
-    ap.add_argument("--out", type=Path, default=Path("bench/results"), help="folder for the results file")
-    ap.add_argument("--report", type=Path, metavar="BENCHMARKS_MD",
-                    help="only write the table of every ab_*.json in --out into this Markdown file")
     a = ap.parse_args(argv)
-    if a.report is not None:
-        report(a.out, a.report)
+    if SECTION.reported(a):
         return 0
     if a.a is None:
         ap.error("--a is required")
     start = idle_check(a.max_load, a.max_others)
     if not start["idle"] and not a.force:
-        print(f"bench.ab: the machine is not idle ({start}); refusing to time (--force to run anyway)",
-              file=sys.stderr)
-        return 3
+        return refuse("bench.ab", start, (a.max_load, a.max_others), "--force")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         roots = {t: _package(getattr(a, t), Path(tmp) / t) for t in ("a", "b")}
         for voxel in a.voxel:
             for backend in a.backend:
-                n = a.images or (200 if voxel >= 0.02 else 60)
+                job = {"voxel": voxel, "backend": backend,
+                       "images": a.images or (200 if voxel >= 0.02 else 60), "batch": a.batch,
+                       "gpu_chunk": a.gpu_chunk, "digest": a.digest, "rule": a.rule}
                 runs: dict[str, list] = {"a": [], "b": []}
                 for r in range(a.rounds):
                     for t in ("a", "b") if r % 2 == 0 else ("b", "a"):
-                        runs[t].append(_run(roots[t], getattr(a, t), voxel, backend, n, a.batch, a.gpu_chunk,
-                                            a.digest, a.rule))
-                digests = {x["digest"] for t in runs for x in runs[t]}
-                row = {"voxel_size_m": voxel, "backend": backend, "images": n, "batch": a.batch,
+                        runs[t].append(_run(roots[t], getattr(a, t), job))
+                row = {"voxel_size_m": voxel, "backend": backend, "images": job["images"], "batch": a.batch,
                        "gpu_chunk": a.gpu_chunk or "default", "digest": a.digest, "rule": a.rule or "default",
-                       "device": runs["b"][0]["device"], "same_map": len(digests) == 1,
+                       "device": runs["b"][0]["device"],
+                       "same_map": len({x["digest"] for t in runs for x in runs[t]}) == 1,
                        "observed_voxels": runs["b"][0]["observed"]}
                 for t in ("a", "b"):
                     ips = [x["images_per_s"] for x in runs[t]]
@@ -225,8 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     doc = {**run_header("gpumap.bench.ab/1", argv), "idle_at_start": start, "valid": bool(start["idle"]),
            "trees": {t: str(getattr(a, t).resolve()) for t in ("a", "b")}, "warmup_pings": WARMUP,
            "rounds": a.rounds, "rows": rows}
-    path = write_json(a.out / f"ab_{a.tag}.json", doc)
-    print(f"wrote {path}")
+    print(f"wrote {write_json(a.out / f'ab_{a.tag}.json', doc)}")
     return 0 if all(r["same_map"] for r in rows) else 1
 
 

@@ -1,63 +1,25 @@
-"""Shared helpers of every benchmark: command line, machine description and load check, timing
-loops, the scenes' pings and the real tank, results files and marked Markdown blocks.
-
-A benchmark module under ``bench/`` builds its parser with :func:`bench_parser`, reads its
-inputs with :func:`oasis_tank_dir` / :func:`render_pings` / :func:`load_ping_arrays`, times a
-mapper with :func:`warm_up`, :func:`synced_ms` and :func:`stream_rate`, describes the machine
-with :func:`machine_info` (and :func:`idle_check` where a figure needs an idle machine), and
-writes its results with :func:`run_header` and :func:`write_json` (or :func:`merge_json` for a
-file of sections). ``python -m bench NAME`` runs any of them (:mod:`bench.__main__`).
+"""The one harness of every benchmark (bench/README.md tells the layout): command line, machine and
+load, timing, inputs, results files, BENCHMARKS.md blocks and plots. It imports nothing of gpumap or
+bench at load time: ``bench.ab``'s worker loads it by path beside a foreign source tree.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import re
+import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-__all__ = [
-    "OASIS_PUBLISHED_MS",
-    "PAPER_TABLE_I",
-    "SONAR_RATE_HZ",
-    "TARGETS",
-    "CpuShare",
-    "PeakRSS",
-    "bench_parser",
-    "compact",
-    "gl_renderer",
-    "idle_check",
-    "load_average",
-    "load_ping_arrays",
-    "load_results",
-    "machine_info",
-    "machine_tag",
-    "mark_load",
-    "merge_json",
-    "oasis_full_dir",
-    "oasis_tank_dir",
-    "pooled_others",
-    "put_block",
-    "quantize",
-    "render_pings",
-    "run_header",
-    "slug",
-    "spread",
-    "stream_rate",
-    "synced_ms",
-    "tagged_path",
-    "warm_up",
-    "write_json",
-    "write_section",
-]
 
 #: The paper's Table I (Phung et al.): voxel size (m) -> published seconds per image.
 PAPER_TABLE_I: dict[float, float] = {0.06: 0.07, 0.05: 0.12, 0.04: 0.25, 0.03: 0.52, 0.02: 1.6, 0.01: 12.0}
@@ -67,18 +29,13 @@ OASIS_PUBLISHED_MS: dict[float, float] = {0.05: 82.0, 0.03: 329.0, 0.01: 7200.0}
 SONAR_RATE_HZ = 10.0
 #: Speed targets (issue 6): (device class, voxel size m, images/s).
 TARGETS: list[tuple[str, float, float]] = [
-    ("cpu", 0.03, 100.0),
-    ("cpu", 0.01, 10.0),
-    ("gpu", 0.01, 5000.0),
-    ("gpu", 0.005, 1000.0),
-]
+    ("cpu", 0.03, 100.0), ("cpu", 0.01, 10.0), ("gpu", 0.01, 5000.0), ("gpu", 0.005, 1000.0)]
+GPU_BACKENDS = ("warp-cuda", "opencl-gpu")
+#: Scratch inputs the benchmarks cache (git-ignored): ping files, converted frames, saved maps.
+TMP = Path("bench/results/tmp")
 
 
-def help_line(doc: str | None) -> str:
-    """A module docstring's first line as a ``--help`` description: plain words, no reST backticks."""
-    return (doc or "").strip().splitlines()[0].replace("``", "") if (doc or "").strip() else ""
-
-
+# ------------------------------------------------------------------------------ machine and load
 def slug(text: str) -> str:
     """Lower-case file-name-safe form of ``text``."""
     return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")[:40] or "unknown"
@@ -87,12 +44,10 @@ def slug(text: str) -> str:
 def _cpu_model() -> str:
     try:
         with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
+            model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), None)
     except OSError:
-        pass
-    return platform.processor() or "unknown"
+        model = None
+    return model or platform.processor() or "unknown"
 
 
 def _version(mod: str) -> str | None:
@@ -113,25 +68,16 @@ def load_average() -> list[float] | None:
 
 
 def machine_info() -> dict[str, Any]:
-    """CPU model and cores, memory, GPU names, load average and package versions."""
+    """CPU model and cores, memory, GPU names, load average, package versions and the git state."""
     import gpumap
 
+    pkgs = ("warp-lang", "pyopencl", "pocl-binary-distribution", "pyoctomap", "scipy")
     info: dict[str, Any] = {
-        "cpu_model": _cpu_model(),
-        "cpu_count": os.cpu_count(),
+        "cpu_model": _cpu_model(), "cpu_count": os.cpu_count(),
         "affinity_cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-        "platform": platform.platform(),
-        "python": platform.python_version(),
+        "platform": platform.platform(), "python": platform.python_version(),
         "load_avg_start": load_average(),
-        "versions": {
-            "gpumap": gpumap.__version__,
-            "numpy": np.__version__,
-            "warp-lang": _version("warp-lang"),
-            "pyopencl": _version("pyopencl"),
-            "pocl-binary-distribution": _version("pocl-binary-distribution"),
-            "pyoctomap": _version("pyoctomap"),
-            "scipy": _version("scipy"),
-        },
+        "versions": {"gpumap": gpumap.__version__, "numpy": np.__version__, **{p: _version(p) for p in pkgs}},
         "backends": gpumap.available_backends(),
     }
     try:
@@ -139,17 +85,31 @@ def machine_info() -> dict[str, Any]:
             info["mem_total_gb"] = round(int(f.readline().split()[1]) / 2**20, 1)
     except OSError:
         pass
-    gpus = []
     try:
         import warp as wp
 
-        for d in wp.get_cuda_devices():
-            gpus.append(f"{d.name} ({d.total_memory / 2**30:.0f} GiB)")
+        info["gpus"] = [f"{d.name} ({d.total_memory / 2**30:.0f} GiB)" for d in wp.get_cuda_devices()]
     except Exception:
-        pass
-    info["gpus"] = gpus
+        info["gpus"] = []
     info["git"] = _git_state()
     return info
+
+
+def _git_state() -> dict[str, Any]:
+    """Commit of the checkout and the source files that differ from it (the code actually timed)."""
+    import subprocess
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=Path(__file__).resolve().parents[1], capture_output=True,
+                              text=True, timeout=10).stdout
+
+    try:
+        head = git("rev-parse", "HEAD")
+        dirty = git("status", "--porcelain", "--", "gpumap", "kernels", "bench", "sim")
+    except (OSError, subprocess.SubprocessError):
+        return {}
+    return {"commit": head.strip() or None,
+            "modified": [ln[3:] for ln in dirty.splitlines() if ln.strip().endswith((".py", ".cl"))]}
 
 
 def machine_tag(info: dict[str, Any], gpu: bool = False, model: bool = False) -> str:
@@ -165,12 +125,9 @@ def mark_load(info: dict[str, Any], share: CpuShare) -> None:
     load average at its end and the cores others took meanwhile (``share``, already exited)."""
     info["load_avg_end"] = load_average()
     info["cpu_share_during_run"] = {
-        "others_cores": share.others_cores,
-        "steal_cores": share.steal_cores,
-        "bench_cores": share.own_cores,
+        "others_cores": share.others_cores, "steal_cores": share.steal_cores, "bench_cores": share.own_cores,
         "note": "average cores busy with other processes / withheld by the hypervisor / used by the bench "
-        "(from /proc/stat and getrusage)",
-    }
+        "(from /proc/stat and getrusage)"}
 
 
 def gl_renderer() -> str:
@@ -184,42 +141,13 @@ def gl_renderer() -> str:
         return f"unknown ({type(e).__name__})"
 
 
-def _git_state() -> dict[str, Any]:
-    """Commit of the checkout and the source files that differ from it (the code actually timed)."""
-    import subprocess
-
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    try:
-        head = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10
-        )
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--", "gpumap", "kernels", "bench", "sim"],
-            cwd=root,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return {}
-    return {
-        "commit": head.stdout.strip() or None,
-        "modified": [line[3:] for line in dirty.stdout.splitlines() if line.strip().endswith((".py", ".cl"))],
-    }
-
-
 class PeakRSS:
-    """Context manager sampling this process's resident set size; ``.delta_mb`` is the peak rise.
-
-    A background thread reads ``/proc/self/statm`` every ``interval_s``; the peak over the
-    block minus the RSS at entry is what the block allocated at most (host memory).
-    """
+    """Context manager sampling this process's resident set size every ``interval_s`` (a thread
+    reading ``/proc/self/statm``); ``.delta_mb`` is the peak rise over the block (host memory)."""
 
     def __init__(self, interval_s: float = 0.01) -> None:
-        self.interval_s = interval_s
+        self.interval_s, self.start_b, self.peak_b = interval_s, 0, 0
         self._page = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
-        self.start_b = 0
-        self.peak_b = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -255,16 +183,13 @@ class PeakRSS:
 class CpuShare:
     """Context manager: how many cores *other* processes (and the hypervisor) took during the block.
 
-    From ``/proc/stat`` (busy and steal time of the whole machine) minus this process's own
-    CPU time (``resource.getrusage``, all threads): ``others_cores`` is the average number
-    of cores other processes kept busy, ``steal_cores`` the average the hypervisor withheld.
+    From ``/proc/stat`` (busy and steal time of the whole machine) minus this process's own CPU time
+    (``resource.getrusage``, all threads): ``others_cores`` is the average number of cores other
+    processes kept busy, ``steal_cores`` the average the hypervisor withheld.
     """
 
     def __init__(self) -> None:
-        self.others_cores: float | None = None
-        self.steal_cores: float | None = None
-        self.own_cores: float | None = None
-        self.wall_s: float | None = None
+        self.others_cores = self.steal_cores = self.own_cores = self.wall_s = None
 
     @staticmethod
     def _stat() -> tuple[float, float] | None:
@@ -273,17 +198,14 @@ class CpuShare:
                 v = [int(x) for x in f.readline().split()[1:]]
         except (OSError, ValueError):
             return None
-        hz = os.sysconf("SC_CLK_TCK")
-        busy = v[0] + v[1] + v[2] + v[5] + v[6]  # user nice system irq softirq (guest is inside user)
-        steal = v[7] if len(v) > 7 else 0
-        return busy / hz, steal / hz
+        hz = os.sysconf("SC_CLK_TCK")  # busy: user nice system irq softirq (guest is inside user)
+        return (v[0] + v[1] + v[2] + v[5] + v[6]) / hz, (v[7] if len(v) > 7 else 0) / hz
 
     @staticmethod
     def _own() -> float:
         import resource
 
-        r = resource.getrusage(resource.RUSAGE_SELF)
-        c = resource.getrusage(resource.RUSAGE_CHILDREN)
+        r, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
         return r.ru_utime + r.ru_stime + c.ru_utime + c.ru_stime
 
     def __enter__(self) -> CpuShare:
@@ -291,14 +213,43 @@ class CpuShare:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        wall = time.perf_counter() - self._t0
-        self.wall_s = wall
+        self.wall_s = wall = time.perf_counter() - self._t0
         s1, own = self._stat(), self._own() - self._o0
         if self._s0 is None or s1 is None or wall <= 0:
             return
         self.own_cores = own / wall
         self.others_cores = max(0.0, (s1[0] - self._s0[0]) - own) / wall
         self.steal_cores = (s1[1] - self._s0[1]) / wall
+
+
+def idle_check(max_load: float, max_others: float, sample_s: float = 2.0,
+               load: list[float] | None = None) -> dict[str, Any]:
+    """The machine's load now: 1-minute load average (``load``, default :func:`load_average`) and the
+    cores other processes keep busy over ``sample_s`` seconds; ``idle`` when both are within the
+    limits. A bench that needs an idle machine refuses to start when it is not (exit status 3,
+    :func:`refuse`), or runs on request and marks its results ``"valid": false``."""
+    load = load_average() if load is None else load
+    with CpuShare() as share:
+        time.sleep(sample_s)
+    others = share.others_cores
+    ok = (load is None or load[0] <= max_load) and (others is None or others <= max_others)
+    return {"load_avg": load, "others_cores": others, "idle": bool(ok)}
+
+
+def refuse(prog: str, check: dict[str, Any], limits: tuple[float, float], flag: str) -> int:
+    """Say that ``prog`` will not time on a machine that :func:`idle_check` found busy; exit status 3."""
+    print(f"{prog}: refused: the machine is not idle (1-minute load {check['load_avg']}, other processes "
+          f"busy on {check['others_cores']} cores; limits {limits[0]} and {limits[1]}); wait, or pass {flag} "
+          "to record a run marked not valid", file=sys.stderr)
+    return 3
+
+
+def pooled_others(passes: list[dict[str, Any]]) -> float | None:
+    """Cores other processes kept busy over all ``passes`` together: their CPU seconds
+    (``others_cores * wall_s`` per pass) over the passes' wall seconds; None without samples."""
+    got = [p for p in passes if p.get("others_cores") is not None and p.get("wall_s")]
+    wall = sum(p["wall_s"] for p in got)
+    return sum(p["others_cores"] * p["wall_s"] for p in got) / wall if got and wall > 0 else None
 
 
 def compact(obj: Any, digits: int = 4) -> Any:
@@ -310,43 +261,65 @@ def compact(obj: Any, digits: int = 4) -> Any:
     if isinstance(obj, np.generic):
         obj = obj.item()
     if isinstance(obj, float):
-        if not np.isfinite(obj):
-            return None
-        return float(f"{obj:.{digits}g}")
+        return float(f"{obj:.{digits}g}") if np.isfinite(obj) else None
     return obj
 
 
 # ------------------------------------------------------------------------------ command line
-def bench_parser(module: str, doc: str | None) -> argparse.ArgumentParser:
-    """The parser of ``python -m bench.<module>``: that program name, the docstring's first line."""
-    return argparse.ArgumentParser(prog=f"python -m bench.{module}", description=help_line(doc))
+def help_line(doc: str | None) -> str:
+    """A module docstring's first line as a ``--help`` description: plain words, no reST backticks."""
+    return (doc or "").strip().splitlines()[0].replace("``", "") if (doc or "").strip() else ""
 
 
-# ------------------------------------------------------------------------------ load check
-def idle_check(max_load: float, max_others: float, sample_s: float = 2.0,
-               load: list[float] | None = None) -> dict[str, Any]:
-    """The machine's load now: 1-minute load average (``load``, default :func:`load_average`)
-    and the cores other processes keep busy over ``sample_s`` seconds; ``idle`` when both are
-    within the limits. A bench that needs an idle machine refuses to start when it is not
-    (exit status 3), or runs on request and marks its results ``"valid": false``
-    (:mod:`bench.peer_ratio`)."""
-    load = load_average() if load is None else load
-    with CpuShare() as share:
-        time.sleep(sample_s)
-    others = share.others_cores
-    ok_load = load is None or load[0] <= max_load
-    ok_others = others is None or others <= max_others
-    return {"load_avg": load, "others_cores": others, "idle": bool(ok_load and ok_others)}
+def bench_parser(module: str, doc: str | None, *, prog: str | None = None, out: str | None = None,
+                 backend: str | Sequence[str] | None = None, voxel: float | Sequence[float] | None = None,
+                 seed: int | None = None, progress: bool = False, tag: str | bool | None = None,
+                 report: str | None = None) -> argparse.ArgumentParser:
+    """The parser of ``python -m bench.<module>`` (description: the docstring's first line) with the
+    common flags asked for by keyword, each with its default:
+
+    - ``out``: ``--out`` (a results folder, or file where the default has a suffix);
+    - ``backend``: ``--backend`` (a sequence: several; an empty one: default every backend here);
+    - ``voxel``: ``--voxel-size``/``--voxel`` (``args.voxel``; a sequence: several, ``--voxel-sizes`` too);
+    - ``seed``: ``--seed``; ``progress``: ``--no-progress``; ``tag``: ``--tag`` (results file stem);
+    - ``report``: ``--report BENCHMARKS_MD``, only write the benchmark's :class:`Section` of that file
+      from the results file ``report`` in --out (:meth:`Section.reported` does it).
+    """
+    ap = argparse.ArgumentParser(prog=prog or f"python -m bench.{module}", description=help_line(doc))
+    if out is not None:
+        ap.add_argument("--out", type=Path, default=Path(out),
+                        help=f"results {'file' if Path(out).suffix else 'folder'} (default {out})")
+    if backend is not None:
+        many = not isinstance(backend, str)
+        ap.add_argument("--backend", nargs="+" if many else None,
+                        default=(list(backend) or None) if many else backend,
+                        help=f"gpumap backend{'s' if many else ''} (default "
+                        f"{(' '.join(backend) or 'every one available here') if many else backend})")
+    if voxel is not None:
+        many = not isinstance(voxel, (int, float))
+        ap.add_argument("--voxel-size", "--voxel", *(["--voxel-sizes"] if many else []), dest="voxel",
+                        type=float, nargs="+" if many else None,
+                        default=(list(voxel) or None) if many else voxel,
+                        help=f"voxel edge{'s' if many else ''}, metres (default "
+                        f"{(' '.join(map(str, voxel)) or 'by target') if many else voxel})")
+    if seed is not None:
+        ap.add_argument("--seed", type=int, default=seed, help=f"random seed (default {seed})")
+    if progress:
+        ap.add_argument("--no-progress", action="store_true", help="no progress bars")
+    if tag is not None:
+        ap.add_argument("--tag", default=tag or None,
+                        help=f"results file stem (default {tag or 'from the machine'})")
+    if report is not None:
+        ap.add_argument("--report", type=Path, metavar="BENCHMARKS_MD",
+                        help=f"only write this benchmark's section of that file from {report} in --out")
+    return ap
 
 
-def pooled_others(passes: list[dict[str, Any]]) -> float | None:
-    """Cores other processes kept busy over all ``passes`` together: their CPU seconds
-    (``others_cores * wall_s`` per pass) over the passes' wall seconds; None without samples."""
-    got = [p for p in passes if p.get("others_cores") is not None and p.get("wall_s")]
-    wall = sum(p["wall_s"] for p in got)
-    if not got or wall <= 0:
-        return None
-    return sum(p["others_cores"] * p["wall_s"] for p in got) / wall
+def progress_bar(it: Any = None, **kw: Any) -> Any:
+    """A tqdm bar (``disable=True``: none)."""
+    from tqdm import tqdm
+
+    return tqdm(it, **kw)
 
 
 # ------------------------------------------------------------------------------ timing
@@ -364,9 +337,8 @@ def synced_ms(m: Any, images: Sequence[np.ndarray], poses: Sequence[np.ndarray],
               start: int = 0) -> list[float]:
     """Milliseconds of ``integrate`` + ``synchronize`` for each of ``n`` pings (default: every
     ping once), ping ``(start + k) % len(images)``: what a vehicle waits per ping."""
-    n = len(images) if n is None else n
     out = []
-    for k in range(start, start + n):
+    for k in range(start, start + (len(images) if n is None else n)):
         t = time.perf_counter()
         m.integrate(images[k % len(images)], poses[k % len(poses)])
         m.synchronize()
@@ -380,12 +352,11 @@ def stream_rate(m: Any, images: Sequence[np.ndarray], poses: Sequence[np.ndarray
     ``synchronize`` at the end (what a stream of pings sees); ``batch`` > 1: ``integrate_batch``
     of that many pings at a time (then ``n`` is every ping once)."""
     t = time.perf_counter()
+    n = len(images) if n is None or batch > 1 else n
     if batch > 1:
-        n = len(images)
         for k in range(0, n, batch):
             m.integrate_batch(images[k : k + batch], poses[k : k + batch])
     else:
-        n = len(images) if n is None else n
         for k in range(n):
             m.integrate(images[k % len(images)], poses[k % len(poses)])
     m.synchronize()
@@ -398,26 +369,40 @@ def spread(values: Sequence[float]) -> dict[str, float]:
     return {"median": float(np.median(a)), "min": float(a.min()), "max": float(a.max())}
 
 
+def linear_fit(x: Sequence[float], y: Sequence[float]) -> dict[str, float]:
+    """Least-squares ``y = a + b x`` with R^2, and the log-log slope (1 = linear growth)."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    (a, b), *_ = np.linalg.lstsq(np.stack([np.ones_like(x), x], 1), y, rcond=None)
+    ss_res, ss_tot = float(np.sum((y - (a + b * x)) ** 2)), float(np.sum((y - y.mean()) ** 2))
+    ok = (x > 0) & (y > 0)
+    slope = float(np.polyfit(np.log(x[ok]), np.log(y[ok]), 1)[0]) if ok.sum() >= 2 else float("nan")
+    return {"intercept": float(a), "slope": float(b), "r2": 1.0 - ss_res / ss_tot if ss_tot > 0 else 1.0,
+            "loglog_slope": slope}
+
+
 # ------------------------------------------------------------------------------ inputs
+def _data_dir(name: str, need: str = "sonar_poses.csv") -> Path | None:
+    """The first folder ``name`` (a path relative to a folder above this file, or to its parent) with the
+    recording's poses and ``need``."""
+    for up in Path(__file__).resolve().parents:
+        for cand in (up / name, up.parent / name):
+            if (cand / "sonar_poses.csv").is_file() and (cand / need).exists():
+                return cand
+    return None
+
+
 def oasis_tank_dir() -> Path | None:
     """``shared/data/oasis_tank`` (the real Oculus M3000d tank recording) beside the checkout, as
     CI has it, or above it; None where it is not there."""
-    for up in Path(__file__).resolve().parents:
-        for cand in (up / "shared" / "data" / "oasis_tank", up.parent / "shared" / "data" / "oasis_tank"):
-            if (cand / "sonar_poses.csv").is_file():
-                return cand
-    return None
+    return _data_dir("shared/data/oasis_tank")
 
 
 def oasis_full_dir() -> Path | None:
     """The full-rate OASIS tank recording (``oasis_tank_full/`` with ``sonar/*.png``, written by
-    ``shared/data/oasis_tank_full/get_images.sh``) beside the checkout or above it; None where
-    its images are not there (``shared/data/oasis_tank_full`` itself holds only the poses)."""
-    for up in Path(__file__).resolve().parents:
-        for cand in (up / "oasis_tank_full", up / "shared" / "data" / "oasis_tank_full"):
-            if (cand / "sonar_poses.csv").is_file() and (cand / "sonar").is_dir():
-                return cand
-    return None
+    ``shared/data/oasis_tank_full/get_images.sh``) beside the checkout or above it; None where its
+    images are not there (``shared/data/oasis_tank_full`` itself holds only the poses)."""
+    full = _data_dir("oasis_tank_full", need="sonar")
+    return full or _data_dir("shared/data/oasis_tank_full", need="sonar")
 
 
 def quantize(image: np.ndarray) -> np.ndarray:
@@ -433,38 +418,97 @@ def render_pings(scene: Any, *, seed: int = 0, select: Sequence[int] | None = No
     ``variation``: a :class:`gpumap.sim.variation.SonarVariation` (None: none)."""
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     from gpumap.sim.sonar import SonarSimulator
-    from tqdm import tqdm
 
     sel = range(len(scene.T_W_S)) if select is None else select
     extra = scene.sonar_params if scene_sonar else {}
-    with SonarSimulator(scene, seed=seed, variation=variation, **extra) as sim:
-        return [sim.ping(scene.T_W_S[k], int(k))
-                for k in tqdm(sel, desc=desc or "simulate", unit="ping", disable=not progress)]
+    with SonarSimulator(scene, seed=seed, variation=variation, **extra) as s:
+        return [s.ping(scene.T_W_S[k], int(k))
+                for k in progress_bar(sel, desc=desc or "simulate", unit="ping", disable=not progress)]
+
+
+def simulate(name: str, seed: int, progress: bool) -> tuple[list, np.ndarray, np.ndarray, float]:
+    """Every ping of scene ``name``'s trajectory (the simulator's own settings): (pings, uint8
+    images, poses, simulator images/s)."""
+    from gpumap.sim.scenes import make_scene
+
+    scene = make_scene(name, seed=seed)
+    t0 = time.perf_counter()
+    pings = render_pings(scene, seed=seed, scene_sonar=False, progress=progress, desc=f"simulate {name}")
+    rate = len(pings) / (time.perf_counter() - t0)
+    return pings, np.stack([quantize(p.image) for p in pings]), scene.T_W_S.copy(), rate
+
+
+def render_survey(path: Path, voxel_size_m: float = 0.05) -> Path:
+    """Render the survey scene's 200 pings (uint8) to ``path`` (.npz: images, poses, meta)."""
+    from gpumap.sim.scenes import make_scene
+
+    scene = make_scene("survey", voxel_size_m=voxel_size_m)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, images=np.array([quantize(p.image) for p in render_pings(scene)]),
+                        poses=np.asarray(scene.T_W_S),
+                        meta=np.array(json.dumps({"scene": "survey", "seed": 0})))
+    return path
 
 
 def load_ping_arrays(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """(images, poses) of a ping file: :mod:`bench.tank`'s names (images, poses) or the older
-    (imgs, T)."""
+    """(images, poses) of a ping file: names images and poses, or the older imgs and T."""
     with np.load(path, allow_pickle=False) as z:
-        if "images" in z.files:
-            return z["images"], z["poses"]
-        if "imgs" in z.files:
-            return z["imgs"], z["T"]
-        raise ValueError(f"Expected a ping file with images and poses (or imgs and T), but {path} "
-                         f"has {z.files}")
+        for a, b in (("images", "poses"), ("imgs", "T")):
+            if a in z.files:
+                return z[a], z[b]
+        raise ValueError(f"Expected a ping file with images and poses (or imgs and T), but {path} has "
+                         f"{z.files}")
+
+
+# The synthetic tank of the paper's set-up (130 x 20 deg, 512 beams x 400 bins, 0.1-2 m, a 4 x 3 x 1 m
+# grid), along a wrist trajectory, with sparse speckled pings (each different: no cache flatters a
+# backend): bench.ab, the sweep's image-size scaling and bench.speed --synthetic / --gpu-check.
+def tank_spec(n_beams: int = 512, n_bins: int = 400) -> Any:
+    import gpumap
+
+    return gpumap.SonarSpec.uniform(hfov_deg=130, vfov_deg=20, n_beams=n_beams, n_bins=n_bins,
+                                    range_min_m=0.1, range_max_m=2.0)
+
+
+def tank_grid(voxel_size_m: float) -> Any:
+    import gpumap
+
+    return gpumap.GridSpec((-2.0, -1.5, -0.5), (2.0, 1.5, 0.5), voxel_size_m)
+
+
+def trajectory(n: int) -> list[np.ndarray]:
+    """Sonar poses: pitch sweep in place (first half), then a lateral wrist move."""
+    out = []
+    for k in range(n):
+        u = k / max(1, n - 1)
+        pitch = np.deg2rad(12.8 + (25 * np.sin(np.pi * 2 * u) if u < 0.5 else 0))
+        yaw = 0.3 * np.sin(2 * np.pi * u)
+        cp, sp, cy, sy = np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+        T = np.eye(4)
+        Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+        T[:3, :3] = Rz @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+        T[:3, 3] = (-1.4, 0.0 if u < 0.5 else 0.8 * (u - 0.5), 0.35)
+        out.append(T)
+    return out
+
+
+def speckle(spec: Any, n: int, seed: int = 0) -> list[np.ndarray]:
+    """``n`` sparse speckled float32 pings of ``spec``'s image shape."""
+    rng = np.random.default_rng(seed)
+    return [(rng.random(spec.image_shape, dtype=np.float32) ** 6) for _ in range(n)]
 
 
 # ------------------------------------------------------------------------------ results
 def run_header(schema: str | None, argv: Sequence[str] | None) -> dict[str, Any]:
     """The first keys of a results file: schema, creation time, the bench's arguments and
     :func:`machine_info` (load average at the start included)."""
-    import sys
-
     head: dict[str, Any] = {} if schema is None else {"schema": schema}
-    head["created"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-    head["argv"] = list(sys.argv[1:] if argv is None else argv)
-    head["machine"] = machine_info()
-    return head
+    return head | {"created": now(), "argv": list(sys.argv[1:] if argv is None else argv),
+                   "machine": machine_info()}
+
+
+def now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S%z")
 
 
 def write_json(path: str | os.PathLike, doc: Any, *, indent: int | None = 1,
@@ -474,11 +518,10 @@ def write_json(path: str | os.PathLike, doc: Any, *, indent: int | None = 1,
     digits (:func:`compact`); NumPy scalars are written as numbers either way."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if digits is not None:
-        doc = compact(doc, digits)
-    seps = (",", ":") if indent is None else None
+    doc = doc if digits is None else compact(doc, digits)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=indent, separators=seps, default=float) + "\n")
+    tmp.write_text(json.dumps(doc, indent=indent, separators=(",", ":") if indent is None else None,
+                              default=float) + "\n")
     os.replace(tmp, path)
     return path
 
@@ -507,8 +550,7 @@ def load_results(folder: str | os.PathLike, pattern: str, schema: str) -> list[d
         except (OSError, json.JSONDecodeError):
             continue
         if isinstance(d, dict) and str(d.get("schema", "")).startswith(schema):
-            d["_file"] = p.name
-            out.append(d)
+            out.append(d | {"_file": p.name})
     return out
 
 
@@ -517,31 +559,103 @@ def tagged_path(out: str | os.PathLike, prefix: str, tag: str) -> Path:
     return Path(out) / f"{prefix}{''.join(c if c.isalnum() or c in '-_' else '-' for c in tag.lower())}.json"
 
 
-def write_section(report: str | os.PathLike, results: str | os.PathLike, module: Any) -> int:
-    """A benchmark's ``--report``: its section of the Markdown file ``report``, rendered by
-    ``module.markdown(results_doc, results_folder)`` between ``module.BEGIN`` and ``module.END``
-    (the ``## `` section ``module.SECTION`` where the markers are missing). Returns 0."""
-    res = json.loads(Path(results).read_text())
-    put_block(report, module.BEGIN, module.END, module.markdown(res, Path(results).parent),
-              section=module.SECTION)
-    print(f"wrote the {Path(results).stem} section of {report}")
-    return 0
+# ------------------------------------------------------------------------------ BENCHMARKS.md
+@dataclass(frozen=True)
+class Section:
+    """A benchmark's block of BENCHMARKS.md, between ``<!-- begin:NAME -->`` and ``<!-- end:NAME -->``,
+    rendered by ``markdown(results, folder)`` from the results file ``results`` of a folder (a glob
+    pattern: the list of (file name, doc) of every match). ``heading``: its ``## `` line, the
+    section that becomes the block where the markers are missing."""
+
+    name: str
+    heading: str
+    results: str
+    markdown: Callable[[Any, Path], str]
+
+    def render(self, folder: str | os.PathLike) -> str:
+        folder = Path(folder)
+        if any(c in self.results for c in "*?["):
+            docs = [(p.name, json.loads(p.read_text())) for p in sorted(folder.glob(self.results))]
+            return self.markdown(docs, folder)
+        return self.markdown(json.loads((folder / self.results).read_text()), folder)
+
+    def put(self, text: str, folder: str | os.PathLike) -> str:
+        """``text`` (a whole Markdown file) with this block rendered anew."""
+        return put_text(text, f"<!-- begin:{self.name} -->", f"<!-- end:{self.name} -->", self.render(folder),
+                        self.heading)
+
+    def write(self, path: str | os.PathLike, folder: str | os.PathLike) -> None:
+        path = Path(path)
+        path.write_text(self.put(path.read_text() if path.exists() else "", folder))
+        print(f"wrote the {self.name} section of {path}")
+
+    def reported(self, a: argparse.Namespace) -> bool:
+        """Whether ``--report`` asked only for this block (then written from the results in ``a.out``)."""
+        if getattr(a, "report", None) is None:
+            return False
+        self.write(a.report, a.out)
+        return True
 
 
-def put_block(path: str | os.PathLike, begin: str, end: str, body: str, section: str | None = None) -> None:
-    """Replace the block of Markdown file ``path`` between the marker lines ``begin`` and ``end``
-    with ``body`` (markers kept, what follows the end marker untouched); without markers, the
-    ``## `` section headed ``section`` (to the next ``## `` heading) becomes the block, else the
-    block is appended."""
-    path = Path(path)
-    old = path.read_text() if path.exists() else ""
+def put_text(old: str, begin: str, end: str, body: str, section: str | None = None) -> str:
+    """``old`` with the block between the marker lines ``begin`` and ``end`` replaced by ``body``
+    (markers kept, what follows the end marker untouched); without markers, the ``## `` section
+    headed ``section`` (to the next ``## `` heading) becomes the block, else the block is appended."""
     block = f"{begin}\n{body.strip(chr(10))}\n{end}"
     i, j = old.find(begin), old.find(end)
     if i >= 0 and j > i:
-        new = old[:i] + block + old[j + len(end) :]
-    elif section is not None and (i := old.find(section)) >= 0:
+        return old[:i] + block + old[j + len(end) :]
+    if section is not None and (i := old.find(section)) >= 0:
         j = old.find("\n## ", i + len(section))
-        new = old[:i] + block + ("\n" if j < 0 else "\n\n" + old[j + 1 :])
-    else:
-        new = old.rstrip("\n") + "\n\n" + block + "\n"
-    path.write_text(new)
+        return old[:i] + block + ("\n" if j < 0 else "\n\n" + old[j + 1 :])
+    return old.rstrip("\n") + "\n\n" + block + "\n"
+
+
+def put_block(path: str | os.PathLike, begin: str, end: str, body: str, section: str | None = None) -> None:
+    """:func:`put_text` on the Markdown file ``path``."""
+    path = Path(path)
+    path.write_text(put_text(path.read_text() if path.exists() else "", begin, end, body, section))
+
+
+TEMPLATES = Path(__file__).with_name("templates.md")
+
+
+def template(name: str, **values: Any) -> str:
+    """The fixed text of a generated block, ``<!-- template:NAME -->`` of bench/templates.md (to the next
+    such line, without its last newline), with ``values`` filled in by ``str.format``: the wording lives
+    there, the figures come from the results files."""
+    text = TEMPLATES.read_text().split(f"<!-- template:{name} -->\n", 1)[1].split("\n<!-- template:", 1)[0]
+    return text.rstrip("\n").format_map(values)
+
+
+def fnum(x: Any, fmt: str = ".3g", none: str = "–") -> str:
+    """A table cell: ``x`` formatted, ``none`` for None or not finite, yes/no for a bool."""
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return none
+    if isinstance(x, bool):
+        return "yes" if x else "no"
+    return format(x, fmt)
+
+
+def pct(x: Any) -> str:
+    """A fraction as a percentage with one decimal (``–`` for None)."""
+    return fnum(None if x is None else 100.0 * x, ".1f") + ("" if x is None else " %")
+
+
+# ------------------------------------------------------------------------------ plots
+def pyplot() -> Any:
+    """matplotlib.pyplot on the Agg backend (no display)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig: Any, path: str | os.PathLike, dpi: float | None = None) -> None:
+    """Lay out ``fig``, write it to ``path`` (its folder made) and close it."""
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    pyplot().close(fig)

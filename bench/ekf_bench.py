@@ -1,22 +1,12 @@
-"""EKF bench: the prism simulation of Mai et al. (Fig. 7, Fig. 8b) over many seeds, NEES
-consistency, an odometry-noise sweep, and the cost of an update vs the number of features;
-and (``--vs-batch``, issue #11) the EKF against the batch MAP of the same model and odometry.
+"""EKF bench: the prism simulation of Mai et al. (Fig. 7, Fig. 8b) over many seeds, and (``--vs-batch``,
+issue #11) the EKF against the batch MAP of the same model and odometry (bench/README.md tells more).
 
-Run::
-
-    .venv/bin/python -m bench.ekf_bench --out DIR [--seeds 50]
+    .venv/bin/python -m bench.ekf_bench --out DIR [--seeds 50]      # DIR/ekf_bench.json and figures
     .venv/bin/python -m bench.ekf_bench --vs-batch --out bench/results [--batch-seeds 20]
-
-The first writes ``DIR/ekf_bench.json`` and PNG figures (``ekf_fig7_pose_error.png``,
-``ekf_fig8b_feature_error.png``, ``ekf_nees.png``, ``ekf_cost.png``, ``ekf_scene.png``). The
-second writes ``DIR/ekf_vs_batch.json`` (per seed: ``ekf_vs_batch_seeds.jsonl``) and the section
-"EKF against the batch MAP (issue #11)" at the end of ``BENCHMARKS.md`` (``--benchmarks``;
-``bench.report`` does not keep that section: rerun this after the report).
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import datetime
 import hashlib
@@ -27,84 +17,53 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from gpumap.sim.prism import (
-    PrismConfig,
-    PrismRun,
-    measure,
-    motion_cov,
-    nees,
-    nees_world,
-    pose_error,
-    prism_trajectory,
-    run_filter,
-    run_odometry,
-    simulate,
-)
+from gpumap.sim import prism
+from gpumap.sim.prism import PrismConfig, PrismRun, measure, motion_cov, pose_error, run_filter, simulate
 from scipy.stats import chi2
-from tqdm import tqdm
 
 from gpumap.ekf import SonarEKF, spherical_point
 from gpumap.ekf.batch import BatchProblem
 from gpumap.lie import se3_adjoint, se3_exp, se3_inverse
 
-from .common import bench_parser, compact, machine_info, put_block, write_json
+from . import common
+from .common import Section, bench_parser, compact, progress_bar, write_json
+
+KEYS = ("pos_ekf", "pos_odo", "rot_ekf", "rot_odo", "roll_ekf", "roll_odo", "pose_nees", "lm_nees")
 
 
 def _prism_stats(cfg: PrismConfig, seeds: int, desc: str, bar: bool = True, init: str = "arc") -> dict:
+    """Per seed and view: position, rotation and roll errors of the EKF and of odometry, feature
+    errors, NEES; the gated returns, each seed's final mean feature error and the last run."""
     n = cfg.n_views
-    pos_ekf = np.zeros((seeds, n))
-    pos_odo = np.zeros((seeds, n))
-    rot_ekf = np.zeros((seeds, n))
-    rot_odo = np.zeros((seeds, n))
-    roll_ekf = np.zeros((seeds, n))
-    roll_odo = np.zeros((seeds, n))
-    feat = np.zeros((seeds, n, 8))
-    pose_nees = np.zeros((seeds, n))
-    lm_nees = np.zeros((seeds, n))
-    rejected = 0
-    last = None
-    for s in tqdm(range(seeds), desc=desc, disable=not bar, leave=False):
+    st: dict = {k: np.zeros((seeds, n)) for k in KEYS} | {"feat": np.zeros((seeds, n, 8)), "rejected": 0}
+    for s in progress_bar(range(seeds), desc=desc, disable=not bar, leave=False):
         run = simulate(s, cfg)
-        tr = run_filter(run, init=init)
-        To = run_odometry(run)
+        tr, To = run_filter(run, init=init), prism.run_odometry(run)
         for k in range(n):
-            e = pose_error(tr.T_W_S[k], run.T_W_S[k])
-            o = pose_error(To[k], run.T_W_S[k])
-            pos_ekf[s, k] = np.linalg.norm(tr.T_W_S[k, :3, 3] - run.T_W_S[k, :3, 3])
-            pos_odo[s, k] = np.linalg.norm(To[k, :3, 3] - run.T_W_S[k, :3, 3])
-            rot_ekf[s, k] = np.linalg.norm(e[3:])
-            rot_odo[s, k] = np.linalg.norm(o[3:])
-            # The paper's psi (roll about the boresight) error, as in its Fig. 7(b).
-            roll_ekf[s, k] = abs(e[3])
-            roll_odo[s, k] = abs(o[3])
-        feat[s] = np.linalg.norm(tr.landmarks - run.points_W[None], axis=2)
-        pose_nees[s] = tr.pose_nees
-        lm_nees[s] = tr.landmark_nees
-        rejected += tr.rejected
-        last = (run, tr)
-    final = feat[:, -1].mean(axis=1)
-    return dict(
-        pos_ekf=pos_ekf, pos_odo=pos_odo, rot_ekf=rot_ekf, rot_odo=rot_odo,
-        roll_ekf=roll_ekf, roll_odo=roll_odo, feat=feat, pose_nees=pose_nees, lm_nees=lm_nees,
-        rejected=rejected, final=final, last=last,
-    )
+            for tag, T in (("ekf", tr.T_W_S[k]), ("odo", To[k])):
+                e = pose_error(T, run.T_W_S[k])
+                st[f"pos_{tag}"][s, k] = np.linalg.norm(T[:3, 3] - run.T_W_S[k, :3, 3])
+                st[f"rot_{tag}"][s, k] = np.linalg.norm(e[3:])
+                st[f"roll_{tag}"][s,
+                                  k] = abs(e[3])  # the paper's psi (roll about the boresight), its Fig. 7(b)
+        st["feat"][s] = np.linalg.norm(tr.landmarks - run.points_W[None], axis=2)
+        st["pose_nees"][s], st["lm_nees"][s] = tr.pose_nees, tr.landmark_nees
+        st["rejected"] += tr.rejected
+        st["last"] = (run, tr)
+    st["final"] = st["feat"][:, -1].mean(axis=1)
+    return st
 
 
 def _time_updates(n_features: int, reps: int, init: str = "arc") -> dict:
     """Median time of one predict and one update with all ``n_features`` re-observed."""
     rng = np.random.default_rng(0)
-    pts = np.column_stack([
-        rng.uniform(2.0, 4.0, n_features),
-        rng.uniform(-1.0, 1.0, n_features),
-        rng.uniform(-0.2, 0.2, n_features),
-    ])
+    pts = np.column_stack([rng.uniform(2.0, 4.0, n_features), rng.uniform(-1.0, 1.0, n_features),
+                           rng.uniform(-0.2, 0.2, n_features)])
     ekf = SonarEKF(np.eye(4), np.zeros((6, 6)), range_sigma_m=0.003, bearing_sigma_rad=np.deg2rad(0.1),
                    vfov_rad=np.deg2rad(14.0), gate_prob=None, init=init)
     ids, r, b = measure(np.eye(4), pts, rng, 0.003, np.deg2rad(0.1))
     ekf.update(ids, r, b)
-    U = se3_exp(np.array([0.001, 0.0, 0.0, 0.001, 0.0, 0.0]))
-    Q = np.diag([1e-8] * 6)
-    T = np.eye(4)
+    U, Q, T = se3_exp(np.array([0.001, 0.0, 0.0, 0.001, 0.0, 0.0])), np.diag([1e-8] * 6), np.eye(4)
     t_up, t_pr = [], []
     for _ in range(reps):
         t0 = time.perf_counter()
@@ -114,9 +73,8 @@ def _time_updates(n_features: int, reps: int, init: str = "arc") -> dict:
         ids, r, b = measure(T, pts, rng, 0.003, np.deg2rad(0.1))
         t2 = time.perf_counter()
         ekf.update(ids, r, b)
-        t3 = time.perf_counter()
         t_pr.append(t1 - t0)
-        t_up.append(t3 - t2)
+        t_up.append(time.perf_counter() - t2)
     return dict(n_features=n_features, observed=int(len(ids)), state_dim=6 + 3 * n_features,
                 update_us_median=1e6 * float(np.median(t_up)), predict_us_median=1e6 * float(np.median(t_pr)))
 
@@ -126,37 +84,20 @@ def _band(dof: int, seeds: int, p: float = 0.95) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = bench_parser("ekf_bench", __doc__)
-    ap.add_argument("--out", required=True, type=Path, help="output folder for JSON and PNGs")
-    ap.add_argument("--seeds", type=int, default=50, help="prism seeds (default 50)")
-    ap.add_argument("--sweep-seeds", type=int, default=20, help="seeds per odometry-noise scale (default 20)")
-    ap.add_argument("--reps", type=int, default=200, help="timed updates per feature count")
-    ap.add_argument("--init", default="arc", choices=["arc", "triangulate"],
-                    help="feature initialisation of SonarEKF (init=)")
-    ap.add_argument("--vs-batch", action="store_true",
-                    help="only the EKF / batch MAP / odometry comparison over the issue #11 classes")
-    ap.add_argument("--batch-seeds", type=int, default=20, help="seeds per class for --vs-batch")
-    ap.add_argument("--benchmarks", type=Path, default=Path("BENCHMARKS.md"),
-                    help="--vs-batch: markdown file whose issue #11 section is (re)written")
-    args = ap.parse_args(argv)
-    args.argv = argv
-    args.out.mkdir(parents=True, exist_ok=True)
-    if args.vs_batch:
-        return run_vs_batch(args)
+def _nees(per_view: np.ndarray, band: tuple[float, float], dof: int, **extra) -> dict:
+    inside = int(((per_view >= band[0]) & (per_view <= band[1])).sum())
+    return dict(mean_per_view=per_view.tolist(), **extra, band95=list(band), views_inside=inside,
+                views=int(per_view.size), dof=dof)
 
-    cfg = PrismConfig()
-    st = _prism_stats(cfg, args.seeds, "prism seeds", init=args.init)
-    S = args.seeds
-    lo6, hi6 = _band(6, S)
-    lo24, hi24 = _band(24, S)
-    pose_nees_mean = np.nanmean(st["pose_nees"][:, 1:], axis=0)
-    lm_nees_mean = st["lm_nees"].mean(axis=0)
-    final = st["final"]
 
-    # Odometry-noise sweep: feature height is held by odometry pitch (see sim/prism.py).
-    sweep = []
-    for scale in tqdm([0.25, 0.5, 1.0, 2.0, 5.0, 10.0], desc="odometry sweep", leave=False):
+def run_prism(args) -> int:
+    """The prism over ``--seeds`` seeds, the odometry-noise sweep and the update cost: JSON and figures."""
+    cfg, S = PrismConfig(), args.seeds
+    st = _prism_stats(cfg, S, "prism seeds", init=args.init)
+    pose_nees, lm_nees, final = np.nanmean(st["pose_nees"][:, 1:],
+                                           axis=0), st["lm_nees"].mean(axis=0), st["final"]
+    sweep = []  # feature height is held by odometry pitch (see sim/prism.py)
+    for scale in progress_bar([0.25, 0.5, 1.0, 2.0, 5.0, 10.0], desc="odometry sweep", leave=False):
         c = dataclasses.replace(cfg, k_t=cfg.k_t * scale, k_r=cfg.k_r * scale,
                                 k_rt_rad_per_m=cfg.k_rt_rad_per_m * scale)
         s2 = _prism_stats(c, args.sweep_seeds, f"x{scale}", bar=False, init=args.init)
@@ -165,43 +106,31 @@ def main(argv: list[str] | None = None) -> int:
                           final_feature_error_m_std=float(s2["final"].std()),
                           final_position_error_m_ekf=float(s2["pos_ekf"][:, -1].mean()),
                           final_position_error_m_odometry=float(s2["pos_odo"][:, -1].mean())))
-
-    counts = [8, 16, 32, 64, 100, 150, 200]
-    timing = [_time_updates(n, args.reps, args.init) for n in tqdm(counts, desc="timing", leave=False)]
-
+    timing = [_time_updates(n, args.reps, args.init)
+              for n in progress_bar([8, 16, 32, 64, 100, 150, 200], desc="timing", leave=False)]
     summary = dict(
-        config=dataclasses.asdict(cfg),
-        seeds=S,
-        init=args.init,
+        config=dataclasses.asdict(cfg), seeds=S, init=args.init,
         final_feature_error_m=dict(mean=float(final.mean()), std=float(final.std()),
-                                   median=float(np.median(final)), max=float(final.max())),
+                                   median=float(np.median(final)),
+                                   max=float(final.max())),
         final_feature_error_m_per_vertex=st["feat"][:, -1].mean(axis=0).tolist(),
         initial_feature_error_m_per_vertex=st["feat"][:, 0].mean(axis=0).tolist(),
-        position_error_m_mean_per_view=dict(
-            ekf=st["pos_ekf"].mean(0).tolist(), odometry=st["pos_odo"].mean(0).tolist()
-        ),
+        position_error_m_mean_per_view=dict(ekf=st["pos_ekf"].mean(0).tolist(),
+                                            odometry=st["pos_odo"].mean(0).tolist()),
         rotation_error_deg_mean_per_view=dict(ekf=np.rad2deg(st["rot_ekf"].mean(0)).tolist(),
                                               odometry=np.rad2deg(st["rot_odo"].mean(0)).tolist()),
-        pose_nees=dict(mean_per_view=pose_nees_mean.tolist(), overall=float(pose_nees_mean.mean()),
-                       band95=[lo6, hi6],
-                       views_inside=int(((pose_nees_mean >= lo6) & (pose_nees_mean <= hi6)).sum()),
-                       views=int(pose_nees_mean.size), dof=6),
-        landmark_nees=dict(mean_per_view=lm_nees_mean.tolist(), final=float(lm_nees_mean[-1]),
-                           band95=[lo24, hi24],
-                           views_inside=int(((lm_nees_mean >= lo24) & (lm_nees_mean <= hi24)).sum()),
-                           views=int(lm_nees_mean.size), dof=24,
-                           note="anchored (r, az, el) coordinates: the filter's own Gaussian"),
-        gated_returns=int(st["rejected"]),
-        odometry_sweep=sweep,
-        timing=timing,
-    )
+        pose_nees=_nees(pose_nees, _band(6, S), 6, overall=float(pose_nees.mean())),
+        landmark_nees=_nees(lm_nees, _band(24, S), 24, final=float(lm_nees[-1]))
+        | dict(note="anchored (r, az, el) coordinates: the filter's own Gaussian"),
+        gated_returns=int(st["rejected"]), odometry_sweep=sweep, timing=timing)
     write_json(args.out / "ekf_bench.json", summary, indent=2)
     _figures(args.out, st, summary)
     print(json.dumps({k: summary[k] for k in ("final_feature_error_m", "gated_returns")}, indent=2))
-    print(f"pose NEES mean {summary['pose_nees']['overall']:.2f} band95 [{lo6:.2f}, {hi6:.2f}], "
-          f"{summary['pose_nees']['views_inside']}/{summary['pose_nees']['views']} views inside")
-    print(f"landmark NEES final {lm_nees_mean[-1]:.2f} band95 [{lo24:.2f}, {hi24:.2f}], "
-          f"{summary['landmark_nees']['views_inside']}/{summary['landmark_nees']['views']} views inside")
+    for name, last in (("pose", "mean"), ("landmark", "final")):
+        n = summary[f"{name}_nees"]
+        val = n["overall"] if name == "pose" else n["final"]
+        print(f"{name} NEES {last} {val:.2f} band95 [{n['band95'][0]:.2f}, {n['band95'][1]:.2f}], "
+              f"{n['views_inside']}/{n['views']} views inside")
     for t in timing:
         print(f"{t['n_features']:4d} features: update {t['update_us_median']:8.1f} us, "
               f"predict {t['predict_us_median']:6.1f} us (median)")
@@ -212,98 +141,72 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _figures(out: Path, st: dict, summary: dict) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    n = st["pos_ekf"].shape[1]
-    v = np.arange(n)
+    plt = common.pyplot()
+    v = np.arange(st["pos_ekf"].shape[1])
 
     def band(ax, x, a, color, label):
-        m, lo, hi = a.mean(0), np.percentile(a, 25, axis=0), np.percentile(a, 75, axis=0)
-        ax.plot(x, m, color=color, marker="o", ms=3, label=label)
-        ax.fill_between(x, lo, hi, color=color, alpha=0.2)
+        ax.plot(x, a.mean(0), color=color, marker="o", ms=3, label=label)
+        ax.fill_between(x, np.percentile(a, 25, axis=0), np.percentile(a, 75, axis=0), color=color, alpha=0.2)
 
     fig, axs = plt.subplots(1, 3, figsize=(15, 4))
-    band(axs[0], v, 1000 * st["pos_ekf"], "C3", "EKF")
-    band(axs[0], v, 1000 * st["pos_odo"], "C0", "odometry only")
-    axs[0].set(xlabel="view", ylabel="position error [mm]", title="(a) camera position error")
-    band(axs[1], v, np.rad2deg(st["roll_ekf"]), "C3", "EKF")
-    band(axs[1], v, np.rad2deg(st["roll_odo"]), "C0", "odometry only")
-    axs[1].set(xlabel="view", ylabel="|roll error| [deg]", title="(b) psi (roll about boresight) error")
-    band(axs[2], v, np.rad2deg(st["rot_ekf"]), "C3", "EKF")
-    band(axs[2], v, np.rad2deg(st["rot_odo"]), "C0", "odometry only")
-    axs[2].set(xlabel="view", ylabel="rotation error angle [deg]", title="(c) full attitude error")
-    for a in axs:
-        a.legend()
-        a.grid(alpha=0.3)
-    n_seeds = st["feat"].shape[0]
-    fig.suptitle(f"Prism simulation, mean and inter-quartile band over {n_seeds} seeds (cf. Fig. 7)")
-    fig.tight_layout()
-    fig.savefig(out / "ekf_fig7_pose_error.png", dpi=120)
-    plt.close(fig)
+    for ax, key, f, ylabel, title in (
+            (axs[0], "pos", lambda a: 1000 * a, "position error [mm]", "(a) camera position error"),
+            (axs[1], "roll", np.rad2deg, "|roll error| [deg]", "(b) psi (roll about boresight) error"),
+            (axs[2], "rot", np.rad2deg, "rotation error angle [deg]", "(c) full attitude error")):
+        band(ax, v, f(st[f"{key}_ekf"]), "C3", "EKF")
+        band(ax, v, f(st[f"{key}_odo"]), "C0", "odometry only")
+        ax.set(xlabel="view", ylabel=ylabel, title=title)
+        ax.legend()
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"Prism simulation, mean and inter-quartile band over {st['feat'].shape[0]} seeds "
+                 "(cf. Fig. 7)")
+    common.save_figure(fig, out / "ekf_fig7_pose_error.png", dpi=120)
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    labels = "PQRSTUVW"
-    for i in range(8):
-        ax.plot(v + 1, 1000 * st["feat"][:, :, i].mean(0), marker="o", ms=3, label=labels[i])
+    for i, label in enumerate("PQRSTUVW"):
+        ax.plot(v + 1, 1000 * st["feat"][:, :, i].mean(0), marker="o", ms=3, label=label)
     ax.plot(v + 1, 1000 * st["feat"].mean((0, 2)), color="k", lw=2.5, label="mean")
-    ax.set_yscale("log")
     ax.axhline(8, color="gray", ls="--", lw=1)
     ax.text(1, 8.5, "8 mm", color="gray")
-    ax.set(xlabel="number of observations", ylabel="feature error [mm]",
+    ax.set(yscale="log", xlabel="number of observations", ylabel="feature error [mm]",
            title=f"Feature error vs observations, mean over {st['feat'].shape[0]} seeds (cf. Fig. 8b)")
     ax.legend(ncol=3)
     ax.grid(alpha=0.3, which="both")
-    fig.tight_layout()
-    fig.savefig(out / "ekf_fig8b_feature_error.png", dpi=120)
-    plt.close(fig)
+    common.save_figure(fig, out / "ekf_fig8b_feature_error.png", dpi=120)
 
     fig, axs = plt.subplots(1, 2, figsize=(12, 4))
-    pn, ln = summary["pose_nees"], summary["landmark_nees"]
-    axs[0].plot(v[1:], pn["mean_per_view"], "o-", color="C3")
-    axs[0].axhspan(*pn["band95"], color="C2", alpha=0.2, label="95% band")
-    axs[0].axhline(6, color="k", lw=0.8)
-    axs[0].set(xlabel="view", ylabel="mean NEES", title="pose NEES (6 dof)")
-    axs[1].plot(v, ln["mean_per_view"], "o-", color="C3")
-    axs[1].axhspan(*ln["band95"], color="C2", alpha=0.2, label="95% band")
-    axs[1].axhline(24, color="k", lw=0.8)
-    axs[1].set(xlabel="view", ylabel="mean NEES", title="feature NEES (8 x 3 dof, anchored coords)")
-    for a in axs:
-        a.legend()
-        a.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(out / "ekf_nees.png", dpi=120)
-    plt.close(fig)
+    for ax, x, n, dof, title in ((axs[0], v[1:], summary["pose_nees"], 6, "pose NEES (6 dof)"),
+                                 (axs[1], v, summary["landmark_nees"], 24,
+                                  "feature NEES (8 x 3 dof, anchored coords)")):
+        ax.plot(x, n["mean_per_view"], "o-", color="C3")
+        ax.axhspan(*n["band95"], color="C2", alpha=0.2, label="95% band")
+        ax.axhline(dof, color="k", lw=0.8)
+        ax.set(xlabel="view", ylabel="mean NEES", title=title)
+        ax.legend()
+        ax.grid(alpha=0.3)
+    common.save_figure(fig, out / "ekf_nees.png", dpi=120)
 
     fig, ax = plt.subplots(figsize=(6, 4))
     t = summary["timing"]
     nf = [d["n_features"] for d in t]
     ax.plot(nf, [d["update_us_median"] for d in t], "o-", label="update (all re-observed)")
     ax.plot(nf, [d["predict_us_median"] for d in t], "s-", label="predict")
-    ax.set(xlabel="features in state", ylabel="median time [us]", title="EKF cost (CPU, NumPy)")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
+    ax.set(xlabel="features in state", ylabel="median time [us]", title="EKF cost (CPU, NumPy)", xscale="log",
+           yscale="log")
     ax.legend()
     ax.grid(alpha=0.3, which="both")
-    fig.tight_layout()
-    fig.savefig(out / "ekf_cost.png", dpi=120)
-    plt.close(fig)
+    common.save_figure(fig, out / "ekf_cost.png", dpi=120)
 
     run, tr = st["last"]
     fig = plt.figure(figsize=(7, 6))
     ax = fig.add_subplot(projection="3d")
-    P = run.points_W
-    ax.scatter(*P.T, color="g", s=40, label="truth")
+    ax.scatter(*run.points_W.T, color="g", s=40, label="truth")
     ax.scatter(*tr.landmarks[0].T, color="b", marker="^", s=30, label="initial (elevation 0)")
     ax.scatter(*tr.landmarks[-1].T, color="r", s=15, label="EKF after 21 views")
     ax.plot(*run.T_W_S[:, :3, 3].T, "k.-", label="sonar path")
     ax.set(xlabel="x [m]", ylabel="y [m]", zlabel="z [m]", title="Prism scene, last seed (cf. Fig. 6 / 8a)")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(out / "ekf_scene.png", dpi=120)
-    plt.close(fig)
+    common.save_figure(fig, out / "ekf_scene.png", dpi=120)
 
 
 # --------------------------------------------------------------------------- EKF vs batch MAP (issue #11)
@@ -340,17 +243,12 @@ class Scenario:
 #: sweeps 0-70 deg, 6-21 views, 3-14 points, 1-5 % odometry noise, one outlier return.
 SCENARIOS = [
     Scenario("prism (paper)", prism=True, vfov_deg=14.0),
-    Scenario("aperture 20x12 deg", hfov_deg=20.0, vfov_deg=12.0),
-    Scenario("aperture 40x40 deg", hfov_deg=40.0, vfov_deg=40.0),
-    Scenario("no roll", roll_end_deg=0.0),
-    Scenario("roll 0-35 deg", roll_end_deg=35.0),
-    Scenario("6 views", n_views=6),
-    Scenario("3 points, 12 views", n_points=3, n_views=12),
-    Scenario("14 points", n_points=14),
-    Scenario("odometry 1 %", odometry_pct=1.0),
-    Scenario("odometry 5 %", odometry_pct=5.0),
-    Scenario("one outlier (+15 cm)", outlier_m=0.15),
-    Scenario("control: uniform elevations", edge=False),
+             Scenario("aperture 20x12 deg", hfov_deg=20.0, vfov_deg=12.0),
+    Scenario("aperture 40x40 deg", hfov_deg=40.0, vfov_deg=40.0), Scenario("no roll", roll_end_deg=0.0),
+    Scenario("roll 0-35 deg", roll_end_deg=35.0), Scenario("6 views", n_views=6),
+    Scenario("3 points, 12 views", n_points=3, n_views=12), Scenario("14 points", n_points=14),
+    Scenario("odometry 1 %", odometry_pct=1.0), Scenario("odometry 5 %", odometry_pct=5.0),
+    Scenario("one outlier (+15 cm)", outlier_m=0.15), Scenario("control: uniform elevations", edge=False),
     Scenario("bearing noise 2x configured", bearing_noise_factor=2.0),
 ]
 
@@ -358,12 +256,12 @@ SCENARIOS = [
 def scenario_run(sc: Scenario, seed: int) -> tuple[PrismRun, tuple[int, int] | None]:
     """A seeded run of a scenario class, and the (view, index) of its outlier return (or None).
 
-    Non-prism classes: points 2-3 m ahead of the first pose (the world frame), azimuth within
-    90 % of the half aperture, elevation at 60-95 % of the half aperture (near the top or bottom
-    edge, where the elevation prior's mean 0 is most wrong; ``edge=False``: uniform over the
-    aperture, as the prior says); the prism's trajectory (looking at
-    2.5 m ahead, rolling 0 -> ``roll_end``), noisy odometry and returns as in sim/prism.py.
-    The outlier (if any) is added to the range of one re-observation in the second half.
+    Non-prism classes: points 2-3 m ahead of the first pose (the world frame), azimuth within 90 % of
+    the half aperture, elevation at 60-95 % of the half aperture (near the top or bottom edge, where
+    the elevation prior's mean 0 is most wrong; ``edge=False``: uniform over the aperture, as the prior
+    says); the prism's trajectory (looking at 2.5 m ahead, rolling 0 -> ``roll_end``), noisy odometry
+    and returns as in sim/prism.py. The outlier (if any) is added to the range of one re-observation
+    in the second half.
     """
     cfg = sc.config()
     if sc.prism:
@@ -374,7 +272,7 @@ def scenario_run(sc: Scenario, seed: int) -> tuple[PrismRun, tuple[int, int] | N
         el = rng.choice([-1.0, 1.0], n) * rng.uniform(0.6, 0.95, n) * 0.5 * cfg.vfov_rad
         el = el if sc.edge else rng.uniform(-0.5, 0.5, n) * cfg.vfov_rad
         s = np.column_stack([rng.uniform(2.0, 3.0, n), rng.uniform(-0.9, 0.9, n) * 0.5 * cfg.hfov_rad, el])
-        T = prism_trajectory(cfg)
+        T = prism.prism_trajectory(cfg)
         U_odo, Q = np.empty((sc.n_views - 1, 4, 4)), np.empty((sc.n_views - 1, 6, 6))
         for k in range(sc.n_views - 1):
             U_true = se3_inverse(T[k]) @ T[k + 1]
@@ -402,13 +300,12 @@ def scenario_run(sc: Scenario, seed: int) -> tuple[PrismRun, tuple[int, int] | N
 
 
 def _run_ekf(run: PrismRun, init: str) -> tuple[SonarEKF, float, int, int, int]:
-    """EKF over a run (update at view 0, then predict + update); returns it, the summed NIS of
-    the fused returns, its dof, the number of gated returns and of NIS warnings. The monitor's
-    window is 100 returns here (runs have 25-220)."""
+    """EKF over a run (update at view 0, then predict + update); returns it, the summed NIS of the
+    fused returns, its dof, the number of gated returns and of NIS warnings. The monitor's window is
+    100 returns here (runs have 25-220)."""
     cfg = run.config
     ekf = SonarEKF(run.T_W_S[0], np.zeros((6, 6)), range_sigma_m=cfg.range_sigma_m,
-                   bearing_sigma_rad=cfg.bearing_sigma_rad, vfov_rad=cfg.vfov_rad, init=init,
-                   nis_window=100)
+                   bearing_sigma_rad=cfg.bearing_sigma_rad, vfov_rad=cfg.vfov_rad, init=init, nis_window=100)
     nis, dof, gated = 0.0, 0, 0
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -467,8 +364,7 @@ def _one_seed(sc: Scenario, seed: int) -> dict:
                     rot_deg=float(np.rad2deg(np.linalg.norm(e[3:]))))
 
     # Odometry: dead reckoning and its covariance (F = Ad(U^-1) and + Q, as the EKF's predict).
-    To = run_odometry(run)
-    Po = np.zeros((6, 6))
+    To, Po = prism.run_odometry(run), np.zeros((6, 6))
     for U, Q in zip(run.U_odo, run.Q, strict=True):
         F = se3_adjoint(se3_inverse(U))
         Po = F @ Po @ F.T + Q
@@ -476,15 +372,13 @@ def _one_seed(sc: Scenario, seed: int) -> dict:
     for init in ("arc", "triangulate"):
         t0 = time.perf_counter()
         ekf, nis, nis_dof, gated, warned = _run_ekf(run, init)
-        lm = ekf.landmarks
-        st = ekf.innovation_stats()
+        lm, st = ekf.landmarks, ekf.innovation_stats()
         out[f"ekf_{init}"] = final(ekf.pose) | dict(
             nis_warned=warned, bearing_sigma_est_deg=float(np.rad2deg(st.bearing_sigma_rad)) if st else None,
             lm_mm=1e3 * float(np.mean([np.linalg.norm(lm[i] - P[i]) for i in lm])),
             pose_nees=_pose_nees(ekf.pose, T_true[-1], ekf.pose_cov),
-            lm_nees_anchored=nees(ekf, T_true[-1], P)[1],
-            lm_nees=float(nees_world(ekf, P)), lm_dof=3 * len(lm), nis=nis, nis_dof=nis_dof, gated=gated,
-            s=time.perf_counter() - t0)
+            lm_nees_anchored=prism.nees(ekf, T_true[-1], P)[1], lm_nees=float(prism.nees_world(ekf, P)),
+            lm_dof=3 * len(lm), nis=nis, nis_dof=nis_dof, gated=gated, s=time.perf_counter() - t0)
     problem = BatchProblem(T_true[0], np.zeros((6, 6)), list(zip(run.U_odo, run.Q, strict=True)),
                            list(zip(run.ids, run.ranges_m, run.bearings_rad, strict=True)),
                            range_sigma_m=cfg.range_sigma_m, bearing_sigma_rad=cfg.bearing_sigma_rad,
@@ -551,7 +445,7 @@ def _summarise(sc: Scenario, seeds: list[dict]) -> dict:
 def batch_comparison(n_seeds: int, bar: bool = True) -> list[dict]:
     """Every scenario class over ``n_seeds`` seeds: per-class summary with the per-seed rows."""
     out = []
-    for sc in tqdm(SCENARIOS, desc="vs batch", disable=not bar, leave=False):
+    for sc in progress_bar(SCENARIOS, desc="vs batch", disable=not bar, leave=False):
         seeds = [_one_seed(sc, s) for s in range(n_seeds)]
         out.append(_summarise(sc, seeds) | dict(per_seed=seeds))
     return out
@@ -571,98 +465,36 @@ def _cell(v: float, band: list[float] | None = None, limit: float | None = None,
     return t
 
 
-SECTION = "## EKF against the batch MAP (issue #11)"
-
-
-def batch_markdown(summary: dict) -> str:
+def batch_markdown(summary: dict, folder: Path | None = None) -> str:
     """The BENCHMARKS.md section for an ``ekf_vs_batch.json`` summary."""
     cls, run, m = summary["classes"], summary["run"], summary["machine"]
-    S = cls[0]["seeds"]
     git = m.get("git", {})
-    L = [SECTION, "",
-         f"`{run['command']}`: {run['seconds']:.0f} s on {m['cpu_model']} ({m['affinity_cpus']} cores), "
-         f"{run['date']}; commit `{str(git.get('commit'))[:10]}` with modified "
-         f"{', '.join(f'`{f}`' for f in git.get('modified', [])) or 'nothing'} (`gpumap/ekf/*.py` sha256 "
-         f"`{next(iter(run['sha256'].values()))[:12]}`); numbers in `bench/results/ekf_vs_batch.json`, "
-         "every seed's in `ekf_vs_batch_seeds.jsonl`. `python -m bench.report` rewrites this file "
-         "without this section: rerun the command after it.",
-         "",
-         *_headline(cls),
-         *_speed_line(summary.get("speed")),
-         "",
-         f"Each class: {S} seeds, the same returns, odometry and noise model for every estimator. "
-         "**EKF arc / tri**: `SonarEKF(init='arc' | 'triangulate')` with its defaults (second-order "
-         "elevation term, updates and gate relinearised while a feature's elevation is uncertain; "
-         "tri also scans 5 starting elevations along the arc), gate 0.999, final estimate; "
-         "**batch**: `gpumap.ekf.batch` MAP of the same model (elevation prior `N(0, vfov^2/12)` where "
-         "first seen; first pose held, as the EKF's), quadratic loss; **huber**: the same with a Huber "
-         "loss at 3 sigma on the returns; **odo**: dead reckoning. Landmark error: mean distance "
-         "to the truth (mm), averaged over the seeds; **arc/b, tri/b**: EKF over batch, ratio of "
-         "the means (issue target <= 1.1, bold above), in brackets the seeds where the EKF was "
-         "above 1.1x the batch. Scenes other than the prism: points 2-3 m ahead at 60-95 % of the "
-         "half elevation aperture (near the top or bottom edge), azimuth within 90 % of the half "
-         "aperture; the prism's trajectory (boresight on a point 2.5 m ahead, sway +-0.4 m, rise "
-         "0.25 m, advance 0.3 m, roll 0 -> 70 deg unless named); hfov x vfov 32 x 20 deg unless "
-         "named; range sigma 3 mm, bearing sigma 0.1 deg; odometry sigma q = 2 % of the "
-         "translation unless named (rotation q/2 % of the angle + q mrad/m).",
-         "",
-         "| class | views | points | returns | EKF arc mm | EKF tri mm | batch mm | huber mm | arc/b "
-         "| tri/b | final position mm: odo / arc / tri / batch "
-         "| final rotation deg: odo / arc / tri / batch |",
-         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"]
-    for c in cls:
-        sc = c["scenario"]
-        pos = " / ".join(f"{c[e]['pos_mm']:.1f}" for e in ESTIMATORS[:4])
-        rot = " / ".join(f"{c[e]['rot_deg']:.2f}" for e in ESTIMATORS[:4])
-        L.append(
-            f"| {sc['name']} | {sc['n_views']} | {8 if sc['prism'] else sc['n_points']} | "
-            f"{c['returns_mean']:.0f} | {c['ekf_arc']['lm_mm']:.1f} | {c['ekf_triangulate']['lm_mm']:.1f} | "
-            f"{c['batch']['lm_mm']:.1f} | {c['batch_huber']['lm_mm']:.1f} | "
-            f"{_cell(c['ratio_arc_to_batch'], limit=1.1)} ({c['seeds_arc_above_1.1x_batch']}) | "
-            f"{_cell(c['ratio_triangulate_to_batch'], limit=1.1)} "
-            f"({c['seeds_triangulate_above_1.1x_batch']}) | "
-            f"{pos} | {rot} |")
-    band = cls[0]["batch"]["pose_nees_band95"]
-    L += ["",
-          "Consistency: NEES and NIS divided by their degrees of freedom and pooled over the seeds "
-          "(sum / summed dof); bold with an arrow where outside the two-sided 95 % chi-square band "
-          f"(`scipy.stats.chi2`; pose: [{band[0]:.2f}, {band[1]:.2f}]; the landmark and NIS bands, "
-          "with more dof, are narrower and in the JSON). Pose NEES: last pose, 6 dof. Landmark NEES, "
-          "all features jointly: **anchored**, in ``(r, az, el)`` of the estimated pose where each "
-          "was first seen (the EKF's own state, `sim.prism.nees`; the batch's Cartesian covariance "
-          "pushed through the same map), and **world** ``(x, y, z)`` (EKF: its first-order "
-          "`covariance`). A Cartesian Gaussian cannot follow the elevation arc: a point seen at "
-          "elevation 9 deg but placed at 0 sits ~3 cm off the tangent along the range (10 range "
-          "sigmas), so world NEES blows up for any estimator wherever elevation stays weakly "
-          "observed. NIS: EKF, the summed NIS of the fused returns (gated ones left out); batch, "
-          "its residual chi-square over residuals minus unknowns (the same quantity for a linear "
-          "model; for huber still unrobustified, so the outlier's own residual is in it). Odometry "
-          "has no features and no innovations.",
-          "",
-          "| class | pose NEES/6: odo / arc / tri / batch / huber | landmark NEES/dof anchored: arc / tri "
-          "/ batch / huber | landmark NEES/dof world: arc / tri / batch / huber "
-          "| NIS/dof: arc / tri / batch / huber | gated returns: arc / tri "
-          "| seeds warned (NIS monitor): arc / tri | bearing sigma from innovations, deg |",
-          "|---|---|---|---|---|---|---|---|"]
-    for c in cls:
-        pn = " / ".join(_cell(c[e]["pose_nees_norm"], c[e]["pose_nees_band95"]) for e in ESTIMATORS)
-        la = " / ".join(_cell(c[e]["lm_nees_anchored_norm"], c[e]["lm_nees_band95"]) for e in ESTIMATORS[1:])
-        ln = " / ".join(_cell(c[e]["lm_nees_norm"], c[e]["lm_nees_band95"]) for e in ESTIMATORS[1:])
-        ni = " / ".join(_cell(c[e]["nis_norm"], c[e]["nis_band95"]) for e in ESTIMATORS[1:])
-        L.append(f"| {c['scenario']['name']} | {pn} | {la} | {ln} | {ni} | "
-                 f"{c['ekf_arc']['gated_returns']} / {c['ekf_triangulate']['gated_returns']} | "
-                 f"{c['ekf_arc']['seeds_nis_warned']} / {c['ekf_triangulate']['seeds_nis_warned']} | "
-                 f"{c['ekf_arc']['bearing_sigma_est_deg']:.3f} |")
-    L += ["", "NIS monitor: `SonarEKF(nis_window=100)` pools the last 100 fused returns; it warns "
-          "(`RuntimeWarning`) when their NIS/dof leaves the 99.99 % band, and "
-          "`innovation_stats()` estimates the noise (Mehra: mean(nu nu^T) - mean(H P H^T)); the "
-          "configured bearing sigma is 0.100 deg, the last column is the median over seeds of the "
-          "arc filter's estimate at the end of the run."]
-    L += ["", "Where the EKF misses issue #11's targets in this run (computed from the JSON, nothing was "
-          "tuned; the batch's value in brackets where it misses too, i.e. where the model, not the "
-          "filter, is what fails):", ""]
-    L += _shortfalls(cls) or ["- nowhere"]
-    return "\n".join(L) + "\n"
+
+    def cells(c: dict, key: str, ests: tuple = ESTIMATORS[1:]) -> str:
+        return " / ".join(_cell(c[e][f"{key}_norm"], c[e][f"{key}_band95"]) for e in ests)
+
+    accuracy = [f"| {c['scenario']['name']} | {c['scenario']['n_views']} | "
+                f"{8 if c['scenario']['prism'] else c['scenario']['n_points']} | {c['returns_mean']:.0f} | "
+                + " | ".join(f"{c[e]['lm_mm']:.1f}" for e in ESTIMATORS[1:]) + " | "
+                + " | ".join(f"{_cell(c[f'ratio_{i}_to_batch'], limit=1.1)} "
+                             f"({c[f'seeds_{i}_above_1.1x_batch']})" for i in ("arc", "triangulate")) + " | "
+                + " / ".join(f"{c[e]['pos_mm']:.1f}" for e in ESTIMATORS[:4]) + " | "
+                + " / ".join(f"{c[e]['rot_deg']:.2f}" for e in ESTIMATORS[:4]) + " |" for c in cls]
+    consistency = [f"| {c['scenario']['name']} | {cells(c, 'pose_nees', ESTIMATORS)} | "
+                   f"{cells(c, 'lm_nees_anchored')} | {cells(c, 'lm_nees')} | {cells(c, 'nis')} | "
+                   f"{c['ekf_arc']['gated_returns']} / {c['ekf_triangulate']['gated_returns']} | "
+                   f"{c['ekf_arc']['seeds_nis_warned']} / {c['ekf_triangulate']['seeds_nis_warned']} | "
+                   f"{c['ekf_arc']['bearing_sigma_est_deg']:.3f} |" for c in cls]
+    return common.template(
+        "ekf", run=run, m=m, commit=str(git.get("commit"))[:10],
+        modified=", ".join(f"`{f}`" for f in git.get("modified", [])) or "nothing",
+        sha=next(iter(run["sha256"].values()))[:12],
+        headline="\n".join(_headline(cls) + _speed_line(summary.get("speed"))),
+        seeds=cls[0]["seeds"], accuracy="\n".join(accuracy), band=cls[0]["batch"]["pose_nees_band95"],
+        consistency="\n".join(consistency), shortfalls="\n".join(_shortfalls(cls) or ["- nowhere"])) + "\n"
+
+
+SECTION = Section("ekf", "## EKF against the batch MAP (issue #11)", "ekf_vs_batch.json", batch_markdown)
 
 
 def _speed_line(sp: dict | None) -> list[str]:
@@ -706,12 +538,11 @@ def _headline(cls: list[dict]) -> list[str]:
 def _shortfalls(cls: list[dict]) -> list[str]:
     out = []
     for c in cls:
-        bad = []
+        bad, b = [], c["batch"]
         for init, tag in (("arc", "arc"), ("triangulate", "tri")):
             e = c[f"ekf_{init}"]
             if c[f"ratio_{init}_to_batch"] > 1.1:
                 bad.append(f"{tag}: landmark error {c[f'ratio_{init}_to_batch']:.2f}x the batch's")
-            b = c["batch"]
             if e["pos_mm"] >= c["odometry"]["pos_mm"]:
                 also = f" (batch {b['pos_mm']:.1f})" if b["pos_mm"] >= c["odometry"]["pos_mm"] else ""
                 bad.append(f"{tag}: final position error {e['pos_mm']:.1f} mm, not below odometry's "
@@ -720,8 +551,8 @@ def _shortfalls(cls: list[dict]) -> list[str]:
                             ("lm_nees", "world landmark NEES"), ("nis", "NIS")):
                 band = e[f"{k}_band95"]
                 if not _inside(e[f"{k}_norm"], band):
-                    miss = not _inside(b[f"{k}_norm"], b[f"{k}_band95"])
-                    also = f" (batch {b[f'{k}_norm']:.2f})" if miss else ""
+                    batch_in = _inside(b[f"{k}_norm"], b[f"{k}_band95"])
+                    also = "" if batch_in else f" (batch {b[f'{k}_norm']:.2f})"
                     bad.append(f"{tag}: {what}/dof {e[f'{k}_norm']:.2f} outside [{band[0]:.2f}, "
                                f"{band[1]:.2f}]{also}")
         if bad:
@@ -729,40 +560,52 @@ def _shortfalls(cls: list[dict]) -> list[str]:
     return out
 
 
-BEGIN, END = "<!-- begin:ekf -->", "<!-- end:ekf -->"
-
-
-def run_vs_batch(args: argparse.Namespace) -> int:
+def run_vs_batch(args) -> int:
     """``--vs-batch``: :func:`batch_comparison`, its JSON and its BENCHMARKS.md section."""
-    t0 = time.perf_counter()
-    info = machine_info()
+    t0, info = time.perf_counter(), common.machine_info()
     classes = batch_comparison(args.batch_seeds)
     speed = _time_updates(8, 500) | dict(reps=500)
     root = Path(__file__).resolve().parents[1]
-    argv = sys.argv[1:] if args.argv is None else args.argv
+    sha = hashlib.sha256(b"".join(f.read_bytes() for f in sorted((root / "gpumap/ekf").glob("*.py"))))
+    sha = sha.hexdigest()
     summary = compact(dict(
-        schema="gpumap-ekf-vs-batch/1",  # not "gpumap-bench/": bench.report skips this file
-        machine=info,
-        run=dict(command="python -m bench.ekf_bench " + " ".join(argv),
-                 date=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
-                 seconds=time.perf_counter() - t0,
-                 sha256={"gpumap/ekf": hashlib.sha256(b"".join(
-                     f.read_bytes() for f in sorted((root / "gpumap/ekf").glob("*.py")))).hexdigest()}),
-        speed=speed,
-        classes=classes,
-    ), 6)
+        schema="gpumap-ekf-vs-batch/1",  # not "gpumap-bench/": the report's sweep part skips this file
+        machine=info, run=dict(command="python -m bench.ekf_bench " + " ".join(args.argv),
+                               date=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+                               seconds=time.perf_counter() - t0, sha256={"gpumap/ekf": sha}),
+        speed=speed, classes=classes), 6)
     # Summaries in the JSON; every seed's numbers one line each beside it (JSON Lines).
-    rows = [json.dumps(compact(dict(scenario=c["scenario"]["name"]) | d, 4))
-            for c in classes for d in c.pop("per_seed")]
+    rows = [json.dumps(compact(dict(scenario=c["scenario"]["name"]) | d,
+                               4)) for c in classes for d in c["per_seed"]]
     for c in summary["classes"]:
         c.pop("per_seed")
     write_json(args.out / "ekf_vs_batch.json", summary)
     (args.out / "ekf_vs_batch_seeds.jsonl").write_text("\n".join(rows) + "\n")
-    md = batch_markdown(summary)
     if args.benchmarks is not None:
-        put_block(args.benchmarks, BEGIN, END, md, section=SECTION)
-    print(md)
+        SECTION.write(args.benchmarks, args.out)
+    print(batch_markdown(summary))
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = bench_parser("ekf_bench", __doc__, report="ekf_vs_batch.json")
+    ap.add_argument("--out", required=True, type=Path, help="output folder for JSON and PNGs")
+    ap.add_argument("--seeds", type=int, default=50, help="prism seeds (default 50)")
+    ap.add_argument("--sweep-seeds", type=int, default=20, help="seeds per odometry-noise scale (default 20)")
+    ap.add_argument("--reps", type=int, default=200, help="timed updates per feature count")
+    ap.add_argument("--init", default="arc", choices=["arc", "triangulate"],
+                    help="feature initialisation of SonarEKF (init=)")
+    ap.add_argument("--vs-batch", action="store_true",
+                    help="only the EKF / batch MAP / odometry comparison over the issue #11 classes")
+    ap.add_argument("--batch-seeds", type=int, default=20, help="seeds per class for --vs-batch")
+    ap.add_argument("--benchmarks", type=Path, default=Path("BENCHMARKS.md"),
+                    help="--vs-batch: markdown file whose issue #11 section is (re)written")
+    args = ap.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    if SECTION.reported(args):
+        return 0
+    args.out.mkdir(parents=True, exist_ok=True)
+    return run_vs_batch(args) if args.vs_batch else run_prism(args)
 
 
 if __name__ == "__main__":

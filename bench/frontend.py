@@ -1,28 +1,9 @@
 """EKF front-end bench (issue #23): measurements found in pings, association, the EKF loop.
 
-Run::
-
     .venv/bin/python -m bench.frontend [--seeds 5] [--out bench/results] [--no-progress]
 
-Writes ``OUT/frontend.json`` with
-
-- ``sim``: per scene (tank, survey) and odometry noise (0.005 and 0.02 per step, the demo's
-  two levels, on every translation and rotation axis), over ``--seeds`` drift seeds:
-  the EKF fed the simulator's feature returns **without their ids** (shuffled, with the
-  demo's noise, 1 cm and 0.3 deg) through :class:`gpumap.ekf.association.FeatureTracker`,
-  against the same EKF given the true ids, both with the scene's DVL as in ``gpumap demo``.
-  Association precision and recall (each return's track against the true feature that made
-  most of that track's returns: ``all`` counts every return a track took, tentative ones
-  included; ``fused`` only the returns fused into the EKF), pose errors (mean position, mean
-  heading) and feature errors (the tracker's live features against the true-id EKF's
-  estimates of the same true features), and their ratios.
-- ``sim_detector``: the detector (:class:`gpumap.ekf.frontend.PointDetector`) on the simulated
-  images: how many visible true features it finds within 2 cells, how many of its returns lie
-  within 2 cells of one, and the normalised squared error of those returns (2 dof, mean 2
-  when the stated covariance is right).
-- ``real_tank``: ``gpumap replay --ekf`` on ``../shared/data/oasis_tank`` at both noise levels
-  and ``--seeds`` seeds: odometry and EKF pose errors against the arm's poses, each map
-  against the recorded-pose map, tracks, ms per ping (loaded 2-core CPU; load average kept).
+Writes ``OUT/frontend.json``: ``sim`` (the tracker's EKF on the simulator's returns without ids against
+the true-id EKF), ``sim_detector``, ``real_tank`` (bench/README.md tells more).
 """
 
 from __future__ import annotations
@@ -37,18 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import bench_parser, load_average, oasis_tank_dir, put_block, render_pings, write_json
+from . import common
+from .common import Section, bench_parser, load_average, oasis_tank_dir, render_pings, write_json
 
 NOISES = (0.005, 0.02)
 RANGE_SIGMA_M = 0.01
 BEARING_SIGMA_RAD = math.radians(0.3)
-
-
-def _render(name: str):
-    from gpumap.sim.scenes import make_scene
-
-    sc = make_scene(name)
-    return sc, render_pings(sc, scene_sonar=False)
 
 
 def _dvl_hook(sc, pings, rng):
@@ -63,16 +38,13 @@ def _dvl_hook(sc, pings, rng):
         return None
     dvl = DVLSimulator(sc)
     if sc.name == "tank":
-        A, B = mounts()
-        floor_d, rough = float(TANK["floor_z_m"]), SAND_ROUGHNESS_M
+        (A, B), floor_d, rough = mounts(), float(TANK["floor_z_m"]), SAND_ROUGHNESS_M
     else:
-        A, B = survey_mounts()
-        floor_d = float(SURVEY["floor_z_m"])
+        (A, B), floor_d = survey_mounts(), float(SURVEY["floor_z_m"])
         rough = _seabed_roughness(sc, floor_d)
-    T_S_D = se3_inverse(A) @ B
+    T_S_D, n_W = se3_inverse(A) @ B, np.array([0.0, 0.0, 1.0])
     ranges = [dvl.ranges(p.T_W_S @ T_S_D) for p in pings]
     ranges = [r + rng.normal(0, DVL_RANGE_SIGMA_M, r.shape) for r in ranges]
-    n_W = np.array([0.0, 0.0, 1.0])
 
     def hook(k, ekf):
         r = ranges[k]
@@ -93,16 +65,13 @@ def _sim_run(sc, pings, noise: float, seed: int, tracker_kwargs: dict | None = N
 
     T_true = np.stack([p.T_W_S for p in pings])
     U, T_odo = drifting_odometry(T_true, noise, noise, seed)
-    Q = motion_cov(noise, noise)
-    rng = np.random.default_rng([seed, 7])
+    Q, rng = motion_cov(noise, noise), np.random.default_rng([seed, 7])
     noisy = [(p.feature_ranges_m + rng.normal(0, RANGE_SIGMA_M, len(p.feature_ids)),
               p.feature_bearings_rad + rng.normal(0, BEARING_SIGMA_RAD, len(p.feature_ids))) for p in pings]
     perms = [rng.permutation(len(p.feature_ids)) for p in pings]
     truth = dict(zip(sc.feature_ids.tolist(), sc.features_W, strict=True))
-    kw = {**EKF_DEFAULTS, "vfov_rad": sc.sonar_spec.vfov_rad}
-
     # the true-id EKF
-    ekf = SonarEKF(T_true[0], np.zeros((6, 6)), **kw)
+    ekf = SonarEKF(T_true[0], np.zeros((6, 6)), **{**EKF_DEFAULTS, "vfov_rad": sc.sonar_spec.vfov_rad})
     hook = _dvl_hook(sc, pings, np.random.default_rng([seed, 11]))
     P_true_id = np.zeros_like(T_true)
     for k, p in enumerate(pings):
@@ -114,17 +83,16 @@ def _sim_run(sc, pings, noise: float, seed: int, tracker_kwargs: dict | None = N
             ekf.update(p.feature_ids, *noisy[k])
         P_true_id[k] = ekf.pose
     L_true_id = ekf.landmarks
-
-    # the tracker's EKF: the same returns, shuffled, without ids
+    # the tracker's EKF: the same returns, shuffled, without ids, and the same DVL noise
     cov = np.diag([RANGE_SIGMA_M**2, BEARING_SIGMA_RAD**2])
 
     def measure(k, _img):
         q = perms[k]
         return PointMeasurements.from_arrays(noisy[k][0][q], noisy[k][1][q], np.tile(cov, (len(q), 1, 1)))
 
-    hook = _dvl_hook(sc, pings, np.random.default_rng([seed, 11]))  # the same DVL noise
     res = run_ekf_loop([None] * len(pings), U, T_true[0], sc.sonar_spec, odometry_cov=Q, measure=measure,
-                       before_update=hook, tracker_kwargs=tracker_kwargs)
+                       before_update=_dvl_hook(sc, pings, np.random.default_rng([seed, 11])),
+                       tracker_kwargs=tracker_kwargs)
     labels_true = [pings[k].feature_ids[perms[k]] for k in range(len(pings))]
     votes: dict[int, Counter] = {}
     for k, st in enumerate(res.steps):
@@ -138,12 +106,10 @@ def _sim_run(sc, pings, noise: float, seed: int, tracker_kwargs: dict | None = N
         for j, t in enumerate(st.labels):
             if int(t) in confirmed:
                 ok = owner[int(t)] == labels_true[k][j]
-                tp_all += ok
-                fp_all += not ok
+                tp_all, fp_all = tp_all + ok, fp_all + (not ok)
         for i, j in st.confirmed_hits.items():
             ok = owner[i] == labels_true[k][j]
-            tp_f += ok
-            fp_f += not ok
+            tp_f, fp_f = tp_f + ok, fp_f + (not ok)
     L = res.tracker.ekf.landmarks
     same = [i for i in L if owner[i] in L_true_id]
     f_trk = [float(np.linalg.norm(L[i] - truth[owner[i]])) for i in same]
@@ -151,17 +117,13 @@ def _sim_run(sc, pings, noise: float, seed: int, tracker_kwargs: dict | None = N
     e_tid, e_trk, e_odo = (pose_errors(P, T_true) for P in (P_true_id, res.poses, T_odo))
     return {
         "precision_all": tp_all / max(tp_all + fp_all, 1), "recall_all": tp_all / max(total, 1),
-        "precision_fused": tp_f / max(tp_f + fp_f, 1), "recall_fused": tp_f / max(total, 1),
-        "returns": total,
-        "position_mean_m": {"odometry": e_odo["position_m"]["mean"], "true_ids": e_tid["position_m"]["mean"],
-                            "tracker": e_trk["position_m"]["mean"]},
-        "heading_mean_rad": {"odometry": e_odo["heading_rad"]["mean"],
-                             "true_ids": e_tid["heading_rad"]["mean"],
-                             "tracker": e_trk["heading_rad"]["mean"]},
+        "precision_fused": tp_f / max(tp_f + fp_f, 1), "recall_fused": tp_f / max(total, 1), "returns": total,
+        **{f"{k}_mean_{u}": {"odometry": e_odo[f"{k}_{u}"]["mean"], "true_ids": e_tid[f"{k}_{u}"]["mean"],
+                             "tracker": e_trk[f"{k}_{u}"]["mean"]}
+           for k, u in (("position", "m"), ("heading", "rad"))},
         "feature_mean_m": {"true_ids": float(np.mean(f_tid)) if same else None,
                            "tracker": float(np.mean(f_trk)) if same else None, "features": len(same)},
-        "tracks": res.tracker.lifetimes(),
-        "ms_track_ekf_mean": float(res.ms_track.mean()),
+        "tracks": res.tracker.lifetimes(), "ms_track_ekf_mean": float(res.ms_track.mean()),
     }
 
 
@@ -170,21 +132,18 @@ def _sim_detector(sc, pings, cells: float = 2.0) -> dict:
     from gpumap.ekf.frontend import PointDetector
 
     sp = sc.sonar_spec
-    det = PointDetector(sp)
-    step = float(np.mean(np.diff(sp.bearings_rad)))
+    det, step = PointDetector(sp), float(np.mean(np.diff(sp.bearings_rad)))
     found = visible = near = n_det = 0
     nees, ms = [], []
     for p in pings:
         t0 = time.perf_counter()
         m = det.detect(p.image)
         ms.append(1e3 * (time.perf_counter() - t0))
-        n_det += len(m)
-        visible += len(p.feature_ids)
+        n_det, visible = n_det + len(m), visible + len(p.feature_ids)
         if not len(m) or not len(p.feature_ids):
             continue
-        dr = (m.ranges_m[:, None] - p.feature_ranges_m[None]) / sp.bin_size_m
-        db = (m.bearings_rad[:, None] - p.feature_bearings_rad[None]) / step
-        d = np.hypot(dr, db)
+        d = np.hypot((m.ranges_m[:, None] - p.feature_ranges_m[None]) / sp.bin_size_m,
+                     (m.bearings_rad[:, None] - p.feature_bearings_rad[None]) / step)
         found += int((d.min(axis=0) <= cells).sum())
         hit = d.min(axis=1) <= cells
         near += int(hit.sum())
@@ -194,8 +153,8 @@ def _sim_detector(sc, pings, cells: float = 2.0) -> dict:
                           m.bearings_rad[j] - p.feature_bearings_rad[f]])
             nees.append(float(e @ np.linalg.solve(m.covs[j], e)))
     return {"visible_features": visible, "found_within_2_cells": found,
-            "found_fraction": found / max(visible, 1), "detections": n_det,
-            "near_a_feature_fraction": near / max(n_det, 1),
+            "found_fraction": found / max(visible, 1),
+            "detections": n_det, "near_a_feature_fraction": near / max(n_det, 1),
             "nees_mean_2dof": float(np.mean(nees)) if nees else None,
             "nees_median_2dof": float(np.median(nees)) if nees else None,
             "ms_per_ping_mean": float(np.mean(ms)), "ms_per_ping_p95": float(np.percentile(ms, 95))}
@@ -206,14 +165,13 @@ def _real(path: str, seeds: int, progress: bool) -> list[dict]:
     from gpumap.io import open_recording
 
     rows = []
+    keys = ("pose_error", "ratio_ekf_to_odometry", "map_vs_recorded", "measurements", "tracks",
+            "track_consistency_recorded_poses", "recorded_step_median", "ms_per_ping", "frames")
     for noise in NOISES:
         for seed in range(seeds):
-            res = run_ekf_replay(open_recording(path), odometry_noise=(noise, noise), seed=seed,
-                                 backend="warp-cpu", progress=False)
-            s = res["summary"]
-            rows.append({"noise": noise, "seed": seed, **{k: s[k] for k in (
-                "pose_error", "ratio_ekf_to_odometry", "map_vs_recorded", "measurements", "tracks",
-                "track_consistency_recorded_poses", "recorded_step_median", "ms_per_ping", "frames")}})
+            s = run_ekf_replay(open_recording(path), odometry_noise=(noise, noise), seed=seed,
+                               backend="warp-cpu", progress=False)["summary"]
+            rows.append({"noise": noise, "seed": seed, **{k: s[k] for k in keys}})
             if progress:
                 r = s["ratio_ekf_to_odometry"]
                 print(f"real tank noise {noise} seed {seed}: EKF/odometry position {r['position_mean']:.2f}, "
@@ -221,18 +179,33 @@ def _real(path: str, seeds: int, progress: bool) -> list[dict]:
     return rows
 
 
-def _summarise(rows: list[dict], keyf) -> dict:
-    vals = [keyf(r) for r in rows]
-    vals = [v for v in vals if v is not None]
+def _summarise(rows: list[dict], keyf) -> dict | None:
+    vals = [v for v in map(keyf, rows) if v is not None]
     if not vals:
         return None
     return {"mean": float(np.mean(vals)), "min": float(np.min(vals)), "max": float(np.max(vals))}
 
 
-BEGIN, END = "<!-- begin:frontend -->", "<!-- end:frontend -->"
+def _ratio(key: str, unit: str):
+    return lambda r: r[f"{key}_mean_{unit}"]["tracker"] / r[f"{key}_mean_{unit}"]["true_ids"]
 
 
-def markdown(d: dict) -> str:
+SIM_SUMMARY = {k: (lambda r, k=k: r[k])
+               for k in ("precision_all", "recall_all", "precision_fused", "recall_fused")}
+SIM_SUMMARY |= {"pose_ratio_tracker_to_true_ids": _ratio("position", "m"),
+                "heading_ratio_tracker_to_true_ids": _ratio("heading", "rad"),
+                "feature_ratio_tracker_to_true_ids": lambda r: (r["feature_mean_m"]["tracker"]
+                                                                / r["feature_mean_m"]["true_ids"])
+                if r["feature_mean_m"]["tracker"] is not None else None}
+REAL_SUMMARY = {"position_ratio": lambda r: r["ratio_ekf_to_odometry"]["position_mean"],
+                "heading_ratio": lambda r: r["ratio_ekf_to_odometry"]["heading_mean"],
+                "map_disagree_odometry": lambda r: r["map_vs_recorded"]["odometry"]["disagree"],
+                "map_disagree_ekf": lambda r: r["map_vs_recorded"]["ekf"]["disagree"],
+                "ms_per_ping": lambda r: r["ms_per_ping"]["total_mean"],
+                "track_consistency": lambda r: r["track_consistency_recorded_poses"]["consistent_fraction"]}
+
+
+def markdown(d: dict, folder: Path | None = None) -> str:
     """The BENCHMARKS.md block of a ``frontend.json``."""
     def pc(x):
         return "–" if x is None else f"{100 * x:.1f} %"
@@ -240,160 +213,79 @@ def markdown(d: dict) -> str:
     def mm(x):
         return "–" if x is None else f"{x['mean']:.2f} ({x['min']:.2f}–{x['max']:.2f})"
 
-    L = ["## The EKF on real pings: front-end, association, loop (issue #23)", "",
-         f"Written by `python -m bench.frontend` into `bench/results/frontend.json` ({d['date']}, "
-         f"{d['seconds']:.0f} s; command `{d['command']}`). Drift model: {d['drift_model']}. "
-         "Times are host CPU on the shared 2-core machine, loaded (load average "
-         f"{d['loadavg_start'][0]:.1f} at the start, {d['loadavg_end'][0]:.1f} at the end).", "",
-         "**Simulator, returns without ids** (the features' true range and azimuth with the demo's "
-         "noise, shuffled, through `FeatureTracker`; the same EKF given the true ids as reference; both "
-         "with the scene's DVL as in `gpumap demo`). Precision/recall *all*: every return a confirmed "
-         "track took, tentative ones included, against the true feature that made most of that "
-         "track's returns; *fused*: only returns fused into the EKF. Ratios: tracker EKF over true-id "
-         "EKF (mean position error, mean heading error; feature error over the tracker's live "
-         "features and the true-id EKF's estimates of the same features); mean (min–max) over seeds.", "",
-         "| scene, drift | precision all | recall all | precision fused | recall fused | position | heading "
-         "| features |",
-         "|---|---|---|---|---|---|---|---|"]
-    for v in d["sim"].values():
-        sm = v["summary"]
-        L.append(f"| {v['scene']}, {v['noise']} | {pc(sm['precision_all']['mean'])} "
-                 f"| {pc(sm['recall_all']['mean'])} "
-                 f"| {pc(sm['precision_fused']['mean'])} | {pc(sm['recall_fused']['mean'])} "
-                 f"| {mm(sm['pose_ratio_tracker_to_true_ids'])} "
-                 f"| {mm(sm['heading_ratio_tracker_to_true_ids'])} "
-                 f"| {mm(sm['feature_ratio_tracker_to_true_ids'])} |")
-    L += ["", "**Detector on the simulated images** (`PointDetector` defaults): a true visible feature "
-          "counts as found when a return lies within 2 cells of it; NEES of those returns against "
-          "the true feature with the stated covariance (2 dof: mean 2 if right).", "",
-          "| scene | visible features | found | returns | near a feature | NEES mean "
-          "| ms per ping (mean, p95) |",
-          "|---|---|---|---|---|---|---|"]
-    for name, v in d["sim_detector"].items():
-        ne = "–" if v["nees_mean_2dof"] is None else f"{v['nees_mean_2dof']:.1f}"
-        L.append(f"| {name} | {v['visible_features']} | {pc(v['found_fraction'])} | {v['detections']} "
-                 f"| {pc(v['near_a_feature_fraction'])} | {ne} | {v['ms_per_ping_mean']:.1f}, "
-                 f"{v['ms_per_ping_p95']:.1f} |")
-    L += ["", "**Real tank** (`gpumap replay ../shared/data/oasis_tank --ekf`, 123 frames, 5 cm, "
-          "`warp-cpu`): EKF error over odometry error against the arm's poses (mean over the run), "
-          "voxels where the map disagrees with the recorded-pose map (occupied >= 0.4 in exactly one; "
-          "unknown counts as not occupied), share of the tracks' returns consistent with one fixed "
-          "point seen from the recorded poses, front-end + association + EKF ms per ping; mean "
-          "(min–max) over seeds.", "",
-          "| drift | position EKF/odometry | heading EKF/odometry | disagreeing voxels, odometry map | "
-          "disagreeing voxels, EKF map | returns consistent | ms per ping |",
-          "|---|---|---|---|---|---|---|"]
-    for noise, v in d["real_tank"]["summary"].items():
-        L.append(f"| {noise} | {mm(v['position_ratio'])} | {mm(v['heading_ratio'])} "
-                 f"| {v['map_disagree_odometry']['mean']:.0f} | {v['map_disagree_ekf']['mean']:.0f} "
-                 f"| {mm(v.get('track_consistency'))} | {mm(v['ms_per_ping'])} |")
+    rates = ("precision_all", "recall_all", "precision_fused", "recall_fused")
+    ratios = ("pose", "heading", "feature")
+    sim = [f"| {v['scene']}, {v['noise']} | " + " | ".join(pc(v["summary"][k]["mean"]) for k in rates) + " | "
+           + " | ".join(mm(v["summary"][f"{k}_ratio_tracker_to_true_ids"]) for k in ratios) + " |"
+           for v in d["sim"].values()]
+    det = [f"| {name} | {v['visible_features']} | {pc(v['found_fraction'])} | {v['detections']} "
+           f"| {pc(v['near_a_feature_fraction'])} | "
+           f"{'–' if v['nees_mean_2dof'] is None else format(v['nees_mean_2dof'], '.1f')} | "
+           f"{v['ms_per_ping_mean']:.1f}, {v['ms_per_ping_p95']:.1f} |"
+           for name, v in d["sim_detector"].items()]
+    real = [f"| {noise} | {mm(v['position_ratio'])} | {mm(v['heading_ratio'])} "
+            f"| {v['map_disagree_odometry']['mean']:.0f} | {v['map_disagree_ekf']['mean']:.0f} "
+            f"| {mm(v.get('track_consistency'))} | {mm(v['ms_per_ping'])} |"
+            for noise, v in d["real_tank"]["summary"].items()]
     r0 = d["real_tank"]["runs"][0]
     st = r0.get("recorded_step_median")
-    if st:
-        L += ["", f"The tank's frames are every 10th of the recording: the arm moves a median "
-              f"{100 * st['translation_m']:.1f} cm and {st['rotation_deg']:.0f} deg between them, and "
-              f"the detector finds {r0['measurements']['per_ping_mean']:.1f} compact returns per ping."]
-    L += ["", "What these say. In the simulator the tracker alone is measured on the features' own "
-          "returns: the detector finds few of the scene's listed features in the rendered images (they "
-          "are corners and tops on larger surfaces, not compact echoes), so a detector-driven simulated "
-          "run would not test association against known ids. At the demo's 0.005 drift association "
-          "is near perfect; the tracker's EKF loses to the true-id EKF mainly through the returns it "
-          "does not fuse (the two of each tentative track, the ambiguous ones, and features "
-          "re-started after a track ends). At 0.02 the tank's close feature pairs (a basket corner's "
-          "top and foot, the rock's extremes) fall in each other's gates and are confused. On the "
-          "real tank few returns repeat as one fixed scatterer, so the EKF gets little and stays near "
-          "odometry at 0.005, and at 0.02 its wider gates let wrong returns in. Tried and not kept: "
-          "confirming tracks after 2 returns or ending them after 8 misses (better in the simulator, "
-          "worse than odometry on the real tank); a wider covariance floor for the returns (no gain); "
-          "two whole-ping registrations against the EKF-pose map, an ICP in polar coordinates (each "
-          "bright cell matched to the map voxel of its azimuth bin nearest in range) and a direct "
-          "alignment (the pose that puts the map's occupied voxels on bright cells): started from the "
-          "arm's pose moved by a few centimetres and degrees, both ended further from it in most "
-          "pings, because the min-max map's elevation stretch lets many poses explain a ping and "
-          "neither scores voxels predicted bright where the ping is dark. A probe of plane ranges: "
-          "each beam's first echo, put on the aperture's lowest ray at the arm's pose, does not fit one "
-          "level floor (the implied heights spread by tens of centimetres within a ping), so fusing "
-          "the floor like the DVL needs a model of where in the aperture the first echo comes from, "
-          "and heading would need a wall besides. Next: that plane model, and a registration that "
-          "scores dark cells too."]
-    return "\n".join(L)
+    steps = "" if not st else (
+        f"\n\nThe tank's frames are every 10th of the recording: the arm moves a median "
+        f"{100 * st['translation_m']:.1f} cm and {st['rotation_deg']:.0f} deg between them, and the "
+        f"detector finds {r0['measurements']['per_ping_mean']:.1f} compact returns per ping.")
+    return common.template("frontend", date=d["date"], seconds=d["seconds"], command=d["command"],
+                           drift_model=d["drift_model"], load0=d["loadavg_start"][0],
+                           load1=d["loadavg_end"][0], sim="\n".join(sim), detector="\n".join(det),
+                           real="\n".join(real), steps=steps)
+
+
+SECTION = Section("frontend", "## The EKF on real pings: front-end, association, loop (issue #23)",
+                  "frontend.json", markdown)
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = bench_parser("frontend", __doc__)
+    ap = bench_parser("frontend", __doc__, out="bench/results", progress=True, report="frontend.json")
     ap.add_argument("--seeds", type=int, default=5, help="drift seeds per scene and noise level (default 5)")
-    ap.add_argument("--out", type=Path, default=Path("bench/results"),
-                    help="output folder (default bench/results)")
     ap.add_argument("--data", default=None,
                     help="the real tank recording (default: shared/data/oasis_tank beside the checkout)")
     ap.add_argument("--scenes", nargs="+", default=["tank", "survey"],
                     help="simulated scenes (default tank survey)")
-    ap.add_argument("--no-progress", action="store_true", help="no progress lines")
     ap.add_argument("--benchmarks", type=Path, default=None,
                     help="also write the results as a block of this Markdown file (BENCHMARKS.md)")
-    ap.add_argument("--markdown-only", action="store_true",
-                    help="only rewrite the --benchmarks block from OUT/frontend.json, running nothing")
     a = ap.parse_args(argv)
-    if a.markdown_only:
-        if a.benchmarks is None:
-            ap.error("argument --markdown-only: Expected --benchmarks FILE with it, but got none")
-        put_block(a.benchmarks, BEGIN, END, markdown(json.loads((a.out / "frontend.json").read_text())))
+    if SECTION.reported(a):
         return 0
-    if a.data is None:
-        a.data = str(oasis_tank_dir() or "../shared/data/oasis_tank")
+    from gpumap.sim.scenes import make_scene
+
+    a.data = a.data or str(oasis_tank_dir() or "../shared/data/oasis_tank")
     warnings.simplefilter("ignore", RuntimeWarning)  # the EKF's NIS monitor; its figures are kept below
     t_start = time.time()
-    cmd = "python -m bench.frontend " + " ".join(argv if argv is not None else sys.argv[1:])
-    out: dict = {"schema": "gpumap-frontend/1", "command": cmd,
+    out: dict = {"schema": "gpumap-frontend/1",
+                 "command": "python -m bench.frontend " + " ".join(sys.argv[1:] if argv is None else argv),
                  "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "loadavg_start": load_average(),
                  "drift_model": "per step U_k = T_{k-1}^-1 T_k Exp(w), w ~ N(0, s^2 I6): s m on each "
-                                "translation axis and s rad on each rotation axis",
-                 "sim": {}, "sim_detector": {}}
+                                "translation axis and s rad on each rotation axis", "sim": {},
+                 "sim_detector": {}}
     for name in a.scenes:
-        sc, pings = _render(name)
+        sc = make_scene(name)
+        pings = render_pings(sc, scene_sonar=False)
         out["sim_detector"][name] = _sim_detector(sc, pings)
         for noise in NOISES:
             rows = [_sim_run(sc, pings, noise, seed) for seed in range(a.seeds)]
-            summ = {
-                "precision_all": _summarise(rows, lambda r: r["precision_all"]),
-                "recall_all": _summarise(rows, lambda r: r["recall_all"]),
-                "precision_fused": _summarise(rows, lambda r: r["precision_fused"]),
-                "recall_fused": _summarise(rows, lambda r: r["recall_fused"]),
-                "pose_ratio_tracker_to_true_ids": _summarise(
-                    rows, lambda r: r["position_mean_m"]["tracker"] / r["position_mean_m"]["true_ids"]),
-                "heading_ratio_tracker_to_true_ids": _summarise(
-                    rows, lambda r: r["heading_mean_rad"]["tracker"] / r["heading_mean_rad"]["true_ids"]),
-                "feature_ratio_tracker_to_true_ids": _summarise(
-                    rows, lambda r: (r["feature_mean_m"]["tracker"] / r["feature_mean_m"]["true_ids"])
-                    if r["feature_mean_m"]["tracker"] is not None else None),
-            }
-            out["sim"][f"{name}_{noise}"] = {"scene": name, "noise": noise, "seeds": a.seeds, "summary": summ,
-                                             "runs": rows}
+            summ = {k: _summarise(rows, f) for k, f in SIM_SUMMARY.items()}
+            out["sim"][f"{name}_{noise}"] = {"scene": name, "noise": noise, "seeds": a.seeds,
+                                             "summary": summ, "runs": rows}
             if not a.no_progress:
                 means = {k: v and round(v["mean"], 3) for k, v in summ.items()}
                 print(f"sim {name} noise {noise}: " + json.dumps(means), file=sys.stderr)
     rows = _real(a.data, a.seeds, not a.no_progress)
-    out["real_tank"] = {"runs": rows, "summary": {
-        f"{noise}": {
-            "position_ratio": _summarise([r for r in rows if r["noise"] == noise],
-                                         lambda r: r["ratio_ekf_to_odometry"]["position_mean"]),
-            "heading_ratio": _summarise([r for r in rows if r["noise"] == noise],
-                                        lambda r: r["ratio_ekf_to_odometry"]["heading_mean"]),
-            "map_disagree_odometry": _summarise([r for r in rows if r["noise"] == noise],
-                                                lambda r: r["map_vs_recorded"]["odometry"]["disagree"]),
-            "map_disagree_ekf": _summarise([r for r in rows if r["noise"] == noise],
-                                           lambda r: r["map_vs_recorded"]["ekf"]["disagree"]),
-            "ms_per_ping": _summarise([r for r in rows if r["noise"] == noise],
-                                      lambda r: r["ms_per_ping"]["total_mean"]),
-            "track_consistency": _summarise(
-                [r for r in rows if r["noise"] == noise],
-                lambda r: r["track_consistency_recorded_poses"]["consistent_fraction"]),
-        } for noise in NOISES}}
-    out["loadavg_end"] = load_average()
-    out["seconds"] = time.time() - t_start
+    by_noise = {f"{n}": [r for r in rows if r["noise"] == n] for n in NOISES}
+    summary = {n: {k: _summarise(rs, f) for k, f in REAL_SUMMARY.items()} for n, rs in by_noise.items()}
+    out["real_tank"] = {"runs": rows, "summary": summary}
+    out["loadavg_end"], out["seconds"] = load_average(), time.time() - t_start
     write_json(a.out / "frontend.json", out)
     if a.benchmarks is not None:
-        put_block(a.benchmarks, BEGIN, END, markdown(out))
+        SECTION.write(a.benchmarks, a.out)
     print(f"wrote {a.out / 'frontend.json'} in {out['seconds']:.0f} s")
     return 0
 

@@ -1,19 +1,7 @@
 """``python -m bench long_run``: every mapping rule over a long simulated run with realistic variation.
 
-The tank and circle scenes are flown at a sonar's own rate (:func:`gpumap.sim.scenes.long_run_scene`:
-the arm sweeping the tank, an orbit of the circle's objects; up to 1,000 pings, a minute and a half at
-10 Hz) with :meth:`gpumap.sim.variation.SonarVariation.real_tank` (speckle, per-ping gain, pose jitter
-and dropouts fitted to the real OASIS run by ``python -m bench variation``). Each ping, quantized to
-uint8 as the Oculus delivers, goes at its reported (nominal) pose into one 3 cm map per rule in
-``gpumap.geometry.RULES`` (whatever it holds when this runs). After 40, 100, 200, 500 and 1,000 pings
-every map is scored (:func:`gpumap.sim.metrics.evaluate`, at the simulator's threshold) against the
-truth and what the pings so far could detect: ``miss_rate_objects`` and ``miss_rate`` (FN: detectable
-surface not called occupied) and ``false_positive_rate_far`` (phantoms more than a voxel from any
-surface). A rule that erodes real surfaces shows it as a miss rate that rises with pings.
-
-Writes ``bench/results/long_run.json`` and ``bench/results/long_run.png`` (``--quick``: 60 pings,
-``long_run_quick.*``; another ``--voxel-size``: ``long_run_<mm>mm.*``). Takes ~15 min on 2 cores
-(the simulator's rendering dominates).
+Writes ``bench/results/long_run.json`` and ``long_run.png`` (``--quick``: ``long_run_quick.*``; another
+``--voxel-size``: ``long_run_<mm>mm.*``); ~15 min on 2 cores (bench/README.md tells more).
 """
 
 from __future__ import annotations
@@ -24,7 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from .common import CpuShare, bench_parser, mark_load, quantize, run_header, write_json
+from . import common
+from .common import CpuShare, Section, bench_parser, mark_load, progress_bar, quantize, run_header
 
 SCHEMA = "gpumap-long-run/1"
 CHECKPOINTS = (40, 100, 200, 500, 1000)
@@ -42,7 +31,6 @@ def run_scene(name: str, checkpoints: tuple[int, ...], voxel_m: float, variation
     from gpumap.sim.scenes import long_run_scene
     from gpumap.sim.sonar import OCCUPIED_THRESHOLD, SonarSimulator
     from gpumap.sim.truth import detected_points, occupancy, points_to_voxels
-    from tqdm import tqdm
 
     import gpumap
     from gpumap.geometry import RULES
@@ -51,21 +39,23 @@ def run_scene(name: str, checkpoints: tuple[int, ...], voxel_m: float, variation
     scene = long_run_scene(name, n, voxel_m, seed=seed)
     t0 = time.perf_counter()
     truth = occupancy(scene, seed=seed)
-    truth_s = time.perf_counter() - t0
-    grid = scene.grid
+    truth_s, grid = time.perf_counter() - t0, scene.grid
     mappers = {r: gpumap.MinMaxMapper(scene.sonar_spec, grid, backend=backend, rule=r,
                                       threshold=OCCUPIED_THRESHOLD) for r in RULES}
-    seen = np.zeros(grid.n_voxels, bool)
-    det = np.zeros(grid.n_voxels, bool)
-    sim_s, eval_s = 0.0, 0.0
-    map_s = dict.fromkeys(RULES, 0.0)
+    seen, det = np.zeros(grid.n_voxels, bool), np.zeros(grid.n_voxels, bool)
+    sim_s, eval_s, map_s, dropped = 0.0, 0.0, dict.fromkeys(RULES, 0.0), 0
     curves: dict[str, list[dict]] = {r: [] for r in RULES}
     # the evidence rule's bright_share is read-time: the same counts decided at other settings too
     alt = [s for s in SHARE_FRONTIER if "evidence" in mappers and s != mappers["evidence"].bright_share]
     curves.update({f"evidence@{s:g}": [] for s in alt})
-    dropped = 0
+
+    def score(m: Any) -> dict:
+        ev = evaluate(m.values(), truth, OCCUPIED_THRESHOLD, seen.reshape(grid.shape), voxel_m,
+                      detectable=det.reshape(grid.shape)).to_dict()
+        return {"pings": k + 1, **{s: ev[s] for s in SCORES}}
+
     with SonarSimulator(scene, seed=seed, variation=variation, **scene.sonar_params) as sim:
-        for k in tqdm(range(n), disable=not progress, desc=f"{name}", unit="ping"):
+        for k in progress_bar(range(n), disable=not progress, desc=f"{name}", unit="ping"):
             t = time.perf_counter()
             p = sim.ping(scene.T_W_S[k], k)
             img = quantize(p.image)
@@ -81,50 +71,28 @@ def run_scene(name: str, checkpoints: tuple[int, ...], voxel_m: float, variation
             if k + 1 in checkpoints:
                 t = time.perf_counter()
                 for r, m in mappers.items():
-                    ev = evaluate(m.values(), truth, OCCUPIED_THRESHOLD, seen.reshape(grid.shape), voxel_m,
-                                  detectable=det.reshape(grid.shape)).to_dict()
-                    curves[r].append({"pings": k + 1, **{s: ev[s] for s in SCORES}})
+                    curves[r].append(score(m))
                     if r == "evidence":
                         default = m.bright_share
                         for share in alt:
                             m.bright_share = share
-                            ev = evaluate(m.values(), truth, OCCUPIED_THRESHOLD, seen.reshape(grid.shape),
-                                          voxel_m, detectable=det.reshape(grid.shape)).to_dict()
-                            row = {"pings": k + 1, **{s: ev[s] for s in SCORES}}
-                            curves[f"evidence@{share:g}"].append(row)
+                            curves[f"evidence@{share:g}"].append(score(m))
                         m.bright_share = default
                 eval_s += time.perf_counter() - t
-    return {
-        "pings": n,
-        "voxel_size_m": voxel_m,
-        "grid_shape": list(grid.shape),
-        "backend": next(iter(mappers.values())).backend,
-        "rules": list(RULES),
-        "dropped_pings": int(dropped),
-        "curves": curves,
-        "seconds": {"truth": truth_s, "simulate": sim_s, "evaluate": eval_s,
-                    **{f"map_{r}": s for r, s in map_s.items()}},
-        "sim_pings_per_s": n / sim_s if sim_s > 0 else None,
-        "map_ms_per_ping": {r: 1e3 * s / n for r, s in map_s.items()},
-    }
-
-
-BEGIN, END = "<!-- begin:long-run -->", "<!-- end:long-run -->"
-SECTION = "## Long simulated runs with the real sonar's variation (issue #28)"
+    return {"pings": n, "voxel_size_m": voxel_m, "grid_shape": list(grid.shape),
+            "backend": next(iter(mappers.values())).backend, "rules": list(RULES),
+            "dropped_pings": int(dropped),
+            "curves": curves, "seconds": {"truth": truth_s, "simulate": sim_s, "evaluate": eval_s,
+                                          **{f"map_{r}": s for r, s in map_s.items()}},
+            "sim_pings_per_s": n / sim_s if sim_s > 0 else None,
+            "map_ms_per_ping": {r: 1e3 * s / n for r, s in map_s.items()}}
 
 
 def markdown(res: dict, folder: Path) -> str:
     """The BENCHMARKS.md section of a ``long_run.json``: per scene and rule, the misses of the
     objects and of every detectable surface and the far phantoms at each checkpoint."""
-    m = res["machine"]
-    v = res["variation"]
-    out = [SECTION, "",
-           f"`{res['command'].strip()}` ({res['created']}, {m.get('cpu_model')} x{m.get('cpu_count')}, "
-           f"{res['duration_s']:.0f} s): the simulated tank (a sweep) and circle (an orbit) at 3 cm, "
-           f"{res['checkpoints'][-1]} pings with the `{v['name']}` variation fitted to the real run's "
-           "frames 0-799 (`python -m bench variation`), uint8 pings at their nominal poses. Per "
-           "checkpoint: objects missed / all detectable surface missed / far water called occupied. "
-           "`evidence@S`: the default rule's counts decided at bright_share S (read-time).", "",
+    out = [common.template("long-run", command=res["command"].strip(), res=res, m=res["machine"],
+                           last=res["checkpoints"][-1]), "",
            "| scene | rule | " + " | ".join(f"{c} pings" for c in res["checkpoints"]) + " |",
            "|---|---|" + "---|" * len(res["checkpoints"])]
     for name, sc in res["scenes"].items():
@@ -136,16 +104,15 @@ def markdown(res: dict, folder: Path) -> str:
     return "\n".join(out)
 
 
+SECTION = Section("long-run", "## Long simulated runs with the real sonar's variation (issue #28)",
+                  "long_run.json", markdown)
+
+
 def plot(path: Path, scenes: dict[str, dict]) -> None:
     """Miss rate (objects, all) and far false positives against pings, one line per rule."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     keys = (("miss_rate_objects", "miss rate, objects (FN)"), ("miss_rate", "miss rate, all surface (FN)"),
             ("false_positive_rate_far", "false positives, far (FP)"))
-    fig, ax = plt.subplots(len(scenes), len(keys), figsize=(14, 3.6 * len(scenes)), squeeze=False)
+    fig, ax = common.pyplot().subplots(len(scenes), len(keys), figsize=(14, 3.6 * len(scenes)), squeeze=False)
     for i, (name, res) in enumerate(scenes.items()):
         for j, (key, label) in enumerate(keys):
             a = ax[i, j]
@@ -157,35 +124,25 @@ def plot(path: Path, scenes: dict[str, dict]) -> None:
             a.grid(alpha=0.3)
             if j == 0:
                 a.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    common.save_figure(fig, path, dpi=110)
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = bench_parser("long_run", __doc__)
-    ap.add_argument("--scenes", nargs="+", default=["tank", "circle"], choices=["tank", "circle"])
+    ap = bench_parser("long_run", __doc__, out="bench/results", voxel=0.03, backend="auto", seed=0,
+                      progress=True,
+                      report="long_run.json")
+    ap.add_argument("--scenes", nargs="+", default=["tank", "circle"], choices=["tank", "circle"],
+                    help="scenes (default tank circle)")
     ap.add_argument("--checkpoints", type=int, nargs="+", default=None,
                     help=f"pings at which the maps are scored (default {' '.join(map(str, CHECKPOINTS))})")
-    ap.add_argument("--voxel-size", type=float, default=0.03, help="metres (default 0.03)")
     ap.add_argument("--variation", default="real_tank", choices=["real_tank", "none"],
                     help="the simulator's view-to-view variation (default real_tank)")
     ap.add_argument("--quick", action="store_true",
                     help=f"a short run: {max(QUICK_CHECKPOINTS)} pings, scored at "
                          f"{' '.join(map(str, QUICK_CHECKPOINTS))}; writes long_run_quick.*")
-    ap.add_argument("--backend", default="auto", help="gpumap backend (default auto)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, default=Path("bench/results"), help="results folder")
-    ap.add_argument("--no-progress", action="store_true")
-    ap.add_argument("--report", type=Path, metavar="BENCHMARKS_MD",
-                    help="only write this benchmark's section of that file from --out/long_run.json")
     a = ap.parse_args(argv)
-    if a.report is not None:
-        import sys
-
-        from .common import write_section
-
-        return write_section(a.report, a.out / "long_run.json", sys.modules[__name__])
+    if SECTION.reported(a):
+        return 0
     from gpumap.sim.sonar import OCCUPIED_THRESHOLD
     from gpumap.sim.variation import SonarVariation
 
@@ -193,28 +150,24 @@ def main(argv: list[str] | None = None) -> int:
     if checkpoints[0] < 1:
         raise SystemExit("bench.long_run: checkpoints must be >= 1")
     var = SonarVariation.real_tank() if a.variation == "real_tank" else SonarVariation.none()
-    head = run_header(SCHEMA, argv)
-    t0 = time.perf_counter()
-    scenes = {}
+    head, t0, scenes = run_header(SCHEMA, argv), time.perf_counter(), {}
     with CpuShare() as share:
         for name in a.scenes:
-            scenes[name] = run_scene(name, checkpoints, a.voxel_size, var, a.backend, a.seed,
-                                     not a.no_progress)
+            scenes[name] = run_scene(name, checkpoints, a.voxel, var, a.backend, a.seed, not a.no_progress)
             for rule, rows in scenes[name]["curves"].items():
                 last = rows[-1]
                 print(f"{name} {rule:>8} @ {last['pings']}: miss objects {last['miss_rate_objects']:.3f}  "
                       f"miss {last['miss_rate']:.3f}  FP far {last['false_positive_rate_far']:.4f}")
     mark_load(head["machine"], share)
     stem = ("long_run_quick" if a.quick else "long_run") + (
-        "" if abs(a.voxel_size - 0.03) < 1e-9 else f"_{round(a.voxel_size * 1000)}mm")
+        "" if abs(a.voxel - 0.03) < 1e-9 else f"_{round(a.voxel * 1000)}mm")
     res = {**head, "command": "python -m bench long_run " + " ".join(argv or []),
            "variation": {"name": a.variation, **var.to_dict()}, "checkpoints": list(checkpoints),
            "threshold": OCCUPIED_THRESHOLD,
            "image_dtype": "uint8 (intensity * 255, rounded; as the Oculus delivers)",
            "poses": "the pings' reported poses (nominal; the variation's jitter is the error)",
            "scenes": scenes, "duration_s": time.perf_counter() - t0}
-    a.out.mkdir(parents=True, exist_ok=True)
-    path = write_json(a.out / f"{stem}.json", res, digits=4)
+    path = common.write_json(a.out / f"{stem}.json", res, digits=4)
     plot(a.out / f"{stem}.png", scenes)
     print(f"wrote {path} in {res['duration_s']:.0f} s")
     return 0

@@ -1,33 +1,18 @@
 """``python -m bench rate_real``: the rules on the real tank run at the sonar's own rate.
 
-The full OASIS tank run (1,223 Oculus M3000d frames, ``oasis_tank_full``; see
-``shared/data/README.md`` for how to get its images) is split by time: frames 0-799 are
-mapped (at every 10th, every 3rd and every frame), frames 800-1222 are held out. For each rule
-and rate it records
-
-- the occupied and observed voxels, and the occupied ones within the region all three rates
-  observe (a map that leaves voxels unknown is not flattered by it);
-- the **first-return judge** on the held-out frames (:mod:`gpumap.first_return`: per beam, the
-  measured nearest bright bin against the map's nearest occupied voxel in that beam's fan; no
-  intensity model): agreement, phantoms in front, surfaces missing;
-- the occupied voxels as frames accumulate, at the full rate (the curve must settle).
-
-The evidence rule's two read-time settings were chosen on frames 0-799 alone: frames 0-599
-mapped, 600-799 judged (``tuning``, every setting of a small grid), never on the held-out
-frames. The defaults, ``bright_share`` 0.2 and ``share_z`` 1.645, come from this table and
-``bench.long_run``'s (simulated objects must not erode over 1,000 pings). Writes
-``bench/results/rate_real.json`` and ``rate_real.png``. About 10 minutes on 2 cores.
+Frames 0-799 of the full run mapped (every 10th, 3rd, every frame), frames 800-1222 held out and judged
+by first returns. Writes ``bench/results/rate_real.json`` and ``rate_real.png``; ~10 min on 2 cores.
 """
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .common import bench_parser, oasis_full_dir, run_header, write_json, write_section
+from . import common
+from .common import Section, bench_parser, oasis_full_dir, progress_bar, run_header, write_json
 
 SCHEMA = "gpumap-rate-real/1"
 STRIDES = (10, 3, 1)
@@ -39,18 +24,15 @@ CHECKPOINTS = (25, 50, 100, 200, 400, 800)
 
 
 def _load(path: Path, progress: bool):
-    from tqdm import tqdm
-
     from gpumap.io import open_recording
 
     rec = open_recording(path)
     n = rec.count()
     frames = iter(rec)
     first = next(frames)
-    images = np.empty((n, *first.image.shape), np.float32)
-    poses = np.empty((n, 4, 4))
+    images, poses = np.empty((n, *first.image.shape), np.float32), np.empty((n, 4, 4))
     images[0], poses[0] = first.image, first.T_W_S
-    for i, f in enumerate(tqdm(frames, total=n - 1, desc="read", disable=not progress), start=1):
+    for i, f in enumerate(progress_bar(frames, total=n - 1, desc="read", disable=not progress), start=1):
         images[i], poses[i] = f.image, f.T_W_S
     return first.spec, images, poses
 
@@ -59,10 +41,7 @@ def _map(spec, grid, images, poses, frames, rule, backend, threshold, checkpoint
     import gpumap
 
     m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule=rule, threshold=threshold)
-    curve = []
-    idx = list(frames)
-    t0 = time.perf_counter()
-    done = 0
+    curve, idx, done, t0 = [], list(frames), 0, time.perf_counter()
     for cut in [*(c for c in checkpoints if c < len(idx)), len(idx)]:
         cut = min(cut, len(idx))
         for a in range(done, cut, 32):
@@ -84,21 +63,16 @@ def _judge(values, grid, threshold, images, poses, frames, spec):
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = bench_parser("rate_real", __doc__)
+    ap = bench_parser("rate_real", __doc__, out="bench/results", voxel=0.05, backend="auto", progress=True,
+                      report="rate_real.json")
     ap.add_argument("--data", type=Path, default=None,
                     help="the full run's recording folder (default: ../oasis_tank_full or shared/data)")
-    ap.add_argument("--voxel-size", type=float, default=0.05, help="metres (default 0.05)")
     ap.add_argument("--threshold", type=float, default=0.4, help="bright / occupied (default 0.4)")
-    ap.add_argument("--backend", default="auto", help="gpumap backend (default auto)")
     ap.add_argument("--judge-stride", type=int, default=1, help="judge every N-th held-out frame (default 1)")
     ap.add_argument("--no-tuning", action="store_true", help="skip the settings grid on frames 0-799")
-    ap.add_argument("--no-progress", action="store_true")
-    ap.add_argument("--out", type=Path, default=Path("bench/results"), help="results folder")
-    ap.add_argument("--report", type=Path, metavar="BENCHMARKS_MD",
-                    help="only write this benchmark's section of that file from --out/rate_real.json")
     a = ap.parse_args(argv)
-    if a.report is not None:
-        return write_section(a.report, a.out / "rate_real.json", sys.modules[__name__])
+    if SECTION.reported(a):
+        return 0
     data = a.data or oasis_full_dir()
     if data is None:
         raise SystemExit("bench.rate_real: the full tank run was not found; get it as shared/data/README.md "
@@ -112,46 +86,37 @@ def main(argv: list[str] | None = None) -> int:
     if len(images) < HELD[1]:
         raise SystemExit(f"bench.rate_real: expected the full run of {HELD[1]} frames, but {data} holds "
                          f"{len(images)}")
-    grid = auto_grid(spec, poses, a.voxel_size)
-    thr = a.threshold
-    held = range(HELD[0], HELD[1], a.judge_stride)
-    res = {**run_header(SCHEMA, argv), "data": str(data), "voxel_size_m": a.voxel_size, "threshold": thr,
+    grid, thr, held = auto_grid(spec, poses, a.voxel), a.threshold, range(HELD[0], HELD[1], a.judge_stride)
+    res = {**run_header(SCHEMA, argv), "data": str(data), "voxel_size_m": a.voxel, "threshold": thr,
            "grid": grid.to_dict(), "dev_frames": list(DEV), "held_out_frames": list(HELD),
            "judged_frames": len(held), "rules": {}}
-    backend = None
+    backend, values = None, []
     for rule in RULES:
-        maps = {}
+        res["rules"][rule] = {}
         for s in STRIDES:
-            m, secs, curve = _map(spec, grid, images, poses, range(DEV[0], DEV[1], s), rule, a.backend, thr,
+            frames = range(DEV[0], DEV[1], s)
+            m, secs, curve = _map(spec, grid, images, poses, frames, rule, a.backend, thr,
                                   CHECKPOINTS if s == 1 else ())
-            backend = m.backend
-            v = m.values()
+            backend, v = m.backend, m.values()
             score = _judge(v, grid, thr, images, poses, held, spec)
-            maps[s] = (v, {"frames": len(range(DEV[0], DEV[1], s)), "seconds": secs,
-                           "observed": int(np.isfinite(v).sum()), "occupied": int((v >= thr).sum()),
-                           "judge": score.to_dict(), **({"curve": curve} if curve else {})})
-            print(f"{rule:9s} every {s:2d}: occupied {maps[s][1]['occupied']:6d}, agreement "
-                  f"{score.agreement:.1%}, phantom {score.phantom_rate:.1%}, "
-                  f"missing {score.missing_rate:.1%}", flush=True)
-        res["rules"][rule] = {f"every_{s}": r for s, (_, r) in maps.items()}
-        res["rules"][rule]["_values"] = {s: v for s, (v, _) in maps.items()}
-    common = np.logical_and.reduce(
-        [np.isfinite(v) for r in res["rules"].values() for v in r["_values"].values()])
-    for r in res["rules"].values():
-        vals = r.pop("_values")
-        occ = [int((common & (v >= thr)).sum()) for v in vals.values()]
+            values.append((rule, s, v))
+            r = res["rules"][rule][f"every_{s}"] = {
+                "frames": len(frames), "seconds": secs, "observed": int(np.isfinite(v).sum()),
+                "occupied": int((v >= thr).sum()), "judge": score.to_dict(),
+                                                    **({"curve": curve} if curve else {})}
+            print(f"{rule:9s} every {s:2d}: occupied {r['occupied']:6d}, agreement {score.agreement:.1%}, "
+                  f"phantom {score.phantom_rate:.1%}, missing {score.missing_rate:.1%}", flush=True)
+    common = np.logical_and.reduce([np.isfinite(v) for _, _, v in values])
+    for rule, r in res["rules"].items():
+        occ = [int((common & (v >= thr)).sum()) for q, _, v in values if q == rule]
         r["occupied_common"] = dict(zip((f"every_{s}" for s in STRIDES), occ, strict=True))
         r["occupied_common_spread"] = max(occ) / max(1, min(occ)) - 1
-    res["common_observed"] = int(common.sum())
-    res["backend"] = backend
+    res["common_observed"], res["backend"] = int(common.sum()), backend
     if not a.no_tuning:
-        rows = []
-        tune = {}
-        for s in STRIDES:
-            frames = range(TUNE_MAP[0], TUNE_MAP[1], s)
-            m, _, _ = _map(spec, grid, images, poses, frames, "evidence", a.backend, thr)
-            tune[s] = m.evidence()
-        judge = range(TUNE_JUDGE[0], TUNE_JUDGE[1], 5)
+        tune = {s: _map(spec, grid, images, poses, range(*TUNE_MAP, s), "evidence", a.backend,
+                        thr)[0].evidence()
+                for s in STRIDES}
+        judge, rows = range(TUNE_JUDGE[0], TUNE_JUDGE[1], 5), []
         for p in SHARES:
             for z in ZS:
                 row = {"bright_share": p, "share_z": z}
@@ -162,8 +127,7 @@ def main(argv: list[str] | None = None) -> int:
                     row[f"every_{s}"] = {"occupied": int(occ.sum()), "agreement": sc.agreement,
                                          "phantom_rate": sc.phantom_rate, "missing_rate": sc.missing_rate}
                 rows.append(row)
-        res["tuning"] = {"mapped_frames": list(TUNE_MAP), "judged_frames": [TUNE_JUDGE[0], TUNE_JUDGE[1], 5],
-                         "rows": rows}
+        res["tuning"] = {"mapped_frames": list(TUNE_MAP), "judged_frames": [*TUNE_JUDGE, 5], "rows": rows}
     res["seconds_total"] = time.perf_counter() - t_start
     path = write_json(a.out / "rate_real.json", res, digits=4)
     _picture(res, a.out / "rate_real.png")
@@ -172,23 +136,10 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-BEGIN, END = "<!-- begin:rate-real -->", "<!-- end:rate-real -->"
-SECTION = "## The rules at the sonar's own rate: the full real tank run (issue #28)"
-
-
 def markdown(res: dict, folder: Path) -> str:
     """The BENCHMARKS.md section of a ``rate_real.json``."""
     m = res["machine"]
-    out = [SECTION, "",
-           f"`python -m bench rate_real` ({res['created']}, {m.get('cpu_model')} x{m.get('cpu_count')}, load "
-           f"{m.get('load_avg_start')} at the start, backend {res['backend']}): frames 0-799 of the full run "
-           f"mapped at 5 cm, threshold {res['threshold']:g}; {res['judged_frames']} held-out frames 800-1222 "
-           "judged by first returns (`gpumap.first_return`: per beam with a return, the map's nearest "
-           "occupied voxel in its fan within 2 voxels of the measured one = agrees, nearer = phantom in "
-           "front, farther or none = missing; unknown voxels count as missing). Occupied voxels also on "
-           f"the {res['common_observed']:,} voxels every map observes.", "",
-           "| rule | frames mapped | occupied | occupied (common region) | agrees | phantom in front | "
-           "missing |", "|---|---|---|---|---|---|---|"]
+    out = [common.template("rate-real", res=res, m=m, load=m.get("load_avg_start"))]
     for rule, r in res["rules"].items():
         for s in STRIDES:
             x = r[f"every_{s}"]
@@ -204,12 +155,8 @@ def markdown(res: dict, folder: Path) -> str:
             f"![held-out first returns]({folder.as_posix()}/rate_real.png)"]
     t = res.get("tuning")
     if t:
-        out += ["", f"How the evidence rule's settings were chosen, on frames 0-799 only: frames "
-                f"{t['mapped_frames'][0]}-{t['mapped_frames'][1] - 1} mapped, every 5th of frames "
-                f"{t['judged_frames'][0]}-{t['judged_frames'][1] - 1} judged. Agrees / phantom in front / "
-                "missing at every frame, and the occupied voxels at every 10th, 3rd and every frame:", "",
-                "| bright_share | share_z | agrees | phantom | missing | occupied 10th / 3rd / all |",
-                "|---|---|---|---|---|---|"]
+        out += ["", common.template("rate-real-tuning", t=t, last_mapped=t["mapped_frames"][1] - 1,
+                                    last_judged=t["judged_frames"][1] - 1)]
         for row in t["rows"]:
             f = row["every_1"]
             occ = " / ".join(f"{row[f'every_{s}']['occupied']:,}" for s in STRIDES)
@@ -218,41 +165,33 @@ def markdown(res: dict, folder: Path) -> str:
     return "\n".join(out)
 
 
+SECTION = Section("rate-real", "## The rules at the sonar's own rate: the full real tank run (issue #28)",
+                  "rate_real.json", markdown)
+
+
 def _picture(res: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 4.4), dpi=90)
+    fig, (ax0, ax1) = common.pyplot().subplots(1, 2, figsize=(12, 4.4), dpi=90)
     colours = {"plain": "#1f77b4", "visible": "#d62728", "evidence": "#2ca02c"}
     for rule, r in res["rules"].items():
         c = r["every_1"].get("curve", [])
         ax0.plot([p["frames"] for p in c], [p["occupied"] for p in c], "o-", color=colours.get(rule),
                  label=rule)
-    ax0.set_xscale("log")
-    ax0.set_xlabel("frames mapped (frames 0-799 at the sonar's rate)")
-    ax0.set_ylabel("occupied voxels")
-    ax0.set_title("occupied voxels as pings accumulate")
+    ax0.set(xscale="log", xlabel="frames mapped (frames 0-799 at the sonar's rate)", ylabel="occupied voxels",
+            title="occupied voxels as pings accumulate")
     ax0.legend()
     width = 0.27
     for k, rule in enumerate(res["rules"]):
-        r = res["rules"][rule]
-        x = np.arange(len(STRIDES)) + (k - 1) * width
+        r, x = res["rules"][rule], np.arange(len(STRIDES)) + (k - 1) * width
         agree = [r[f"every_{s}"]["judge"]["agreement"] for s in STRIDES]
         front = [r[f"every_{s}"]["judge"]["phantom_rate"] for s in STRIDES]
         ax1.bar(x, agree, width, color=colours.get(rule), label=f"{rule}: agree")
         ax1.bar(x, front, width, bottom=agree, color=colours.get(rule), alpha=0.35,
                 label=f"{rule}: phantom in front")
     ax1.set_xticks(np.arange(len(STRIDES)), [f"every {s}" if s > 1 else "every frame" for s in STRIDES])
-    ax1.set_ylabel("share of held-out beams with a return")
-    ax1.set_title("first returns of held-out frames 800-1222")
+    ax1.set(ylabel="share of held-out beams with a return", title="first returns of held-out frames 800-1222",
+            ylim=(0, 1.25))
     ax1.legend(fontsize=7, ncol=3, loc="upper center")
-    ax1.set_ylim(0, 1.25)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
+    common.save_figure(fig, path)
 
 
 if __name__ == "__main__":

@@ -1,11 +1,5 @@
 """``python -m bench.readme``: the README's figures, written from the results files.
 
-Every number the README quotes sits between ``<!-- begin:readme-NAME -->`` and
-``<!-- end:readme-NAME -->`` markers and is rendered here from a file under ``bench/results``
-that a benchmark wrote (each row names its file), so a figure cannot drift from its
-measurement: rerun the benchmark, then this (``--check`` only compares, exit 1 when the README
-is stale; ``tests/test_readme.py`` runs that check).
-
     python -m bench.readme            # rewrite the marked blocks of README.md
     python -m bench.readme --check    # exit 1 if a block differs from what the files give
 """
@@ -18,10 +12,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from . import common
 from .common import bench_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
+JUDGED = ("agreement", "phantom_rate", "missing_rate")
 
 
 def _load(name: str) -> dict[str, Any] | None:
@@ -38,49 +34,44 @@ def _pct(x: float) -> str:
 
 
 def _bench_rate(d: dict, backend: str, voxel_m: float) -> float | None:
-    for r in d["rows"]:
-        if (r.get("kind") == "gpumap" and r["backend"] == backend and r["method"] == "gather"
-                and r["shadow_m"] == 0 and abs(r["voxel_size_m"] - voxel_m) < 1e-9):
-            return r["images_per_s"]
-    return None
+    return next((r["images_per_s"] for r in d["rows"] if r.get("kind") == "gpumap" and r["backend"] == backend
+                 and r["method"] == "gather" and r["shadow_m"] == 0
+                 and abs(r["voxel_size_m"] - voxel_m) < 1e-9), None)
+
+
+def _rates(d: dict, *cells: tuple[str, float]) -> str:
+    return " / ".join(_n(_bench_rate(d, b, v)) for b, v in cells)
 
 
 def summary_rows() -> list[tuple[str, str, str]]:
     """(what, figure, results file) for the README's summary table."""
     rows: list[tuple[str, str, str]] = []
-    cpu = _load("cpu_amd-epyc_2c.json")
+    cpu, f = _load("cpu_amd-epyc_2c.json"), "cpu_amd-epyc_2c.json"
     if cpu:
-        a, b = _bench_rate(cpu, "opencl-cpu", 0.03), _bench_rate(cpu, "warp-cpu", 0.03)
-        c, d = _bench_rate(cpu, "opencl-cpu", 0.01), _bench_rate(cpu, "warp-cpu", 0.01)
         # the speed sweep ran before the visible rule existed: its rows are the plain rule's
         rows.append(("Simulated tank pings mapped per second, plain rule, 2-core CPU "
-                     "(opencl-cpu / warp-cpu), 3 cm",
-                     f"{_n(a)} / {_n(b)}", "cpu_amd-epyc_2c.json"))
-        rows.append(("... the same at 1 cm", f"{_n(c)} / {_n(d)}", "cpu_amd-epyc_2c.json"))
-    gpu = _load("gpu_nvidia-h100-80gb-hbm3.json")
+                     "(opencl-cpu / warp-cpu), 3 cm", _rates(cpu, ("opencl-cpu", 0.03), ("warp-cpu", 0.03)),
+                     f))
+        rows.append(("... the same at 1 cm", _rates(cpu, ("opencl-cpu", 0.01), ("warp-cpu", 0.01)), f))
+    gpu, f = _load("gpu_nvidia-h100-80gb-hbm3.json"), "gpu_nvidia-h100-80gb-hbm3.json"
     if gpu:
         rows.append(("... on an H100 (warp-cuda), 3 cm / 1 cm",
-                     f"{_n(_bench_rate(gpu, 'warp-cuda', 0.03))} / {_n(_bench_rate(gpu, 'warp-cuda', 0.01))}",
-                     "gpu_nvidia-h100-80gb-hbm3.json"))
-    sp = _load("speed_gpu_nvidia-h100-80gb-hbm3.json")
+                     _rates(gpu, ("warp-cuda", 0.03), ("warp-cuda", 0.01)), f))
+    sp, f = _load("speed_gpu_nvidia-h100-80gb-hbm3.json"), "speed_gpu_nvidia-h100-80gb-hbm3.json"
     if sp:
         r = next(r for r in sp["rows"] if r["backend"] == "warp-cuda" and r["voxel_m"] == 0.01
                  and r["rule"] == "visible")
         rows.append(("Real tank frames, H100 warp-cuda, 1 cm, default rule: p99 latency per frame",
-                     f"{r['latency']['p99_ms']:.2f} ms", "speed_gpu_nvidia-h100-80gb-hbm3.json"))
+                     f"{r['latency']['p99_ms']:.2f} ms", f))
     vis = _load("visibility.json")
-    if vis:
-        by = {r["rule"]: r for r in vis["rows"] if r["scene"] == "tank" and r["voxel_size_m"] == 0.03}
-        if {"visible", "plain"} <= set(by):
-            v, p = by["visible"], by["plain"]
-            rows.append(("Simulated tank, 3 cm: missed (visible rule / paper's plain rule)",
-                         f"{_pct(v['miss_rate'])} / {_pct(p['miss_rate'])}", "visibility.json"))
-            rows.append(("... missed of the small objects",
-                         f"{_pct(v['miss_rate_objects'])} / {_pct(p['miss_rate_objects'])}",
-                         "visibility.json"))
-            rows.append(("... phantom: water more than a voxel from a surface called occupied",
-                         f"{_pct(v['false_positive_rate_far'])} / {_pct(p['false_positive_rate_far'])}",
-                         "visibility.json"))
+    by = {r["rule"]: r for r in (vis or {"rows": []})["rows"]
+          if r["scene"] == "tank" and r["voxel_size_m"] == 0.03}
+    if {"visible", "plain"} <= set(by):
+        for what, key in (("Simulated tank, 3 cm: missed (visible rule / paper's plain rule)", "miss_rate"),
+                          ("... missed of the small objects", "miss_rate_objects"),
+                          ("... phantom: water more than a voxel from a surface called occupied",
+                           "false_positive_rate_far")):
+            rows.append((what, f"{_pct(by['visible'][key])} / {_pct(by['plain'][key])}", "visibility.json"))
     rr = _load("rules_real_tank.json")
     if rr:
         c = rr["rule_comparison"]["rules"]
@@ -90,49 +81,40 @@ def summary_rows() -> list[tuple[str, str, str]]:
                      "rules_real_tank.json"))
     rate = _load("rate_real.json")
     if rate:
-        ev = rate["rules"]["evidence"]
-        occ = ev["occupied_common"]
+        occ = rate["rules"]["evidence"]["occupied_common"]
         rows.append(("Real tank run at the sonar's rate, frames 0-799, 5 cm, default rule: occupied voxels "
                      "mapping every 10th / 3rd / every frame (same observed region)",
                      " / ".join(f"{occ[k]:,}" for k in ("every_10", "every_3", "every_1")), "rate_real.json"))
         for rule in ("evidence", "visible"):
             r = rate["rules"][rule]
-            j10, j1 = r["every_10"]["judge"], r["every_1"]["judge"]
             rows.append((f"... held-out frames 800-1222, first returns the {rule} map agrees with / "
                          "phantoms in front / misses: every 10th, every frame",
-                         ", ".join(f"{_pct(j['agreement'])} / {_pct(j['phantom_rate'])} / "
-                                   f"{_pct(j['missing_rate'])}" for j in (j10, j1)),
+                         ", ".join(" / ".join(_pct(j[k]) for k in JUDGED)
+                                   for j in (r["every_10"]["judge"], r["every_1"]["judge"])),
                          "rate_real.json"))
     lr = _load("long_run.json")
     if lr:
-        cells = []
-        for name, sc in lr["scenes"].items():
-            for rule in ("evidence", "visible"):
-                c = sc["curves"].get(rule)
-                if c:
-                    cells.append(f"{name} {rule} {_pct(c[0]['miss_rate_objects'])} / "
-                                 f"{_pct(c[-1]['miss_rate_objects'])}")
+        cells = [f"{name} {rule} {_pct(sc['curves'][rule][0]['miss_rate_objects'])} / "
+                 f"{_pct(sc['curves'][rule][-1]['miss_rate_objects'])}"
+                 for name, sc in lr["scenes"].items() for rule in ("evidence",
+                                                                   "visible") if sc["curves"].get(rule)]
         first, last = lr["checkpoints"][0], lr["checkpoints"][-1]
         rows.append((f"Simulated tank and circle, {last} pings with the real sonar's variation, 3 cm: "
-                     f"objects missed after {first} / {last} pings",
-                     ", ".join(cells), "long_run.json"))
+                     f"objects missed after {first} / {last} pings", ", ".join(cells), "long_run.json"))
     ekf = _load("ekf_real.json")
     if ekf:
         def worst(variant: str, key: str) -> float:
             return max(v[key] for k, v in ekf["summary"].items() if k.split("|")[0] == variant)
 
-        g = (worst("guarded", "ratio_position_max"), worst("guarded", "ratio_heading_max"))
-        p = (worst("plain", "ratio_position_max"), worst("plain", "ratio_heading_max"))
+        g, p = ((worst(v, "ratio_position_max"), worst(v, "ratio_heading_max")) for v in ("guarded", "plain"))
         rows.append(("Real tank run at the sonar's rate, EKF pose error over odometry's, worst of 5 seeds, "
                      "2 drifts, dev / held-out / whole run: guarded (default) position / heading, "
                      "unguarded position / heading",
                      f"{g[0]:.3f} / {g[1]:.3f}, {p[0]:.2f} / {p[1]:.2f}", "ekf_real.json"))
-    peers = sorted(RESULTS.glob("peer_ratio_*.json"))
-    valid = [json.loads(p.read_text()) | {"_file": p.name} for p in peers]
+    valid = [json.loads(p.read_text()) | {"_file": p.name} for p in sorted(RESULTS.glob("peer_ratio_*.json"))]
     valid = [d for d in valid if d.get("valid")]
     if valid:
-        d = valid[-1]
-        st = d["setup"]
+        d, st = valid[-1], valid[-1]["setup"]
         rows.append((f"Speed against the public OASIS code, same real frames, {st['voxel_m'] * 100:.1f} cm, "
                      f"idle machine ({st['backend']}, {st['rule']} rule)",
                      f"{d['ratio_median']:.0f}x ({d['ratio_min']:.0f}-{d['ratio_max']:.0f}x over "
@@ -144,9 +126,8 @@ def summary_rows() -> list[tuple[str, str, str]]:
 
 
 def summary_block() -> str:
-    lines = ["| what | figure | results file (bench/results/) |", "|---|---|---|"]
-    lines += [f"| {w} | {f} | `{s}` |" for w, f, s in summary_rows()]
-    return "\n".join(lines)
+    return "\n".join(["| what | figure | results file (bench/results/) |", "|---|---|---|",
+                      *(f"| {w} | {f} | `{s}` |" for w, f, s in summary_rows())])
 
 
 def rules_real_block() -> str:
@@ -154,26 +135,14 @@ def rules_real_block() -> str:
     if d is None:
         return "(run `python -m bench.rules_real` to measure this)"
     c = d["rule_comparison"]
-    w = c["where"]
-    rule = c["rule"]
-    vo = w["fraction_vs_floor_0.25m"]["rule_only"]
-    rng = w["range_from_sonar_m"]
+    rule, w = c["rule"], c["where"]
+    vo, rng = w["fraction_vs_floor_0.25m"]["rule_only"], w["range_from_sonar_m"]
     vis, pl = c["rules"][rule], c["rules"]["plain"]
     others = ", ".join(f"the {r} rule {x['occupied_voxels']:,}" for r, x in c["rules"].items()
                        if r not in ("plain", rule))
-    same = "exactly the same" if c["observed_equal"] else "not the same"
-    return (
-        f"The maps observe {same} {vis['observed_voxels']:,} voxels; the plain rule calls "
-        f"{pl['occupied_voxels']:,} occupied, the {rule} rule {vis['occupied_voxels']:,} ({others}), and "
-        f"{c['plain_only']:,} voxels are occupied under the plain rule but free under the {rule} one "
-        f"(by construction its value is never below the plain one). The {c['rule_only']:,} voxels "
-        f"only the {rule} rule keeps lie further from the sonar (median {rng['rule_only'][1]:.2f} m "
-        f"against {rng['both'][1]:.2f} m) and low: {100 * vo['at']:.0f} % at the tank floor, which the plain "
-        f"rule erases wherever one grazing view was dark, {100 * vo['below']:.0f} % below it (shadow that no "
-        f"view saw clearly) and {100 * vo['above']:.0f} % above it (the elevation stretch that only a clear "
-        f"view can carve). Threshold {c['threshold']:g}; from `bench/results/rules_real_tank.json` "
-        f"(`python -m bench.rules_real`)."
-    )
+    return common.template("readme-rules-real", same="exactly the same" if c["observed_equal"] else
+                           "not the same", vis=vis, pl=pl, rule=rule, others=others, c=c, rng=rng,
+                           **{k: 100 * vo[k] for k in ("at", "below", "above")})
 
 
 BLOCKS = {"readme-summary": summary_block, "readme-rules-real": rules_real_block}
@@ -196,13 +165,10 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     old = a.readme.read_text()
     new = render(old)
-    if a.check:
-        if new != old:
-            print(f"{a.readme}: figures differ from bench/results (run python -m bench.readme)",
-                  file=sys.stderr)
-            return 1
-        return 0
-    if new != old:
+    if a.check and new != old:
+        print(f"{a.readme}: figures differ from bench/results (run python -m bench.readme)", file=sys.stderr)
+        return 1
+    if new != old and not a.check:
         a.readme.write_text(new)
         print(f"updated {a.readme}")
     return 0

@@ -1,17 +1,4 @@
-"""The ROS 2 node's rates over Fast DDS: ``python -m bench.ros_bench`` -> ``bench/results/ros.json``.
-
-For each voxel size, ``gpumap ros`` and ``gpumap ros-play`` run as two processes (as a user
-runs them, defaults everywhere except the grid, which ``ros-play --write-params`` sizes for
-the recording) on the real OASIS tank (123 pings, 32FC1 398 x 512). Each play rate gets a fresh
-node; a listener in this process records the node's ``/diagnostics`` and, for every ping, when
-the first cloud holding it arrived (``sonar/pose`` carries the ping's stamp: the wall clock when
-``ros-play`` sent it), so latency = cloud received - ping sent, across both processes and the
-middleware. A rate is *sustained* when every ping was mapped: none dropped, skipped or lost.
-
-The recording has no times; ``ros-play`` plays it at its default 10 Hz for the latency
-figures ("the recorded rate"), then faster. On a shared machine every rate here is loaded:
-``load_avg`` is recorded with each run.
-"""
+"""The ROS 2 node's rates over Fast DDS: ``python -m bench.ros_bench`` -> ``bench/results/ros.json``."""
 
 from __future__ import annotations
 
@@ -29,8 +16,6 @@ import numpy as np
 
 from .common import bench_parser, load_average, machine_info, oasis_tank_dir, write_json
 
-OUT = Path(__file__).resolve().parent / "results" / "ros.json"
-
 
 class Listener:
     """Reads one node's diagnostics, clouds (receipt time, stamp) and ping stamps (from sonar/pose)."""
@@ -45,9 +30,7 @@ class Listener:
 
         from gpumap.ros.convert import stamp_ns
 
-        self._stamp = stamp_ns
-        self.ns = ns
-        self.ctx = rclpy.Context()
+        self._stamp, self.ns, self.ctx = stamp_ns, ns, rclpy.Context()
         rclpy.init(context=self.ctx, domain_id=domain)
         self.node = rclpy.create_node("bench_listener", namespace=ns, context=self.ctx)
         self.ex = SingleThreadedExecutor(context=self.ctx)
@@ -87,12 +70,8 @@ class Listener:
             return np.array([])
         rec = np.array(self.clouds, dtype=np.int64)
         rec = rec[np.argsort(rec[:, 0], kind="stable")]
-        out = []
-        for t in self.pings:
-            hit = np.flatnonzero(rec[:, 1] >= t)
-            if hit.size:
-                out.append((rec[hit[0], 0] - t) * 1e-6)
-        return np.array(out)
+        hits = [np.flatnonzero(rec[:, 1] >= t) for t in self.pings]
+        return np.array([(rec[h[0], 0] - t) * 1e-6 for h, t in zip(hits, self.pings, strict=True) if h.size])
 
     def close(self) -> None:
         import rclpy
@@ -108,10 +87,10 @@ def run_once(tank: Path, params: Path, hz: float, domain: int, n_pings: int, tmp
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONUNBUFFERED="1")
     base = [sys.executable, "-m", "gpumap.commands"]
-    ros = ["--ros-args", "-r", f"__ns:={ns}", "-p", "diagnostics_period_s:=0.25"]
     nlog = open(tmp / "node.log", "w")  # noqa: SIM115
-    node = subprocess.Popen([*base, "ros", "--params-file", str(params), *ros], stdout=nlog,
-                            stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    node = subprocess.Popen([*base, "ros", "--params-file", str(params), "--ros-args", "-r", f"__ns:={ns}",
+                             "-p", "diagnostics_period_s:=0.25"], stdout=nlog, stderr=subprocess.STDOUT,
+                            env=env, start_new_session=True)
     lis = Listener(ns, domain)
     try:
         if not lis.spin(90, lambda: lis.diag is not None):
@@ -122,32 +101,25 @@ def run_once(tank: Path, params: Path, hz: float, domain: int, n_pings: int, tmp
                                 stderr=subprocess.STDOUT, env=env, text=True, start_new_session=True)
         while play.poll() is None:
             lis.spin(0.1)
-        played = play.stdout.read()
-        m = re.search(r"published (\d+) pings in ([\d.]+) s", played)
+        m = re.search(r"published (\d+) pings in ([\d.]+) s", play.stdout.read())
+
+        def lost(d: dict, prefixes: tuple) -> dict:
+            return {k: int(v) for k, v in d.items() if k.startswith(prefixes)}
+
         lis.spin(30, lambda: lis.count("queue") == 0 and lis.count("pings_integrated")
-                 + sum(int(v) for k, v in (lis.diag or {}).items() if k.startswith(("dropped", "skipped")))
-                 >= lis.count("pings_received"))
+                 + sum(lost(lis.diag or {}, ("dropped", "skipped")).values()) >= lis.count("pings_received"))
         lis.spin(1.0)
-        d = dict(lis.diag or {})
-        lat = lis.latencies_ms()
-        lost = {k: int(v) for k, v in d.items() if k.startswith(("dropped.", "skipped.", "rejected."))}
-        integrated = int(d.get("pings_integrated", 0))
-        return {
-            "requested_hz": hz,
-            "published": int(m.group(1)) if m else None,
-            "play_seconds": float(m.group(2)) if m else None,
-            "achieved_hz": round(int(m.group(1)) / float(m.group(2)), 1) if m else None,
-            "integrated": integrated,
-            "lost": lost,
-            "sustained": integrated == n_pings and not lost,
-            "latency_ms_p50": round(float(np.percentile(lat, 50)), 1) if lat.size else None,
-            "latency_ms_p99": round(float(np.percentile(lat, 99)), 1) if lat.size else None,
-            "latency_pings": int(lat.size),
-            "node_latency_ms_p50": float(d.get("latency_p50_ms", "nan")),
-            "node_latency_ms_p99": float(d.get("latency_p99_ms", "nan")),
-            "backend": d.get("backend"),
-            "load_avg": [*load0, *(load_average() or [])],
-        }
+        d, lat = dict(lis.diag or {}), lis.latencies_ms()
+        gone, integrated = lost(d, ("dropped.", "skipped.", "rejected.")), int(d.get("pings_integrated", 0))
+        pct = {q: round(float(np.percentile(lat, q)), 1) if lat.size else None for q in (50, 99)}
+        return {"requested_hz": hz, "published": int(m.group(1)) if m else None,
+                "play_seconds": float(m.group(2)) if m else None,
+                "achieved_hz": round(int(m.group(1)) / float(m.group(2)), 1) if m else None,
+                "integrated": integrated, "lost": gone, "sustained": integrated == n_pings and not gone,
+                "latency_ms_p50": pct[50], "latency_ms_p99": pct[99], "latency_pings": int(lat.size),
+                "node_latency_ms_p50": float(d.get("latency_p50_ms", "nan")),
+                "node_latency_ms_p99": float(d.get("latency_p99_ms", "nan")), "backend": d.get("backend"),
+                "load_avg": [*load0, *(load_average() or [])]}
     finally:
         lis.close()
         if node.poll() is None:
@@ -160,12 +132,10 @@ def run_once(tank: Path, params: Path, hz: float, domain: int, n_pings: int, tmp
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = bench_parser("ros_bench", __doc__)
-    ap.add_argument("--voxel-sizes", type=float, nargs="+", default=[0.05, 0.03], help="voxel edges, metres")
+    ap = bench_parser("ros_bench", __doc__, out="bench/results/ros.json", backend="auto",
+                      voxel=[0.05, 0.03])
     ap.add_argument("--rates", type=float, nargs="+", default=[10, 20, 40, 80, 160, 320],
                     help="play rates to try, pings per second (10: the latency figures)")
-    ap.add_argument("--backend", default="auto", help="the node's backend (default auto)")
-    ap.add_argument("--out", type=Path, default=OUT, help="results file (JSON)")
     ap.add_argument("--note", default="", help="a remark stored with the results")
     a = ap.parse_args(argv)
     tank = oasis_tank_dir()
@@ -176,26 +146,20 @@ def main(argv: list[str] | None = None) -> int:
 
     use_gpumap_fastdds_profile()
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    domain = 101 - os.getpid() % 50
-    play = open_playable(tank)
-    n = play.count
-    info = machine_info()
+    domain, play, info = 101 - os.getpid() % 50, open_playable(tank), machine_info()
     res: dict = {"what": "gpumap ros + gpumap ros-play over Fast DDS on loopback, real OASIS tank (123 "
-                         "pings, 32FC1 398 x 512), one fresh node per run; latency = first cloud holding "
-                         "the ping received by a third process - ping sent by ros-play",
+                         "pings, 32FC1 398 x 512), one fresh node per run; latency = first cloud holding the "
+                         "ping received by a third process - ping sent by ros-play",
                  "cpu": info["cpu_model"], "n_cpus": info["cpu_count"], "machine": info, "note": a.note,
-                 "loaded": "shared machine: other engineers' jobs ran beside it (load_avg per run: 1, 5, "
-                           "15 min before the play, then after)",
-                 "runs": {}}
+                 "loaded": "shared machine: other engineers' jobs ran beside it (load_avg per run: 1, 5, 15 "
+                           "min before the play, then after)", "runs": {}}
     with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
-        for vs in a.voxel_sizes:
-            params = write_params(tmp / f"tank_{vs}.yaml", play, voxel_size_m=vs, threshold=0.4,
+        for vs in a.voxel:
+            params = write_params(Path(tmp) / f"tank_{vs}.yaml", play, voxel_size_m=vs, threshold=0.4,
                                   backend=a.backend, world_frame="map", pose_type="pose_stamped")
-            rows = []
-            fails = 0
+            rows, fails = [], 0
             for hz in a.rates:
-                r = run_once(tank, params, hz, domain, n, tmp)
+                r = run_once(tank, params, hz, domain, play.count, Path(tmp))
                 print(json.dumps({"voxel_size_m": vs, **r}), flush=True)
                 rows.append(r)
                 fails = 0 if r["sustained"] else fails + 1
@@ -203,11 +167,9 @@ def main(argv: list[str] | None = None) -> int:
                     break
             ok = [r["achieved_hz"] for r in rows if r["sustained"]]
             rec = next((r for r in rows if r["requested_hz"] == 10), None)
-            res["runs"][f"{vs}"] = {
-                "rows": rows,
-                "max_sustained_achieved_hz": max(ok) if ok else None,
-                "latency_at_10hz_ms": None if rec is None else [rec["latency_ms_p50"], rec["latency_ms_p99"]],
-            }
+            lat = None if rec is None else [rec["latency_ms_p50"], rec["latency_ms_p99"]]
+            res["runs"][f"{vs}"] = {"rows": rows, "max_sustained_achieved_hz": max(ok) if ok else None,
+                                    "latency_at_10hz_ms": lat}
     write_json(a.out, res)
     print(f"wrote {a.out}")
     return 0

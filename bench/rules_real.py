@@ -1,10 +1,7 @@
 """``python -m bench.rules_real``: both mapping rules on the real OASIS tank, into a results file.
 
-Runs ``gpumap replay shared/data/oasis_tank --voxel-size 0.05 --compare-rules`` (the README's
-command; the threshold is the replay's default for the recording) and keeps its
-``rule_comparison`` (occupied voxels per rule, those only the visible rule keeps, where they
-lie) with the machine in ``bench/results/rules_real_tank.json``. The README's paragraph on
-the two rules is generated from that file (``python -m bench.readme``). Takes ~10 s.
+``gpumap replay shared/data/oasis_tank --voxel-size 0.05 --compare-rules``, kept with the machine in
+``bench/results/rules_real_tank.json`` (the README's paragraph on the rules comes from it). ~10 s.
 """
 
 from __future__ import annotations
@@ -15,33 +12,27 @@ from pathlib import Path
 
 from .common import bench_parser, oasis_tank_dir, run_header, write_json
 
-SCHEMA = "gpumap-rules-real/1"
-
 
 def main(argv: list[str] | None = None) -> int:
-    ap = bench_parser("rules_real", __doc__)
+    ap = bench_parser("rules_real", __doc__, out="bench/results", voxel=0.05, backend="auto")
     ap.add_argument("--data", type=Path, default=None, help="the oasis_tank folder (default: shared/data)")
-    ap.add_argument("--voxel-size", type=float, default=0.05, help="metres (default 0.05, as in the README)")
-    ap.add_argument("--backend", default="auto", help="gpumap backend (default auto)")
-    ap.add_argument("--out", type=Path, default=Path("bench/results"), help="results folder")
     a = ap.parse_args(argv)
     data = a.data or oasis_tank_dir()
     if data is None:
         raise SystemExit("bench.rules_real: shared/data/oasis_tank not found; pass --data")
     from gpumap.commands.replay import main as replay
 
-    cmd = [str(data), "--voxel-size", str(a.voxel_size), "--compare-rules", "--backend", a.backend,
+    cmd = [str(data), "--voxel-size", str(a.voxel), "--compare-rules", "--backend", a.backend,
            "--no-progress", "--no-pictures"]
     with tempfile.TemporaryDirectory() as tmp:
         rc = replay([*cmd, "--out", tmp])
         if rc:
             return rc
         summary = json.loads((Path(tmp) / "summary.json").read_text())
-    res = {**run_header(SCHEMA, argv),
+    res = {**run_header("gpumap-rules-real/1", argv),
            "command": "gpumap replay " + " ".join(["shared/data/oasis_tank", *cmd[1:]]),
-           "voxel_size_m": a.voxel_size, "rule_comparison": summary["rule_comparison"]}
-    path = write_json(a.out / "rules_real_tank.json", res, digits=4)
-    print(f"wrote {path}")
+           "voxel_size_m": a.voxel, "rule_comparison": summary["rule_comparison"]}
+    print(f"wrote {write_json(a.out / 'rules_real_tank.json', res, digits=4)}")
     return 0
 
 

@@ -1,17 +1,6 @@
 """Sparse vs dense maps: memory and images per second on the tank and survey pings.
 
     python -m bench.sparse [--backends warp-cpu,opencl-cpu] [--section cpu] [--out bench/results/sparse.json]
-
-Pings: the tank's (``bench/results/tmp/tank_pings.npz``, :mod:`bench.tank`; 40 pings, uint8)
-and the survey scene's (``--survey-pings``, rendered once by ``--render-survey`` from
-``gpumap.sim.scenes.survey_scene``: 200 pings of a lawnmower over 50 x 20 m, uint8). Each row
-maps a fresh map from every ping of a set in a back-to-back stream (images uint8, one
-``synchronize`` at the end; ``--passes`` streams, the best reported; a warm-up pass first,
-not timed) and reports images per second, the map's memory (dense: the grid's value and
-evidence arrays; sparse: :meth:`SparseMinMaxMapper.memory_stats`) and whether the sparse
-map's values equal the dense map's bit for bit (where the dense grid is small enough to run).
-The sparse map is bounded by the scene's grid (as ``gpumap demo --sparse`` maps it) unless
-the row says ``unbounded``. Results are merged into ``--out`` under ``--section``.
 """
 
 from __future__ import annotations
@@ -26,38 +15,17 @@ import numpy as np
 import gpumap
 from gpumap.sparse import SparseMinMaxMapper, SparseSpec
 
-from .common import (
-    bench_parser,
-    load_ping_arrays,
-    machine_info,
-    merge_json,
-    quantize,
-    render_pings,
-    stream_rate,
-)
+from . import common
+from .common import TMP, bench_parser, load_ping_arrays, merge_json, render_survey, stream_rate
 
-TMP = Path("bench/results/tmp")
-
-
-def render_survey(path: Path, voxel_size_m: float = 0.05) -> Path:
-    """Render the survey scene's pings (uint8, as bench.tank quantizes) to ``path``."""
-    from gpumap.sim.scenes import make_scene
-
-    scene = make_scene("survey", voxel_size_m=voxel_size_m)
-    imgs = [quantize(p.image) for p in render_pings(scene)]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(
-        path,
-        images=np.array(imgs),
-        poses=np.asarray(scene.T_W_S),
-        meta=np.array(json.dumps({"scene": "survey", "seed": 0})),
-    )
-    return path
+MEMORY_KEYS = ("blocks", "observed_voxels", "block_bytes", "observed_bytes", "block_over_observed",
+               "pool_bytes",
+               "index_bytes", "total_bytes", "dense_bytes")
 
 
 def _stream(m, images, poses, passes: int, batch: int = 1) -> float:
-    """Best images/s over ``passes`` fresh-map streams of every ping; a warm-up stream first.
-    ``batch`` > 1: ``integrate_batch`` of that many pings at a time."""
+    """Best images/s over ``passes`` fresh-map streams of every ping, after a warm-up stream; ``batch`` >
+    1: ``integrate_batch`` of that many pings at a time."""
     rates = []
     for _ in range(passes + 1):
         m.reset()
@@ -67,97 +35,58 @@ def _stream(m, images, poses, passes: int, batch: int = 1) -> float:
 
 
 def _row(scene: str, kind: str, backend: str, voxel: float, ips: float, n: int, extra: dict) -> dict:
-    r = {
-        "scene": scene,
-        "map": kind,
-        "backend": backend,
-        "voxel_size_m": voxel,
-        "pings": n,
-        "images_per_s": round(ips, 1),
-    }
-    r.update(extra)
+    r = {"scene": scene, "map": kind, "backend": backend, "voxel_size_m": voxel, "pings": n,
+         "images_per_s": round(ips, 1), **extra}
     print(json.dumps(r), flush=True)
     return r
 
 
-def run_scene(
-    name: str,
-    grid: gpumap.GridSpec,
-    spec: gpumap.SonarSpec,
-    images,
-    poses,
-    backends,
-    passes: int,
-    dense: bool,
-    unbounded: bool,
-    batches: tuple[int, ...] = (1,),
-) -> list[dict]:
-    rows = []
-    v = grid.voxel_size_m
-    bounded = SparseSpec(v, (grid.min_corner_m, grid.max_corner_m))
+def run_scene(name: str, grid: gpumap.GridSpec, spec: gpumap.SonarSpec, images, poses, backends, passes: int,
+              dense: bool, unbounded: bool, batches: tuple[int, ...] = (1,)) -> list[dict]:
+    rows, v, grid_bytes = [], grid.voxel_size_m, grid.n_voxels * 9
+    maps = [("sparse", SparseSpec(v, (grid.min_corner_m, grid.max_corner_m)))]
+    maps += [("sparse-unbounded", SparseSpec(v, origin_m=grid.min_corner_m))] if unbounded else []
     for be in backends:
         ref = None
         if dense:
             d = gpumap.MinMaxMapper(spec, grid, backend=be)
             by_b = {b: round(_stream(d, images, poses, passes, b), 1) for b in batches if b > 1}
-            ips = _stream(d, images, poses, passes)
-            ref = d.raw_values()
-            rows.append(
-                _row(
-                    name,
-                    "dense",
-                    be,
-                    v,
-                    ips,
-                    len(images),
-                    {
-                        "grid_shape": list(grid.shape),
-                        "dense_bytes": grid.n_voxels * 9,
-                        "observed_voxels": int(np.isfinite(ref).sum()),
-                        "device": d.device,
-                        "images_per_s_batch": by_b,
-                    },
-                )
-            )
+            ips, ref = _stream(d, images, poses, passes), d.raw_values()
+            rows.append(_row(name, "dense", be, v, ips, len(images), {
+                "grid_shape": list(grid.shape), "dense_bytes": grid_bytes,
+                "observed_voxels": int(np.isfinite(ref).sum()), "device": d.device,
+                "images_per_s_batch": by_b}))
             del d
-        for label, sp in (
-            ("sparse", bounded),
-            ("sparse-unbounded", SparseSpec(v, origin_m=grid.min_corner_m)),
-        ):
-            if label == "sparse-unbounded" and not unbounded:
-                continue
+        for label, sp in maps:
             m = SparseMinMaxMapper(spec, sp, backend=be)
             by_b = {b: round(_stream(m, images, poses, passes, b), 1) for b in batches if b > 1}
-            ips = _stream(m, images, poses, passes)
-            st = m.memory_stats()
-            extra = {
-                k: st[k]
-                for k in (
-                    "blocks",
-                    "observed_voxels",
-                    "block_bytes",
-                    "observed_bytes",
-                    "block_over_observed",
-                    "pool_bytes",
-                    "index_bytes",
-                    "total_bytes",
-                    "dense_bytes",
-                )
-            }
-            extra["dense_grid_bytes"] = grid.n_voxels * 9
-            extra["total_over_dense_grid"] = round(st["total_bytes"] / (grid.n_voxels * 9), 4)
-            extra["device"] = m.device
-            extra["images_per_s_batch"] = by_b
+            ips, st = _stream(m, images, poses, passes), m.memory_stats()
+            extra = {k: st[k] for k in MEMORY_KEYS} | {
+                "dense_grid_bytes": grid_bytes,
+                "total_over_dense_grid": round(st["total_bytes"] / grid_bytes, 4), "device": m.device,
+                "images_per_s_batch": by_b}
             if ref is not None and label == "sparse":
                 extra["identical_to_dense"] = bool(np.array_equal(m.raw_values(), ref))
             rows.append(_row(name, label, be, v, ips, len(images), extra))
             del m
-        ref = None
     return rows
 
 
+def _scene_of(name: str, v: float, path: Path) -> tuple[gpumap.GridSpec, gpumap.SonarSpec]:
+    """The scene's grid and sonar: from the ping file when it carries them (machines without trimesh),
+    else from the scene."""
+    with np.load(path, allow_pickle=False) as z:
+        if "grid_min" in z.files:
+            return (gpumap.GridSpec(tuple(z["grid_min"]), tuple(z["grid_max"]), v),
+                    gpumap.SonarSpec.from_dict(json.loads(str(z["spec"]))))
+    from gpumap.sim.scenes import make_scene
+
+    sc = make_scene(name, voxel_size_m=v)
+    return sc.grid, sc.sonar_spec
+
+
 def main(argv: list[str] | None = None) -> int:
-    p = bench_parser("sparse", __doc__)
+    p = bench_parser("sparse", __doc__, out="bench/results/sparse.json")
     p.add_argument("--backends", default="warp-cpu,opencl-cpu", help="comma-separated backends")
     p.add_argument("--tank-pings", type=Path, default=TMP / "tank_pings.npz", help="tank pings (.npz)")
     p.add_argument("--survey-pings", type=Path, default=TMP / "survey_pings.npz", help="survey pings (.npz)")
@@ -167,65 +96,35 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--passes", type=int, default=2, help="timed streams per row, the best kept (default 2)")
     p.add_argument("--batch", default="1", help="also time integrate_batch of these sizes (e.g. 1,8)")
     p.add_argument("--section", default="cpu", help="name of this run's section in --out")
-    p.add_argument("--out", type=Path, default=Path("bench/results/sparse.json"),
-                   help="results file (merged)")
-    args = p.parse_args(argv)
-    backends = [b for b in args.backends.split(",") if b]
-    batches = tuple(int(b) for b in args.batch.split(",") if b)
-    rows = []
-    t0 = time.time()
-
-    def scene_of(name: str, v: float, path: Path) -> tuple[gpumap.GridSpec, gpumap.SonarSpec]:
-        """The scene's grid and sonar: from the ping file when it carries them (machines without
-        trimesh), else from the scene."""
-        with np.load(path, allow_pickle=False) as z:
-            if "grid_min" in z.files:
-                spec = gpumap.SonarSpec.from_dict(json.loads(str(z["spec"])))
-                return gpumap.GridSpec(tuple(z["grid_min"]), tuple(z["grid_max"]), v), spec
-        from gpumap.sim.scenes import make_scene
-
-        sc = make_scene(name, voxel_size_m=v)
-        return sc.grid, sc.sonar_spec
-
-    if args.tank_pings.is_file() and args.tank_voxels:
-        images, poses = load_ping_arrays(args.tank_pings)
-        for v in (float(x) for x in args.tank_voxels.split(",") if x):
-            grid, spec = scene_of("tank", v, args.tank_pings)
-            rows += run_scene("tank", grid, spec, images, poses, backends, args.passes, True, False, batches)
-    if args.render_survey:
-        render_survey(args.survey_pings)
-    if args.survey_pings.is_file():
-        images, poses = load_ping_arrays(args.survey_pings)
-        for v in (float(x) for x in args.survey_voxels.split(",") if x):
-            grid, spec = scene_of("survey", v, args.survey_pings)
+    a = p.parse_args(argv)
+    backends = [b for b in a.backends.split(",") if b]
+    batches = tuple(int(b) for b in a.batch.split(",") if b)
+    rows, t0 = [], time.time()
+    if a.tank_pings.is_file() and a.tank_voxels:
+        images, poses = load_ping_arrays(a.tank_pings)
+        for v in (float(x) for x in a.tank_voxels.split(",") if x):
+            grid, spec = _scene_of("tank", v, a.tank_pings)
+            rows += run_scene("tank", grid, spec, images, poses, backends, a.passes, True, False, batches)
+    if a.render_survey:
+        render_survey(a.survey_pings)
+    if a.survey_pings.is_file():
+        images, poses = load_ping_arrays(a.survey_pings)
+        for v in (float(x) for x in a.survey_voxels.split(",") if x):
+            grid, spec = _scene_of("survey", v, a.survey_pings)
             dense = grid.n_voxels * 9 < 1.5e9
-            rows += run_scene(
-                "survey",
-                grid,
-                spec,
-                images,
-                poses,
-                backends,
-                args.passes if dense else 1,
-                dense,
-                v >= 0.05,
-                batches,
-            )
-    note = (
-        "images_per_s: integrate() per ping, images_per_s_batch: integrate_batch() of B pings at a time; "
-        "best of --passes back-to-back streams over every ping of the set into a fresh map "
-        "(uint8 images, one synchronize at the end, warm-up pass untimed); bytes: dense = grid voxels x 9 "
-        "(float32 min_all + float32 bright + uint8 count, the visible rule); sparse: memory_stats() after "
-        "the stream (block_bytes = blocks x 512 voxels x 9; total = pool incl. spare slots + coarse index)"
-    )
-    merge_json(args.out, [args.section], {
-        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        "machine": machine_info(),
-        "argv": argv if argv is not None else sys.argv[1:],
-        "duration_s": round(time.time() - t0, 1),
-        "rows": rows,
-    }, schema="gpumap-bench-sparse/1", note=note)
-    print(f"wrote {args.out}")
+            rows += run_scene("survey", grid, spec, images, poses, backends, a.passes if dense else 1, dense,
+                              v >= 0.05, batches)
+    note = ("images_per_s: integrate() per ping, images_per_s_batch: integrate_batch() of B pings at a "
+            "time; best of --passes back-to-back streams over every ping of the set into a fresh map (uint8 "
+            "images, one synchronize at the end, warm-up pass untimed); bytes: dense = grid voxels x 9 "
+            "(float32 min_all + float32 bright + uint8 count, the visible rule); sparse: memory_stats() "
+            "after the stream (block_bytes = blocks x 512 voxels x 9; total = pool incl. spare slots + "
+            "coarse index)")
+    merge_json(a.out, [a.section], {"created": common.now(), "machine": common.machine_info(),
+                                    "argv": argv if argv is not None else sys.argv[1:],
+                                    "duration_s": round(time.time() - t0, 1), "rows": rows},
+               schema="gpumap-bench-sparse/1", note=note)
+    print(f"wrote {a.out}")
     return 0
 
 

@@ -1,21 +1,7 @@
 """``python -m bench.visibility``: the visible rule against the paper's plain min-max (issue #10).
 
-Each scene's pings are simulated once (they do not depend on the voxel size) and quantized
-to uint8, as the Oculus delivers. For every voxel size the scene's ground truth and the
-seen / detectable masks (:func:`gpumap.sim.metrics.ground_truth_masks`) are built on that
-grid, then every rule maps all pings with the true poses: integrate() + synchronize() per
-ping is timed (after a warm-up, map reset) and the map is scored at the mapper's threshold
-(:func:`gpumap.sim.metrics.evaluate`). The FN-vs-FP curve re-reads the same map at other
-thresholds (the mapper's own stays 0.1), plotted at 3 cm to ``docs/visibility_fn_fp_<scene>.png``.
-Writes a JSON (machine, git state, rows, curves) and prints a markdown table.
-
     python -m bench.visibility                                   # tank and circle, 5 to 1 cm
-    python -m bench.visibility --scenes circle --voxel-sizes 0.03 --backend numpy
     python -m bench.visibility --carve-sweep 1 2 3 4 --voxel-sizes 0.03 0.02   # quality only
-
-``--carve-sweep`` maps each scene once with the visible rule and re-reads the map at each
-``carve_views`` (a read-time setting: no re-integration), scoring FN, FP and carving against
-the plain rule; it writes ``bench/results/visibility_carve.json`` and no speed figures.
 """
 
 from __future__ import annotations
@@ -26,21 +12,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 import gpumap
 
-from .common import (
-    CpuShare,
-    bench_parser,
-    mark_load,
-    quantize,
-    render_pings,
-    run_header,
-    synced_ms,
-    warm_up,
-    write_json,
-)
+from . import common
+from .common import CpuShare, bench_parser, progress_bar, simulate, synced_ms, warm_up, write_json
 
 RULES = ("plain", "visible")
 THRESHOLD = 0.1
@@ -49,84 +25,62 @@ PLOT_VOXEL_M = 0.03
 WARMUP = 2  # pings integrated, synchronized and discarded (map reset) before timing
 SCORE_KEYS = ("false_negative_rate_detectable", "false_negative_rate_objects_detectable", "miss_rate",
               "miss_rate_objects", "observed_surface_fraction", "false_positive_rate_far",
-              "free_carved_fraction", "pipe_found", "height_error_m")
+              "free_carved_fraction",
+              "pipe_found", "height_error_m")
 # (header, row key, format): the printed table
-COLUMNS = (
-    ("scene", "scene", "s"),
-    ("voxel", "voxel_cm", "cm"),
-    ("rule", "rule", "s"),
-    ("ms/img (median)", "ms_median", ".1f"),
-    ("images/s", "images_per_s", ".0f"),
-    ("FN det", "false_negative_rate_detectable", "%"),
-    ("FN obj det", "false_negative_rate_objects_detectable", "%"),
-    ("miss", "miss_rate", "%"),
-    ("miss obj", "miss_rate_objects", "%"),
-    ("obs surface", "observed_surface_fraction", "%"),
-    ("FP far", "false_positive_rate_far", "%"),
-    ("water carved", "free_carved_fraction", "%"),
-    ("carved vs plain", "carved_vs_plain", ".2f"),
-    ("pipe", "pipe_found", "s"),
-    ("worst height err (vox)", "height_error_worst_vox", "+.1f"),
-)
+COLUMNS = (("scene", "scene", "s"), ("voxel", "voxel_cm", "cm"), ("rule", "rule", "s"),
+           ("ms/img (median)", "ms_median", ".1f"), ("images/s", "images_per_s", ".0f"),
+           ("FN det", "false_negative_rate_detectable", "%"),
+           ("FN obj det", "false_negative_rate_objects_detectable", "%"),
+           ("miss", "miss_rate", "%"), ("miss obj", "miss_rate_objects", "%"),
+           ("obs surface", "observed_surface_fraction", "%"), ("FP far", "false_positive_rate_far", "%"),
+           ("water carved", "free_carved_fraction", "%"), ("carved vs plain", "carved_vs_plain", ".2f"),
+           ("pipe", "pipe_found", "s"), ("worst height err (vox)", "height_error_worst_vox", "+.1f"))
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = bench_parser("visibility", __doc__)
+    p = bench_parser("visibility", __doc__, out="bench/results/visibility.json", backend="opencl",
+                     voxel=[0.05, 0.03, 0.02, 0.01], seed=0, progress=True)
     p.add_argument("--scenes", nargs="+", default=["tank", "circle"], help="scenes (default tank circle)")
-    p.add_argument("--voxel-sizes", type=float, nargs="+", default=[0.05, 0.03, 0.02, 0.01],
-                   help="voxel edges, metres")
-    p.add_argument("--backend", default="opencl", help="gpumap backend (default opencl: PoCL on a CPU)")
-    p.add_argument("--seed", type=int, default=0, help="scene and simulator seed (default 0)")
-    p.add_argument("--out", type=Path, default=Path("bench/results/visibility.json"), help="results file")
     p.add_argument("--fig-dir", type=Path, default=Path("docs"), help="where the FN-FP plots go")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--carve-sweep", type=int, nargs="+", metavar="K",
                    help="quality only: score the visible map at each carve_views K (1..255)")
     return p
 
 
-def simulate(name: str, seed: int, progress: bool) -> tuple[list, np.ndarray, np.ndarray, float]:
-    """Every ping of scene ``name``'s trajectory: (pings, uint8 images, poses, simulator images/s)."""
-    from gpumap.sim.scenes import make_scene
-
-    scene = make_scene(name, seed=seed)
-    t0 = time.perf_counter()
-    pings = render_pings(scene, seed=seed, scene_sonar=False, progress=progress, desc=f"simulate {name}")
-    rate = len(pings) / (time.perf_counter() - t0)
-    images = np.stack([quantize(p.image) for p in pings])
-    return pings, images, scene.T_W_S.copy(), rate
-
-
-def map_pings(spec, grid, images: np.ndarray, poses: np.ndarray, backend: str, rule: str) -> tuple:
-    """Map every ping with ``rule``; returns (values, speed dict, backend name, device)."""
-    m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule=rule, threshold=THRESHOLD)
-    warm_up(m, images, poses, WARMUP)
-    a = np.asarray(synced_ms(m, images, poses))
-    speed = {"ms_median": np.median(a), "ms_p95": np.percentile(a, 95),
-             "images_per_s": 1e3 * a.size / a.sum()}
-    return m.values(), speed, m.backend, m.device
-
-
-def carve_sweep(args: argparse.Namespace) -> list[dict]:
-    """Rows of the ``--carve-sweep`` run: the plain rule, then the visible rule at each K."""
+def _scene(name: str, v: float, seed: int, pings: list):
+    """The scene at voxel edge ``v``, its truth, and the seen / detectable masks of ``pings``."""
     from gpumap.sim.metrics import ground_truth_masks
     from gpumap.sim.scenes import make_scene
     from gpumap.sim.truth import occupancy
 
+    scene = make_scene(name, voxel_size_m=v, seed=seed)
+    return scene, occupancy(scene, seed=seed), *ground_truth_masks(pings, scene.grid, THRESHOLD)
+
+
+def score(values: np.ndarray, truth, seen: np.ndarray, det: np.ndarray, voxel_m: float) -> dict[str, Any]:
+    """The scores of :data:`SCORE_KEYS` at :data:`THRESHOLD`, plus the worst height error in voxels."""
+    from gpumap.sim.metrics import evaluate
+
+    ev = evaluate(values, truth, THRESHOLD, seen, voxel_m, detectable=det).to_dict()
+    he = {k: x for k, x in ev["height_error_m"].items() if x is not None and np.isfinite(x)}
+    worst = max(he.values(), key=abs) if he else float("nan")  # signed: + is the elevation stretch
+    return {k: ev[k] for k in SCORE_KEYS} | {"height_error_worst_vox": worst / voxel_m}
+
+
+def carve_sweep(args: argparse.Namespace) -> list[dict]:
+    """Rows of the ``--carve-sweep`` run: the plain rule, then the visible rule at each K."""
     rows = []
     for name in args.scenes:
         pings, images, poses, _ = simulate(name, args.seed, not args.no_progress)
-        for v in args.voxel_sizes:
-            scene = make_scene(name, voxel_size_m=v, seed=args.seed)
-            truth = occupancy(scene, seed=args.seed)
-            seen, det = ground_truth_masks(pings, scene.grid, THRESHOLD)
+        for v in args.voxel:
+            scene, truth, seen, det = _scene(name, v, args.seed, pings)
             maps = {}
             for rule in RULES:
-                m = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=args.backend, rule=rule,
-                                        threshold=THRESHOLD)
+                m = maps[rule] = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=args.backend,
+                                                     rule=rule, threshold=THRESHOLD)
                 for img, T in zip(images, poses, strict=True):
                     m.integrate(img, T)
-                maps[rule] = m
             plain = score(maps["plain"].values(), truth, seen, det, v)
             rows.append({"scene": name, "voxel_cm": v * 100, "rule": "plain", "carve_views": None, **plain,
                          "carved_vs_plain": 1.0})
@@ -138,45 +92,32 @@ def carve_sweep(args: argparse.Namespace) -> list[dict]:
     return rows
 
 
-def score(values: np.ndarray, truth, seen: np.ndarray, det: np.ndarray, voxel_m: float) -> dict[str, Any]:
-    """The scores of :data:`SCORE_KEYS` at :data:`THRESHOLD`, plus the worst height error in voxels."""
-    from gpumap.sim.metrics import evaluate
-
-    ev = evaluate(values, truth, THRESHOLD, seen, voxel_m, detectable=det).to_dict()
-    out = {k: ev[k] for k in SCORE_KEYS}
-    he = {k: x for k, x in ev["height_error_m"].items() if x is not None and np.isfinite(x)}
-    worst = max(he.values(), key=abs) if he else float("nan")  # signed: + is the elevation stretch
-    out["height_error_worst_vox"] = worst / voxel_m
-    return out
-
-
-def run_scene(name: str, args: argparse.Namespace, bar: tqdm) -> tuple[list[dict], dict, dict]:
+def run_scene(name: str, args: argparse.Namespace, bar) -> tuple[list[dict], dict, dict]:
     """Rows, FN-FP curves (by voxel size, then rule) and simulation facts of one scene."""
-    from gpumap.sim.metrics import fn_fp_curve, ground_truth_masks
-    from gpumap.sim.scenes import make_scene
-    from gpumap.sim.truth import occupancy
+    from gpumap.sim.metrics import fn_fp_curve
 
     pings, images, poses, sim_rate = simulate(name, args.seed, not args.no_progress)
     rows, curves = [], {}
-    for v in args.voxel_sizes:
+    for v in args.voxel:
         t0 = time.perf_counter()
-        scene = make_scene(name, voxel_size_m=v, seed=args.seed)
+        scene, truth, seen, det = _scene(name, v, args.seed, pings)
         if not np.allclose(scene.T_W_S, poses):
             raise RuntimeError(f"Expected {name}'s poses not to depend on the voxel size, but {v} m differs")
-        truth = occupancy(scene, seed=args.seed)
-        seen, det = ground_truth_masks(pings, scene.grid, THRESHOLD)
-        truth_s = time.perf_counter() - t0
-        by_rule = {}
+        truth_s, by_rule = time.perf_counter() - t0, {}
         for rule in RULES:
             bar.set_postfix_str(f"{name} {v * 100:g} cm {rule}")
-            values, speed, backend, device = map_pings(scene.sonar_spec, scene.grid, images, poses,
-                                                        args.backend, rule)
-            row = {"scene": name, "voxel_size_m": v, "voxel_cm": v * 100, "rule": rule, "backend": backend,
-                   "device": device, "grid_shape": list(scene.grid.shape), "pings": len(images),
-                   "truth_s": truth_s, **speed, **score(values, truth, seen, det, v)}
-            c = fn_fp_curve(values, truth, CURVE_THRESHOLDS, seen, det)
-            by_rule[rule] = {k: x.tolist() for k, x in c.items()}
-            rows.append(row)
+            m = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=args.backend, rule=rule,
+                                    threshold=THRESHOLD)
+            warm_up(m, images, poses, WARMUP)
+            a = np.asarray(synced_ms(m, images, poses))
+            values = m.values()
+            rows.append({"scene": name, "voxel_size_m": v, "voxel_cm": v * 100, "rule": rule,
+                         "backend": m.backend,
+                         "device": m.device, "grid_shape": list(scene.grid.shape), "pings": len(images),
+                         "truth_s": truth_s, "ms_median": np.median(a), "ms_p95": np.percentile(a, 95),
+                         "images_per_s": 1e3 * a.size / a.sum(), **score(values, truth, seen, det, v)})
+            curve = fn_fp_curve(values, truth, CURVE_THRESHOLDS, seen, det)
+            by_rule[rule] = {k: x.tolist() for k, x in curve.items()}
             bar.update()
         plain = next(r for r in rows if r["voxel_size_m"] == v and r["rule"] == "plain")
         for r in rows[-len(RULES):]:
@@ -188,12 +129,7 @@ def run_scene(name: str, args: argparse.Namespace, bar: tqdm) -> tuple[list[dict
 
 def plot_curves(name: str, by_rule: dict, path: Path) -> None:
     """Two panels (FN detectable and miss rate against FP far), one curve per rule; dot = 0.1."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(8, 3.4), dpi=80)
+    fig, axes = common.pyplot().subplots(1, 2, figsize=(8, 3.4), dpi=80)
     i = int(np.argmin(np.abs(CURVE_THRESHOLDS - THRESHOLD)))
     for ax, key, label in zip(axes, ("false_negative_rate_detectable", "miss_rate"),
                               ("FN (detectable)", "miss rate (unknown = missed)"), strict=True):
@@ -207,17 +143,12 @@ def plot_curves(name: str, by_rule: dict, path: Path) -> None:
     axes[0].legend(title=f"rule (dot: threshold {CURVE_THRESHOLDS[i]:.2f})", fontsize=8)
     fig.suptitle(f"{name}, {PLOT_VOXEL_M * 100:g} cm: thresholds {CURVE_THRESHOLDS[0]:g} to "
                  f"{CURVE_THRESHOLDS[-1]:g}", fontsize=10)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    common.save_figure(fig, path, dpi=80)
 
 
 def _cell(x: Any, fmt: str) -> str:
-    if x is None or (isinstance(x, float) and not np.isfinite(x)):
-        return "–"
-    if isinstance(x, bool):
-        return "yes" if x else "no"
+    if x is None or isinstance(x, bool) or (isinstance(x, float) and not np.isfinite(x)):
+        return common.fnum(x)
     if fmt in ("%", "cm"):
         return f"{100 * x:.1f} %" if fmt == "%" else f"{x:g} cm"
     return str(x) if fmt == "s" else format(x, fmt)
@@ -225,16 +156,14 @@ def _cell(x: Any, fmt: str) -> str:
 
 def markdown_table(rows: list[dict], columns: tuple | list = COLUMNS) -> str:
     """The rows as a markdown table (default :data:`COLUMNS`)."""
-    head = "| " + " | ".join(h for h, _, _ in columns) + " |"
-    rule = "|" + "|".join("---" if f == "s" else "---:" for _, _, f in columns) + "|"
-    body = ["| " + " | ".join(_cell(r.get(k), f) for _, k, f in columns) + " |" for r in rows]
-    return "\n".join([head, rule, *body])
+    return "\n".join(["| " + " | ".join(h for h, _, _ in columns) + " |",
+                      "|" + "|".join("---" if f == "s" else "---:" for _, _, f in columns) + "|",
+                      *("| " + " | ".join(_cell(r.get(k), f) for _, k, f in columns) + " |" for r in rows)])
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m bench.visibility``."""
-    args = _parser().parse_args(argv)
-    t_start = time.perf_counter()
+    args, t_start = _parser().parse_args(argv), time.perf_counter()
     if args.carve_sweep:
         if min(args.carve_sweep) < 1 or max(args.carve_sweep) > 255:
             raise SystemExit(f"--carve-sweep: expected values in 1..255, got {args.carve_sweep}")
@@ -242,43 +171,36 @@ def main(argv: list[str] | None = None) -> int:
         out = args.out
         if out == _parser().get_default("out"):
             out = out.with_name("visibility_carve.json")
-        write_json(out, {
-            **run_header("gpumap-visibility-carve/1", argv),
-            "run": {"seed": args.seed, "threshold": THRESHOLD, "backend": args.backend,
-                    "poses": "true (simulator)", "duration_s": time.perf_counter() - t_start},
-            "rows": rows}, indent=None, digits=4)
-        cols = [("scene", "scene", "s"), ("voxel", "voxel_cm", "cm"), ("rule", "rule", "s"),
-                ("carve_views", "carve_views", "s"), *[c for c in COLUMNS if c[1] in SCORE_KEYS + (
-                    "carved_vs_plain", "height_error_worst_vox")]]
-        print(markdown_table(rows, cols))
+        write_json(out, {**common.run_header("gpumap-visibility-carve/1", argv),
+                         "run": {"seed": args.seed, "threshold": THRESHOLD, "backend": args.backend,
+                                 "poses": "true (simulator)", "duration_s": time.perf_counter() - t_start},
+                         "rows": rows}, indent=None, digits=4)
+        keep = SCORE_KEYS + ("carved_vs_plain", "height_error_worst_vox")
+        print(markdown_table(rows, [*COLUMNS[:3], ("carve_views", "carve_views", "s"),
+                                    *(c for c in COLUMNS if c[1] in keep)]))
         print(f"\nwrote {out}")
         return 0
-    head = run_header("gpumap-visibility/1", argv)  # not "gpumap-bench/": bench.report skips this file
-    info = head["machine"]
+    head = common.run_header("gpumap-visibility/1", argv)  # not "gpumap-bench/": the report's sweep skips it
     rows, curves, sims = [], {}, {}
-    bar = tqdm(total=len(args.scenes) * len(args.voxel_sizes) * len(RULES), desc="visibility", unit="map",
-               disable=args.no_progress)
+    bar = progress_bar(total=len(args.scenes) * len(args.voxel) * len(RULES), desc="visibility", unit="map",
+                       disable=args.no_progress)
     with CpuShare() as share:
         for name in args.scenes:
             r, curves[name], sims[name] = run_scene(name, args, bar)
             rows += r
-            by_rule = curves[name].get(str(PLOT_VOXEL_M))
-            if by_rule is not None:
-                plot_curves(name, by_rule, args.fig_dir / f"visibility_fn_fp_{name}.png")
+            if str(PLOT_VOXEL_M) in curves[name]:
+                plot_curves(name, curves[name][str(PLOT_VOXEL_M)],
+                            args.fig_dir / f"visibility_fn_fp_{name}.png")
     bar.close()
-    mark_load(info, share)
-    result = {
-        **head,
-        "run": {"scenes": sims, "seed": args.seed, "threshold": THRESHOLD, "backend": args.backend,
-                "rules": list(RULES), "warmup_pings": WARMUP, "poses": "true (simulator)",
-                "image_dtype": "uint8 (intensity * 255, rounded; as the Oculus delivers)",
-                "timing_note": "each ping integrate()+synchronize(), image upload included; images_per_s = "
-                "pings / summed synced time",
-                "curve_thresholds": CURVE_THRESHOLDS.tolist(),
-                "duration_s": time.perf_counter() - t_start},
-        "rows": rows,
-        "fn_fp_curves": curves,
-    }
+    common.mark_load(head["machine"], share)
+    result = {**head, "run": {
+        "scenes": sims, "seed": args.seed, "threshold": THRESHOLD, "backend": args.backend,
+                              "rules": list(RULES),
+        "warmup_pings": WARMUP, "poses": "true (simulator)",
+        "image_dtype": "uint8 (intensity * 255, rounded; as the Oculus delivers)",
+        "timing_note": "each ping integrate()+synchronize(), image upload included; images_per_s = "
+        "pings / summed synced time", "curve_thresholds": CURVE_THRESHOLDS.tolist(),
+        "duration_s": time.perf_counter() - t_start}, "rows": rows, "fn_fp_curves": curves}
     write_json(args.out, result, indent=None, digits=4)
     print(markdown_table(rows))
     print(f"\nwrote {args.out} in {result['run']['duration_s']:.0f} s")

@@ -453,8 +453,8 @@ def test_info_names_backends_as_mappers_do_and_no_cuda_warning_on_a_cpu_machine(
     assert "CUDA driver" not in r.stderr + r.stdout, r.stderr
 
 
-BENCH_SCRIPTS = ("ekf_bench", "frontend", "mapper_speed", "peer_ratio", "readme", "refine", "report",
-                 "ros_bench", "rules_real", "sim_bench", "sparse", "speed", "viewer_cost", "visibility",
+BENCH_SCRIPTS = ("ekf_bench", "frontend", "ab", "peer_ratio", "readme", "refine", "report",
+                 "ros_bench", "rules_real", "sparse", "speed", "viewer_cost", "visibility",
                  "workers", "variation", "long_run")
 
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from gpumap.bench import peer_ratio
+from gpumap.bench import common, peer_ratio
 
 
 def test_ratio_per_repeat_median_and_spread():
@@ -14,10 +14,10 @@ def test_ratio_per_repeat_median_and_spread():
 
 
 def test_idle_check_reads_the_load_average(monkeypatch):
-    monkeypatch.setattr(peer_ratio, "load_average", lambda: [1.6, 1.5, 1.4])
+    monkeypatch.setattr(common, "load_average", lambda: [1.6, 1.5, 1.4])
     busy = peer_ratio.idle_check(max_load=0.3, max_others=100.0, sample_s=0.01)
     assert busy["load_avg"] == [1.6, 1.5, 1.4] and not busy["idle"]
-    monkeypatch.setattr(peer_ratio, "load_average", lambda: [0.1, 0.1, 0.1])
+    monkeypatch.setattr(common, "load_average", lambda: [0.1, 0.1, 0.1])
     assert peer_ratio.idle_check(max_load=0.3, max_others=100.0, sample_s=0.01)["idle"]
 
 

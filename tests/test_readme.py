@@ -20,6 +20,15 @@ def test_readme_blocks_are_what_the_results_files_give():
         assert re.search(r"\d", block), f"block {name} holds no figure"
 
 
+def test_benchmarks_md_is_what_the_results_files_give(monkeypatch):
+    """Every generated part of BENCHMARKS.md (the sweep, the real-frame speed, each benchmark's block)
+    comes from bench/results: rendering it anew, without plots, gives the committed file byte for byte."""
+    from gpumap.bench import report
+
+    monkeypatch.chdir(ROOT)  # the blocks link their plots by the results folder's path from here
+    assert report.main(["--check"]) == 0, "BENCHMARKS.md is stale: run python -m bench.report"
+
+
 def test_readme_quotes_no_peer_ratio_without_a_valid_idle_run():
     """The 95x / 46x of two loaded runs are not a headline; only a valid bench.peer_ratio run is."""
     text = (ROOT / "README.md").read_text()
