@@ -27,8 +27,10 @@ same, without FMA contraction). Occlusion is not modelled: a voxel behind a not-
 the candidate's beams counts as a voxel in the open.
 
 :func:`candidate_poses` proposes poses around a pose within given offsets (a wrist's joint
-limits), and :func:`plan_views` runs the greedy loop: score the candidates, take the best, have
-the caller take and integrate its ping, repeat.
+limits); :func:`next_best_views` scores candidates around anchor poses against a map and ranks
+them (what ``gpumap plan`` writes and the ROS node's ``~/plan_views`` publishes), and
+:func:`plan_views` runs the greedy loop: score the candidates, take the best, have the caller take
+and integrate its ping, repeat.
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ __all__ = [
     "ViewGainPoints",
     "candidate_poses",
     "gain_points",
+    "next_best_views",
     "plan_views",
     "view_gain_reference",
 ]
@@ -367,3 +370,56 @@ def plan_views(
         mapper.integrate(image, Ts[k])
         out.append({"T_W_S": Ts[k], "gain": float(g[k]), "candidate": k})
     return out
+
+
+def next_best_views(
+    mapper,
+    anchors: np.ndarray,
+    *,
+    views: int = 5,
+    candidates: int = 2000,
+    roll_rad: tuple[float, float] = (-math.radians(45), math.radians(45)),
+    pitch_rad: tuple[float, float] = (-math.radians(15), math.radians(15)),
+    yaw_rad: tuple[float, float] = (-math.radians(20), math.radians(20)),
+    offset_m: tuple[float, float] = (-0.1, 0.1),
+    unknown_weight: float = 0.0,
+    seed: int = 0,
+) -> tuple[list[dict], int]:
+    """The ``views`` best of ``candidates`` poses drawn around ``anchors``, by view gain.
+
+    Parameters
+    ----------
+    mapper : gpumap.MinMaxMapper
+        A map with its confidence layer (``confidence=True``); it is read, never changed.
+    anchors : (A, 4, 4) or (4, 4) float
+        ``T_W_S`` poses the vehicle can hold; ``ceil(candidates / A)`` candidates are drawn
+        around each (:func:`candidate_poses`, seed ``seed * 1009 + a`` for anchor ``a``, within
+        the wrist's limits ``roll_rad``, ``pitch_rad``, ``yaw_rad`` (radians) and ``offset_m``
+        (metres, each axis)), the first ``candidates`` of them scored.
+    unknown_weight : float
+        Weight of an unknown voxel against an unconfirmed one (:meth:`~gpumap.MinMaxMapper.view_gain`).
+
+    Returns
+    -------
+    views : list of dict
+        Best first (ties: the earlier candidate): ``T_W_S`` ((4, 4) float64), ``gain``,
+        ``candidate`` (its index) and ``anchor`` (the index of the anchor it was drawn around).
+    n_candidates : int
+        The candidates scored.
+    """
+    A = np.asarray(anchors, dtype=np.float64)
+    A = A[None] if A.shape == (4, 4) else A
+    if A.ndim != 3 or A.shape[1:] != (4, 4) or len(A) == 0:
+        raise ValueError(f"Expected anchors of shape (A, 4, 4) with A >= 1, or (4, 4), but got {A.shape}")
+    for name, v in (("views", views), ("candidates", candidates)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ValueError(f"Expected a positive integer {name}, but got {v!r}")
+    per = -(-int(candidates) // len(A))
+    C = np.concatenate([candidate_poses(T, per, seed=seed * 1009 + i, roll_rad=roll_rad, pitch_rad=pitch_rad,
+                                        yaw_rad=yaw_rad, offset_m=offset_m)
+                        for i, T in enumerate(A)])[: int(candidates)]
+    anchor_of = np.repeat(np.arange(len(A)), per)[: len(C)]
+    g = mapper.view_gain(C, unknown_weight=unknown_weight)
+    best = np.argsort(-g, kind="stable")[: int(views)]
+    return [{"T_W_S": C[k], "gain": float(g[k]), "candidate": int(k), "anchor": int(anchor_of[k])}
+            for k in best], len(C)

@@ -14,6 +14,7 @@ from gpumap.nbv import (
     _fov,
     candidate_poses,
     gain_points,
+    next_best_views,
     poses_to_rows,
     view_gain_reference,
 )
@@ -189,6 +190,43 @@ def test_view_gain_matches_reference_on_every_backend(backend):
     settle, unknown = view_gain_reference(poses_to_rows(Ts), pts, _fov(m.integrator.params))
     assert (settle > 0).any() and (unknown > 0).any()
     np.testing.assert_array_equal(g, settle + 0.5 * unknown)
+
+
+def _noisy_map() -> gpumap.MinMaxMapper:
+    rng = np.random.default_rng(5)
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", confidence=True)
+    for _ in range(6):
+        img = np.where(rng.random(SPEC.image_shape) < 0.003, 0.8, 0.02).astype(np.float32)
+        m.integrate(img, _look_at_target(rng.uniform(-1.5, 1.5)))
+    return m
+
+
+def test_next_best_views_are_the_best_candidates_around_each_anchor():
+    """Brute force: the same candidates drawn around each anchor by candidate_poses, scored by
+    view_gain, ranked (stable): the views are the top of that ranking, with their anchors."""
+    m = _noisy_map()
+    anchors = np.stack([_look_at_target(0.0), _look_at_target(0.7)])
+    lim = dict(roll_rad=(-0.6, 0.6), pitch_rad=(-0.2, 0.2), yaw_rad=(-0.3, 0.3), offset_m=(-0.05, 0.05))
+    before = m.raw_values()
+    views, n = next_best_views(m, anchors, views=4, candidates=301, unknown_weight=0.5, seed=3, **lim)
+    per = 151  # ceil(301 / 2): the last anchor's draw is cut to fill 301
+    C = np.concatenate([candidate_poses(T, per, seed=3 * 1009 + a, **lim)
+                        for a, T in enumerate(anchors)])[:301]
+    g = m.view_gain(C, unknown_weight=0.5)
+    want = sorted(range(len(C)), key=lambda k: (-g[k], k))[:4]
+    assert n == 301 and [v["candidate"] for v in views] == want
+    assert [v["gain"] for v in views] == [float(g[k]) for k in want] and views[0]["gain"] > 0
+    assert [v["anchor"] for v in views] == [int(k >= per) for k in want]
+    for v in views:
+        np.testing.assert_array_equal(v["T_W_S"], C[v["candidate"]])
+    np.testing.assert_array_equal(m.raw_values(), before)  # the map is only read
+    one, _ = next_best_views(m, anchors[0], views=2, candidates=10, **lim)  # a single (4, 4) anchor
+    assert len(one) == 2 and {v["anchor"] for v in one} == {0}
+    for bad in (np.eye(3), np.zeros((0, 4, 4))):
+        with pytest.raises(ValueError, match="anchors"):
+            next_best_views(m, bad)
+    with pytest.raises(ValueError, match="positive integer views"):
+        next_best_views(m, anchors, views=0)
 
 
 def test_pair_steps_cover_each_neighbour_pair_once():

@@ -799,3 +799,90 @@ def test_marker_blocks_carry_the_confidence_layer():
     for c, r, f in zip(mk.colors, ref.colors, flags, strict=True):
         rgb, rgb0 = np.array([c.r, c.g, c.b]), np.array([r.r, r.g, r.b])
         np.testing.assert_allclose(rgb, rgb0 if f else (1 - PALE_MIX) * rgb0 + PALE_MIX, rtol=1e-6)
+
+
+def test_live_mapper_plans_around_the_newest_ping_mapped():
+    """next_best_views of the live map: refused before a ping and without the confidence layer;
+    then nbv.next_best_views around the pose of the newest ping by stamp (pings mapped out of
+    their arrival order are never newer than it)."""
+    from gpumap.nbv import next_best_views
+
+    imgs, Ts = _small_pings(5)
+    m = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy", confidence=True)
+    live = LiveMapper(m, queue_size=8, max_batch=2)
+    with pytest.raises(ValueError, match="no ping has been mapped"):
+        live.next_best_views(views=2, candidates=20)
+    for k in range(5):
+        live.add_pose(k, Ts[k])
+        live.add_ping(k, imgs[k])
+    live.start()
+    live.stop(drain=True)
+    assert live.integrated == 5
+    np.testing.assert_array_equal(live.newest_pose, Ts[4])
+    got, n = live.next_best_views(views=3, candidates=40, seed=2)
+    want, _ = next_best_views(m, Ts[4], views=3, candidates=40, seed=2)
+    assert n == 40 and [v["candidate"] for v in got] == [v["candidate"] for v in want]
+    plain = LiveMapper(gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy"))
+    plain.newest_pose = Ts[0]
+    with pytest.raises(ValueError, match="confidence"):
+        plain.next_best_views(views=1, candidates=5)
+
+
+def test_plan_parameters_become_the_planners_limits_or_say_what_is_wrong():
+    from gpumap.ros.node import PARAMETERS, plan_options
+
+    p = {k: v for k, (v, _) in PARAMETERS.items()}
+    kw = plan_options(p)
+    assert kw["views"] == p["plan_views"] and kw["candidates"] == p["plan_candidates"]
+    assert kw["roll_rad"] == (-math.radians(45.0), math.radians(45.0))
+    assert kw["pitch_rad"] == (-math.radians(15.0), math.radians(15.0))
+    assert kw["yaw_rad"] == (-math.radians(20.0), math.radians(20.0)) and kw["offset_m"] == (-0.1, 0.1)
+    for name, bad in (("plan_views", 0), ("plan_candidates", 2.5), ("plan_max_tilt_deg", 95.0),
+                      ("plan_max_roll_deg", -1.0), ("plan_radius_m", -0.1),
+                      ("plan_unknown_weight", math.inf)):
+        with pytest.raises(ValueError, match=name):
+            plan_options({**p, name: bad})
+
+
+@needs_ros
+def test_plan_views_service_publishes_the_best_views_as_a_pose_array():
+    """In process: a node with the confidence layer maps pings, ~/plan_views publishes the views
+    nbv.next_best_views ranks (poses round-trip through the message); without the layer it says
+    how to turn it on."""
+    import rclpy
+    from std_srvs.srv import Trigger
+
+    from gpumap.nbv import next_best_views
+    from gpumap.ros.convert import transform_from_pose
+    from gpumap.ros.node import make_node
+
+    imgs, Ts = _small_pings(4)
+    for confidence in ("true", "false"):
+        ctx = rclpy.Context()
+        rclpy.init(context=ctx, domain_id=DOMAIN, args=[
+            "x", "--ros-args", "-p", "backend:=numpy", "-p", f"confidence:={confidence}",
+            "-p", "plan_views:=3", "-p", "plan_candidates:=60", "-p", "plan_unknown_weight:=1.0",
+            "-p", "range_max_m:=1.0",
+            "-p", "n_bins:=50", "-p", "n_beams:=32", "-p", "hfov_deg:=60.0",
+            "-r", f"__ns:=/plan{os.getpid()}{confidence}"])
+        try:
+            node = make_node(context=ctx)
+            node.live.stop(drain=False)  # mapped here, in this thread
+            node.mapper.integrate_batch(np.stack([np.zeros(node.spec.image_shape, np.float32)] * 4), Ts)
+            node.live.newest_pose = Ts[3]
+            sent = []
+            node.pub_views.publish = sent.append
+            r = node._on_plan(Trigger.Request(), Trigger.Response())
+            if confidence == "false":
+                assert not r.success and "confidence:=true" in r.message and not sent
+            else:
+                want, _ = next_best_views(node.mapper, Ts[3], **node.plan_kw)
+                assert r.success and len(sent) == 1 and len(sent[0].poses) == 3, r.message
+                assert want[0]["gain"] > want[-1]["gain"] > 0  # unknown voxels count: gains differ
+                assert sent[0].header.frame_id == "map"
+                for p, v in zip(sent[0].poses, want, strict=True):
+                    np.testing.assert_allclose(transform_from_pose(p.position, p.orientation), v["T_W_S"],
+                                               atol=1e-9)
+            node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=ctx)

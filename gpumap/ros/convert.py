@@ -23,6 +23,7 @@ __all__ = [
     "cloud_points",
     "image_from_msg",
     "image_msg",
+    "pose_array_msg",
     "occupancy_grid_msg",
     "occupied_cloud",
     "pose_from_msg",
@@ -214,6 +215,22 @@ def pose_msg_fields(T_W_S: np.ndarray) -> tuple[tuple[float, ...], tuple[float, 
     n = math.sqrt(sum(c * c for c in q))
     q = tuple(float(c / n) for c in q)
     return (float(T[0, 3]), float(T[1, 3]), float(T[2, 3])), q  # type: ignore[return-value]
+
+def pose_array_msg(poses_T_W_S, t_ns: int, world_frame: str):
+    """``geometry_msgs/PoseArray`` of the ``(4, 4)`` transforms ``poses_T_W_S`` (in order), stamped
+    ``t_ns`` in ``world_frame``."""
+    from geometry_msgs.msg import Pose, PoseArray
+
+    m = PoseArray()
+    m.header.stamp = stamp_of(t_ns)
+    m.header.frame_id = world_frame
+    for T in poses_T_W_S:
+        (x, y, z), (qx, qy, qz, qw) = pose_msg_fields(T)
+        p = Pose()
+        p.position.x, p.position.y, p.position.z = x, y, z
+        p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = qx, qy, qz, qw
+        m.poses.append(p)
+    return m
 
 
 # ---------------------------------------------------------------------------- map outputs

@@ -247,6 +247,8 @@ class LiveMapper:
         self.publish_errors = 0
         self._unpublished: list[float] = []  # arrival times of integrated, not yet published pings
         self._newest_ns: int | None = None
+        #: ``T_W_S`` (4, 4) of the newest ping mapped (by stamp), None before the first
+        self.newest_pose: np.ndarray | None = None
         self._last_pub = -math.inf
         self.latencies_s: collections.deque[float] = collections.deque(maxlen=2000)
         self._done_times: collections.deque[float] = collections.deque(maxlen=4000)
@@ -399,7 +401,10 @@ class LiveMapper:
                 self._unpublished.extend(p.arrived_s for p in done)
                 self._done_times.extend([now] * len(done))
                 if done:
-                    self._newest_ns = max(self._newest_ns or 0, max(p.stamp_ns for p in done))
+                    last = max(done, key=lambda p: p.stamp_ns)
+                    if self._newest_ns is None or last.stamp_ns >= self._newest_ns:
+                        self.newest_pose = last.T_W_S
+                    self._newest_ns = max(self._newest_ns or 0, last.stamp_ns)
             i = j
 
     def _publish(self) -> None:
@@ -456,6 +461,17 @@ class LiveMapper:
         """``mapper.save(path)`` (atomic) between two integrations; returns the path written."""
         with self._map_lock:
             return self.mapper.save(path)
+
+    def next_best_views(self, **kwargs) -> tuple[list[dict], int]:
+        """:func:`gpumap.nbv.next_best_views` around the newest pose mapped, between two
+        integrations (``kwargs`` go to it); raises ValueError before the first ping or without
+        the confidence layer."""
+        from gpumap.nbv import next_best_views
+
+        with self._map_lock:
+            if self.newest_pose is None:
+                raise ValueError("Expected a mapped ping to plan around, but no ping has been mapped yet")
+            return next_best_views(self.mapper, self.newest_pose, **kwargs)
 
     def values(self) -> np.ndarray:
         """``mapper.values()`` between two integrations."""

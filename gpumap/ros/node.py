@@ -63,6 +63,7 @@ from gpumap.ros.convert import (
     image_from_msg,
     occupancy_grid_msg,
     occupied_cloud,
+    pose_array_msg,
     pose_from_msg,
     project_obstacles,
     stamp_ns,
@@ -119,6 +120,14 @@ PARAMETERS: dict[str, tuple[object, str]] = {
                          "seconds"),
     "diagnostics_period_s": (1.0, "period of /diagnostics, seconds"),
     "band_z_m": ([], "height band [z_min, z_max] of the obstacle projection, metres (unset: the whole grid)"),
+    "plan_views": (5, "~/plan_views: poses published on ~/next_best_views, best first (needs "
+                   "confidence: true)"),
+    "plan_candidates": (500, "~/plan_views: candidate poses scored around the newest pose mapped"),
+    "plan_max_roll_deg": (45.0, "~/plan_views: wrist roll about the boresight, +- degrees"),
+    "plan_max_tilt_deg": (15.0, "~/plan_views: wrist pitch (tilt), +- degrees"),
+    "plan_max_yaw_deg": (20.0, "~/plan_views: wrist yaw, +- degrees"),
+    "plan_radius_m": (0.1, "~/plan_views: reach, each axis of the translation within +- this, metres"),
+    "plan_unknown_weight": (0.0, "~/plan_views: weight of an unknown voxel against an unconfirmed one"),
     "save_path": ("gpumap_map.npz", "where ~/save_map (and save_on_exit) writes the map"),
     "save_on_exit": (False, "save the map to save_path when the node stops"),
 }
@@ -164,11 +173,33 @@ def _flag(p: dict, name: str) -> bool:
     return v
 
 
+def plan_options(p: dict) -> dict:
+    """Keyword arguments of :func:`gpumap.nbv.next_best_views` from the node's ``plan_*``
+    parameters (checked: counts positive, limits in degrees within their ranges, reach >= 0)."""
+    views, cands = p["plan_views"], p["plan_candidates"]
+    for name, v in (("plan_views", views), ("plan_candidates", cands)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ValueError(f"Expected parameter {name} to be a positive integer, but got {v!r}")
+    lim = {}
+    for name, key, top in (("plan_max_roll_deg", "roll_rad", 180.0),
+                           ("plan_max_tilt_deg", "pitch_rad", 90.0),
+                           ("plan_max_yaw_deg", "yaw_rad", 180.0)):
+        d = float(p[name])
+        if not 0.0 <= d <= top:
+            raise ValueError(f"Expected parameter {name} in [0, {top:g}] degrees, but got {p[name]!r}")
+        lim[key] = (-math.radians(d), math.radians(d))
+    r, w = float(p["plan_radius_m"]), float(p["plan_unknown_weight"])
+    if not (r >= 0.0 and math.isfinite(r)) or not (w >= 0.0 and math.isfinite(w)):
+        raise ValueError("Expected plan_radius_m and plan_unknown_weight >= 0, but got "
+                         f"{p['plan_radius_m']!r} and {p['plan_unknown_weight']!r}")
+    return {"views": views, "candidates": cands, "offset_m": (-r, r), "unknown_weight": w, **lim}
+
+
 def make_node(node_name: str = NODE_NAME, context=None):
     """Create the mapping node (rclpy must be initialised); raises ValueError on bad parameters."""
     require_ros()
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-    from geometry_msgs.msg import PoseStamped
+    from geometry_msgs.msg import PoseArray, PoseStamped
     from nav_msgs.msg import OccupancyGrid, Odometry
     from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.node import Node
@@ -194,6 +225,7 @@ def make_node(node_name: str = NODE_NAME, context=None):
                                        ParameterDescriptor(description=desc, dynamic_typing=True))
             p = {name: self.get_parameter(name).value for name in PARAMETERS}
             self.p = p
+            self.plan_kw = plan_options(p)  # checked before anything is allocated
             self.world_frame = str(p["world_frame"])
             pose_type = _choice(p, "pose_type", ("pose_stamped", "odometry"))
             self.layout = _choice(p, "image_layout", ("polar", "fan"))
@@ -268,6 +300,8 @@ def make_node(node_name: str = NODE_NAME, context=None):
             self._diag_prev: dict | None = None  # the counters at the last /diagnostics, for its rates
             self.srv_save = self.create_service(Trigger, "~/save_map", self._on_save)
             self.srv_reset = self.create_service(Trigger, "~/reset", self._on_reset)
+            self.pub_views = self.create_publisher(PoseArray, "~/next_best_views", latched)
+            self.srv_plan = self.create_service(Trigger, "~/plan_views", self._on_plan)
             self.timer_diag = self.create_timer(float(p["diagnostics_period_s"]), self._publish_diagnostics)
             self.live.start()
             log.info(f"mapping {self.spec.image_shape} {self.layout} images on {self.sub_image.topic_name} "
@@ -360,6 +394,26 @@ def make_node(node_name: str = NODE_NAME, context=None):
                 response.success, response.message = True, str(path)
             except (OSError, ValueError) as e:
                 response.success, response.message = False, f"saving failed: {e}"
+            return response
+
+        def _on_plan(self, request, response):
+            """Score candidates around the newest pose mapped; publish the best on
+            ~/next_best_views (a PoseArray, best first, in world_frame)."""
+            if not self.confidence:
+                response.success = False
+                response.message = ("planning needs the confidence layer: start the node with "
+                                    "-p confidence:=true")
+                return response
+            try:
+                views, n = self.live.next_best_views(**self.plan_kw)
+            except ValueError as e:
+                response.success, response.message = False, str(e)
+                return response
+            self.pub_views.publish(pose_array_msg([v["T_W_S"] for v in views], self._now_ns(),
+                                                  self.world_frame))
+            response.success = True
+            response.message = (f"{len(views)} views of {n} candidates on {self.pub_views.topic_name}, gains "
+                                + ", ".join(f"{v['gain']:.0f}" for v in views))
             return response
 
         def _on_reset(self, request, response):
