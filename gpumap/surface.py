@@ -1,0 +1,380 @@
+"""The surface layer: one surface voxel per bright arc, chosen among the evidence map's occupied voxels.
+
+An imaging sonar measures range and azimuth but not elevation: a bright cell (range bin, beam) of a
+ping says that *something* lies on its **elevation arc** (the points at that range and azimuth,
+anywhere in the vertical aperture). Every occupancy rule built from such pings, the evidence rule
+included, marks the whole arc wherever the other views cannot prove it empty: phantoms in front
+of surfaces. The surface layer keeps the evidence rule's occupied voxels as *candidates* (so it
+never calls a voxel the evidence rule carved or never observed) and asks each bright cell of each
+training ping to be explained by **exactly one** of them:
+
+1. **Score** every candidate by its share of bright views over *all* the views that observe it
+   (footprint max ``>= threshold``, as the mapper computes it,
+   :func:`gpumap.reference.voxel_ping_values`). A true surface is bright whenever it is in view; a
+   phantom on an arc only when a surface elsewhere happens to lie at its range; a voxel inside a
+   solid is dark whenever the solid's own surface is not at its range. Ties are broken by the
+   number of bright views, then by the voxel's index, so the ranking is strict.
+2. **Vote**, per ping: every candidate in view whose footprint max is bright and that is not
+   *occluded* covers the bright cells of its footprint (range cells of ``cell_m``, the sonar's own
+   beams). Each bright cell goes to the best-ranked candidate covering it (a max splat over the
+   footprints); a candidate that wins at least one cell of the ping gets one vote. Voxels at other
+   ranges or azimuths cover other cells, so they never compete: only the voxels of one arc do.
+3. **Occlusion**: the first pass votes without it; each later pass takes the previous pass's
+   winners as occluders and drops the candidates that lie behind one of them in this ping (a
+   winner nearer than ``r - occlusion_m`` along the same beam and elevation cell): a voxel in a
+   surface's acoustic shadow cannot have sent the echo, whatever its score.
+
+The surface is the set of candidates with at least ``min_votes`` votes. By construction every
+bright cell that some unoccluded candidate covers is explained by exactly one surface voxel of
+that ping, and the arcs' intersection across views (a true surface wins the arcs of many views;
+a phantom loses every arc that a surface also crosses) picks the elevation.
+
+Everything here is plain NumPy: it is the oracle a kernel would be tested against.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gpumap.geometry import beam_tan_edges
+from gpumap.reference import _F, beam_span, evidence_occupied
+from gpumap.spec import GridSpec, SonarSpec
+
+__all__ = ["SurfaceLayer", "SurfaceOptions", "arc_votes", "candidate_scores", "surface_from_evidence",
+           "surface_from_mapper"]
+
+
+@dataclass(frozen=True)
+class SurfaceOptions:
+    """Settings of the surface layer (module docstring).
+
+    passes : int
+        Voting passes; every pass after the first drops the candidates occluded by the previous
+        pass's surface (1: no occlusion).
+    min_votes : int
+        Votes a candidate needs to be surface.
+    cell_m : float or None
+        Range cell of the vote, metres (None: half a voxel). The beams are the sonar's own.
+    occlusion_m : float or None
+        A winner occludes a candidate of the same beam and elevation cell when it lies more than
+        this nearer, metres (None: two voxels).
+    elevation_cells : int
+        Elevation cells across the vertical aperture for the occlusion test.
+    """
+
+    passes: int = 2
+    iterations: int = 20
+    min_votes: int = 1
+    aperture_scale: float = 1.5
+    cell_m: float | None = None
+    occlusion_m: float | None = None
+    elevation_cells: int = 48
+    max_front_share: float = 1.0
+    band_voxels: int = 0
+    front_tolerance_m: float | None = None
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+    def __post_init__(self) -> None:
+        if int(self.passes) < 1 or int(self.min_votes) < 1 or int(self.elevation_cells) < 1:
+            raise ValueError(f"Expected passes, min_votes and elevation_cells >= 1, but got {self.passes}, "
+                             f"{self.min_votes}, {self.elevation_cells}")
+        for name in ("cell_m", "occlusion_m"):
+            v = getattr(self, name)
+            if v is not None and not (np.isfinite(v) and v > 0):
+                raise ValueError(f"Expected {name} > 0 (metres) or None, but got {v}")
+
+
+@dataclass
+class SurfaceLayer:
+    """The surface layer of a map over ``grid``.
+
+    surface : (nx, ny, nz) bool
+        Surface voxels (a subset of ``candidates``).
+    candidates : (nx, ny, nz) bool
+        The evidence rule's occupied voxels the layer chose from.
+    observed : (nx, ny, nz) bool
+        Voxels some view observed (the safe map's observed set): the layer calls the others unknown.
+    votes : (nx, ny, nz) uint32
+        Pings whose arcs the voxel won (last pass).
+    views, bright_views : (nx, ny, nz) uint32
+        Views observing each candidate, and of them the bright ones (0 off the candidates).
+    grid : GridSpec
+    stats : dict
+        Counts and settings (JSON-ready).
+    """
+
+    surface: np.ndarray
+    candidates: np.ndarray
+    observed: np.ndarray
+    votes: np.ndarray
+    views: np.ndarray
+    bright_views: np.ndarray
+    grid: GridSpec
+    stats: dict = field(default_factory=dict)
+
+    def values(self) -> np.ndarray:
+        """(nx, ny, nz) float32 map values: 1 surface, 0 observed and not surface, NaN never observed
+        (read with threshold 0.5, as :func:`gpumap.sim.metrics.evaluate` and the judges take maps)."""
+        out = np.where(self.observed, np.float32(0.0), np.float32(np.nan)).astype(np.float32)
+        out[self.surface] = 1.0
+        return out
+
+
+# ------------------------------------------------------------------------------ per ping geometry
+def _check(images: np.ndarray, poses: np.ndarray, spec: SonarSpec) -> tuple[np.ndarray, np.ndarray]:
+    images = np.asarray(images)
+    poses = np.asarray(poses, np.float64)
+    if images.ndim != 3 or images.shape[1:] != spec.image_shape:
+        raise ValueError(f"Expected images of shape (n, {spec.image_shape[0]}, {spec.image_shape[1]}), "
+                         f"but got {images.shape}")
+    if poses.shape != (len(images), 4, 4):
+        raise ValueError(f"Expected poses of shape ({len(images)}, 4, 4), but got {poses.shape}")
+    if images.dtype not in (np.uint8, np.float32, np.float64):
+        raise TypeError(f"Expected images of dtype uint8, float32 or float64, but got {images.dtype}")
+    if not np.all(np.isfinite(poses)):
+        raise ValueError("Expected finite poses, but got NaN or inf")
+    return images, poses
+
+
+def _lit_cells(image: np.ndarray, spec: SonarSpec, threshold: float, cell_m: float) -> np.ndarray:
+    """(n_cells, n_beams) bool: range cells of ``cell_m`` (from ``range_min``) holding a bin ``>=
+    threshold`` (uint8 images compared after scaling by 1/255, as the mapper does)."""
+    n_cells = int(np.ceil((spec.range_max_m - spec.range_min_m) / cell_m)) + 1
+    img = image.astype(_F) * _F(1.0 / 255.0) if image.dtype == np.uint8 else np.asarray(image, _F)
+    b, j = np.nonzero(img >= np.float32(threshold))
+    lit = np.zeros((n_cells, spec.n_beams), bool)
+    lit[((b + 0.5) * spec.bin_size_m / cell_m).astype(np.int64), j] = True
+    return lit
+
+
+@dataclass
+class _View:
+    """One ping's view of the candidates (those within the arc's aperture): their index, range,
+    elevation, centre beam and the bright cells they span (``pair`` into ``cand``, flat ``cell``)."""
+
+    cand: np.ndarray  # (k,) int64 candidate index
+    r: np.ndarray  # (k,) float32 range, m
+    elev: np.ndarray  # (k,) float32 elevation, rad
+    j0: np.ndarray  # (k,) int32 beams the voxel spans (its own width)
+    j1: np.ndarray
+    n_cells: np.ndarray  # (k,) int32 cells the voxel spans
+    pair: np.ndarray  # (p,) int32 into cand
+    cell: np.ndarray  # (p,) int32 flat (range cell, beam)
+    front: np.ndarray  # (k,) bool: in the nominal fan and nearer than its centre beam's first return
+
+
+def _view(spec: SonarSpec, edges: np.ndarray, T_W_S: np.ndarray, centres_W: np.ndarray, lit: np.ndarray,
+          half_m: float, cell_m: float, half_elev_rad: float, first_m: np.ndarray, front_tol_m: float) -> _View:
+    """The candidates' geometry in one ping and the bright cells each spans (module docstring, step 2):
+    in range ``[r - half_m, r + half_m]`` (range cells of ``cell_m``) and the beams its width ``2 half_m``
+    spans in azimuth, for the voxels within ``+-half_elev_rad`` of the fan's plane."""
+    p = (centres_W - T_W_S[:3, 3]) @ T_W_S[:3, :3]
+    h2 = p[:, 0] ** 2 + p[:, 1] ** 2
+    r = np.sqrt(h2 + p[:, 2] ** 2)
+    elev = np.arctan2(p[:, 2], np.sqrt(h2))
+    pos = p[:, 0] > 0
+    t = p[:, 1] / np.where(pos, p[:, 0], 1.0)
+    tan_e = np.tan(np.asarray(spec.beam_edges_rad, np.float64))
+    ok = (pos & (r >= spec.range_min_m) & (r < spec.range_max_m) & (np.abs(elev) <= half_elev_rad)
+          & (t >= tan_e[0]) & (t <= tan_e[-1]))
+    k = np.flatnonzero(ok)
+    r, elev = r[k], elev[k]
+    j0, j1 = beam_span(t[k].astype(_F), h2[k].astype(_F), _F(half_m), edges, spec.n_beams)
+    n_rc = lit.shape[0]
+    c0 = np.clip(((r - half_m - spec.range_min_m) / cell_m).astype(np.int64), 0, n_rc - 1)
+    c1 = np.clip(((r + half_m - spec.range_min_m) / cell_m).astype(np.int64), 0, n_rc - 1)
+    nc, nj = c1 - c0 + 1, j1 - j0 + 1
+    tot = nc * nj
+    pair = np.repeat(np.arange(len(k)), tot)
+    off = np.arange(int(tot.sum())) - np.repeat(np.cumsum(tot) - tot, tot)
+    cc = c0[pair] + off // nj[pair]
+    jj = j0[pair] + off % nj[pair]
+    keep = lit[cc, jj]
+    front = (np.abs(elev) <= 0.5 * spec.vfov_rad) & (r < first_m[(j0 + j1) // 2] - front_tol_m)
+    return _View(k, r.astype(_F), elev.astype(_F), j0.astype(np.int32), j1.astype(np.int32),
+                 tot.astype(np.int32), pair[keep].astype(np.int32),
+                 (cc * spec.n_beams + jj)[keep].astype(np.int32), front)
+
+
+def _occluded(view: _View, surface: np.ndarray, n_beams: int, half_elev_rad: float, n_elev: int,
+              occlusion_m: float, half_m: float) -> np.ndarray:
+    """(k,) bool over the view's candidates: lying more than ``occlusion_m`` behind a ``surface``
+    voxel ((m,) bool over every candidate) of the same beam and elevation cell (``n_elev`` cells
+    across ``+-half_elev_rad``; each surface voxel fills the cells its width, ``2 half_m``, spans)."""
+    depth = np.full((n_elev, n_beams), np.inf)
+    occ = np.flatnonzero(surface[view.cand])
+    scale = n_elev / (2.0 * half_elev_rad)
+    if len(occ):
+        r = view.r[occ].astype(np.float64)
+        e = view.elev[occ].astype(np.float64) + half_elev_rad
+        e_lo = np.clip(((e - half_m / r) * scale).astype(np.int64), 0, n_elev - 1)
+        e_hi = np.clip(((e + half_m / r) * scale).astype(np.int64), 0, n_elev - 1)
+        j0, j1 = view.j0[occ].astype(np.int64), view.j1[occ].astype(np.int64)
+        ne, nj = e_hi - e_lo + 1, j1 - j0 + 1
+        tot = ne * nj
+        pair = np.repeat(np.arange(len(occ)), tot)
+        off = np.arange(int(tot.sum())) - np.repeat(np.cumsum(tot) - tot, tot)
+        np.minimum.at(depth, (e_lo[pair] + off // nj[pair], j0[pair] + off % nj[pair]), r[pair])
+    e = np.clip(((view.elev + half_elev_rad) * scale).astype(np.int64), 0, n_elev - 1)
+    jc = (view.j0.astype(np.int64) + view.j1) // 2
+    return depth[e, jc] < view.r - occlusion_m
+
+
+def _explain(views: list[_View], n: int, n_cells: int, occluders: np.ndarray | None, spec: SonarSpec,
+             half_elev_rad: float, n_elev: int, occlusion_m: float, half_m: float, iterations: int,
+             alive: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One pass: weights by expectation-maximisation, then the votes (module docstring, step 2).
+
+    Returns (weights (n,) float64, votes (n,) uint32, bright views (n,) uint32)."""
+    keep = []
+    sens = np.zeros(n)
+    bright = np.zeros(n, np.uint32)
+    for v in views:
+        ok = np.ones(len(v.cand), bool) if occluders is None else ~_occluded(
+            v, occluders, spec.n_beams, half_elev_rad, n_elev, occlusion_m, half_m)
+        ok &= alive[v.cand]
+        sens += np.bincount(v.cand[ok], weights=v.n_cells[ok], minlength=n)
+        m = ok[v.pair]
+        cand = v.cand[v.pair[m]]
+        bright[np.unique(cand)] += 1
+        keep.append((cand, v.cell[m]))
+    w = np.where(bright > 0, 1.0, 0.0)
+    for _ in range(int(iterations)):
+        acc = np.zeros(n)
+        for cand, cell in keep:
+            den = np.bincount(cell, weights=w[cand], minlength=n_cells)
+            acc += np.bincount(cand, weights=w[cand] / np.where(den[cell] > 0, den[cell], 1.0), minlength=n)
+        w = acc / np.maximum(sens, 1.0)
+    votes = np.zeros(n, np.uint32)
+    # strict order for the hard assignment: weight, then index
+    rank = np.empty(n, np.int64)
+    rank[np.lexsort((np.arange(n), w))] = np.arange(1, n + 1)
+    for cand, cell in keep:
+        if not len(cand):
+            continue
+        best = np.zeros(n_cells, np.int64)
+        np.maximum.at(best, cell, rank[cand])
+        votes[np.unique(cand[best[cell] == rank[cand]])] += 1
+    return w, votes, bright
+
+
+# ------------------------------------------------------------------------------ the layer
+def surface_from_evidence(
+    candidates: np.ndarray,
+    observed: np.ndarray,
+    grid: GridSpec,
+    spec: SonarSpec,
+    images: np.ndarray,
+    poses: np.ndarray,
+    threshold: float,
+    options: SurfaceOptions | None = None,
+) -> SurfaceLayer:
+    """The surface layer of an evidence map from the pings that built it.
+
+    Parameters
+    ----------
+    candidates : (nx, ny, nz) bool
+        The evidence rule's occupied voxels (:func:`gpumap.reference.evidence_occupied`).
+    observed : (nx, ny, nz) bool
+        Voxels the map observed.
+    grid : GridSpec
+        The map's grid.
+    spec : SonarSpec
+    images : (n, n_bins, n_beams) uint8 or float32 in [0, 1]
+        The training pings (those the map integrated).
+    poses : (n, 4, 4) float64
+        Their ``T_W_S``.
+    threshold : float
+        Bright intensity, the map's threshold.
+    options : SurfaceOptions, optional
+
+    Returns
+    -------
+    SurfaceLayer
+    """
+    import time
+
+    opts = options or SurfaceOptions()
+    cand = np.asarray(candidates)
+    obs = np.asarray(observed)
+    shape = tuple(grid.shape)
+    for name, a in (("candidates", cand), ("observed", obs)):
+        if a.shape != shape or a.dtype != bool:
+            raise ValueError(f"Expected a bool array of the grid's shape {shape} for {name!r}, but got "
+                             f"{a.dtype} {a.shape}")
+    if not (np.isfinite(threshold) and 0.0 < threshold <= 1.0):
+        raise ValueError(f"Expected threshold in (0, 1], but got {threshold}")
+    images, poses = _check(images, poses, spec)
+    t0 = time.perf_counter()
+    idx = np.argwhere(cand)
+    n = len(idx)
+    s = grid.voxel_size_m
+    centres = np.asarray(grid.min_corner_m, np.float64) + (idx + 0.5) * s
+    half = 0.5 * s
+    cell_m = opts.cell_m or half
+    occl_m = opts.occlusion_m or 2.0 * s
+    half_el = 0.5 * spec.vfov_rad * opts.aperture_scale
+    edges = beam_tan_edges(spec)
+    views = []
+    seen = np.zeros(n, np.uint32)
+    from gpumap.first_return import measured_first_returns
+
+    front_tol = opts.front_tolerance_m or s
+    for img, T in zip(images, poses, strict=True):
+        lit = _lit_cells(img, spec, threshold, cell_m)
+        fimg = img.astype(_F) * _F(1.0 / 255.0) if img.dtype == np.uint8 else np.asarray(img, _F)
+        first = measured_first_returns(fimg, spec, threshold)
+        v = _view(spec, edges, T, centres, lit, half, cell_m, half_el, first, front_tol)
+        seen[v.cand] += 1
+        views.append(v)
+    n_cells = (int(np.ceil((spec.range_max_m - spec.range_min_m) / cell_m)) + 1) * spec.n_beams
+    occluders = None
+    votes = np.zeros(n, np.uint32)
+    bright = np.zeros(n, np.uint32)
+    weight = np.zeros(n)
+    # in front of a training ping's first return: a share of the views in whose fan it lies
+    fan = np.zeros(n, np.uint32)
+    front = np.zeros(n, np.uint32)
+    for v in views:
+        infan = np.abs(v.elev) <= 0.5 * spec.vfov_rad
+        fan[v.cand[infan]] += 1
+        front[v.cand[v.front]] += 1
+    alive = front <= opts.max_front_share * np.maximum(fan, 1)
+    for _ in range(int(opts.passes)):
+        weight, votes, bright = _explain(views, n, n_cells, occluders, spec, half_el, int(opts.elevation_cells),
+                                         occl_m, half, int(opts.iterations), alive)
+        occluders = votes >= opts.min_votes
+    surf = np.zeros(shape, bool)
+    if n:
+        surf[tuple(idx[occluders].T)] = True
+    if opts.band_voxels and n:
+        from scipy import ndimage
+
+        ok = np.zeros(shape, bool)
+        ok[tuple(idx[alive].T)] = True
+        surf |= ok & ndimage.binary_dilation(surf, np.ones((3, 3, 3), bool), iterations=int(opts.band_voxels))
+    out = {}
+    for name, a in (("votes", votes), ("views", seen), ("bright_views", bright)):
+        full = np.zeros(shape, np.uint32)
+        full[tuple(idx.T)] = a
+        out[name] = full
+    stats = {"candidates": int(n), "surface": int(surf.sum()), "pings": int(len(images)),
+             "seconds": time.perf_counter() - t0, **opts.to_dict(), "cell_m": cell_m, "occlusion_m": occl_m}
+    return SurfaceLayer(surf, cand.copy(), obs.copy(), out["votes"], out["views"], out["bright_views"], grid,
+                        stats)
+
+
+def surface_from_mapper(mapper, images: np.ndarray, poses: np.ndarray,
+                        options: SurfaceOptions | None = None) -> SurfaceLayer:
+    """:func:`surface_from_evidence` of a bounded :class:`gpumap.MinMaxMapper` with ``rule="evidence"``
+    or ``"visible"`` (candidates: the evidence rule's occupied voxels at the mapper's
+    ``bright_share`` and ``share_z``) and the pings it integrated."""
+    ev = mapper.evidence()
+    cand = evidence_occupied(ev["count"], ev["hits"], mapper.bright_share, mapper.share_z)
+    obs = np.isfinite(ev["min_all"])
+    return surface_from_evidence(cand, obs, mapper.grid, mapper.spec, images, poses, mapper.threshold, options)
