@@ -42,6 +42,7 @@ pings x candidates in view x cells a voxel spans.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,7 +51,8 @@ from gpumap.geometry import beam_tan_edges
 from gpumap.reference import _F, beam_span, evidence_occupied
 from gpumap.spec import GridSpec, SonarSpec
 
-__all__ = ["SURFACE_LEVEL", "SurfaceLayer", "SurfaceOptions", "surface_from_evidence", "surface_from_mapper"]
+__all__ = ["SURFACE_LEVEL", "SurfaceLayer", "SurfaceOptions", "surface_from_evidence", "surface_from_frames",
+           "surface_from_mapper"]
 
 #: The surface layer's values are 1 (surface) or 0: occupied from this level.
 SURFACE_LEVEL = 0.5
@@ -208,15 +210,15 @@ class _View:
     """One ping's view of the candidates (those within the arc's aperture): their index, range,
     elevation, centre beam and the bright cells they span (``pair`` into ``cand``, flat ``cell``)."""
 
-    cand: np.ndarray  # (k,) int64 candidate index
-    r: np.ndarray  # (k,) float32 range, m
-    elev: np.ndarray  # (k,) float32 elevation, rad
-    j0: np.ndarray  # (k,) int32 beams the voxel spans (its own width)
-    j1: np.ndarray
+    cand: np.ndarray  # (k,) int32 candidate index
+    r: np.ndarray | None  # (k,) float32 range, m (None: not kept, no occlusion test)
+    elev: np.ndarray | None  # (k,) float32 elevation, rad
+    j0: np.ndarray | None  # (k,) int32 beams the voxel spans (its own width)
+    j1: np.ndarray | None
     n_cells: np.ndarray  # (k,) int32 cells the voxel spans
     pair: np.ndarray  # (p,) int32 into cand
     cell: np.ndarray  # (p,) int32 flat (range cell, beam)
-    front: np.ndarray  # (k,) bool: in the nominal fan and nearer than its centre beam's first return
+    front: np.ndarray | None  # (k,) bool: in the nominal fan and nearer than its beam's first return
 
 
 def _view(spec: SonarSpec, edges: np.ndarray, T_W_S: np.ndarray, centres_W: np.ndarray, lit: np.ndarray,
@@ -248,8 +250,8 @@ def _view(spec: SonarSpec, edges: np.ndarray, T_W_S: np.ndarray, centres_W: np.n
     jj = j0[pair] + off % nj[pair]
     keep = lit[cc, jj]
     front = (np.abs(elev) <= 0.5 * spec.vfov_rad) & (r < first_m[(j0 + j1) // 2] - front_tol_m)
-    return _View(k, r.astype(_F), elev.astype(_F), j0.astype(np.int32), j1.astype(np.int32),
-                 tot.astype(np.int32), pair[keep].astype(np.int32),
+    return _View(k.astype(np.int32), r.astype(_F), elev.astype(_F), j0.astype(np.int32),
+                 j1.astype(np.int32), tot.astype(np.int32), pair[keep].astype(np.int32),
                  (cc * spec.n_beams + jj)[keep].astype(np.int32), front)
 
 
@@ -337,7 +339,7 @@ def surface_from_evidence(
     grid : GridSpec
         The map's grid.
     spec : SonarSpec
-    images : (n, n_bins, n_beams) uint8 or float32 in [0, 1]
+    images : (n, n_bins, n_beams) uint8 (scaled by 1/255) or float32 in [0, 1]
         The training pings (those the map integrated).
     poses : (n, 4, 4) float64
         Their ``T_W_S``.
@@ -349,6 +351,22 @@ def surface_from_evidence(
     -------
     SurfaceLayer
     """
+    images, poses = _check(images, poses, spec)
+    return surface_from_frames(candidates, observed, grid, spec, zip(images, poses, strict=True), threshold,
+                               options)
+
+
+def surface_from_frames(
+    candidates: np.ndarray,
+    observed: np.ndarray,
+    grid: GridSpec,
+    spec: SonarSpec,
+    frames: Iterable[tuple[np.ndarray, np.ndarray]],
+    threshold: float,
+    options: SurfaceOptions | None = None,
+) -> SurfaceLayer:
+    """:func:`surface_from_evidence` of ``frames``, (image (n_bins, n_beams), ``T_W_S`` (4, 4)) pairs
+    read once each (a recording streamed from disk: only the cells each ping lights are kept)."""
     import time
 
     opts = options or SurfaceOptions()
@@ -361,7 +379,8 @@ def surface_from_evidence(
                              f"{a.dtype} {a.shape}")
     if not (np.isfinite(threshold) and 0.0 < threshold <= 1.0):
         raise ValueError(f"Expected threshold in (0, 1], but got {threshold}")
-    images, poses = _check(images, poses, spec)
+    from gpumap.first_return import measured_first_returns
+
     t0 = time.perf_counter()
     idx = np.argwhere(cand)
     n = len(idx)
@@ -370,36 +389,37 @@ def surface_from_evidence(
     half = 0.5 * s
     cell_m = opts.cell_m or half
     occl_m = opts.occlusion_m or 2.0 * s
+    front_tol = opts.front_tolerance_m or s
     half_el = 0.5 * spec.vfov_rad * opts.aperture_scale
     edges = beam_tan_edges(spec)
+    keep_geometry = int(opts.passes) > 1  # the occlusion test needs each view's ranges and angles
     views = []
     seen = np.zeros(n, np.uint32)
-    from gpumap.first_return import measured_first_returns
-
-    front_tol = opts.front_tolerance_m or s
-    for img, T in zip(images, poses, strict=True):
+    fan = np.zeros(n, np.uint32)  # pings whose nominal fan holds the candidate
+    front = np.zeros(n, np.uint32)  # ... and in which it lies in front of the first return
+    n_pings = 0
+    for img, T in frames:
+        img, T = _check(np.asarray(img)[None], np.asarray(T, np.float64)[None], spec)
+        img, T = img[0], T[0]
         lit = _lit_cells(img, spec, threshold, cell_m)
         fimg = img.astype(_F) * _F(1.0 / 255.0) if img.dtype == np.uint8 else np.asarray(img, _F)
         first = measured_first_returns(fimg, spec, threshold)
         v = _view(spec, edges, T, centres, lit, half, cell_m, half_el, first, front_tol)
         seen[v.cand] += 1
+        fan[v.cand[np.abs(v.elev) <= 0.5 * spec.vfov_rad]] += 1
+        front[v.cand[v.front]] += 1
+        if not keep_geometry:
+            v = dataclasses.replace(v, r=None, elev=None, j0=None, j1=None, front=None)
         views.append(v)
+        n_pings += 1
     n_cells = (int(np.ceil((spec.range_max_m - spec.range_min_m) / cell_m)) + 1) * spec.n_beams
+    alive = front <= opts.max_front_share * np.maximum(fan, 1)
     occluders = None
     votes = np.zeros(n, np.uint32)
     bright = np.zeros(n, np.uint32)
-    weight = np.zeros(n)
-    # in front of a training ping's first return: a share of the views in whose fan it lies
-    fan = np.zeros(n, np.uint32)
-    front = np.zeros(n, np.uint32)
-    for v in views:
-        infan = np.abs(v.elev) <= 0.5 * spec.vfov_rad
-        fan[v.cand[infan]] += 1
-        front[v.cand[v.front]] += 1
-    alive = front <= opts.max_front_share * np.maximum(fan, 1)
     for _ in range(int(opts.passes)):
-        weight, votes, bright = _explain(views, n, n_cells, occluders, spec, half_el,
-                                         int(opts.elevation_cells), occl_m, half, int(opts.iterations), alive)
+        _, votes, bright = _explain(views, n, n_cells, occluders, spec, half_el, int(opts.elevation_cells),
+                                    occl_m, half, int(opts.iterations), alive)
         occluders = votes >= opts.min_votes
     surf = np.zeros(shape, bool)
     if n:
@@ -409,25 +429,34 @@ def surface_from_evidence(
 
         ok = np.zeros(shape, bool)
         ok[tuple(idx[alive].T)] = True
-        surf |= ok & ndimage.binary_dilation(surf, np.ones((3, 3, 3), bool), iterations=int(opts.band_voxels))
+        grown = ndimage.binary_dilation(surf, np.ones((3, 3, 3), bool), iterations=int(opts.band_voxels))
+        surf |= ok & grown
     out = {}
     for name, a in (("votes", votes), ("views", seen), ("bright_views", bright)):
         full = np.zeros(shape, np.uint32)
         full[tuple(idx.T)] = a
         out[name] = full
-    stats = {"candidates": int(n), "surface": int(surf.sum()), "pings": int(len(images)),
+    stats = {"candidates": int(n), "surface": int(surf.sum()), "pings": n_pings,
              "seconds": time.perf_counter() - t0, **opts.to_dict(), "cell_m": cell_m, "occlusion_m": occl_m}
     return SurfaceLayer(surf, cand.copy(), obs.copy(), out["votes"], out["views"], out["bright_views"], grid,
                         stats)
 
 
-def surface_from_mapper(mapper, images: np.ndarray, poses: np.ndarray,
-                        options: SurfaceOptions | None = None) -> SurfaceLayer:
-    """:func:`surface_from_evidence` of a bounded :class:`gpumap.MinMaxMapper` with ``rule="evidence"``
-    or ``"visible"`` (candidates: the evidence rule's occupied voxels at the mapper's
-    ``bright_share`` and ``share_z``) and the pings it integrated."""
+def surface_from_mapper(mapper, images: np.ndarray | None = None, poses: np.ndarray | None = None,
+                        options: SurfaceOptions | None = None,
+                        frames: Iterable[tuple[np.ndarray, np.ndarray]] | None = None) -> SurfaceLayer:
+    """The surface layer of a :class:`gpumap.MinMaxMapper` with ``rule="evidence"`` or ``"visible"``
+    (candidates: the evidence rule's occupied voxels at the mapper's ``bright_share`` and
+    ``share_z``; its grid, spec and threshold) from the pings it integrated: ``images`` and
+    ``poses`` as :func:`surface_from_evidence` takes them, or ``frames`` as
+    :func:`surface_from_frames` does."""
+    if (frames is None) == (images is None and poses is None):
+        raise ValueError("Expected either images and poses or frames, but got "
+                         + ("both" if frames is not None else "neither"))
     ev = mapper.evidence()
     cand = evidence_occupied(ev["count"], ev["hits"], mapper.bright_share, mapper.share_z)
     obs = np.isfinite(ev["min_all"])
-    return surface_from_evidence(cand, obs, mapper.grid, mapper.spec, images, poses, mapper.threshold,
-                                 options)
+    if frames is None:
+        return surface_from_evidence(cand, obs, mapper.grid, mapper.spec, images, poses, mapper.threshold,
+                                     options)
+    return surface_from_frames(cand, obs, mapper.grid, mapper.spec, frames, mapper.threshold, options)
