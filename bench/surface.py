@@ -141,7 +141,8 @@ def real_case(data: Path, backend: str) -> dict:
         judge = range(j0, j1, js)
 
         def judged(values, thr, judge=judge):
-            s = first_return_score(values, grid, thr, ((images[i], poses[i]) for i in judge), spec)
+            frames = ((images[i] * np.float32(1.0 / 255.0), poses[i]) for i in judge)  # intensities in [0, 1]
+            s = first_return_score(values, grid, thr, frames, spec)
             return s.to_dict()
 
         row = {"mapped_frames": [m0, m1], "judged_frames": [j0, j1, js], "load_before": load0, "maps": {}}

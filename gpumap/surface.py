@@ -87,10 +87,14 @@ class SurfaceOptions:
         Voxels (26-neighbourhood steps) the winners grow into the kept candidates (0: winners only).
     front_tolerance_m : float or None
         How much nearer than the first return counts as in front, metres (None: one voxel).
+    live_ping_share : float
+        A beam without a return counts as clear water (every voxel in its fan in front) only in a
+        ping with a return in at least this share of its beams; in a dimmer ping (a low gain, a
+        dropped ping: real sonars vary ping to ping) it says nothing.
     """
 
     passes: int = 1
-    iterations: int = 20
+    iterations: int = 5
     min_votes: int = 1
     aperture_scale: float = 1.5
     cell_m: float | None = None
@@ -99,6 +103,7 @@ class SurfaceOptions:
     max_front_share: float = 0.25
     band_voxels: int = 1
     front_tolerance_m: float | None = None
+    live_ping_share: float = 0.1
 
     def to_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -111,8 +116,9 @@ class SurfaceOptions:
                 raise ValueError(f"Expected an integer >= {low} for {name!r}, but got {v!r}")
         if not (np.isfinite(self.aperture_scale) and self.aperture_scale >= 1.0):
             raise ValueError(f"Expected aperture_scale >= 1, but got {self.aperture_scale}")
-        if not (0.0 <= self.max_front_share <= 1.0):
-            raise ValueError(f"Expected max_front_share in [0, 1], but got {self.max_front_share}")
+        for name in ("max_front_share", "live_ping_share"):
+            if not (0.0 <= getattr(self, name) <= 1.0):
+                raise ValueError(f"Expected {name} in [0, 1], but got {getattr(self, name)}")
         for name in ("cell_m", "occlusion_m", "front_tolerance_m"):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and v > 0):
@@ -249,7 +255,8 @@ def _view(spec: SonarSpec, edges: np.ndarray, T_W_S: np.ndarray, centres_W: np.n
     cc = c0[pair] + off // nj[pair]
     jj = j0[pair] + off % nj[pair]
     keep = lit[cc, jj]
-    front = (np.abs(elev) <= 0.5 * spec.vfov_rad) & (r < first_m[(j0 + j1) // 2] - front_tol_m)
+    first = first_m[(j0 + j1) // 2]  # inf: no return (open water), nan: says nothing (a dim ping)
+    front = (np.abs(elev) <= 0.5 * spec.vfov_rad) & (r < first - front_tol_m)
     return _View(k.astype(np.int32), r.astype(_F), elev.astype(_F), j0.astype(np.int32),
                  j1.astype(np.int32), tot.astype(np.int32), pair[keep].astype(np.int32),
                  (cc * spec.n_beams + jj)[keep].astype(np.int32), front)
@@ -404,6 +411,8 @@ def surface_from_frames(
         lit = _lit_cells(img, spec, threshold, cell_m)
         fimg = img.astype(_F) * _F(1.0 / 255.0) if img.dtype == np.uint8 else np.asarray(img, _F)
         first = measured_first_returns(fimg, spec, threshold)
+        if np.isfinite(first).mean() < opts.live_ping_share:  # a dim or dropped ping: its empty beams
+            first = np.where(np.isfinite(first), first, np.nan)  # say nothing about the water
         v = _view(spec, edges, T, centres, lit, half, cell_m, half_el, first, front_tol)
         seen[v.cand] += 1
         fan[v.cand[np.abs(v.elev) <= 0.5 * spec.vfov_rad]] += 1
