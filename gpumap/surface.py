@@ -51,7 +51,8 @@ from gpumap.geometry import beam_tan_edges
 from gpumap.reference import _F, beam_span, evidence_occupied
 from gpumap.spec import GridSpec, SonarSpec
 
-__all__ = ["SURFACE_LEVEL", "SurfaceLayer", "SurfaceOptions", "surface_from_evidence", "surface_from_frames",
+__all__ = ["SURFACE_LEVEL", "LiveSurface", "SurfaceLayer", "SurfaceOptions", "surface_from_evidence",
+           "surface_from_frames",
            "surface_from_mapper"]
 
 #: The surface layer's values are 1 (surface) or 0: occupied from this level.
@@ -288,8 +289,8 @@ def _occluded(view: _View, surface: np.ndarray, n_beams: int, half_elev_rad: flo
 
 def _explain(views: list[_View], n: int, n_cells: int, occluders: np.ndarray | None, spec: SonarSpec,
              half_elev_rad: float, n_elev: int, occlusion_m: float, half_m: float, iterations: int,
-             alive: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One pass: weights by expectation-maximisation, then the votes (module docstring, step 2).
+             alive: np.ndarray, w0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One pass: weights by expectation-maximisation, then the votes (module docstring, steps 3-4).
 
     Returns (weights (n,) float64, votes (n,) uint32, bright views (n,) uint32)."""
     keep = []
@@ -304,7 +305,7 @@ def _explain(views: list[_View], n: int, n_cells: int, occluders: np.ndarray | N
         cand = v.cand[v.pair[m]]
         bright[np.unique(cand)] += 1
         keep.append((cand, v.cell[m]))
-    w = np.where(bright > 0, 1.0, 0.0)
+    w = np.where(bright > 0, 1.0 if w0 is None else w0, 0.0)
     for _ in range(int(iterations)):
         acc = np.zeros(n)
         for cand, cell in keep:
@@ -386,9 +387,43 @@ def surface_from_frames(
                              f"{a.dtype} {a.shape}")
     if not (np.isfinite(threshold) and 0.0 < threshold <= 1.0):
         raise ValueError(f"Expected threshold in (0, 1], but got {threshold}")
+    t0 = time.perf_counter()
+    cell_m = opts.cell_m or 0.5 * grid.voxel_size_m
+    pings = [_prepare(img, T, spec, threshold, cell_m, opts.live_ping_share) for img, T in frames]
+    layer, _ = _layer(cand, obs, grid, spec, pings, opts)
+    layer.stats["seconds"] = time.perf_counter() - t0
+    return layer
+
+
+@dataclass
+class _PingCells:
+    """What the layer keeps of one ping: its bright cells (flat (range cell, beam) indices, int32),
+    each beam's first return (float32, m; inf none, NaN says nothing: a dim ping) and ``T_W_S``."""
+
+    lit: np.ndarray
+    first: np.ndarray
+    T_W_S: np.ndarray
+
+
+def _prepare(image: np.ndarray, T_W_S: np.ndarray, spec: SonarSpec, threshold: float, cell_m: float,
+             live_ping_share: float) -> _PingCells:
     from gpumap.first_return import measured_first_returns
 
-    t0 = time.perf_counter()
+    img, T = _check(np.asarray(image)[None], np.asarray(T_W_S, np.float64)[None], spec)
+    img, T = img[0], T[0]
+    lit = np.flatnonzero(_lit_cells(img, spec, threshold, cell_m)).astype(np.int32)
+    fimg = img.astype(_F) * _F(1.0 / 255.0) if img.dtype == np.uint8 else np.asarray(img, _F)
+    first = measured_first_returns(fimg, spec, threshold)
+    if np.isfinite(first).mean() < live_ping_share:  # a dim or dropped ping: its empty beams
+        first = np.where(np.isfinite(first), first, np.nan)  # say nothing about the water
+    return _PingCells(lit, first.astype(np.float32), T)
+
+
+def _layer(cand: np.ndarray, obs: np.ndarray, grid: GridSpec, spec: SonarSpec, pings: list[_PingCells],
+           opts: SurfaceOptions, w0: np.ndarray | None = None) -> tuple[SurfaceLayer, np.ndarray]:
+    """The layer of candidates ``cand`` from prepared pings (steps 1-5); also the weights (n,) of the
+    candidates in ``np.argwhere(cand)`` order. ``w0``: starting weights in that order (warm start)."""
+    shape = tuple(grid.shape)
     idx = np.argwhere(cand)
     n = len(idx)
     s = grid.voxel_size_m
@@ -399,36 +434,33 @@ def surface_from_frames(
     front_tol = opts.front_tolerance_m or s
     half_el = 0.5 * spec.vfov_rad * opts.aperture_scale
     edges = beam_tan_edges(spec)
+    n_rc = int(np.ceil((spec.range_max_m - spec.range_min_m) / cell_m)) + 1
+    n_cells = n_rc * spec.n_beams
     keep_geometry = int(opts.passes) > 1  # the occlusion test needs each view's ranges and angles
     views = []
     seen = np.zeros(n, np.uint32)
     fan = np.zeros(n, np.uint32)  # pings whose nominal fan holds the candidate
     front = np.zeros(n, np.uint32)  # ... and in which it lies in front of the first return
-    n_pings = 0
-    for img, T in frames:
-        img, T = _check(np.asarray(img)[None], np.asarray(T, np.float64)[None], spec)
-        img, T = img[0], T[0]
-        lit = _lit_cells(img, spec, threshold, cell_m)
-        fimg = img.astype(_F) * _F(1.0 / 255.0) if img.dtype == np.uint8 else np.asarray(img, _F)
-        first = measured_first_returns(fimg, spec, threshold)
-        if np.isfinite(first).mean() < opts.live_ping_share:  # a dim or dropped ping: its empty beams
-            first = np.where(np.isfinite(first), first, np.nan)  # say nothing about the water
-        v = _view(spec, edges, T, centres, lit, half, cell_m, half_el, first, front_tol)
+    for pc in pings:
+        lit = np.zeros(n_cells, bool)
+        lit[pc.lit] = True
+        v = _view(spec, edges, pc.T_W_S, centres, lit.reshape(n_rc, spec.n_beams), half, cell_m, half_el,
+                  pc.first, front_tol)
         seen[v.cand] += 1
         fan[v.cand[np.abs(v.elev) <= 0.5 * spec.vfov_rad]] += 1
         front[v.cand[v.front]] += 1
         if not keep_geometry:
             v = dataclasses.replace(v, r=None, elev=None, j0=None, j1=None, front=None)
         views.append(v)
-        n_pings += 1
-    n_cells = (int(np.ceil((spec.range_max_m - spec.range_min_m) / cell_m)) + 1) * spec.n_beams
     alive = front <= opts.max_front_share * np.maximum(fan, 1)
     occluders = None
     votes = np.zeros(n, np.uint32)
     bright = np.zeros(n, np.uint32)
+    weight = np.zeros(n)
     for _ in range(int(opts.passes)):
-        _, votes, bright = _explain(views, n, n_cells, occluders, spec, half_el, int(opts.elevation_cells),
-                                    occl_m, half, int(opts.iterations), alive)
+        weight, votes, bright = _explain(views, n, n_cells, occluders, spec, half_el,
+                                         int(opts.elevation_cells), occl_m, half, int(opts.iterations), alive,
+                                         w0)
         occluders = votes >= opts.min_votes
     surf = np.zeros(shape, bool)
     if n:
@@ -445,10 +477,68 @@ def surface_from_frames(
         full = np.zeros(shape, np.uint32)
         full[tuple(idx.T)] = a
         out[name] = full
-    stats = {"candidates": int(n), "surface": int(surf.sum()), "pings": n_pings,
-             "seconds": time.perf_counter() - t0, **opts.to_dict(), "cell_m": cell_m, "occlusion_m": occl_m}
+    stats = {"candidates": int(n), "surface": int(surf.sum()), "pings": len(pings), "seconds": 0.0,
+             **opts.to_dict(), "cell_m": cell_m, "occlusion_m": occl_m}
     return SurfaceLayer(surf, cand.copy(), obs.copy(), out["votes"], out["views"], out["bright_views"], grid,
-                        stats)
+                        stats), weight
+
+
+class LiveSurface:
+    """The surface layer of a live mapper, updated per batch of pings (a warm start).
+
+    ``add(images, poses)`` after (or with) the mapper's own ``integrate_batch`` keeps what the layer
+    needs of each ping (its bright cells and first returns: a few kB, not the image);
+    :meth:`update` builds the layer from the mapper's current evidence map, its weights started
+    from the last update's (new candidates at 1), so a few iterations per batch
+    (``options.iterations``) carry it on. Each update visits every kept ping: its cost grows with
+    the pings, as the mapper's memory does not.
+
+    Parameters
+    ----------
+    mapper : gpumap.MinMaxMapper
+        A bounded mapper with ``rule="evidence"`` (or ``"visible"``: the evidence rule's decision is
+        read from its counts).
+    options : SurfaceOptions, optional
+    """
+
+    def __init__(self, mapper, options: SurfaceOptions | None = None) -> None:
+        if getattr(mapper, "rule", None) not in ("evidence", "visible"):
+            raise ValueError(f"Expected a mapper with rule='evidence' or 'visible', but got "
+                             f"{getattr(mapper, 'rule', None)!r}")
+        self.mapper = mapper
+        self.options = options or SurfaceOptions()
+        self._pings: list[_PingCells] = []
+        self._weights: dict[int, float] = {}
+        self.layer: SurfaceLayer | None = None
+
+    @property
+    def n_pings(self) -> int:
+        return len(self._pings)
+
+    def add(self, images: np.ndarray, poses: np.ndarray) -> None:
+        """Keep pings ``images`` ((n, n_bins, n_beams) uint8 or float32 in [0, 1]) at ``poses``
+        ((n, 4, 4) ``T_W_S``), those the mapper integrated."""
+        images, poses = _check(images, poses, self.mapper.spec)
+        cell_m = self.options.cell_m or 0.5 * self.mapper.grid.voxel_size_m
+        self._pings += [_prepare(i, T, self.mapper.spec, self.mapper.threshold, cell_m,
+                                 self.options.live_ping_share) for i, T in zip(images, poses, strict=True)]
+
+    def update(self) -> SurfaceLayer:
+        """The layer of every ping kept so far over the mapper's evidence map now."""
+        import time
+
+        t0 = time.perf_counter()
+        m = self.mapper
+        ev = m.evidence()
+        cand = evidence_occupied(ev["count"], ev["hits"], m.bright_share, m.share_z)
+        flat = np.flatnonzero(cand)
+        w0 = np.array([self._weights.get(int(f), 1.0) for f in flat]) if self._weights else None
+        layer, w = _layer(cand, np.isfinite(ev["min_all"]), m.grid, m.spec, self._pings, self.options, w0)
+        self._weights = dict(zip(flat.tolist(), w.tolist(), strict=True))
+        layer.stats["seconds"] = time.perf_counter() - t0
+        layer.stats["warm"] = w0 is not None
+        self.layer = layer
+        return layer
 
 
 def surface_from_mapper(mapper, images: np.ndarray | None = None, poses: np.ndarray | None = None,

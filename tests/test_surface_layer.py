@@ -329,3 +329,53 @@ def test_demo_and_replay_take_no_surface():
     assert demo._parser().parse_args(["--no-surface"]).surface is False
     assert "surface.npz" in demo.OUTPUTS and "surface.npz" in replay.OUTPUTS
     assert replay._parser().parse_args(["x", "--no-surface"]).surface is False
+
+
+def test_live_surface_follows_the_mapper_batch_by_batch(scene):
+    """The live layer: its first update is the offline layer of the same pings; later batches warm
+    start from the last weights and keep the layer inside the evidence map of that moment."""
+    from gpumap.reference import evidence_occupied
+    from gpumap.surface import LiveSurface
+
+    images, poses = scene["images"], scene["poses"]
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="evidence", threshold=THR)
+    live = LiveSurface(m)
+    m.integrate_batch(images[:6], poses[:6])
+    live.add(images[:6], poses[:6])
+    first = live.update()
+    offline = surface_from_mapper(m, images[:6], poses[:6])
+    np.testing.assert_array_equal(first.surface, offline.surface)
+    assert first.stats["warm"] is False
+    m.integrate_batch(images[6:], poses[6:])
+    live.add(images[6:], poses[6:])
+    second = live.update()
+    assert second.stats["warm"] is True and live.n_pings == len(images)
+    ev = m.evidence()
+    assert not (second.surface & ~evidence_occupied(ev["count"], ev["hits"], m.bright_share, m.share_z)).any()
+    assert second.surface.sum() > 0
+    with pytest.raises(ValueError, match="rule"):
+        LiveSurface(gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain"))
+
+
+def test_empty_beams_clear_the_water_only_in_live_pings():
+    """A voxel in a beam without a return lies in front of nothing in a dim ping (a low gain or a
+    dropped ping says nothing about the water) but in clear water in a ping that returns on most
+    beams."""
+    from gpumap.geometry import beam_tan_edges
+    from gpumap.surface import _prepare, _view
+
+    s = GRID.voxel_size_m
+    opts = SurfaceOptions()
+    pts = np.array([[1.0, 0.0, 0.0]])  # on the fan's axis: beams 31-32
+    flags = []
+    for beams in (slice(0, 2), slice(0, 20)):  # 2 of 64 beams return (dim), then 20 of 64 (live)
+        image = np.zeros(SPEC.image_shape, np.float32)
+        image[150, beams] = 1.0
+        pc = _prepare(image, np.eye(4), SPEC, THR, 0.5 * s, opts.live_ping_share)
+        n_rc = int(np.ceil((SPEC.range_max_m - SPEC.range_min_m) / (0.5 * s))) + 1
+        lit = np.zeros(SPEC.n_beams * n_rc, bool)
+        lit[pc.lit] = True
+        v = _view(SPEC, beam_tan_edges(SPEC), pc.T_W_S, pts, lit.reshape(-1, SPEC.n_beams), 0.5 * s, 0.5 * s,
+                  0.5 * SPEC.vfov_rad * opts.aperture_scale, pc.first, s)
+        flags.append(bool(v.front[0]))
+    assert flags == [False, True]
