@@ -126,7 +126,7 @@ def real_case(data: Path, backend: str) -> dict:
     import gpumap
     from gpumap.first_return import first_return_score
     from gpumap.spec import auto_grid
-    from gpumap.surface import SURFACE_LEVEL, surface_from_mapper
+    from gpumap.surface import surface_from_mapper
 
     spec, images, poses = _load_real(data)
     if len(images) < HELD[1][1]:
@@ -140,7 +140,7 @@ def real_case(data: Path, backend: str) -> dict:
         train = np.arange(m0, m1)
         judge = range(j0, j1, js)
 
-        def judged(values, thr, judge=judge):
+        def judged(values, thr, judge=judge):  # thr: the map's occupied level and the image's bright one
             frames = ((images[i] * np.float32(1.0 / 255.0), poses[i]) for i in judge)  # intensities in [0, 1]
             s = first_return_score(values, grid, thr, frames, spec)
             return s.to_dict()
@@ -160,7 +160,8 @@ def real_case(data: Path, backend: str) -> dict:
                 row["maps"]["surface"] = {"seconds": time.perf_counter() - t0,
                                           "candidates": layer.stats["candidates"],
                                           "surface_voxels": int(layer.surface.sum()),
-                                          **judged(layer.values(), SURFACE_LEVEL)}
+                                          # values 1 / 0: occupied from the image threshold too
+                                          **judged(layer.values(), REAL_THRESHOLD)}
         row["load_after"] = load_average()
         out[split] = row
         print(f"oasis {split}: " + ", ".join(
