@@ -1002,7 +1002,7 @@ SCENES: dict[str, Callable[..., Scene]] = {
 
 
 def make_scene(name: str, **kw) -> Scene:
-    """Build a registered scene by name (``tank``, ``circle``, ``survey``; the EKF-only prism
+    """Build a registered scene by name (``tank``, ``circle``, ``survey``, ``side``; the EKF-only prism
     case lives in :mod:`gpumap.sim.prism`, it renders no scene)."""
     if name not in SCENES:
         raise ValueError(f"Expected a scene name in {sorted(SCENES)}, but got {name!r}")

@@ -41,8 +41,9 @@ def _parser() -> ArgumentParser:
     p = ArgumentParser(prog="gpumap demo", description=(
         "simulate the tank (or --scene), map it with the min-max filter, and score the map against truth"))
     p.add_argument("--scene", default="tank", choices=sorted(SCENES),
-                   help="simulated scene: tank (the paper's), circle (four objects seen from five sides) "
-                        "or survey (a long seabed strip); default tank")
+                   help="simulated scene: tank (the paper's), circle (four objects seen from five sides), "
+                        "side (the circle's objects, 40 pitched pings from one side) or survey (a long "
+                        "seabed strip); default tank")
     p.add_argument("--voxel-size", type=positive_float, default=None,
                    help="voxel edge, metres (default: 0.03; 0.05 for the survey scene)")
     p.add_argument("--backend", type=backend_name, default="auto",
