@@ -379,3 +379,18 @@ def test_empty_beams_clear_the_water_only_in_live_pings():
                   0.5 * SPEC.vfov_rad * opts.aperture_scale, pc.first, s)
         flags.append(bool(v.front[0]))
     assert flags == [False, True]
+
+
+def test_side_scene_is_a_single_side_pitched_sweep_without_roll():
+    from gpumap.sim.scenes import make_scene
+
+    scene = make_scene("side", voxel_size_m=0.05)
+    T = scene.T_W_S
+    assert T.shape == (40, 4, 4)
+    assert np.ptp(T[:, 1, 3]) == 0.0  # one side: a straight line at one y
+    x_S = T[:, :3, 0]  # boresight, world frame
+    y_S = T[:, :3, 1]
+    assert np.all(np.abs(y_S[:, 2]) < 1e-9)  # no roll: the sonar's y axis stays level
+    pitch_deg = np.degrees(np.arcsin(-x_S[:, 2]))
+    assert pitch_deg.min() >= 10 - 1e-6 and pitch_deg.max() <= 40 + 1e-6 and np.ptp(pitch_deg) > 20
+    assert np.all(x_S[:, 1] > 0.7)  # every ping looks across to the objects' side (+y)
