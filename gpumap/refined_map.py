@@ -27,6 +27,8 @@ __all__ = [
     "RefineResult",
     "load_refined",
     "is_refined_file",
+    "layers_file",
+    "SURFACE_FILE",
     "field_from_occupancy",
     "occupancy_from_field",
     "OCCUPIED_LEVEL",
@@ -247,6 +249,21 @@ def is_refined_file(path: str | os.PathLike) -> bool:
     p = Path(path)
     meta = _read_meta(p) if p.is_file() else None
     return meta is not None and meta.get("format") == REFINED_FORMAT
+
+
+#: The two-layer file ``gpumap demo`` and ``gpumap replay`` write beside ``map.npz``
+#: (:mod:`gpumap.surface`: the surface layer and the evidence map, as a refined map file).
+SURFACE_FILE = "surface.npz"
+
+
+def layers_file(path: str | os.PathLike) -> Path | None:
+    """The file holding the two layers of the map at ``path``: ``path`` itself when it is a refined
+    map file, else the :data:`SURFACE_FILE` beside it when that is one, else None."""
+    p = Path(path)
+    if is_refined_file(p):
+        return p
+    side = p.with_name(SURFACE_FILE)
+    return side if side != p and is_refined_file(side) else None
 
 
 def load_refined(path: str | os.PathLike) -> RefineResult:

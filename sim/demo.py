@@ -326,10 +326,13 @@ def run_demo(args: argparse.Namespace) -> dict:
     rules = {rule: {**_summary(final), "height_error_m": final["height_error_m"],
                     "ms_per_image": 1e3 * float(np.mean(times[1:] if len(times) > 1 else times))}}
     others = [r for r in RULES if r != rule] if args.method == "gather" else []
+    evidence_mapper = mapper if rule == "evidence" else None
     for other in others:
         m_o, t_o, _ = _map_pings(scene, truth, pings, seen_each, T_true, args.backend, args.method,
                                  args.threshold, quiet, f"{other} rule", curve=False, shadow_m=args.shadow_m,
                                  rule=other, sparse=sparse)
+        if other == "evidence":
+            evidence_mapper = m_o
         ev_o = _final_eval(m_o, scene, truth, seen_each, args.threshold, detectable, full=True)
         rules[other] = {**_summary(ev_o), "height_error_m": ev_o["height_error_m"],
                         "ms_per_image": 1e3 * float(np.mean(t_o[1:] if len(t_o) > 1 else t_o))}
@@ -353,6 +356,9 @@ def run_demo(args: argparse.Namespace) -> dict:
         "memory": _memory_report(mapper, scene),
     }
     mapper.save(out / "map.npz")
+    if getattr(args, "surface", True) and evidence_mapper is not None:
+        metrics["surface"] = _surface_layer(out, scene, truth, pings, T_true, seen_each, evidence_mapper,
+                                            args.threshold, detectable)
 
     if args.pose_noise is not None:
         rng = np.random.default_rng([args.seed, 7])
@@ -430,6 +436,33 @@ def _view_session(args: argparse.Namespace, scene: Scene, truth: Truth, detectab
     tab = (matplotlib.colormaps["tab10"](np.arange(10))[:, :3] * 255).astype(np.uint8)
     session.add_points("truth", g.centers(idx) + shift, tab[truth.label[tuple(idx.T)] % 10])
     return session
+
+
+def _surface_layer(out: Path, scene: Scene, truth: Truth, pings: list[Ping], poses: np.ndarray,
+                   seen_each: list[np.ndarray], evidence_mapper, threshold: float,
+                   detectable: np.ndarray) -> dict:
+    """The surface layer (:mod:`gpumap.surface`) of the evidence map, written beside the safe map as
+    ``surface.npz`` (a two-layer refined map file: ``gpumap view/export --layer surface|safe``);
+    returns its figures for ``metrics.json`` (scored as the rules are, occupied from 0.5)."""
+    from gpumap.surface import SURFACE_LEVEL, surface_from_mapper
+
+    t0 = time.perf_counter()
+    images = np.stack([p.image for p in pings]).astype(np.float32)
+    layer = surface_from_mapper(evidence_mapper, images, poses)
+    seconds = time.perf_counter() - t0
+    layer.save(out / "surface.npz", evidence_mapper.values(), scene.sonar_spec, threshold, "evidence")
+    skip = ("candidates", "surface", "pings", "seconds")
+    row = {"seconds": seconds, "candidates": layer.stats["candidates"],
+           "surface_voxels": int(layer.surface.sum()),
+           "options": {k: v for k, v in layer.stats.items() if k not in skip}}
+    if tuple(layer.grid.shape) == tuple(scene.grid.shape):
+        seen = np.zeros(scene.grid.n_voxels, bool)
+        for s in seen_each:
+            seen[s] = True
+        ev = evaluate(layer.values(), truth, SURFACE_LEVEL, seen.reshape(scene.grid.shape),
+                      scene.grid.voxel_size_m, detectable=detectable).to_dict()
+        row.update({**_summary(ev), "height_error_m": ev["height_error_m"]})
+    return row
 
 
 def _final_eval(mapper, scene: Scene, truth: Truth, seen_each: list[np.ndarray], threshold: float,

@@ -962,13 +962,47 @@ def box_scene(
     return Scene("boxes", objs, grid, spec, T, T, np.zeros(0, np.int64), np.zeros((0, 3)))
 
 
+# ------------------------------------------------------------------------------ one side only
+def side_sweep_trajectory(n_pings: int = 40, y_m: float = -1.2, x_span_m: tuple[float, float] = (-0.6, 0.6),
+                          height_m: float = 0.4, pitch_deg: tuple[float, float] = (10.0, 40.0),
+                          nod_pings: int = 8) -> np.ndarray:
+    """(n_pings, 4, 4) sonar poses sweeping :func:`circle_scene`'s objects from one side only.
+
+    The sonar moves along a straight line at ``y = y_m`` from ``x_span_m[0]`` to ``x_span_m[1]``,
+    ``height_m`` above the mean sand, always yawed along +y (towards the objects, no yaw to
+    follow them), pitched down between ``pitch_deg`` (a cosine nod with a period of ``nod_pings``
+    pings), never rolled: the objects' far sides are never seen and every elevation arc is
+    crossed only by views from one side.
+    """
+    if n_pings < 1 or nod_pings < 2:
+        raise ValueError(f"Expected n_pings >= 1 and nod_pings >= 2, but got {n_pings}, {nod_pings}")
+    z = CIRCLE["floor_z_m"] + height_m
+    p0, p1 = pitch_deg
+    poses = []
+    for k in range(n_pings):
+        s = k / max(1, n_pings - 1)
+        x = x_span_m[0] + (x_span_m[1] - x_span_m[0]) * s
+        pitch = p0 + (p1 - p0) * (0.5 - 0.5 * math.cos(2 * math.pi * k / nod_pings))
+        poses.append(pose_from_xyz_ypr(np.array([x, y_m, z]), math.pi / 2, math.radians(pitch)))
+    return np.array(poses)
+
+
+def side_scene(seed: int = 0, voxel_size_m: float = 0.03, n_pings: int = 40) -> Scene:
+    """:func:`circle_scene`'s objects and sand seen by :func:`side_sweep_trajectory` (40 pitched
+    pings from one side, no roll): the scene where a surface estimate cannot lean on views
+    from the other side."""
+    base = circle_scene(seed=seed, voxel_size_m=voxel_size_m)
+    T = side_sweep_trajectory(n_pings)
+    return dataclasses.replace(base, name="side", T_W_S=T, T_W_D=T.copy())
+
+
 SCENES: dict[str, Callable[..., Scene]] = {
-    "tank": tank_scene, "circle": circle_scene, "survey": survey_scene,
+    "tank": tank_scene, "circle": circle_scene, "survey": survey_scene, "side": side_scene,
 }
 
 
 def make_scene(name: str, **kw) -> Scene:
-    """Build a registered scene by name (``tank``, ``circle``, ``survey``; the EKF-only prism
+    """Build a registered scene by name (``tank``, ``circle``, ``survey``, ``side``; the EKF-only prism
     case lives in :mod:`gpumap.sim.prism`, it renders no scene)."""
     if name not in SCENES:
         raise ValueError(f"Expected a scene name in {sorted(SCENES)}, but got {name!r}")

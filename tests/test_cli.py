@@ -231,7 +231,8 @@ def previous(tmp_path_factory) -> tuple[Path, dict[str, bytes]]:
     out = tmp_path_factory.mktemp("previous") / "out"
     assert gpumap.commands.replay.main([str(DATA / "oasis_tank"), *SMALL, "--out", str(out)]) == 0
     snap = _snapshot(out)
-    assert set(snap) == {"map.npz", "occupied.ply", "views.png", "floor_slice.png", "summary.json"}
+    assert set(snap) == {"map.npz", "surface.npz", "occupied.ply", "views.png", "floor_slice.png",
+                         "summary.json"}
     return out, snap
 
 
@@ -304,7 +305,7 @@ def test_ctrl_c_during_the_swap_waits_for_the_complete_new_set(old_out, monkeypa
                             "--out", str(old_out)])
     s = json.loads((old_out / "summary.json").read_text())
     assert s["threshold"] == 0.3  # the new set, whole (and the old pictures gone with the old set)
-    assert sorted(os.listdir(old_out)) == ["map.npz", "occupied.ply", "summary.json"]
+    assert sorted(os.listdir(old_out)) == ["map.npz", "occupied.ply", "summary.json", "surface.npz"]
 
 
 @needs_data
@@ -314,7 +315,7 @@ def test_replay_replaces_the_whole_set_and_keeps_other_files(old_out, previous, 
                                         "--no-pictures", "--out", str(old_out)]) == 0
     snap = _snapshot(old_out)
     # the old run's pictures do not outlive it; files that are not replay's stay
-    assert set(snap) == {"map.npz", "occupied.ply", "summary.json", "notes.txt"}
+    assert set(snap) == {"map.npz", "surface.npz", "occupied.ply", "summary.json", "notes.txt"}
     assert snap["notes.txt"] == b"mine"
     assert snap["map.npz"] != previous[1]["map.npz"]
     assert json.loads(snap["summary.json"])["threshold"] == 0.3

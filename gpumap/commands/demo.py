@@ -41,8 +41,9 @@ def _parser() -> ArgumentParser:
     p = ArgumentParser(prog="gpumap demo", description=(
         "simulate the tank (or --scene), map it with the min-max filter, and score the map against truth"))
     p.add_argument("--scene", default="tank", choices=sorted(SCENES),
-                   help="simulated scene: tank (the paper's), circle (four objects seen from five sides) "
-                        "or survey (a long seabed strip); default tank")
+                   help="simulated scene: tank (the paper's), circle (four objects seen from five sides), "
+                        "side (the circle's objects, 40 pitched pings from one side) or survey (a long "
+                        "seabed strip); default tank")
     p.add_argument("--voxel-size", type=positive_float, default=None,
                    help="voxel edge, metres (default: 0.03; 0.05 for the survey scene)")
     p.add_argument("--backend", type=backend_name, default="auto",
@@ -77,15 +78,19 @@ def _parser() -> ArgumentParser:
                    help="after the trajectory, add N planned next best views and, for comparison, N evenly "
                         "spread rolled views and N random ones; writes their curves (plan block of "
                         "metrics.json) and pictures of the confidence layer and the chosen poses")
+    p.add_argument("--no-surface", dest="surface", action="store_false",
+                   help="do not compute the surface layer (gpumap.surface: one voxel of the evidence map per "
+                        "bright cell; by default written beside map.npz as surface.npz, its figures in "
+                        "metrics.json's 'surface' block)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_view_args(p)
     return p
 
 
 #: Every file ``gpumap demo`` writes into ``--out``: one run's set replaces the last one's.
-OUTPUTS = ("metrics.json", "map.npz", "sonar_image.png", "map_vs_truth.png", "error_by_views.png",
-           "height_map.png", "errors_by_object.png", "plan_curves.png", "plan_confidence.png",
-           "plan_poses.png")
+OUTPUTS = ("metrics.json", "map.npz", "surface.npz", "sonar_image.png", "map_vs_truth.png",
+           "error_by_views.png", "height_map.png", "errors_by_object.png", "plan_curves.png",
+           "plan_confidence.png", "plan_poses.png")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -116,7 +121,10 @@ def main(argv: list[str] | None = None) -> int:
                                          "demo_s")}, indent=1))
     head = ("rule", "missed", "obj missed", "seen free", "phantom", "water free")
     print(f"{head[0]:8s} " + " ".join(f"{h:>10s}" for h in head[1:]) + " pipe found")
-    for name, row in m["rules"].items():
+    rows = dict(m["rules"])
+    if "miss_rate" in m.get("surface", {}):
+        rows["surface"] = m["surface"]
+    for name, row in rows.items():
         print(f"{name:8s} {row['miss_rate']:10.1%} {row['miss_rate_objects']:10.1%} "
               f"{row['false_negative_rate_detectable']:10.1%} {row['false_positive_rate_far']:10.1%} "
               f"{row['free_carved_fraction']:10.1%} {row['pipe_found']}")

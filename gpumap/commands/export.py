@@ -1,8 +1,10 @@
 """``gpumap export MAP OUT.bt|OUT.ply``: a saved map as OctoMap ``.bt`` or as a ``.ply`` cloud.
 
 ``MAP`` is a map file (``map.npz``, :meth:`gpumap.MinMaxMapper.save`) or a refined map file
-(``refined.npz``, what ``gpumap refine`` writes, :meth:`gpumap.refine.RefineResult.save`). A
-refined file holds two layers, exported apart:
+(``refined.npz``, what ``gpumap refine`` writes, :meth:`gpumap.refine.RefineResult.save`; or
+``surface.npz``, the surface layer ``gpumap demo`` and ``gpumap replay`` write beside ``map.npz``,
+:mod:`gpumap.surface`; ``MAP`` = that ``map.npz`` with ``--layer`` reads it). A refined file holds
+two layers, exported apart:
 
 - ``surface``: the refined occupancy, occupied from :data:`gpumap.refine.OCCUPIED_LEVEL` (the thin
   surfaces the pings need; the value is the occupancy);
@@ -44,8 +46,9 @@ def _parser() -> ArgumentParser:
     p.add_argument("--threshold", type=unit_interval, default=None,
                    help="occupied if value >= this (default: the map's own threshold; map.npz only)")
     p.add_argument("--layer", choices=LAYERS, default=None,
-                   help="refined.npz only: surface (refined occupancy >= 0.5) or safe (the map's occupied "
-                        "voxels) into OUT (default: both, into NAME.surface.EXT and NAME.safe.EXT)")
+                   help="refined.npz / surface.npz (or a map.npz with surface.npz beside it) only: surface "
+                        "(refined occupancy or surface layer >= 0.5) or safe (the map's occupied voxels) "
+                        "into OUT (default: both, into NAME.surface.EXT and NAME.safe.EXT)")
     return p
 
 
@@ -67,6 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``gpumap export MAP OUT.bt|OUT.ply``; returns the exit status."""
     from gpumap.merge import load_map
     from gpumap.refine import OCCUPIED_LEVEL, is_refined_file, load_refined
+    from gpumap.refined_map import layers_file
 
     p = _parser()
     a = p.parse_args(argv)
@@ -74,11 +78,12 @@ def main(argv: list[str] | None = None) -> int:
     if suffix not in (".bt", ".ply"):
         p.error(f"argument out: Expected a name ending .bt or .ply, but got {str(a.out)!r}")
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    if is_refined_file(a.map):
+    two = a.map if is_refined_file(a.map) else (layers_file(a.map) if a.layer else None)
+    if two is not None:
         if a.threshold is not None:
             p.error("argument --threshold: Expected no --threshold with a refined map (its layers keep "
                     f"their own: surface from {OCCUPIED_LEVEL}, safe from the map's), but got {a.threshold}")
-        res = load_refined(a.map)
+        res = load_refined(two)
         layers = {"surface": (res.occupancy, OCCUPIED_LEVEL), "safe": (res.map_values, float(res.threshold))}
         names = [a.layer] if a.layer else list(LAYERS)
         infos = []
@@ -89,8 +94,9 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(infos[0] if a.layer else infos))
         return 0
     if a.layer is not None:
-        p.error(f"argument --layer: Expected a refined map (gpumap refine's refined.npz) with --layer, but "
-                f"{str(a.map)!r} is a map of one layer")
+        p.error(f"argument --layer: Expected a refined map (gpumap refine's refined.npz) or a map with a "
+                f"surface.npz beside it (gpumap demo/replay) with --layer, but {str(a.map)!r} is a map of "
+                "one layer")
     mapper = load_map(a.map, backend="numpy")
     thr = float(mapper.threshold if a.threshold is None else a.threshold)
     if suffix == ".bt":

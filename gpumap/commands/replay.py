@@ -9,7 +9,9 @@ Usage::
                        [--rule evidence|visible|plain] [--compare-rules]
 
 Writes into ``--out`` (default ``replay_out/``): ``map.npz`` (``MinMaxMapper.save``),
-``occupied.ply`` (occupied voxel centres with their value as ``intensity``), ``views.png``
+``surface.npz`` (with the evidence rule: the surface layer of :mod:`gpumap.surface` beside the
+safe map, a two-layer file ``gpumap view/export --layer surface|safe`` read; ``--no-surface``
+skips it), ``occupied.ply`` (occupied voxel centres with their value as ``intensity``), ``views.png``
 (3-D render from three viewpoints), ``floor_slice.png`` (horizontal slice through the
 densest low layer: the floor) and ``summary.json``; prints images/s.
 The files are written into a temporary folder and replace an earlier run's as one set
@@ -71,7 +73,8 @@ from gpumap.viewer.render import save_pictures
 __all__ = ["EMPTY_MAP_STATUS", "OUTPUTS", "main"]
 
 #: Every file ``gpumap replay`` can write into ``--out``: one run's set replaces the last one's.
-OUTPUTS = ("map.npz", "occupied.ply", "views.png", "floor_slice.png", "rules.png", "summary.json")
+OUTPUTS = ("map.npz", "surface.npz", "occupied.ply", "views.png", "floor_slice.png", "rules.png",
+           "summary.json")
 
 
 def _parser() -> ArgumentParser:
@@ -127,6 +130,10 @@ def _parser() -> ArgumentParser:
     ap.add_argument("--flip-ud", action="store_true", help="fan folders: mirror rows")
     ap.add_argument("--no-pictures", action="store_true",
                     help="write the map and summary only, not views.png and floor_slice.png")
+    ap.add_argument("--no-surface", dest="surface", action="store_false",
+                    help="do not compute the surface layer (gpumap.surface; by default, with the evidence "
+                         "rule, written beside map.npz as surface.npz: gpumap view/export --layer "
+                         "surface|safe; its figures in summary.json's 'surface' block)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     # the old spelling, still accepted (not shown): one spelling for the same idea across commands
     ap.add_argument("--quiet", dest="no_progress", action="store_true", help=argparse.SUPPRESS)
@@ -203,6 +210,10 @@ def main(argv: list[str] | None = None) -> int:
           f"{stats['observed_voxels']} observed voxels"
           + (f"; skipped {stats['skipped_bad_frames']} unreadable frames" if stats.get("skipped_bad_frames")
              else "") + f"; wrote {a.out}/")
+    if "surface_voxels" in stats.get("surface", {}):
+        sf = stats["surface"]
+        print(f"gpumap replay: surface layer {sf['surface_voxels']} voxels of {sf['candidates']} occupied "
+              f"({sf['seconds']:.1f} s; surface.npz, gpumap view/export --layer surface|safe)")
     if a.compare_rules:
         print(f"gpumap replay: rules: {stats['rule_comparison']['text']}")
     if stats["skipped_no_pose"] or stats["skipped_spec"]:
@@ -314,6 +325,12 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
     if a.skip_bad_frames:
         stats["skipped_bad_frames"] = len(bad)
         stats["bad_frames"] = bad[:100]  # the first hundred errors, each naming its file
+    layer = None
+    if getattr(a, "surface", True) and not a.workers and stats.get("rule") == "evidence" and stats["frames"]:
+        layer, stats["surface"] = _surface(a, kwargs, mapper, stride)
+    elif getattr(a, "surface", True):
+        stats["surface"] = {"skipped": "the surface layer is built on the evidence rule's map from one "
+                                       "process (not --workers, --rule evidence)"}
     values = mapper.values()
     thr = otsu_threshold(values) if a.threshold == "auto" else float(a.threshold)
     occ = np.isfinite(values) & (values >= thr)
@@ -322,6 +339,8 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
     stats["observed_voxels"] = int(np.isfinite(values).sum())
     with output_set(a.out, OUTPUTS) as out:  # all of them appear in --out together, or none
         mapper.save(out / "map.npz")
+        if layer is not None:
+            layer.save(out / "surface.npz", values, mapper.spec, float(mapper.threshold), "evidence")
         write_ply(out / "occupied.ply", mapper.grid.centers(np.argwhere(occ)), values[occ])
         if not a.no_pictures:
             stats.update(save_pictures(values, mapper.grid, thr, out,
@@ -340,6 +359,44 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
         (out / "summary.json").write_text(json.dumps(stats, indent=2))
     return stats, mapper.grid
 
+
+def _surface(a: argparse.Namespace, kwargs: dict, mapper, stride: int):
+    """The surface layer (:mod:`gpumap.surface`) of ``mapper`` from the frames it integrated, read
+    again from the recording (the same selection as :func:`gpumap.replay.run_replay`: every
+    ``stride``-th frame, at most ``--max-frames``, those with a pose and the first frame's sonar
+    geometry); returns (layer, its summary block)."""
+    import time
+
+    from gpumap.io import open_recording
+    from gpumap.surface import surface_from_mapper
+
+    kw = dict(kwargs)
+    if "on_bad" in kw:
+        kw["on_bad"] = lambda e: None  # counted by the mapping pass already
+    rec = open_recording(a.path, **kw)
+    if a.frames is not None:
+        rec = select_frames(rec, a.frames)
+    eye = np.eye(4)
+
+    def frames():
+        k = 0
+        for i, fr in enumerate(rec):
+            if i % stride:
+                continue
+            if a.max_frames is not None and k >= a.max_frames:
+                break
+            k += 1
+            T = eye if a.static else fr.T_W_S
+            if T is None or fr.spec != mapper.spec:
+                continue
+            yield fr.image, T
+
+    t0 = time.perf_counter()
+    layer = surface_from_mapper(mapper, frames=frames())
+    skip = ("candidates", "surface", "pings", "seconds")
+    return layer, {"seconds": time.perf_counter() - t0, "pings": layer.stats["pings"],
+                   "candidates": layer.stats["candidates"], "surface_voxels": int(layer.surface.sum()),
+                   "options": {k: v for k, v in layer.stats.items() if k not in skip}}
 
 
 # ------------------------------------------------------------------------------ --workers

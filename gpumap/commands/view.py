@@ -39,8 +39,9 @@ def _parser() -> argparse.ArgumentParser:
         help="occupied if value >= this (default: the map's own threshold; a refined map's surface: 0.5)",
     )
     p.add_argument("--layer", choices=("surface", "safe"), default=None,
-                   help="refined.npz only: surface (the refined occupancy, the default) or safe (the map's "
-                   "occupied voxels)")
+                   help="refined.npz / surface.npz (or a map.npz with surface.npz beside it) only: surface "
+                   "(the refined occupancy or surface layer, the default) or safe (the map's occupied "
+                   "voxels)")
     add_view_args(p, record=False, live=False)
     return p
 

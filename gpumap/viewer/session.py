@@ -130,15 +130,21 @@ def map_layer(path: str | Path, layer: str | None = None, threshold: float | Non
     float32, NaN unknown), ``threshold``, ``confidence`` (the map's layer or None), ``n_pings``,
     ``layer`` (None for a map file).
 
-    A refined map (:func:`gpumap.refine.is_refined_file`) shows ``layer`` ``"surface"`` (default:
-    the refined occupancy, occupied from :data:`gpumap.refine.OCCUPIED_LEVEL`) or ``"safe"`` (the
-    map's values and threshold); a map file has one layer (``layer`` given raises ValueError).
+    A refined map (:func:`gpumap.refine.is_refined_file`: ``gpumap refine``'s ``refined.npz`` or the
+    ``surface.npz`` of ``gpumap demo`` / ``replay``, :mod:`gpumap.surface`) shows ``layer``
+    ``"surface"`` (default: the refined occupancy or the surface layer, occupied from
+    :data:`gpumap.refine.OCCUPIED_LEVEL`) or ``"safe"`` (the map's values and threshold); a map
+    file with ``layer`` given shows that layer of the ``surface.npz`` beside it
+    (:func:`gpumap.refined_map.layers_file`); without one it has one layer (``layer`` given raises
+    ValueError).
     """
     from gpumap.refine import OCCUPIED_LEVEL, is_refined_file, load_refined
+    from gpumap.refined_map import layers_file
 
     path = Path(path)
-    if is_refined_file(path):
-        res = load_refined(path)
+    two = path if is_refined_file(path) else (layers_file(path) if layer is not None else None)
+    if two is not None:
+        res = load_refined(two)
         layer = layer or "surface"
         if layer not in ("surface", "safe"):
             raise ValueError(f"Expected layer 'surface' or 'safe', but got {layer!r}")
@@ -148,8 +154,8 @@ def map_layer(path: str | Path, layer: str | None = None, threshold: float | Non
                 "threshold": float(thr if threshold is None else threshold), "confidence": None,
                 "n_pings": int(res.stats.get("frames", 0)), "layer": layer}
     if layer is not None:
-        raise ValueError("Expected a refined map (gpumap refine's refined.npz) with a layer, but "
-                         f"{path} is a map of one layer")
+        raise ValueError("Expected a refined map (gpumap refine's refined.npz) or a map with a surface.npz "
+                         f"beside it (gpumap demo/replay) with a layer, but {path} is a map of one layer")
     from gpumap.mapper import MinMaxMapper
     from gpumap.viewer.live import mapper_confidence
 
