@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import bench_parser, load_average, machine_info, oasis_full_dir, write_json
+from .common import Section, bench_parser, load_average, machine_info, oasis_full_dir, write_json
 
 SIM_THRESHOLD = 0.1
 REAL_THRESHOLD = 0.4
@@ -42,16 +42,12 @@ KEYS = ("false_negative_rate_detectable", "false_negative_rate_objects_detectabl
 
 
 def _parser():
-    p = bench_parser("surface", __doc__)
+    p = bench_parser("surface", __doc__, out="bench/results", backend="auto", report="surface.json")
     p.add_argument("--cases", nargs="+", default=["tank", "circle", "side", "oasis"],
                    help="simulated scenes (tank, circle, side) and/or oasis (the real tank's full run)")
     p.add_argument("--variations", nargs="+", default=["none", "real_tank"], choices=["none", "real_tank"],
                    help="simulated sonar variations")
-    p.add_argument("--backend", default="auto", help="mapper backend (default auto)")
     p.add_argument("--data", type=Path, default=None, help="the full tank run (default: oasis_tank_full)")
-    p.add_argument("--out", type=Path, default=Path("bench/results/surface.json"), help="results file")
-    p.add_argument("--report", type=Path, metavar="BENCHMARKS_MD",
-                   help="only write this benchmark's section of that file from --out")
     return p
 
 
@@ -172,11 +168,8 @@ def real_case(data: Path, backend: str) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     a = _parser().parse_args(argv)
-    if a.report is not None:
-        # imported here: bench/common.py is being restructured, and only --report needs this helper
-        from .common import write_section
-
-        return write_section(a.report, a.out, sys.modules[__name__])
+    if SECTION.reported(a):
+        return 0
     t_start = time.perf_counter()
     res = {"schema": "gpumap-surface/1", "machine": machine_info(), "sim": [], "real": None}
     for case in a.cases:
@@ -197,19 +190,19 @@ def main(argv: list[str] | None = None) -> int:
                 for k, v in row["maps"].items()), flush=True)
     res["seconds_total"] = time.perf_counter() - t_start
     res["load_end"] = load_average()
-    path = write_json(a.out, res, digits=4)
+    path = write_json(Path(a.out) / "surface.json", res, digits=4)
     print(f"wrote {path} ({res['seconds_total']:.0f} s)")
     return 0
 
 
-BEGIN, END = "<!-- begin:surface -->", "<!-- end:surface -->"
-SECTION = "## The surface layer: one voxel per bright cell (issue #30)"
+HEADING = "## The surface layer: one voxel per bright cell (issue #30)"
 
 
 def markdown(res: dict, folder: Path) -> str:
     """The BENCHMARKS.md section of a ``surface.json``."""
     m = res["machine"]
-    out = [SECTION, "",
+    del folder
+    out = [HEADING, "",
            f"`python -m bench.surface` ({m.get('cpu_model')} x{m.get('cpu_count')}, load "
            f"{m.get('load_avg_start')} at the start). Simulated scenes at 3 cm (threshold 0.1; FN on "
            "detectable surfaces, FN of the objects, FP far from surfaces, object tops: mean over columns "
@@ -236,6 +229,8 @@ def markdown(res: dict, folder: Path) -> str:
                            f"{x['seconds']:.1f} |")
     return "\n".join(out)
 
+
+SECTION = Section("surface", HEADING, "surface.json", markdown)
 
 if __name__ == "__main__":
     raise SystemExit(main())
