@@ -160,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error("argument --pose: Expected --pose or --recording (the candidates are drawn around poses "
                 "the vehicle can reach), but got neither")
     from gpumap.merge import load_map
-    from gpumap.nbv import candidate_poses
+    from gpumap.nbv import next_best_views
     from gpumap.refine import recording_frames
 
     mapper = load_map(a.map, backend=a.backend)
@@ -176,15 +176,10 @@ def main(argv: list[str] | None = None) -> int:
               "pitch_rad": (-math.radians(a.max_tilt_deg), math.radians(a.max_tilt_deg)),
               "yaw_rad": (-math.radians(a.max_yaw_deg), math.radians(a.max_yaw_deg)),
               "offset_m": (-a.radius_m, a.radius_m)}
-    per = -(-a.candidates // len(anchors))
-    C = np.concatenate([candidate_poses(T, per, seed=a.seed * 1009 + i, **limits)
-                        for i, T in enumerate(anchors)])[: a.candidates]
-    anchor_of = np.repeat(np.arange(len(anchors)), per)[: len(C)]
-    g = mapper.view_gain(C, unknown_weight=a.unknown_weight)
-    best = np.argsort(-g, kind="stable")[: a.views]
-    views = [{"T_W_S": C[k].tolist(), "gain": float(g[k]), "candidate": int(k), "anchor": int(anchor_of[k])}
-             for k in best]
-    plan = {"map": str(a.map), "views": views, "candidates": len(C), "anchors": anchors.tolist(),
+    best, n = next_best_views(mapper, anchors, views=a.views, candidates=a.candidates,
+                              unknown_weight=a.unknown_weight, seed=a.seed, **limits)
+    views = [{**v, "T_W_S": v["T_W_S"].tolist()} for v in best]
+    plan = {"map": str(a.map), "views": views, "candidates": n, "anchors": anchors.tolist(),
             "limits": {"max_roll_deg": a.max_roll_deg, "max_tilt_deg": a.max_tilt_deg,
                        "max_yaw_deg": a.max_yaw_deg, "radius_m": a.radius_m},
             "unknown_weight": a.unknown_weight, "seed": a.seed, "rebuilt_confidence": rebuilt,
@@ -200,5 +195,5 @@ def main(argv: list[str] | None = None) -> int:
         yaw, pitch, roll = ypr_deg(T)
         print(f"{i + 1:4d} {T[0, 3]:7.3f} {T[1, 3]:7.3f} {T[2, 3]:7.3f} {yaw:6.1f} {pitch:6.1f} {roll:6.1f} "
               f"{v['gain']:8.0f}")
-    print(f"gpumap plan: {len(C)} candidates around {len(anchors)} poses; wrote {a.out}", file=sys.stderr)
+    print(f"gpumap plan: {n} candidates around {len(anchors)} poses; wrote {a.out}", file=sys.stderr)
     return 0
