@@ -13,7 +13,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +31,7 @@ __all__ = [
     "run_replay",
     "run_rule_comparison",
     "select_frames",
+    "select_strided",
 ]
 
 #: Occupied intensity of ``gpumap replay`` (on the OASIS tank views agree above it); also the
@@ -135,14 +136,7 @@ def run_replay(
     eye = np.eye(4)
 
     def selected():
-        k = 0
-        for i, fr in enumerate(recording):
-            if i % stride:
-                continue
-            if max_frames is not None and k >= max_frames:
-                return
-            k += 1
-            yield fr
+        return select_strided(recording, stride, max_frames)
 
     if grid is None:  # size the box from the poses: from the index if cheap, else one pass
         poses, spec0 = [], None
@@ -525,6 +519,19 @@ def run_rule_comparison(recording, *, threshold: float = DEFAULT_THRESHOLD,
     cmp_ = compare_rules(values, grid, threshold, np.asarray(positions).reshape(-1, 3),
                          None if picture is None else Path(picture), title=title)
     return runs, cmp_
+
+
+def select_strided(recording, stride: int = 1, max_frames: int | None = None) -> Iterator:
+    """The frames :func:`run_replay` reads of ``recording``: every ``stride``-th, at most
+    ``max_frames`` of them (before any is skipped for a missing pose or another sonar geometry)."""
+    k = 0
+    for i, fr in enumerate(recording):
+        if i % stride:
+            continue
+        if max_frames is not None and k >= max_frames:
+            return
+        k += 1
+        yield fr
 
 
 def select_frames(recording, frames: slice):

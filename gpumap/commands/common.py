@@ -16,6 +16,7 @@ import argparse
 import importlib.util
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn
 
@@ -105,36 +106,33 @@ def _whole(text: str) -> int:
         raise argparse.ArgumentTypeError(f"Expected a whole number, but got {text!r}") from None
 
 
-def positive_float(text: str) -> float:
-    """A finite number > 0 (``--voxel-size``)."""
-    v = _number(text)
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"Expected a number > 0, but got {text!r}")
-    return v
+def _bounded(name: str, parse: Callable[[str], float], ok: Callable[[float], bool], want: str, doc: str):
+    """A ``type=`` validator named ``name``: ``parse`` the text, then refuse values ``ok`` rejects,
+    saying ``want``."""
+
+    def check(text: str):
+        v = parse(text)
+        if not ok(v):
+            raise argparse.ArgumentTypeError(f"Expected {want}, but got {text!r}")
+        return v
+
+    check.__name__ = check.__qualname__ = name
+    check.__doc__ = doc
+    return check
 
 
-def nonnegative_float(text: str) -> float:
-    """A finite number >= 0 (``--pose-noise``, ``--shadow-m``)."""
-    v = _number(text)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"Expected a number >= 0, but got {text!r}")
-    return v
-
-
-def unit_interval(text: str) -> float:
-    """A number in (0, 1] (an occupied threshold)."""
-    v = _number(text)
-    if not 0.0 < v <= 1.0:
-        raise argparse.ArgumentTypeError(f"Expected a number in (0, 1], but got {text!r}")
-    return v
-
-
-def probability(text: str) -> float:
-    """A number in [0, 1]."""
-    v = _number(text)
-    if not 0.0 <= v <= 1.0:
-        raise argparse.ArgumentTypeError(f"Expected a number in [0, 1], but got {text!r}")
-    return v
+positive_float = _bounded("positive_float", _number, lambda v: v > 0, "a number > 0",
+                          "A finite number > 0 (``--voxel-size``).")
+nonnegative_float = _bounded("nonnegative_float", _number, lambda v: v >= 0, "a number >= 0",
+                             "A finite number >= 0 (``--pose-noise``, ``--shadow-m``).")
+unit_interval = _bounded("unit_interval", _number, lambda v: 0.0 < v <= 1.0, "a number in (0, 1]",
+                         "A number in (0, 1] (an occupied threshold).")
+probability = _bounded("probability", _number, lambda v: 0.0 <= v <= 1.0, "a number in [0, 1]",
+                       "A number in [0, 1].")
+positive_int = _bounded("positive_int", _whole, lambda v: v >= 1, "a whole number >= 1",
+                        "A whole number >= 1 (``--stride``, ``--pings``, ``--max-frames``).")
+nonnegative_int = _bounded("nonnegative_int", _whole, lambda v: v >= 0, "a whole number >= 0",
+                           "A whole number >= 0 (``--seed``).")
 
 
 def threshold_or_auto(text: str) -> float | str:
@@ -147,22 +145,6 @@ def threshold_or_auto(text: str) -> float | str:
         raise argparse.ArgumentTypeError(
             f"Expected a number in (0, 1] or 'auto', but got {text!r}"
         ) from None
-
-
-def positive_int(text: str) -> int:
-    """A whole number >= 1 (``--stride``, ``--pings``, ``--max-frames``)."""
-    v = _whole(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"Expected a whole number >= 1, but got {text!r}")
-    return v
-
-
-def nonnegative_int(text: str) -> int:
-    """A whole number >= 0 (``--seed``)."""
-    v = _whole(text)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"Expected a whole number >= 0, but got {text!r}")
-    return v
 
 
 def vfov_deg(text: str) -> float:

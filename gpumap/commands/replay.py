@@ -66,6 +66,7 @@ from gpumap.replay import (
     replay_rules,
     run_replay,
     select_frames,
+    select_strided,
 )
 from gpumap.spec import GridSpec, SonarSpec
 from gpumap.viewer.render import save_pictures
@@ -379,13 +380,7 @@ def _surface(a: argparse.Namespace, kwargs: dict, mapper, stride: int):
     eye = np.eye(4)
 
     def frames():
-        k = 0
-        for i, fr in enumerate(rec):
-            if i % stride:
-                continue
-            if a.max_frames is not None and k >= a.max_frames:
-                break
-            k += 1
+        for fr in select_strided(rec, stride, a.max_frames):
             T = eye if a.static else fr.T_W_S
             if T is None or fr.spec != mapper.spec:
                 continue
