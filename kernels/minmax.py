@@ -12,10 +12,15 @@ parameters, the image, the tangents of the beam edges, the beam look-up table, t
 (the ``gpumap/backends/`` package) owns arrays, devices and launches.
 """
 
+import os
+
 import warp as wp
 
 # No FMA contraction on GPUs: every backend then rounds as the NumPy oracle does, bit for bit.
 wp.set_module_options({"fuse_fp": False})
+#: Register cap of the batch gather on CUDA (``GPUMAP_GPU_MAX_REGISTERS``, read at import; unset or
+#: 0: the compiler's choice): fewer registers, more threads in flight, some spilled to local memory.
+GATHER_MAX_REGISTERS = int(os.environ.get("GPUMAP_GPU_MAX_REGISTERS", "0") or 0) or None
 
 
 @wp.struct
@@ -83,8 +88,9 @@ def voxel_ping_value(
     first_bright: wp.array(dtype=int),
 ) -> wp.vec2:
     """(max image value over the footprint of the voxel centred at c (world), clear); value -1
-    if unobserved. For the visible rule, clear is 1 when ``first_bright`` (per beam, the first
-    bin >= thr) puts no return nearer than the footprint's first bin in any of its beams, else 0.
+    if unobserved. For the visible and evidence rules and a dark value (< thr), clear is 1 when
+    ``first_bright`` (per beam, the first bin >= thr) puts no return nearer than the footprint's
+    first bin in any of its beams, else 0 (and 0 for bright values, whose update never reads it).
 
     The footprint is bins [b0, b0 + win - 1] x beams [j0, j1]: the smallest fixed-height
     window that always holds the bins of the voxel's bounding sphere (one extra bin at
@@ -121,30 +127,30 @@ def voxel_ping_value(
             j0 = beam_index_lo((t - u) / d0, tan_edges, lut, P)
         if d1 > 0.0:
             j1 = beam_index_lo((t + u) / d1, tan_edges, lut, P)
-    clear = float(0.0)
-    if P.rule != 0:
-        blocked = int(0)
-        for jj in range(j0, j1 + 1):
-            if first_bright[jj] < b0:
-                blocked = 1
-        if blocked == 0:
-            clear = 1.0
+    v = float(0.0)
     if table.shape[0] > 0 and first >= 0:  # the max table: two reads (more near the apex)
         k = int(0)
         while (2 << k) <= j1 - j0 + 1 and k + 1 < P.n_levels:
             k += 1
         w = 1 << k
         base = (k * P.n_bins + b0) * P.n_beams
-        m = table[base + j1 - w + 1]
+        v = table[base + j1 - w + 1]
         jj = j0
         while jj <= j1 - w + 1:
-            m = wp.max(m, table[base + jj])
+            v = wp.max(v, table[base + jj])
             jj += w
-        return wp.vec2(m, clear)
-    v = float(0.0)
-    for i in range(b0, b1 + 1):
-        for j in range(j0, j1 + 1):
-            v = wp.max(v, image[i, j])
+    else:
+        for i in range(b0, b1 + 1):
+            for j in range(j0, j1 + 1):
+                v = wp.max(v, image[i, j])
+    # clear matters only to a dark view's count (update_voxel): looked up only then
+    clear = float(0.0)
+    if P.rule != 0 and v < P.thr:
+        clear = float(1.0)
+        for jj in range(j0, j1 + 1):
+            if first_bright[jj] < b0:
+                clear = 0.0
+                break
     return wp.vec2(v, clear)
 
 
@@ -207,25 +213,36 @@ def update_voxel(
     v = vc[0]
     if v < grid[idx]:  # a write only where the value falls (memory traffic, not arithmetic, bounds it)
         grid[idx] = v
-    if P.rule != 0:  # count is read only where it changes (a dark view behind a return leaves it)
-        if v >= P.thr:
-            if v < bright[idx]:
-                bright[idx] = v
+    if P.rule != 0:  # count is read only where it may change (a dark view behind a return leaves it)
+        if v >= P.thr and v < bright[idx]:
+            bright[idx] = v
+        if v >= P.thr or vc[1] > 0.0:
             c = count[idx]
-            if c < HITS_FULL:
-                count[idx] = c + COUNT_HIGH_ONE
-        elif vc[1] > 0.0:
-            c = count[idx]
-            dark = c & COUNT_LOW
-            cap = COUNT_LOW
-            step = wp.uint64(1)
-            if P.rule == 1:
-                cap = wp.uint64(255)
-                if v < P.thr_dark:
-                    step = wp.uint64(2)
-            if dark < cap:
-                dark = wp.min(dark + step, cap)
-                count[idx] = (c - (c & COUNT_LOW)) + dark
+            n = counted(P, v, vc[1], c)
+            if n != c:
+                count[idx] = n
+
+
+@wp.func
+def counted(P: PingParams, v: float, clear: float, c: wp.uint64) -> wp.uint64:
+    """The packed view counts ``c`` after one view (value v, clear) under the visible or evidence
+    rule: a bright view raises the bright count, a clear dark one the dark count (the visible
+    rule's by 2 below thr_dark, to 255), each saturating."""
+    if v >= P.thr:
+        if c < HITS_FULL:
+            return c + COUNT_HIGH_ONE
+        return c
+    if clear > 0.0:
+        dark = c & COUNT_LOW
+        cap = COUNT_LOW
+        step = wp.uint64(1)
+        if P.rule == 1:
+            cap = wp.uint64(255)
+            if v < P.thr_dark:
+                step = wp.uint64(2)
+        if dark < cap:
+            return (c - dark) + wp.min(dark + step, cap)
+    return c
 
 
 @wp.kernel
@@ -615,6 +632,97 @@ def integrate_gather_batch(
                     P, i, j, k0, k1, images[b], tan_edges, lut, tables[b], first_bright[b],
                     index, bcol, grid, bright, count, seen, err,
                 )
+
+
+@wp.func
+def ping_of(P0: PingParams, Ps: wp.array(dtype=PingParams), b: int) -> PingParams:
+    """Ping b's parameters: ``P0`` (ping 0's, a kernel argument: read from constant memory where it
+    is used) with the fields that differ between a batch's pings (pose, footprint) read from Ps[b]."""
+    P = P0
+    P.A = Ps[b].A
+    P.b = Ps[b].b
+    P.rho = Ps[b].rho
+    P.near = Ps[b].near
+    P.win = Ps[b].win
+    return P
+
+
+@wp.kernel(cuda_max_registers=GATHER_MAX_REGISTERS)
+def integrate_voxels_batch(
+    P0: PingParams,
+    Ps: wp.array(dtype=PingParams),
+    boxes: wp.array2d(dtype=int),
+    box_lo: wp.vec3i,
+    box_n: wp.vec3i,
+    images: wp.array3d(dtype=float),
+    tan_edges: wp.array(dtype=float),
+    lut: wp.array(dtype=int),
+    tables: wp.array2d(dtype=float),
+    first_bright: wp.array2d(dtype=int),
+    index: wp.array(dtype=int),
+    grid: wp.array(dtype=float),
+    bright: wp.array(dtype=float),
+    count: wp.array(dtype=wp.uint64),
+    seen: wp.array(dtype=wp.uint8),
+    err: wp.array(dtype=int),
+):
+    """One thread per voxel of the union box (box_lo, box_n), k fastest (a warp walks a column's
+    contiguous voxels): it folds ping 0, 1, ... into the voxel, each ping only within that ping's
+    box (``boxes[b]``). The voxel's values live in registers from its first view and are written
+    once, where they changed; a ping's parameters are read only while that ping is folded, so
+    few registers stay live (integrate_gather_batch keeps a whole ping's for a chunk's walk)."""
+    tid = wp.tid()
+    col = tid // box_n[2]
+    k = box_lo[2] + tid - col * box_n[2]
+    i = box_lo[0] + col // box_n[1]
+    j = box_lo[1] + col - (col // box_n[1]) * box_n[1]
+    c = voxel_centre(P0, i, j, k)
+    a = int(-1)
+    hit = int(0)
+    g0 = float(0.0)
+    g = float(0.0)
+    br0 = float(0.0)
+    br = float(0.0)
+    n0 = wp.uint64(0)
+    n = wp.uint64(0)
+    for b in range(Ps.shape[0]):
+        inside = i >= boxes[b, 0] and i < boxes[b, 0] + boxes[b, 3] and j >= boxes[b, 1]
+        if inside and j < boxes[b, 1] + boxes[b, 4] and k >= boxes[b, 2] and k < boxes[b, 2] + boxes[b, 5]:
+            P = ping_of(P0, Ps, b)
+            vc = voxel_ping_value(P, c, images[b], tan_edges, lut, tables[b], first_bright[b])
+            v = vc[0]
+            if v >= 0.0:
+                if hit == 0:  # the first view: find the voxel and read its values
+                    hit = 1
+                    a = voxel_address(P, index, i, j, k)
+                    if a >= 0:
+                        g0 = grid[a]
+                        g = g0
+                        if P.rule != 0:
+                            br0 = bright[a]
+                            br = br0
+                            n0 = count[a]
+                            n = n0
+                if a >= 0:
+                    if v < g:
+                        g = v
+                    if P.rule != 0:
+                        if v >= P.thr and v < br:
+                            br = v
+                        n = counted(P, v, vc[1], n)
+    if hit != 0:
+        if a < 0:
+            err[0] = 1
+        else:
+            if g < g0:
+                grid[a] = g
+            if br < br0:
+                bright[a] = br
+            if n != n0:
+                count[a] = n
+            slot = a // (P0.blk * P0.blk * P0.blk_z)
+            if seen[slot] == wp.uint8(0):
+                seen[slot] = wp.uint8(1)
 
 
 @wp.kernel

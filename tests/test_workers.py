@@ -210,3 +210,32 @@ def test_asking_more_workers_than_the_cluster_has_says_how_many(cluster, monkeyp
     with pytest.raises(ValueError, match="Expected 5 Dask workers, but the cluster has 3"):
         run_replay_workers(_tank(6), workers=5, client=client, voxel_size_m=0.06, backend="numpy",
                            progress=False)
+
+
+def test_one_gpu_per_worker_by_rank_on_its_host(monkeypatch):
+    """--workers over the GPUs of a machine: a worker's rank among the workers of its host picks its
+    GPU (modulo the host's GPUs), set in CUDA_VISIBLE_DEVICES before CUDA starts; a host without GPUs
+    leaves the variable alone."""
+    from gpumap import workers
+
+    addrs = ["tcp://10.0.0.2:4001", "tcp://10.0.0.1:4000", "tcp://10.0.0.2:4002", "tcp://10.0.0.1:4003",
+             "inproc://10.0.0.9/1/2"]
+    assert workers.host_ranks(addrs) == [0, 0, 1, 1, 0]
+    monkeypatch.setattr(workers, "_cuda_started", lambda: False)
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")  # the GPUs this process may use
+    assert workers.host_gpus() == ["2", "3"]
+    assert workers.pin_gpu(3) == "3"
+    import os
+
+    assert os.environ["CUDA_VISIBLE_DEVICES"] == "3"
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")  # none
+    assert workers.host_gpus() == [] and workers.pin_gpu(0) is None
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
+    monkeypatch.setattr(workers.os, "listdir", lambda p: ["0000:1b:00.0", "0000:43:00.0"])
+    assert workers.host_gpus() == ["0", "1"]
+    assert workers.pin_gpu(1) == "1"
+    monkeypatch.setattr(workers, "_cuda_started", lambda: True)  # too late: the variable says nothing
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
+    assert workers.pin_gpu(0) is None and "CUDA_VISIBLE_DEVICES" not in os.environ
+    with pytest.raises(ValueError, match="gpus"):
+        run_replay_workers(None, workers=1, gpus="all", static=True)
