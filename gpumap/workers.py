@@ -62,8 +62,14 @@ def host_gpus() -> list[str]:
         return [d.strip() for d in seen.split(",") if d.strip() and d.strip() != "-1"]
     try:
         n = len(os.listdir("/proc/driver/nvidia/gpus"))
-    except OSError:
-        return []
+    except OSError:  # no driver files: ask nvidia-smi (a process of its own), if there is one
+        import subprocess
+
+        try:
+            out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=20).stdout
+        except (OSError, subprocess.SubprocessError):
+            return []
+        n = sum(line.startswith("GPU ") for line in out.splitlines())
     return [str(k) for k in range(n)]
 
 
@@ -150,6 +156,50 @@ class MapperActor:
                 "seconds_pack": time.perf_counter() - t1, "state_mb": _nbytes(packed) / 1e6,
                 "state_mb_unpacked": sum(a.nbytes for a in st.arrays.values()) / 1e6}
         return packed, info
+
+
+#: ``SonarFrame.meta`` key of a frame's own bytes, where its reader has them: ``image`` is exactly
+#: ``image_u8 * gpumap.backends.U8_SCALE`` (float32). The client then sends the bytes as they are
+#: (a quarter of the float32 frame, and no pass to find them: :func:`_compact`).
+FRAME_BYTES = "image_u8"
+
+
+def frame_pixels(fr) -> np.ndarray:
+    """What the client sends of frame ``fr``: its bytes (:data:`FRAME_BYTES`) where its reader
+    kept them and they have the frame's shape, else its float32 image."""
+    u8 = fr.meta.get(FRAME_BYTES) if isinstance(fr.meta, dict) else None
+    if isinstance(u8, np.ndarray) and u8.dtype == np.uint8 and u8.shape == fr.image.shape:
+        return u8
+    return fr.image
+
+
+class _Batch:
+    """A worker's next batch, filled in place: each frame copied once, into the array that is sent
+    (the reader may reuse its buffers), and a new array per batch (Dask may still be sending the
+    last one)."""
+
+    def __init__(self) -> None:
+        self.images: np.ndarray | None = None
+        self.poses = np.empty((BATCH, 4, 4))
+        self.n = 0
+
+    def fits(self, img: np.ndarray) -> bool:
+        """Whether ``img`` may join (same dtype and shape as the frames already in)."""
+        a = self.images
+        return self.n == 0 or (a.dtype == img.dtype and a.shape[1:] == img.shape)
+
+    def add(self, img: np.ndarray, T) -> int:
+        if self.images is None or not (self.images.dtype == img.dtype and self.images.shape[1:] == img.shape):
+            self.images = np.empty((BATCH, *img.shape), img.dtype)
+        self.images[self.n] = img
+        self.poses[self.n] = np.asarray(T, np.float64)
+        self.n += 1
+        return self.n
+
+    def take(self) -> tuple[np.ndarray, np.ndarray]:
+        out = self.images[: self.n], self.poses[: self.n].copy()
+        self.images, self.n = None, 0
+        return out
 
 
 def _compact(images: np.ndarray) -> np.ndarray:
@@ -430,17 +480,16 @@ def run_replay_workers(
         actors: list = []
         pending: list[deque] = [deque() for _ in addrs]
         spec = None
-        batches: list[list] = [[] for _ in addrs]
+        batches = [_Batch() for _ in addrs]
         t_map = time.perf_counter()
         t_setup = 0.0
 
         def send(w: int) -> None:
-            batch, q = batches[w], pending[w]
+            q = pending[w]
             while len(q) >= QUEUED:
                 q.popleft().result()
-            images, poses = _compact(np.stack([b[0] for b in batch])), np.stack([b[1] for b in batch])
-            q.append(actors[w].integrate_batch(images, poses))
-            batch.clear()
+            images, poses = batches[w].take()
+            q.append(actors[w].integrate_batch(_compact(images), poses))
 
         frame_iter = tqdm(frames(), total=total, unit="img", disable=not progress,
                           desc=f"replay x{len(addrs)}")
@@ -467,11 +516,10 @@ def run_replay_workers(
                 w = int(owners[i]) if i < len(owners) else 0  # a frame the pose list missed
             else:
                 w = (stats["frames"] // BATCH) % len(actors)
-            batch = batches[w]
-            if batch and fr.image.dtype != batch[0][0].dtype:
+            img = frame_pixels(fr)
+            if not batches[w].fits(img):
                 send(w)
-            batch.append((np.array(fr.image), np.asarray(T, np.float64)))
-            if len(batch) == BATCH:
+            if batches[w].add(img, T) == BATCH:
                 send(w)
             stats["frames"] += 1
             if positions is not None:
@@ -479,7 +527,7 @@ def run_replay_workers(
         if spec is None:
             raise ValueError(f"Expected frames in {recording.path}, but it has none")
         for w, batch in enumerate(batches):
-            if batch:
+            if batch.n:
                 send(w)
         for q in pending:
             while q:

@@ -239,3 +239,30 @@ def test_one_gpu_per_worker_by_rank_on_its_host(monkeypatch):
     assert workers.pin_gpu(0) is None and "CUDA_VISIBLE_DEVICES" not in os.environ
     with pytest.raises(ValueError, match="gpus"):
         run_replay_workers(None, workers=1, gpus="all", static=True)
+
+
+@needs_data
+def test_frames_carrying_their_bytes_are_sent_as_bytes(cluster):
+    """A reader that keeps a frame's bytes (meta FRAME_BYTES, image == bytes / 255 in float32) has
+    the client send those (a quarter of the data, no pass to find them): the same map."""
+    from gpumap.backends import U8_SCALE
+    from gpumap.io import Recording, SonarFrame
+    from gpumap.workers import FRAME_BYTES
+
+    _, client = cluster
+    src = list(_tank(6))
+    u8 = [np.round(f.image * 255).astype(np.uint8) for f in src]
+    flt = [np.multiply(b, U8_SCALE, dtype=np.float32) for b in u8]
+
+    def frames(with_bytes: bool):
+        return [SonarFrame(flt[i], f.spec, None, f.T_W_S, {FRAME_BYTES: u8[i]} if with_bytes else {})
+                for i, f in enumerate(src)]
+
+    recs = [Recording("tank", "arrays", lambda w=w: iter(frames(w)), True, count=lambda: len(src))
+            for w in (False, True)]
+    kw = dict(voxel_size_m=0.06, backend="numpy", progress=False)
+    one, _ = run_replay(recs[0], **kw)
+    for rec in recs:
+        got, s = run_replay_workers(rec, workers=2, client=client, **kw)
+        assert s["frames"] == len(src)
+        _assert_same(got, one)
