@@ -184,8 +184,13 @@ def _package(tree: Path, into: Path) -> Path:
     return into
 
 
+def _pythonpath(first: Path) -> str:
+    """``first`` ahead of this process's PYTHONPATH (where Warp, pyopencl and Dask may live)."""
+    return os.pathsep.join(x for x in (str(first), os.environ.get("PYTHONPATH")) if x)
+
+
 def _run_row(path_dir: Path, args: list[str], env_extra: dict, timeout: float) -> dict:
-    env = {**os.environ, "PYTHONPATH": str(path_dir), **env_extra}
+    env = {**os.environ, "PYTHONPATH": _pythonpath(path_dir), **env_extra}
     cmd = [sys.executable, "-P", str(Path(__file__).resolve()), *args]
     t = time.perf_counter()
     p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
@@ -211,7 +216,7 @@ def single(a, res: dict, save) -> None:
         dump = tmp / f"oracle_{v}.npz"
         cmd = [sys.executable, "-P", str(Path(__file__).resolve()), "--oracle", "--frames",
                str(Path(a.frames).resolve()), "--voxel", str(v), "--check", str(k), "--dump", str(dump)]
-        oracles[v] = (subprocess.Popen(cmd, env={**os.environ, "PYTHONPATH": str(trees["new"])},
+        oracles[v] = (subprocess.Popen(cmd, env={**os.environ, "PYTHONPATH": _pythonpath(trees["new"])},
                                        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), dump, k)
     n_gpu = max(1, len(res.get("gpus", [])))
     lanes: dict[str, list] = {b: [] for b in a.backends}
@@ -333,6 +338,8 @@ def workers_section(a, res: dict, save, name: str, backend: str, voxel: float, n
     from gpumap.replay import run_replay
     from gpumap.workers import run_replay_workers
 
+    # the worker processes import this checkout's gpumap (as this process does)
+    os.environ["PYTHONPATH"] = _pythonpath(Path(gpumap.__file__).resolve().parents[1])
     imgs, poses, spec = _frames(a.frames)
     rec = _recording(imgs, poses, spec, a.repeat)
     grid = gpumap.GridSpec(*BOX, voxel)
@@ -414,7 +421,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--latency", type=int, default=300,
                    help="synchronised pings for the latency (5 mm: a third)")
     p.add_argument("--check", type=int, default=16, help="frames compared with the oracle at 1 cm (5 mm: 4)")
-    p.add_argument("--repeat", type=int, default=80, help="workers: the frames repeated this many times")
+    p.add_argument("--repeat", type=int, default=120, help="workers: the frames repeated this many times")
     p.add_argument("--worker-voxel", type=float, default=0.005)
     p.add_argument("--backends", nargs="+", default=["warp-cuda", "opencl-gpu"],
                    help="single section: one lane each (on GPU 0, 1, ... where there are several)")
@@ -453,7 +460,7 @@ def main(argv: list[str] | None = None) -> int:
     if "workers" in a.sections:
         n = [1, 2] if len(res["gpus"]) >= 2 else [1]
         try:
-            workers_section(a, res, save, "workers", "warp-cuda", a.worker_voxel, n, max(3, a.reps // 2 + 1))
+            workers_section(a, res, save, "workers", "warp-cuda", a.worker_voxel, n, 3)
         except Exception as e:  # recorded: the rest of the run still counts
             res["workers_error"] = repr(e)
             save()

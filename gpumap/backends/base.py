@@ -224,17 +224,22 @@ def _union_groups(params: np.ndarray, n_threads: np.ndarray, slack: float = 2.0)
     the voxels of the boxes themselves (far-apart pings would make threads walk empty space)."""
     lo = params["box_lo"].astype(np.int64)
     hi = lo + params["box_n"].astype(np.int64)
-    vol = np.where(n_threads > 0, np.prod(hi - lo, axis=1), 0)
+    vol = np.where(n_threads > 0, np.prod(hi - lo, axis=1), 0).tolist()
+    lo, hi = lo.tolist(), hi.tolist()  # plain ints: a ping costs a microsecond, not NumPy's calls
     out, start = [], 0
     ulo, uhi, total = None, None, 0
     for b in range(params.shape[0]):
         if vol[b] == 0:
             continue
-        nlo = lo[b] if ulo is None else np.minimum(ulo, lo[b])
-        nhi = hi[b] if uhi is None else np.maximum(uhi, hi[b])
-        if ulo is not None and (np.prod(nhi - nlo) > slack * (total + vol[b]) or b - start >= BATCH_MAX):
-            out.append((start, b))
-            start, nlo, nhi, total = b, lo[b], hi[b], 0
+        if ulo is None:
+            nlo, nhi = lo[b], hi[b]
+        else:
+            nlo = [min(x, y) for x, y in zip(ulo, lo[b], strict=True)]
+            nhi = [max(x, y) for x, y in zip(uhi, hi[b], strict=True)]
+            span = (nhi[0] - nlo[0]) * (nhi[1] - nlo[1]) * (nhi[2] - nlo[2])
+            if span > slack * (total + vol[b]) or b - start >= BATCH_MAX:
+                out.append((start, b))
+                start, nlo, nhi, total = b, lo[b], hi[b], 0
         ulo, uhi, total = nlo, nhi, total + vol[b]
     if ulo is not None:
         out.append((start, params.shape[0]))
