@@ -49,11 +49,11 @@ if __package__:  # python -m bench.gpu_scale (a worker runs this file as a scrip
 BOX = ((-0.5, -1.2, -0.5), (1.9, 1.2, 0.8))
 VOXELS = (0.01, 0.005)
 #: Variants of this tree: (name, knobs on gpumap.backends, environment).
-VARIANTS = {
-    "voxels": ({"BATCH_KERNEL": "voxels", "BATCH_BOX_VOXELS_MAX": 10**12}, {}),
+VARIANTS = {  # (the first GPU run's rows used these names with Warp uncapped by default)
+    "voxels": ({"BATCH_KERNEL": "voxels", "BATCH_BOX_VOXELS_MAX": 10**12}, {"GPUMAP_GPU_MAX_REGISTERS": "0"}),
     "voxels-regs64": ({"BATCH_KERNEL": "voxels", "BATCH_BOX_VOXELS_MAX": 10**12},
                       {"GPUMAP_GPU_MAX_REGISTERS": "64"}),
-    "columns": ({"BATCH_KERNEL": "columns"}, {}),
+    "columns": ({"BATCH_KERNEL": "columns", "OPENCL_BATCH_BOX_VOXELS_MAX": 16_000_000}, {}),
     "as-shipped": ({}, {}),
 }
 
@@ -93,10 +93,14 @@ def _worker(a) -> None:
     imgs, poses, spec = _frames(a.frames)
     grid = gpumap.GridSpec(*BOX, a.voxel)
     n, B = len(imgs), a.batch
-    order = [np.arange(k, k + B) % n for k in range(0, n * B, B)]  # batches wrapping round the run
+    # batches of B consecutive frames wrapping round the run, as contiguous views of one array (a
+    # caller's batch: no copy of the frames inside the timed loop)
+    ext = np.ascontiguousarray(imgs[np.arange(n + B) % n])
+    ext_T = np.ascontiguousarray(poses[np.arange(n + B) % n])
+    order = [slice(s0, s0 + B) for s0 in (np.arange(0, n * B, B) % n).tolist()]
     t0 = time.perf_counter()
     m = gpumap.MinMaxMapper(spec, grid, backend=a.backend)
-    m.integrate_batch(imgs[order[0]], poses[order[0]])  # compile / load, buffers
+    m.integrate_batch(ext[order[0]], ext_T[order[0]])  # compile / load, buffers
     m.synchronize()
     row = {"backend": m.backend, "device": m.device, "rule": m.rule, "voxel_m": a.voxel, "batch": B,
            "grid_shape": list(grid.shape), "setup_s": time.perf_counter() - t0,
@@ -109,7 +113,7 @@ def _worker(a) -> None:
             ks = order[c % len(order)]
             c += 1
             th = time.perf_counter()
-            m.integrate_batch(imgs[ks], poses[ks])
+            m.integrate_batch(ext[ks], ext_T[ks])
             host_ms.append(1e3 * (time.perf_counter() - th))
         m.synchronize()
         rates.append(per_rep * B / (time.perf_counter() - t))
@@ -125,7 +129,7 @@ def _worker(a) -> None:
         for _ in range(per_rep):
             ks = order[c % len(order)]
             c += 1
-            m.integrate_batch(imgs[ks], poses[ks])
+            m.integrate_batch(ext[ks], ext_T[ks])
         m.synchronize()
         prof: dict = {}
         for r in wp.timing_end():
@@ -223,9 +227,12 @@ def single(a, res: dict, save) -> None:
     for backend in lanes:
         for v in a.voxels:
             jobs = [("old", "as-shipped")] if "old" in trees else []
-            jobs += [("new", "voxels"), ("new", "columns"), ("new", "voxels-regs64")]
-            if v < 0.01:
-                jobs.append(("new", "as-shipped"))
+            if a.variants:
+                jobs += [("new", x) for x in a.variants]
+            else:
+                jobs += [("new", "voxels"), ("new", "columns"), ("new", "voxels-regs64")]
+                if v < 0.01:
+                    jobs.append(("new", "as-shipped"))
             for tree, variant in jobs:
                 knobs, env = VARIANTS[variant]
                 fine = v < 0.01  # 5 mm: a quarter of the pings and checked frames, a third of the latency
@@ -302,14 +309,19 @@ def _recording(imgs, poses, spec, repeat: int):
     from gpumap.workers import FRAME_BYTES
 
     flt = [np.multiply(b, U8_SCALE, dtype=np.float32) for b in imgs]
+    # each repeat 0.1 mm further along x: the same work, but pings of their own (maps that share a
+    # ping would count it twice when merged, and gpumap.merge refuses them)
+    Ts = [T.copy() for _ in range(repeat) for T in poses]
+    for r in range(repeat):
+        for T in Ts[r * len(imgs) : (r + 1) * len(imgs)]:
+            T[0, 3] += 1e-4 * r
 
     def frames():
-        for _ in range(repeat):
-            for k in range(len(imgs)):
-                yield SonarFrame(flt[k], spec, None, poses[k], {FRAME_BYTES: imgs[k]})
+        for i, T in enumerate(Ts):
+            k = i % len(imgs)
+            yield SonarFrame(flt[k], spec, None, T, {FRAME_BYTES: imgs[k]})
 
-    return Recording("tank-arrays", "arrays", frames, True, count=lambda: repeat * len(imgs),
-                     poses=lambda: repeat * list(poses))
+    return Recording("tank-arrays", "arrays", frames, True, count=lambda: len(Ts), poses=lambda: list(Ts))
 
 
 def _client_only(rec) -> float:
@@ -426,6 +438,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--backends", nargs="+", default=["warp-cuda", "opencl-gpu"],
                    help="single section: one lane each (on GPU 0, 1, ... where there are several)")
     p.add_argument("--voxels", type=float, nargs="+", default=list(VOXELS))
+    p.add_argument("--variants", nargs="+", default=None, choices=list(VARIANTS),
+                   help="this tree's variants to time (default: every one)")
+    p.add_argument("--worker-reps", type=int, default=3, help="warm runs of the workers section")
     p.add_argument("--row-timeout", type=float, default=240.0)
     # one row in this process (internal)
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
@@ -460,7 +475,7 @@ def main(argv: list[str] | None = None) -> int:
     if "workers" in a.sections:
         n = [1, 2] if len(res["gpus"]) >= 2 else [1]
         try:
-            workers_section(a, res, save, "workers", "warp-cuda", a.worker_voxel, n, 3)
+            workers_section(a, res, save, "workers", "warp-cuda", a.worker_voxel, n, a.worker_reps)
         except Exception as e:  # recorded: the rest of the run still counts
             res["workers_error"] = repr(e)
             save()

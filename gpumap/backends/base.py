@@ -27,8 +27,12 @@ CPU_CHUNK = 1 << 30  # on CPUs, the whole column
 #: Pings a GPU folds per launch (more are split); buffers grow to the largest batch seen.
 BATCH_MAX = 64
 #: Pings whose boxes hold more voxels than this on average go one launch each: at that size
-#: a launch's fixed cost is small, and one launch per ping ran faster on an H100 (5 mm, tank).
+#: a launch's fixed cost is small, and one launch per ping ran faster on an H100 (5 mm, tank:
+#: Warp's per-voxel batch kernel 357 us per ping against its per-ping gather's 299 us,
+#: bench/results/gpu_scale.json). OpenCL's per-voxel batch kernel ran faster than one launch per
+#: ping there (4.5k pings/s against 2.5k): its backend reads OPENCL_BATCH_BOX_VOXELS_MAX instead.
 BATCH_BOX_VOXELS_MAX = 16_000_000
+OPENCL_BATCH_BOX_VOXELS_MAX = 1 << 40
 
 #: How a GPU batch is folded: ``"voxels"``, a thread per voxel of the union box folding every ping
 #: into the voxel's values in registers (``integrate_voxels_batch``), or ``"columns"``, a thread per
@@ -41,8 +45,8 @@ COPY_SPLIT_BYTES = 4 << 20
 
 #: The knobs above that a run may set (on this module, or on :mod:`gpumap.backends`, which
 #: passes them on): read here when they are used, never copied.
-TUNABLES = ("GPU_CHUNK", "CPU_CHUNK", "CPU_THREADS", "BATCH_MAX", "BATCH_BOX_VOXELS_MAX", "BATCH_KERNEL",
-            "COPY_THREADS", "COPY_SPLIT_BYTES")
+TUNABLES = ("GPU_CHUNK", "CPU_CHUNK", "CPU_THREADS", "BATCH_MAX", "BATCH_BOX_VOXELS_MAX",
+            "OPENCL_BATCH_BOX_VOXELS_MAX", "BATCH_KERNEL", "COPY_THREADS", "COPY_SPLIT_BYTES")
 
 
 @functools.cache
@@ -93,6 +97,8 @@ class Backend:
 
     name: str
     device: str
+    #: The knob of this module that caps the boxes a batch kernel folds (see BATCH_BOX_VOXELS_MAX).
+    batch_box_knob = "BATCH_BOX_VOXELS_MAX"
 
     def _setup_pool(self, visible: bool, B: int, Bz: int | None) -> None:
         Bz = B if Bz is None else Bz
@@ -139,7 +145,7 @@ class Backend:
         go to ``_launch_batch``, else the pings are applied one by one."""
         # batch_kernels: only backends with a _launch_batch have it
         fold = getattr(self, "batch_kernels", False) and method == "gather"
-        if not fold or not _fold_in_batches(params, n_threads):
+        if not fold or not _fold_in_batches(params, n_threads, globals()[self.batch_box_knob]):
             for b in range(params.shape[0]):
                 self.integrate(params[b, ...], images[b], method, int(n_threads[b]))
             return
@@ -210,13 +216,14 @@ def _check_rule(params: np.ndarray, visible: bool) -> None:
             "Expected a backend built with visible=True for rule='visible' or 'evidence' parameters")
 
 
-def _fold_in_batches(params: np.ndarray, n_threads: np.ndarray) -> bool:
-    """Whether the batch kernels pay off for these pings (see BATCH_BOX_VOXELS_MAX)."""
+def _fold_in_batches(params: np.ndarray, n_threads: np.ndarray, box_max: float) -> bool:
+    """Whether the batch kernels pay off for these pings (boxes of ``box_max`` voxels at most on
+    average: see BATCH_BOX_VOXELS_MAX)."""
     live = n_threads > 0
     if not live.any():
         return False
     vol = np.prod(params["box_n"][live].astype(np.float64), axis=1)
-    return float(vol.mean()) <= BATCH_BOX_VOXELS_MAX
+    return float(vol.mean()) <= box_max
 
 
 def _union_groups(params: np.ndarray, n_threads: np.ndarray, slack: float = 2.0) -> list[tuple[int, int]]:

@@ -114,6 +114,8 @@ def usable_opencl_device(kind: str):
 
 
 class OpenCLBackend(Backend):
+    batch_box_knob = "OPENCL_BATCH_BOX_VOXELS_MAX"
+
     def __init__(self, spec, template_S, use_table=None, kind="any", *, visible=False, B=8, Bz=None, cap=0):
         n_bins, n_beams = spec.image_shape
         cl = _opencl()
