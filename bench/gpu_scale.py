@@ -49,11 +49,11 @@ if __package__:  # python -m bench.gpu_scale (a worker runs this file as a scrip
 BOX = ((-0.5, -1.2, -0.5), (1.9, 1.2, 0.8))
 VOXELS = (0.01, 0.005)
 #: Variants of this tree: (name, knobs on gpumap.backends, environment).
-VARIANTS = {  # (the first GPU run's rows used these names with Warp uncapped by default)
-    "voxels": ({"BATCH_KERNEL": "voxels", "BATCH_BOX_VOXELS_MAX": 10**12}, {"GPUMAP_GPU_MAX_REGISTERS": "0"}),
-    "voxels-regs64": ({"BATCH_KERNEL": "voxels", "BATCH_BOX_VOXELS_MAX": 10**12},
-                      {"GPUMAP_GPU_MAX_REGISTERS": "64"}),
-    "columns": ({"BATCH_KERNEL": "columns", "OPENCL_BATCH_BOX_VOXELS_MAX": 16_000_000}, {}),
+VARIANTS = {  # knobs of this tree (the first GPU run also timed a thread per chunk of a column,
+    # since removed, and Warp without the register cap: bench/results/gpu_scale_variants.json)
+    "uncapped": ({}, {"GPUMAP_GPU_MAX_REGISTERS": "0"}),
+    "warp-batched-5mm": ({"BATCH_BOX_VOXELS_MAX": 10**12}, {}),
+    "opencl-per-ping-5mm": ({"OPENCL_BATCH_BOX_VOXELS_MAX": 16_000_000}, {}),
     "as-shipped": ({}, {}),
 }
 
@@ -227,12 +227,7 @@ def single(a, res: dict, save) -> None:
     for backend in lanes:
         for v in a.voxels:
             jobs = [("old", "as-shipped")] if "old" in trees else []
-            if a.variants:
-                jobs += [("new", x) for x in a.variants]
-            else:
-                jobs += [("new", "voxels"), ("new", "columns"), ("new", "voxels-regs64")]
-                if v < 0.01:
-                    jobs.append(("new", "as-shipped"))
+            jobs += [("new", x) for x in (a.variants or VARIANTS)]
             for tree, variant in jobs:
                 knobs, env = VARIANTS[variant]
                 fine = v < 0.01  # 5 mm: a quarter of the pings and checked frames, a third of the latency

@@ -412,7 +412,7 @@ __kernel void init_blocks(__global const int *pairs, int n, int bv, int visible,
 // ---------------------------------------------------------------------------------------- batches
 // B pings in one launch per step (twins of minmax.py's *_batch kernels): ping b's image, max table
 // and first bright bins start at b * plane, b * table_stride and b * n_beams. Each gather work-item
-// owns its voxels and folds ping 0, 1, ... into them: no atomics, the same grid as B launches.
+// owns one voxel and folds ping 0, 1, ... into it: no atomics, the same grid as B launches.
 
 __kernel void find_first_bright_batch(__global const PingParams *Ps, const int n_pings, const int n_beams,
                                       __global const float *images, __global int *first_bright)
@@ -458,40 +458,6 @@ __kernel void build_beam_levels_cells_batch(__global const PingParams *Ps, const
     for (int k = 1, w = 1; k < n_levels; ++k, w *= 2) {
         for (int jj = w; jj < 2 * w; ++jj) v = fmax(v, row[min(j + jj, n_beams - 1)]);
         table[((size_t)k * n_bins + i) * n_beams + j] = v;
-    }
-}
-
-// One work-item per chunk of an (i, j) column of the union box (lo, n) of the pings' boxes.
-__kernel void integrate_gather_batch(__global const PingParams *Ps, const int n_pings, const int lo0,
-                                     const int lo1, const int lo2, const int n0, const int n1, const int n2,
-                                     const int chunk, const int plane, const int table_stride,
-                                     __global const float *images, __global const float *tan_edges,
-                                     __global const int *lut, __global const float *tables, int use_table,
-                                     __global const int *first_bright, __global const int *index,
-                                     __global float *grid, __global float *bright, __global ulong *count,
-                                     __global uchar *seen, __global int *err)
-{
-    int tid = get_global_id(0);
-    int n_chunks = (n2 + chunk - 1) / chunk;
-    if (tid >= n0 * n1 * n_chunks) return;
-    int col = tid / n_chunks;
-    int c0 = lo2 + (tid % n_chunks) * chunk;
-    int c1 = min(c0 + chunk, lo2 + n2) - 1;
-    int i = lo0 + col / n1;
-    int j = lo1 + col % n1;
-    PingParams P0 = Ps[0];
-    BlockColumn bcol = block_column(&P0, i, j);  // every ping of a batch has the same block index
-    for (int b = 0; b < n_pings; ++b) {
-        __global const PingParams *Q = Ps + b;
-        if (i < Q->box_lo[0] || i >= Q->box_lo[0] + Q->box_n[0] || j < Q->box_lo[1] ||
-            j >= Q->box_lo[1] + Q->box_n[1])
-            continue;
-        int k0 = max(c0, Q->box_lo[2]), k1 = min(c1, Q->box_lo[2] + Q->box_n[2] - 1);
-        if (k0 > k1) continue;
-        PingParams P = *Q;
-        gather_column(&P, i, j, k0, k1, images + (size_t)b * plane, tan_edges, lut,
-                      tables + (size_t)b * table_stride, use_table, first_bright + (size_t)b * P.n_beams,
-                      index, bcol, grid, bright, count, seen, err);
     }
 }
 

@@ -1,6 +1,7 @@
 """Min-max occupancy kernels in NVIDIA Warp (device code only; twin: ``minmax.cl``).
 
-``integrate_gather`` runs one thread per (i, j) column of the ping's voxel box and
+``integrate_gather`` runs one thread per (i, j) column of the ping's voxel box,
+``integrate_voxels_batch`` one per voxel of a batch's boxes (every ping folded in registers) and
 ``integrate_template`` one per template point; each voxel's centre goes to the sonar frame,
 is tested against the field of view, and takes the image maximum over its footprint, which
 min-updates the grid. ``build_bin_window`` and ``build_beam_levels`` build the per-ping max
@@ -555,10 +556,10 @@ def init_blocks(
 
 
 # ----------------------------------------------------------------------------- batches
-# A batch of B pings in one launch per step. Each thread owns its voxels (a chunk of a column of
-# the union of the pings' boxes) and folds every ping into them in turn: no atomics, and every
-# voxel sees exactly the views B sequential launches would give it, so the map is the same bit
-# for bit (each update is a min or a saturating count, which no order changes).
+# A batch of B pings in one launch per step. Each gather thread owns one voxel of the union of the
+# pings' boxes and folds every ping into it in turn: no atomics, and every voxel sees exactly the
+# views B sequential launches would give it, so the map is the same bit for bit (each update is a
+# min or a saturating count, which no order changes).
 
 
 @wp.kernel
@@ -591,49 +592,6 @@ def build_beam_levels_cells_batch(Ps: wp.array(dtype=PingParams), tables: wp.arr
     """One thread per (ping, cell): build_beam_levels_cells for every ping."""
     b, i, j = wp.tid()
     beam_levels_cell(Ps[b], tables[b], i, j)
-
-
-@wp.kernel
-def integrate_gather_batch(
-    Ps: wp.array(dtype=PingParams),
-    boxes: wp.array2d(dtype=int),
-    box_lo: wp.vec3i,
-    box_n: wp.vec3i,
-    chunk: int,
-    images: wp.array3d(dtype=float),
-    tan_edges: wp.array(dtype=float),
-    lut: wp.array(dtype=int),
-    tables: wp.array2d(dtype=float),
-    first_bright: wp.array2d(dtype=int),
-    index: wp.array(dtype=int),
-    grid: wp.array(dtype=float),
-    bright: wp.array(dtype=float),
-    count: wp.array(dtype=wp.uint64),
-    seen: wp.array(dtype=wp.uint8),
-    err: wp.array(dtype=int),
-):
-    """One thread per chunk of an (i, j) column of the union box (box_lo, box_n) of the pings'
-    boxes; it folds ping 0, 1, ... into its voxels, each ping only within that ping's box
-    (``boxes[b]`` = box_lo, box_n of ping b: tested before its parameters are read)."""
-    tid = wp.tid()
-    n_chunks = (box_n[2] + chunk - 1) // chunk
-    col = tid // n_chunks
-    c0 = box_lo[2] + (tid - col * n_chunks) * chunk
-    c1 = wp.min(c0 + chunk, box_lo[2] + box_n[2]) - 1
-    i = box_lo[0] + col // box_n[1]
-    j = box_lo[1] + col - (col // box_n[1]) * box_n[1]
-    bcol = block_column(Ps[0], i, j)  # every ping of a batch has the same block index
-    for b in range(Ps.shape[0]):
-        inside_i = i >= boxes[b, 0] and i < boxes[b, 0] + boxes[b, 3]
-        if inside_i and j >= boxes[b, 1] and j < boxes[b, 1] + boxes[b, 4]:
-            k0 = wp.max(c0, boxes[b, 2])
-            k1 = wp.min(c1, boxes[b, 2] + boxes[b, 5] - 1)
-            if k0 <= k1:
-                P = Ps[b]
-                gather_column(
-                    P, i, j, k0, k1, images[b], tan_edges, lut, tables[b], first_bright[b],
-                    index, bcol, grid, bright, count, seen, err,
-                )
 
 
 @wp.func
@@ -672,7 +630,9 @@ def integrate_voxels_batch(
     contiguous voxels): it folds ping 0, 1, ... into the voxel, each ping only within that ping's
     box (``boxes[b]``). The voxel's values live in registers from its first view and are written
     once, where they changed; a ping's parameters are read only while that ping is folded, so
-    few registers stay live (integrate_gather_batch keeps a whole ping's for a chunk's walk)."""
+    few registers stay live. (A thread per chunk of a column walking each ping's column range, as
+    integrate_gather does for one ping, held a whole ping's parameters in registers and ran 1.2-1.5x
+    slower on an H100: bench/results/gpu_scale_variants.json.)"""
     tid = wp.tid()
     col = tid // box_n[2]
     k = box_lo[2] + tid - col * box_n[2]

@@ -237,15 +237,13 @@ def test_first_bright_per_cell_equals_per_beam(backend):
     assert (ref["count"] > 0).any()  # some clear views: the first bright bins mattered
 
 
-@pytest.mark.parametrize("kernel", ["voxels", "columns"])
 @pytest.mark.parametrize("rule", ["plain", "visible", "evidence"])
 @pytest.mark.parametrize("sparse", [False, True], ids=["dense", "sparse"])
-def test_both_batch_kernels_equal_the_oracle(backend, kernel, rule, sparse, monkeypatch):
-    """Either way of folding a GPU batch (gpumap.backends.BATCH_KERNEL: a thread per voxel holding
-    its values in registers, or a thread per chunk of a column) gives the NumPy oracle's map and
-    evidence bit for bit, for every rule, on a bounded map and on one with blocks on demand, uint8
-    pings included, and in batches split over several launches."""
-    monkeypatch.setattr(gpumap.backends, "BATCH_KERNEL", kernel)
+def test_batch_kernel_equals_the_oracle(backend, rule, sparse, monkeypatch):
+    """The GPU batch kernel (a thread per voxel of the union box, holding its values in registers
+    over the pings) gives the NumPy oracle's map and evidence bit for bit, for every rule, on a
+    bounded map and on one with blocks on demand, uint8 pings included, and in batches split over
+    several launches."""
     monkeypatch.setattr(gpumap.backends, "BATCH_MAX", 4)
     imgs, poses = _pings(7, seed=11)
     poses[5:, 1, 3] += 0.6  # the last pings elsewhere: a second group

@@ -44,7 +44,7 @@ _opencl, _opencl_context = opencl_backend._opencl, opencl_backend._opencl_contex
 _union_groups = base._union_groups
 
 __all__ = [
-    "AUTO_ORDER", "BACKENDS", "BATCH_BOX_VOXELS_MAX", "BATCH_KERNEL", "BATCH_MAX", "COPY_SPLIT_BYTES",
+    "AUTO_ORDER", "BACKENDS", "BATCH_BOX_VOXELS_MAX", "BATCH_MAX", "COPY_SPLIT_BYTES",
     "COPY_THREADS", "CPU_CHUNK", "CPU_THREADS", "GPU_CHUNK", "N_SLOTS", "OPENCL_BATCH_BOX_VOXELS_MAX",
     "TUNABLES", "U8_SCALE", "Backend",
     "GridTooLargeError", "NumpyBackend", "OpenCLBackend", "WarpBackend", "available_backends",

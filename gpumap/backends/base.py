@@ -34,11 +34,6 @@ BATCH_MAX = 64
 BATCH_BOX_VOXELS_MAX = 16_000_000
 OPENCL_BATCH_BOX_VOXELS_MAX = 1 << 40
 
-#: How a GPU batch is folded: ``"voxels"``, a thread per voxel of the union box folding every ping
-#: into the voxel's values in registers (``integrate_voxels_batch``), or ``"columns"``, a thread per
-#: chunk of a column walking each ping's column range (``integrate_gather_batch``). Same map.
-BATCH_KERNEL = "voxels"
-
 #: Threads that fill a GPU batch's staging buffer, and the bytes from which they are used.
 COPY_THREADS = max(1, min(4, (os.cpu_count() or 1) // 2))
 COPY_SPLIT_BYTES = 4 << 20
@@ -46,7 +41,7 @@ COPY_SPLIT_BYTES = 4 << 20
 #: The knobs above that a run may set (on this module, or on :mod:`gpumap.backends`, which
 #: passes them on): read here when they are used, never copied.
 TUNABLES = ("GPU_CHUNK", "CPU_CHUNK", "CPU_THREADS", "BATCH_MAX", "BATCH_BOX_VOXELS_MAX",
-            "OPENCL_BATCH_BOX_VOXELS_MAX", "BATCH_KERNEL", "COPY_THREADS", "COPY_SPLIT_BYTES")
+            "OPENCL_BATCH_BOX_VOXELS_MAX", "COPY_THREADS", "COPY_SPLIT_BYTES")
 
 
 @functools.cache

@@ -365,7 +365,7 @@ class OpenCLBackend(Backend):
         }
         k = functools.partial(self.cl.Kernel, _opencl_context(self._cl_device)[1])
         for name in ("find_first_bright_batch", "build_bin_window_cells_batch",
-                     "build_beam_levels_cells_batch", "integrate_gather_batch", "integrate_voxels_batch"):
+                     "build_beam_levels_cells_batch", "integrate_voxels_batch"):
             bb[name] = k(name)
         self._batch = bb
         return bb
@@ -417,21 +417,13 @@ class OpenCLBackend(Backend):
         lo = params["box_lo"][live].min(axis=0)
         n = (params["box_lo"] + params["box_n"])[live].max(axis=0) - lo
         pool = (self.index, self.grid, self.bright, self.count, self.seen, self.err)
-        if base.BATCH_KERNEL == "voxels":  # a work-item per voxel; ping 0's parameters as an argument
-            total = int(n[0]) * int(n[1]) * int(n[2])
-            bb["done"][s] = bb["integrate_voxels_batch"](
-                q, (-(-total // wg) * wg,), (wg,), np.asarray(params[0, ...], dtype=PING_DTYPE), P, i32(B),
-                *(i32(x) for x in lo), *(i32(x) for x in n), i32(plane), stride, bb["images"], self.edges,
-                self.lut, bb["tables"], i32(self.use_table), bb["first_bright"], *pool,
-            )
-        else:
-            n_chunks = -(-int(n[2]) // self.chunk)
-            total = int(n[0]) * int(n[1]) * n_chunks
-            bb["done"][s] = bb["integrate_gather_batch"](
-                q, (-(-total // wg) * wg,), (wg,), P, i32(B), *(i32(x) for x in lo), *(i32(x) for x in n),
-                i32(self.chunk), i32(plane), stride, bb["images"], self.edges, self.lut, bb["tables"],
-                i32(self.use_table), bb["first_bright"], *pool,
-            )
+        # a work-item per voxel of the union box; ping 0's parameters as an argument
+        total = int(n[0]) * int(n[1]) * int(n[2])
+        bb["done"][s] = bb["integrate_voxels_batch"](
+            q, (-(-total // wg) * wg,), (wg,), np.asarray(params[0, ...], dtype=PING_DTYPE), P, i32(B),
+            *(i32(x) for x in lo), *(i32(x) for x in n), i32(plane), stride, bb["images"], self.edges,
+            self.lut, bb["tables"], i32(self.use_table), bb["first_bright"], *pool,
+        )
         q.flush()
 
     def synchronize(self) -> None:

@@ -428,33 +428,17 @@ class WarpBackend(Backend):
         hi = (params["box_lo"] + params["box_n"])[live].max(axis=0)
         n = hi - lo
         pool = [self.index, self.grid, self.bright, self.count, self.seen, self.err]
-        if base.BATCH_KERNEL == "voxels":  # a thread per voxel; ping 0's parameters as an argument
-            wp.launch(
-                k.integrate_voxels_batch,
-                dim=int(n[0]) * int(n[1]) * int(n[2]),
-                inputs=[_warp_params(k, params[0, ...]), P, boxes, wp.vec3i(*lo.tolist()),
-                        wp.vec3i(*n.tolist()), imgs, self.edges, self.lut, tables, fb, *pool],
-                device=self.dev,
-                block_dim=128,  # a heavy kernel: more blocks fit the registers left
-            )
-        else:
-            self._launch_columns(P, boxes, lo, n, imgs, tables, fb, pool)
+        # a thread per voxel of the union box; ping 0's parameters as an argument (constant memory)
+        wp.launch(
+            k.integrate_voxels_batch,
+            dim=int(n[0]) * int(n[1]) * int(n[2]),
+            inputs=[_warp_params(k, params[0, ...]), P, boxes, wp.vec3i(*lo.tolist()), wp.vec3i(*n.tolist()),
+                    imgs, self.edges, self.lut, tables, fb, *pool],
+            device=self.dev,
+            block_dim=128,  # a heavy kernel: more blocks fit the registers left
+        )
         if cs is not None:  # device slot s is free again once these kernels are done
             bb["done"][s] = wp.record_event()
-
-    def _launch_columns(self, P, boxes, lo, n, imgs, tables, fb, pool) -> None:
-        """The batch gather with a thread per chunk of a column (BATCH_KERNEL = "columns")."""
-        wp, k = self.wp, self.k
-        n_chunks = -(-int(n[2]) // self.chunk)
-        wp.launch(
-            k.integrate_gather_batch,
-            dim=int(n[0]) * int(n[1]) * n_chunks,
-            inputs=[
-                P, boxes, wp.vec3i(*lo.tolist()), wp.vec3i(*n.tolist()), self.chunk, imgs, self.edges,
-                self.lut, tables, fb, *pool,
-            ],
-            device=self.dev,
-        )
 
     def synchronize(self) -> None:
         self.wp.synchronize_device(self.dev)
