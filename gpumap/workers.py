@@ -33,6 +33,7 @@ from __future__ import annotations
 import itertools
 import logging
 import math
+import os
 import time
 from collections import deque
 
@@ -52,13 +53,70 @@ QUEUED = 2
 WAIT_WORKERS_S = 30.0
 
 
+def host_gpus() -> list[str]:
+    """This process's NVIDIA GPUs, as ``CUDA_VISIBLE_DEVICES`` entries, found without starting CUDA
+    (which reads that variable once, when it starts): the variable's own list when it is set, else
+    one entry per GPU the driver lists in ``/proc/driver/nvidia/gpus`` (none without a driver)."""
+    seen = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if seen is not None:
+        return [d.strip() for d in seen.split(",") if d.strip() and d.strip() != "-1"]
+    try:
+        n = len(os.listdir("/proc/driver/nvidia/gpus"))
+    except OSError:  # no driver files: ask nvidia-smi (a process of its own), if there is one
+        import subprocess
+
+        try:
+            out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=20).stdout
+        except (OSError, subprocess.SubprocessError):
+            return []
+        n = sum(line.startswith("GPU ") for line in out.splitlines())
+    return [str(k) for k in range(n)]
+
+
+def pin_gpu(rank: int) -> str | None:
+    """Give this process one GPU of its host, the ``rank``-th (modulo their count), by setting
+    ``CUDA_VISIBLE_DEVICES`` before Warp or OpenCL start CUDA (NVIDIA's OpenCL honours it too);
+    returns the entry, or None where the host has no GPU or CUDA already started here (then the
+    variable, read once, would say nothing true)."""
+    gpus = host_gpus()
+    if not gpus or _cuda_started():
+        return None
+    os.environ["CUDA_VISIBLE_DEVICES"] = gpus[rank % len(gpus)]
+    return os.environ["CUDA_VISIBLE_DEVICES"]
+
+
+def _cuda_started() -> bool:
+    """Whether a backend may have started CUDA in this process: Warp started, or an OpenCL context
+    made (gpumap's backends start them when first used)."""
+    from gpumap.backends import opencl_backend, warp_backend
+
+    return warp_backend._warp.cache_info().currsize > 0 or bool(opencl_backend._CL_SHARED)
+
+
+def host_ranks(addrs: list[str]) -> list[int]:
+    """Each worker's rank among the workers of its host (by address, in the given order): the GPU
+    it takes there (:func:`pin_gpu`)."""
+    from urllib.parse import urlsplit
+
+    count: dict[str, int] = {}
+    out = []
+    for a in addrs:
+        host = urlsplit(a if "://" in a else f"tcp://{a}").hostname or a
+        out.append(count.get(host, 0))
+        count[host] = out[-1] + 1
+    return out
+
+
 class MapperActor:
     """One worker's mapper (a Dask actor): integrates the batches it is sent, returns its state."""
 
-    def __init__(self, spec: dict, grid: dict, options: dict, sparse: bool, cpu_threads: int | None) -> None:
+    def __init__(self, spec: dict, grid: dict, options: dict, sparse: bool, cpu_threads: int | None,
+                 gpu_rank: int | None = None) -> None:
         from gpumap.mapper import MinMaxMapper
 
         t0 = time.perf_counter()
+        # one GPU per worker: chosen before the mapper starts its backend (and with it CUDA)
+        self.gpu = pin_gpu(gpu_rank) if gpu_rank is not None else None
         if cpu_threads is not None:  # this worker process's CPU backends split gathers this many ways
             import gpumap.backends
 
@@ -71,6 +129,7 @@ class MapperActor:
 
     def info(self) -> dict:
         return {"backend": self.mapper.backend, "device": self.mapper.device,
+                "cuda_visible_devices": os.environ.get("CUDA_VISIBLE_DEVICES"), "gpu": self.gpu,
                 "seconds_setup": self.seconds_setup}
 
     def integrate_batch(self, images: np.ndarray, poses: np.ndarray) -> int:
@@ -97,6 +156,50 @@ class MapperActor:
                 "seconds_pack": time.perf_counter() - t1, "state_mb": _nbytes(packed) / 1e6,
                 "state_mb_unpacked": sum(a.nbytes for a in st.arrays.values()) / 1e6}
         return packed, info
+
+
+#: ``SonarFrame.meta`` key of a frame's own bytes, where its reader has them: ``image`` is exactly
+#: ``image_u8 * gpumap.backends.U8_SCALE`` (float32). The client then sends the bytes as they are
+#: (a quarter of the float32 frame, and no pass to find them: :func:`_compact`).
+FRAME_BYTES = "image_u8"
+
+
+def frame_pixels(fr) -> np.ndarray:
+    """What the client sends of frame ``fr``: its bytes (:data:`FRAME_BYTES`) where its reader
+    kept them and they have the frame's shape, else its float32 image."""
+    u8 = fr.meta.get(FRAME_BYTES) if isinstance(fr.meta, dict) else None
+    if isinstance(u8, np.ndarray) and u8.dtype == np.uint8 and u8.shape == fr.image.shape:
+        return u8
+    return fr.image
+
+
+class _Batch:
+    """A worker's next batch, filled in place: each frame copied once, into the array that is sent
+    (the reader may reuse its buffers), and a new array per batch (Dask may still be sending the
+    last one)."""
+
+    def __init__(self) -> None:
+        self.images: np.ndarray | None = None
+        self.poses = np.empty((BATCH, 4, 4))
+        self.n = 0
+
+    def fits(self, img: np.ndarray) -> bool:
+        """Whether ``img`` may join (same dtype and shape as the frames already in)."""
+        a = self.images
+        return self.n == 0 or (a.dtype == img.dtype and a.shape[1:] == img.shape)
+
+    def add(self, img: np.ndarray, T) -> int:
+        if self.images is None or not (self.images.dtype == img.dtype and self.images.shape[1:] == img.shape):
+            self.images = np.empty((BATCH, *img.shape), img.dtype)
+        self.images[self.n] = img
+        self.poses[self.n] = np.asarray(T, np.float64)
+        self.n += 1
+        return self.n
+
+    def take(self) -> tuple[np.ndarray, np.ndarray]:
+        out = self.images[: self.n], self.poses[: self.n].copy()
+        self.images, self.n = None, 0
+        return out
 
 
 def _compact(images: np.ndarray) -> np.ndarray:
@@ -260,6 +363,7 @@ def run_replay_workers(
     cpu_threads: int | None = None,
     pack: bool | None = None,
     split: str = "space",
+    gpus: str = "auto",
 ) -> tuple[object, dict]:
     """:func:`gpumap.replay.run_replay` in ``workers`` Dask workers: the same map, bit for bit.
 
@@ -273,6 +377,10 @@ def run_replay_workers(
         Address of a running Dask scheduler (e.g. ``"tcp://10.0.0.5:8786"``); its first
         ``workers`` workers are used. None: a LocalCluster of ``workers`` processes
         (``processes=False``: threads of this process, for tests).
+    gpus : str
+        ``"auto"`` (default): each worker maps on one GPU of its host, the one of its rank among
+        the workers there (modulo the host's GPUs: :func:`pin_gpu`), so N workers on a machine of
+        N GPUs use all of them; ``"none"``: workers keep the devices they see.
     split : str
         ``"space"`` (default): each worker gets the pings that look at its part of the grid
         (pings ranked by where their field of view's middle lies along the grid's longer
@@ -314,6 +422,8 @@ def run_replay_workers(
 
     if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ValueError(f"Expected workers to be a positive integer, but got {workers!r}")
+    if gpus not in ("auto", "none"):
+        raise ValueError(f"Expected gpus to be 'auto' or 'none', but got {gpus!r}")
     if not (recording.has_poses or static):
         raise ValueError(f"Expected sonar poses in {recording.path} ({recording.kind}) to map it, but it has "
                          "none (--static maps every ping at the identity pose)")
@@ -328,6 +438,7 @@ def run_replay_workers(
 
     if split not in ("space", "pings"):
         raise ValueError(f"Expected split to be 'space' or 'pings', but got {split!r}")
+
     t_wall = time.perf_counter()
     owners = None
     if static:
@@ -369,17 +480,16 @@ def run_replay_workers(
         actors: list = []
         pending: list[deque] = [deque() for _ in addrs]
         spec = None
-        batches: list[list] = [[] for _ in addrs]
+        batches = [_Batch() for _ in addrs]
         t_map = time.perf_counter()
         t_setup = 0.0
 
         def send(w: int) -> None:
-            batch, q = batches[w], pending[w]
+            q = pending[w]
             while len(q) >= QUEUED:
                 q.popleft().result()
-            images, poses = _compact(np.stack([b[0] for b in batch])), np.stack([b[1] for b in batch])
-            q.append(actors[w].integrate_batch(images, poses))
-            batch.clear()
+            images, poses = batches[w].take()
+            q.append(actors[w].integrate_batch(_compact(images), poses))
 
         frame_iter = tqdm(frames(), total=total, unit="img", disable=not progress,
                           desc=f"replay x{len(addrs)}")
@@ -388,8 +498,9 @@ def run_replay_workers(
                 ts = time.perf_counter()
                 spec = fr.spec
                 args = (spec.to_dict(), grid.to_dict(), options, sparse, cpu_threads)
-                futs = [client.submit(MapperActor, *args, workers=[a], allow_other_workers=False,
-                                      actor=True, pure=False) for a in addrs]
+                ranks = host_ranks(addrs) if gpus == "auto" else [None] * len(addrs)
+                futs = [client.submit(MapperActor, *args, r, workers=[a], allow_other_workers=False,
+                                      actor=True, pure=False) for a, r in zip(addrs, ranks, strict=True)]
                 actors = [f.result() for f in futs]
                 infos = [a.info().result() for a in actors]  # a backend that cannot run raises here
                 t_setup = time.perf_counter() - ts
@@ -405,11 +516,10 @@ def run_replay_workers(
                 w = int(owners[i]) if i < len(owners) else 0  # a frame the pose list missed
             else:
                 w = (stats["frames"] // BATCH) % len(actors)
-            batch = batches[w]
-            if batch and fr.image.dtype != batch[0][0].dtype:
+            img = frame_pixels(fr)
+            if not batches[w].fits(img):
                 send(w)
-            batch.append((np.array(fr.image), np.asarray(T, np.float64)))
-            if len(batch) == BATCH:
+            if batches[w].add(img, T) == BATCH:
                 send(w)
             stats["frames"] += 1
             if positions is not None:
@@ -417,7 +527,7 @@ def run_replay_workers(
         if spec is None:
             raise ValueError(f"Expected frames in {recording.path}, but it has none")
         for w, batch in enumerate(batches):
-            if batch:
+            if batch.n:
                 send(w)
         for q in pending:
             while q:

@@ -57,8 +57,9 @@ inline int beam_index_lo(float t, __global const float *tan_edges, __global cons
 }
 
 // Max image value over the footprint of the voxel centred at c (world); -1 if unobserved. *clear is
-// set (visible rule) to 1 when first_bright (per beam, the first bin >= thr) puts no return nearer
-// than the footprint's first bin in any of its beams, else 0.
+// set (visible and evidence rules, dark values < thr) to 1 when first_bright (per beam, the first bin
+// >= thr) puts no return nearer than the footprint's first bin in any of its beams, else 0 (and 0 for
+// bright values, whose update never reads it).
 // Footprint: bins [b0, b0 + win - 1] x beams [j0, j1], reaching near = rho + shadow_m towards
 // the sonar. With a max table (use_table) the
 // max is two reads; without, a loop over the cells (faster on GPUs: no table to build).
@@ -89,23 +90,25 @@ inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
         if (d0 > 0.0f) j0 = beam_index_lo((t - u) / d0, tan_edges, lut, P->lut_n, P);
         if (d1 > 0.0f) j1 = beam_index_lo((t + u) / d1, tan_edges, lut, P->lut_n, P);
     }
-    if (P->rule != 0) {
-        *clear = 1;
-        for (int jj = j0; jj <= j1; ++jj) if (first_bright[jj] < b0) *clear = 0;
-    }
+    float v = 0.0f;
     if (use_table && first >= 0) {  // two reads (more near the apex)
         int k = 0;
         while ((2 << k) <= j1 - j0 + 1 && k + 1 < P->n_levels) ++k;
         int w = 1 << k;
         __global const float *t = table + ((size_t)k * P->n_bins + b0) * P->n_beams;
-        float m = t[j1 - w + 1];
-        for (int jj = j0; jj <= j1 - w + 1; jj += w) m = fmax(m, t[jj]);
-        return m;
+        v = t[j1 - w + 1];
+        for (int jj = j0; jj <= j1 - w + 1; jj += w) v = fmax(v, t[jj]);
+    } else {
+        for (int i = b0; i <= b1; ++i) {
+            __global const float *row = image + (size_t)i * P->n_beams;
+            for (int j = j0; j <= j1; ++j) v = fmax(v, row[j]);
+        }
     }
-    float v = 0.0f;
-    for (int i = b0; i <= b1; ++i) {
-        __global const float *row = image + (size_t)i * P->n_beams;
-        for (int j = j0; j <= j1; ++j) v = fmax(v, row[j]);
+    if (P->rule != 0 && v < P->thr) {  // only a dark view's count reads clear (update_voxel)
+        *clear = 1;
+        for (int jj = j0; jj <= j1; ++jj) {
+            if (first_bright[jj] < b0) { *clear = 0; break; }
+        }
     }
     return v;
 }
@@ -179,21 +182,28 @@ __kernel void find_first_bright_cells(const PingParams P, __global const float *
 // Fold one view (value v, clear) into voxel idx: the plain min, and for the visible and evidence rules
 // the bright min and the view counts (see gpumap.reference). count packs clear dark views (low 32 bits)
 // and bright views (high 32 bits), each saturating on its own (the visible rule's dark count at 255).
+// The packed view counts c after one view (v, clear) under the visible or evidence rule: a bright view
+// raises the bright count, a clear dark one the dark count (the visible rule's by 2 below thr_dark, to
+// 255), each saturating.
+inline ulong counted(const PingParams *P, float v, int clear, ulong c)
+{
+    if (v >= P->thr) return c < 0xFFFFFFFF00000000UL ? c + 0x100000000UL : c;
+    if (!clear) return c;
+    ulong dark = c & 0xFFFFFFFFUL;
+    ulong cap = P->rule == 1 ? 255UL : 0xFFFFFFFFUL;
+    ulong step = (P->rule == 1 && v < P->thr_dark) ? 2UL : 1UL;
+    return dark < cap ? (c - dark) + min(dark + step, cap) : c;
+}
+
 inline void update_voxel(const PingParams *P, size_t idx, float v, int clear, __global float *grid,
                          __global float *bright, __global ulong *count)
 {
     if (v < grid[idx]) grid[idx] = v;  // a write only where the value falls (memory traffic bounds it)
-    if (P->rule != 0) {  // count is read only where it changes (a dark view behind a return leaves it)
-        if (v >= P->thr) {
-            if (v < bright[idx]) bright[idx] = v;
-            ulong c = count[idx];
-            if (c < 0xFFFFFFFF00000000UL) count[idx] = c + 0x100000000UL;
-        } else if (clear) {
-            ulong c = count[idx];
-            ulong dark = c & 0xFFFFFFFFUL;
-            ulong cap = P->rule == 1 ? 255UL : 0xFFFFFFFFUL;
-            ulong step = (P->rule == 1 && v < P->thr_dark) ? 2UL : 1UL;
-            if (dark < cap) count[idx] = (c - dark) + min(dark + step, cap);
+    if (P->rule != 0) {  // count is read only where it may change (a dark view behind a return leaves it)
+        if (v >= P->thr && v < bright[idx]) bright[idx] = v;
+        if (v >= P->thr || clear) {
+            ulong c = count[idx], n = counted(P, v, clear, c);
+            if (n != c) count[idx] = n;
         }
     }
 }
@@ -402,7 +412,7 @@ __kernel void init_blocks(__global const int *pairs, int n, int bv, int visible,
 // ---------------------------------------------------------------------------------------- batches
 // B pings in one launch per step (twins of minmax.py's *_batch kernels): ping b's image, max table
 // and first bright bins start at b * plane, b * table_stride and b * n_beams. Each gather work-item
-// owns its voxels and folds ping 0, 1, ... into them: no atomics, the same grid as B launches.
+// owns one voxel and folds ping 0, 1, ... into it: no atomics, the same grid as B launches.
 
 __kernel void find_first_bright_batch(__global const PingParams *Ps, const int n_pings, const int n_beams,
                                       __global const float *images, __global int *first_bright)
@@ -451,10 +461,14 @@ __kernel void build_beam_levels_cells_batch(__global const PingParams *Ps, const
     }
 }
 
-// One work-item per chunk of an (i, j) column of the union box (lo, n) of the pings' boxes.
-__kernel void integrate_gather_batch(__global const PingParams *Ps, const int n_pings, const int lo0,
-                                     const int lo1, const int lo2, const int n0, const int n1, const int n2,
-                                     const int chunk, const int plane, const int table_stride,
+// One work-item per voxel of the union box (lo, n), k fastest (a warp walks a column's contiguous voxels):
+// it folds ping 0, 1, ... into the voxel, each ping only within that ping's box. The voxel's values live
+// in private memory from its first view and are written once, where they changed. P0 (ping 0's
+// parameters, a kernel argument) gives every field the batch's pings share; Ps[b] only the ones that
+// differ (pose, footprint), so few registers stay live.
+__kernel void integrate_voxels_batch(const PingParams P0, __global const PingParams *Ps, const int n_pings,
+                                     const int lo0, const int lo1, const int lo2, const int n0, const int n1,
+                                     const int n2, const int plane, const int table_stride,
                                      __global const float *images, __global const float *tan_edges,
                                      __global const int *lut, __global const float *tables, int use_table,
                                      __global const int *first_bright, __global const int *index,
@@ -462,27 +476,56 @@ __kernel void integrate_gather_batch(__global const PingParams *Ps, const int n_
                                      __global uchar *seen, __global int *err)
 {
     int tid = get_global_id(0);
-    int n_chunks = (n2 + chunk - 1) / chunk;
-    if (tid >= n0 * n1 * n_chunks) return;
-    int col = tid / n_chunks;
-    int c0 = lo2 + (tid % n_chunks) * chunk;
-    int c1 = min(c0 + chunk, lo2 + n2) - 1;
+    if (tid >= n0 * n1 * n2) return;
+    int col = tid / n2;
+    int k = lo2 + tid % n2;
     int i = lo0 + col / n1;
     int j = lo1 + col % n1;
-    PingParams P0 = Ps[0];
-    BlockColumn bcol = block_column(&P0, i, j);  // every ping of a batch has the same block index
+    float cx = P0.origin[0] + ((float)i + 0.5f) * P0.voxel;
+    float cy = P0.origin[1] + ((float)j + 0.5f) * P0.voxel;
+    float cz = P0.origin[2] + ((float)k + 0.5f) * P0.voxel;
+    long a = -1;
+    int hit = 0;
+    float g0 = 0.0f, g = 0.0f, br0 = 0.0f, br = 0.0f;
+    ulong c0 = 0, c = 0;
     for (int b = 0; b < n_pings; ++b) {
         __global const PingParams *Q = Ps + b;
         if (i < Q->box_lo[0] || i >= Q->box_lo[0] + Q->box_n[0] || j < Q->box_lo[1] ||
-            j >= Q->box_lo[1] + Q->box_n[1])
+            j >= Q->box_lo[1] + Q->box_n[1] || k < Q->box_lo[2] || k >= Q->box_lo[2] + Q->box_n[2])
             continue;
-        int k0 = max(c0, Q->box_lo[2]), k1 = min(c1, Q->box_lo[2] + Q->box_n[2] - 1);
-        if (k0 > k1) continue;
-        PingParams P = *Q;
-        gather_column(&P, i, j, k0, k1, images + (size_t)b * plane, tan_edges, lut,
-                      tables + (size_t)b * table_stride, use_table, first_bright + (size_t)b * P.n_beams,
-                      index, bcol, grid, bright, count, seen, err);
+        PingParams P = P0;
+        for (int e = 0; e < 9; ++e) P.A[e] = Q->A[e];
+        for (int e = 0; e < 3; ++e) P.b[e] = Q->b[e];
+        P.rho = Q->rho;
+        P.near = Q->near;
+        P.win = Q->win;
+        int clear;
+        float v = voxel_ping_value(&P, cx, cy, cz, images + (size_t)b * plane, tan_edges, lut,
+                                   tables + (size_t)b * table_stride, use_table,
+                                   first_bright + (size_t)b * P0.n_beams, &clear);
+        if (v < 0.0f) continue;
+        if (!hit) {  // the first view: find the voxel and read its values
+            hit = 1;
+            a = voxel_address(&P0, index, i, j, k);
+            if (a >= 0) {
+                g0 = g = grid[a];
+                if (P0.rule != 0) { br0 = br = bright[a]; c0 = c = count[a]; }
+            }
+        }
+        if (a < 0) continue;
+        if (v < g) g = v;
+        if (P0.rule != 0) {
+            if (v >= P0.thr && v < br) br = v;
+            c = counted(&P, v, clear, c);
+        }
     }
+    if (!hit) return;
+    if (a < 0) { err[0] = 1; return; }
+    if (g < g0) grid[a] = g;
+    if (br < br0) bright[a] = br;
+    if (c != c0) count[a] = c;
+    long slot = a / ((long)P0.blk * P0.blk * P0.blk_z);
+    if (!seen[slot]) seen[slot] = 1;
 }
 
 // One work-item per template point: the paper's steps 1-6.

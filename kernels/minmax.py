@@ -1,6 +1,7 @@
 """Min-max occupancy kernels in NVIDIA Warp (device code only; twin: ``minmax.cl``).
 
-``integrate_gather`` runs one thread per (i, j) column of the ping's voxel box and
+``integrate_gather`` runs one thread per (i, j) column of the ping's voxel box,
+``integrate_voxels_batch`` one per voxel of a batch's boxes (every ping folded in registers) and
 ``integrate_template`` one per template point; each voxel's centre goes to the sonar frame,
 is tested against the field of view, and takes the image maximum over its footprint, which
 min-updates the grid. ``build_bin_window`` and ``build_beam_levels`` build the per-ping max
@@ -12,10 +13,17 @@ parameters, the image, the tangents of the beam edges, the beam look-up table, t
 (the ``gpumap/backends/`` package) owns arrays, devices and launches.
 """
 
+import os
+
 import warp as wp
 
 # No FMA contraction on GPUs: every backend then rounds as the NumPy oracle does, bit for bit.
 wp.set_module_options({"fuse_fp": False})
+#: Register cap of the per-voxel batch gather on CUDA (``GPUMAP_GPU_MAX_REGISTERS``, read at import;
+#: default 64; 0: the compiler's choice, 95 registers): fewer registers, more threads in flight,
+#: a few spilled to local memory. On an H100 (tank, default rule) 64 ran the kernel 1.2x faster
+#: at 1 cm and 5 mm than the compiler's choice (bench/results/gpu_scale.json).
+GATHER_MAX_REGISTERS = int(os.environ.get("GPUMAP_GPU_MAX_REGISTERS", "64") or 0) or None
 
 
 @wp.struct
@@ -83,8 +91,9 @@ def voxel_ping_value(
     first_bright: wp.array(dtype=int),
 ) -> wp.vec2:
     """(max image value over the footprint of the voxel centred at c (world), clear); value -1
-    if unobserved. For the visible rule, clear is 1 when ``first_bright`` (per beam, the first
-    bin >= thr) puts no return nearer than the footprint's first bin in any of its beams, else 0.
+    if unobserved. For the visible and evidence rules and a dark value (< thr), clear is 1 when
+    ``first_bright`` (per beam, the first bin >= thr) puts no return nearer than the footprint's
+    first bin in any of its beams, else 0 (and 0 for bright values, whose update never reads it).
 
     The footprint is bins [b0, b0 + win - 1] x beams [j0, j1]: the smallest fixed-height
     window that always holds the bins of the voxel's bounding sphere (one extra bin at
@@ -121,30 +130,30 @@ def voxel_ping_value(
             j0 = beam_index_lo((t - u) / d0, tan_edges, lut, P)
         if d1 > 0.0:
             j1 = beam_index_lo((t + u) / d1, tan_edges, lut, P)
-    clear = float(0.0)
-    if P.rule != 0:
-        blocked = int(0)
-        for jj in range(j0, j1 + 1):
-            if first_bright[jj] < b0:
-                blocked = 1
-        if blocked == 0:
-            clear = 1.0
+    v = float(0.0)
     if table.shape[0] > 0 and first >= 0:  # the max table: two reads (more near the apex)
         k = int(0)
         while (2 << k) <= j1 - j0 + 1 and k + 1 < P.n_levels:
             k += 1
         w = 1 << k
         base = (k * P.n_bins + b0) * P.n_beams
-        m = table[base + j1 - w + 1]
+        v = table[base + j1 - w + 1]
         jj = j0
         while jj <= j1 - w + 1:
-            m = wp.max(m, table[base + jj])
+            v = wp.max(v, table[base + jj])
             jj += w
-        return wp.vec2(m, clear)
-    v = float(0.0)
-    for i in range(b0, b1 + 1):
-        for j in range(j0, j1 + 1):
-            v = wp.max(v, image[i, j])
+    else:
+        for i in range(b0, b1 + 1):
+            for j in range(j0, j1 + 1):
+                v = wp.max(v, image[i, j])
+    # clear matters only to a dark view's count (update_voxel): looked up only then
+    clear = float(0.0)
+    if P.rule != 0 and v < P.thr:
+        clear = float(1.0)
+        for jj in range(j0, j1 + 1):
+            if first_bright[jj] < b0:
+                clear = 0.0
+                break
     return wp.vec2(v, clear)
 
 
@@ -207,25 +216,36 @@ def update_voxel(
     v = vc[0]
     if v < grid[idx]:  # a write only where the value falls (memory traffic, not arithmetic, bounds it)
         grid[idx] = v
-    if P.rule != 0:  # count is read only where it changes (a dark view behind a return leaves it)
-        if v >= P.thr:
-            if v < bright[idx]:
-                bright[idx] = v
+    if P.rule != 0:  # count is read only where it may change (a dark view behind a return leaves it)
+        if v >= P.thr and v < bright[idx]:
+            bright[idx] = v
+        if v >= P.thr or vc[1] > 0.0:
             c = count[idx]
-            if c < HITS_FULL:
-                count[idx] = c + COUNT_HIGH_ONE
-        elif vc[1] > 0.0:
-            c = count[idx]
-            dark = c & COUNT_LOW
-            cap = COUNT_LOW
-            step = wp.uint64(1)
-            if P.rule == 1:
-                cap = wp.uint64(255)
-                if v < P.thr_dark:
-                    step = wp.uint64(2)
-            if dark < cap:
-                dark = wp.min(dark + step, cap)
-                count[idx] = (c - (c & COUNT_LOW)) + dark
+            n = counted(P, v, vc[1], c)
+            if n != c:
+                count[idx] = n
+
+
+@wp.func
+def counted(P: PingParams, v: float, clear: float, c: wp.uint64) -> wp.uint64:
+    """The packed view counts ``c`` after one view (value v, clear) under the visible or evidence
+    rule: a bright view raises the bright count, a clear dark one the dark count (the visible
+    rule's by 2 below thr_dark, to 255), each saturating."""
+    if v >= P.thr:
+        if c < HITS_FULL:
+            return c + COUNT_HIGH_ONE
+        return c
+    if clear > 0.0:
+        dark = c & COUNT_LOW
+        cap = COUNT_LOW
+        step = wp.uint64(1)
+        if P.rule == 1:
+            cap = wp.uint64(255)
+            if v < P.thr_dark:
+                step = wp.uint64(2)
+        if dark < cap:
+            return (c - dark) + wp.min(dark + step, cap)
+    return c
 
 
 @wp.kernel
@@ -536,10 +556,10 @@ def init_blocks(
 
 
 # ----------------------------------------------------------------------------- batches
-# A batch of B pings in one launch per step. Each thread owns its voxels (a chunk of a column of
-# the union of the pings' boxes) and folds every ping into them in turn: no atomics, and every
-# voxel sees exactly the views B sequential launches would give it, so the map is the same bit
-# for bit (each update is a min or a saturating count, which no order changes).
+# A batch of B pings in one launch per step. Each gather thread owns one voxel of the union of the
+# pings' boxes and folds every ping into it in turn: no atomics, and every voxel sees exactly the
+# views B sequential launches would give it, so the map is the same bit for bit (each update is a
+# min or a saturating count, which no order changes).
 
 
 @wp.kernel
@@ -574,13 +594,26 @@ def build_beam_levels_cells_batch(Ps: wp.array(dtype=PingParams), tables: wp.arr
     beam_levels_cell(Ps[b], tables[b], i, j)
 
 
-@wp.kernel
-def integrate_gather_batch(
+@wp.func
+def ping_of(P0: PingParams, Ps: wp.array(dtype=PingParams), b: int) -> PingParams:
+    """Ping b's parameters: ``P0`` (ping 0's, a kernel argument: read from constant memory where it
+    is used) with the fields that differ between a batch's pings (pose, footprint) read from Ps[b]."""
+    P = P0
+    P.A = Ps[b].A
+    P.b = Ps[b].b
+    P.rho = Ps[b].rho
+    P.near = Ps[b].near
+    P.win = Ps[b].win
+    return P
+
+
+@wp.kernel(cuda_max_registers=GATHER_MAX_REGISTERS)
+def integrate_voxels_batch(
+    P0: PingParams,
     Ps: wp.array(dtype=PingParams),
     boxes: wp.array2d(dtype=int),
     box_lo: wp.vec3i,
     box_n: wp.vec3i,
-    chunk: int,
     images: wp.array3d(dtype=float),
     tan_edges: wp.array(dtype=float),
     lut: wp.array(dtype=int),
@@ -593,28 +626,65 @@ def integrate_gather_batch(
     seen: wp.array(dtype=wp.uint8),
     err: wp.array(dtype=int),
 ):
-    """One thread per chunk of an (i, j) column of the union box (box_lo, box_n) of the pings'
-    boxes; it folds ping 0, 1, ... into its voxels, each ping only within that ping's box
-    (``boxes[b]`` = box_lo, box_n of ping b: tested before its parameters are read)."""
+    """One thread per voxel of the union box (box_lo, box_n), k fastest (a warp walks a column's
+    contiguous voxels): it folds ping 0, 1, ... into the voxel, each ping only within that ping's
+    box (``boxes[b]``). The voxel's values live in registers from its first view and are written
+    once, where they changed; a ping's parameters are read only while that ping is folded, so
+    few registers stay live. (A thread per chunk of a column walking each ping's column range, as
+    integrate_gather does for one ping, held a whole ping's parameters in registers and ran 1.2-1.5x
+    slower on an H100: bench/results/gpu_scale_variants.json.)"""
     tid = wp.tid()
-    n_chunks = (box_n[2] + chunk - 1) // chunk
-    col = tid // n_chunks
-    c0 = box_lo[2] + (tid - col * n_chunks) * chunk
-    c1 = wp.min(c0 + chunk, box_lo[2] + box_n[2]) - 1
+    col = tid // box_n[2]
+    k = box_lo[2] + tid - col * box_n[2]
     i = box_lo[0] + col // box_n[1]
     j = box_lo[1] + col - (col // box_n[1]) * box_n[1]
-    bcol = block_column(Ps[0], i, j)  # every ping of a batch has the same block index
+    c = voxel_centre(P0, i, j, k)
+    a = int(-1)
+    hit = int(0)
+    g0 = float(0.0)
+    g = float(0.0)
+    br0 = float(0.0)
+    br = float(0.0)
+    n0 = wp.uint64(0)
+    n = wp.uint64(0)
     for b in range(Ps.shape[0]):
-        inside_i = i >= boxes[b, 0] and i < boxes[b, 0] + boxes[b, 3]
-        if inside_i and j >= boxes[b, 1] and j < boxes[b, 1] + boxes[b, 4]:
-            k0 = wp.max(c0, boxes[b, 2])
-            k1 = wp.min(c1, boxes[b, 2] + boxes[b, 5] - 1)
-            if k0 <= k1:
-                P = Ps[b]
-                gather_column(
-                    P, i, j, k0, k1, images[b], tan_edges, lut, tables[b], first_bright[b],
-                    index, bcol, grid, bright, count, seen, err,
-                )
+        inside = i >= boxes[b, 0] and i < boxes[b, 0] + boxes[b, 3] and j >= boxes[b, 1]
+        if inside and j < boxes[b, 1] + boxes[b, 4] and k >= boxes[b, 2] and k < boxes[b, 2] + boxes[b, 5]:
+            P = ping_of(P0, Ps, b)
+            vc = voxel_ping_value(P, c, images[b], tan_edges, lut, tables[b], first_bright[b])
+            v = vc[0]
+            if v >= 0.0:
+                if hit == 0:  # the first view: find the voxel and read its values
+                    hit = 1
+                    a = voxel_address(P, index, i, j, k)
+                    if a >= 0:
+                        g0 = grid[a]
+                        g = g0
+                        if P.rule != 0:
+                            br0 = bright[a]
+                            br = br0
+                            n0 = count[a]
+                            n = n0
+                if a >= 0:
+                    if v < g:
+                        g = v
+                    if P.rule != 0:
+                        if v >= P.thr and v < br:
+                            br = v
+                        n = counted(P, v, vc[1], n)
+    if hit != 0:
+        if a < 0:
+            err[0] = 1
+        else:
+            if g < g0:
+                grid[a] = g
+            if br < br0:
+                bright[a] = br
+            if n != n0:
+                count[a] = n
+            slot = a // (P0.blk * P0.blk * P0.blk_z)
+            if seen[slot] == wp.uint8(0):
+                seen[slot] = wp.uint8(1)
 
 
 @wp.kernel

@@ -73,8 +73,12 @@ MUTANTS = [
         "a view is bright only when v > threshold (not v >= threshold)",
         {
             "numpy": [("lit = v >= thr", "lit = v > thr")],
-            "warp-cpu": [("        if v >= P.thr:\n", "        if v > P.thr:\n")],
-            "opencl-cpu": [("if (v >= P->thr) {", "if (v > P->thr) {")],
+            # every bright test (the count, the bright minimum, the per-voxel batch kernel) and the
+            # dark side's complement (clear is looked up for dark views only)
+            "warp-cpu": [("v >= P.thr", "v > P.thr"),
+                         ("P.rule != 0 and v < P.thr:", "P.rule != 0 and v <= P.thr:")],
+            "opencl-cpu": [("v >= P->thr", "v > P->thr"), ("v >= P0.thr", "v > P0.thr"),
+                           ("P->rule != 0 && v < P->thr)", "P->rule != 0 && v <= P->thr)")],
         },
     ),
     Mutant(
@@ -101,11 +105,11 @@ MUTANTS = [
             "numpy": [("grown = np.minimum(dark.astype(np.int64) + step, cap)",
                        "grown = (dark.astype(np.int64) + step) % (cap + 1)"),
                       ("clear_dark & (dark < cap)", "clear_dark")],
-            "warp-cpu": [("            if dark < cap:\n                dark = wp.min(dark + step, cap)",
-                          "            if dark <= cap:\n"
-                          "                dark = (dark + step) % (cap + wp.uint64(1))")],
-            "opencl-cpu": [("if (dark < cap) count[idx] = (c - dark) + min(dark + step, cap);",
-                            "count[idx] = (c - dark) + (dark + step) % (cap + 1UL);")],
+            "warp-cpu": [("        if dark < cap:\n            return (c - dark) + wp.min(dark + step, cap)",
+                          "        if dark <= cap:\n"
+                          "            return (c - dark) + (dark + step) % (cap + wp.uint64(1))")],
+            "opencl-cpu": [("return dark < cap ? (c - dark) + min(dark + step, cap) : c;",
+                            "return (c - dark) + (dark + step) % (cap + 1UL);")],
         },
     ),
     Mutant(
@@ -113,8 +117,8 @@ MUTANTS = [
         "the 32-bit bright-view count wraps at 2^32 (carries out of the word) instead of saturating",
         {
             "numpy": [("np.minimum(hits.astype(np.int64) + 1, COUNT_MAX)", "(hits.astype(np.int64) + 1)")],
-            "warp-cpu": [("            if c < HITS_FULL:", "            if c <= COUNT_LOW | HITS_FULL:")],
-            "opencl-cpu": [("if (c < 0xFFFFFFFF00000000UL)", "if (c <= 0xFFFFFFFFFFFFFFFFUL)")],
+            "warp-cpu": [("        if c < HITS_FULL:", "        if c <= COUNT_LOW | HITS_FULL:")],
+            "opencl-cpu": [("c < 0xFFFFFFFF00000000UL ?", "c <= 0xFFFFFFFFFFFFFFFFUL ?")],
         },
         tests=("tests/test_evidence_rule.py",),
     ),
@@ -124,10 +128,10 @@ MUTANTS = [
         {
             "numpy": [("grown = np.minimum(dark.astype(np.int64) + step, cap)",
                        "grown = dark.astype(np.int64) + step"), ("clear_dark & (dark < cap)", "clear_dark")],
-            "warp-cpu": [("            if dark < cap:\n                dark = wp.min(dark + step, cap)",
-                          "            if dark <= cap:\n                dark = dark + step")],
-            "opencl-cpu": [("if (dark < cap) count[idx] = (c - dark) + min(dark + step, cap);",
-                            "count[idx] = (c - dark) + dark + step;")],
+            "warp-cpu": [("        if dark < cap:\n            return (c - dark) + wp.min(dark + step, cap)",
+                          "        if dark <= cap:\n            return (c - dark) + dark + step")],
+            "opencl-cpu": [("return dark < cap ? (c - dark) + min(dark + step, cap) : c;",
+                            "return (c - dark) + dark + step;")],
         },
         tests=("tests/test_evidence_rule.py",),
     ),
@@ -136,8 +140,9 @@ MUTANTS = [
         "a dark view behind a return counts as clear dark evidence (the blocking test ignored)",
         {
             "numpy": [("clear_dark = clear & ~lit", "clear_dark = ~lit")],
-            "warp-cpu": [("        elif vc[1] > 0.0:", "        elif vc[1] >= 0.0:")],
-            "opencl-cpu": [("} else if (clear) {", "} else {")],
+            "warp-cpu": [("    if clear > 0.0:\n", "    if clear >= 0.0:\n"),
+                         ("or vc[1] > 0.0:", "or vc[1] >= 0.0:")],
+            "opencl-cpu": [("if (!clear) return c;", ""), ("if (v >= P->thr || clear) {", "if (1) {")],
         },
         tests=("tests/test_evidence_rule.py",),
     ),

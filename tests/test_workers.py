@@ -210,3 +210,59 @@ def test_asking_more_workers_than_the_cluster_has_says_how_many(cluster, monkeyp
     with pytest.raises(ValueError, match="Expected 5 Dask workers, but the cluster has 3"):
         run_replay_workers(_tank(6), workers=5, client=client, voxel_size_m=0.06, backend="numpy",
                            progress=False)
+
+
+def test_one_gpu_per_worker_by_rank_on_its_host(monkeypatch):
+    """--workers over the GPUs of a machine: a worker's rank among the workers of its host picks its
+    GPU (modulo the host's GPUs), set in CUDA_VISIBLE_DEVICES before CUDA starts; a host without GPUs
+    leaves the variable alone."""
+    from gpumap import workers
+
+    addrs = ["tcp://10.0.0.2:4001", "tcp://10.0.0.1:4000", "tcp://10.0.0.2:4002", "tcp://10.0.0.1:4003",
+             "inproc://10.0.0.9/1/2"]
+    assert workers.host_ranks(addrs) == [0, 0, 1, 1, 0]
+    monkeypatch.setattr(workers, "_cuda_started", lambda: False)
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")  # the GPUs this process may use
+    assert workers.host_gpus() == ["2", "3"]
+    assert workers.pin_gpu(3) == "3"
+    import os
+
+    assert os.environ["CUDA_VISIBLE_DEVICES"] == "3"
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")  # none
+    assert workers.host_gpus() == [] and workers.pin_gpu(0) is None
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
+    monkeypatch.setattr(workers.os, "listdir", lambda p: ["0000:1b:00.0", "0000:43:00.0"])
+    assert workers.host_gpus() == ["0", "1"]
+    assert workers.pin_gpu(1) == "1"
+    monkeypatch.setattr(workers, "_cuda_started", lambda: True)  # too late: the variable says nothing
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
+    assert workers.pin_gpu(0) is None and "CUDA_VISIBLE_DEVICES" not in os.environ
+    with pytest.raises(ValueError, match="gpus"):
+        run_replay_workers(None, workers=1, gpus="all", static=True)
+
+
+@needs_data
+def test_frames_carrying_their_bytes_are_sent_as_bytes(cluster):
+    """A reader that keeps a frame's bytes (meta FRAME_BYTES, image == bytes / 255 in float32) has
+    the client send those (a quarter of the data, no pass to find them): the same map."""
+    from gpumap.backends import U8_SCALE
+    from gpumap.io import Recording, SonarFrame
+    from gpumap.workers import FRAME_BYTES
+
+    _, client = cluster
+    src = list(_tank(6))
+    u8 = [np.round(f.image * 255).astype(np.uint8) for f in src]
+    flt = [np.multiply(b, U8_SCALE, dtype=np.float32) for b in u8]
+
+    def frames(with_bytes: bool):
+        return [SonarFrame(flt[i], f.spec, None, f.T_W_S, {FRAME_BYTES: u8[i]} if with_bytes else {})
+                for i, f in enumerate(src)]
+
+    recs = [Recording("tank", "arrays", lambda w=w: iter(frames(w)), True, count=lambda: len(src))
+            for w in (False, True)]
+    kw = dict(voxel_size_m=0.06, backend="numpy", progress=False)
+    one, _ = run_replay(recs[0], **kw)
+    for rec in recs:
+        got, s = run_replay_workers(rec, workers=2, client=client, **kw)
+        assert s["frames"] == len(src)
+        _assert_same(got, one)

@@ -44,8 +44,9 @@ _opencl, _opencl_context = opencl_backend._opencl, opencl_backend._opencl_contex
 _union_groups = base._union_groups
 
 __all__ = [
-    "AUTO_ORDER", "BACKENDS", "BATCH_BOX_VOXELS_MAX", "BATCH_MAX", "COPY_SPLIT_BYTES", "COPY_THREADS",
-    "CPU_CHUNK", "CPU_THREADS", "GPU_CHUNK", "N_SLOTS", "TUNABLES", "U8_SCALE", "Backend",
+    "AUTO_ORDER", "BACKENDS", "BATCH_BOX_VOXELS_MAX", "BATCH_MAX", "COPY_SPLIT_BYTES",
+    "COPY_THREADS", "CPU_CHUNK", "CPU_THREADS", "GPU_CHUNK", "N_SLOTS", "OPENCL_BATCH_BOX_VOXELS_MAX",
+    "TUNABLES", "U8_SCALE", "Backend",
     "GridTooLargeError", "NumpyBackend", "OpenCLBackend", "WarpBackend", "available_backends",
     "build_table_host", "cuda_driver_loadable", "make_backend", "opencl_devices", "opencl_host_table",
     "table_rows", "table_size", "usable_opencl_device", "warp_host_table", "warp_launch_halves",

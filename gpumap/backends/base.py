@@ -27,8 +27,12 @@ CPU_CHUNK = 1 << 30  # on CPUs, the whole column
 #: Pings a GPU folds per launch (more are split); buffers grow to the largest batch seen.
 BATCH_MAX = 64
 #: Pings whose boxes hold more voxels than this on average go one launch each: at that size
-#: a launch's fixed cost is small, and one launch per ping ran faster on an H100 (5 mm, tank).
+#: a launch's fixed cost is small, and one launch per ping ran faster on an H100 (5 mm, tank:
+#: Warp's per-voxel batch kernel 357 us per ping against its per-ping gather's 299 us,
+#: bench/results/gpu_scale.json). OpenCL's per-voxel batch kernel ran faster than one launch per
+#: ping there (4.5k pings/s against 2.5k): its backend reads OPENCL_BATCH_BOX_VOXELS_MAX instead.
 BATCH_BOX_VOXELS_MAX = 16_000_000
+OPENCL_BATCH_BOX_VOXELS_MAX = 1 << 40
 
 #: Threads that fill a GPU batch's staging buffer, and the bytes from which they are used.
 COPY_THREADS = max(1, min(4, (os.cpu_count() or 1) // 2))
@@ -36,8 +40,8 @@ COPY_SPLIT_BYTES = 4 << 20
 
 #: The knobs above that a run may set (on this module, or on :mod:`gpumap.backends`, which
 #: passes them on): read here when they are used, never copied.
-TUNABLES = ("GPU_CHUNK", "CPU_CHUNK", "CPU_THREADS", "BATCH_MAX", "BATCH_BOX_VOXELS_MAX", "COPY_THREADS",
-            "COPY_SPLIT_BYTES")
+TUNABLES = ("GPU_CHUNK", "CPU_CHUNK", "CPU_THREADS", "BATCH_MAX", "BATCH_BOX_VOXELS_MAX",
+            "OPENCL_BATCH_BOX_VOXELS_MAX", "COPY_THREADS", "COPY_SPLIT_BYTES")
 
 
 @functools.cache
@@ -88,6 +92,8 @@ class Backend:
 
     name: str
     device: str
+    #: The knob of this module that caps the boxes a batch kernel folds (see BATCH_BOX_VOXELS_MAX).
+    batch_box_knob = "BATCH_BOX_VOXELS_MAX"
 
     def _setup_pool(self, visible: bool, B: int, Bz: int | None) -> None:
         Bz = B if Bz is None else Bz
@@ -134,7 +140,7 @@ class Backend:
         go to ``_launch_batch``, else the pings are applied one by one."""
         # batch_kernels: only backends with a _launch_batch have it
         fold = getattr(self, "batch_kernels", False) and method == "gather"
-        if not fold or not _fold_in_batches(params, n_threads):
+        if not fold or not _fold_in_batches(params, n_threads, globals()[self.batch_box_knob]):
             for b in range(params.shape[0]):
                 self.integrate(params[b, ...], images[b], method, int(n_threads[b]))
             return
@@ -205,13 +211,14 @@ def _check_rule(params: np.ndarray, visible: bool) -> None:
             "Expected a backend built with visible=True for rule='visible' or 'evidence' parameters")
 
 
-def _fold_in_batches(params: np.ndarray, n_threads: np.ndarray) -> bool:
-    """Whether the batch kernels pay off for these pings (see BATCH_BOX_VOXELS_MAX)."""
+def _fold_in_batches(params: np.ndarray, n_threads: np.ndarray, box_max: float) -> bool:
+    """Whether the batch kernels pay off for these pings (boxes of ``box_max`` voxels at most on
+    average: see BATCH_BOX_VOXELS_MAX)."""
     live = n_threads > 0
     if not live.any():
         return False
     vol = np.prod(params["box_n"][live].astype(np.float64), axis=1)
-    return float(vol.mean()) <= BATCH_BOX_VOXELS_MAX
+    return float(vol.mean()) <= box_max
 
 
 def _union_groups(params: np.ndarray, n_threads: np.ndarray, slack: float = 2.0) -> list[tuple[int, int]]:
@@ -219,17 +226,22 @@ def _union_groups(params: np.ndarray, n_threads: np.ndarray, slack: float = 2.0)
     the voxels of the boxes themselves (far-apart pings would make threads walk empty space)."""
     lo = params["box_lo"].astype(np.int64)
     hi = lo + params["box_n"].astype(np.int64)
-    vol = np.where(n_threads > 0, np.prod(hi - lo, axis=1), 0)
+    vol = np.where(n_threads > 0, np.prod(hi - lo, axis=1), 0).tolist()
+    lo, hi = lo.tolist(), hi.tolist()  # plain ints: a ping costs a microsecond, not NumPy's calls
     out, start = [], 0
     ulo, uhi, total = None, None, 0
     for b in range(params.shape[0]):
         if vol[b] == 0:
             continue
-        nlo = lo[b] if ulo is None else np.minimum(ulo, lo[b])
-        nhi = hi[b] if uhi is None else np.maximum(uhi, hi[b])
-        if ulo is not None and (np.prod(nhi - nlo) > slack * (total + vol[b]) or b - start >= BATCH_MAX):
-            out.append((start, b))
-            start, nlo, nhi, total = b, lo[b], hi[b], 0
+        if ulo is None:
+            nlo, nhi = lo[b], hi[b]
+        else:
+            nlo = [min(x, y) for x, y in zip(ulo, lo[b], strict=True)]
+            nhi = [max(x, y) for x, y in zip(uhi, hi[b], strict=True)]
+            span = (nhi[0] - nlo[0]) * (nhi[1] - nlo[1]) * (nhi[2] - nlo[2])
+            if span > slack * (total + vol[b]) or b - start >= BATCH_MAX:
+                out.append((start, b))
+                start, nlo, nhi, total = b, lo[b], hi[b], 0
         ulo, uhi, total = nlo, nhi, total + vol[b]
     if ulo is not None:
         out.append((start, params.shape[0]))

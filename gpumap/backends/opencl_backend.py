@@ -6,6 +6,7 @@ per device, shared by every mapper on it.
 from __future__ import annotations
 
 import functools
+import os
 import threading
 from importlib import resources
 
@@ -68,8 +69,12 @@ def _opencl_context(device):
         if key not in _CL_SHARED:
             ctx = cl.Context([device])
             src = resources.files("gpumap.kernels").joinpath("minmax.cl").read_text()
+            opts = ["-cl-fp32-correctly-rounded-divide-sqrt"]
+            regs = int(os.environ.get("GPUMAP_GPU_MAX_REGISTERS", "0") or 0)
+            if regs and "cl_nv_compiler_options" in device.extensions:  # as kernels/minmax.py caps Warp's
+                opts.append(f"-cl-nv-maxrregcount={regs}")
             try:
-                prg = cl.Program(ctx, src).build(options=["-cl-fp32-correctly-rounded-divide-sqrt"])
+                prg = cl.Program(ctx, src).build(options=opts)
             except cl.Error:
                 try:
                     prg = cl.Program(ctx, src).build()
@@ -109,6 +114,8 @@ def usable_opencl_device(kind: str):
 
 
 class OpenCLBackend(Backend):
+    batch_box_knob = "OPENCL_BATCH_BOX_VOXELS_MAX"
+
     def __init__(self, spec, template_S, use_table=None, kind="any", *, visible=False, B=8, Bz=None, cap=0):
         n_bins, n_beams = spec.image_shape
         cl = _opencl()
@@ -346,15 +353,19 @@ class OpenCLBackend(Backend):
             "host": [host(cap * (4 * plane + PING_DTYPE.itemsize)) for _ in range(2)],
             "uploads": [None, None],
             "slot": 0,
-            "P": cl.Buffer(self.ctx, mf.READ_ONLY, size=cap * PING_DTYPE.itemsize),
-            "u8": cl.Buffer(self.ctx, mf.READ_ONLY, size=cap * plane),
+            # two device slots for the parameters and bytes (see _launch_batch); "done": the last
+            # kernels that read each
+            "P": [cl.Buffer(self.ctx, mf.READ_ONLY, size=cap * PING_DTYPE.itemsize) for _ in range(2)],
+            "u8": [cl.Buffer(self.ctx, mf.READ_ONLY, size=cap * plane) for _ in range(2)],
+            "done": [None, None],
+            "upload_queue": cl.CommandQueue(self.ctx),
             "images": cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * cap * plane),
             "tables": cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * cap * n_table),
             "first_bright": cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * cap * self.n_beams),
         }
         k = functools.partial(self.cl.Kernel, _opencl_context(self._cl_device)[1])
         for name in ("find_first_bright_batch", "build_bin_window_cells_batch",
-                     "build_beam_levels_cells_batch", "integrate_gather_batch"):
+                     "build_beam_levels_cells_batch", "integrate_voxels_batch"):
             bb[name] = k(name)
         self._batch = bb
         return bb
@@ -372,16 +383,26 @@ class OpenCLBackend(Backend):
         nb = images.nbytes
         _copy_rows(host[pb : pb + nb].reshape(B, -1), images.reshape(B, -1).view(np.uint8))
         q = self.queue
-        ups = [cl.enqueue_copy(q, bb["P"], host[:pb], is_blocking=False)]
-        img_dst = bb["u8"] if images.dtype == np.uint8 else bb["images"]
-        ups.append(cl.enqueue_copy(q, img_dst, host[pb : pb + nb], is_blocking=False))
+        u8 = images.dtype == np.uint8
+        # Uploads into device slot s on their own queue, after the kernels that last read that slot
+        # (the float images' one buffer: after the batch before too), so that batch k+1's upload
+        # overlaps batch k's kernels; the kernels wait for them.
+        up = bb["upload_queue"]
+        after = [e for e in (bb["done"][s], None if u8 else bb["done"][1 - s]) if e is not None]
+        P = bb["P"][s]
+        img_dst = bb["u8"][s] if u8 else bb["images"]
+        ups = [cl.enqueue_copy(up, P, host[:pb], is_blocking=False, wait_for=after),
+               cl.enqueue_copy(up, img_dst, host[pb : pb + nb], is_blocking=False, wait_for=after)]
+        up.flush()
         bb["uploads"][s] = ups
         wg = self.wg
         i32 = np.int32
-        if images.dtype == np.uint8:
+        if u8:
             n_px = B * plane
-            self.k_u8(q, (-(-n_px // wg) * wg,), (wg,), bb["u8"], U8_SCALE, bb["images"], i32(n_px))
-        P = bb["P"]
+            self.k_u8(q, (-(-n_px // wg) * wg,), (wg,), img_dst, U8_SCALE, bb["images"], i32(n_px),
+                      wait_for=ups)
+        else:
+            cl.enqueue_barrier(q, wait_for=ups)
         stride = i32(bb["n_table"])
         if int(params["rule"][0]) != 0:
             n = B * self.n_beams
@@ -395,15 +416,17 @@ class OpenCLBackend(Backend):
         live = n_threads > 0
         lo = params["box_lo"][live].min(axis=0)
         n = (params["box_lo"] + params["box_n"])[live].max(axis=0) - lo
-        n_chunks = -(-int(n[2]) // self.chunk)
-        total = int(n[0]) * int(n[1]) * n_chunks
-        bb["integrate_gather_batch"](
-            q, (-(-total // wg) * wg,), (wg,), P, i32(B), *(i32(x) for x in lo), *(i32(x) for x in n),
-            i32(self.chunk), i32(plane), stride, bb["images"], self.edges, self.lut, bb["tables"],
-            i32(self.use_table), bb["first_bright"], self.index, self.grid, self.bright, self.count,
-            self.seen, self.err,
+        pool = (self.index, self.grid, self.bright, self.count, self.seen, self.err)
+        # a work-item per voxel of the union box; ping 0's parameters as an argument
+        total = int(n[0]) * int(n[1]) * int(n[2])
+        bb["done"][s] = bb["integrate_voxels_batch"](
+            q, (-(-total // wg) * wg,), (wg,), np.asarray(params[0, ...], dtype=PING_DTYPE), P, i32(B),
+            *(i32(x) for x in lo), *(i32(x) for x in n), i32(plane), stride, bb["images"], self.edges,
+            self.lut, bb["tables"], i32(self.use_table), bb["first_bright"], *pool,
         )
         q.flush()
 
     def synchronize(self) -> None:
         self.queue.finish()
+        if self._batch is not None:
+            self._batch["upload_queue"].finish()

@@ -364,12 +364,17 @@ class WarpBackend(Backend):
             "host_f": [wp.empty(shape, dtype=float, device="cpu", pinned=pin) for _ in range(2)],
             "host_P": [wp.empty(cap, dtype=self.k.PingParams, device="cpu", pinned=pin) for _ in range(2)],
             "host_box": [wp.empty((cap, 6), dtype=int, device="cpu", pinned=pin) for _ in range(2)],
-            "boxes": wp.empty((cap, 6), dtype=int, device=dev),
-            "events": [None, None],
+            "events": [None, None],  # per host slot: its uploads are done
             "slot": 0,
-            "u8": wp.empty(shape, dtype=wp.uint8, device=dev),
+            # two device slots for the parameters, boxes and bytes: batch k+1's upload (on the copy
+            # stream) overlaps batch k's kernels, and waits only for the kernels that last read its
+            # slot (event "done")
+            "boxes": [wp.empty((cap, 6), dtype=int, device=dev) for _ in range(2)],
+            "P": [wp.empty(cap, dtype=self.k.PingParams, device=dev) for _ in range(2)],
+            "u8": [wp.empty(shape, dtype=wp.uint8, device=dev) for _ in range(2)],
+            "done": [None, None],
+            "copy_stream": wp.Stream(dev) if dev.is_cuda else None,
             "images": wp.empty(shape, dtype=float, device=dev),
-            "P": wp.empty(cap, dtype=self.k.PingParams, device=dev),
             "tables": wp.empty((cap, n_table), dtype=float, device=dev),
             "first_bright": wp.zeros((cap, self.n_beams), dtype=int, device=dev),
         }
@@ -382,27 +387,34 @@ class WarpBackend(Backend):
     def _launch_batch(self, params, images, n_threads):
         wp, k = self.wp, self.k
         B, bb, s = self._next_batch(params)
-        if bb["events"][s] is not None:
+        if bb["events"][s] is not None:  # host slot s: its last uploads are done
             wp.synchronize_event(bb["events"][s])
         hp = bb["host_P"][s]
         ctypes.memmove(hp.ptr, params.ctypes.data, B * PING_DTYPE.itemsize)
-        P = bb["P"][:B]
-        wp.copy(P, hp[:B])
         hb = bb["host_box_np"][s]
         hb[:B, :3] = params["box_lo"]
         hb[:B, 3:] = params["box_n"]
-        wp.copy(bb["boxes"], bb["host_box"][s], count=6 * B)
-        imgs = bb["images"][:B]
-        if images.dtype == np.uint8:
-            _copy_rows(bb["host_u8_np"][s][:B], images)
-            wp.copy(bb["u8"][:B], bb["host_u8"][s][:B])
-            bb["events"][s] = wp.record_event() if self.dev.is_cuda else None
-            wp.launch(k.convert_u8_batch, dim=images.shape, inputs=[bb["u8"][:B], float(U8_SCALE), imgs],
+        u8 = images.dtype == np.uint8
+        _copy_rows((bb["host_u8_np"] if u8 else bb["host_f_np"])[s][:B], images)
+        # Uploads into device slot s on the copy stream (CUDA), after the kernels that last read that
+        # slot: batch k+1's upload overlaps batch k's kernels. The float images have one device
+        # buffer: their upload also waits for the batch before.
+        cs = bb["copy_stream"]
+        if cs is not None:
+            for ev in (bb["done"][s], None if u8 else bb["done"][1 - s]):
+                if ev is not None:
+                    cs.wait_event(ev)
+        P, boxes, imgs = bb["P"][s][:B], bb["boxes"][s], bb["images"][:B]
+        wp.copy(P, hp[:B], stream=cs)
+        wp.copy(boxes, bb["host_box"][s], count=6 * B, stream=cs)
+        dev_img = bb["u8"][s][:B] if u8 else imgs
+        wp.copy(dev_img, (bb["host_u8"] if u8 else bb["host_f"])[s][:B], stream=cs)
+        if cs is not None:
+            bb["events"][s] = cs.record_event()
+            wp.get_stream(self.dev).wait_event(bb["events"][s])
+        if u8:
+            wp.launch(k.convert_u8_batch, dim=images.shape, inputs=[dev_img, float(U8_SCALE), imgs],
                       device=self.dev)
-        else:
-            _copy_rows(bb["host_f_np"][s][:B], images)
-            wp.copy(imgs, bb["host_f"][s][:B])
-            bb["events"][s] = wp.record_event() if self.dev.is_cuda else None
         fb = bb["first_bright"]  # (cap, ...): kernels index their B first rows only
         tables = bb["tables"]
         if int(params["rule"][0]) != 0:
@@ -415,17 +427,18 @@ class WarpBackend(Backend):
         lo = params["box_lo"][live].min(axis=0)
         hi = (params["box_lo"] + params["box_n"])[live].max(axis=0)
         n = hi - lo
-        n_chunks = -(-int(n[2]) // self.chunk)
+        pool = [self.index, self.grid, self.bright, self.count, self.seen, self.err]
+        # a thread per voxel of the union box; ping 0's parameters as an argument (constant memory)
         wp.launch(
-            k.integrate_gather_batch,
-            dim=int(n[0]) * int(n[1]) * n_chunks,
-            inputs=[
-                P, bb["boxes"], wp.vec3i(*lo.tolist()), wp.vec3i(*n.tolist()), self.chunk, imgs, self.edges,
-                self.lut,
-                tables, fb, self.index, self.grid, self.bright, self.count, self.seen, self.err,
-            ],
+            k.integrate_voxels_batch,
+            dim=int(n[0]) * int(n[1]) * int(n[2]),
+            inputs=[_warp_params(k, params[0, ...]), P, boxes, wp.vec3i(*lo.tolist()), wp.vec3i(*n.tolist()),
+                    imgs, self.edges, self.lut, tables, fb, *pool],
             device=self.dev,
+            block_dim=128,  # a heavy kernel: more blocks fit the registers left
         )
+        if cs is not None:  # device slot s is free again once these kernels are done
+            bb["done"][s] = wp.record_event()
 
     def synchronize(self) -> None:
         self.wp.synchronize_device(self.dev)

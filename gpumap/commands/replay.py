@@ -318,7 +318,7 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
         replay_kw.pop("max_memory")  # each worker holds its own map (gpumap.workers)
         replay_kw.pop("memory_remedy")
         mapper, stats = run_replay_workers(rec, workers=a.workers, scheduler=a.scheduler, grid=grid,
-                                           rule=a.rule, positions=positions, **replay_kw)
+                                           rule=a.rule, positions=positions, gpus=a.worker_gpus, **replay_kw)
     else:
         mapper, stats = run_replay(rec, grid=grid, rule=a.rule, positions=positions, **replay_kw)
     for s in getattr(a, "view_sessions", ()):
@@ -404,6 +404,9 @@ def add_worker_args(ap) -> None:
     ap.add_argument("--scheduler", default=None,
                     help="address of a running Dask scheduler (e.g. tcp://10.0.0.5:8786) whose "
                          "workers map; default: start N local worker processes (needs --workers)")
+    ap.add_argument("--worker-gpus", default="auto", choices=["auto", "none"],
+                    help="auto (default): each worker maps on one GPU of its host, by its rank among "
+                         "the workers there (N workers on N GPUs use them all); none: as they come")
 
 
 def check_worker_args(ap, a) -> None:
