@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 if __package__:  # python -m bench.gpu_scale (a worker runs this file as a script: no bench import)
-    from .common import bench_parser, load_average, machine_info, write_json
+    from .common import Section, bench_parser, load_average, machine_info, write_json
 
 #: The OASIS configuration's grid box (configs/base.yaml of the public code), metres.
 BOX = ((-0.5, -1.2, -0.5), (1.9, 1.2, 0.8))
@@ -445,7 +445,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--knob", action="append", default=[], help=argparse.SUPPRESS)
     p.add_argument("--dump", default=None, help=argparse.SUPPRESS)
     p.add_argument("--profile", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--report", type=Path, default=None, metavar="BENCHMARKS_MD",
+                   help="only write this benchmark's section of that file from --out")
     a = p.parse_args(argv)
+    if a.report is not None:
+        SECTION.write(a.report, Path(a.out).parent)
+        return 0
     if a.worker:
         _worker(a)
         return 0
@@ -488,6 +493,55 @@ def main(argv: list[str] | None = None) -> int:
     print(f"wrote {a.out}")
     return 0
 
+
+def _med(x: dict) -> str:
+    return f"{x['median']:,.0f} ({x['min']:,.0f}-{x['max']:,.0f})"
+
+
+def markdown(res: dict, folder: Path) -> str:
+    """The BENCHMARKS.md block of ``gpu_scale.json``: one GPU, old tree against new, then 1 and 2
+    GPU workers."""
+    del folder
+    gpus = ", ".join(res["gpus"])
+    out = ["## GPU speed and GPU workers (issue #33)", "",
+           f"`{res['command']}` on {len(res['gpus'])} GPUs ({gpus}), load {res['load_start'][0]:.2f} at the "
+           "start; the real tank's frames, default (evidence) rule, batches of 64. Old and new trees of a "
+           "backend on the same card, in turn; pings/s median (min-max) of 5 repetitions; p99: "
+           "`integrate` + `synchronize` of one ping; oracle: the batched map of the first frames against "
+           "the NumPy reference, bit for bit.", "",
+           "| backend | voxel | old pings/s | new pings/s | new / old | p99 ms (new) | equals the oracle |",
+           "|---|---|---|---|---|---|---|"]
+    rows = {(r["tree"], r["backend"], r["voxel_m"]): r for r in res["single"] if r["variant"] == "as-shipped"}
+    for (tree, backend, voxel), new in rows.items():
+        old = rows.get(("old", backend, voxel))
+        if tree != "new" or old is None:
+            continue
+        ratio = new["pings_per_s"]["median"] / old["pings_per_s"]["median"]
+        equal = "yes" if new["oracle_equal"] and old["oracle_equal"] else "NO"
+        out.append(f"| {backend} | {voxel * 1000:g} mm | {_med(old['pings_per_s'])} | "
+                   f"{_med(new['pings_per_s'])} | {ratio:.2f}x | {new['latency_ms']['p99']:.2f} | {equal} |")
+    w = res.get("workers")
+    if w:
+        s, rows_w = w["summary"], w["rows"]
+        warm = [r for r in rows_w if not r.get("cold")]
+        maps = {n: np.median([r[f"w{n}_map_s"] for r in warm]) for n in (1, 2)}
+        merge = {n: np.median([r[f"w{n}_gather_merge_s"] for r in warm]) for n in (1, 2)}
+        checks = [r[k] for r in rows_w for k in ("w1_equal_one_process", "w2_equal_one_process") if k in r]
+        same = bool(checks) and all(checks)
+        out += ["", f"Workers ({w['backend']}, {w['voxel_m'] * 1000:g} mm, the tank's frames {w['repeat']} "
+                f"times: {w['frames']:,} pings; {len(warm)} warm runs, medians): one process "
+                f"{s['one_s']['median']:.2f} s; 1 worker {s['w1_s']['median']:.2f} s (mapping "
+                f"{maps[1]:.2f} s, gathering and merging its map {merge[1]:.2f} s); 2 workers on 2 GPUs "
+                f"{s['w2_s']['median']:.2f} s (mapping {maps[2]:.2f} s, {maps[1] / maps[2]:.2f}x the mapping "
+                f"of one; gathering and merging {merge[2]:.2f} s). End to end 2 workers run "
+                f"{s['speedup_2_over_1']:.2f}x one worker: the maps' way back and their merge dominate. "
+                f"Merged maps {'equal' if same else 'DIFFER from'} the one-process map. The client alone "
+                f"reads and batches {w['client_only_frames_per_s']['median']:,.0f} frames/s."]
+    return "\n".join(out)
+
+
+if __package__:
+    SECTION = Section("gpu-scale", "## GPU speed and GPU workers (issue #33)", "gpu_scale.json", markdown)
 
 if __name__ == "__main__":
     raise SystemExit(main())
