@@ -63,6 +63,21 @@ def summary_rows() -> list[tuple[str, str, str]]:
                  and r["rule"] == "visible")
         rows.append(("Real tank frames, H100 warp-cuda, 1 cm, default rule: p99 latency per frame",
                      f"{r['latency']['p99_ms']:.2f} ms", f))
+    gs = _load("gpu_scale.json")
+    if gs:
+        new = {(r["backend"], r["voxel_m"]): r["pings_per_s"]["median"] for r in gs["single"]
+               if r["tree"] == "new" and r["variant"] == "as-shipped"}
+        cells = [_n(new[(b, v)]) for v in (0.01, 0.005) for b in ("opencl-gpu", "warp-cuda") if (b, v) in new]
+        rows.append(("Real tank frames on an H100, default rule, batched: pings/s opencl-gpu / warp-cuda at "
+                     "1 cm, then 5 mm (bit for bit with the oracle)", " / ".join(cells[:2]) + ", "
+                     + " / ".join(cells[2:]), "gpu_scale.json"))
+        w = gs.get("workers")
+        if w:
+            warm = [r for r in w["rows"] if not r.get("cold")]
+            m1, m2 = (sorted(r[f"w{n}_map_s"] for r in warm)[len(warm) // 2] for n in (1, 2))
+            rows.append((f"... GPU workers ({w['voxel_m'] * 1000:g} mm, {w['frames']:,} pings): 2 GPUs over "
+                         "1, mapping phase / end to end (the maps' transfer and merge included)",
+                         f"{m1 / m2:.2f}x / {w['summary']['speedup_2_over_1']:.2f}x", "gpu_scale.json"))
     vis = _load("visibility.json")
     by = {r["rule"]: r for r in (vis or {"rows": []})["rows"]
           if r["scene"] == "tank" and r["voxel_size_m"] == 0.03}
@@ -92,6 +107,13 @@ def summary_rows() -> list[tuple[str, str, str]]:
                          ", ".join(" / ".join(_pct(j[k]) for k in JUDGED)
                                    for j in (r["every_10"]["judge"], r["every_1"]["judge"])),
                          "rate_real.json"))
+    su = _load("surface.json")
+    if su and su.get("real"):
+        h = su["real"]["held_out"]["maps"]
+        rows.append(("... held-out frames 800-1222 (frames 0-799 mapped), first returns agreed / phantoms in "
+                     "front / missed: surface layer, visible map",
+                     ", ".join(" / ".join(_pct(h[m][k]) for k in JUDGED) for m in ("surface", "visible")),
+                     "surface.json"))
     lr = _load("long_run.json")
     if lr:
         cells = [f"{name} {rule} {_pct(sc['curves'][rule][0]['miss_rate_objects'])} / "
