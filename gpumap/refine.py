@@ -75,9 +75,11 @@ from gpumap.refine_heldout import heldout_scores, render_map, roc_auc
 from gpumap.refined_map import (
     OCCUPIED_LEVEL,
     REFINED_FORMAT,
+    SURFACE_FILE,
     RefineResult,
     field_from_occupancy,
     is_refined_file,
+    layers_file,
     load_refined,
     occupancy_from_field,
 )
@@ -96,6 +98,8 @@ __all__ = [
     "map_frames",
     "load_refined",
     "is_refined_file",
+    "layers_file",
+    "SURFACE_FILE",
     "field_from_occupancy",
     "occupancy_from_field",
     "render_map",
