@@ -9,8 +9,12 @@ the sonar cannot see.
 
 from __future__ import annotations
 
+import json
+import warnings
+
 import numpy as np
 import pytest
+from conftest import DATA, needs_data
 
 import gpumap.ekf.registration as reg_mod
 from gpumap.ekf.frontend import PointMeasurements
@@ -246,3 +250,25 @@ def test_the_loop_with_registration_beats_drifting_odometry_in_plane():
         eo, ee = pose_errors(T_odo, T_true), pose_errors(loop.poses, T_true)
         ratios.append(ee["position_m"]["mean"] / eo["position_m"]["mean"])
     assert max(ratios) < 0.9, ratios
+
+
+@needs_data
+@pytest.mark.parametrize("off", [False, True])
+def test_replay_ekf_says_how_much_it_trusted_the_registration(tmp_path, capsys, off) -> None:
+    from gpumap.commands.replay import main
+
+    out = tmp_path / "o"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        rc = main([str(DATA / "oasis_tank"), "--ekf", "--max-frames", "12", "--out", str(out),
+                   "--backend", "numpy", "--no-pictures", "--no-progress"]
+                  + (["--ekf-no-registration"] if off else []))
+    assert rc == 0
+    r = json.loads((out / "summary.json").read_text())["ekf"]["registration"]
+    assert r["used"] is (not off)
+    if not off:
+        assert r["pings"] == 12 and 0.0 <= r["fused_share"] <= 1.0
+        for k in ("registered", "fused", "gated", "distrusted", "revisits", "revisits_fused"):
+            assert k in r
+    line = capsys.readouterr().out
+    assert ("scan registration off" in line) is off and ("scan registration corrected" in line) is (not off)

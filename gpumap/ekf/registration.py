@@ -192,13 +192,15 @@ def register_scan(points_S: np.ndarray, map_W: np.ndarray, T_pred: np.ndarray, *
     return ScanRegistration(delta, info, basis, used, rms)
 
 
-def fuse_step(U: np.ndarray, Q: np.ndarray, reg: ScanRegistration, gate: float | None
-              ) -> tuple[np.ndarray, np.ndarray, float | None, bool]:
+def fuse_step(U: np.ndarray, Q: np.ndarray, reg: ScanRegistration, gate: float | None,
+              floor: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float | None, bool]:
     """Fuse a registration into an odometry step (module docstring).
 
     ``T_pred = T_prev U``; the registration says ``T = T_pred Exp(delta)``, so it measures the
     step's noise ``w`` (``U_true = U Exp(w)``, prior ``N(0, Q)``) in its observed directions
-    ``B``: ``z = B delta = B w + v``, ``v ~ N(0, (B info B^T)^-1)``.
+    ``B``: ``z = B delta = B w + v``, ``v ~ N(0, (B info B^T)^-1 + B floor B^T)``; ``floor``
+    (6, 6), optional: a covariance added to the registration's own (errors it does not see:
+    the elevation of the surface, shared by consecutive pings).
 
     Returns
     -------
@@ -211,6 +213,8 @@ def fuse_step(U: np.ndarray, Q: np.ndarray, reg: ScanRegistration, gate: float |
         return U, Q, None, False
     z = B @ reg.delta
     R = np.linalg.inv(B @ reg.info @ B.T)
+    if floor is not None:
+        R = R + B @ floor @ B.T
     R = 0.5 * (R + R.T)
     HQ = B @ Q
     S = HQ @ B.T + R
@@ -249,8 +253,11 @@ def fuse_revisit(T_pred: np.ndarray, sigma_pred: np.ndarray, T_j: np.ndarray, si
     tracked them; the error of ``k`` is that of ``j`` carried along (``Phi e_j``, ``Phi`` the
     adjoint of the relative motion) plus the drift since, independent of it, so the
     measurement observes only the drift: innovation ``nu = Log(T_pred^-1 T_j Exp(delta))``,
-    ``S = D + R`` with ``D = sigma_pred - Phi sigma_j Phi^T`` (its negative eigenvalues
-    clipped), gain ``D S^-1`` (Cholesky solve).
+    ``D = sigma_pred - Phi sigma_j Phi^T``, gain ``D+ S^-1`` (Cholesky solve), ``S = |D| + R``.
+    ``D+`` keeps D's positive eigenvalues (the drift of ``k`` since ``j``); its negative ones
+    are where ``j`` is the less certain (``k`` was already brought back to an older ping, ``j``
+    was not): that part of the innovation is ``j``'s own error, which counts in ``S`` and is
+    not corrected. (A pose graph would keep the cross-covariances instead.)
 
     Returns
     -------
@@ -260,8 +267,8 @@ def fuse_revisit(T_pred: np.ndarray, sigma_pred: np.ndarray, T_j: np.ndarray, si
     nu = se3_log(se3_inverse(T_pred) @ T_j @ se3_exp(delta))
     Phi = se3_adjoint(se3_inverse(se3_inverse(T_j) @ T_pred))
     w, V = np.linalg.eigh(sigma_pred - Phi @ sigma_j @ Phi.T)
-    G = (V * np.maximum(w, 0.0)) @ V.T  # D: the drift's covariance, cov(e_k, nu)
-    S = G + R
+    G = (V * np.maximum(w, 0.0)) @ V.T  # the drift since j: cov(e_k, nu)
+    S = (V * np.abs(w)) @ V.T + R  # ... plus, where j is the less certain, j's own drift
     S = 0.5 * (S + S.T)
     cho = _robust_cholesky(S)
     nis = float(nu @ _cho_solve(cho, nu))
@@ -327,9 +334,13 @@ class ScanRegistrar:
         Precomputed first returns per ping (else measured from each image).
     step, revisit : bool
         Which measurements to use.
-    min_gap, place_threshold, min_overlap, revisit_sigma
-        The revisit's search (pings, metres, share of beams) and its out-of-plane noise
-        (``(metres, radians)``).
+    min_gap, place_threshold, revisit_sigma
+        The revisit's search (pings older than ``min_gap``, :func:`place_scores` below
+        ``place_threshold`` metres) and the noise of its offset besides the registration's
+        own (``(metres, radians)``, per axis).
+    step_floor : (float, float)
+        Standard deviation (metres, radians per axis) added to each step registration's own
+        (:func:`fuse_step`'s ``floor``).
     **register_kw
         Passed to :func:`register_scan`.
     """
@@ -338,7 +349,7 @@ class ScanRegistrar:
                  prob: float = 0.999, gate_prob: float = 0.999, ranges: np.ndarray | None = None,
                  step: bool = True, revisit: bool = True, min_gap: int = 30,
                  place_threshold: float = 0.02, revisit_sigma: tuple[float, float] = (0.005, 0.03),
-                 **register_kw) -> None:
+                 step_floor: tuple[float, float] = (0.0, 0.0), **register_kw) -> None:
         from scipy.stats import chi2
 
         if keep < 1 or window < 1 or min_gap < 1:
@@ -354,6 +365,7 @@ class ScanRegistrar:
         self.min_gap = int(min_gap)
         self.place_threshold = float(place_threshold)
         self.revisit_sigma = (float(revisit_sigma[0]), float(revisit_sigma[1]))
+        self.step_floor = np.diag([float(step_floor[0]) ** 2] * 3 + [float(step_floor[1]) ** 2] * 3)
         self.register_kw = {"huber_m": 0.004, "max_pair_m": 0.02, **register_kw}
         self._map: collections.deque = collections.deque(maxlen=self.keep)
         self._win: collections.deque = collections.deque(maxlen=self.window)
@@ -392,7 +404,7 @@ class ScanRegistrar:
         self.stats.registered += 1
         self.last = reg
         trusted = self.trusted
-        Un, Qn, nis, fused = fuse_step(U, Q, reg, self._gate[reg.observed])
+        Un, Qn, nis, fused = fuse_step(U, Q, reg, self._gate[reg.observed], self.step_floor)
         if nis is not None:
             self._win.append((nis, reg.observed))
             self.stats.nis.append(nis / reg.observed)
@@ -426,8 +438,7 @@ class ScanRegistrar:
             delta = reg.delta
             Rin = np.linalg.inv(B @ reg.info @ B.T)
             # in the directions the registration observed, its covariance; elsewhere the prior
-            P_o = B.T @ B
-            R = (np.eye(6) - P_o) @ R @ (np.eye(6) - P_o) + B.T @ Rin @ B
+            R = R + B.T @ Rin @ B  # the out-of-plane prior everywhere, plus the registration's own
         d, post, _, fused = fuse_revisit(T_pred, self._sigma, T_j, self._db_sigma[j], delta, R,
                                          self._gate[6])
         if not fused:
