@@ -43,11 +43,14 @@ from gpumap.ekf.guard import nis_band
 from gpumap.ekf.update import _cho_solve, _robust_cholesky
 from gpumap.lie import se3_adjoint, se3_exp, se3_inverse, se3_log
 
-__all__ = ["RegistrarStats", "ScanRegistrar", "ScanRegistration", "fuse_revisit", "fuse_step", "place_scores",
+__all__ = ["RegistrarStats", "ScanRegistrar", "ScanRegistration", "fuse_revisit", "fuse_step", "marginal",
+           "place_scores",
            "plane_points", "register_scan"]
 
 #: The in-plane components of the 6-vector ``(rho, phi)`` a ping observes.
 IN_PLANE = (0, 1, 5)
+#: Places are compared on every this many beams' first returns.
+PLACE_BEAM_STRIDE = 4
 
 
 @dataclass(frozen=True)
@@ -109,7 +112,7 @@ def _line_normals(m: np.ndarray, tree, k: int) -> tuple[np.ndarray, np.ndarray]:
 
 def register_scan(points_S: np.ndarray, map_W: np.ndarray, T_pred: np.ndarray, *, vfov_rad: float,
                   sigma_m: float = 0.005, corr_beams: float = 8.0, huber_m: float = 0.01,
-                  max_pair_m: float = 0.05, iterations: int = 6, neighbours: int = 6,
+                  max_pair_m: float = 0.05, iterations: int = 5, neighbours: int = 6,
                   min_returns: int = 30, min_eig: float = 1e2) -> ScanRegistration | None:
     """Register a ping's first returns against the local map (module docstring).
 
@@ -174,7 +177,7 @@ def register_scan(points_S: np.ndarray, map_W: np.ndarray, T_pred: np.ndarray, *
         x = x + dx
         used = int(ok.sum())
         rms = float(np.sqrt(np.mean(e[a <= 3 * huber_m] ** 2))) if np.any(a <= 3 * huber_m) else float("nan")
-        if np.linalg.norm(dx) < 1e-7:
+        if np.linalg.norm(dx) < 1e-5:  # 10 um, 10 urad
             break
     info3 = A / var
     ev, V = np.linalg.eigh(0.5 * (info3 + info3.T))
@@ -190,6 +193,26 @@ def register_scan(points_S: np.ndarray, map_W: np.ndarray, T_pred: np.ndarray, *
     basis = np.zeros((B3.shape[0], 6))
     basis[:, idx] = B3
     return ScanRegistration(delta, info, basis, used, rms)
+
+
+def marginal(reg: ScanRegistration, components: tuple[int, ...]) -> ScanRegistration | None:
+    """The registration of ``components`` alone (indices into the 6-vector), the others
+    marginalised out; None when the registration does not observe all of them."""
+    idx = list(components)
+    B = reg.basis
+    if B.shape[0] == 0:
+        return None
+    C = B.T @ np.linalg.inv(B @ reg.info @ B.T) @ B  # covariance in the observed directions
+    E = np.zeros((len(idx), 6))
+    E[np.arange(len(idx)), idx] = 1.0
+    if np.linalg.matrix_rank(E @ B.T, tol=1e-6) < len(idx):
+        return None
+    Cs = C[np.ix_(idx, idx)]
+    info = np.zeros((6, 6))
+    info[np.ix_(idx, idx)] = np.linalg.inv(Cs)
+    delta = np.zeros(6)
+    delta[idx] = reg.delta[idx]
+    return ScanRegistration(delta, info, E, reg.returns, reg.rms_m)
 
 
 def fuse_step(U: np.ndarray, Q: np.ndarray, reg: ScanRegistration, gate: float | None,
@@ -234,12 +257,19 @@ def place_scores(ranges: np.ndarray, db: np.ndarray) -> np.ndarray:
     """How unlike each stored ping's first returns ``db`` ((m, n_beams), ``inf`` no return) are
     to ``ranges`` ((n_beams,)): mean absolute range difference over the beams with a return in
     both, plus ``0.05 m`` times the share of beams with a return in only one (m,)."""
-    a = np.isfinite(ranges)
+    db = np.asarray(db, np.float64)
     b = np.isfinite(db)
-    both = a & b
+    return _scores(np.asarray(ranges, np.float64), np.where(b, db, 0.0).astype(np.float32), b)
+
+
+def _scores(ranges: np.ndarray, db_val: np.ndarray, db_ok: np.ndarray) -> np.ndarray:
+    """:func:`place_scores` on a store kept as values (0 where no return, float32) and a mask."""
+    a = np.isfinite(ranges)
+    r = np.where(a, ranges, 0.0).astype(np.float32)
+    both = db_ok & a
     cnt = both.sum(axis=1)
-    either = (a | b).sum(axis=1)
-    d = np.where(both, np.abs(np.where(b, db, 0.0) - np.where(a, ranges, 0.0)), 0.0).sum(axis=1)
+    either = db_ok.sum(axis=1) + int(a.sum()) - cnt
+    d = (np.abs(db_val - r) * both).sum(axis=1, dtype=np.float64)
     return d / np.maximum(cnt, 1) + 0.05 * (1.0 - cnt / np.maximum(either, 1))
 
 
@@ -338,6 +368,9 @@ class ScanRegistrar:
         The revisit's search (pings older than ``min_gap``, :func:`place_scores` below
         ``place_threshold`` metres) and the noise of its offset besides the registration's
         own (``(metres, radians)``, per axis).
+    step_components : tuple of int
+        Which of the in-plane components ``(0, 1, 5)`` (``rho_x, rho_y, phi_z``) the step
+        registration corrects (the others marginalised out, :func:`marginal`).
     step_floor : (float, float)
         Standard deviation (metres, radians per axis) added to each step registration's own
         (:func:`fuse_step`'s ``floor``).
@@ -349,7 +382,8 @@ class ScanRegistrar:
                  prob: float = 0.999, gate_prob: float = 0.999, ranges: np.ndarray | None = None,
                  step: bool = True, revisit: bool = True, min_gap: int = 30,
                  place_threshold: float = 0.02, revisit_sigma: tuple[float, float] = (0.005, 0.03),
-                 step_floor: tuple[float, float] = (0.0, 0.0), **register_kw) -> None:
+                 step_floor: tuple[float, float] = (0.0, 0.0), step_components: tuple[int, ...] = IN_PLANE,
+                 **register_kw) -> None:
         from scipy.stats import chi2
 
         if keep < 1 or window < 1 or min_gap < 1:
@@ -365,6 +399,9 @@ class ScanRegistrar:
         self.min_gap = int(min_gap)
         self.place_threshold = float(place_threshold)
         self.revisit_sigma = (float(revisit_sigma[0]), float(revisit_sigma[1]))
+        if not set(step_components) <= set(IN_PLANE) or not step_components:
+            raise ValueError(f"Expected step_components among {IN_PLANE}, but got {step_components}")
+        self.step_components = tuple(int(i) for i in step_components)
         self.step_floor = np.diag([float(step_floor[0]) ** 2] * 3 + [float(step_floor[1]) ** 2] * 3)
         self.register_kw = {"huber_m": 0.004, "max_pair_m": 0.02, **register_kw}
         self._map: collections.deque = collections.deque(maxlen=self.keep)
@@ -373,7 +410,9 @@ class ScanRegistrar:
         self._db_T: list = []
         self._db_sigma: list = []
         self._db_pts: list = []
-        self._db_arr = np.zeros((0, spec.n_beams))
+        nb = len(range(0, spec.n_beams, PLACE_BEAM_STRIDE))
+        self._db_val = np.zeros((0, nb), np.float32)  # first returns of every 4th beam, 0 where none
+        self._db_ok = np.zeros((0, nb), bool)
         self._sigma = np.zeros((6, 6))
         self.stats = RegistrarStats()
         self.last: ScanRegistration | None = None
@@ -399,6 +438,8 @@ class ScanRegistrar:
     def _step(self, T_prev, U, Q):
         map_W = np.concatenate([p @ T[:3, :3].T + T[:3, 3] for T, p in self._map])
         reg = register_scan(self._pts, map_W, T_prev @ U, vfov_rad=self.spec.vfov_rad, **self.register_kw)
+        if reg is not None and self.step_components != IN_PLANE:
+            reg = marginal(reg, self.step_components)
         if reg is None or reg.observed == 0:
             return U, Q
         self.stats.registered += 1
@@ -421,7 +462,7 @@ class ScanRegistrar:
         n_old = len(self._db_r) - self.min_gap
         if n_old <= 0 or len(self._pts) < 30:
             return None
-        sc = place_scores(self._r, self._db_arr[:n_old])
+        sc = _scores(self._r[::PLACE_BEAM_STRIDE], self._db_val[:n_old], self._db_ok[:n_old])
         j = int(np.argmin(sc))
         if not sc[j] < self.place_threshold:
             return None
@@ -478,7 +519,12 @@ class ScanRegistrar:
         self._db_T.append(T)
         self._db_sigma.append(self._sigma.copy())
         self._db_pts.append(self._pts)
-        if len(self._db_r) > len(self._db_arr):
-            grow = np.full((max(64, len(self._db_arr)), self.spec.n_beams), np.inf)
-            self._db_arr = np.concatenate([self._db_arr, grow])
-        self._db_arr[len(self._db_r) - 1] = self._r
+        if len(self._db_r) > len(self._db_val):
+            grow = max(64, len(self._db_val))
+            nb = self._db_val.shape[1]
+            self._db_val = np.concatenate([self._db_val, np.zeros((grow, nb), np.float32)])
+            self._db_ok = np.concatenate([self._db_ok, np.zeros((grow, nb), bool)])
+        r = self._r[::PLACE_BEAM_STRIDE]
+        ok = np.isfinite(r)
+        self._db_val[len(self._db_r) - 1] = np.where(ok, r, 0.0)
+        self._db_ok[len(self._db_r) - 1] = ok
