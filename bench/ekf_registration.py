@@ -13,7 +13,9 @@ filter no point returns, so they show what the registration alone does):
   plane, elevation directions projected out), fused into the odometry step;
 - ``revisit``: only revisits of stored pings (place found by the first returns), fused
   against the drift since;
-- ``step_revisit``: both;
+- ``step_revisit``: both, with the registrar's defaults (chosen on ``dev``);
+- ``first_try``: both, with the registration weighted by its per-ping information
+  (``corr_beams`` 8, consistent per ping on dev) and its NIS window two-sided, as first built;
 - ``replay``: what ``gpumap replay --ekf`` runs: point returns with the TrustGuard plus the
   default registrar.
 
@@ -49,11 +51,12 @@ from .common import bench_parser, compact, load_average, oasis_full_dir, run_hea
 
 THRESHOLD = 0.4
 
-#: Variant -> (registrar keyword arguments or None, point returns with the guard).
+#: Variant -> (ScanRegistrar keyword arguments over its defaults, point returns with the guard).
 VARIANTS = {
+    "first_try": ({"corr_beams": 8.0, "two_sided": True}, False),
     "step": ({"step": True, "revisit": False}, False),
     "revisit": ({"step": False, "revisit": True}, False),
-    "step_revisit": ({"step": True, "revisit": True}, False),
+    "step_revisit": ({}, False),
     "replay": ({}, True),
 }
 

@@ -21,15 +21,26 @@ new ping is registered against it from the filter's predicted pose ``T_pred = T_
   ``N(0, Q)``, ``U_true = U Exp(w)``): gain by Cholesky solve, Joseph form, and a
   chi-square gate on its NIS. The result ``(U Exp(w_hat), Q_post)`` goes to
   :meth:`~gpumap.ekf.filter.SonarEKF.predict` in place of ``(U, Q)``.
-- :class:`ScanRegistrar`: the local map, the measurement's noise model and the trust window:
-  the NIS of the registrations over the last ``window`` pings must stay inside its two-sided
-  chi-square band (:func:`gpumap.ekf.guard.nis_band`), else the step is odometry's exactly
-  (as the :class:`~gpumap.ekf.guard.TrustGuard` does for point returns).
+- :func:`place_scores` and :func:`fuse_revisit`: a *revisit*. Every ping is stored with the
+  filter's pose; a new ping whose first returns match a stored one at least ``min_gap`` pings
+  older closely enough is taken where that one was (up to the in-plane offset registered
+  between them), and fused against the drift since (the registrar tracks its own pose
+  covariance). This is the only measurement here that brings the pose back, not only slows
+  its drift; without a pose graph it is approximate (see :func:`fuse_revisit`).
+- :class:`ScanRegistrar`: the local map, the stored pings, the noise model and the trust
+  window: the NIS of the step registrations over the last ``window`` pings must stay under
+  (``two_sided``: inside) its chi-square band (:func:`gpumap.ekf.guard.nis_band`), else the
+  step is odometry's exactly (as the :class:`~gpumap.ekf.guard.TrustGuard` does for point
+  returns).
 
 The noise of a registration: ``sigma_m`` per return (the range bin and the surface's
 roughness), times ``sqrt(corr_beams)`` because neighbouring beams see the same patch of
 surface and their errors are not independent (the information is that of
-``n / corr_beams`` returns).
+``n / corr_beams`` returns). On the real tank the errors are also correlated from ping to
+ping (the unseen elevation of the surface is the same in consecutive pings), so summed over a
+run they drift like a bias; ``corr_beams`` was chosen on frames 0-799 of the full tank run
+(``bench/ekf_registration.py``), where weighting the registration less than its per-ping NIS
+suggests gave the lower pose error.
 """
 
 from __future__ import annotations
@@ -49,6 +60,9 @@ __all__ = ["RegistrarStats", "ScanRegistrar", "ScanRegistration", "fuse_revisit"
 
 #: The in-plane components of the 6-vector ``(rho, phi)`` a ping observes.
 IN_PLANE = (0, 1, 5)
+#: :func:`register_scan`'s settings in :class:`ScanRegistrar` unless given (chosen on frames
+#: 0-799 of the full real tank run, ``bench/ekf_registration.py``).
+REGISTER_DEFAULTS = {"huber_m": 0.004, "max_pair_m": 0.02, "corr_beams": 128.0}
 #: Places are compared on every this many beams' first returns.
 PLACE_BEAM_STRIDE = 4
 
@@ -360,6 +374,8 @@ class ScanRegistrar:
         Pings in the local map; registrations in the NIS window (two-sided band ``prob``).
     gate_prob : float
         Per-measurement chi-square gate.
+    two_sided : bool
+        Whether a window whose NIS is below its band is distrusted too (:attr:`trusted`).
     ranges : (n, n_beams) float, optional
         Precomputed first returns per ping (else measured from each image).
     step, revisit : bool
@@ -375,7 +391,7 @@ class ScanRegistrar:
         Standard deviation (metres, radians per axis) added to each step registration's own
         (:func:`fuse_step`'s ``floor``).
     **register_kw
-        Passed to :func:`register_scan`.
+        Passed to :func:`register_scan` (over :data:`REGISTER_DEFAULTS`).
     """
 
     def __init__(self, spec, *, threshold: float = 0.4, keep: int = 1, window: int = 20,
@@ -383,7 +399,7 @@ class ScanRegistrar:
                  step: bool = True, revisit: bool = True, min_gap: int = 30,
                  place_threshold: float = 0.02, revisit_sigma: tuple[float, float] = (0.005, 0.03),
                  step_floor: tuple[float, float] = (0.0, 0.0), step_components: tuple[int, ...] = IN_PLANE,
-                 **register_kw) -> None:
+                 two_sided: bool = False, **register_kw) -> None:
         from scipy.stats import chi2
 
         if keep < 1 or window < 1 or min_gap < 1:
@@ -393,6 +409,7 @@ class ScanRegistrar:
         self.keep = int(keep)
         self.window = int(window)
         self.prob = float(prob)
+        self.two_sided = bool(two_sided)
         self._gate = {m: float(chi2.ppf(gate_prob, m)) for m in range(1, 7)}
         self.ranges = None if ranges is None else np.asarray(ranges, np.float64)
         self.step, self.revisit = bool(step), bool(revisit)
@@ -403,7 +420,7 @@ class ScanRegistrar:
             raise ValueError(f"Expected step_components among {IN_PLANE}, but got {step_components}")
         self.step_components = tuple(int(i) for i in step_components)
         self.step_floor = np.diag([float(step_floor[0]) ** 2] * 3 + [float(step_floor[1]) ** 2] * 3)
-        self.register_kw = {"huber_m": 0.004, "max_pair_m": 0.02, **register_kw}
+        self.register_kw = {**REGISTER_DEFAULTS, **register_kw}
         self._map: collections.deque = collections.deque(maxlen=self.keep)
         self._win: collections.deque = collections.deque(maxlen=self.window)
         self._db_r: list = []  # per stored ping: first returns, pose, registrar covariance, points
@@ -427,13 +444,15 @@ class ScanRegistrar:
 
     @property
     def trusted(self) -> bool:
-        """Whether the window's NIS per dof is inside its band (True while the window fills)."""
+        """Whether the window's NIS per dof is inside its band (True while the window fills);
+        with ``two_sided`` False only above it counts (a registration noisier than it says;
+        below, it is only weighted less than it could be)."""
         if len(self._win) < self.window:
             return True
         nis = sum(a for a, _ in self._win)
         dof = sum(b for _, b in self._win)
         lo, hi = nis_band(self.prob, int(dof))
-        return lo <= nis / dof <= hi
+        return (lo <= nis / dof or not self.two_sided) and nis / dof <= hi
 
     def _step(self, T_prev, U, Q):
         map_W = np.concatenate([p @ T[:3, :3].T + T[:3, 3] for T, p in self._map])
