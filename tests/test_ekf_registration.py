@@ -127,7 +127,7 @@ def test_a_ping_that_shows_nothing_never_moves_the_pose():
     mp = _world(T0, plane_points(first_returns(T0), SPEC.bearings_rad))
     assert register_scan(np.zeros((0, 3)), mp, T0, vfov_rad=SPEC.vfov_rad) is None
     ranges = np.stack([first_returns(T0), np.full(SPEC.n_beams, np.inf)])
-    rg = ScanRegistrar(SPEC, ranges=ranges)
+    rg = ScanRegistrar(SPEC, ranges=ranges, step=True, revisit=True, min_gap=1)
     Q = motion_cov(0.005, 0.005)
     U = se3_exp(np.array([0.01, 0.0, 0.0, 0.0, 0.0, 0.02]))
     rg.correct_step(0, None, T0, np.eye(4), Q)
@@ -248,7 +248,8 @@ def test_the_loop_with_registration_beats_drifting_odometry_in_plane():
         U, T_odo = drifting_odometry(T_true, 0.004, 0.004, seed)
         # the analytic scene's returns are exact and their errors independent: weight them as
         # such (the default corr_beams is the real tank's, whose errors are shared by neighbours)
-        loop = _loop(ranges, U, T_true[0], ScanRegistrar(SPEC, ranges=ranges, revisit=False, corr_beams=8.0))
+        loop = _loop(ranges, U, T_true[0], ScanRegistrar(SPEC, ranges=ranges, step=True, revisit=False,
+                                                         corr_beams=8.0))
         eo, ee = pose_errors(T_odo, T_true), pose_errors(loop.poses, T_true)
         ratios.append(ee["position_m"]["mean"] / eo["position_m"]["mean"])
     assert max(ratios) < 0.9, ratios
@@ -274,3 +275,36 @@ def test_replay_ekf_says_how_much_it_trusted_the_registration(tmp_path, capsys, 
             assert k in r
     line = capsys.readouterr().out
     assert ("scan registration off" in line) is off and ("scan registration corrected" in line) is (not off)
+
+
+def test_a_revisit_brings_the_pose_back():
+    # out along a path and back along the same poses: on the way back every ping matches one
+    # of the way out, and the drift gathered since is taken out
+    n = 40
+    s = np.linspace(0, 1, n)
+    out = [pose(0.1 + 0.3 * t, -0.1 + 0.2 * np.sin(3 * t), 0.3 * np.sin(2 * t)) for t in s]
+    T_true = np.stack(out + out[::-1])
+    ranges = np.stack([first_returns(T) for T in T_true])
+    gains = []
+    for seed in range(3):
+        U, T_odo = drifting_odometry(T_true, 0.004, 0.004, seed)
+        rg = ScanRegistrar(SPEC, ranges=ranges, min_gap=10)
+        loop = _loop(ranges, U, T_true[0], rg)
+        back = slice(n + n // 2, 2 * n)  # the second half of the way back
+        eo = np.linalg.norm(T_odo[back, :3, 3] - T_true[back, :3, 3], axis=1).mean()
+        ee = np.linalg.norm(loop.poses[back, :3, 3] - T_true[back, :3, 3], axis=1).mean()
+        gains.append(ee / eo)
+        assert rg.stats.revisits_fused > 0
+    assert max(gains) < 0.5, gains
+
+
+def test_mutant_revisit_with_the_wrong_sign_fails(monkeypatch):
+    orig = reg_mod.fuse_revisit
+
+    def flipped(*a, **k):
+        d, post, nis, fused = orig(*a, **k)
+        return -d, post, nis, fused
+
+    monkeypatch.setattr(reg_mod, "fuse_revisit", flipped)
+    with pytest.raises(AssertionError):
+        test_a_revisit_brings_the_pose_back()
