@@ -160,8 +160,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--split", type=int, default=800, help="first held-out frame (default 800)")
     ap.add_argument("--slices", nargs="+", default=["dev", "heldout", "full"],
                     choices=["dev", "heldout", "full"])
-    ap.add_argument("--map-variant", default="replay", help="variant whose full-run poses are mapped "
-                    "(seed 0, each drift); 'none' skips the maps")
+    ap.add_argument("--map-variants", nargs="*", default=["replay", "step_revisit"],
+                    help="variants whose full-run poses are mapped (each drift and --map-seeds)")
+    ap.add_argument("--map-seeds", type=int, nargs="*", default=None, help="seeds mapped (default all)")
     ap.add_argument("--voxel", type=float, default=0.05, help="map voxel size (default 0.05 m)")
     ap.add_argument("--backend", default="auto")
     a = ap.parse_args(argv)
@@ -184,6 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     load_detect = load_average()
     slices = {"dev": (0, min(a.split, n)), "heldout": (min(a.split, n), n), "full": (0, n)}
     runs, map_poses = [], {}
+    map_seeds = a.seeds if a.map_seeds is None else a.map_seeds
     for variant in a.variants:
         for drift in a.drifts:
             for seed in a.seeds:
@@ -192,8 +194,8 @@ def main(argv: list[str] | None = None) -> int:
                     r = one_run(ranges[s0:s1], None if meas is None else meas[s0:s1], T_all[s0:s1], spec,
                                 drift, seed, variant)
                     poses, T_odo = r.pop("_poses"), r.pop("_T_odo")
-                    if variant == a.map_variant and name == "full" and seed == 0:
-                        map_poses[drift] = (poses, T_odo)
+                    if variant in a.map_variants and name == "full" and seed in map_seeds:
+                        map_poses.setdefault((drift, seed), {"odometry": T_odo})[variant] = poses
                     r.update({"variant": variant, "drift": drift, "seed": seed, "slice": name,
                               "frame_range": [s0, s1]})
                     runs.append(r)
@@ -213,16 +215,21 @@ def main(argv: list[str] | None = None) -> int:
                                        "ratio_position_mean": float(np.mean(rp)),
                                        "ratio_position_max": float(np.max(rp)),
                                        "ratio_heading_mean": float(np.mean(rh))}
-    maps = {}
-    for drift, (poses, T_odo) in map_poses.items():
+    maps: dict = {}
+    for (drift, seed), poses in map_poses.items():
         t0 = time.perf_counter()
-        maps[str(drift)] = _maps(images, spec, {"recorded": T_all, "odometry": T_odo, a.map_variant: poses},
-                                 a.voxel, a.backend)
-        maps[str(drift)]["seconds"] = time.perf_counter() - t0
-        m = maps[str(drift)]
-        print(f"maps drift {drift:g}: voxels disagreeing with the recorded-pose map: odometry "
-              f"{m['odometry']['disagree']}, EKF ({a.map_variant}) {m[a.map_variant]['disagree']}",
-              flush=True)
+        m = _maps(images, spec, {"recorded": T_all, **poses}, a.voxel, a.backend)
+        m["seconds"] = time.perf_counter() - t0
+        maps.setdefault(str(drift), {})[str(seed)] = m
+        print(f"maps drift {drift:g} seed {seed}: voxels disagreeing with the recorded-pose map: "
+              + ", ".join(f"{k} {v['disagree']}" for k, v in m.items() if k != "seconds"), flush=True)
+    map_summary = {}
+    for drift, per_seed in maps.items():
+        for v in a.map_variants:
+            r = [m[v]["disagree"] / max(m["odometry"]["disagree"], 1) for m in per_seed.values() if v in m]
+            if r:
+                map_summary[f"{v}|{drift}"] = {"disagree_ratio_to_odometry": r, "mean": float(np.mean(r)),
+                                               "seeds_fewer_than_odometry": int(sum(x < 1 for x in r))}
     doc.update({
         "data": str(data), "frames": n, "split": a.split, "slices": {k: list(v) for k, v in slices.items()},
         "threshold": THRESHOLD, "variants": {k: {"registrar": v[0], "point_returns_guarded": v[1]}
@@ -234,7 +241,8 @@ def main(argv: list[str] | None = None) -> int:
         "load_avg_end": load_average(),
         "cost_note": "ms per ping on this machine's CPU under the load averages recorded with each run "
                      "(2 cores shared with other work); registration + EKF are timed together per ping",
-        "summary": _table(runs), "ceiling_in_plane_known": ceil, "maps_full_seed0": maps, "runs": runs,
+        "summary": _table(runs), "ceiling_in_plane_known": ceil, "maps_full": maps,
+        "maps_summary": map_summary, "runs": runs,
     })
     path = write_json(a.out / f"{a.name}.json", compact(doc, 5))
     print(f"wrote {path}")
