@@ -20,9 +20,11 @@ filter no point returns, so they show what the registration alone does):
   default registrar (revisits only: the step registration was worse than odometry on some
   dev seeds).
 
-Also here: ``ceiling``, the best any step measurement of the in-plane components could do
-(odometry with the in-plane noise of every step removed: x, y and yaw known exactly), and, on
-the full run, the maps at the recorded, odometry and EKF poses compared voxel by voxel
+Also here: ``step_accuracy_dev_seed0`` (:func:`step_accuracy`: one registration's error
+against the recorded motion, per gap between the pings, on dev); ``ceiling``, the best any
+step measurement of the in-plane components could do (odometry with the in-plane noise of
+every step removed: x, y and yaw known exactly); and, on the full run, the maps at the
+recorded, odometry and EKF poses compared voxel by voxel per drift and seed
 (:func:`gpumap.ekf_replay.compare_maps`). Costs are milliseconds per ping on the shared 2-core
 CPU under the load averages recorded with them.
 
@@ -114,6 +116,42 @@ def ceiling(T_rec: np.ndarray, drift: float, seed: int) -> dict:
             "ratio_heading": eb["heading_rad"]["mean"] / eo["heading_rad"]["mean"]}
 
 
+def step_accuracy(ranges, T_rec, spec, drift: float, seed: int, gaps=(1, 2, 4, 8), stride: int = 2) -> dict:
+    """How well one registration measures the in-plane motion between ping ``k - g`` and ``k``.
+
+    Ping ``k``'s first returns are registered against ping ``k - g``'s, placed at its recorded
+    pose, from the pose odometry predicts (``g`` drifting steps from the recorded ``k - g``).
+    The recorded poses only score here. Per in-plane component ``(rho_x, rho_y, phi_z)``: RMS and
+    median absolute error of the registered pose and of the prediction (m, rad).
+    """
+    from gpumap.ekf.registration import REGISTER_DEFAULTS, plane_points, register_scan
+    from gpumap.lie import se3_log
+
+    U, _ = drifting_odometry(T_rec, drift, drift, seed)
+    out = {}
+    for g in gaps:
+        e_reg, e_odo, none = [], [], 0
+        for k in range(max(gaps), len(T_rec), stride):
+            Tp = T_rec[k - g].copy()
+            for i in range(k - g + 1, k + 1):
+                Tp = Tp @ U[i]
+            m = plane_points(ranges[k - g], spec.bearings_rad) @ T_rec[k - g][:3, :3].T + T_rec[k - g][:3, 3]
+            kw = {**REGISTER_DEFAULTS, "max_pair_m": REGISTER_DEFAULTS["max_pair_m"] + 0.01 * np.sqrt(g)}
+            r = register_scan(plane_points(ranges[k], spec.bearings_rad), m, Tp, vfov_rad=spec.vfov_rad, **kw)
+            if r is None or r.observed < 3:
+                none += 1
+                continue
+            true = se3_log(se3_inverse(Tp) @ T_rec[k])[[0, 1, 5]]
+            e_reg.append(r.delta[[0, 1, 5]] - true)
+            e_odo.append(true)
+        er, eo = np.array(e_reg), np.array(e_odo)
+        out[str(g)] = {"pairs": len(er), "not_registered": none,
+                       "registration_rms": np.sqrt((er ** 2).mean(0)).tolist(),
+                       "registration_median_abs": np.median(np.abs(er), 0).tolist(),
+                       "prediction_rms": np.sqrt((eo ** 2).mean(0)).tolist()}
+    return out
+
+
 def _table(runs: list[dict]) -> dict:
     groups: dict = {}
     for r in runs:
@@ -156,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--name", default="ekf_registration", help="results file stem")
     ap.add_argument("--drifts", type=float, nargs="+", default=[0.005, 0.02])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
-    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--split", type=int, default=800, help="first held-out frame (default 800)")
     ap.add_argument("--slices", nargs="+", default=["dev", "heldout", "full"],
                     choices=["dev", "heldout", "full"])
@@ -215,6 +253,11 @@ def main(argv: list[str] | None = None) -> int:
                                        "ratio_position_mean": float(np.mean(rp)),
                                        "ratio_position_max": float(np.max(rp)),
                                        "ratio_heading_mean": float(np.mean(rh))}
+    accuracy = {str(d): step_accuracy(ranges[:a.split], T_all[:a.split], spec, d, 0) for d in a.drifts}
+    for d, acc in accuracy.items():
+        for g, v in acc.items():
+            print(f"step accuracy drift {d} gap {g}: registration RMS {np.round(v['registration_rms'], 4)} "
+                  f"(x, y m; yaw rad), prediction {np.round(v['prediction_rms'], 4)}", flush=True)
     maps: dict = {}
     for (drift, seed), poses in map_poses.items():
         t0 = time.perf_counter()
@@ -242,7 +285,8 @@ def main(argv: list[str] | None = None) -> int:
         "cost_note": "ms per ping on this machine's CPU under the load averages recorded with each run "
                      "(2 cores shared with other work); registration + EKF are timed together per ping",
         "summary": _table(runs), "ceiling_in_plane_known": ceil, "maps_full": maps,
-        "maps_summary": map_summary, "runs": runs,
+        "maps_summary": map_summary,
+        "step_accuracy_dev_seed0": accuracy, "runs": runs,
     })
     path = write_json(a.out / f"{a.name}.json", compact(doc, 5))
     print(f"wrote {path}")
