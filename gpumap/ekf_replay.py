@@ -10,7 +10,8 @@ EKF's. :func:`run_ekf_replay` returns the figures; the command (:mod:`gpumap.com
   the drift model, pose errors of odometry and EKF against the recorded poses (position and
   heading: mean, RMS, max, final), how much it trusted the pings (``trust``: returns fused
   with a pose correction, into their features only, gated; share of pings that corrected the
-  pose; windowed NIS, see :mod:`gpumap.ekf.guard`), each map against the recorded-pose map (occupied voxels
+  pose; windowed NIS, see :mod:`gpumap.ekf.guard`), how much it trusted the scan registration
+  (``registration``, :func:`registration_summary`), each map against the recorded-pose map (occupied voxels
   that disagree, FN and FP), the tracks and their lifetimes, and milliseconds per ping;
 - ``map.npz`` / ``occupied.ply`` / ``views.png``: the EKF-pose map;
 - ``ekf_paths.png``: recorded, odometry and EKF paths over the recorded-pose map's height map,
@@ -26,7 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["compare_maps", "posed_frames", "run_ekf_replay", "track_consistency", "trust_summary"]
+__all__ = ["compare_maps", "posed_frames", "registration_summary", "run_ekf_replay", "track_consistency",
+           "trust_summary"]
 
 
 def compare_maps(ref: np.ndarray, test: np.ndarray, threshold: float) -> dict:
@@ -148,6 +150,24 @@ def trust_summary(loop) -> dict:
     return out
 
 
+def registration_summary(registrar) -> dict:
+    """How much the EKF trusted the scan registration (:mod:`gpumap.ekf.registration`).
+
+    Returns
+    -------
+    dict
+        ``used`` (bool); with it, per ping: ``registered`` (a step registration was found),
+        ``fused`` / ``fused_share`` (it corrected the odometry step), ``gated`` (refused by its
+        chi-square gate), ``distrusted`` (refused while the NIS window was out of its band),
+        ``nis_per_dof_median``, and the revisits of stored pings (``revisits`` found,
+        ``revisits_fused``, ``revisits_gated``).
+    """
+    if registrar is None:
+        return {"used": False}
+    return {"used": True, "keep": registrar.keep, "step": registrar.step, "revisit": registrar.revisit,
+            **registrar.stats.to_dict()}
+
+
 def _map(spec, grid, images, poses, backend, threshold, rule):
     from gpumap import MinMaxMapper
 
@@ -187,7 +207,7 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
                    threshold: float = 0.4, rule: str | None = None, stride: int = 1,
                    max_frames: int | None = None, progress: bool = True, detector=None,
                    ekf_kwargs: dict | None = None, tracker_kwargs: dict | None = None,
-                   guard=True, frames: tuple[int, int | None] | None = None) -> dict:
+                   guard=True, frames: tuple[int, int | None] | None = None, registration=True) -> dict:
     """Run the EKF loop on a posed recording and compare it with the recorded poses.
 
     Parameters
@@ -212,6 +232,11 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
     frames : (int, int or None), optional
         Only recording frames ``start <= i < stop`` (indices in the recording, before
         ``stride``); the run starts from the recorded pose of the first one kept.
+    registration : bool or ScanRegistrar, default True
+        Scan-to-local-map registration of each ping's first returns (at ``threshold``) and
+        revisits of stored pings, fused into the odometry step
+        (:mod:`gpumap.ekf.registration`): True a default
+        :class:`~gpumap.ekf.registration.ScanRegistrar`, False none.
 
     Returns
     -------
@@ -238,8 +263,13 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
         ekw["guard"] = guard
     elif guard:
         ekw.setdefault("guard", TrustGuard())
+    from gpumap.ekf.registration import ScanRegistrar
+
+    registrar = registration if isinstance(registration, ScanRegistrar) else (
+        ScanRegistrar(spec, threshold=threshold) if registration else None)
     loop = run_ekf_loop(images, U, T_rec[0], spec, odometry_cov=Q, detector=detector,
-                        ekf_kwargs=ekw, tracker_kwargs=tracker_kwargs, progress=progress)
+                        ekf_kwargs=ekw, tracker_kwargs=tracker_kwargs, registrar=registrar,
+                        progress=progress)
     t_loop = time.perf_counter() - t0
     if grid is None:
         grid = auto_grid(spec, list(T_rec), voxel_size_m)
@@ -274,6 +304,7 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
         "threshold": float(threshold),
         "measurements": {"returns": n_meas, "per_ping_mean": n_meas / len(images), "fused": fused},
         "trust": trust_summary(loop),
+        "registration": registration_summary(registrar),
         "tracks": loop.tracker.lifetimes(),
         "track_consistency_recorded_poses": track_consistency(loop, T_rec),
         "ms_per_ping": {"detect_mean": float(loop.ms_detect.mean()),

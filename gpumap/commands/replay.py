@@ -442,13 +442,19 @@ def add_ekf_args(ap: argparse.ArgumentParser) -> None:
                     help="with --ekf: no innovation-consistency guard; every accepted return "
                          "corrects the pose even when the pings' innovations do not fit the model "
                          "(on the real tank this ends worse than odometry; for comparison only)")
+    ap.add_argument("--ekf-no-registration", action="store_true",
+                    help="with --ekf: no scan registration of the pings' first returns (on by "
+                         "default: each odometry step corrected against the last pings, and "
+                         "revisited places, gpumap.ekf.registration)")
 
 
 def check_ekf_args(ap: argparse.ArgumentParser, a: argparse.Namespace) -> None:
     """--odometry-noise and --seed only with --ekf (exit 2, before any work); fill their defaults."""
     refuse_without(ap, "--ekf", a.ekf, {"--odometry-noise": a.odometry_noise is not None,
                                          "--seed": a.seed is not None,
-                                         "--ekf-unguarded": bool(getattr(a, "ekf_unguarded", False))})
+                                         "--ekf-unguarded": bool(getattr(a, "ekf_unguarded", False)),
+                                         "--ekf-no-registration": bool(getattr(a, "ekf_no_registration",
+                                                                               False))})
     a.odometry_noise = (0.005, 0.005) if a.odometry_noise is None else a.odometry_noise
     a.seed = 0 if a.seed is None else a.seed
 
@@ -459,6 +465,13 @@ EKF_OUTPUTS = ("ekf_paths.png", "ekf_measurements.png")
 
 def _two_decimals(v: float | None) -> str:
     return "-" if v is None else f"{v:.2f}"
+
+
+def _registration_line(r: dict) -> str:
+    if not r["used"]:
+        return "scan registration off"
+    return (f"scan registration corrected {100 * r['fused_share']:.0f} % of steps "
+            f"({r['gated']} gated, {r['distrusted']} distrusted), {r['revisits_fused']} revisits fused")
 
 
 def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
@@ -484,7 +497,8 @@ def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
     res = run_ekf_replay(rec, odometry_noise=tuple(a.odometry_noise), seed=a.seed, voxel_size_m=a.voxel_size,
                          grid=grid, backend=a.backend, threshold=thr, rule=a.rule, stride=a.stride,
                          max_frames=a.max_frames, progress=not a.no_progress,
-                         guard=not getattr(a, "ekf_unguarded", False))
+                         guard=not getattr(a, "ekf_unguarded", False),
+                         registration=not getattr(a, "ekf_no_registration", False))
     mapper = res["maps"]["ekf"]
     values = res["values"]["ekf"]
     occ = np.isfinite(values) & (values >= thr)
@@ -519,5 +533,6 @@ def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
           f"{tr['fused_features_only']} into their features only, {tr['gated']} gated, "
           f"{100 * tr['pings_pose_corrected_share']:.0f} % of pings corrected the pose, windowed NIS per dof "
           f"{_two_decimals(tr['window_nis_per_dof']['median'])} (median); "
+          f"{_registration_line(s['registration'])}; "
           f"{s['ms_per_ping']['total_mean']:.1f} ms per ping (front-end + EKF)")
     return stats, mapper.grid

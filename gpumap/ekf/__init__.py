@@ -94,7 +94,9 @@ filter's yardstick, and a smoother); for real pings (issue #23)
 :mod:`~gpumap.ekf.frontend` (point returns found in a polar image, with covariances),
 :mod:`~gpumap.ekf.association` (which feature each return belongs to: tracks) and
 :mod:`~gpumap.ekf.loop` (odometry, detection, association and filter, ping by ping);
-:mod:`~gpumap.ekf.guard` (when the pings' innovations do not fit, lean on odometry).
+:mod:`~gpumap.ekf.guard` (when the pings' innovations do not fit, lean on odometry);
+:mod:`~gpumap.ekf.registration` (each ping's first returns registered against the last pings
+and against revisited places, fused into the odometry step).
 """
 
 from __future__ import annotations

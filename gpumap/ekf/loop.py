@@ -24,6 +24,7 @@ import numpy as np
 from gpumap.ekf.association import FeatureTracker, TrackerStep
 from gpumap.ekf.filter import SonarEKF
 from gpumap.ekf.frontend import PointDetector, PointMeasurements
+from gpumap.ekf.registration import ScanRegistrar
 from gpumap.errors import check_finite_scalar, check_pose
 from gpumap.lie import rpy_from_rotation, se3_exp, se3_inverse
 from gpumap.spec import SonarSpec
@@ -159,6 +160,7 @@ def run_ekf_loop(
     before_update: Callable[[int, SonarEKF], None] | None = None,
     ekf_kwargs: dict | None = None,
     tracker_kwargs: dict | None = None,
+    registrar: ScanRegistrar | None = None,
     progress: bool = False,
 ) -> LoopResult:
     """Odometry + detected returns + association through :class:`SonarEKF`, ping by ping.
@@ -184,6 +186,10 @@ def run_ekf_loop(
         e.g. a DVL's plane ranges).
     ekf_kwargs, tracker_kwargs : dict, optional
         Passed to :class:`SonarEKF` (over :data:`EKF_DEFAULTS`) and :class:`FeatureTracker`.
+    registrar : ScanRegistrar, optional
+        Scan-to-local-map registration (:mod:`gpumap.ekf.registration`): each odometry step is
+        corrected by the ping's registration before the prediction, and the ping joins the
+        local map at the filter's pose after the update.
 
     progress : bool
         A tqdm bar.
@@ -220,13 +226,18 @@ def run_ekf_loop(
         t0 = time.perf_counter()
         meas = measure(k, img)
         t1 = time.perf_counter()
+        Uk, Qk = U[k], Q
+        if registrar is not None:  # the first ping only starts the local map
+            Uk, Qk = registrar.correct_step(k, img, ekf.pose, Uk if k else np.eye(4), Qk)
         if k:
-            ekf.predict(U[k], Q)
+            ekf.predict(Uk, Qk)
         if before_update is not None:
             before_update(k, ekf)
         if ekf.guard is not None:
             trusted[k] = ekf.guard.trusted
         st = tracker.step(meas, Q if k else None)
+        if registrar is not None:
+            registrar.remember(ekf.pose)
         t2 = time.perf_counter()
         poses[k], covs[k] = ekf.pose, ekf.pose_cov
         ms_d[k], ms_t[k] = 1e3 * (t1 - t0), 1e3 * (t2 - t1)
