@@ -16,9 +16,10 @@ filter no point returns, so they show what the registration alone does):
 - ``step_revisit``: both, with the registrar's settings (chosen on ``dev``);
 - ``first_try``: both, with the registration weighted by its per-ping information
   (``corr_beams`` 8, consistent per ping on dev) and its NIS window two-sided, as first built;
-- ``replay``: what ``gpumap replay --ekf`` runs: point returns with the TrustGuard plus the
-  default registrar (revisits only: the step registration was worse than odometry on some
-  dev seeds).
+- ``replay``: what ``gpumap replay --ekf --ekf-registration`` runs: point returns with the
+  TrustGuard plus the default registrar (revisits only: the step registration was worse than
+  odometry on some dev seeds). Off by default in ``gpumap replay --ekf``: on some runs its
+  heading ends worse than odometry's (``summary``'s ``ratio_heading_max``).
 
 Also here: ``step_accuracy_dev_seed0`` (:func:`step_accuracy`: one registration's error
 against the recorded motion, per gap between the pings, on dev); ``ceiling``, the best any

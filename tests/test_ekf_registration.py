@@ -265,7 +265,7 @@ def test_replay_ekf_says_how_much_it_trusted_the_registration(tmp_path, capsys, 
         warnings.simplefilter("ignore", RuntimeWarning)
         rc = main([str(DATA / "oasis_tank"), "--ekf", "--max-frames", "12", "--out", str(out),
                    "--backend", "numpy", "--no-pictures", "--no-progress"]
-                  + (["--ekf-no-registration"] if off else []))
+                  + ([] if off else ["--ekf-registration"]))
     assert rc == 0
     r = json.loads((out / "summary.json").read_text())["ekf"]["registration"]
     assert r["used"] is (not off)
