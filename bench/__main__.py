@@ -30,6 +30,7 @@ BENCHMARKS: dict[str, str] = {
     "variation": "how often a surface voxel's views are bright: the real full-rate tank and the simulator",
     "long_run": "every mapping rule over up to 1,000 simulated pings with realistic variation: FN and far FP",
     "refine": "plain, visible and refined maps against truth and on held-out pings",
+    "ekf_registration": "the EKF with scan registration on the full real tank run: dev, held-out, full",
     "gpu_scale": "one GPU (two source trees side by side) and 1 vs 2 GPU workers, with the oracle check",
     "surface": "the surface layer against the visible and evidence maps: simulated truth, real first returns",
     "nbv": "next best views: planned against rolled and random views; view_gain speed",
