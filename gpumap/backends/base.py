@@ -44,6 +44,19 @@ TUNABLES = ("GPU_CHUNK", "CPU_CHUNK", "CPU_THREADS", "BATCH_MAX", "BATCH_BOX_VOX
             "OPENCL_BATCH_BOX_VOXELS_MAX", "COPY_THREADS", "COPY_SPLIT_BYTES")
 
 
+def check_device_index(index, count: int, backend: str) -> int:
+    """``index`` (None: 0) checked against the ``count`` devices ``backend`` can run on here: the
+    device a backend takes, never another (a ``ValueError`` names what there is)."""
+    if index is None:
+        return 0
+    if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0:
+        raise ValueError(f"Expected device_index to be a non-negative integer or None, but got {index!r}")
+    if index >= count:
+        have = f"devices 0 to {count - 1}" if count > 1 else "device 0 only" if count else "no device"
+        raise ValueError(f"Expected a device_index that {backend} has here ({have}), but got {int(index)}")
+    return int(index)
+
+
 @functools.cache
 def _cpu_pool():
     """One worker thread, shared by every warp-cpu mapper, for the second half of a gather."""

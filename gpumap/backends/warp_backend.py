@@ -86,15 +86,19 @@ def _warp_params(minmax, p: np.ndarray):
 
 
 class WarpBackend(Backend):
-    def __init__(self, spec, template_S, use_table=None, device="cpu", *, visible=False, B=8, Bz=None, cap=0):
+    def __init__(self, spec, template_S, use_table=None, device="cpu", *, visible=False, B=8, Bz=None, cap=0,
+                 device_index=None):
         n_bins, n_beams = spec.image_shape
         wp, minmax = _warp()
         if device == "cuda" and not wp.is_cuda_available():
             why = "" if cuda_driver_loadable() else " (the NVIDIA CUDA driver, libcuda, cannot be loaded)"
             raise BackendUnavailableError(f"warp-cuda needs a CUDA device, and Warp finds none here{why}")
+        # the device_index-th CUDA device (warp-cuda), never another; warp-cpu has one device, index 0
+        count = wp.get_cuda_device_count() if device == "cuda" else 1
+        index = base.check_device_index(device_index, count, f"warp-{device}")
         self._setup_pool(visible, B, Bz)
         self.wp, self.k = wp, minmax
-        self.dev = wp.get_device("cuda:0" if device == "cuda" else "cpu")
+        self.dev = wp.get_device(f"cuda:{index}" if device == "cuda" else "cpu")
         self.name = f"warp-{device}"
         self.device = f"{self.dev.alias} ({self.dev.name})"
         self.n_bins, self.n_beams = n_bins, n_beams
@@ -174,17 +178,19 @@ class WarpBackend(Backend):
     def grow(self, cap):
         wp = self.wp
         n_old = self.cap * self.BV
-        with wp.ScopedDevice(self.dev):
-            names = [("grid", wp.full, np.inf, float), ("seen", wp.zeros, None, wp.uint8)]
-            if self.visible:
-                names += [("bright", wp.full, np.inf, float), ("count", wp.zeros, None, wp.uint64)]
-            for name, make, fill, dt in names:
-                n = cap if name == "seen" else cap * self.BV
-                new = make(n, value=fill, dtype=dt) if fill is not None else make(n, dtype=dt)
-                old_n = self.cap if name == "seen" else n_old
-                if old_n:
-                    wp.copy(new, getattr(self, name), count=old_n)
-                setattr(self, name, new)
+        # explicit devices, not ScopedDevice (Warp's default device is one for every thread, and
+        # mappers on other GPUs may grow at the same time: gpumap.gpu_threads)
+        dev = self.dev
+        names = [("grid", wp.full, np.inf, float), ("seen", wp.zeros, None, wp.uint8)]
+        if self.visible:
+            names += [("bright", wp.full, np.inf, float), ("count", wp.zeros, None, wp.uint64)]
+        for name, make, fill, dt in names:
+            n = cap if name == "seen" else cap * self.BV
+            new = make(n, value=fill, dtype=dt, device=dev) if fill is not None else make(n, dtype=dt, device=dev)
+            old_n = self.cap if name == "seen" else n_old
+            if old_n:
+                wp.copy(new, getattr(self, name), count=old_n)
+            setattr(self, name, new)
         self.cap = cap
         self._cmds = self._init_cmd = None  # recorded launches hold the old arrays
 
@@ -211,7 +217,7 @@ class WarpBackend(Backend):
         if self.ipairs is None or self.ipairs.shape[0] < 2 * n:
             self.ipairs = wp.empty(max(2 * n, 4096), dtype=int, device=self.dev)
         wp.copy(self.ipairs, self.istage[k], count=2 * n)
-        self.ievents[k] = wp.record_event()
+        self.ievents[k] = wp.get_stream(self.dev).record_event()
         return self.ipairs
 
     def set_blocks(self, slots, lins):
@@ -438,7 +444,7 @@ class WarpBackend(Backend):
             block_dim=128,  # a heavy kernel: more blocks fit the registers left
         )
         if cs is not None:  # device slot s is free again once these kernels are done
-            bb["done"][s] = wp.record_event()
+            bb["done"][s] = wp.get_stream(self.dev).record_event()
 
     def synchronize(self) -> None:
         self.wp.synchronize_device(self.dev)
@@ -455,12 +461,12 @@ def warp_upload_image(b, image) -> None:
         if image.dtype == np.uint8:
             np.copyto(b.staging_u8_np[s], image)
             wp.copy(b.image_u8, b.staging_u8[s])
-            b.events[s] = wp.record_event()
+            b.events[s] = wp.get_stream(b.dev).record_event()
             b.cmd_u8.launch()
         else:
             np.copyto(b.staging_np[s], image)
             wp.copy(b.image, b.staging[s])
-            b.events[s] = wp.record_event()
+            b.events[s] = wp.get_stream(b.dev).record_event()
         b.slot = (s + 1) % N_SLOTS
     elif image.dtype == np.uint8:
         np.multiply(image, U8_SCALE, out=b.image_np)
