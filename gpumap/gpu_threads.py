@@ -222,10 +222,11 @@ def run_replay_threads(
             if spec is None:  # the mappers, made here one after the other (the first frame's sonar)
                 ts = time.perf_counter()
                 spec = fr.spec
-                for k, d in enumerate(devs):
-                    m = MinMaxMapper(spec, grid, backend=backend, method=method, rule=rule, threshold=threshold,
-                                     sparse=bool(sparse), device_index=d)
-                    lanes.append(_Lane(m, keep=k == 0))
+                mappers = [MinMaxMapper(spec, grid, backend=backend, method=method, rule=rule,
+                                        threshold=threshold, sparse=bool(sparse), device_index=d)
+                           for d in devs]  # a device that is not there raises here, before any thread
+                lanes = [_Lane(m, keep=k == 0) for k, m in enumerate(mappers)]
+                del mappers
                 for lane in lanes:
                     lane.start()
                 t_setup = time.perf_counter() - ts
@@ -277,8 +278,9 @@ def run_replay_threads(
     seconds_merge = time.perf_counter() - t1
     n = stats["frames"]
     t_total = seconds_map + seconds_merge
-    per = [{"frames": ln.frames, "device_index": d, "device": ln.device, "seconds_integrate": ln.seconds_integrate,
-            "seconds_state": ln.seconds_state} for ln, d in zip(lanes, devs, strict=True)]
+    per = [{"frames": ln.frames, "device_index": d, "device": ln.device,
+            "seconds_integrate": ln.seconds_integrate, "seconds_state": ln.seconds_state}
+           for ln, d in zip(lanes, devs, strict=True)]
     slowest = max(p["seconds_integrate"] for p in per)
     stats.update(
         seconds_setup=t_setup,

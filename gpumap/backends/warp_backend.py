@@ -186,7 +186,8 @@ class WarpBackend(Backend):
             names += [("bright", wp.full, np.inf, float), ("count", wp.zeros, None, wp.uint64)]
         for name, make, fill, dt in names:
             n = cap if name == "seen" else cap * self.BV
-            new = make(n, value=fill, dtype=dt, device=dev) if fill is not None else make(n, dtype=dt, device=dev)
+            kw = {"dtype": dt, "device": dev} if fill is None else {"value": fill, "dtype": dt, "device": dev}
+            new = make(n, **kw)
             old_n = self.cap if name == "seen" else n_old
             if old_n:
                 wp.copy(new, getattr(self, name), count=old_n)
