@@ -297,14 +297,14 @@ def _space_owners(spec: SonarSpec, poses: list, grid: GridSpec, n: int) -> np.nd
     cost = np.zeros(len(poses))
     corners = spec.fov_corners_S()
     lo, s, dims = np.asarray(grid.min_corner_m), grid.voxel_size_m, np.asarray(grid.shape)
-    for i, T in enumerate(poses):
-        if T is not None:
-            T = np.asarray(T, np.float64)
-            key[i] = T[axis, 3] + mid * T[axis, 0]
-            W = corners @ T[:3, :3].T + T[:3, 3]
-            i0 = np.clip(np.floor((W.min(axis=0) - lo) / s) - 1, 0, dims)
-            i1 = np.clip(np.floor((W.max(axis=0) - lo) / s) + 2, 0, dims)
-            cost[i] = np.prod(np.maximum(i1 - i0, 0)) + 1.0  # + 1: a frame costs something
+    posed = np.array([T is not None for T in poses], bool)
+    if posed.any():  # every posed frame at once (a loop over frames took 0.1 s per 7,000)
+        T = np.stack([np.asarray(T, np.float64) for T in poses if T is not None])
+        key[posed] = T[:, axis, 3] + mid * T[:, axis, 0]
+        W = corners[None] @ T[:, :3, :3].transpose(0, 2, 1) + T[:, None, :3, 3]
+        i0 = np.clip(np.floor((W.min(axis=1) - lo) / s) - 1, 0, dims)
+        i1 = np.clip(np.floor((W.max(axis=1) - lo) / s) + 2, 0, dims)
+        cost[posed] = np.prod(np.maximum(i1 - i0, 0), axis=1) + 1.0  # + 1: a frame costs something
     order = np.argsort(key, kind="stable")
     before = np.cumsum(cost[order]) - cost[order]  # the work ranked ahead of each frame
     owners = np.empty(len(poses), np.int64)
