@@ -14,25 +14,26 @@ first device's map takes the others' (:meth:`gpumap.MinMaxMapper.merge`: mins an
 counts, in place, only the blocks both hold read back): the map of one process, bit for bit,
 on the first device. Nothing is pickled and no map leaves the process.
 
-Why threads are enough: a batch's host work is short beside the GPU's (the kernels run without
-the GIL), so N threads keep N GPUs busy; the same path runs N mappers on one CPU device (the
-tests: CPU backends, ``device_index`` 0) with the one-process map, though not faster there.
+What it costs and gains (``bench/results/gpu_scale_threads.json``, 2 H200s, the tank's frames 60
+times: 7,380 pings): one GPU in this path runs 2.0x (5 mm) and 4.4x (1 cm) faster than
+:func:`gpumap.replay.run_replay` (frames go as bytes, read by a thread of their own). Two GPUs
+map in parallel, but each thread's host work per batch holds the GIL: OpenCL's mapping phase
+scaled about 2x at 5 mm, Warp's 1.3x, and at 1 cm both are bound by the host (no gain). That
+run merged through whole-pool copies (5.8 s at 5 mm); blocks now move by runs of slots
+(:meth:`gpumap.backends.Backend.read_blocks`), not yet measured on GPUs. The same path runs N
+mappers on one CPU device (the tests: CPU backends, ``device_index`` 0) with the one-process map.
 """
 
 from __future__ import annotations
 
-import itertools
 import math
 import queue
 import threading
 import time
 
-import numpy as np
+from gpumap.workers import BATCH, _Batch, plan_replay, routed
 
-from gpumap.spec import GridSpec
-from gpumap.workers import BATCH, _Batch, _poses_of, _space_owners, frame_pixels
-
-__all__ = ["GPU_BACKENDS", "QUEUED", "run_replay_threads"]
+__all__ = ["GPU_BACKENDS", "OPTIONS", "QUEUED", "run_replay_threads"]
 
 #: Batches a device's queue holds before the client waits for it (bounds the frames in memory).
 QUEUED = 4
@@ -119,25 +120,15 @@ def _resolve_backend(backend: str) -> str:
     return available_backends()[0]
 
 
-def run_replay_threads(
-    recording,
-    *,
-    workers: int,
-    devices: list[int] | None = None,
-    voxel_size_m: float = 0.05,
-    backend: str = "auto",
-    method: str = "gather",
-    grid: GridSpec | None = None,
-    static: bool = False,
-    stride: int = 1,
-    max_frames: int | None = None,
-    progress: bool = True,
-    rule: str | None = None,
-    threshold: float = 0.4,
-    positions: list | None = None,
-    sparse: bool = False,
-    split: str = "space",
-) -> tuple[object, dict]:
+#: The options :func:`run_replay_threads` takes beside its own, and their defaults (those of
+#: :func:`gpumap.workers.run_replay_workers`).
+OPTIONS = {"voxel_size_m": 0.05, "backend": "auto", "method": "gather", "grid": None, "static": False,
+           "stride": 1, "max_frames": None, "progress": True, "rule": None, "threshold": 0.4,
+           "positions": None, "sparse": False}
+
+
+def run_replay_threads(recording, *, workers: int, devices: list[int] | None = None, split: str = "space",
+                       **options) -> tuple[object, dict]:
     """:func:`gpumap.replay.run_replay` on ``workers`` devices of this machine, one thread and one
     mapper each: the same map, bit for bit (module docstring).
 
@@ -151,7 +142,10 @@ def run_replay_threads(
         mapper on a CPU one. An index the backend does not have raises ``ValueError``.
     split : str
         ``"space"`` (default) or ``"pings"``, as :func:`gpumap.workers.run_replay_workers`.
-    Other parameters: as :func:`gpumap.workers.run_replay_workers`.
+    **options
+        :data:`OPTIONS` (``voxel_size_m``, ``backend``, ``method``, ``grid``, ``static``,
+        ``stride``, ``max_frames``, ``progress``, ``rule``, ``threshold``, ``positions``,
+        ``sparse``): as :func:`gpumap.workers.run_replay_workers`; any other raises ``TypeError``.
 
     Returns
     -------
@@ -168,43 +162,24 @@ def run_replay_threads(
     from gpumap.mapper import MinMaxMapper
     from gpumap.mapstate import merge_state
 
-    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
-        raise ValueError(f"Expected workers to be a positive integer, but got {workers!r}")
-    if split not in ("space", "pings"):
-        raise ValueError(f"Expected split to be 'space' or 'pings', but got {split!r}")
-    if not (recording.has_poses or static):
-        raise ValueError(f"Expected sonar poses in {recording.path} ({recording.kind}) to map it, but it has "
-                         "none (--static maps every ping at the identity pose)")
-    if sparse and method != "gather":
-        raise ValueError(f"Expected method='gather' with sparse=True, but got {method!r}")
+    unknown = sorted(set(options) - set(OPTIONS))
+    if unknown:
+        raise TypeError(f"Expected options among {sorted(OPTIONS)}, but got {unknown}")
+    o = {**OPTIONS, **options}
+    backend, method, grid, static, stride, max_frames, rule, threshold, positions, sparse = (
+        o[k] for k in ("backend", "method", "grid", "static", "stride", "max_frames", "rule", "threshold",
+                       "positions", "sparse"))
+    voxel_size_m = o["voxel_size_m"]
+    t_wall = time.perf_counter()
+    frames, grid, owners = plan_replay(recording, workers=workers, split=split, static=static, stride=stride,
+                                       max_frames=max_frames, grid=grid, voxel_size_m=voxel_size_m,
+                                       sparse=sparse, method=method)
+    if int(workers) == 1:
+        owners = None  # one mapper: every frame is its own
     workers = int(workers)
     backend = _resolve_backend(backend)
     devs = _devices(backend, workers, devices)
     stride = max(1, int(stride))
-    eye = np.eye(4)
-
-    def frames():  # every stride-th frame, at most max_frames of them (as run_replay selects)
-        stop = None if max_frames is None else max_frames * stride
-        return itertools.islice(iter(recording), 0, stop, stride)
-
-    t_wall = time.perf_counter()
-    owners = None
-    if static:
-        if grid is None:
-            from gpumap.spec import auto_grid
-
-            grid = auto_grid(next(iter(recording)).spec, [eye], voxel_size_m)
-    elif grid is None or split == "space":
-        spec0, sel = _poses_of(recording, stride, max_frames, frames)
-        if grid is None:
-            from gpumap.spec import auto_grid
-
-            posed = [T for T in sel if T is not None]
-            if not posed:
-                raise ValueError(f"Expected at least one posed frame in {recording.path}, but got none")
-            grid = auto_grid(spec0, posed, voxel_size_m)
-        if split == "space" and workers > 1:
-            owners = _space_owners(spec0, sel, grid, workers)
     rule = rule or ("evidence" if method == "gather" else "plain")
     total = recording.count()
     if total is not None:
@@ -216,40 +191,28 @@ def run_replay_threads(
     t_setup = 0.0
     t_map = time.perf_counter()
     try:
-        frame_iter = tqdm(frames(), total=total, unit="img", disable=not progress,
+        frame_iter = tqdm(frames(), total=total, unit="img", disable=not o["progress"],
                           desc=f"replay x{workers} ({backend})")
-        for i, fr in enumerate(frame_iter):
-            if spec is None:  # the mappers, made here one after the other (the first frame's sonar)
-                ts = time.perf_counter()
-                spec = fr.spec
-                mappers = [MinMaxMapper(spec, grid, backend=backend, method=method, rule=rule,
-                                        threshold=threshold, sparse=bool(sparse), device_index=d)
-                           for d in devs]  # a device that is not there raises here, before any thread
-                lanes = [_Lane(m, keep=k == 0) for k, m in enumerate(mappers)]
-                del mappers
-                for lane in lanes:
-                    lane.start()
-                t_setup = time.perf_counter() - ts
-            if fr.spec != spec:
-                stats["skipped_spec"] += 1
-                continue
-            T = eye if static else fr.T_W_S
-            if T is None:
-                stats["skipped_no_pose"] += 1
-                continue
-            if owners is not None:
-                w = int(owners[i]) if i < len(owners) else 0  # a frame the pose list missed
-            else:
-                w = (stats["frames"] // BATCH) % workers
-            img = frame_pixels(fr)
+
+        def start(sp) -> None:  # the mappers, made one after the other at the first frame (its sonar)
+            nonlocal spec, lanes, t_setup
+            ts = time.perf_counter()
+            spec = sp
+            mappers = [MinMaxMapper(spec, grid, backend=backend, method=method, rule=rule,
+                                    threshold=threshold, sparse=bool(sparse), device_index=d)
+                       for d in devs]  # a device that is not there raises here, before any thread
+            lanes = [_Lane(m, keep=k == 0) for k, m in enumerate(mappers)]
+            del mappers
+            for lane in lanes:
+                lane.start()
+            t_setup = time.perf_counter() - ts
+
+        for w, img, T in routed(frame_iter, owners, workers, static, stats, positions, start):
             b = batches[w]
             if not b.fits(img):
                 lanes[w].put(b.take())
             if b.add(img, T) == BATCH:
                 lanes[w].put(b.take())
-            stats["frames"] += 1
-            if positions is not None:
-                positions.append(np.asarray(T, dtype=np.float64)[:3, 3].copy())
         if spec is None:
             raise ValueError(f"Expected frames in {recording.path}, but it has none")
         for w, b in enumerate(batches):

@@ -13,31 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import DATA, needs_data
+from merged_maps import assert_same, tank
 
 import gpumap
 from gpumap.commands.replay import main
 from gpumap.gpu_threads import run_replay_threads
 from gpumap.replay import run_replay
-
-
-def _everything(m) -> dict:
-    out = {"values": m.raw_values(), "n": m.n_integrated}
-    if m.rule != "plain":
-        out.update(m.evidence())
-    return out
-
-
-def _assert_same(a, b) -> None:
-    ea, eb = _everything(a), _everything(b)
-    assert ea.keys() == eb.keys()
-    for k in ea:
-        np.testing.assert_array_equal(ea[k], eb[k], err_msg=k)
-
-
-def _tank(stride: int):
-    from gpumap.io import open_fan_folder
-
-    return open_fan_folder(DATA / "oasis_tank", stride=stride)
 
 
 @needs_data
@@ -46,7 +27,7 @@ def _tank(stride: int):
 def test_threads_equal_one_process_on_real_frames(backend, rule):
     if backend not in gpumap.available_backends():
         pytest.skip(f"{backend} is not available here")
-    rec = _tank(3)
+    rec = tank(3)
     kw = dict(voxel_size_m=0.06, backend=backend, rule=rule, progress=False)
     one, s1 = run_replay(rec, **kw)
     assert one.observed().sum() > 10_000
@@ -60,17 +41,17 @@ def test_threads_equal_one_process_on_real_frames(backend, rule):
         assert sum(frames) == 41
         if split == "pings" and n > 1:
             assert frames[:2] == [32, 9]
-        _assert_same(got, one)
+        assert_same(got, one)
 
 
 @needs_data
 def test_sparse_threads_equal_the_dense_one_process_map():
-    rec = _tank(4)
+    rec = tank(4)
     one, _ = run_replay(rec, voxel_size_m=0.06, backend="numpy", progress=False)
     got, s = run_replay_threads(rec, workers=2, voxel_size_m=0.06, backend="numpy", progress=False,
                                 sparse=True)
     assert got.sparse is not None and got.grid == one.grid
-    _assert_same(got, one)
+    assert_same(got, one)
 
 
 def test_a_device_index_the_backend_lacks_is_a_one_line_error():
@@ -91,7 +72,7 @@ def test_a_device_index_the_backend_lacks_is_a_one_line_error():
 
 @needs_data
 def test_threads_refuse_a_missing_device_and_stop_on_a_failed_mapper(monkeypatch):
-    rec = _tank(6)
+    rec = tank(6)
     kw = dict(voxel_size_m=0.08, backend="numpy", progress=False)
     with pytest.raises(ValueError, match="device_index"):
         run_replay_threads(rec, workers=2, devices=[0, 3], **kw)
@@ -121,7 +102,7 @@ def test_replay_cli_workers_on_a_machine_with_enough_gpus_stays_in_process(tmp_p
     assert f"21 images in-process on 2 devices of {backend}" in capsys.readouterr().out
     a = gpumap.load_map(tmp_path / "one" / "map.npz", backend="numpy")
     b = gpumap.load_map(tmp_path / "w" / "map.npz", backend="numpy")
-    _assert_same(b, a)
+    assert_same(b, a)
     s = json.loads((tmp_path / "w" / "summary.json").read_text())
     assert s["workers"] == 2 and s["frames"] == 21 and s["mode"] == "threads"
     assert (tmp_path / "w" / "occupied.ply").read_bytes() == (tmp_path / "one" / "occupied.ply").read_bytes()
@@ -143,3 +124,31 @@ def test_replay_cli_picks_threads_only_for_gpu_backends_with_enough_gpus(monkeyp
     assert not _in_process(ns(backend="numpy")) and not _in_process(ns(backend="warp-cpu"))
     monkeypatch.setattr(gpumap.workers, "host_gpus", lambda: [])
     assert not _in_process(ns())
+
+
+@pytest.mark.parametrize("backend", ["numpy", "warp-cpu", "opencl-cpu"])
+def test_blocks_move_by_runs_in_the_order_asked(backend):
+    """read_blocks / write_blocks of some blocks (unsorted, in runs and apart) move exactly those."""
+    if backend not in gpumap.available_backends():
+        pytest.skip(f"{backend} is not available here")
+    from test_mapper import SPEC
+
+    from gpumap.backends import make_backend
+
+    b = make_backend(backend, SPEC, visible=True, B=4, Bz=4, cap=12)
+    rng = np.random.default_rng(3)
+    slots = np.array([7, 2, 3, 4, 11, 0], np.int64)  # runs 0 | 2-4 | 7 | 11, asked out of order
+    g = rng.random((6, b.BV), dtype=np.float32)
+    br = rng.random((6, b.BV), dtype=np.float32)
+    c = rng.integers(0, 2**63, (6, b.BV), dtype=np.uint64)
+    before = b.read()
+    b.write_blocks(slots, g, br, c)
+    got = b.read_blocks(slots)
+    for want, have in zip((g, br, c), got, strict=True):
+        np.testing.assert_array_equal(have, want)
+    after = b.read()
+    others = np.setdiff1d(np.arange(12), slots)
+    for x, y in zip(before, after, strict=True):  # the other blocks are as they were
+        np.testing.assert_array_equal(x.reshape(12, -1)[others], y.reshape(12, -1)[others])
+    assert b.read_seen()[slots].all() and not b.read_seen()[others].any()
+    assert all(a.shape == (0, b.BV) for a in b.read_blocks(np.zeros(0, np.int64)))

@@ -271,6 +271,23 @@ class OpenCLBackend(Backend):
             self.cl.enqueue_copy(q, self.bright, np.ascontiguousarray(bright, np.float32), is_blocking=True)
             self.cl.enqueue_copy(q, self.count, np.ascontiguousarray(count, np.uint64), is_blocking=True)
 
+    def read_blocks(self, slots):  # by runs of consecutive slots: those blocks only cross the bus
+        return self._read_runs(slots)
+
+    def write_blocks(self, slots, grid, bright, count):
+        self._write_runs(slots, grid, bright, count)
+
+    def _copy_out(self, name, offset, out):
+        self.cl.enqueue_copy(self.queue, out, getattr(self, name), src_offset=offset * out.itemsize,
+                             is_blocking=False)
+
+    def _copy_in(self, name, offset, src):
+        self.cl.enqueue_copy(self.queue, getattr(self, name), src, dst_offset=offset * src.itemsize,
+                             is_blocking=False)
+
+    def _copies_done(self):
+        self.queue.finish()
+
     def read_seen(self):
         return self._read(self.seen, self.cap, np.uint8)
 

@@ -250,13 +250,21 @@ class WarpBackend(Backend):
             self.bright.assign(wp.array(np.ascontiguousarray(bright, np.float32), dtype=float, device=dev))
             self.count.assign(wp.array(np.ascontiguousarray(count, np.uint64), dtype=wp.uint64, device=dev))
 
-    def read_blocks(self, slots):
-        if self.dev.is_cuda:
-            return super().read_blocks(slots)
-        rows = np.asarray(slots, np.int64)  # CPU arrays: rows straight from the pool, no whole copy
-        if not self.visible:
-            return self.grid.numpy().reshape(-1, self.BV)[rows], None, None
-        return tuple(a.numpy().reshape(-1, self.BV)[rows] for a in (self.grid, self.bright, self.count))
+    def read_blocks(self, slots):  # by runs of consecutive slots: those blocks only cross the bus
+        return self._read_runs(slots)
+
+    def write_blocks(self, slots, grid, bright, count):
+        self._write_runs(slots, grid, bright, count)
+
+    def _copy_out(self, name, offset, out):
+        arr = getattr(self, name)
+        host = self.wp.array(out, dtype=arr.dtype, device="cpu", copy=False)
+        self.wp.copy(host, arr, dest_offset=0, src_offset=offset, count=len(out))
+
+    def _copy_in(self, name, offset, src):
+        arr = getattr(self, name)
+        host = self.wp.array(src, dtype=arr.dtype, device="cpu", copy=False)
+        self.wp.copy(arr, host, dest_offset=offset, src_offset=0, count=len(src))
 
     def read_seen(self):
         return self.seen.numpy().copy()
