@@ -8,35 +8,43 @@ How: one thread per device, each with its own :class:`~gpumap.MinMaxMapper` on i
 (``device_index``: ``cuda:i`` on Warp, the i-th OpenCL GPU), fed batches of :data:`BATCH` pings
 through a bounded queue by the client (this thread), which reads the recording once. The pings
 are split as :mod:`gpumap.workers` splits them (``"space"``: each device maps one stretch of the
-survey; ``"pings"``: batches to each device in turn). At the end each thread reads its map's
-observed blocks (:func:`gpumap.mapstate.read_state`, while the others may still map), and the
-first device's map takes the others' (:meth:`gpumap.MinMaxMapper.merge`: mins and saturating
-counts, in place, only the blocks both hold read back): the map of one process, bit for bit,
-on the first device. Nothing is pickled and no map leaves the process.
+survey; ``"pings"``: batches to each device in turn). At the end the first device's map takes the
+others' (:func:`merge_dense`, a bounded box: blocks only the other observed are copied device to
+device where the backend can (Warp), blocks both observed are read and combined on the host in
+threads (mins and saturating counts, :func:`gpumap.rules.combine_into`); on demand: each thread
+reads its map's state and :meth:`gpumap.MinMaxMapper.merge` takes it): the map of one process,
+bit for bit, on the first device. Nothing is pickled and no map leaves the process.
 
 What it costs and gains (``bench/results/gpu_scale_threads.json``, 2 H200s, the tank's frames 60
 times: 7,380 pings): one GPU in this path runs 2.0x (5 mm) and 4.4x (1 cm) faster than
 :func:`gpumap.replay.run_replay` (frames go as bytes, read by a thread of their own). Two GPUs
-map in parallel, but each thread's host work per batch holds the GIL: OpenCL's mapping phase
-scaled about 2x at 5 mm, Warp's 1.3x, and at 1 cm both are bound by the host (no gain). That
-run merged through whole-pool copies (5.8 s at 5 mm); blocks now move by runs of slots
-(:meth:`gpumap.backends.Backend.read_blocks`), not yet measured on GPUs. The same path runs N
+map in parallel, but each thread's host work per batch holds the GIL: the slower device's
+integrate time was 2.1x shorter than one device's on OpenCL at 5 mm, 1.3x on Warp, and at 1 cm
+both were bound by the host (no gain). That run merged through whole-pool copies (5.8 s at 5 mm:
+each block read or write moved the whole map); the merge above (blocks by runs, the other map's
+own blocks device to device, the shared ones combined in threads) is not yet measured on GPUs;
+about 45 % of the observed blocks are observed by both maps on the tank. The same path runs N
 mappers on one CPU device (the tests: CPU backends, ``device_index`` 0) with the one-process map.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import queue
 import threading
 import time
 
+import numpy as np
+
 from gpumap.workers import BATCH, _Batch, plan_replay, routed
 
-__all__ = ["GPU_BACKENDS", "OPTIONS", "QUEUED", "run_replay_threads"]
+__all__ = ["GPU_BACKENDS", "OPTIONS", "QUEUED", "merge_dense", "run_replay_threads"]
 
 #: Batches a device's queue holds before the client waits for it (bounds the frames in memory).
 QUEUED = 4
+#: Threads that combine the blocks two maps both observed (at most; the CPU's cores, up to 16).
+COMBINE_THREADS = min(16, os.cpu_count() or 1)
 #: Backends whose devices are GPUs, one mapper per GPU (``"opencl"`` picks GPUs first).
 GPU_BACKENDS = ("warp-cuda", "opencl-gpu", "opencl")
 
@@ -98,6 +106,62 @@ class _Lane(threading.Thread):
             except queue.Full:
                 if not self.is_alive():
                     raise RuntimeError(f"the mapping thread {self.name} stopped") from self.error
+
+
+def merge_dense(mapper, other) -> None:
+    """Merge ``other`` into ``mapper``, in place: two maps of one bounded box (the same grid, so the
+    same block in the same slot) and options, made by this module from disjoint pings. Blocks only
+    ``other`` observed are copied (device to device where the backend can: Warp), blocks both
+    observed are combined on the host (:func:`gpumap.rules.combine_into`, as every merge does),
+    the others stay: the map :meth:`gpumap.MinMaxMapper.merge` makes, bit for bit, without reading
+    either whole map."""
+    from gpumap.mapstate import options_of
+
+    if mapper.sparse is not None or other.sparse is not None or options_of(mapper) != options_of(other):
+        raise ValueError("Expected two maps of one bounded box and the same options to merge block by block")
+    shared = mapper.pings.shared(other.pings.array())
+    if shared:
+        raise ValueError(f"Expected maps built from different pings, but they share {shared}")
+    a, b = mapper.storage, other.storage
+    with a.lock, b.lock:
+        a.synchronize()
+        b.synchronize()
+        seen_a, seen_b = a.backend.read_seen() != 0, b.backend.read_seen() != 0
+        a.backend.copy_blocks_from(b.backend, np.flatnonzero(seen_b & ~seen_a))
+        both = np.flatnonzero(seen_b & seen_a)
+        if len(both):
+            names = ("min_all", "bright", "count")
+            mine = dict(zip(names, a.backend.read_blocks(both), strict=True))
+            theirs = dict(zip(names, b.backend.read_blocks(both), strict=True))
+            if mapper.rule == "plain":
+                mine, theirs = {"min_all": mine["min_all"]}, {"min_all": theirs["min_all"]}
+            _combine_rows(mine, theirs, mapper.rule)
+            a.backend.write_blocks(both, mine["min_all"], mine.get("bright"), mine.get("count"))
+        a.empty = a.empty and not seen_b.any()
+        mapper.n_integrated += int(other.n_integrated)
+        mapper.pings.extend(other.pings.array())
+
+
+def _combine_rows(mine: dict, theirs: dict, rule: str) -> None:
+    """:func:`gpumap.rules.combine_into` of (n, BV) blocks, in chunks of rows on threads (NumPy
+    releases the GIL; every voxel is combined once, by itself: the same arrays as one call)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from gpumap.rules import combine_into
+
+    n = len(mine["min_all"])
+    k = max(1, min(COMBINE_THREADS, n // 16))
+    cuts = np.linspace(0, n, k + 1).astype(int)
+
+    def part(i: int) -> None:
+        sl = slice(cuts[i], cuts[i + 1])
+        combine_into({x: v[sl] for x, v in mine.items()}, {x: v[sl] for x, v in theirs.items()}, rule)
+
+    if k == 1:
+        part(0)
+        return
+    with ThreadPoolExecutor(k, thread_name_prefix="gpumap-merge") as pool:
+        list(pool.map(part, range(k)))
 
 
 def _devices(backend: str, workers: int, devices) -> list[int]:
@@ -201,7 +265,9 @@ def run_replay_threads(recording, *, workers: int, devices: list[int] | None = N
             mappers = [MinMaxMapper(spec, grid, backend=backend, method=method, rule=rule,
                                     threshold=threshold, sparse=bool(sparse), device_index=d)
                        for d in devs]  # a device that is not there raises here, before any thread
-            lanes = [_Lane(m, keep=k == 0) for k, m in enumerate(mappers)]
+            # a bounded box: every map kept whole, merged block by block (merge_dense); on demand
+            # (each map its own block layout) every map but the first hands over its state
+            lanes = [_Lane(m, keep=k == 0 or not sparse) for k, m in enumerate(mappers)]
             del mappers
             for lane in lanes:
                 lane.start()
@@ -235,8 +301,12 @@ def run_replay_threads(recording, *, workers: int, devices: list[int] | None = N
     t1 = time.perf_counter()
     mapper = lanes[0].mapper
     for lane in lanes[1:]:  # exact: mins and saturating counts (gpumap.merge)
-        merge_state(mapper, lane.state)
-        lane.state = None
+        if lane.state is None:  # a bounded box: block by block (merge_dense)
+            merge_dense(mapper, lane.mapper)
+            lane.mapper = None
+        else:
+            merge_state(mapper, lane.state)
+            lane.state = None
     mapper.synchronize()
     seconds_merge = time.perf_counter() - t1
     n = stats["frames"]

@@ -152,3 +152,50 @@ def test_blocks_move_by_runs_in_the_order_asked(backend):
         np.testing.assert_array_equal(x.reshape(12, -1)[others], y.reshape(12, -1)[others])
     assert b.read_seen()[slots].all() and not b.read_seen()[others].any()
     assert all(a.shape == (0, b.BV) for a in b.read_blocks(np.zeros(0, np.int64)))
+
+
+@pytest.mark.parametrize("rule", ["evidence", "visible", "plain"])
+def test_blocks_both_maps_observed_combine_in_chunks_as_in_one_call(rule, monkeypatch):
+    import gpumap.gpu_threads as gt
+    from gpumap.rules import combine_into
+
+    rng = np.random.default_rng(5)
+    n, bv = 100, 64
+
+    def arrays():
+        out = {"min_all": rng.random((n, bv), dtype=np.float32)}
+        if rule != "plain":
+            out["bright"] = rng.random((n, bv), dtype=np.float32)
+            out["count"] = rng.integers(0, 2**63, (n, bv), dtype=np.uint64)
+        return out
+
+    mine, theirs = arrays(), arrays()
+    whole = {k: v.copy() for k, v in mine.items()}
+    combine_into(whole, theirs, rule)
+    monkeypatch.setattr(gt, "COMBINE_THREADS", 4)  # 4 chunks of 25 rows
+    gt._combine_rows(mine, theirs, rule)
+    for k in whole:
+        np.testing.assert_array_equal(mine[k], whole[k], err_msg=k)
+
+
+@needs_data
+def test_dense_merge_block_by_block_equals_the_merge_of_states():
+    from gpumap.gpu_threads import merge_dense
+
+    rec = tank(3)
+    from gpumap.spec import auto_grid
+
+    frames = [(f.image, f.T_W_S) for f in rec]
+    spec = next(iter(rec)).spec
+    grid = auto_grid(spec, [T for _, T in frames], 0.06)
+    backend = "warp-cpu" if "warp-cpu" in gpumap.available_backends() else "numpy"
+    maps = []
+    for part in (frames[::2], frames[1::2]):  # every other frame: maps that overlap everywhere
+        m = gpumap.MinMaxMapper(spec, grid, backend=backend)
+        m.integrate_batch(np.stack([i for i, _ in part]), np.stack([T for _, T in part]))
+        maps.append(m)
+    want = gpumap.merge_maps(maps, backend="numpy")
+    merge_dense(maps[0], maps[1])
+    assert_same(maps[0], want)
+    with pytest.raises(ValueError, match="different pings"):
+        merge_dense(maps[0], want)

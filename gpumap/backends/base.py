@@ -254,6 +254,11 @@ class Backend:
         seen[np.asarray(slots, np.int64)] = 1
         self._write_seen(seen)
 
+    def copy_blocks_from(self, other: Backend, slots: np.ndarray) -> None:
+        """Blocks ``slots`` of ``other`` (a backend of the same block shape and rule) become the
+        same slots here, marked seen; through the host (Warp: device to device)."""
+        self.write_blocks(slots, *other.read_blocks(slots))
+
     def _copy_out(self, name: str, offset: int, out: np.ndarray) -> None:
         """Copy ``len(out)`` values of pool array ``name`` from element ``offset`` into ``out``."""
         raise NotImplementedError

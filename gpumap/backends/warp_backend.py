@@ -256,6 +256,25 @@ class WarpBackend(Backend):
     def write_blocks(self, slots, grid, bright, count):
         self._write_runs(slots, grid, bright, count)
 
+    def copy_blocks_from(self, other, slots):
+        if not isinstance(other, WarpBackend):
+            return super().copy_blocks_from(other, slots)
+        _, ss, starts, ends = base.block_runs(slots)
+        try:  # device to device (another GPU: peer copies), by runs of consecutive slots
+            for name in self._pool_arrays():
+                dst, src = getattr(self, name), getattr(other, name)
+                for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+                    off = int(ss[a]) * self.BV
+                    self.wp.copy(dst, src, dest_offset=off, src_offset=off, count=(b - a) * self.BV)
+            other.synchronize()
+            self.synchronize()
+        except Exception:  # a pair of devices Warp cannot copy between: through the host (the same blocks)
+            self.synchronize()
+            return super().copy_blocks_from(other, slots)
+        seen = self.read_seen()
+        seen[ss] = 1
+        self._write_seen(seen)
+
     def _copy_out(self, name, offset, out):
         arr = getattr(self, name)
         host = self.wp.array(out, dtype=arr.dtype, device="cpu", copy=False)
