@@ -21,6 +21,11 @@ Frames: the real tank sequence (123 uint8 polar frames with arm poses, the ``.np
   (a recording of float32 frames that keep their bytes, so the client sends uint8), after a cold
   warm-up; and the client alone (reading and batching the frames, no mapping): if the client is
   the limit, this says so. The first run checks the merged map equals the one-process map.
+- ``threads``: :func:`gpumap.gpu_threads.run_replay_threads` on 1 and 2 GPUs of this process (a
+  thread and a mapper per GPU, the maps merged in place) against one plain process, per
+  ``--thread-runs`` entry (backend, voxel size, warm runs), on the frames repeated ``--repeat``
+  times; the cold run checks every merged map equals the one-process map bit for bit. Runs before
+  ``workers`` when both are asked for.
 - ``cpu``: the workers' overhead on the CPU backend (2 workers against one process, the same
   cores), ``--reps`` runs, median; needs an idle machine to mean anything (the load is recorded
   before and after every run, and the section says whether the machine was idle).
@@ -403,6 +408,69 @@ def workers_section(a, res: dict, save, name: str, backend: str, voxel: float, n
     save()
 
 
+def threads_section(a, res: dict, save, name: str, backend: str, voxel: float, n_gpus: list[int],
+                    reps: int) -> None:
+    """In-process GPUs (:func:`gpumap.gpu_threads.run_replay_threads`, a thread and a mapper per GPU,
+    the maps merged in place) against one process (:func:`gpumap.replay.run_replay`), on the frames
+    repeated ``--repeat`` times: ``reps`` warm runs after a cold one (which compiles and checks that
+    every merged map equals the one-process map bit for bit)."""
+    import gpumap
+    from gpumap.gpu_threads import run_replay_threads
+    from gpumap.replay import run_replay
+
+    imgs, poses, spec = _frames(a.frames)
+    rec = _recording(imgs, poses, spec, a.repeat)
+    grid = gpumap.GridSpec(*BOX, voxel)
+    kw = dict(backend=backend, grid=grid, progress=False)
+    sec = {"backend": backend, "voxel_m": voxel, "frames": a.repeat * len(imgs), "repeat": a.repeat,
+           "gpus": n_gpus, "grid_shape": list(grid.shape), "rows": [],
+           "client_only_frames_per_s": _spread([_client_only(rec) for _ in range(2)])}
+    res[name] = sec
+    for rep in range(reps + 1):  # rep 0: kernels compiled / loaded on every device (cold)
+        row: dict = {"rep": rep, "cold": rep == 0, "load_before": load_average()}
+        t = time.perf_counter()
+        one, s1 = run_replay(rec, **kw)
+        one.synchronize()
+        row["one_s"] = time.perf_counter() - t
+        row["one_map_s"] = s1["seconds_total"]
+        ref = _state(one) if rep == 0 else None
+        del one
+        for n in n_gpus:
+            t = time.perf_counter()
+            got, st = run_replay_threads(rec, workers=n, **kw)
+            got.synchronize()
+            row[f"t{n}_s"] = time.perf_counter() - t
+            for k in ("seconds_setup", "seconds_map", "seconds_merge"):
+                row[f"t{n}_{k[8:]}_s"] = st[k]
+            row[f"t{n}_per_worker"] = st["per_worker"]
+            if ref is not None:
+                b_ = _state(got)
+                row[f"t{n}_equal_one_process"] = bool(
+                    ref.keys() == b_.keys() and all(np.array_equal(ref[k], b_[k]) for k in ref))
+                del b_
+            del got
+        row["load_after"] = load_average()
+        sec["rows"].append(row)
+        save()
+        short = {k: v for k, v in row.items() if not k.endswith("per_worker")}
+        print(name, json.dumps(short), flush=True)
+    warm = [r for r in sec["rows"] if not r["cold"]] or sec["rows"]
+    summ = {"one_s": _spread([r["one_s"] for r in warm]),
+            "one_map_s": _spread([r["one_map_s"] for r in warm])}
+    for n in n_gpus:
+        for k in ("s", "map_s", "merge_s", "setup_s"):
+            summ[f"t{n}_{k}"] = _spread([r[f"t{n}_{k}"] for r in warm])
+        summ[f"t{n}_frames_per_s"] = sec["frames"] / summ[f"t{n}_s"]["median"]
+        summ[f"t{n}_speedup_over_one_process"] = summ["one_s"]["median"] / summ[f"t{n}_s"]["median"]
+    if 1 in n_gpus and 2 in n_gpus:
+        summ["speedup_2_over_1"] = summ["t1_s"]["median"] / summ["t2_s"]["median"]
+        summ["map_speedup_2_over_1"] = summ["t1_map_s"]["median"] / summ["t2_map_s"]["median"]
+    checks = [r[k] for r in sec["rows"] for k in r if k.endswith("_equal_one_process")]
+    summ["all_equal_one_process"] = bool(checks) and all(checks)
+    sec["summary"] = summ
+    save()
+
+
 def _gpu_names() -> list[str]:
     try:
         p = subprocess.run(["nvidia-smi", "--query-gpu=name,pci.bus_id", "--format=csv,noheader"],
@@ -419,7 +487,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames", type=Path, default=Path("bench/results/tmp/oasis_polar.npz"))
     p.add_argument("--old", default=None, help="a checkout to time beside this one (single section)")
     p.add_argument("--sections", nargs="+", default=["single", "workers"],
-                   choices=["single", "workers", "cpu"])
+                   choices=["single", "workers", "threads", "cpu"])
+    p.add_argument("--thread-runs", nargs="+", default=["warp-cuda:0.005:3", "warp-cuda:0.01:3"],
+                   metavar="BACKEND:VOXEL:REPS", help="threads section: its runs, in order")
     p.add_argument("--out", type=Path, default=Path("bench/results/gpu_scale.json"))
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--reps", type=int, default=5)
@@ -472,6 +542,18 @@ def main(argv: list[str] | None = None) -> int:
     save()
     if "single" in a.sections:
         single(a, res, save)
+    if "threads" in a.sections:
+        n = [1, 2] if len(res["gpus"]) >= 2 else [1]
+        for run in a.thread_runs:
+            backend, voxel, reps = run.split(":")
+            name = f"threads_{backend}_{float(voxel) * 1000:g}mm"
+            try:
+                threads_section(a, res, save, name, backend, float(voxel), n, int(reps))
+            except Exception:  # recorded: the rest of the run still counts
+                import traceback
+
+                res[f"{name}_error"] = traceback.format_exc()[-3000:]
+                save()
     if "workers" in a.sections:
         n = [1, 2] if len(res["gpus"]) >= 2 else [1]
         try:

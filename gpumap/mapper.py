@@ -171,6 +171,12 @@ class MinMaxMapper:
         reach, which become unknown.
     initial_blocks : int
         On demand only: pool slots allocated up front (default 64; the pool grows by 1.5x).
+    device_index : int or None
+        Which device of the backend's kind the map lives on (None: the first): ``warp-cuda``
+        on ``cuda:<device_index>``, ``opencl-gpu``/``opencl-cpu`` on that OpenCL device of their
+        kind (:func:`gpumap.backends.opencl_devices`); ``numpy`` and ``warp-cpu`` have 0 only. An
+        index the backend does not have raises ``ValueError``; never another device. Mappers on
+        several GPUs of one process: :mod:`gpumap.gpu_threads`.
     """
 
     _on_demand = False  # a subclass that only holds maps on demand (gpumap.sparse.SparseMinMaxMapper)
@@ -194,6 +200,7 @@ class MinMaxMapper:
         max_bytes: int | None = None,
         evict: str | None = None,
         initial_blocks: int = 64,
+        device_index: int | None = None,
     ) -> None:
         if not isinstance(spec, SonarSpec):
             raise TypeError(f"Expected a gpumap.SonarSpec for 'spec', but got {type(spec).__name__}")
@@ -265,7 +272,8 @@ class MinMaxMapper:
         self.storage = BlockStorage(spec, grid if space is None else space, self.value_rule, backend,
                                     template=template,
                                     use_table=None if footprint_max == "auto" else footprint_max == "table",
-                                    max_bytes=self.max_bytes, evict=evict, initial_blocks=initial_blocks)
+                                    max_bytes=self.max_bytes, evict=evict, initial_blocks=initial_blocks,
+                                    device_index=device_index)
         st = self.storage
         self.B, self.Bz, self.BV, self.bytes_per_voxel = st.B, st.Bz, st.BV, st.bytes_per_voxel
         #: What applies pings to the storage (:class:`~gpumap.integrator.Integrator`).

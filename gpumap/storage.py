@@ -87,12 +87,16 @@ class BlockStorage:
         How the backend's kernels take a footprint's max (see :func:`gpumap.backends.make_backend`).
     max_bytes, evict, initial_blocks
         On demand: the cap on pool plus index, what passing it does, the slots made up front.
+    device_index : int, optional
+        The backend's device (:func:`gpumap.backends.make_backend`); None: its first.
     """
 
     def __init__(self, spec: SonarSpec, box: GridSpec | SparseSpec, value_rule: ValueRule,
                  backend: str = "auto", *, template: np.ndarray | None = None, use_table: bool | None = None,
-                 max_bytes: int | None = None, evict: str | None = None, initial_blocks: int = 64) -> None:
+                 max_bytes: int | None = None, evict: str | None = None, initial_blocks: int = 64,
+                 device_index: int | None = None) -> None:
         space = box if isinstance(box, SparseSpec) else None
+        self.device_index = device_index
         self.sparse = space
         self.value_rule = value_rule
         self.rule = value_rule.rule
@@ -191,7 +195,7 @@ class BlockStorage:
                 continue
             try:
                 return make_backend(name, spec, template, use_table, visible=self.stateful,
-                                    B=self.B, Bz=self.Bz, cap=cap)
+                                    B=self.B, Bz=self.Bz, cap=cap, device_index=self.device_index)
             except (BackendUnavailableError, GridTooLargeError) as e:
                 if backend != "auto":
                     raise

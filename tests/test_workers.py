@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import DATA, needs_data
+from merged_maps import assert_same, tank
 
 pytest.importorskip("distributed")
 
@@ -31,26 +32,6 @@ def cluster():
             yield c, client
 
 
-def _everything(m) -> dict:
-    out = {"values": m.raw_values(), "n": m.n_integrated}
-    if m.rule != "plain":
-        out.update(m.evidence())
-    return out
-
-
-def _assert_same(a, b) -> None:
-    ea, eb = _everything(a), _everything(b)
-    assert ea.keys() == eb.keys()
-    for k in ea:
-        np.testing.assert_array_equal(ea[k], eb[k], err_msg=k)
-
-
-def _tank(stride: int):
-    from gpumap.io import open_fan_folder
-
-    return open_fan_folder(DATA / "oasis_tank", stride=stride)
-
-
 @needs_data
 @pytest.mark.parametrize("backend", ["numpy", "warp-cpu"])
 @pytest.mark.parametrize("rule", ["evidence", "visible", "plain"])
@@ -58,7 +39,7 @@ def test_workers_equal_one_process_on_real_frames(cluster, backend, rule):
     if backend not in gpumap.available_backends():
         pytest.skip(f"{backend} is not available here")
     _, client = cluster
-    rec = _tank(3)
+    rec = tank(3)
     kw = dict(voxel_size_m=0.06, backend=backend, rule=rule, progress=False)
     one, s1 = run_replay(rec, **kw)
     assert one.observed().sum() > 10_000
@@ -75,19 +56,19 @@ def test_workers_equal_one_process_on_real_frames(cluster, backend, rule):
             assert sum(got_frames) == 41 and got_frames[0] - got_frames[1] <= 5
         else:
             assert got_frames == [32, 9, 0]
-        _assert_same(got, one)
+        assert_same(got, one)
     assert len(pos) == 41
 
 
 @needs_data
 def test_sparse_workers_equal_the_dense_one_process_map(cluster):
     _, client = cluster
-    rec = _tank(4)
+    rec = tank(4)
     one, _ = run_replay(rec, voxel_size_m=0.06, backend="numpy", progress=False)
     got, s = run_replay_workers(rec, workers=2, client=client, voxel_size_m=0.06, backend="numpy",
                                 progress=False, sparse=True)
     assert got.sparse is not None and got.grid == one.grid
-    _assert_same(got, one)
+    assert_same(got, one)
 
 
 @needs_data
@@ -102,7 +83,7 @@ def test_replay_cli_workers_writes_the_same_map(cluster, tmp_path: Path, capsys)
     assert "21 images in 2 Dask workers on numpy" in capsys.readouterr().out  # the line says how it ran
     a = gpumap.load_map(tmp_path / "one" / "map.npz", backend="numpy")
     b = gpumap.load_map(tmp_path / "w" / "map.npz", backend="numpy")
-    _assert_same(b, a)
+    assert_same(b, a)
     s = json.loads((tmp_path / "w" / "summary.json").read_text())
     assert s["workers"] == 2 and s["frames"] == 21 and s["scheduler"] == c.scheduler_address
     assert (tmp_path / "w" / "occupied.ply").read_bytes() == (tmp_path / "one" / "occupied.ply").read_bytes()
@@ -147,7 +128,7 @@ def test_simulated_byte_frames_travel_as_uint8_and_map_the_same(cluster):
     # the maps of byte pings travel packed (uint8 + a bit per voxel for unknown)
     assert all(p["state_mb"] < 0.4 * p["state_mb_unpacked"] for p in s["per_worker"])
     assert one.evidence()["count"].max() >= 2
-    _assert_same(got, one)
+    assert_same(got, one)
 
 
 def test_state_packing_is_exact_or_not_used():
@@ -208,7 +189,7 @@ def test_asking_more_workers_than_the_cluster_has_says_how_many(cluster, monkeyp
     monkeypatch.setattr(gpumap.workers, "WAIT_WORKERS_S", 0.2)
     _, client = cluster
     with pytest.raises(ValueError, match="Expected 5 Dask workers, but the cluster has 3"):
-        run_replay_workers(_tank(6), workers=5, client=client, voxel_size_m=0.06, backend="numpy",
+        run_replay_workers(tank(6), workers=5, client=client, voxel_size_m=0.06, backend="numpy",
                            progress=False)
 
 
@@ -250,7 +231,7 @@ def test_frames_carrying_their_bytes_are_sent_as_bytes(cluster):
     from gpumap.workers import FRAME_BYTES
 
     _, client = cluster
-    src = list(_tank(6))
+    src = list(tank(6))
     u8 = [np.round(f.image * 255).astype(np.uint8) for f in src]
     flt = [np.multiply(b, U8_SCALE, dtype=np.float32) for b in u8]
 
@@ -265,4 +246,4 @@ def test_frames_carrying_their_bytes_are_sent_as_bytes(cluster):
     for rec in recs:
         got, s = run_replay_workers(rec, workers=2, client=client, **kw)
         assert s["frames"] == len(src)
-        _assert_same(got, one)
+        assert_same(got, one)

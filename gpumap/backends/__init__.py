@@ -66,6 +66,7 @@ def make_backend(
     B: int = 8,
     Bz: int | None = None,
     cap: int = 0,
+    device_index: int | None = None,
 ) -> Backend:
     """Build the backend called ``name`` (never another one; raises if it cannot run) with a pool
     of ``cap`` blocks of ``B x B x Bz`` voxels (``Bz`` default ``B``; grown later with
@@ -74,16 +75,21 @@ def make_backend(
     ``use_table`` picks how kernels take the max over a footprint: a per-ping max table
     (True), a loop over cells (False), or the faster for the device (None: table on CPUs).
     ``visible`` keeps the visible rule's per-voxel evidence (5 more bytes per voxel).
+    ``device_index`` (None: the backend's first) picks the device: ``warp-cuda`` runs on
+    ``cuda:<device_index>``, ``opencl-gpu`` / ``opencl-cpu`` / ``opencl`` on that device of
+    :func:`opencl_devices` of their kind (GPUs first); ``numpy`` and ``warp-cpu`` have device 0
+    only. An index the backend does not have here raises ``ValueError``, never another device.
     """
     args = (spec, template_S, use_table)
     kw = {"visible": visible, "B": B, "Bz": Bz, "cap": cap}
     if name == "numpy":
+        base.check_device_index(device_index, 1, name)
         return NumpyBackend(*args, **kw)
     if name in ("warp-cpu", "warp-cuda"):
-        return WarpBackend(*args, device=name.split("-")[1], **kw)
+        return WarpBackend(*args, device=name.split("-")[1], device_index=device_index, **kw)
     if name in ("opencl", "opencl-gpu", "opencl-cpu"):
         kind = {"opencl": "any", "opencl-gpu": "gpu", "opencl-cpu": "cpu"}[name]
-        return OpenCLBackend(*args, kind=kind, **kw)
+        return OpenCLBackend(*args, kind=kind, device_index=device_index, **kw)
     raise ValueError(f"Expected backend to be 'auto' or one of {BACKENDS}, but got {name!r}")
 
 

@@ -44,6 +44,34 @@ TUNABLES = ("GPU_CHUNK", "CPU_CHUNK", "CPU_THREADS", "BATCH_MAX", "BATCH_BOX_VOX
             "OPENCL_BATCH_BOX_VOXELS_MAX", "COPY_THREADS", "COPY_SPLIT_BYTES")
 
 
+def block_runs(slots) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, np.ndarray]:
+    """``slots`` sorted and cut into runs of consecutive slots: (order, or None where ``slots`` are
+    sorted already; the sorted slots; each run's first and past-last position in them)."""
+    s = np.asarray(slots, np.int64).reshape(-1)
+    order = None
+    if len(s) > 1 and np.any(s[1:] < s[:-1]):
+        order = np.argsort(s, kind="stable")
+        s = s[order]
+    if not len(s):
+        return None, s, np.zeros(0, np.int64), np.zeros(0, np.int64)
+    cut = np.flatnonzero(np.diff(s) != 1) + 1
+    starts = np.concatenate([[0], cut]).astype(np.int64)
+    return order, s, starts, np.concatenate([cut, [len(s)]]).astype(np.int64)
+
+
+def check_device_index(index, count: int, backend: str) -> int:
+    """``index`` (None: 0) checked against the ``count`` devices ``backend`` can run on here: the
+    device a backend takes, never another (a ``ValueError`` names what there is)."""
+    if index is None:
+        return 0
+    if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0:
+        raise ValueError(f"Expected device_index to be a non-negative integer or None, but got {index!r}")
+    if index >= count:
+        have = f"devices 0 to {count - 1}" if count > 1 else "device 0 only" if count else "no device"
+        raise ValueError(f"Expected a device_index that {backend} has here ({have}), but got {int(index)}")
+    return int(index)
+
+
 @functools.cache
 def _cpu_pool():
     """One worker thread, shared by every warp-cpu mapper, for the second half of a gather."""
@@ -187,6 +215,61 @@ class Backend:
         seen[slots] = 1
         self.write(g, b, c)
         self._write_seen(seen)
+
+    # Blocks by runs of consecutive slots (device backends: _copy_out / _copy_in move one run, so a
+    # read or write of some blocks moves those blocks only, never the whole pool)
+    def _pool_arrays(self) -> tuple[str, ...]:
+        return ("grid", "bright", "count") if self.visible else ("grid",)
+
+    def _read_runs(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        order, ss, starts, ends = block_runs(slots)
+        out = []
+        for name, dt in zip(("grid", "bright", "count"), (np.float32, np.float32, np.uint64), strict=True):
+            if name not in self._pool_arrays():
+                out.append(None)
+                continue
+            got = np.empty((len(ss), self.BV), dt)
+            for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+                self._copy_out(name, int(ss[a]) * self.BV, got[a:b].reshape(-1))
+            self._copies_done()
+            if order is not None:  # back to the order asked for
+                back = np.empty_like(got)
+                back[order] = got
+                got = back
+            out.append(got)
+        return tuple(out)
+
+    def _write_runs(self, slots: np.ndarray, grid, bright, count) -> None:
+        order, ss, starts, ends = block_runs(slots)
+        for name, a_, dt in zip(("grid", "bright", "count"), (grid, bright, count),
+                                (np.float32, np.float32, np.uint64), strict=True):
+            if name not in self._pool_arrays():
+                continue
+            src = np.asarray(a_, dt).reshape(-1, self.BV)
+            src = np.ascontiguousarray(src if order is None else src[order])
+            for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+                self._copy_in(name, int(ss[a]) * self.BV, src[a:b].reshape(-1))
+            self._copies_done()
+        seen = self.read_seen()
+        seen[np.asarray(slots, np.int64)] = 1
+        self._write_seen(seen)
+
+    def copy_blocks_from(self, other: Backend, slots: np.ndarray) -> None:
+        """Blocks ``slots`` of ``other`` (a backend of the same block shape and rule) become the
+        same slots here, marked seen; through the host (Warp: device to device)."""
+        self.write_blocks(slots, *other.read_blocks(slots))
+
+    def _copy_out(self, name: str, offset: int, out: np.ndarray) -> None:
+        """Copy ``len(out)`` values of pool array ``name`` from element ``offset`` into ``out``."""
+        raise NotImplementedError
+
+    def _copy_in(self, name: str, offset: int, src: np.ndarray) -> None:
+        """Copy ``src`` into pool array ``name`` from element ``offset`` (``src`` kept until done)."""
+        raise NotImplementedError
+
+    def _copies_done(self) -> None:
+        """Wait for the copies of ``_copy_out`` / ``_copy_in`` queued so far."""
+        self.synchronize()
 
     def read_seen(self) -> np.ndarray:
         """(cap,) uint8 copy: 1 where a kernel has observed a voxel of the slot's block."""

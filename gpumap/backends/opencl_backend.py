@@ -21,6 +21,7 @@ from gpumap.backends.base import (
     _check_rule,
     _copy_rows,
     _cpu_pool,
+    check_device_index,
 )
 from gpumap.backends.tables import opencl_host_table, table_size
 from gpumap.errors import BackendUnavailableError
@@ -87,17 +88,21 @@ def _opencl_context(device):
         return _CL_SHARED[key]
 
 
-def usable_opencl_device(kind: str):
+def usable_opencl_device(kind: str, index: int | None = None):
     """The first OpenCL device of ``kind`` ('gpu', 'cpu' or 'any', GPUs first) that builds gpumap's
     kernels. A machine can list several platforms for one device (PoCL from ``pyopencl[pocl]`` and
     the distribution's PoCL, say) of which only some compile for this processor: each is tried in
-    order, and the error names every device that failed and why."""
+    order, and the error names every device that failed and why. ``index``: the ``index``-th device
+    of ``kind`` as :func:`opencl_devices` lists them, and no other (``ValueError`` past the last)."""
     devs = opencl_devices(kind)
+    name = f"opencl{'' if kind == 'any' else '-' + kind}"
     if not devs:
         raise BackendUnavailableError(
-            f"opencl{'' if kind == 'any' else '-' + kind} needs an OpenCL "
+            f"{name} needs an OpenCL "
             f"{'device' if kind == 'any' else kind.upper() + ' device'}, and pyopencl finds none"
         )
+    if index is not None:
+        devs = [devs[check_device_index(index, len(devs), name)]]
     cl = _opencl()
     reasons = []
     for d in devs:
@@ -116,10 +121,11 @@ def usable_opencl_device(kind: str):
 class OpenCLBackend(Backend):
     batch_box_knob = "OPENCL_BATCH_BOX_VOXELS_MAX"
 
-    def __init__(self, spec, template_S, use_table=None, kind="any", *, visible=False, B=8, Bz=None, cap=0):
+    def __init__(self, spec, template_S, use_table=None, kind="any", *, visible=False, B=8, Bz=None, cap=0,
+                 device_index=None):
         n_bins, n_beams = spec.image_shape
         cl = _opencl()
-        d = usable_opencl_device(kind)
+        d = usable_opencl_device(kind, device_index)
         self._setup_pool(visible, B, Bz)
         self.cl = cl
         self.ctx, prg = _opencl_context(d)
@@ -264,6 +270,23 @@ class OpenCLBackend(Backend):
         if self.visible:
             self.cl.enqueue_copy(q, self.bright, np.ascontiguousarray(bright, np.float32), is_blocking=True)
             self.cl.enqueue_copy(q, self.count, np.ascontiguousarray(count, np.uint64), is_blocking=True)
+
+    def read_blocks(self, slots):  # by runs of consecutive slots: those blocks only cross the bus
+        return self._read_runs(slots)
+
+    def write_blocks(self, slots, grid, bright, count):
+        self._write_runs(slots, grid, bright, count)
+
+    def _copy_out(self, name, offset, out):
+        self.cl.enqueue_copy(self.queue, out, getattr(self, name), src_offset=offset * out.itemsize,
+                             is_blocking=False)
+
+    def _copy_in(self, name, offset, src):
+        self.cl.enqueue_copy(self.queue, getattr(self, name), src, dst_offset=offset * src.itemsize,
+                             is_blocking=False)
+
+    def _copies_done(self):
+        self.queue.finish()
 
     def read_seen(self):
         return self._read(self.seen, self.cap, np.uint8)

@@ -86,15 +86,19 @@ def _warp_params(minmax, p: np.ndarray):
 
 
 class WarpBackend(Backend):
-    def __init__(self, spec, template_S, use_table=None, device="cpu", *, visible=False, B=8, Bz=None, cap=0):
+    def __init__(self, spec, template_S, use_table=None, device="cpu", *, visible=False, B=8, Bz=None, cap=0,
+                 device_index=None):
         n_bins, n_beams = spec.image_shape
         wp, minmax = _warp()
         if device == "cuda" and not wp.is_cuda_available():
             why = "" if cuda_driver_loadable() else " (the NVIDIA CUDA driver, libcuda, cannot be loaded)"
             raise BackendUnavailableError(f"warp-cuda needs a CUDA device, and Warp finds none here{why}")
+        # the device_index-th CUDA device (warp-cuda), never another; warp-cpu has one device, index 0
+        count = wp.get_cuda_device_count() if device == "cuda" else 1
+        index = base.check_device_index(device_index, count, f"warp-{device}")
         self._setup_pool(visible, B, Bz)
         self.wp, self.k = wp, minmax
-        self.dev = wp.get_device("cuda:0" if device == "cuda" else "cpu")
+        self.dev = wp.get_device(f"cuda:{index}" if device == "cuda" else "cpu")
         self.name = f"warp-{device}"
         self.device = f"{self.dev.alias} ({self.dev.name})"
         self.n_bins, self.n_beams = n_bins, n_beams
@@ -174,17 +178,20 @@ class WarpBackend(Backend):
     def grow(self, cap):
         wp = self.wp
         n_old = self.cap * self.BV
-        with wp.ScopedDevice(self.dev):
-            names = [("grid", wp.full, np.inf, float), ("seen", wp.zeros, None, wp.uint8)]
-            if self.visible:
-                names += [("bright", wp.full, np.inf, float), ("count", wp.zeros, None, wp.uint64)]
-            for name, make, fill, dt in names:
-                n = cap if name == "seen" else cap * self.BV
-                new = make(n, value=fill, dtype=dt) if fill is not None else make(n, dtype=dt)
-                old_n = self.cap if name == "seen" else n_old
-                if old_n:
-                    wp.copy(new, getattr(self, name), count=old_n)
-                setattr(self, name, new)
+        # explicit devices, not ScopedDevice (Warp's default device is one for every thread, and
+        # mappers on other GPUs may grow at the same time: gpumap.gpu_threads)
+        dev = self.dev
+        names = [("grid", wp.full, np.inf, float), ("seen", wp.zeros, None, wp.uint8)]
+        if self.visible:
+            names += [("bright", wp.full, np.inf, float), ("count", wp.zeros, None, wp.uint64)]
+        for name, make, fill, dt in names:
+            n = cap if name == "seen" else cap * self.BV
+            kw = {"dtype": dt, "device": dev} if fill is None else {"value": fill, "dtype": dt, "device": dev}
+            new = make(n, **kw)
+            old_n = self.cap if name == "seen" else n_old
+            if old_n:
+                wp.copy(new, getattr(self, name), count=old_n)
+            setattr(self, name, new)
         self.cap = cap
         self._cmds = self._init_cmd = None  # recorded launches hold the old arrays
 
@@ -211,7 +218,7 @@ class WarpBackend(Backend):
         if self.ipairs is None or self.ipairs.shape[0] < 2 * n:
             self.ipairs = wp.empty(max(2 * n, 4096), dtype=int, device=self.dev)
         wp.copy(self.ipairs, self.istage[k], count=2 * n)
-        self.ievents[k] = wp.record_event()
+        self.ievents[k] = wp.get_stream(self.dev).record_event()
         return self.ipairs
 
     def set_blocks(self, slots, lins):
@@ -243,13 +250,40 @@ class WarpBackend(Backend):
             self.bright.assign(wp.array(np.ascontiguousarray(bright, np.float32), dtype=float, device=dev))
             self.count.assign(wp.array(np.ascontiguousarray(count, np.uint64), dtype=wp.uint64, device=dev))
 
-    def read_blocks(self, slots):
-        if self.dev.is_cuda:
-            return super().read_blocks(slots)
-        rows = np.asarray(slots, np.int64)  # CPU arrays: rows straight from the pool, no whole copy
-        if not self.visible:
-            return self.grid.numpy().reshape(-1, self.BV)[rows], None, None
-        return tuple(a.numpy().reshape(-1, self.BV)[rows] for a in (self.grid, self.bright, self.count))
+    def read_blocks(self, slots):  # by runs of consecutive slots: those blocks only cross the bus
+        return self._read_runs(slots)
+
+    def write_blocks(self, slots, grid, bright, count):
+        self._write_runs(slots, grid, bright, count)
+
+    def copy_blocks_from(self, other, slots):
+        if not isinstance(other, WarpBackend):
+            return super().copy_blocks_from(other, slots)
+        _, ss, starts, ends = base.block_runs(slots)
+        try:  # device to device (another GPU: peer copies), by runs of consecutive slots
+            for name in self._pool_arrays():
+                dst, src = getattr(self, name), getattr(other, name)
+                for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+                    off = int(ss[a]) * self.BV
+                    self.wp.copy(dst, src, dest_offset=off, src_offset=off, count=(b - a) * self.BV)
+            other.synchronize()
+            self.synchronize()
+        except Exception:  # a pair of devices Warp cannot copy between: through the host (the same blocks)
+            self.synchronize()
+            return super().copy_blocks_from(other, slots)
+        seen = self.read_seen()
+        seen[ss] = 1
+        self._write_seen(seen)
+
+    def _copy_out(self, name, offset, out):
+        arr = getattr(self, name)
+        host = self.wp.array(out, dtype=arr.dtype, device="cpu", copy=False)
+        self.wp.copy(host, arr, dest_offset=0, src_offset=offset, count=len(out))
+
+    def _copy_in(self, name, offset, src):
+        arr = getattr(self, name)
+        host = self.wp.array(src, dtype=arr.dtype, device="cpu", copy=False)
+        self.wp.copy(arr, host, dest_offset=offset, src_offset=0, count=len(src))
 
     def read_seen(self):
         return self.seen.numpy().copy()
@@ -438,7 +472,7 @@ class WarpBackend(Backend):
             block_dim=128,  # a heavy kernel: more blocks fit the registers left
         )
         if cs is not None:  # device slot s is free again once these kernels are done
-            bb["done"][s] = wp.record_event()
+            bb["done"][s] = wp.get_stream(self.dev).record_event()
 
     def synchronize(self) -> None:
         self.wp.synchronize_device(self.dev)
@@ -455,12 +489,12 @@ def warp_upload_image(b, image) -> None:
         if image.dtype == np.uint8:
             np.copyto(b.staging_u8_np[s], image)
             wp.copy(b.image_u8, b.staging_u8[s])
-            b.events[s] = wp.record_event()
+            b.events[s] = wp.get_stream(b.dev).record_event()
             b.cmd_u8.launch()
         else:
             np.copyto(b.staging_np[s], image)
             wp.copy(b.image, b.staging[s])
-            b.events[s] = wp.record_event()
+            b.events[s] = wp.get_stream(b.dev).record_event()
         b.slot = (s + 1) % N_SLOTS
     elif image.dtype == np.uint8:
         np.multiply(image, U8_SCALE, out=b.image_np)

@@ -195,7 +195,12 @@ def main(argv: list[str] | None = None) -> int:
             s.abort()
         raise
     thr = stats["threshold"]
-    if stats.get("workers"):  # gpumap.workers: say so, and the wall time with the cluster's start
+    if stats.get("mode") == "threads":  # gpumap.gpu_threads: N devices of this process
+        how = (f"{stats['frames']} images in-process on {stats['workers']} devices of {stats['backend']} "
+               f"(one thread each, devices {stats['devices']}, {stats['split']} split) in "
+               f"{stats['seconds_wall']:.2f} s wall, of which {stats['seconds_setup']:.2f} s making the "
+               f"mappers and {stats['seconds_merge']:.2f} s merging the maps")
+    elif stats.get("workers"):  # gpumap.workers: say so, and the wall time with the cluster's start
         how = (f"{stats['frames']} images in {stats['workers']} Dask workers on {stats['backend']} "
                f"({stats['split']} split) in {stats['seconds_wall']:.2f} s wall, of which "
                f"{stats['seconds_cluster']:.2f} s starting the cluster and "
@@ -311,14 +316,21 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
         order = (rule, *[r for r in RULES if r != rule])
         runs = replay_rules(rec, rules=order, grid=grid, positions=positions, **replay_kw)
         mapper, stats = runs[rule]
-    elif a.workers:  # gpumap.workers: the same map, mapped in Dask workers and merged
-        from gpumap.workers import run_replay_workers
-
+    elif a.workers:  # the same map, mapped by N mappers and merged
         replay_kw.pop("on_ping")
         replay_kw.pop("max_memory")  # each worker holds its own map (gpumap.workers)
         replay_kw.pop("memory_remedy")
-        mapper, stats = run_replay_workers(rec, workers=a.workers, scheduler=a.scheduler, grid=grid,
-                                           rule=a.rule, positions=positions, gpus=a.worker_gpus, **replay_kw)
+        if _in_process(a):  # N GPUs of this machine: a thread and a mapper each (gpumap.gpu_threads)
+            from gpumap.gpu_threads import run_replay_threads
+
+            mapper, stats = run_replay_threads(rec, workers=a.workers, grid=grid, rule=a.rule,
+                                               positions=positions, **replay_kw)
+        else:
+            from gpumap.workers import run_replay_workers
+
+            mapper, stats = run_replay_workers(rec, workers=a.workers, scheduler=a.scheduler, grid=grid,
+                                               rule=a.rule, positions=positions, gpus=a.worker_gpus,
+                                               **replay_kw)
     else:
         mapper, stats = run_replay(rec, grid=grid, rule=a.rule, positions=positions, **replay_kw)
     for s in getattr(a, "view_sessions", ()):
@@ -398,21 +410,43 @@ def _surface(a: argparse.Namespace, kwargs: dict, mapper, stride: int):
 def add_worker_args(ap) -> None:
     """``--workers`` and ``--scheduler`` on ``gpumap replay``'s parser."""
     ap.add_argument("--workers", type=positive_int, default=None,
-                    help="map in N Dask workers (one mapper each, pings split among them in batches "
-                         "of 32) and merge their maps: the same map as one process, bit for bit "
-                         "(needs the workers extra: pip install 'gpumap[workers]')")
+                    help="map with N mappers (pings split among them by place, in batches of 32) and "
+                         "merge their maps: the same map as one process, bit for bit. On a machine "
+                         "with N GPUs and a GPU backend: in this process, one thread per GPU; else "
+                         "(or with --scheduler, --dask) N Dask workers (needs the workers extra: "
+                         "pip install 'gpumap[workers]')")
     ap.add_argument("--scheduler", default=None,
                     help="address of a running Dask scheduler (e.g. tcp://10.0.0.5:8786) whose "
                          "workers map; default: start N local worker processes (needs --workers)")
     ap.add_argument("--worker-gpus", default="auto", choices=["auto", "none"],
                     help="auto (default): each worker maps on one GPU of its host, by its rank among "
                          "the workers there (N workers on N GPUs use them all); none: as they come")
+    ap.add_argument("--dask", action="store_true",
+                    help="with --workers N on one machine: Dask worker processes even where it has N "
+                         "GPUs (default there, with a GPU backend: one process, a thread and a "
+                         "mapper per GPU, the maps merged in place; the printed line says which)")
+
+
+#: Backends whose ``--workers N`` run on one machine of N GPUs stays in this process (gpumap.gpu_threads).
+IN_PROCESS_BACKENDS = ("auto", "warp-cuda", "opencl-gpu", "opencl")
+
+
+def _in_process(a) -> bool:
+    """Whether ``--workers N`` maps in this process, a thread per GPU: no ``--scheduler`` or
+    ``--dask``, a GPU backend (or auto) and at least N GPUs here (counted without starting CUDA)."""
+    if a.scheduler is not None or a.dask or a.backend not in IN_PROCESS_BACKENDS:
+        return False
+    from gpumap.workers import host_gpus
+
+    return len(host_gpus()) >= a.workers
 
 
 def check_worker_args(ap, a) -> None:
     """Refuse flag combinations the worker run does not support (exit 2, before any work)."""
     if a.scheduler is not None and not a.workers:
         ap.error("argument --scheduler: Expected --workers N with it, but --workers is missing")
+    if a.dask and not a.workers:
+        ap.error("argument --dask: Expected --workers N with it, but --workers is missing")
     if a.workers:
         for flag, on in (("--view", getattr(a, "view", False)),
                          ("--record", getattr(a, "record", None) is not None),
