@@ -582,8 +582,8 @@ def _med(x: dict) -> str:
 
 def markdown(res: dict, folder: Path) -> str:
     """The BENCHMARKS.md block of ``gpu_scale.json``: one GPU, old tree against new, then 1 and 2
-    GPU workers."""
-    del folder
+    GPU workers; and ``gpu_scale_threads.json`` beside it (the in-process path), if there."""
+    folder = Path(folder)
     gpus = ", ".join(res["gpus"])
     out = ["## GPU speed and GPU workers (issue #33)", "",
            f"`{res['command']}` on {len(res['gpus'])} GPUs ({gpus}), load {res['load_start'][0]:.2f} at the "
@@ -619,7 +619,26 @@ def markdown(res: dict, folder: Path) -> str:
                 f"{s['speedup_2_over_1']:.2f}x one worker: the maps' way back and their merge dominate. "
                 f"Merged maps {'equal' if same else 'DIFFER from'} the one-process map. The client alone "
                 f"reads and batches {w['client_only_frames_per_s']['median']:,.0f} frames/s."]
+    th = folder / "gpu_scale_threads.json"
+    if th.exists():
+        t = json.loads(th.read_text())
+        out += ["", "In one process, a thread and a mapper per GPU (`gpumap replay --workers N` on a machine "
+                f"with N GPUs; {', '.join(t['gpus'])}; `{t['command']}`): seconds, median (min-max) of the "
+                "warm runs; the merged maps equal the one-process map where the last column says so. "
+                + t.get("note", ""), "",
+                "| backend | voxel | one process | 1 GPU | 2 GPUs: total | mapping | merge | 2 over 1 | equal |",
+                "|---|---|---|---|---|---|---|---|---|"]
+        for key in sorted(k for k in t if k.startswith("threads_")):
+            r, sm = t[key], t[key]["summary"]
+            equal = "yes" if sm["all_equal_one_process"] else "NO"
+            out.append(f"| {r['backend']} | {r['voxel_m'] * 1000:g} mm | {_sec(sm['one_s'])} | "
+                       f"{_sec(sm['t1_s'])} | {_sec(sm['t2_s'])} | {_sec(sm['t2_map_s'])} | "
+                       f"{_sec(sm['t2_merge_s'])} | {sm['speedup_2_over_1']:.2f}x | {equal} |")
     return "\n".join(out)
+
+
+def _sec(x: dict) -> str:
+    return f"{x['median']:.2f} ({x['min']:.2f}-{x['max']:.2f})" if x["n"] > 1 else f"{x['median']:.2f}"
 
 
 if __package__:
