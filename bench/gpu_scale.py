@@ -626,8 +626,8 @@ def markdown(res: dict, folder: Path) -> str:
                 f"with N GPUs; {', '.join(t['gpus'])}; `{t['command']}`): seconds, median (min-max) of the "
                 "warm runs; the merged maps equal the one-process map where the last column says so. "
                 + t.get("note", ""), "",
-                "| backend | voxel | one process | 1 GPU | 2 GPUs: total | mapping | merge | 2 over 1 | equal |",
-                "|---|---|---|---|---|---|---|---|---|"]
+                "| backend | voxel | one process | 1 GPU | 2 GPUs: total | mapping | merge | 2 over 1 "
+                "| equal |", "|---|---|---|---|---|---|---|---|---|"]
         for key in sorted(k for k in t if k.startswith("threads_")):
             r, sm = t[key], t[key]["summary"]
             equal = "yes" if sm["all_equal_one_process"] else "NO"
