@@ -86,9 +86,10 @@ def available_bytes() -> int | None:
     return None
 
 
-def free_memory_bytes(backend: str) -> int | None:
+def free_memory_bytes(backend: str, device_index: int | None = None) -> int | None:
     """Best guess of the memory a map may take on the backend ``backend`` (None if unknown): the
-    machine's available memory for CPU backends, the GPU's free memory for ``warp-cuda``."""
+    machine's available memory for CPU backends, the free memory of GPU ``device_index`` (0 if
+    None) for ``warp-cuda``."""
     try:
         if backend in ("numpy", "warp-cpu") or backend.startswith("opencl"):
             return available_bytes()
@@ -96,7 +97,7 @@ def free_memory_bytes(backend: str) -> int | None:
             from gpumap.backends import _warp
 
             wp, _ = _warp()  # initialised quietly, as the backend does
-            return int(wp.get_device("cuda:0").free_memory)
+            return int(wp.get_device(f"cuda:{int(device_index or 0)}").free_memory)
     except Exception:  # the check is advisory; the allocation itself still fails loudly
         return None
     return None

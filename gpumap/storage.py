@@ -181,7 +181,7 @@ class BlockStorage:
         errors = []
         for name in names:
             need = cap * self.BV * self.bytes_per_voxel
-            free = memory.free_memory_bytes(name)
+            free = memory.free_memory_bytes(name, self.device_index)
             if self.sparse is None and free is not None and need > free:
                 msg = (
                     f"Expected a grid that fits in memory, but {self._grid.shape} voxels at "

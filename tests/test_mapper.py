@@ -378,7 +378,7 @@ def test_grid_too_big_for_memory_says_how_much_it_needs(monkeypatch):
 
     grid = gpumap.GridSpec((0, 0, 0), (10, 10, 10), 0.01)  # 1e9 voxels = 3.73 GiB of float32
     assert memory.free_memory_bytes("numpy") > 0  # this machine's own figure is readable
-    monkeypatch.setattr(memory, "free_memory_bytes", lambda name: 2**30)  # 1 GiB free
+    monkeypatch.setattr(memory, "free_memory_bytes", lambda name, device_index=None: 2**30)  # 1 GiB free
     with pytest.raises(ValueError, match=r"need 3\.73 GiB and numpy has 1\.00 GiB free"):
         gpumap.MinMaxMapper(SPEC, grid, backend="numpy", rule="plain")
     # the evidence rule keeps 12 more bytes per voxel (bright float32, count uint64): 16 / 4 as much
