@@ -222,6 +222,42 @@ class CpuShare:
         self.steal_cores = (s1[1] - self._s0[1]) / wall
 
 
+def tree_cpu_s(root: int | None = None) -> tuple[float, float] | None:
+    """(CPU seconds the whole machine was busy, CPU seconds of process ``root`` (default: this one)
+    and every process below it, the dead ones it waited for included), from /proc; None where
+    /proc cannot say. The difference between two calls is what *other* processes took: unlike
+    :class:`CpuShare`, worker processes that this one started count as its own."""
+    root = os.getpid() if root is None else root
+    hz = os.sysconf("SC_CLK_TCK")
+    try:
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:]]
+        parent, cpu = {}, {}
+        for d in os.listdir("/proc"):
+            if not d.isdigit():
+                continue
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    st = f.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            parent[int(d)] = int(st[1])
+            cpu[int(d)] = sum(int(x) for x in st[11:15]) / hz  # utime stime cutime cstime
+    except (OSError, ValueError):
+        return None
+    mine, todo = {root}, [root]
+    kids: dict[int, list[int]] = {}
+    for pid, pp in parent.items():
+        kids.setdefault(pp, []).append(pid)
+    while todo:
+        for k in kids.get(todo.pop(), []):
+            if k not in mine:
+                mine.add(k)
+                todo.append(k)
+    busy = (v[0] + v[1] + v[2] + v[5] + v[6]) / hz
+    return busy, sum(cpu.get(p, 0.0) for p in mine)
+
+
 def idle_check(max_load: float, max_others: float, sample_s: float = 2.0,
                load: list[float] | None = None) -> dict[str, Any]:
     """The machine's load now: 1-minute load average (``load``, default :func:`load_average`) and the

@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 if __package__:  # python -m bench.gpu_scale (a worker runs this file as a script: no bench import)
-    from .common import Section, bench_parser, load_average, machine_info, write_json
+    from .common import Section, bench_parser, load_average, machine_info, tree_cpu_s, write_json
 
 #: The OASIS configuration's grid box (configs/base.yaml of the public code), metres.
 BOX = ((-0.5, -1.2, -0.5), (1.9, 1.2, 0.8))
@@ -350,6 +350,7 @@ def workers_section(a, res: dict, save, name: str, backend: str, voxel: float, n
     from gpumap.replay import run_replay
     from gpumap.workers import run_replay_workers
 
+    load_at_start = load_average()  # before this section loads anything or starts a worker
     # the worker processes import this checkout's gpumap (as this process does)
     os.environ["PYTHONPATH"] = _pythonpath(Path(gpumap.__file__).resolve().parents[1])
     imgs, poses, spec = _frames(a.frames)
@@ -357,6 +358,7 @@ def workers_section(a, res: dict, save, name: str, backend: str, voxel: float, n
     grid = gpumap.GridSpec(*BOX, voxel)
     kw = dict(backend=backend, grid=grid, progress=False)
     sec = {"backend": backend, "voxel_m": voxel, "frames": a.repeat * len(imgs), "repeat": a.repeat,
+           "load_at_start": load_at_start,
            "workers": n_workers, "rows": [], "client_only_frames_per_s": _spread([_client_only(rec)
                                                                                   for _ in range(3)])}
     res[name] = sec
@@ -368,6 +370,7 @@ def workers_section(a, res: dict, save, name: str, backend: str, voxel: float, n
     try:
         for rep in range(reps + 1):  # rep 0: the workers start their backends (cold)
             row: dict = {"rep": rep, "cold": rep == 0, "load_before": load_average()}
+            c0, t0_rep = tree_cpu_s(), time.perf_counter()
             t = time.perf_counter()
             one, s1 = run_replay(rec, **kw)
             row["one_s"] = time.perf_counter() - t
@@ -386,6 +389,10 @@ def workers_section(a, res: dict, save, name: str, backend: str, voxel: float, n
                         a_.keys() == b_.keys() and all(np.array_equal(a_[k], b_[k]) for k in a_))
                 del got
             row["load_after"] = load_average()
+            c1 = tree_cpu_s()
+            if c0 and c1:  # the cores other processes (not this run's workers) kept busy meanwhile
+                wall = time.perf_counter() - t0_rep
+                row["others_cores"] = max(0.0, (c1[0] - c0[0]) - (c1[1] - c0[1])) / wall
             del one
             sec["rows"].append(row)
             save()
@@ -402,8 +409,14 @@ def workers_section(a, res: dict, save, name: str, backend: str, voxel: float, n
         summ[f"w{nw}_over_one"] = summ[f"w{nw}_s"]["median"] / summ["one_s"]["median"] - 1.0
     if 1 in n_workers and 2 in n_workers:
         summ["speedup_2_over_1"] = summ["w1_s"]["median"] / summ["w2_s"]["median"]
-    loads = [r["load_before"][0] for r in sec["rows"] if r["load_before"]]
-    summ["idle"] = bool(loads) and max(loads) < 0.25 * (os.cpu_count() or 1)
+    # idle: before the section no more than a quarter of the cores busy (a load average: later ones
+    # count this run's own work), and during every warm run other processes (not this run's own
+    # workers) kept at most a tenth of a core busy
+    first = sec["load_at_start"]
+    others = [r.get("others_cores") for r in warm]
+    summ["others_cores_max"] = max(others) if others and None not in others else None
+    summ["idle"] = bool(first) and first[0] < 0.25 * (os.cpu_count() or 1) and (
+        summ["others_cores_max"] is not None and summ["others_cores_max"] <= 0.1)
     sec["summary"] = summ
     save()
 
@@ -619,6 +632,19 @@ def markdown(res: dict, folder: Path) -> str:
                 f"{s['speedup_2_over_1']:.2f}x one worker: the maps' way back and their merge dominate. "
                 f"Merged maps {'equal' if same else 'DIFFER from'} the one-process map. The client alone "
                 f"reads and batches {w['client_only_frames_per_s']['median']:,.0f} frames/s."]
+    cpu_file = folder / "gpu_scale_cpu.json"
+    if cpu_file.exists():
+        c = json.loads(cpu_file.read_text())
+        cs = c["cpu_overhead"]["summary"]
+        first = c["cpu_overhead"]["load_at_start"][0]
+        out += ["", f"Workers on the CPU (`{c['command']}`; {c['machine']['cpu_model']}, "
+                f"{c['machine']['cpu_count']} cores, warp-cpu at 2 cm, the tank's frames "
+                f"{c['cpu_overhead']['repeat']} times): one process {_sec(cs['one_s'])} s, 2 Dask workers on "
+                f"the same cores {_sec(cs['w2_s'])} s, median (min-max) of {cs['one_s']['n']} warm runs: "
+                f"{100 * cs['w2_over_one']:+.0f} % (negative: the workers are faster; the client reads "
+                f"while they map). Load {first:.2f} before the runs; other processes kept at most "
+                f"{cs['others_cores_max']:.3f} cores busy during a run; "
+                + ("an idle machine." if cs["idle"] else "**not an idle machine: not a valid figure**.")]
     th = folder / "gpu_scale_threads.json"
     if th.exists():
         t = json.loads(th.read_text())

@@ -78,6 +78,12 @@ def summary_rows() -> list[tuple[str, str, str]]:
             rows.append((f"... GPU workers ({w['voxel_m'] * 1000:g} mm, {w['frames']:,} pings): 2 GPUs over "
                          "1, mapping phase / end to end (the maps' transfer and merge included)",
                          f"{m1 / m2:.2f}x / {w['summary']['speedup_2_over_1']:.2f}x", "gpu_scale.json"))
+    cw = _load("gpu_scale_cpu.json")
+    if cw and cw["cpu_overhead"]["summary"].get("idle"):
+        cs = cw["cpu_overhead"]["summary"]
+        rows.append(("... 2 Dask workers against one process on the same idle 2-core CPU (warp-cpu, 2 cm): "
+                     "time, median of 5 runs (negative: the workers are faster)",
+                     f"{100 * cs['w2_over_one']:+.0f} %", "gpu_scale_cpu.json"))
     vis = _load("visibility.json")
     by = {r["rule"]: r for r in (vis or {"rows": []})["rows"]
           if r["scene"] == "tank" and r["voxel_size_m"] == 0.03}
