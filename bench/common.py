@@ -229,10 +229,12 @@ def tree_cpu_s(root: int | None = None) -> tuple[float, float] | None:
     :class:`CpuShare`, worker processes that this one started count as its own."""
     root = os.getpid() if root is None else root
     hz = os.sysconf("SC_CLK_TCK")
+    machine = CpuShare._stat()  # (busy, steal) seconds of the whole machine
+    if machine is None:
+        return None
     try:
-        with open("/proc/stat") as f:
-            v = [int(x) for x in f.readline().split()[1:]]
-        parent, cpu = {}, {}
+        kids: dict[int, list[int]] = {}
+        cpu: dict[int, float] = {}
         for d in os.listdir("/proc"):
             if not d.isdigit():
                 continue
@@ -241,21 +243,17 @@ def tree_cpu_s(root: int | None = None) -> tuple[float, float] | None:
                     st = f.read().rsplit(")", 1)[1].split()
             except OSError:
                 continue
-            parent[int(d)] = int(st[1])
+            kids.setdefault(int(st[1]), []).append(int(d))
             cpu[int(d)] = sum(int(x) for x in st[11:15]) / hz  # utime stime cutime cstime
     except (OSError, ValueError):
         return None
     mine, todo = {root}, [root]
-    kids: dict[int, list[int]] = {}
-    for pid, pp in parent.items():
-        kids.setdefault(pp, []).append(pid)
     while todo:
         for k in kids.get(todo.pop(), []):
             if k not in mine:
                 mine.add(k)
                 todo.append(k)
-    busy = (v[0] + v[1] + v[2] + v[5] + v[6]) / hz
-    return busy, sum(cpu.get(p, 0.0) for p in mine)
+    return machine[0], sum(cpu.get(p, 0.0) for p in mine)
 
 
 def idle_check(max_load: float, max_others: float, sample_s: float = 2.0,

@@ -589,6 +589,12 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def warm_medians(w: dict, what: str) -> dict[int, float]:
+    """Workers section ``w``: {workers: median of ``w{workers}_{what}`` over its warm runs}."""
+    warm = [r for r in w["rows"] if not r.get("cold")]
+    return {n: float(np.median([r[f"w{n}_{what}"] for r in warm])) for n in w["workers"]}
+
+
 def _med(x: dict) -> str:
     return f"{x['median']:,.0f} ({x['min']:,.0f}-{x['max']:,.0f})"
 
@@ -619,8 +625,7 @@ def markdown(res: dict, folder: Path) -> str:
     if w:
         s, rows_w = w["summary"], w["rows"]
         warm = [r for r in rows_w if not r.get("cold")]
-        maps = {n: np.median([r[f"w{n}_map_s"] for r in warm]) for n in (1, 2)}
-        merge = {n: np.median([r[f"w{n}_gather_merge_s"] for r in warm]) for n in (1, 2)}
+        maps, merge = warm_medians(w, "map_s"), warm_medians(w, "gather_merge_s")
         checks = [r[k] for r in rows_w for k in ("w1_equal_one_process", "w2_equal_one_process") if k in r]
         same = bool(checks) and all(checks)
         out += ["", f"Workers ({w['backend']}, {w['voxel_m'] * 1000:g} mm, the tank's frames {w['repeat']} "

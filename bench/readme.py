@@ -73,11 +73,12 @@ def summary_rows() -> list[tuple[str, str, str]]:
                      + " / ".join(cells[2:]), "gpu_scale.json"))
         w = gs.get("workers")
         if w:
-            warm = [r for r in w["rows"] if not r.get("cold")]
-            m1, m2 = (sorted(r[f"w{n}_map_s"] for r in warm)[len(warm) // 2] for n in (1, 2))
+            from .gpu_scale import warm_medians
+
+            m = warm_medians(w, "map_s")
             rows.append((f"... GPU workers ({w['voxel_m'] * 1000:g} mm, {w['frames']:,} pings): 2 GPUs over "
                          "1, mapping phase / end to end (the maps' transfer and merge included)",
-                         f"{m1 / m2:.2f}x / {w['summary']['speedup_2_over_1']:.2f}x", "gpu_scale.json"))
+                         f"{m[1] / m[2]:.2f}x / {w['summary']['speedup_2_over_1']:.2f}x", "gpu_scale.json"))
     cw = _load("gpu_scale_cpu.json")
     if cw and cw["cpu_overhead"]["summary"].get("idle"):
         cs = cw["cpu_overhead"]["summary"]
