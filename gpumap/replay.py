@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from gpumap.geometry import RULES as GEOMETRY_RULES
-from gpumap.spec import GridSpec, auto_grid
+from gpumap.spec import GridSpec, SonarSpec, auto_grid
 
 __all__ = [
     "DEFAULT_THRESHOLD",
@@ -30,8 +30,10 @@ __all__ = [
     "replay_rules",
     "run_replay",
     "run_rule_comparison",
+    "grid_of_frames",
     "select_frames",
     "select_strided",
+    "selected_poses",
 ]
 
 #: Occupied intensity of ``gpumap replay`` (on the OASIS tank views agree above it); also the
@@ -139,22 +141,8 @@ def run_replay(
         return select_strided(recording, stride, max_frames)
 
     if grid is None:  # size the box from the poses: from the index if cheap, else one pass
-        poses, spec0 = [], None
-        cheap = None if static else recording.poses()
-        if cheap is not None:
-            sel = cheap[::stride][:max_frames]
-            poses = [T for T in sel if T is not None]
-            spec0 = next(iter(recording)).spec
-        for fr in ([] if cheap is not None else selected()):
-            spec0 = spec0 or fr.spec
-            if static:
-                poses = [eye]
-                break
-            if fr.T_W_S is not None and fr.spec == spec0:
-                poses.append(fr.T_W_S)
-        if spec0 is None or not poses:
-            raise ValueError(f"Expected at least one posed frame in {recording.path}, but got none")
-        grid = auto_grid(spec0, poses, voxel_size_m)
+        grid = grid_of_frames(recording, static=static, stride=stride, max_frames=max_frames,
+                              voxel_size_m=voxel_size_m)
     from gpumap.memory import API_REMEDY, check_run_fits
 
     check_run_fits(grid.n_voxels, rule or ("visible" if method == "gather" else "plain"), backend,
@@ -532,6 +520,37 @@ def select_strided(recording, stride: int = 1, max_frames: int | None = None) ->
             return
         k += 1
         yield fr
+
+
+def selected_poses(recording, stride: int = 1,
+                   max_frames: int | None = None) -> tuple[SonarSpec | None, list]:
+    """(the first frame's sonar, ``T_W_S`` or None of every frame :func:`select_strided` selects, in
+    order): from the recording's cheap pose list when it has one, else from one pass over the
+    frames (frames of another sonar than the first count as None); (None, []) for no frame."""
+    cheap = recording.poses()
+    if cheap is not None:
+        return next(iter(recording)).spec, list(cheap[::stride][:max_frames])
+    poses, spec0 = [], None
+    for fr in select_strided(recording, stride, max_frames):
+        spec0 = spec0 or fr.spec
+        poses.append(fr.T_W_S if fr.spec == spec0 else None)
+    return spec0, poses
+
+
+def grid_of_frames(recording, *, static: bool, stride: int, max_frames: int | None,
+                   voxel_size_m: float, selected: tuple | None = None) -> GridSpec:
+    """The grid :func:`run_replay` maps on when it is given none: the box of the selected frames'
+    fields of view (:func:`gpumap.spec.auto_grid`; ``static``: the first frame's at the identity).
+    ``selected``: :func:`selected_poses`' result where the caller has it already."""
+    if static:
+        first = next(iter(recording), None)
+        spec0, posed = (None, []) if first is None else (first.spec, [np.eye(4)])
+    else:
+        spec0, sel = selected or selected_poses(recording, stride, max_frames)
+        posed = [T for T in sel if T is not None]
+    if spec0 is None or not posed:
+        raise ValueError(f"Expected at least one posed frame in {recording.path}, but got none")
+    return auto_grid(spec0, posed, voxel_size_m)
 
 
 def select_frames(recording, frames: slice):

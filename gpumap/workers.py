@@ -30,7 +30,6 @@ single-threaded worker processes is started and closed again.
 
 from __future__ import annotations
 
-import itertools
 import logging
 import math
 import os
@@ -268,22 +267,6 @@ def _nbytes(packed: tuple) -> int:
     return sum(x.nbytes for a in packed[3].values() for x in a[1:] if isinstance(x, np.ndarray))
 
 
-def _poses_of(recording, stride: int, max_frames: int | None, frames) -> tuple[SonarSpec, list]:
-    """(the first frame's sonar, ``T_W_S`` or None of every selected frame, in order): from the
-    recording's cheap pose list when it has one, else from one pass over the frames (frames of
-    another sonar than the first count as None)."""
-    cheap = recording.poses()
-    if cheap is not None:
-        return next(iter(recording)).spec, list(cheap[::stride][:max_frames])
-    poses, spec0 = [], None
-    for fr in frames():
-        spec0 = spec0 or fr.spec
-        poses.append(fr.T_W_S if fr.spec == spec0 else None)
-    if spec0 is None:
-        raise ValueError(f"Expected frames in {recording.path}, but it has none")
-    return spec0, poses
-
-
 def _space_owners(spec: SonarSpec, poses: list, grid: GridSpec, n: int) -> np.ndarray:
     """Worker of each selected frame for the space split: frames ranked by where their field of
     view's middle (half the range along the boresight) lies along the grid's longer horizontal
@@ -327,29 +310,24 @@ def plan_replay(recording, *, workers: int, split: str, static: bool, stride: in
         raise ValueError(f"Expected method='gather' with sparse=True, but got {method!r}")
     if split not in ("space", "pings"):
         raise ValueError(f"Expected split to be 'space' or 'pings', but got {split!r}")
+    from gpumap.replay import grid_of_frames, select_strided, selected_poses
+
     stride = max(1, int(stride))
 
-    def frames():  # every stride-th frame, at most max_frames of them (as run_replay selects)
-        stop = None if max_frames is None else max_frames * stride
-        return itertools.islice(iter(recording), 0, stop, stride)
+    def frames():  # the frames run_replay selects
+        return select_strided(recording, stride, max_frames)
 
+    selected = None  # every selected frame's pose, read once for the grid and the space split
+    if not static and (grid is None or split == "space"):
+        selected = selected_poses(recording, stride, max_frames)
+        if selected[0] is None:
+            raise ValueError(f"Expected frames in {recording.path}, but it has none")
+    if grid is None:  # as run_replay sizes it: the box of every selected field of view
+        grid = grid_of_frames(recording, static=static, stride=stride, max_frames=max_frames,
+                              voxel_size_m=voxel_size_m, selected=selected)
     owners = None
-    if static:
-        if grid is None:
-            from gpumap.spec import auto_grid
-
-            grid = auto_grid(next(iter(recording)).spec, [np.eye(4)], voxel_size_m)
-    elif grid is None or split == "space":
-        spec0, sel = _poses_of(recording, stride, max_frames, frames)
-        if grid is None:  # as run_replay sizes it: the box of every selected field of view
-            from gpumap.spec import auto_grid
-
-            posed = [T for T in sel if T is not None]
-            if not posed:
-                raise ValueError(f"Expected at least one posed frame in {recording.path}, but got none")
-            grid = auto_grid(spec0, posed, voxel_size_m)
-        if split == "space":
-            owners = _space_owners(spec0, sel, grid, int(workers))
+    if split == "space" and not static:
+        owners = _space_owners(*selected, grid, int(workers))
     return frames, grid, owners
 
 
