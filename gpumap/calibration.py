@@ -13,7 +13,9 @@ of one voxel are correlated: consecutive pings of a sonar see nearly the same th
 binomial would over-trust many views; the beta-binomial's spread absorbs it, which keeps the
 decision the same at the sonar's rate and at every 10th ping):
 
-    P(k | n) = pi BB(k; n, a_s, b_s) + (1 - pi) BB(k; n, a_w, b_w)
+    P(k | n, k >= 1) = pi BB+(k; n, a_s, b_s) + (1 - pi) BB+(k; n, a_w, b_w)
+
+(``BB+``: the beta-binomial truncated to ``k >= 1``, since only ever-bright voxels are modelled)
 
 with the surface class the one of higher mean share, fitted by maximum likelihood (L-BFGS-B over the
 five parameters with the analytic gradient, from a fixed start). A voxel is **occupied** when its
@@ -107,10 +109,16 @@ def _log_bb(k, n, a, b, log_binom) -> np.ndarray:
 
 
 def _bb_terms(k, n, a, b, log_binom):
-    """log BB(k; n, a, b) and its derivatives in log a and log b."""
+    """log BB(k; n, a, b | k >= 1) (zero-truncated: only ever-bright voxels are modelled) and its
+    derivatives in log a and log b."""
     dab = digamma(n + a + b) - digamma(a + b)
-    return (_log_bb(k, n, a, b, log_binom), a * (digamma(k + a) - digamma(a) - dab),
-            b * (digamma(n - k + b) - digamma(b) - dab))
+    log0 = betaln(a, n + b) - betaln(a, b)  # log BB(0; n, a, b)
+    p0 = np.exp(log0)
+    t = p0 / -np.expm1(log0)  # d log(1 - p0) = -t d log p0
+    da0, db0 = -dab, digamma(n + b) - digamma(b) - dab
+    return (_log_bb(k, n, a, b, log_binom) - np.log1p(-p0),
+            a * (digamma(k + a) - digamma(a) - dab + t * da0),
+            b * (digamma(n - k + b) - digamma(b) - dab + t * db0))
 
 
 def _neg_log_likelihood(x, k, n, w, log_binom, total):
@@ -164,11 +172,12 @@ def fit_view_model(dark: np.ndarray, hits: np.ndarray) -> ViewModel:
 
 
 def surface_log_odds(model: ViewModel, k: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """log P(surface | k, n) / P(water | k, n) under ``model``, float64 (``k >= 1``)."""
+    """log P(surface | k, n) / P(water | k, n) of an ever-bright voxel (``k >= 1``) under ``model``,
+    float64."""
     kf, nf = np.asarray(k, np.float64), np.asarray(n, np.float64)
     lb = _log_binom(kf, nf)
-    return (np.log(model.pi) - np.log1p(-model.pi) + _log_bb(kf, nf, *model.surface, lb)
-            - _log_bb(kf, nf, *model.water, lb))
+    return (np.log(model.pi) - np.log1p(-model.pi) + _bb_terms(kf, nf, *model.surface, lb)[0]
+            - _bb_terms(kf, nf, *model.water, lb)[0])
 
 
 def calibrated_occupied(dark: np.ndarray, hits: np.ndarray, miss_cost: float,
