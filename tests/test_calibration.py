@@ -52,10 +52,12 @@ def _bayes(model: ViewModel, k, n):
 
 
 @pytest.mark.parametrize("cost", [0.5, 3.0, 10.0, 1000.0])
-def test_decision_is_the_bayes_posterior_against_the_cost(cost):
+@pytest.mark.parametrize("model", [ViewModel(0.4, (6.0, 1.0), (1.0, 2.5), 0, 0, 0.0),
+                                   # water U-shaped, surfaces mid-share: the posterior is not monotone in k
+                                   ViewModel(0.5, (20.0, 20.0), (0.3, 0.3), 0, 0, 0.0)])
+def test_decision_is_the_bayes_posterior_against_the_cost(cost, model):
     """Occupied exactly where P(surface | k, n) >= 1 / (1 + cost) (scipy's pmf, Bayes' rule), or where
     a pair of the same n with fewer bright views is."""
-    model = ViewModel(0.4, (6.0, 1.0), (1.0, 2.5), 0, 0, 0.0)
     n = np.repeat(np.arange(1, 40), np.arange(1, 40))  # every (k, n) with 1 <= k <= n < 40
     k = np.concatenate([np.arange(1, j + 1) for j in range(1, 40)])
     post = _bayes(model, k, n)
@@ -64,6 +66,8 @@ def test_decision_is_the_bayes_posterior_against_the_cost(cost):
     got = calibrated_occupied((n - k).astype(np.uint32), k.astype(np.uint32), cost, model)
     np.testing.assert_array_equal(got, want)
     assert want.any() and not want.all()
+    if model.water == (0.3, 0.3) and cost < 100:  # the monotone closure keeps what the posterior alone frees
+        assert (want & ~raw).any()
 
 
 def test_decision_is_monotone_in_bright_views_and_in_the_cost():
