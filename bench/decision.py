@@ -7,7 +7,9 @@ The same counts decided by the share test (today's default), by the calibrated v
   variation: objects missed, all detectable surface missed, far water called occupied;
 - the real full-rate tank, development split only: frames 0-599 mapped at every frame, frames
   600-799 judged by first returns (``gpumap.first_return``). Frames 800-1222 stay held out for
-  ``python -m bench real_frontier``.
+  ``python -m bench real_frontier``. Beside the fixed threshold (0.4), the pings' own per-range
+  detections (:func:`gpumap.detection.adaptive_detect`, the OASIS preprocessing's scheme) at a
+  few standard scores, mapped at 0.5; the judge's first returns stay the fixed threshold's.
 
 Writes ``bench/results/decision.json``; ``--report BENCHMARKS.md`` writes its block.
 """
@@ -28,6 +30,7 @@ SCENES = ("tank", "circle", "side")
 VARIATIONS = ("none", "real_tank")
 THRESHOLD = 0.1
 DEV_MAP, DEV_JUDGE = (0, 600), (600, 800)
+DETECT_Z = (2.0, 3.0)  # adaptive detection's standard scores measured beside the fixed threshold
 
 
 def _decisions(m) -> dict[str, dict]:
@@ -79,6 +82,7 @@ def sim_rows(backend: str, progress: bool) -> list[dict]:
 
 def real_rows(backend: str, progress: bool, stride: int) -> dict:
     import gpumap
+    from gpumap.detection import adaptive_detect
     from gpumap.first_return import first_return_score
     from gpumap.spec import auto_grid
 
@@ -93,11 +97,21 @@ def real_rows(backend: str, progress: bool, stride: int) -> dict:
     for a in range(DEV_MAP[0], DEV_MAP[1], 32):
         m.integrate_batch(images[a:min(a + 32, DEV_MAP[1])], poses[a:min(a + 32, DEV_MAP[1])])
     judged = range(DEV_JUDGE[0], DEV_JUDGE[1], stride)
+    reads = {f"{k} (threshold 0.4)": {**r, "detection": "threshold 0.4"} for k, r in _decisions(m).items()}
+    for z in DETECT_Z:  # the pings' own detections instead of a fixed threshold (gpumap.detection)
+        det = np.stack([adaptive_detect(im, z=z) for im in images[DEV_MAP[0]:DEV_MAP[1]]])
+        md = gpumap.MinMaxMapper(spec, grid, backend=backend, rule="evidence", threshold=0.5)
+        for a in range(0, len(det), 32):
+            md.integrate_batch(det[a:a + 32], poses[DEV_MAP[0] + a:DEV_MAP[0] + a + 32])
+        dd = _decisions(md)
+        for k in ("share (default)", f"calibrated, miss cost {COSTS[2]:g}"):
+            reads[f"{k} (adaptive detection, z {z:g})"] = {**dd[k], "detection": f"adaptive, z {z:g}"}
     rows = []
-    for label, r in progress_bar(_decisions(m).items(), desc="judge", disable=not progress):
+    for label, r in progress_bar(reads.items(), desc="judge", disable=not progress):
         sc = first_return_score(r["values"], grid, 0.4, ((images[i], poses[i]) for i in judged), spec)
-        rows.append({"decision": label, **r["options"], "agreement": sc.agreement,
-                     "phantom_rate": sc.phantom_rate, "missing_rate": sc.missing_rate,
+        rows.append({"decision": label, **r["options"], "detection": r["detection"],
+                     "agreement": sc.agreement, "phantom_rate": sc.phantom_rate,
+                     "missing_rate": sc.missing_rate,
                      "occupied": int((np.nan_to_num(r["values"], nan=0.0) >= 0.4).sum())})
     return {"data": str(data), "mapped_frames": list(DEV_MAP), "judged_frames": [*DEV_JUDGE, stride],
             "voxel_size_m": 0.05, "threshold": 0.4, "view_model": m.view_model().to_dict(), "rows": rows}
