@@ -185,6 +185,25 @@ MUTANTS = [
         tests=("tests/test_calibration.py",), file="gpumap/calibration.py",
     ),
     Mutant(
+        "directional-dark-class-ignored",
+        "a direction class that never saw a voxel bright cannot reject it, however many clear views",
+        {"numpy": [("share = np.divide(k, n, out=np.ones_like(k), where=n > 0)",
+                    "share = np.divide(k, n, out=np.ones_like(k), where=k > 0)")]},
+        tests=("tests/test_directions.py",), file="gpumap/directions.py",
+    ),
+    Mutant(
+        "directional-any-class-keeps",
+        "one direction class that keeps a voxel overrules the classes that reject it",
+        {"numpy": [("out.reshape(-1)[idx] = keeps.all(axis=0)", "out.reshape(-1)[idx] = keeps.any(axis=0)")]},
+        tests=("tests/test_directions.py",), file="gpumap/directions.py",
+    ),
+    Mutant(
+        "directional-signed-classes",
+        "views rolled by 180 degrees fall in another direction class",
+        {"numpy": [("np.argmax(np.abs(z @ AXES.T), axis=1)", "np.argmax(z @ AXES.T, axis=1)")]},
+        tests=("tests/test_directions.py",), file="gpumap/directions.py",
+    ),
+    Mutant(
         "footprint-one-bin-short",
         "the footprint window ends one bin early (b0 + win - 2)",
         {
