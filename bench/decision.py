@@ -129,8 +129,9 @@ def real_rows(backend: str, progress: bool, stride: int) -> dict:
     for z in DETECT_Z:  # the pings' own detections instead of a fixed threshold (gpumap.detection)
         det = np.stack([adaptive_detect(im, z=z) for im in images[DEV_MAP[0]:DEV_MAP[1]]])
         md = gpumap.MinMaxMapper(spec, grid, backend=backend, rule="evidence", threshold=0.5)
+        dev_poses = poses[DEV_MAP[0]:DEV_MAP[1]]
         for a in range(0, len(det), 32):
-            md.integrate_batch(det[a:a + 32], poses[DEV_MAP[0] + a:DEV_MAP[0] + a + 32])
+            md.integrate_batch(det[a:a + 32], dev_poses[a:a + 32])
         dd = _decisions(md)
         for k in ("share 0.2 (default)", f"calibrated, miss cost {COSTS[2]:g}"):
             reads[f"{k} (adaptive detection, z {z:g})"] = {**dd[k], "detection": f"adaptive, z {z:g}"}
@@ -183,8 +184,9 @@ def main(argv: list[str] | None = None) -> int:
     if SECTION.reported(a):
         return 0
     t0 = time.perf_counter()
-    res = {**run_header(SCHEMA, argv), "costs": list(COSTS), "sim": sim_rows(a.backend, not a.no_progress),
-           "real_dev": real_rows(a.backend, not a.no_progress, a.judge_stride)}
+    res = {**run_header(SCHEMA, argv), "costs": list(COSTS),
+           "real_dev": real_rows(a.backend, not a.no_progress, a.judge_stride),
+           "sim": sim_rows(a.backend, not a.no_progress)}
     res["duration_s"] = time.perf_counter() - t0
     path = write_json(a.out / "decision.json", res, digits=4)
     print(f"wrote {path}; BENCHMARKS.md: python -m bench decision --report BENCHMARKS.md")
