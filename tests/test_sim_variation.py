@@ -315,8 +315,9 @@ def test_visible_rule_erodes_a_surface_as_realistic_pings_accumulate():
 def test_the_evidence_rule_keeps_the_surface_as_realistic_pings_accumulate():
     """The default rule on the same pings keeps most of the surface at 400 pings as at 40, where
     the visible rule has lost most of it (with the earlier, noisier real_tank preset: 9 % and 13 %
-    missed against 83 % and 100 %). Its decision converges: what it frees as views accumulate is floor at grazing incidence that
-    is bright in fewer than half of its views (bright_share), not an erosion that goes on."""
+    missed against 83 % and 100 %). Its decision converges: what it frees as views accumulate is
+    floor at grazing incidence that is bright in fewer than half of its views (bright_share), not an
+    erosion that goes on."""
     rates = _miss_rates("real_tank")
     early, late = rates["evidence"]
     assert early < 0.2 and late <= early + 0.05
