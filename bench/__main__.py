@@ -27,6 +27,8 @@ BENCHMARKS: dict[str, str] = {
     "visibility": "the visible rule against the plain min-max rule: errors and speed (tank, circle)",
     "rules_real": "both mapping rules on the real OASIS tank (gpumap replay --compare-rules)",
     "rate_real": "every rule on the full real tank run at the sonar's rate, judged by held-out first returns",
+    "real_frontier": "every rule, the surface layer and the public OASIS reconstruction on real held-out "
+                     "first returns: phantoms against misses",
     "variation": "how often a surface voxel's views are bright: the real full-rate tank and the simulator",
     "long_run": "every mapping rule over up to 1,000 simulated pings with realistic variation: FN and far FP",
     "refine": "plain, visible and refined maps against truth and on held-out pings",
