@@ -5,6 +5,9 @@ The full real run (1,223 frames): frames 0-799 mapped at the sonar's rate (every
 (:func:`gpumap.spec.auto_grid`), threshold 0.4; held-out frames 800-1222 judged by
 :func:`gpumap.first_return.first_return_score` (per beam with a return: the map's nearest occupied
 voxel in its fan agrees within 2 voxels, lies in front (a phantom), or is farther / absent (missing)).
+Every map is judged twice: whole, and inside the public code's configured box only (configs/base.yaml:
+2.4 x 2.4 x 1.3 m from (-0.5, -1.2, -0.5); outside it every map is made unknown), the comparison
+issue 36 reports.
 
 Rows, each judged alike:
 
@@ -27,7 +30,8 @@ Rows, each judged alike:
   same origin, so the two differ by at most 0.5 % of the distance from it). It is also judged
   on its own grid without resampling (``native``). ``every`` feeds every frame; ``reconstruct``
   feeds them as their ``reconstruct.py`` does (a frame whose position moved less than 1 cm since
-  the last one fed is skipped); ``config-box`` every frame in their configs/base.yaml box.
+  the last one fed is skipped); ``config-box`` every frame in their configs/base.yaml box;
+  ``as-published`` as their ``reconstruct.py`` runs with their config (the skip and their box).
 
 Writes ``bench/results/real_frontier.json`` and ``real_frontier.png``::
 
@@ -61,7 +65,8 @@ MAPPED, HELD = (0, 800), (800, 1223)
 #: The evidence rule's frontier: bright shares read beside its default.
 FRONTIER_SHARES = (0.1, 0.35, 0.5, 0.65, 0.8)
 #: OASIS runs: name -> (min_pose_delta m, box: "ours" or "config").
-OASIS_VARIANTS = {"every": (0.0, "ours"), "reconstruct": (0.01, "ours"), "config-box": (0.0, "config")}
+OASIS_VARIANTS = {"every": (0.0, "ours"), "reconstruct": (0.01, "ours"), "config-box": (0.0, "config"),
+                  "as-published": (0.01, "config")}
 OASIS_RES_M = 2.0 / 398  # the fan's pixel: their voxel is this x their downsample factor
 BATCH = 32
 
@@ -254,6 +259,22 @@ def _load(path: Path, progress: bool):
     return spec, images, poses, pngs
 
 
+def public_box(downsample: int) -> tuple[np.ndarray, np.ndarray]:
+    """The public code's configured box as its grid covers it: (min, max) corners, metres (its shape is
+    ``int(size / voxel + 1)`` voxels per axis from ``voxel_grid_origin``)."""
+    from .oasis_public import BASE_BOX
+
+    lo, size, vs = np.asarray(BASE_BOX[0], float), np.asarray(BASE_BOX[1], float), downsample * OASIS_RES_M
+    return lo, lo + (size / vs + 1).astype(int) * vs
+
+
+def centres_in_box(grid, lo: Sequence[float], hi: Sequence[float]) -> np.ndarray:
+    """(nx, ny, nz) bool: the voxels of ``grid`` whose centres lie in the box ``[lo, hi)`` (metres)."""
+    c = [grid.min_corner_m[a] + (np.arange(n) + 0.5) * grid.voxel_size_m for a, n in enumerate(grid.shape)]
+    m = [(x >= lo[a]) & (x < hi[a]) for a, x in enumerate(c)]
+    return m[0][:, None, None] & m[1][None, :, None] & m[2][None, None, :]
+
+
 def _judge(values: np.ndarray, grid, thr: float, images, poses, frames: range, spec) -> dict[str, Any]:
     from gpumap.first_return import first_return_score
 
@@ -263,10 +284,10 @@ def _judge(values: np.ndarray, grid, thr: float, images, poses, frames: range, s
 
 
 def _say(name: str, r: dict) -> None:
-    j = r["judge"]
+    j, b = r["judge"], r["judge_box"]
     print(f"{name:32s} occupied {r['occupied']:7,d}: agree {j['agreement']:.1%}, "
-          f"phantom {j['phantom_rate']:.1%}, missing {j['missing_rate']:.1%} ({j['seconds']:.0f} s)",
-          flush=True)
+          f"phantom {j['phantom_rate']:.1%}, missing {j['missing_rate']:.1%} ({j['seconds']:.0f} s); in the "
+          f"public box {b['agreement']:.1%} / {b['phantom_rate']:.1%} / {b['missing_rate']:.1%}", flush=True)
 
 
 def _parser():
@@ -287,10 +308,11 @@ def _parser():
     ap.add_argument("--oasis-python", default=sys.executable,
                     help="the interpreter of the public code's environment (open3d, opencv; default "
                     "this one)")
-    ap.add_argument("--oasis-variants", nargs="+", default=["every", "reconstruct"],
+    ap.add_argument("--oasis-variants", nargs="+", default=["every", "reconstruct", "as-published"],
                     choices=list(OASIS_VARIANTS),
                     help="every: every frame; reconstruct: its reconstruct.py's 1 cm frame skip; config-box: "
-                    "every frame in its configs/base.yaml box (default every reconstruct)")
+                    "every frame in its configs/base.yaml box; as-published: both, as its reconstruct.py "
+                    "runs (default every reconstruct as-published)")
     ap.add_argument("--oasis-downsample", type=int, default=10,
                     help="its image downsample factor: voxel = factor x 2 m / 398 (default 10: 5.025 cm)")
     ap.add_argument("--oasis-rerun", action="store_true",
@@ -325,11 +347,20 @@ def main(argv: list[str] | None = None) -> int:
     grid, thr = auto_grid(spec, poses, a.voxel), a.threshold
     held, mapped = range(HELD[0], HELD[1], a.judge_stride), np.arange(*MAPPED)
     default_rule = gpumap.MinMaxMapper(spec, grid, backend="numpy", threshold=thr).rule
+    box_lo, box_hi = public_box(a.oasis_downsample)
+    in_box = centres_in_box(grid, box_lo, box_hi)
+
+    def judged(v: np.ndarray) -> dict[str, Any]:
+        """Both judges: the whole map, and the map inside the public code's configured box only."""
+        return {"judge": _judge(v, grid, thr, images, poses, held, spec),
+                "judge_box": _judge(np.where(in_box, v, np.nan), grid, thr, images, poses, held, spec)}
+
     res: dict[str, Any] = {
         **run_header(SCHEMA, argv), "data": str(data), "voxel_size_m": a.voxel, "threshold": thr,
         "grid": grid.to_dict(), "grid_shape": list(grid.shape), "mapped_frames": list(MAPPED),
         "held_out_frames": list(HELD), "judge_stride": a.judge_stride, "judged_frames": len(held),
-        "default_rule": default_rule, "rows": []}
+        "default_rule": default_rule, "public_box_m": [box_lo.tolist(), box_hi.tolist()],
+        "public_box_voxels": int(in_box.sum()), "rows": []}
     mappers: dict[tuple, Any] = {}
 
     def mapper(rule: str | None, build: dict[str, Any]):
@@ -356,8 +387,7 @@ def main(argv: list[str] | None = None) -> int:
             setattr(m, k, old)
         r = {"name": row.name, "kind": "rule", "rule": m.rule, "options": dict(row.options),
              "default": m.rule == default_rule and not row.options, "map_seconds": secs,
-             "observed": int(np.isfinite(v).sum()), "occupied": int((v >= thr).sum()),
-             "judge": _judge(v, grid, thr, images, poses, held, spec)}
+             "observed": int(np.isfinite(v).sum()), "occupied": int((v >= thr).sum()), **judged(v)}
         res["rows"].append(r)
         _say(r["name"], r)
     if not a.no_surface:
@@ -369,8 +399,7 @@ def main(argv: list[str] | None = None) -> int:
         v = layer.values()
         r = {"name": "surface layer", "kind": "surface", "rule": "evidence", "options": {}, "default": False,
              "map_seconds": time.perf_counter() - t0, "observed": int(np.isfinite(v).sum()),
-             "occupied": int((v >= thr).sum()), "candidates": layer.stats["candidates"],
-             "judge": _judge(v, grid, thr, images, poses, held, spec)}
+             "occupied": int((v >= thr).sum()), "candidates": layer.stats["candidates"], **judged(v)}
         res["rows"].append(r)
         _say(r["name"], r)
     mappers.clear()  # free the maps before the public code runs
@@ -383,7 +412,7 @@ def main(argv: list[str] | None = None) -> int:
             v = resample_to_grid(occ, obs, o["origin_m"], o["voxel_m"], grid)
             r = {"name": f"OASIS ({variant})", "kind": "oasis", "rule": None, "options": {"variant": variant},
                  "default": False, "map_seconds": o["seconds"], "observed": int(np.isfinite(v).sum()),
-                 "occupied": int((v >= thr).sum()), "judge": _judge(v, grid, thr, images, poses, held, spec)}
+                 "occupied": int((v >= thr).sum()), **judged(v)}
             lo = np.asarray(o["origin_m"])
             hi = lo + np.asarray(o["shape"]) * o["voxel_m"]
             native = gpumap.GridSpec(tuple(lo), tuple(hi), o["voxel_m"])
@@ -410,13 +439,19 @@ def markdown(res: dict, folder: Path) -> str:
     m = res["machine"]
     o = res.get("oasis") or {}
     runs = {r["variant"]: r for r in o.get("runs", [])}
+    lo, hi = res["public_box_m"]
+    box = " x ".join(f"{h - q:.2f}" for q, h in zip(lo, hi, strict=True)) + " m from (" + ", ".join(
+        f"{q:g}" for q in lo) + ")"
     out = [common.template("real-frontier", res=res, m=m, load=m.get("load_avg_start"),
-                           load_end=res.get("load_end"), commit=(o.get("commit") or "unknown")[:12])]
+                           load_end=res.get("load_end"), commit=(o.get("commit") or "unknown")[:12], box=box)]
     for r in res["rows"]:
         j = r["judge"]
         name = f"**{r['name']}** (default)" if r.get("default") else r["name"]
+        b = r["judge_box"]
         out.append(f"| {name} | {r['occupied']:,} | {100 * j['agreement']:.1f} % | "
-                   f"{100 * j['phantom_rate']:.1f} % | {100 * j['missing_rate']:.1f} % |")
+                   f"{100 * j['phantom_rate']:.1f} % | {100 * j['missing_rate']:.1f} % | "
+                   f"{100 * b['agreement']:.1f} / {100 * b['phantom_rate']:.1f} / "
+                   f"{100 * b['missing_rate']:.1f} % |")
     if runs:
         out += ["", common.template("real-frontier-oasis")]
         for name, x in runs.items():
@@ -435,32 +470,35 @@ SECTION = Section("real-frontier", "## Every rule against the public OASIS recon
 
 
 def picture(res: dict, path: Path) -> None:
-    """Phantoms in front (x) against misses (y), one point per row; OASIS marked, the evidence rule's
-    frontier joined."""
-    fig, ax = common.pyplot().subplots(figsize=(7.5, 5.5), dpi=90)
-    front = [r for r in res["rows"] if r["kind"] == "rule" and r["rule"] == "evidence"
-             and set(r["options"]) <= {"bright_share"}]
-    front.sort(key=lambda r: r["judge"]["phantom_rate"])
-    if len(front) > 1:
-        ax.plot([100 * r["judge"]["phantom_rate"] for r in front],
-                [100 * r["judge"]["missing_rate"] for r in front], "-", color="#2ca02c", alpha=0.5, zorder=1,
-                label="evidence rule, bright_share frontier")
-    style = {"rule": ("o", "#1f77b4"), "surface": ("s", "#9467bd"), "oasis": ("*", "#d62728")}
-    for r in res["rows"]:
-        mk, c = style[r["kind"]]
-        x, y = 100 * r["judge"]["phantom_rate"], 100 * r["judge"]["missing_rate"]
-        ax.scatter([x], [y], marker=mk, s=220 if r["kind"] == "oasis" else 60, color=c, zorder=3,
-                   edgecolors="black" if r.get("default") else "none", linewidths=1.5)
-        ax.annotate(r["name"] + (" (default)" if r.get("default") else ""), (x, y),
-                    textcoords="offset points", xytext=(6, 4), fontsize=7)
-    ax.set(xlabel="phantoms in front, % of held-out beams with a return",
-           ylabel="missing, % of held-out beams with a return",
-           title=f"real tank: frames 0-799 mapped, {res['judged_frames']} held-out frames judged "
-                 f"({100 * res['voxel_size_m']:g} cm)")
-    ax.set_xlim(left=0)
-    ax.set_ylim(bottom=0)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="upper right")
+    """Phantoms in front (x) against misses (y, log), one point per row, for the whole map and inside the
+    public code's box; OASIS marked, the evidence rule's bright_share frontier joined."""
+    fig, axes = common.pyplot().subplots(1, 2, figsize=(13, 5.5), dpi=90)
+    style = {"rule": ("o", "#1f77b4", "gpumap rule"), "surface": ("s", "#9467bd", "surface layer"),
+             "oasis": ("*", "#d62728", "public OASIS reconstruction")}
+    for ax, key, where in zip(axes, ("judge", "judge_box"), ("whole map", "inside the public code's box"),
+                              strict=True):
+        front = sorted((r for r in res["rows"] if r["kind"] == "rule" and r["rule"] == "evidence"
+                        and set(r["options"]) <= {"bright_share"}), key=lambda r: r[key]["phantom_rate"])
+        if len(front) > 1:
+            ax.plot([100 * r[key]["phantom_rate"] for r in front],
+                    [100 * r[key]["missing_rate"] for r in front], "-", color="#2ca02c", alpha=0.5,
+                    zorder=1, label="evidence rule at other bright_share")
+        seen: set[str] = set()
+        for r in res["rows"]:
+            mk, c, kind = style[r["kind"]]
+            x, y = 100 * r[key]["phantom_rate"], 100 * r[key]["missing_rate"]
+            ax.scatter([x], [y], marker=mk, s=220 if r["kind"] == "oasis" else 60, color=c, zorder=3,
+                       edgecolors="black" if r.get("default") else "none", linewidths=1.5,
+                       label=None if kind in seen else kind)
+            seen.add(kind)
+            ax.annotate(r["name"] + (" (default)" if r.get("default") else ""), (x, y),
+                        textcoords="offset points", xytext=(6, 4), fontsize=7)
+        ax.set(xlabel="phantoms in front, % of held-out beams with a return",
+               ylabel="missing, % of held-out beams with a return (log)", yscale="log",
+               title=f"{where}: frames 0-799 mapped, {res['judged_frames']} held-out frames judged")
+        ax.set_xlim(left=0)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8, loc="upper right")
     common.save_figure(fig, path)
 
 

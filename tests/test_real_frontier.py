@@ -86,3 +86,17 @@ def test_rows_and_their_options():
         split_options({"no_such_option": 1})
     with pytest.raises(ValueError, match="RULE:NAME=VALUE"):
         parse_row("evidence:bright_share")
+
+
+def test_centres_in_box_matches_brute_force():
+    from bench.real_frontier import centres_in_box
+
+    grid = gpumap.GridSpec((-0.3, -0.2, -0.1), (0.4, 0.3, 0.35), 0.05)
+    lo, hi = (-0.12, 0.0, 0.05), (0.21, 0.17, 0.5)
+    got = centres_in_box(grid, lo, hi)
+    want = np.zeros(grid.shape, bool)
+    for idx in np.ndindex(*grid.shape):
+        c = np.asarray(grid.min_corner_m) + (np.asarray(idx) + 0.5) * grid.voxel_size_m
+        want[idx] = bool(np.all((c >= lo) & (c < hi)))
+    np.testing.assert_array_equal(got, want)
+    assert want.any() and not want.all()
