@@ -130,10 +130,12 @@ def summary_rows() -> list[tuple[str, str, str]]:
                 ("judge", [*default, *[oasis[v] for v in ("every",) if v in oasis], *surface],
                  "frames 0-799 at full rate, whole map"),
                 ("judge_box", [*default, *[oasis[v] for v in ("as-published",) if v in oasis]],
-                 "inside the public code's box, its reconstruct.py as published (issue 36's comparison)")):
+                 "every map cut to the public code's configured box (issue 36's comparison)")):
             if picks:
-                names = ", ".join(f"default map ({r['rule']})" if r.get("default") else r["name"]
-                                  for r in picks)
+                said = {"every": "public OASIS code fed every frame", "as-published": "public OASIS code as "
+                        "published (its 1 cm frame skip, its box)"}
+                names = ", ".join(f"default map ({r['rule']})" if r.get("default")
+                                  else said.get(r["options"].get("variant"), r["name"]) for r in picks)
                 rows.append((f"... the same judge beside the public OASIS code (its update unmodified), "
                              f"{what}, first returns agreed / phantoms in front / missed: {names}",
                              ", ".join(" / ".join(_pct(r[key][k]) for k in JUDGED) for r in picks),

@@ -484,20 +484,28 @@ def picture(res: dict, path: Path) -> None:
                     [100 * r[key]["missing_rate"] for r in front], "-", color="#2ca02c", alpha=0.5,
                     zorder=1, label="evidence rule at other bright_share")
         seen: set[str] = set()
+        oasis_offsets = iter([(9, -13, "left"), (-9, 5, "right"), (-9, 7, "right"), (-9, -15, "right")] * 4)
         for r in res["rows"]:
             mk, c, kind = style[r["kind"]]
+            dx, dy, ha = next(oasis_offsets) if r["kind"] == "oasis" else (6, 4, "left")
             x, y = 100 * r[key]["phantom_rate"], 100 * r[key]["missing_rate"]
             ax.scatter([x], [y], marker=mk, s=220 if r["kind"] == "oasis" else 60, color=c, zorder=3,
                        edgecolors="black" if r.get("default") else "none", linewidths=1.5,
                        label=None if kind in seen else kind)
             seen.add(kind)
             ax.annotate(r["name"] + (" (default)" if r.get("default") else ""), (x, y),
-                        textcoords="offset points", xytext=(6, 4), fontsize=7)
+                        textcoords="offset points", fontsize=7,
+                        color="#a01010" if r["kind"] == "oasis" else "black",
+                        ha=ha, xytext=(dx, dy))
         ax.set(xlabel="phantoms in front, % of held-out beams with a return",
                ylabel="missing, % of held-out beams with a return (log)", yscale="log",
                title=f"{where}: frames 0-799 mapped, {res['judged_frames']} held-out frames judged")
         ax.set_xlim(left=0)
-        ax.grid(alpha=0.3, which="both")
+        y0, y1 = ax.get_ylim()
+        ticks = [t for t in (1, 2, 3, 4, 6, 10, 15, 20, 30, 40, 60, 100) if y0 <= t <= y1]
+        ax.set_yticks(ticks, [f"{t:g}" for t in ticks])
+        ax.set_yticks([], minor=True)
+        ax.grid(alpha=0.3)
         ax.legend(fontsize=8, loc="upper right")
     common.save_figure(fig, path)
 
