@@ -12,11 +12,12 @@ issue 36 reports.
 Rows, each judged alike:
 
 - every rule of :data:`gpumap.geometry.RULES`, read at its defaults (the row of the rule that
-  ``MinMaxMapper(rule=None)`` picks is marked the default), then the frontier rows: the evidence rule at
-  other ``bright_share`` values. Any row may carry options (``--row RULE:NAME=VALUE,...``): those
-  that are read-time properties of :class:`gpumap.MinMaxMapper` (``bright_share``, ``share_z``,
-  ``carve_views``, ...) are set on the one map of that rule before it is read, the others are
-  passed to its constructor (a map of its own);
+  ``MinMaxMapper(rule=None)`` picks is marked the default), then the frontier rows of
+  :data:`FRONTIERS` (one line per rule: the evidence rule at other ``bright_share`` values). Any
+  row may carry options (``--row RULE:NAME=VALUE,...``): those that are read-time properties of
+  :class:`gpumap.MinMaxMapper` (``bright_share``, ``share_z``, ``carve_views``, ...) are set on the
+  one map of that rule before it is read, the others are passed to its constructor (a map of its
+  own);
 - the surface layer (:func:`gpumap.surface.surface_from_mapper` on the evidence map of frames 0-799,
   as ``bench.surface`` builds it);
 - the public OASIS reconstruction (chaos-whoi/oasis_iros), its ``update_voxel_grid`` unmodified, run
@@ -62,8 +63,10 @@ from .common import TMP, Section, bench_parser, load_average, oasis_full_dir, ru
 
 SCHEMA = "gpumap-real-frontier/1"
 MAPPED, HELD = (0, 800), (800, 1223)
-#: The evidence rule's frontier: bright shares read beside its default.
-FRONTIER_SHARES = (0.1, 0.35, 0.5, 0.65, 0.8)
+#: Frontiers: rule -> (a read-time option, the values read beside the rule's default); a rule that is
+#: not in RULES, or an option the mapper does not have, is left out.
+FRONTIERS: dict[str, tuple[str, tuple[Any, ...]]] = {
+    "evidence": ("bright_share", (0.1, 0.35, 0.5, 0.65, 0.8))}
 #: OASIS runs: name -> (min_pose_delta m, box: "ours" or "config").
 OASIS_VARIANTS = {"every": (0.0, "ours"), "reconstruct": (0.01, "ours"), "config-box": (0.0, "config"),
                   "as-published": (0.01, "config")}
@@ -124,12 +127,13 @@ def split_options(options: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str,
 
 
 def default_rows() -> list[Row]:
-    """Every rule of RULES at its defaults, then the evidence rule's frontier (if it has a bright share)."""
+    """Every rule of RULES at its defaults, then each rule's frontier (:data:`FRONTIERS`)."""
     from gpumap.geometry import RULES
 
-    rows = [Row(r) for r in RULES]
-    if "evidence" in RULES and "bright_share" in read_time_options():
-        rows += [Row("evidence", {"bright_share": p}) for p in FRONTIER_SHARES]
+    rows, read = [Row(r) for r in RULES], read_time_options()
+    for rule, (option, values) in FRONTIERS.items():
+        if rule in RULES and option in read:
+            rows += [Row(rule, {option: x}) for x in values]
     return rows
 
 
@@ -442,8 +446,11 @@ def markdown(res: dict, folder: Path) -> str:
     lo, hi = res["public_box_m"]
     box = " x ".join(f"{h - q:.2f}" for q, h in zip(lo, hi, strict=True)) + " m from (" + ", ".join(
         f"{q:g}" for q in lo) + ")"
+    opts = sorted({(r["rule"], k) for r in res["rows"] if r["kind"] == "rule" for k in r["options"]})
+    options = ", ".join(f"{rule} `{k}`" for rule, k in opts) or "none"
     out = [common.template("real-frontier", res=res, m=m, load=m.get("load_avg_start"),
-                           load_end=res.get("load_end"), commit=(o.get("commit") or "unknown")[:12], box=box)]
+                           load_end=res.get("load_end"), commit=(o.get("commit") or "unknown")[:12], box=box,
+                           options=options)]
     for r in res["rows"]:
         j = r["judge"]
         name = f"**{r['name']}** (default)" if r.get("default") else r["name"]
@@ -477,12 +484,14 @@ def picture(res: dict, path: Path) -> None:
              "oasis": ("*", "#d62728", "public OASIS reconstruction")}
     for ax, key, where in zip(axes, ("judge", "judge_box"), ("whole map", "inside the public code's box"),
                               strict=True):
-        front = sorted((r for r in res["rows"] if r["kind"] == "rule" and r["rule"] == "evidence"
-                        and set(r["options"]) <= {"bright_share"}), key=lambda r: r[key]["phantom_rate"])
-        if len(front) > 1:
-            ax.plot([100 * r[key]["phantom_rate"] for r in front],
-                    [100 * r[key]["missing_rate"] for r in front], "-", color="#2ca02c", alpha=0.5,
-                    zorder=1, label="evidence rule at other bright_share")
+        colours = ("#2ca02c", "#ff7f0e", "#8c564b", "#e377c2")
+        for (rule, (option, _)), colour in zip(FRONTIERS.items(), colours, strict=False):
+            front = sorted((r for r in res["rows"] if r["kind"] == "rule" and r["rule"] == rule
+                            and set(r["options"]) <= {option}), key=lambda r: r[key]["phantom_rate"])
+            if len(front) > 1:
+                ax.plot([100 * r[key]["phantom_rate"] for r in front],
+                        [100 * r[key]["missing_rate"] for r in front], "-", color=colour, alpha=0.5,
+                        zorder=1, label=f"{rule} rule at other {option}")
         seen: set[str] = set()
         oasis_offsets = iter([(9, -13, "left"), (-9, 5, "right"), (-9, 7, "right"), (-9, -15, "right")] * 4)
         for r in res["rows"]:
