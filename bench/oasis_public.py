@@ -1,6 +1,6 @@
 """The public OASIS reconstruction (chaos-whoi/oasis_iros), run unmodified in its own environment.
 
-    OASIS_PYTHON -m bench.oasis_public --oasis-src SRC --job JOB.npz --out GRID.npz
+    OASIS_PYTHON bench/oasis_public.py --oasis-src SRC --job JOB.npz --out GRID.npz
 
 ``OASIS_PYTHON`` is an interpreter where the public code's own dependencies import (open3d, opencv,
 Pillow, tqdm, matplotlib: its ``environment.yaml``); nothing of gpumap is imported here, so this module
@@ -131,7 +131,7 @@ def run(src: Path, pngs: list[str], poses: np.ndarray, downsample: int, origin, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.oasis_public", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python bench/oasis_public.py", description=__doc__.split("\n")[0])
     ap.add_argument("--oasis-src", type=Path, required=True, help="checkout of chaos-whoi/oasis_iros")
     ap.add_argument("--job", type=Path, required=True, help="the frames, poses and box (.npz, docstring)")
     ap.add_argument("--out", type=Path, required=True, help="where the grid goes (.npz)")

@@ -47,7 +47,6 @@ import ast
 import hashlib
 import inspect
 import json
-import os
 import subprocess
 import sys
 import time
@@ -224,11 +223,11 @@ def run_oasis(a, variant: str, src: Path, commit: str | None, pngs: list[str], p
         TMP.mkdir(parents=True, exist_ok=True)
         job_path = TMP / f"oasis_job_{key}.npz"
         np.savez(job_path, **job)
-        cmd = [a.oasis_python, "-m", "bench.oasis_public", "--oasis-src", str(src), "--job", str(job_path),
-               "--out", str(out)]
+        # by path: the runner imports nothing of gpumap or bench, so it runs in the public code's interpreter
+        cmd = [a.oasis_python, str(Path(__file__).with_name("oasis_public.py")), "--oasis-src", str(src),
+               "--job", str(job_path), "--out", str(out)]
         print("running", " ".join(cmd), flush=True)
-        env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-        subprocess.run(cmd, check=True, env=env)
+        subprocess.run(cmd, check=True)
     with np.load(out) as z:
         g = {k: z[k] for k in z.files}
     shape = tuple(int(x) for x in g["shape"])
