@@ -13,7 +13,8 @@ Rows, each judged alike:
 
 - every rule of :data:`gpumap.geometry.RULES`, read at its defaults (the row of the rule that
   ``MinMaxMapper(rule=None)`` picks is marked the default), then the frontier rows of
-  :data:`FRONTIERS` (one line per rule: the evidence rule at other ``bright_share`` values). Any
+  :data:`FRONTIERS` (one line each: the evidence rule at other ``bright_share`` values, and its
+  calibrated decision at other ``miss_cost`` values where the mapper has it). Any
   row may carry options (``--row RULE:NAME=VALUE,...``): those that are read-time properties of
   :class:`gpumap.MinMaxMapper` (``bright_share``, ``share_z``, ``carve_views``, ...) are set on the
   one map of that rule before it is read, the others are passed to its constructor (a map of its
@@ -62,10 +63,13 @@ from .common import TMP, Section, bench_parser, load_average, oasis_full_dir, ru
 
 SCHEMA = "gpumap-real-frontier/1"
 MAPPED, HELD = (0, 800), (800, 1223)
-#: Frontiers: rule -> (a read-time option, the values read beside the rule's default); a rule that is
-#: not in RULES, or an option the mapper does not have, is left out.
-FRONTIERS: dict[str, tuple[str, tuple[Any, ...]]] = {
-    "evidence": ("bright_share", (0.1, 0.35, 0.5, 0.65, 0.8))}
+#: Frontiers: (rule, read-time options held fixed, the read-time option varied, its values), read on the
+#: rule's one map beside its default; one whose rule is not in RULES, or whose options the mapper does not
+#: have, is left out, and a value the mapper refuses skips its row.
+FRONTIERS: tuple[tuple[str, dict[str, Any], str, tuple[Any, ...]], ...] = (
+    ("evidence", {}, "bright_share", (0.1, 0.35, 0.5, 0.65, 0.8)),
+    ("evidence", {"decision": "calibrated"}, "miss_cost", (1.0, 10.0, 100.0, 1e4, 1e5)),
+)
 #: OASIS runs: name -> (min_pose_delta m, box: "ours" or "config").
 OASIS_VARIANTS = {"every": (0.0, "ours"), "reconstruct": (0.01, "ours"), "config-box": (0.0, "config"),
                   "as-published": (0.01, "config")}
@@ -130,9 +134,9 @@ def default_rows() -> list[Row]:
     from gpumap.geometry import RULES
 
     rows, read = [Row(r) for r in RULES], read_time_options()
-    for rule, (option, values) in FRONTIERS.items():
-        if rule in RULES and option in read:
-            rows += [Row(rule, {option: x}) for x in values]
+    for rule, fixed, option, values in FRONTIERS:
+        if rule in RULES and {*fixed, option} <= read:
+            rows += [Row(rule, {**fixed, option: x}) for x in values]
     return rows
 
 
@@ -383,11 +387,16 @@ def main(argv: list[str] | None = None) -> int:
         build, read = split_options(row.options)
         m, secs = mapper(row.rule, build)
         before = {k: getattr(m, k) for k in read}
-        for k, v in read.items():
-            setattr(m, k, v)
-        v = m.values()
-        for k, old in before.items():
-            setattr(m, k, old)
+        try:
+            for k, v in read.items():
+                setattr(m, k, v)
+            v = m.values()
+        except ValueError as e:  # a value this mapper refuses (a frontier of another version): said, skipped
+            print(f"{row.name}: skipped ({e})", flush=True)
+            continue
+        finally:
+            for k, old in before.items():
+                setattr(m, k, old)
         r = {"name": row.name, "kind": "rule", "rule": m.rule, "options": dict(row.options),
              "default": m.rule == default_rule and not row.options, "map_seconds": secs,
              "observed": int(np.isfinite(v).sum()), "occupied": int((v >= thr).sum()), **judged(v)}
@@ -484,13 +493,16 @@ def picture(res: dict, path: Path) -> None:
     for ax, key, where in zip(axes, ("judge", "judge_box"), ("whole map", "inside the public code's box"),
                               strict=True):
         colours = ("#2ca02c", "#ff7f0e", "#8c564b", "#e377c2")
-        for (rule, (option, _)), colour in zip(FRONTIERS.items(), colours, strict=False):
+        for (rule, fixed, option, _), colour in zip(FRONTIERS, colours, strict=False):
             front = sorted((r for r in res["rows"] if r["kind"] == "rule" and r["rule"] == rule
-                            and set(r["options"]) <= {option}), key=lambda r: r[key]["phantom_rate"])
+                            and set(r["options"]) <= {*fixed, option}
+                            and all(r["options"].get(k) == v for k, v in fixed.items())),
+                           key=lambda r: r[key]["phantom_rate"])
             if len(front) > 1:
+                held = "".join(f", {k}={v}" for k, v in fixed.items())
                 ax.plot([100 * r[key]["phantom_rate"] for r in front],
                         [100 * r[key]["missing_rate"] for r in front], "-", color=colour, alpha=0.5,
-                        zorder=1, label=f"{rule} rule at other {option}")
+                        zorder=1, label=f"{rule} rule{held}, other {option}")
         seen: set[str] = set()
         oasis_offsets = iter([(9, -13, "left"), (-9, 5, "right"), (-9, 7, "right"), (-9, -15, "right")] * 4)
         for r in res["rows"]:
