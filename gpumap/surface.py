@@ -240,32 +240,40 @@ class _View:
     front: np.ndarray | None  # (k,) bool: in the nominal fan and nearer than its beam's first return
 
 
-def _in_sonar(T_W_S: np.ndarray, centres_W: np.ndarray) -> np.ndarray:
-    """(k, 3) float64: ``centres_W`` in the sonar frame, ``R^T (c - t)``, written out element by element
-    so that a voxel's coordinates never depend on which other voxels came with it (a matrix product's
-    kernel may sum in another order for another number of rows)."""
+def _in_sonar(T_W_S: np.ndarray, centres_W: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """x, y, z (k,) float64 each: ``centres_W`` ((k, 3)) in the sonar frame, ``R^T (c - t)``, written out
+    element by element so that a voxel's coordinates never depend on which other voxels came with it
+    (a matrix product's kernel may sum in another order for another number of rows)."""
     T = np.asarray(T_W_S, np.float64)
     d0, d1, d2 = (centres_W[:, i] - T[i, 3] for i in range(3))
-    return np.stack([d0 * T[0, a] + d1 * T[1, a] + d2 * T[2, a] for a in range(3)], axis=1)
+    return tuple(d0 * T[0, a] + d1 * T[1, a] + d2 * T[2, a] for a in range(3))
 
 
 def _geometry(spec: SonarSpec, edges: np.ndarray, T_W_S: np.ndarray, centres_W: np.ndarray, n_rc: int,
               half_m: float, cell_m: float, half_elev_rad: float, first_m: np.ndarray, front_tol_m: float):
     """The voxels within the arc's aperture in one ping (module docstring, steps 1-2): their index
     ``k`` into ``centres_W``, range, elevation, the beams ``j0..j1`` and range cells ``c0..c1`` their
-    width spans, and whether they lie in the nominal fan nearer than their beam's first return."""
-    p = _in_sonar(T_W_S, centres_W)
-    h2 = p[:, 0] ** 2 + p[:, 1] ** 2
-    r = np.sqrt(h2 + p[:, 2] ** 2)
-    elev = np.arctan2(p[:, 2], np.sqrt(h2))
-    pos = p[:, 0] > 0
-    t = p[:, 1] / np.where(pos, p[:, 0], 1.0)
+    width spans, and whether they lie in the nominal fan nearer than their beam's first return.
+
+    A cheap test (ahead of the sonar, inside its range and its aperture's slab, with a margin)
+    drops most voxels first; the exact tests then run on the rest, each voxel's numbers the same."""
+    x, y, z = _in_sonar(T_W_S, centres_W)
+    h2 = x * x + y * y
+    near = (x > 0) & (h2 + z * z < (spec.range_max_m * (1.0 + 1e-6)) ** 2)
+    if half_elev_rad < 1.5:  # the aperture's slab, |z| <= tan(half) h, with a margin
+        lim = np.tan(half_elev_rad) * (1.0 + 1e-6)
+        near &= z * z <= lim * lim * h2 + 1e-12
+    k = np.flatnonzero(near)
+    x, y, z, h2 = x[k], y[k], z[k], h2[k]
+    r = np.sqrt(h2 + z ** 2)
+    elev = np.arctan2(z, np.sqrt(h2))
+    t = y / x
     tan_e = np.tan(np.asarray(spec.beam_edges_rad, np.float64))
-    ok = (pos & (r >= spec.range_min_m) & (r < spec.range_max_m) & (np.abs(elev) <= half_elev_rad)
+    ok = ((r >= spec.range_min_m) & (r < spec.range_max_m) & (np.abs(elev) <= half_elev_rad)
           & (t >= tan_e[0]) & (t <= tan_e[-1]))
-    k = np.flatnonzero(ok)
-    r, elev = r[k], elev[k]
-    j0, j1 = beam_span(t[k].astype(_F), h2[k].astype(_F), _F(half_m), edges, spec.n_beams)
+    sel = np.flatnonzero(ok)
+    k, r, elev = k[sel], r[sel], elev[sel]
+    j0, j1 = beam_span(t[sel].astype(_F), h2[sel].astype(_F), _F(half_m), edges, spec.n_beams)
     c0 = np.clip(((r - half_m - spec.range_min_m) / cell_m).astype(np.int64), 0, n_rc - 1)
     c1 = np.clip(((r + half_m - spec.range_min_m) / cell_m).astype(np.int64), 0, n_rc - 1)
     first = first_m[(j0 + j1) // 2]  # inf: no return (open water), nan: says nothing (a dim ping)
@@ -295,19 +303,24 @@ def _view(spec: SonarSpec, edges: np.ndarray, T_W_S: np.ndarray, centres_W: np.n
                  (cc * spec.n_beams + jj)[keep].astype(np.int32), front)
 
 
-def _bright_pairs(lit: np.ndarray, n_beams: int, j0: np.ndarray, j1: np.ndarray, c0: np.ndarray,
+def _bright_pairs(lit: np.ndarray, n_rc: int, n_beams: int, j0: np.ndarray, j1: np.ndarray, c0: np.ndarray,
                   c1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The bright cells each voxel spans, found without listing its dark ones: ``lit`` holds one
     ping's bright cells (sorted flat (range cell, beam) indices), so those in a range cell's beams
-    ``j0..j1`` are one run of it (two binary searches per voxel and range cell). Returns (voxel (p,),
-    index into ``lit`` (p,)), voxel by voxel and cell by cell in flat order, as :func:`_view` lists them."""
+    ``j0..j1`` are one run of it, whose ends a table of running counts per range cell gives. Returns
+    (voxel (p,), index into ``lit`` (p,)), voxel by voxel and cell by cell in flat order, as
+    :func:`_view` lists them."""
     k = len(j0)
     rows = int((c1 - c0).max()) + 1 if k else 0
-    o = np.arange(rows)
-    cc = c0[:, None] + o[None, :]  # (k, rows)
-    lo = np.searchsorted(lit, cc * n_beams + j0[:, None])
-    hi = np.searchsorted(lit, cc * n_beams + j1[:, None], side="right")
-    cnt = np.where(cc <= c1[:, None], hi - lo, 0).reshape(-1)
+    mask = np.zeros(n_rc * n_beams, np.int32)
+    mask[lit] = 1
+    run = np.zeros((n_rc, n_beams + 1), np.int64)
+    np.cumsum(mask.reshape(n_rc, n_beams), axis=1, out=run[:, 1:])
+    before = np.concatenate([[0], np.cumsum(run[:, -1])[:-1]])  # bright cells in the earlier range cells
+    cc = np.minimum(c0[:, None] + np.arange(rows)[None, :], n_rc - 1)  # (k, rows)
+    lo = before[cc] + run[cc, j0[:, None]]
+    cnt = np.where(c0[:, None] + np.arange(rows)[None, :] <= c1[:, None],
+                   before[cc] + run[cc, j1[:, None] + 1] - lo, 0).reshape(-1)
     n = int(cnt.sum())
     start = np.cumsum(cnt) - cnt
     which = np.repeat(np.arange(cnt.size), cnt)
@@ -589,7 +602,7 @@ class _Pairs:
         self.fan[v[np.abs(elev) <= 0.5 * spec.vfov_rad]] += 1
         self.front[v[front]] += 1
         self.sens[v] += (c1 - c0 + 1) * (j1 - j0 + 1)
-        which, at = _bright_pairs(pc.lit, spec.n_beams, j0, j1, c0, c1)
+        which, at = _bright_pairs(pc.lit, sc["n_rc"], spec.n_beams, j0, j1, c0, c1)
         pv = v[which]
         if len(pv):
             self.bright[pv[np.r_[True, pv[1:] != pv[:-1]]]] += 1
@@ -644,10 +657,14 @@ class _Pairs:
         sens = np.where(alive, self.sens[cand_flat], 0).astype(np.float64)
         n_slots = self.slot0[self.n_pings]
         w = np.where(bright > 0, 1.0 if w0 is None else w0, 0.0)
+        q = np.empty(len(c))
         for _ in range(int(opts.iterations)):
             wc = w[c]
             den = np.bincount(s, weights=wc, minlength=n_slots)[s]
-            per = np.bincount(seg, weights=wc / np.where(den > 0, den, 1.0), minlength=len(seg_c))
+            # a cell no weight reaches holds only weightless pairs: 0, as 0 / 1 gives
+            q.fill(0.0)
+            np.divide(wc, den, out=q, where=den > 0)
+            per = np.bincount(seg, weights=q, minlength=len(seg_c))
             w = np.bincount(seg_c, weights=per, minlength=n) / np.maximum(sens, 1.0)
         rank = np.empty(n, np.int64)
         rank[np.lexsort((np.arange(n), w))] = np.arange(1, n + 1)
@@ -717,31 +734,50 @@ class LiveSurface:
 
     def add(self, images: np.ndarray, poses: np.ndarray) -> None:
         """Keep pings ``images`` ((n, n_bins, n_beams) uint8 or float32 in [0, 1]) at ``poses``
-        ((n, 4, 4) ``T_W_S``), those the mapper integrated."""
+        ((n, 4, 4) ``T_W_S``), those the mapper integrated (any thread; in the order they were)."""
         images, poses = _check(images, poses, self.mapper.spec)
         cell_m = self.options.cell_m or 0.5 * self.mapper.grid.voxel_size_m
-        self._pings += [_prepare(i, T, self.mapper.spec, self.mapper.threshold, cell_m,
-                                 self.options.live_ping_share) for i, T in zip(images, poses, strict=True)]
+        new = [_prepare(i, T, self.mapper.spec, self.mapper.threshold, cell_m, self.options.live_ping_share)
+               for i, T in zip(images, poses, strict=True)]
+        self._pings += new  # one list extension: atomic for a reader on another thread
 
-    def update(self) -> SurfaceLayer:
-        """The layer of every ping kept so far over the mapper's map now."""
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """(candidates, observed, pings kept): the map now and how many pings it holds, for
+        :meth:`update` on another thread; take it while nothing integrates or adds (a live mapper's
+        lock), so that the map and the pings match."""
+        cand, obs = map_candidates(self.mapper)
+        return cand, obs, len(self._pings)
+
+    def reset(self) -> None:
+        """Forget every ping (with the mapper's own ``reset``)."""
+        self._pings = []
+        self._weights = None
+        if self._pairs is not None:
+            self._pairs = _Pairs(self.mapper.grid, self.mapper.spec, self.options)
+        self.layer = None
+
+    def update(self, snapshot: tuple[np.ndarray, np.ndarray, int] | None = None) -> SurfaceLayer:
+        """The layer of every ping kept so far over the mapper's map now (or of the first pings of a
+        :meth:`snapshot` over its map)."""
         import time
 
         t0 = time.perf_counter()
         m = self.mapper
-        cand, obs = map_candidates(m)
+        cand, obs, n_pings = snapshot if snapshot is not None else self.snapshot()
+        pings = self._pings[:n_pings]
         flat = np.flatnonzero(cand)
         w0 = None
         if self.warm_start and self._weights is not None:
             w0 = np.nan_to_num(self._weights[flat], nan=1.0)
-        if self._pairs is None:
-            layer, w = _layer(cand, obs, m.grid, m.spec, self._pings, self.options, w0)
+        pairs = self._pairs  # one object for the whole update, even if reset meanwhile
+        if pairs is None:
+            layer, w = _layer(cand, obs, m.grid, m.spec, pings, self.options, w0)
         else:
-            self._pairs.add_views(self._pings, flat)
-            alive, w, votes, seen, bright = self._pairs.explain(flat, w0)
+            pairs.add_views(pings, flat)
+            alive, w, votes, seen, bright = pairs.explain(flat, w0)
             layer = _finish(cand, obs, m.grid, np.argwhere(cand), alive, votes, seen, bright, self.options,
-                            len(self._pings), self._pairs.sc)
-            layer.stats["pairs"] = self.n_pairs
+                            len(pings), pairs.sc)
+            layer.stats["pairs"] = len(pairs.key)
         if self.warm_start:
             self._weights = np.full(m.grid.n_voxels, np.nan)
             self._weights[flat] = w
