@@ -570,6 +570,7 @@ class LiveSurfaceWorker:
         self.layer = None
         self.error: BaseException | None = None
         self._gen = 0  # bumped by reset: an update of the pings before it is dropped
+        self._update_lock = threading.Lock()  # one update at a time (the thread's, or layer_now's)
         live.on_batch = self._added
         live.on_reset = self.reset
 
@@ -618,7 +619,8 @@ class LiveSurfaceWorker:
                     newest = max(self._stamps[:n])
                     arrivals = self._arrivals[self.covered:n]
                 t0 = self._clock()
-                layer = self.surface.update(snap)
+                with self._update_lock:
+                    layer = self.surface.update(snap)
                 self.last_update_s = self._clock() - t0
                 if gen != self._gen:  # reset meanwhile: these pings are gone
                     continue
@@ -637,6 +639,15 @@ class LiveSurfaceWorker:
             self.error = e
             self._log(f"the surface worker stopped: {e!r}")
             raise
+
+    def layer_now(self):
+        """(the layer of every ping mapped so far, the map's values (nx, ny, nz) float32 of the same
+        moment): for saving both layers together; waits for an update in progress."""
+        with self._update_lock:
+            with self.live._map_lock:
+                snap = self.surface.snapshot()
+                values = self.live.mapper.values()
+            return self.surface.update(snap), values
 
     def stats(self) -> dict:
         """``surface_pings`` (pings the published layer covers), ``surface_waiting`` (pings mapped, not

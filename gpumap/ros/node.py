@@ -33,8 +33,21 @@ cloud's stamp is the newest ping in it. ``/diagnostics`` (``diagnostic_msgs/Diag
 every ``diagnostics_period_s``): ping rate, latency p50/p99 (arrival to published cloud),
 queue, received/integrated, rejected, skipped and dropped by reason, backend, map memory.
 
-Services (``std_srvs/Trigger``): ``~/save_map`` writes ``save_path`` atomically (the same
-``.npz`` as ``gpumap replay``; ``MinMaxMapper.load`` reads it), ``~/reset`` forgets the map.
+With ``surface: true`` (the default) the surface layer (:mod:`gpumap.surface`) is kept too, on a
+thread of its own (:class:`gpumap.ros.live.LiveSurfaceWorker`), and updated as often as the machine
+allows, each update taking every ping mapped meanwhile: ``~/surface_cloud`` (``PointCloud2``, x, y,
+z, value 1 per surface voxel; stamped with the newest ping it covers) and ``~/surface_markers``,
+reliable and transient-local; each is the offline layer (:func:`gpumap.surface.surface_from_mapper`)
+of the pings it covers. ``/diagnostics`` then adds ``surface_pings`` (covered), ``surface_waiting``
+(mapped, not yet in it), ``surface_age_s`` (how long the oldest of those has waited since it arrived),
+``surface_latency_max_s``, ``surface_update_s`` (the last update's seconds), ``surface_updates`` and
+``surface_voxels``.
+
+Services (``std_srvs/Trigger``): ``~/save_map`` writes ``save_path`` atomically: with the surface
+layer, both layers in one file (the safe map's values and the surface layer of every ping mapped so
+far: :func:`gpumap.refined_map.load_refined`, ``gpumap view/export --layer surface|safe`` read it);
+with ``surface: false`` the map file of ``gpumap replay`` (``MinMaxMapper.load`` reads it).
+``~/reset`` forgets the map (and the surface layer's pings).
 Ctrl-C (or SIGTERM) drains the queue, saves when ``save_on_exit`` is true, and exits 0.
 
 Parameters (``ros2 param``-style, from ``--params-file`` YAML or ``-p``); the sonar comes from
