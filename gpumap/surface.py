@@ -584,20 +584,53 @@ class _Pairs:
         self.key = np.zeros(0, np.int64)  # (ping * n_vox + voxel) * n_cells + cell: the sort order
         self.vox = np.zeros(0, np.int32)
         self.slot = np.zeros(0, np.int32)
+        self.start = np.zeros(0, bool)  # the pair opens a (ping, voxel) run
         self.slot0: list[int] = [0]  # first slot of each ping viewed; the next ping's after the last
         self.n_pings = 0  # pings viewed (the first n of those kept)
 
-    def _centres(self, vox: np.ndarray) -> np.ndarray:
-        idx = np.stack(np.unravel_index(vox, self.grid.shape), axis=1)
-        return np.asarray(self.grid.min_corner_m, np.float64) + (idx + 0.5) * self.grid.voxel_size_m
+    #: Voxels per edge of the groups a ping tests first (:meth:`_near`).
+    GROUP = 8
 
-    def _view(self, p: int, pc: _PingCells, vox: np.ndarray, centres: np.ndarray):
-        """Ping ``p``'s view of voxels ``vox`` (sorted flat indices): the sums go in, the pairs come out."""
+    def _voxels(self, vox: np.ndarray) -> dict:
+        """Voxels ``vox`` (sorted flat indices) with their centres, grouped in cubes of :attr:`GROUP`
+        voxels: each group's centre and, in group order, where its voxels lie in ``vox``."""
+        idx = np.stack(np.unravel_index(vox, self.grid.shape), axis=1)
+        s, lo = self.grid.voxel_size_m, np.asarray(self.grid.min_corner_m, np.float64)
+        g = idx // self.GROUP
+        gid = np.ravel_multi_index(tuple(g.T), tuple(-(-np.asarray(self.grid.shape) // self.GROUP)))
+        order = np.argsort(gid, kind="stable")
+        ids, first = np.unique(gid[order], return_index=True)
+        gidx = np.stack(np.unravel_index(ids, tuple(-(-np.asarray(self.grid.shape) // self.GROUP))), axis=1)
+        return {"vox": vox, "centres": lo + (idx + 0.5) * s, "order": order,
+                "bounds": np.r_[first, len(vox)], "gcentres": lo + (gidx + 0.5) * self.GROUP * s}
+
+    def _near(self, T_W_S: np.ndarray, vs: dict) -> np.ndarray:
+        """Indices into ``vs["vox"]`` (ascending) of the voxels in groups that may meet the ping's arc:
+        a group's bounding sphere ahead of the sonar, within its range and within reach of the aperture's
+        slab (the exact tests follow, voxel by voxel)."""
+        rad = 0.5 * np.sqrt(3.0) * self.GROUP * self.grid.voxel_size_m + self.sc["half"]
+        x, y, z = _in_sonar(T_W_S, vs["gcentres"])
+        h = np.sqrt(x * x + y * y)
+        half = self.sc["half_el"]
+        ok = (x > -rad) & (h * h + z * z < (self.spec.range_max_m + rad) ** 2)
+        if half < 1.5:  # the distance to the slab's cone, in the group's meridian plane
+            ok &= np.abs(z) - np.tan(half) * h <= rad / np.cos(half) + 1e-9
+        g = np.flatnonzero(ok)
+        b = vs["bounds"]
+        n = b[g + 1] - b[g]
+        at = np.repeat(b[g] - np.cumsum(n) + n, n) + np.arange(int(n.sum()))
+        keep = np.zeros(len(vs["vox"]), bool)  # back to ascending order without a sort
+        keep[vs["order"][at]] = True
+        return np.flatnonzero(keep)
+
+    def _view(self, p: int, pc: _PingCells, vs: dict):
+        """Ping ``p``'s view of the voxels of ``vs`` (:meth:`_voxels`): the sums go in, the pairs come out."""
         sc, spec = self.sc, self.spec
-        k, _, elev, j0, j1, c0, c1, front = _geometry(spec, self.edges, pc.T_W_S, centres, sc["n_rc"],
-                                                      sc["half"], sc["cell_m"], sc["half_el"], pc.first,
-                                                      sc["front_tol"])
-        v = vox[k]
+        near = self._near(pc.T_W_S, vs)
+        k, _, elev, j0, j1, c0, c1, front = _geometry(spec, self.edges, pc.T_W_S, vs["centres"][near],
+                                                      sc["n_rc"], sc["half"], sc["cell_m"], sc["half_el"],
+                                                      pc.first, sc["front_tol"])
+        v = vs["vox"][near[k]]
         self.seen[v] += 1  # a ping sees a voxel once: no repeated index
         self.fan[v[np.abs(elev) <= 0.5 * spec.vfov_rad]] += 1
         self.front[v[front]] += 1
@@ -608,36 +641,38 @@ class _Pairs:
             self.bright[pv[np.r_[True, pv[1:] != pv[:-1]]]] += 1
         cell = pc.lit[at].astype(np.int64)
         key = (p * self.grid.n_voxels + pv.astype(np.int64)) * sc["n_cells"] + cell
-        return key, pv.astype(np.int32), (self.slot0[p] + at).astype(np.int32)
+        start = np.ones(len(pv), bool)
+        start[1:] = pv[1:] != pv[:-1]
+        return key, pv.astype(np.int32), (self.slot0[p] + at).astype(np.int32), start
 
     def add_views(self, pings: list[_PingCells], cand_flat: np.ndarray) -> None:
         """View the voxels that are candidates for the first time in every ping viewed before, and the
         pings not viewed yet (from ``pings``, those kept so far) in every voxel ever a candidate."""
         new = cand_flat[~self.viewed[cand_flat]]
         if len(new) and self.n_pings:
-            cen = self._centres(new)
-            parts = [self._view(p, pings[p], new, cen) for p in range(self.n_pings)]
+            vs = self._voxels(new)
+            parts = [self._view(p, pings[p], vs) for p in range(self.n_pings)]
             key = np.concatenate([q[0] for q in parts])
             order = np.argsort(key, kind="stable")
             at = np.searchsorted(self.key, key[order])
             self.key = np.insert(self.key, at, key[order])
             self.vox = np.insert(self.vox, at, np.concatenate([q[1] for q in parts])[order])
             self.slot = np.insert(self.slot, at, np.concatenate([q[2] for q in parts])[order])
+            self.start = np.insert(self.start, at, np.concatenate([q[3] for q in parts])[order])
         self.viewed[new] = True
         if self.n_pings < len(pings):
             slots = self.slot0[-1] + sum(len(pc.lit) for pc in pings[self.n_pings:])
             if slots >= 2**31 or (len(pings) * self.grid.n_voxels + 1) * self.sc["n_cells"] >= 2**62:
                 raise ValueError(f"Expected fewer pings for the live surface layer's indices, but got "
                                  f"{len(pings)} pings of {slots} bright cells")
-            vox = np.flatnonzero(self.viewed)
-            cen = self._centres(vox)
-            parts = [self.key], [self.vox], [self.slot]
+            vs = self._voxels(np.flatnonzero(self.viewed))
+            parts = [self.key], [self.vox], [self.slot], [self.start]
             for p in range(self.n_pings, len(pings)):
                 self.slot0.append(self.slot0[-1] + len(pings[p].lit))
-                for lst, a in zip(parts, self._view(p, pings[p], vox, cen), strict=True):
+                for lst, a in zip(parts, self._view(p, pings[p], vs), strict=True):
                     lst.append(a)
             self.n_pings = len(pings)
-            self.key, self.vox, self.slot = (np.concatenate(lst) for lst in parts)
+            self.key, self.vox, self.slot, self.start = (np.concatenate(lst) for lst in parts)
 
     def explain(self, cand_flat: np.ndarray, w0: np.ndarray | None):
         """Steps 3-4 over the candidates ``cand_flat`` (sorted flat indices, all viewed): (alive (n,),
@@ -649,8 +684,8 @@ class _Pairs:
         pos[cand_flat[alive]] = np.flatnonzero(alive)
         c = pos[self.vox]
         ok = c >= 0
-        c, s, g = c[ok], self.slot[ok].astype(np.int64), self.key[ok] // self.sc["n_cells"]
-        first = np.r_[True, g[1:] != g[:-1]] if len(g) else np.zeros(0, bool)
+        # a voxel's pairs of a ping stay or go together: the runs that stay are still runs
+        c, s, first = c[ok], self.slot[ok].astype(np.int64), self.start[ok]
         seg = np.cumsum(first) - 1  # (ping, voxel) runs, in order
         seg_c = c[first]
         bright = np.where(alive, self.bright[cand_flat], 0).astype(np.uint32)
@@ -671,7 +706,8 @@ class _Pairs:
         rc = rank[c]
         best = np.zeros(n_slots, np.int64)
         np.maximum.at(best, s, rc)
-        won = np.unique(seg[best[s] == rc])
+        won = seg[best[s] == rc]  # sorted: each run once
+        won = won[np.r_[True, won[1:] != won[:-1]]] if len(won) else won
         votes = np.bincount(seg_c[won], minlength=n).astype(np.uint32)
         return alive, w, votes, self.seen[cand_flat].copy(), bright
 
@@ -729,7 +765,7 @@ class LiveSurface:
 
     @property
     def n_pairs(self) -> int:
-        """(ping, voxel, bright cell) pairs held (the layer's memory: 10 bytes each)."""
+        """(ping, voxel, bright cell) pairs held (the layer's memory: 17 bytes each)."""
         return 0 if self._pairs is None else len(self._pairs.key)
 
     def add(self, images: np.ndarray, poses: np.ndarray) -> None:
