@@ -41,8 +41,8 @@ Use: :func:`surface_from_mapper` (a mapper and the pings it integrated), :func:`
 (the evidence rule's decision and the pings), :func:`surface_from_frames` (pings streamed once, e.g.
 from a recording), :class:`LiveSurface` (a live mapper's layer: pings added per batch as the mapper
 integrates them, the layer updated whenever wanted; ``gpumap replay`` and the ROS node use it). The
-candidates come through the mapper's public reading (:func:`map_candidates`: its occupied voxels),
-so the layer follows whatever its rule decides. :meth:`SurfaceLayer.save` writes the layer beside the
+candidates come through the mapper's own decision (:func:`map_candidates`), so the layer follows
+whatever it decides. :meth:`SurfaceLayer.save` writes the layer beside the
 safe map as a refined map file (``gpumap view`` / ``gpumap export --layer surface|safe`` read it).
 
 What it gets and misses (``python -m bench.surface``): on the simulated scenes it keeps the
@@ -719,13 +719,12 @@ class _Pairs:
 
 
 def map_candidates(mapper) -> tuple[np.ndarray, np.ndarray]:
-    """(candidates, observed), (nx, ny, nz) bool each, of a mapper through its public reading: the
-    voxels its rule calls occupied (``values() >= threshold``, compared in float32 as the kernels count
-    a view bright) and those some ping observed. With ``rule="evidence"`` the candidates are exactly
-    :func:`gpumap.reference.evidence_occupied` of its counts; they follow whatever the rule decides."""
-    v = mapper.raw_values()
-    obs = np.isfinite(v)
-    return obs & (v >= np.float32(mapper.threshold)), obs
+    """(candidates, observed), (nx, ny, nz) bool each, of a mapper with view counts (``rule="evidence"``
+    or ``"visible"``): the voxels the evidence rule's decision calls occupied, as the mapper's
+    :attr:`~gpumap.MinMaxMapper.value_rule` decides them now (its settings and decision, read-time:
+    the layer follows whatever it decides), and those some ping observed."""
+    ev = mapper.evidence()
+    return mapper.value_rule.occupied(ev["count"], ev["hits"]), np.isfinite(ev["min_all"])
 
 
 class LiveSurface:
@@ -833,9 +832,9 @@ def surface_from_mapper(mapper, images: np.ndarray | None = None, poses: np.ndar
                         options: SurfaceOptions | None = None,
                         frames: Iterable[tuple[np.ndarray, np.ndarray]] | None = None) -> SurfaceLayer:
     """The surface layer of a :class:`gpumap.MinMaxMapper` with ``rule="evidence"`` or ``"visible"``
-    (candidates: the evidence rule's occupied voxels at the mapper's ``bright_share`` and
-    ``share_z``; its grid, spec and threshold) from the pings it integrated: ``images`` and
-    ``poses`` as :func:`surface_from_evidence` takes them, or ``frames`` as
+    (candidates: the evidence rule's occupied voxels by the mapper's decision,
+    :meth:`gpumap.rules.ValueRule.occupied`; its grid, spec and threshold) from the pings it
+    integrated: ``images`` and ``poses`` as :func:`surface_from_evidence` takes them, or ``frames`` as
     :func:`surface_from_frames` does."""
     if (frames is None) == (images is None and poses is None):
         raise ValueError("Expected either images and poses or frames, but got "
