@@ -61,6 +61,7 @@ its layer is the oracle's bit for bit; its memory is 17 bytes per (ping, voxel, 
 from __future__ import annotations
 
 import dataclasses
+import threading
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -629,22 +630,29 @@ class _Pairs:
         keep[vs["order"][at]] = True
         return np.flatnonzero(keep)
 
-    def _view(self, p: int, pc: _PingCells, vs: dict):
-        """Ping ``p``'s view of the voxels of ``vs`` (:meth:`_voxels`): the sums go in, the pairs come out."""
+    def _view(self, p: int, pc: _PingCells, vs: dict, sign: int = 1):
+        """Ping ``p``'s view of the voxels of ``vs`` (:meth:`_voxels`): the sums go in (``sign`` -1: out
+        again, and no pairs), the pairs come out."""
         sc, spec = self.sc, self.spec
         near = self._near(pc.T_W_S, vs)
         k, _, elev, j0, j1, c0, c1, front = _geometry(spec, self.edges, pc.T_W_S, vs["centres"][near],
                                                       sc["n_rc"], sc["half"], sc["cell_m"], sc["half_el"],
                                                       pc.first, sc["front_tol"])
         v = vs["vox"][near[k]]
-        self.seen[v] += 1  # a ping sees a voxel once: no repeated index
-        self.fan[v[np.abs(elev) <= 0.5 * spec.vfov_rad]] += 1
-        self.front[v[front]] += 1
-        self.sens[v] += (c1 - c0 + 1) * (j1 - j0 + 1)
+        one = np.uint32(1)
+        add = np.add if sign > 0 else np.subtract  # a ping sees a voxel once: no repeated index
+        self.seen[v] = add(self.seen[v], one)
+        f = v[np.abs(elev) <= 0.5 * spec.vfov_rad]
+        self.fan[f] = add(self.fan[f], one)
+        self.front[v[front]] = add(self.front[v[front]], one)
+        self.sens[v] = add(self.sens[v], (c1 - c0 + 1) * (j1 - j0 + 1))
         which, at = _bright_pairs(pc.lit, sc["n_rc"], spec.n_beams, j0, j1, c0, c1)
         pv = v[which]
         if len(pv):
-            self.bright[pv[np.r_[True, pv[1:] != pv[:-1]]]] += 1
+            b = pv[np.r_[True, pv[1:] != pv[:-1]]]
+            self.bright[b] = add(self.bright[b], one)
+        if sign < 0:
+            return None
         cell = pc.lit[at].astype(np.int64)
         key = (p * self.grid.n_voxels + pv.astype(np.int64)) * sc["n_cells"] + cell
         start = np.ones(len(pv), bool)
@@ -679,6 +687,26 @@ class _Pairs:
                     lst.append(a)
             self.n_pings = len(pings)
             self.key, self.vox, self.slot, self.start = (np.concatenate(lst) for lst in parts)
+
+    def drop(self, pings: list[_PingCells]) -> None:
+        """Forget the first ``len(pings)`` pings viewed (``pings``: those same pings): their sums come out
+        (each ping's view worked out again, exactly as it went in) and their pairs, the first ones held,
+        are cut off; the pings after them are numbered from 0."""
+        m = len(pings)
+        if m == 0:
+            return
+        if m > self.n_pings:
+            raise ValueError(f"Expected at most the {self.n_pings} pings viewed to drop, but got {m}")
+        vs = self._voxels(np.flatnonzero(self.viewed))
+        for p, pc in enumerate(pings):
+            self._view(p, pc, vs, sign=-1)
+        cut = m * self.grid.n_voxels * self.sc["n_cells"]
+        i = int(np.searchsorted(self.key, cut))
+        self.key = self.key[i:] - cut
+        self.vox, self.start = self.vox[i:], self.start[i:]
+        self.slot = self.slot[i:] - np.int32(self.slot0[m])
+        self.slot0 = [x - self.slot0[m] for x in self.slot0[m:]]
+        self.n_pings -= m
 
     def explain(self, cand_flat: np.ndarray, w0: np.ndarray | None):
         """Steps 3-4 over the candidates ``cand_flat`` (sorted flat indices, all viewed): (alive (n,),
@@ -747,9 +775,17 @@ class LiveSurface:
     warm_start : bool
         Start the weights from the last update's (new candidates at 1): a few iterations per update
         carry the weights on across updates, but the layer is then no longer the offline one.
+    max_pings : int or None
+        Keep the newest this many pings at most (None: all): an update then drops the oldest and is
+        the offline layer of the newest ``max_pings`` pings on the map of every ping, and the layer's
+        memory (its pairs) stops growing with the run.
     """
 
-    def __init__(self, mapper, options: SurfaceOptions | None = None, warm_start: bool = False) -> None:
+    def __init__(self, mapper, options: SurfaceOptions | None = None, warm_start: bool = False,
+                 max_pings: int | None = None) -> None:
+        if max_pings is not None and (isinstance(max_pings, bool) or max_pings < 1
+                                      or not isinstance(max_pings, (int, np.integer))):
+            raise ValueError(f"Expected max_pings to be a positive integer or None, but got {max_pings!r}")
         if getattr(mapper, "rule", None) not in ("evidence", "visible"):
             raise ValueError(f"Expected a mapper with rule='evidence' or 'visible', but got "
                              f"{getattr(mapper, 'rule', None)!r}")
@@ -759,14 +795,23 @@ class LiveSurface:
         self.mapper = mapper
         self.options = options or SurfaceOptions()
         self.warm_start = bool(warm_start)
+        self.max_pings = None if max_pings is None else int(max_pings)
+        self._lock = threading.Lock()  # the list of pings, between add() and an update's drop
         self._pings: list[_PingCells] = []
+        self._dropped = 0  # pings dropped from the front (max_pings): the list starts at this one
         self._weights: np.ndarray | None = None  # per voxel, NaN where never a candidate
         self._pairs = _Pairs(mapper.grid, mapper.spec, self.options) if self.options.passes == 1 else None
         self.layer: SurfaceLayer | None = None
 
     @property
     def n_pings(self) -> int:
+        """Pings held (added and not dropped)."""
         return len(self._pings)
+
+    @property
+    def n_added(self) -> int:
+        """Pings ever added (the held ones are the last :attr:`n_pings` of them)."""
+        return self._dropped + len(self._pings)
 
     @property
     def n_pairs(self) -> int:
@@ -780,18 +825,20 @@ class LiveSurface:
         cell_m = self.options.cell_m or 0.5 * self.mapper.grid.voxel_size_m
         new = [_prepare(i, T, self.mapper.spec, self.mapper.threshold, cell_m, self.options.live_ping_share)
                for i, T in zip(images, poses, strict=True)]
-        self._pings += new  # one list extension: atomic for a reader on another thread
+        with self._lock:
+            self._pings += new
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray, int]:
-        """(candidates, observed, pings kept): the map now and how many pings it holds, for
+        """(candidates, observed, :attr:`n_added`): the map now and how many pings it holds, for
         :meth:`update` on another thread; take it while nothing integrates or adds (a live mapper's
         lock), so that the map and the pings match."""
         cand, obs = map_candidates(self.mapper)
-        return cand, obs, len(self._pings)
+        return cand, obs, self.n_added
 
     def reset(self) -> None:
         """Forget every ping (with the mapper's own ``reset``)."""
-        self._pings = []
+        with self._lock:
+            self._pings, self._dropped = [], 0
         self._weights = None
         if self._pairs is not None:
             self._pairs = _Pairs(self.mapper.grid, self.mapper.spec, self.options)
@@ -804,13 +851,19 @@ class LiveSurface:
 
         t0 = time.perf_counter()
         m = self.mapper
-        cand, obs, n_pings = snapshot if snapshot is not None else self.snapshot()
-        pings = self._pings[:n_pings]
+        cand, obs, n_added = snapshot if snapshot is not None else self.snapshot()
+        pairs = self._pairs  # one object for the whole update, even if reset meanwhile
+        with self._lock:
+            old = 0 if self.max_pings is None else max(0, n_added - self._dropped - self.max_pings)
+            if old:  # the oldest go: out of the sums and pairs where viewed, then off the list
+                if pairs is not None:
+                    pairs.drop(self._pings[:min(old, pairs.n_pings)])
+                self._pings, self._dropped = self._pings[old:], self._dropped + old
+            pings = self._pings[:n_added - self._dropped]
         flat = np.flatnonzero(cand)
         w0 = None
         if self.warm_start and self._weights is not None:
             w0 = np.nan_to_num(self._weights[flat], nan=1.0)
-        pairs = self._pairs  # one object for the whole update, even if reset meanwhile
         if pairs is None:
             layer, w = _layer(cand, obs, m.grid, m.spec, pings, self.options, w0)
         else:
@@ -824,6 +877,7 @@ class LiveSurface:
             self._weights[flat] = w
         layer.stats["seconds"] = time.perf_counter() - t0
         layer.stats["warm"] = w0 is not None
+        layer.stats["first_ping"] = n_added - len(pings)  # of those ever added, from 0
         self.layer = layer
         return layer
 

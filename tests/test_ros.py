@@ -162,6 +162,38 @@ def test_live_surface_worker_publishes_the_offline_layer_of_the_pings_mapped():
     assert surf.stats()["surface_pings"] == 0 and surf.surface.n_pings == 0
 
 
+def test_live_surface_worker_with_a_window_publishes_the_newest_pings_layer():
+    """max_pings: every published layer is the offline layer of the newest pings it holds, on the map
+    of every ping mapped up to then."""
+    from gpumap.ros.live import LiveSurfaceWorker
+    from gpumap.surface import surface_from_mapper
+
+    imgs, Ts = _small_pings(12, seed=4)
+    m = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy", threshold=0.4)
+    published = []
+    live = LiveMapper(m, queue_size=64, max_batch=2)
+    surf = LiveSurfaceWorker(live, on_publish=lambda layer, t: published.append((layer, t)), max_pings=5)
+    s = 1_000_000_000
+    for k in range(12):
+        live.add_pose(k * s, Ts[k])
+    live.start()
+    surf.start()
+    for k in range(12):
+        live.add_ping(k * s, imgs[k])
+        time.sleep(0.01)
+    live.stop(drain=True)
+    surf.stop()
+    assert surf.error is None and published[-1][1] == 11 * s
+    for layer, t in published:
+        n, lo = t // s + 1, layer.stats["first_ping"]
+        assert lo == max(0, n - 5) and layer.stats["pings"] == n - lo
+        ref = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy", threshold=0.4)
+        ref.integrate_batch(imgs[:n], Ts[:n])
+        off = surface_from_mapper(ref, imgs[lo:n], Ts[lo:n])
+        assert np.array_equal(layer.surface, off.surface) and np.array_equal(layer.votes, off.votes)
+    assert surf.stats()["surface_pings"] == 5
+
+
 # ------------------------------------------------------------------------ conversions
 @needs_ros
 @pytest.mark.parametrize("encoding", ["mono8", "mono16", "32FC1"])

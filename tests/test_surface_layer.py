@@ -477,3 +477,27 @@ def test_replay_builds_the_surface_layer_in_its_one_pass(tmp_path, monkeypatch):
     got = load_refined(out / "surface.npz")
     assert ref.stats["pings"] == 6 and ref.surface.sum() > 0
     np.testing.assert_array_equal(got.occupancy, ref.values())
+
+
+def test_live_surface_with_a_window_is_the_offline_layer_of_the_newest_pings(scene):
+    """max_pings: each update drops the oldest pings (their sums out, their pairs cut off) and is the
+    offline layer of the newest max_pings pings on the map of every ping, voxel for voxel."""
+    from gpumap.surface import LiveSurface
+
+    images, poses = scene["images"], scene["poses"]
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="evidence", threshold=THR)
+    live = LiveSurface(m, max_pings=4)
+    held = []
+    for a, b in ((0, 3), (3, 5), (5, 6), (6, 11), (11, 12)):
+        m.integrate_batch(images[a:b], poses[a:b])
+        live.add(images[a:b], poses[a:b])
+        got = live.update()
+        lo = max(0, b - 4)
+        ref = surface_from_mapper(m, images[lo:b], poses[lo:b])
+        for name in ("surface", "votes", "views", "bright_views"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=f"{name} after {b}")
+        assert got.stats["pings"] == b - lo and got.stats["first_ping"] == lo and live.n_added == b
+        held.append(live.n_pairs)
+    assert live.n_pings == 4 and max(held) < 2 * min(held[2:])  # bounded, not growing with the run
+    with pytest.raises(ValueError, match="max_pings"):
+        LiveSurface(m, max_pings=0)

@@ -546,15 +546,18 @@ class LiveSurfaceWorker:
     log : callable, optional
     clock : callable
         Monotonic seconds (as the live mapper's).
+    max_pings : int, optional
+        The layer of the newest this many pings only (:class:`gpumap.surface.LiveSurface`): its memory
+        and its updates' cost stop growing with the run.
     """
 
     def __init__(self, live: LiveMapper, options=None, on_publish=None,
                  log: Callable[[str], None] | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, max_pings: int | None = None) -> None:
         from gpumap.surface import LiveSurface
 
         self.live = live
-        self.surface = LiveSurface(live.mapper, options)
+        self.surface = LiveSurface(live.mapper, options, max_pings=max_pings)
         self.on_publish = on_publish
         self._log = log or (lambda text: None)
         self._clock = clock
@@ -650,18 +653,20 @@ class LiveSurfaceWorker:
             return self.surface.update(snap), values
 
     def stats(self) -> dict:
-        """``surface_pings`` (pings the published layer covers), ``surface_waiting`` (pings mapped, not
-        yet in it), ``surface_age_s`` (how long the oldest of those has waited since it arrived; 0
-        when none waits), ``surface_latency_max_s`` (arrival to published, the worst over the last
-        pings), ``surface_update_s`` (the last update's seconds), ``surface_updates``,
-        ``surface_voxels``, ``surface_pairs``."""
+        """``surface_pings`` (pings the published layer holds: every ping mapped up to its newest, or the
+        newest ``max_pings`` of them), ``surface_waiting`` (pings mapped, not yet in it),
+        ``surface_age_s`` (how long the oldest of those has waited since it arrived; 0 when none waits),
+        ``surface_latency_max_s`` (arrival to published, the worst over the last pings),
+        ``surface_update_s`` (the last update's seconds), ``surface_updates``, ``surface_voxels``,
+        ``surface_pairs``."""
         now = self._clock()
         with self._cond:
             held, cov = len(self._stamps), self.covered
             age = now - self._arrivals[cov] if held > cov else 0.0
             lat = max(self.latencies_s) if self.latencies_s else float("nan")
             voxels = int(self.layer.surface.sum()) if self.layer is not None else 0
-        return {"surface_pings": cov, "surface_waiting": held - cov, "surface_age_s": age,
+            in_layer = self.layer.stats["pings"] if self.layer is not None else 0
+        return {"surface_pings": in_layer, "surface_waiting": held - cov, "surface_age_s": age,
                 "surface_latency_max_s": lat, "surface_update_s": self.last_update_s,
                 "surface_updates": self.updates, "surface_voxels": voxels,
                 "surface_pairs": self.surface.n_pairs}

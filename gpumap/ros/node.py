@@ -41,7 +41,8 @@ reliable and transient-local; each is the offline layer (:func:`gpumap.surface.s
 of the pings it covers. ``/diagnostics`` then adds ``surface_pings`` (covered), ``surface_waiting``
 (mapped, not yet in it), ``surface_age_s`` (how long the oldest of those has waited since it arrived),
 ``surface_latency_max_s``, ``surface_update_s`` (the last update's seconds), ``surface_updates`` and
-``surface_voxels``.
+``surface_voxels``. The layer keeps every ping (its memory and its updates grow with the run) unless
+``surface_max_pings`` bounds it to the newest ones.
 
 Services (``std_srvs/Trigger``): ``~/save_map`` writes ``save_path`` atomically: with the surface
 layer, both layers in one file (the safe map's values and the surface layer of every ping mapped so
@@ -125,6 +126,9 @@ PARAMETERS: dict[str, tuple[object, str]] = {
                 "~/surface_markers, updated as often as the machine allows; ~/save_map then writes both "
                 "layers in one file (gpumap view/export --layer surface|safe); needs rule evidence or "
                 "visible"),
+    "surface_max_pings": (0, "the surface layer of the newest this many pings only, so that its memory "
+                          "(17 bytes per ping, voxel and bright cell: ~25k a ping on the real tank at 5 cm) "
+                          "and its updates stop growing with the run (0: every ping)"),
     "queue_size": (32, "pings held at most; a new ping finding it full drops the oldest (counted)"),
     "max_batch": (16, "pings per integrate_batch call at most"),
     "pose_wait_s": (0.5, "how long a ping newer than every pose waits for one, seconds"),
@@ -292,7 +296,12 @@ def make_node(node_name: str = NODE_NAME, context=None):
                 from gpumap.ros.live import LiveSurfaceWorker
                 from gpumap.surface import SURFACE_LEVEL
 
-                self.surf = LiveSurfaceWorker(self.live, on_publish=self._publish_surface, log=log.warning)
+                n = p["surface_max_pings"]
+                if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+                    raise ValueError(f"Expected parameter surface_max_pings to be an integer >= 0, but got "
+                                     f"{n!r}")
+                self.surf = LiveSurfaceWorker(self.live, on_publish=self._publish_surface, log=log.warning,
+                                              max_pings=n or None)
                 self.surf_blocks = MarkerBlocks(self.grid, SURFACE_LEVEL)
                 self._surf_marker_subs = 0
             self._marker_subs = 0
