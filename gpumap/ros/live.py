@@ -647,10 +647,12 @@ class LiveSurfaceWorker:
         """(the layer of every ping mapped so far, the map's values (nx, ny, nz) float32 of the same
         moment): for saving both layers together; waits for an update in progress."""
         with self._update_lock:
-            with self.live._map_lock:
+            with self.live._map_lock, self._cond:
                 snap = self.surface.snapshot()
                 values = self.live.mapper.values()
-            return self.surface.update(snap), values
+                done = self.layer if self.layer is not None and snap[2] == self.covered else None
+            # the last layer published is of this very map when no ping came since (after stop())
+            return (done if done is not None else self.surface.update(snap)), values
 
     def stats(self) -> dict:
         """``surface_pings`` (pings the published layer holds: every ping mapped up to its newest, or the
