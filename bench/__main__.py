@@ -39,6 +39,7 @@ BENCHMARKS: dict[str, str] = {
     "ekf_registration": "the EKF with scan registration on the full real tank run: dev, held-out, full",
     "gpu_scale": "one GPU (two source trees side by side) and 1 vs 2 GPU workers, with the oracle check",
     "surface": "the surface layer against the visible and evidence maps: simulated truth, real first returns",
+    "surface_rate": "the live surface layer at the sonar's rate on the full real run; replay with both",
     "nbv": "next best views: planned against rolled and random views; view_gain speed",
     "ekf_bench": "the EKF on the prism simulation (NEES, odometry sweep, update cost; --vs-batch)",
     "ekf_real": "the EKF on the full real tank: EKF/odometry per variant, drift, seed; dev and held-out",

@@ -140,6 +140,18 @@ def summary_rows() -> list[tuple[str, str, str]]:
                              f"{what}, first returns agreed / phantoms in front / missed: {names}",
                              ", ".join(" / ".join(_pct(r[key][k]) for k in JUDGED) for r in picks),
                              "real_frontier.json"))
+    sr = _load("surface_rate.json")
+    if sr and sr.get("streams"):
+        r = sr["streams"][0]
+        load = (r.get("load_avg_before") or ["?"])[0]
+        rows.append((f"... the live surface layer, the full run played at {r['hz']:g} Hz on the shared "
+                     f"2-core CPU ({r['backend']}, load {load}): layer age median / max, its work a ping",
+                     f"{r['age_s']['median']:.1f} s / {r['age_s']['max']:.1f} s, "
+                     f"{r['surface_ms_per_ping']:.0f} ms", "surface_rate.json"))
+        if sr.get("replay"):
+            rows.append(("... `gpumap replay` of the full run writing both layers over the safe layer alone "
+                         "(paired runs, loaded machine)", f"{sr['replay']['ratio_median']:.2f}x",
+                         "surface_rate.json"))
     lr = _load("long_run.json")
     if lr:
         cells = [f"{name} {rule} {_pct(sc['curves'][rule][0]['miss_rate_objects'])} / "
