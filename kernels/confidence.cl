@@ -1,0 +1,367 @@
+// The confidence layer's per-ping pass in OpenCL C 1.2 (device code only; twin: confidence.py, whose
+// docstring tells the five launches). Same kernels, same arguments in the same order as the Warp twin
+// (OpenCL, without array lengths, adds them where the Warp kernels read them from an array: the
+// beam look-up table's length is P.lut_n; each kernel takes its work size and returns past it).
+// PingParams matches gpumap.geometry.PING_DTYPE field for field (a copy of minmax.cl's, so the two
+// programs build on their own); beam_index_lo, voxel_address and the arc direction are copies of
+// minmax.cl's and viewgain.cl's, with the same arithmetic. The evidence rule's test is float64.
+
+// No FMA contraction: every device then rounds as the NumPy reference does, bit for bit.
+#pragma OPENCL FP_CONTRACT OFF
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+
+typedef struct {
+    float A[9];
+    float b[3];
+    float R[9];
+    float t[3];
+    float origin[3];
+    float voxel;
+    float rmin;
+    float rmax;
+    float inv_dr;
+    float tan2_half_vfov;
+    float tan_lo;
+    float tan_hi;
+    float rho;
+    int dims[3];
+    int box_lo[3];
+    int box_n[3];
+    int n_bins;
+    int n_beams;
+    int n_points;
+    int win;
+    int n_levels;
+    float lut_scale;
+    int lut_n;
+    float wedge[4];
+    float slab;
+    int chunk;
+    float near;
+    float thr;
+    float thr_dark;
+    int rule;
+    int blk_lo[3];
+    int blk_n[3];
+    int blk;
+    int blk_z;
+} PingParams;
+
+#define COUNT_LOW 0xFFFFFFFFUL
+
+// Largest beam j in [0, n_beams - 1] with tan_edges[j] <= t (0 when none): the look-up table's
+// guess (clamped as a float, so any t is safe), settled by exact comparisons.
+inline int beam_index_lo(float t, __global const float *tan_edges, __global const int *lut, const PingParams *P)
+{
+    float f = floor((t - P->tan_lo) * P->lut_scale);
+    int m = 0;
+    if (f >= (float)(P->lut_n - 1)) m = P->lut_n - 1;
+    else if (f > 0.0f) m = (int)f;
+    int j = lut[m];
+    while (j < P->n_beams - 1 && tan_edges[j + 1] <= t) ++j;
+    while (j > 0 && tan_edges[j] > t) --j;
+    return j;
+}
+
+// First and last beam a sphere of radius w spans (gpumap.reference.beam_span).
+inline int span_lo(float t, float h2, float w, __global const float *tan_edges, __global const int *lut,
+                   const PingParams *P)
+{
+    float q = h2 - w * w;
+    if (q > 0.0f) {
+        float u = w / sqrt(q);
+        float d0 = 1.0f + t * u;
+        if (d0 > 0.0f) return beam_index_lo((t - u) / d0, tan_edges, lut, P);
+    }
+    return 0;
+}
+
+inline int span_hi(float t, float h2, float w, __global const float *tan_edges, __global const int *lut,
+                   const PingParams *P)
+{
+    float q = h2 - w * w;
+    if (q > 0.0f) {
+        float u = w / sqrt(q);
+        float d1 = 1.0f - t * u;
+        if (d1 > 0.0f) return beam_index_lo((t + u) / d1, tan_edges, lut, P);
+    }
+    return P->n_beams - 1;
+}
+
+// floor(x) clipped to [0, n_bins - 1] (clipped as a float: any x is safe).
+inline int bin_clip(float x, int n_bins)
+{
+    float f = floor(x);
+    if (f <= 0.0f) return 0;
+    if (f >= (float)(n_bins - 1)) return n_bins - 1;
+    return (int)f;
+}
+
+// The count over bins b0..b1 and beams j0..j1 of a table of per-beam running counts (T[i nj + j]: the
+// count of bins < i of beam j, nj beams), or the first partial sum past most.
+inline int count_in(__global const int *T, int nj, int b0, int b1, int j0, int j1, int most)
+{
+    int s = 0;
+    __global const int *hi = T + (b1 + 1) * nj, *lo = T + b0 * nj;
+    for (int j = j0; j <= j1; ++j) {
+        s += hi[j] - lo[j];
+        if (s > most) return s;
+    }
+    return s;
+}
+
+// Storage address of voxel (i, j, k) in the pool (minmax.cl's voxel_address); -1: no block.
+inline int voxel_address(const PingParams *P, __global const int *index, int i, int j, int k)
+{
+    int B = P->blk, Bz = P->blk_z;
+    int ri = i - P->blk_lo[0], rj = j - P->blk_lo[1], rk = k - P->blk_lo[2];
+    if (ri < 0 || rj < 0 || rk < 0) return -1;
+    int bi = ri / B, bj = rj / B, bk = rk / Bz;
+    if (bi >= P->blk_n[0] || bj >= P->blk_n[1] || bk >= P->blk_n[2]) return -1;
+    int slot = index[(bi * P->blk_n[1] + bj) * P->blk_n[2] + bk];
+    if (slot < 0) return -1;
+    return slot * B * B * Bz + ((ri - bi * B) * B + (rj - bj * B)) * Bz + rk - bk * Bz;
+}
+
+// 1 when the map value at pool address a (-1: no block, unknown) is >= thr or unknown (the rule's
+// value; the evidence test in float64 in the reference's order), else 0.
+inline int not_free(const PingParams *P, int a, __global const float *grid, __global const float *bright,
+                    __global const ulong *count, int carve_views, double p_min, double rhs)
+{
+    if (a < 0) return 1;
+    float v = grid[a];
+    if (P->rule != 0) {
+        float b = bright[a];
+        if (isfinite(b)) {
+            ulong c = count[a];
+            int keep = 0;
+            if (P->rule == 1) {
+                keep = (c & COUNT_LOW) < (ulong)carve_views;
+            } else {
+                ulong hits = c >> 32;
+                if (hits > 0UL) {
+                    double k = (double)hits;
+                    double n = k + (double)(c & COUNT_LOW);
+                    double share = k / n;
+                    double d = p_min - share;
+                    double dd = d * d;
+                    double lhs = dd * n;
+                    keep = share >= p_min || lhs <= rhs;
+                }
+            }
+            if (keep) v = b;
+        }
+    }
+    return v >= P->thr ? 1 : 0;
+}
+
+inline int arc_step(float d, float n2)
+{
+    if (4.0f * d * d > n2) return d > 0.0f ? 1 : -1;
+    return 0;
+}
+
+// 1 when the voxel at (r, h^2, t) is bright in the ping (a lit cell in its footprint: the mapping's
+// bins and beams) and a lit cell lies within tube of its centre (the echo).
+inline int echo_lit(const PingParams *P, float r, float h2, float t, __global const int *lit,
+                    __global const float *tan_edges, __global const int *lut, float tube)
+{
+    int nb = P->n_bins;
+    int first = (int)floor((r - P->near - P->rmin) * P->inv_dr);
+    int b0 = max(first, 0);
+    int b1 = min(first + P->win - 1, nb - 1);
+    int j0 = span_lo(t, h2, P->rho, tan_edges, lut, P);
+    int j1 = span_hi(t, h2, P->rho, tan_edges, lut, P);
+    if (count_in(lit, P->n_beams, b0, b1, j0, j1, 0) == 0) return 0;
+    b0 = bin_clip((r - tube - P->rmin) * P->inv_dr, nb);
+    b1 = bin_clip((r + tube - P->rmin) * P->inv_dr, nb);
+    j0 = span_lo(t, h2, tube, tan_edges, lut, P);
+    j1 = span_hi(t, h2, tube, tan_edges, lut, P);
+    if (count_in(lit, P->n_beams, b0, b1, j0, j1, 0) == 0) return 0;
+    return 1;
+}
+
+// One work-item per group beams (GPUs 1, CPUs a cache line's worth and more): lit[i, j] = lit cells
+// (>= thr) of beam j in bins < i (row by row: the reads run along the image's rows), and those beams'
+// rival counts zeroed; work-item 0 also empties the candidate list.
+__kernel void lit_cols(const PingParams P, __global const float *image, __global int *lit, __global int *rivals,
+                       __global int *n_cand, const int group, const int offset)
+{
+    int g = get_global_id(0) + offset;
+    int nj = P.n_beams;
+    int j0 = g * group, j1 = min(j0 + group, nj);
+    if (j0 >= nj) return;
+    for (int j = j0; j < j1; ++j) { lit[j] = 0; rivals[j] = 0; }
+    for (int i = 0; i < P.n_bins; ++i) {
+        __global int *row = lit + (i + 1) * nj;
+        __global int *riv = rivals + (i + 1) * nj;
+        __global const float *im = image + (size_t)i * nj;
+        for (int j = j0; j < j1; ++j) {
+            row[j] = row[j - nj] + (im[j] >= P.thr);
+            riv[j] = 0;
+        }
+    }
+    if (g == 0) n_cand[0] = 0;
+}
+
+// One work-item per group beams: those beams' rival counts as running counts (bins < i).
+__kernel void prefix_cols(const PingParams P, __global int *rivals, const int group, const int offset)
+{
+    int g = get_global_id(0) + offset;
+    int nj = P.n_beams;
+    int j0 = g * group, j1 = min(j0 + group, nj);
+    if (j0 >= nj) return;
+    for (int i = 2; i <= P.n_bins; ++i) {
+        __global int *row = rivals + i * nj;
+        for (int j = j0; j < j1; ++j) row[j] += row[j - nj];
+    }
+}
+
+// One work-item per (i, j) column of the box (see confidence.py): arcs, the rivals' counts, each box
+// voxel's rival cell (cells, box order: bin n_beams + beam, -1 not a rival) and the candidates.
+__kernel void conf_voxels(const PingParams P, __global const float *tan_edges, __global const int *lut,
+                          __global const int *index, __global const float *grid, __global const float *bright,
+                          __global const ulong *count, __global const int *lit, __global ushort *arcs,
+                          __global int *rivals, __global int *cells, __global int *cand, __global int *n_cand,
+                          const float cos_hv, const float sin_hv, const float tube, const float rmax_c,
+                          const float slab_c, const int carve_views, const double p_min, const double rhs)
+{
+    int col = get_global_id(0);
+    if (col >= P.box_n[0] * P.box_n[1]) return;
+    const PingParams *Q = &P;
+    int n2b = P.box_n[2];
+    int i = P.box_lo[0] + col / P.box_n[1];
+    int j = P.box_lo[1] + col - (col / P.box_n[1]) * P.box_n[1];
+    float cx = P.origin[0] + ((float)i + 0.5f) * P.voxel;
+    float cy = P.origin[1] + ((float)j + 0.5f) * P.voxel;
+    // the z-range of the column the rivals' region can hold, padded by a voxel (a relaxation)
+    int k0 = P.box_lo[2], k1 = k0 - 1;
+    float dx = cx - P.t[0], dy = cy - P.t[1];
+    float q = rmax_c * rmax_c - dx * dx - dy * dy;
+    if (q > 0.0f) {
+        float hw = sqrt(q);
+        float z0 = P.t[2] - hw, z1 = P.t[2] + hw;
+        float p0x = P.A[0] * cx + P.A[1] * cy + P.b[0];
+        float p0y = P.A[3] * cx + P.A[4] * cy + P.b[1];
+        float p0z = P.A[6] * cx + P.A[7] * cy + P.b[2];
+        float pad = 1.0e-4f * (1.0f + rmax_c);  // loosens each half-space against rounding (never tightens)
+        for (int h = 0; h < 4; ++h) {
+            float alpha, beta;
+            if (h == 0) {
+                alpha = P.wedge[0] * p0x + P.wedge[1] * p0y;
+                beta = P.wedge[0] * P.A[2] + P.wedge[1] * P.A[5];
+            } else if (h == 1) {
+                alpha = P.wedge[2] * p0x + P.wedge[3] * p0y;
+                beta = P.wedge[2] * P.A[2] + P.wedge[3] * P.A[5];
+            } else if (h == 2) {
+                alpha = slab_c - p0z;
+                beta = -P.A[8];
+            } else {
+                alpha = slab_c + p0z;
+                beta = P.A[8];
+            }
+            alpha = alpha + pad;
+            if (fabs(beta) < 1.0e-12f) {
+                if (alpha < 0.0f) z1 = z0 - 1.0f;
+            } else if (beta > 0.0f) {
+                z0 = fmax(z0, -alpha / beta);
+            } else {
+                z1 = fmin(z1, -alpha / beta);
+            }
+        }
+        if (z0 <= z1) {
+            k0 = max(P.box_lo[2], (int)ceil((z0 - P.origin[2]) / P.voxel - 0.5f) - 1);
+            k1 = min(P.box_lo[2] + n2b - 1, (int)floor((z1 - P.origin[2]) / P.voxel - 0.5f) + 1);
+        }
+    }
+    int nb = P.n_bins;
+    int ny = P.dims[1], nz = P.dims[2];
+    __global int *out = cells + (size_t)col * n2b - P.box_lo[2];
+    for (int k = P.box_lo[2]; k < P.box_lo[2] + n2b; ++k) {
+        int cell = -1;
+        if (k >= k0 && k <= k1) {
+            float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
+            float x = P.A[0] * cx + P.A[1] * cy + P.A[2] * cz + P.b[0];
+            float y = P.A[3] * cx + P.A[4] * cy + P.A[5] * cz + P.b[1];
+            float z = P.A[6] * cx + P.A[7] * cy + P.A[8] * cz + P.b[2];
+            float t = y / x;
+            if (x > 0.0f && t >= P.tan_lo && t <= P.tan_hi) {
+                float h2 = x * x + y * y;
+                float r = sqrt(h2 + z * z);
+                int seen = r >= P.rmin && r < P.rmax && z * z <= P.tan2_half_vfov * h2;
+                int near = r >= P.rmin - P.rho && r < P.rmax + P.rho
+                           && fabs(z) * cos_hv - sqrt(h2) * sin_hv <= P.rho;
+                int flat = (i * ny + j) * nz + k;
+                if (seen) {  // the elevation arc's direction (-x z, -y z, h^2) to the world, its pair bit
+                    float ex = -(x * z), ey = -(y * z), ez = h2;
+                    float wx = P.A[0] * ex + P.A[3] * ey + P.A[6] * ez;
+                    float wy = P.A[1] * ex + P.A[4] * ey + P.A[7] * ez;
+                    float wz = P.A[2] * ex + P.A[5] * ey + P.A[8] * ez;
+                    float n2 = wx * wx + wy * wy + wz * wz;
+                    int m = (arc_step(wx, n2) + 1) * 9 + (arc_step(wy, n2) + 1) * 3 + (arc_step(wz, n2) + 1);
+                    int bit = max(m, 26 - m) - 14;
+                    arcs[flat] = (ushort)(arcs[flat] | (ushort)(1 << bit));
+                }
+                if ((seen || near) && not_free(Q, voxel_address(Q, index, i, j, k), grid, bright, count,
+                                               carve_views, p_min, rhs)) {
+                    if (near) {
+                        int cb = bin_clip((r - P.rmin) * P.inv_dr, nb);
+                        int cj = beam_index_lo(t, tan_edges, lut, Q);
+                        cell = cb * P.n_beams + cj;
+                        atomic_add(&rivals[(cb + 1) * P.n_beams + cj], 1);
+                    }
+                    if (seen) cand[atomic_inc(n_cand)] = flat;
+                }
+            }
+        }
+        out[k] = cell;
+    }
+}
+
+// One work-item per candidate (those past the list's length return): confirmed when the rivals whose
+// centre cell lies within tube + rho of it are itself and its neighbours in the box.
+__kernel void conf_candidates(const PingParams P, __global const float *tan_edges, __global const int *lut,
+                              __global const int *lit, __global const int *rivals, __global const int *cells, __global const int *cand,
+                              __global const int *n_cand, __global uchar *confirmed, const float tube,
+                              const int offset)
+{
+    int c = get_global_id(0) + offset;
+    if (c >= n_cand[0]) return;
+    const PingParams *Q = &P;
+    int flat = cand[c];
+    int ny = P.dims[1], nz = P.dims[2];
+    int i = flat / (ny * nz);
+    int j = flat / nz - i * ny;
+    int k = flat - (i * ny + j) * nz;
+    float cx = P.origin[0] + ((float)i + 0.5f) * P.voxel;
+    float cy = P.origin[1] + ((float)j + 0.5f) * P.voxel;
+    float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
+    float x = P.A[0] * cx + P.A[1] * cy + P.A[2] * cz + P.b[0];
+    float y = P.A[3] * cx + P.A[4] * cy + P.A[5] * cz + P.b[1];
+    float z = P.A[6] * cx + P.A[7] * cy + P.A[8] * cz + P.b[2];
+    float h2 = x * x + y * y;
+    float r = sqrt(h2 + z * z);
+    float t = y / x;
+    int nb = P.n_bins;
+    float wide = tube + P.rho;
+    int b0 = bin_clip((r - wide - P.rmin) * P.inv_dr, nb);
+    int b1 = bin_clip((r + wide - P.rmin) * P.inv_dr, nb);
+    int j0 = span_lo(t, h2, wide, tan_edges, lut, Q);
+    int j1 = span_hi(t, h2, wide, tan_edges, lut, Q);
+    int total = count_in(rivals, P.n_beams, b0, b1, j0, j1, 27);
+    if (total > 27) return;  // more than the voxel and its 26 neighbours could be
+    if (!echo_lit(Q, r, h2, t, lit, tan_edges, lut, tube)) return;
+    int own = 0;
+    int li = i - P.box_lo[0], lj = j - P.box_lo[1], lk = k - P.box_lo[2];
+    for (int di = -1; di <= 1; ++di)
+        for (int dj = -1; dj <= 1; ++dj)
+            for (int dk = -1; dk <= 1; ++dk) {
+                int ii = li + di, jj = lj + dj, kk = lk + dk;
+                if (ii < 0 || ii >= P.box_n[0] || jj < 0 || jj >= P.box_n[1] || kk < 0 || kk >= P.box_n[2]) continue;
+                int cell = cells[(ii * P.box_n[1] + jj) * P.box_n[2] + kk];
+                if (cell < 0) continue;
+                int cb = cell / P.n_beams, cj = cell - cb * P.n_beams;
+                if (cb >= b0 && cb <= b1 && cj >= j0 && cj <= j1) ++own;
+            }
+    if (total == own) confirmed[flat] = 1;
+}
