@@ -42,7 +42,8 @@ def pass_scalars(spec, params: np.ndarray, half_rad: float, tube_m: float, value
     return {
         "cos_hv": np.float32(np.cos(half_rad)), "sin_hv": np.float32(np.sin(half_rad)),
         "tube": np.float32(tube_m), "rmax_c": np.float32(rmax_c), "slab_c": np.float32(slab_c),
-        "carve_views": np.int32(value_rule.carve_views), "p_min": np.float64(p), "rhs": np.float64(z * z * p * (1.0 - p)),
+        "carve_views": np.int32(value_rule.carve_views), "p_min": np.float64(p),
+        "rhs": np.float64(z * z * p * (1.0 - p)),
     }
 
 
@@ -109,8 +110,9 @@ class DeviceConfidence:
         self._halves(k.prefix_cols, n_groups, [P, self.rivals, g], split)
         n = n_box if self.gpu else int(self.n_cand.numpy()[0])
         if n:
-            self._halves(k.conf_candidates, n, [P, b.edges, b.lut, self.lit, self.rivals, self.cells, self.cand,
-                                                self.n_cand, self.confirmed, s["tube"]], split)
+            args = [P, b.edges, b.lut, self.lit, self.rivals, self.cells, self.cand, self.n_cand,
+                    self.confirmed, s["tube"]]
+            self._halves(k.conf_candidates, n, args, split)
 
     def _pool_split(self):
         """The CPU thread for the second half of a launch, or None (GPUs, one CPU thread)."""
@@ -192,8 +194,8 @@ class DeviceConfidence:
         zero = np.int32(0)
         K["lit_cols"](q, gs(n_groups), (wg,), P, image, self.lit, self.rivals, self.n_cand, g, zero)
         K["conf_voxels"](q, gs(n_cols), (wg,), P, *pool, self.lit, self.arcs_buf, self.rivals, self.cells,
-                         self.cand, self.n_cand, s["cos_hv"], s["sin_hv"], s["tube"], s["rmax_c"], s["slab_c"],
-                         s["carve_views"], s["p_min"], s["rhs"])
+                         self.cand, self.n_cand, s["cos_hv"], s["sin_hv"], s["tube"], s["rmax_c"],
+                         s["slab_c"], s["carve_views"], s["p_min"], s["rhs"])
         K["prefix_cols"](q, gs(n_groups), (wg,), P, self.rivals, g, zero)
         if self.gpu:
             n = n_box
@@ -202,8 +204,8 @@ class DeviceConfidence:
             cl.enqueue_copy(q, got, self.n_cand, is_blocking=True)
             n = int(got[0])
         if n:
-            K["conf_candidates"](q, gs(n), (wg,), P, b.edges, b.lut, self.lit, self.rivals, self.cells, self.cand,
-                                 self.n_cand, self.confirmed_buf, s["tube"], zero)
+            K["conf_candidates"](q, gs(n), (wg,), P, b.edges, b.lut, self.lit, self.rivals, self.cells,
+                                 self.cand, self.n_cand, self.confirmed_buf, s["tube"], zero)
         q.flush()
 
     # ------------------------------------------------------------------ the layer

@@ -462,7 +462,8 @@ def conf_candidates(
                 ii = li + di
                 jj = lj + dj
                 kk = lk + dk
-                if ii >= 0 and ii < P.box_n[0] and jj >= 0 and jj < P.box_n[1] and kk >= 0 and kk < P.box_n[2]:
+                inside = ii >= 0 and ii < P.box_n[0] and jj >= 0 and jj < P.box_n[1]
+                if inside and kk >= 0 and kk < P.box_n[2]:
                     cell = cells[(ii * P.box_n[1] + jj) * P.box_n[2] + kk]
                     if cell >= 0:
                         cb = cell // P.n_beams
