@@ -34,6 +34,7 @@ BENCHMARKS: dict[str, str] = {
     "gpu_scale": "one GPU (two source trees side by side) and 1 vs 2 GPU workers, with the oracle check",
     "surface": "the surface layer against the visible and evidence maps: simulated truth, real first returns",
     "nbv": "next best views: planned against rolled and random views; view_gain speed",
+    "confidence": "the confidence layer's cost on the device: mapping the real tank with and without it",
     "ekf_bench": "the EKF on the prism simulation (NEES, odometry sweep, update cost; --vs-batch)",
     "ekf_real": "the EKF on the full real tank: EKF/odometry per variant, drift, seed; dev and held-out",
     "frontend": "the EKF front end: detection, association and the EKF loop, simulated and real",

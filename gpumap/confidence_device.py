@@ -22,12 +22,9 @@ from gpumap.geometry import PING_DTYPE
 
 __all__ = ["DeviceConfidence", "pass_scalars"]
 
-#: Beams per thread of the per-beam running counts on CPUs (rows read a run of this many floats;
-#: GPUs take one beam a thread, their reads coalesce across threads).
-GROUP_CPU = 64
 _CL_PROGRAMS: dict[int, object] = {}
 _CL_LOCK = threading.Lock()
-_KERNELS = ("lit_cols", "prefix_cols", "conf_voxels", "conf_candidates")
+_KERNELS = ("lit_bits", "conf_voxels", "prefix_rows", "conf_candidates")
 
 
 def pass_scalars(spec, params: np.ndarray, half_rad: float, tube_m: float, value_rule) -> dict:
@@ -47,6 +44,24 @@ def pass_scalars(spec, params: np.ndarray, half_rad: float, tube_m: float, value
     }
 
 
+def ctypes_size(struct) -> int:
+    """Bytes of a Warp struct instance's ctypes image."""
+    import ctypes
+
+    return ctypes.sizeof(struct._ctype)
+
+
+def lit_bits_host(image: np.ndarray, thr: float, out: np.ndarray) -> None:
+    """The ``lit_bits`` kernel in NumPy: ``image`` ((n_bins, n_beams) float32) cells ``>= thr`` as
+    bits into ``out`` ((n_bins, 4 nw) uint8, the uint32 words' bytes; little-endian: beam j is bit
+    j % 32 of word j // 32)."""
+    lit = image >= np.float32(thr)
+    pad = out.shape[1] * 8 - lit.shape[1]
+    if pad:
+        lit = np.pad(lit, ((0, 0), (0, pad)))
+    out[...] = np.packbits(lit, axis=1, bitorder="little")
+
+
 class DeviceConfidence:
     """The layer's arrays and per-ping pass on ``backend`` (a Warp or OpenCL
     :class:`gpumap.backends.Backend` of a bounded grid of ``n_voxels`` voxels)."""
@@ -57,7 +72,9 @@ class DeviceConfidence:
         self.n_voxels = int(n_voxels)
         n_bins, n_beams = spec.image_shape
         self.n_bins, self.n_beams = n_bins, n_beams
-        self.table_n = (n_bins + 1) * n_beams  # per-beam running counts, row by row
+        self.n_words = n_bins * ((n_beams + 31) // 32)  # the lit cells, a bit each
+        self.table_n = n_bins * n_beams  # the rivals per cell (all zeros between pings)
+        self.running_n = n_bins * (n_beams + 1)  # their running counts along each bin's beams
         self.cap = 0  # box voxels the candidate list and the cells hold
         if self.kind == "warp":
             self._init_warp()
@@ -75,64 +92,100 @@ class DeviceConfidence:
         self.gpu = bool(dev.is_cuda)
         self.confirmed = wp.zeros(self.n_voxels, dtype=wp.uint8, device=dev)
         self.arcs = wp.zeros(self.n_voxels, dtype=wp.uint16, device=dev)
-        self.lit = wp.zeros(self.table_n, dtype=int, device=dev)
-        self.rivals = wp.zeros(self.table_n, dtype=int, device=dev)
+        self.lit = wp.zeros(self.n_words, dtype=wp.uint32, device=dev)
         self.n_cand = wp.zeros(1, dtype=int, device=dev)
+        self.rivals = wp.zeros(self.table_n, dtype=int, device=dev)
+        self.running = wp.zeros(self.running_n, dtype=int, device=dev)
+        if not self.gpu:  # CPUs: the whole-image passes in NumPy, on the arrays themselves
+            n_bins, n_beams = self.n_bins, self.n_beams
+            self.lit_np = self.lit.numpy().view(np.uint8).reshape(n_bins, -1)
+            self.rivals_np = self.rivals.numpy().reshape(n_bins, n_beams)
+            self.running_np = self.running.numpy().reshape(n_bins, n_beams + 1)
+            self.n_cand_np = self.n_cand.numpy()
         self.cand = wp.empty(0, dtype=int, device=dev)
-        self.P = k.PingParams()
-        self.group = 1 if self.gpu else GROUP_CPU
+        self.cells = wp.empty(0, dtype=int, device=dev)
+        self._cmds = None
         wp.load_module(k, device=dev)
 
     def _warp_pass(self, params: np.ndarray, s: dict, n_cols: int, n_box: int) -> None:
         import ctypes
 
-        wp, k, b = self.wp, self.k, self.b
-        P = self.P
-        if ctypes.sizeof(P._ctype) != PING_DTYPE.itemsize:
-            raise RuntimeError("confidence PingParams and PING_DTYPE have drifted apart")
-        ctypes.memmove(ctypes.addressof(P._ctype), params.ctypes.data, PING_DTYPE.itemsize)
+        wp, b = self.wp, self.b
         dev = b.dev
         if self.cap < n_box:
             self.cap = max(n_box, 2 * self.cap)
             self.cand = wp.empty(self.cap, dtype=int, device=dev)
             self.cells = wp.empty(self.cap, dtype=int, device=dev)
-        pool = [b.edges, b.lut, b.index, b.grid, b.bright, b.count]
-        g = self.group
-        n_groups = -(-self.n_beams // g)
-        # CPUs: the per-beam passes and the candidates in two halves on two threads (Warp's CPU
-        # launches are serial and release the GIL; each half owns its beams or candidates)
+        key = (self.cap, id(b.grid), id(b.index), tuple(float(v) for v in s.values()))
+        if self._cmds is None or self._cmds[0] != key:
+            self._cmds = (key, self._record(s))
+        cmds = self._cmds[1]
+        # the recorded launches hold the struct's memory: one copy gives them the ping
+        ctypes.memmove(self._P_addr, params.ctypes.data, PING_DTYPE.itemsize)
+        if self.gpu:
+            cmds["lit_bits"].launch()
+            self.rivals.zero_()
+        else:  # Warp's CPU code takes ~4 ns a cell here; NumPy's whole-image passes a tenth of that
+            lit_bits_host(b.image_np, float(params["thr"]), self.lit_np)
+            self.n_cand_np[0] = 0
+        cmds["conf_voxels"].set_dim(n_cols)
+        cmds["conf_voxels"].launch()
+        if self.gpu:
+            cmds["prefix_rows"].launch()
+            n = n_box
+        else:
+            np.cumsum(self.rivals_np, axis=1, out=self.running_np[:, 1:])
+            self.rivals_np[...] = 0  # all zeros again for the next ping
+            n = int(self.n_cand_np[0])
+        if not n:
+            return
+        a, c = cmds["conf_candidates"]
         split = self._pool_split()
-        self._halves(k.lit_cols, n_groups, [P, b.image, self.lit, self.rivals, self.n_cand, g], split)
-        wp.launch(k.conf_voxels, dim=n_cols,
-                  inputs=[P, *pool, self.lit, self.arcs, self.rivals, self.cells, self.cand, self.n_cand,
-                          s["cos_hv"], s["sin_hv"], s["tube"], s["rmax_c"], s["slab_c"],
-                          int(s["carve_views"]), s["p_min"], s["rhs"]], device=dev)
-        self._halves(k.prefix_cols, n_groups, [P, self.rivals, g], split)
-        n = n_box if self.gpu else int(self.n_cand.numpy()[0])
-        if n:
-            args = [P, b.edges, b.lut, self.lit, self.rivals, self.cells, self.cand, self.n_cand,
-                    self.confirmed, s["tube"]]
-            self._halves(k.conf_candidates, n, args, split)
+        if split is None or n < 64:
+            a.set_dim(n)
+            a.launch()
+            return
+        # CPUs: the candidates in two halves on two threads (Warp's CPU launches are serial and
+        # release the GIL; each half owns its candidates)
+        h = n // 2
+        a.set_dim(h)
+        c.set_param_by_name("offset", h)
+        c.set_dim(n - h)
+        fut = split.submit(c.launch)
+        try:
+            a.launch()
+        finally:
+            fut.result()
+
+    def _record(self, s: dict) -> dict:
+        """Every launch of the pass recorded once (``record_cmd``) on this pass's arrays and scalars."""
+        import ctypes
+
+        wp, k, b = self.wp, self.k, self.b
+        P = k.PingParams()
+        if ctypes_size(P) != PING_DTYPE.itemsize:
+            raise RuntimeError("confidence PingParams and PING_DTYPE have drifted apart")
+        self._P, self._P_addr = P, ctypes.addressof(P._ctype)
+        rec = {"device": b.dev, "record_cmd": True}
+        pool = [b.edges, b.lut, b.index, b.grid, b.bright, b.count]
+        voxel_args = [P, *pool, self.arcs, self.rivals, self.cells, self.cand, self.n_cand, s["cos_hv"],
+                      s["sin_hv"], s["rmax_c"], s["slab_c"], int(s["carve_views"]), s["p_min"], s["rhs"]]
+        cand_args = [P, b.edges, b.lut, self.lit, self.running, self.cells, self.cand, self.n_cand,
+                     self.confirmed, s["tube"], 0]
+        n = self.n_bins
+        return {
+            "lit_bits": wp.launch(k.lit_bits, dim=n, inputs=[P, b.image, self.lit, self.n_cand, 0], **rec),
+            "conf_voxels": wp.launch(k.conf_voxels, dim=1, inputs=voxel_args, **rec),
+            "prefix_rows": wp.launch(k.prefix_rows, dim=n, inputs=[P, self.rivals, self.running, 0], **rec),
+            "conf_candidates": tuple(wp.launch(k.conf_candidates, dim=1, inputs=cand_args, **rec)
+                                     for _ in range(2)),
+        }
 
     def _pool_split(self):
         """The CPU thread for the second half of a launch, or None (GPUs, one CPU thread)."""
         import gpumap.backends.base as base
 
         return None if self.gpu or base.CPU_THREADS < 2 else base._cpu_pool()
-
-    def _halves(self, kernel, n: int, inputs: list, split) -> None:
-        """Launch ``kernel`` over ``n`` threads (its last argument the first thread's number): on a
-        CPU with a second thread, as two halves at once."""
-        wp, dev = self.wp, self.b.dev
-        if split is None or n < 2:
-            wp.launch(kernel, dim=n, inputs=[*inputs, 0], device=dev)
-            return
-        h = n // 2
-        fut = split.submit(wp.launch, kernel, dim=n - h, inputs=[*inputs, h], device=dev)
-        try:
-            wp.launch(kernel, dim=h, inputs=[*inputs, 0], device=dev)
-        finally:
-            fut.result()
 
     # ------------------------------------------------------------------ OpenCL
     def _init_opencl(self) -> None:
@@ -163,13 +216,13 @@ class DeviceConfidence:
         self._zeros = zeros
         self.confirmed_buf = zeros(self.n_voxels)
         self.arcs_buf = zeros(2 * self.n_voxels)
-        self.lit = zeros(4 * self.table_n)
+        self.lit = zeros(4 * self.n_words)
         self.rivals = zeros(4 * self.table_n)
+        self.running = zeros(4 * self.running_n)
         self.n_cand = zeros(4)
         self.cand = zeros(4)
         self.cells = zeros(4)
         self.wg = 64
-        self.group = 1 if self.gpu else GROUP_CPU
         q.finish()
 
     def _opencl_pass(self, params: np.ndarray, s: dict, n_cols: int, n_box: int) -> None:
@@ -189,22 +242,18 @@ class DeviceConfidence:
             return (-(-int(n) // wg) * wg,)
 
         pool = (b.edges, b.lut, b.index, b.grid, b.bright, b.count)
-        g = np.int32(self.group)
-        n_groups = -(-self.n_beams // int(g))
         zero = np.int32(0)
-        K["lit_cols"](q, gs(n_groups), (wg,), P, image, self.lit, self.rivals, self.n_cand, g, zero)
-        K["conf_voxels"](q, gs(n_cols), (wg,), P, *pool, self.lit, self.arcs_buf, self.rivals, self.cells,
-                         self.cand, self.n_cand, s["cos_hv"], s["sin_hv"], s["tube"], s["rmax_c"],
-                         s["slab_c"], s["carve_views"], s["p_min"], s["rhs"])
-        K["prefix_cols"](q, gs(n_groups), (wg,), P, self.rivals, g, zero)
-        if self.gpu:
-            n = n_box
-        else:
-            got = np.zeros(1, np.int32)
-            cl.enqueue_copy(q, got, self.n_cand, is_blocking=True)
-            n = int(got[0])
+        K["lit_bits"](q, gs(self.n_bins), (wg,), P, image, self.lit, self.n_cand, zero)
+        cl.enqueue_fill_buffer(q, self.rivals, np.int32(0), 0, 4 * self.table_n)
+        K["conf_voxels"](q, gs(n_cols), (wg,), P, *pool, self.arcs_buf, self.rivals, self.cells, self.cand,
+                         self.n_cand, s["cos_hv"], s["sin_hv"], s["rmax_c"], s["slab_c"], s["carve_views"],
+                         s["p_min"], s["rhs"])
+        K["prefix_rows"](q, gs(self.n_bins), (wg,), P, self.rivals, self.running, zero)
+        # a work-item per box voxel, those past the list's length return at once: the host never
+        # waits for the device (a read of the list's length would)
+        n = n_box
         if n:
-            K["conf_candidates"](q, gs(n), (wg,), P, b.edges, b.lut, self.lit, self.rivals, self.cells,
+            K["conf_candidates"](q, gs(n), (wg,), P, b.edges, b.lut, self.lit, self.running, self.cells,
                                  self.cand, self.n_cand, self.confirmed_buf, s["tube"], zero)
         q.flush()
 

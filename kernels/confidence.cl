@@ -64,28 +64,18 @@ inline int beam_index_lo(float t, __global const float *tan_edges, __global cons
 }
 
 // First and last beam a sphere of radius w spans (gpumap.reference.beam_span).
-inline int span_lo(float t, float h2, float w, __global const float *tan_edges, __global const int *lut,
-                   const PingParams *P)
+inline int2 beam_span(float t, float h2, float w, __global const float *tan_edges, __global const int *lut,
+                      const PingParams *P)
 {
+    int2 js = (int2)(0, P->n_beams - 1);
     float q = h2 - w * w;
     if (q > 0.0f) {
         float u = w / sqrt(q);
-        float d0 = 1.0f + t * u;
-        if (d0 > 0.0f) return beam_index_lo((t - u) / d0, tan_edges, lut, P);
+        float d0 = 1.0f + t * u, d1 = 1.0f - t * u;
+        if (d0 > 0.0f) js.x = beam_index_lo((t - u) / d0, tan_edges, lut, P);
+        if (d1 > 0.0f) js.y = beam_index_lo((t + u) / d1, tan_edges, lut, P);
     }
-    return 0;
-}
-
-inline int span_hi(float t, float h2, float w, __global const float *tan_edges, __global const int *lut,
-                   const PingParams *P)
-{
-    float q = h2 - w * w;
-    if (q > 0.0f) {
-        float u = w / sqrt(q);
-        float d1 = 1.0f - t * u;
-        if (d1 > 0.0f) return beam_index_lo((t + u) / d1, tan_edges, lut, P);
-    }
-    return P->n_beams - 1;
+    return js;
 }
 
 // floor(x) clipped to [0, n_bins - 1] (clipped as a float: any x is safe).
@@ -97,17 +87,36 @@ inline int bin_clip(float x, int n_bins)
     return (int)f;
 }
 
-// The count over bins b0..b1 and beams j0..j1 of a table of per-beam running counts (T[i nj + j]: the
-// count of bins < i of beam j, nj beams), or the first partial sum past most.
-inline int count_in(__global const int *T, int nj, int b0, int b1, int j0, int j1, int most)
+// The count over bins b0..b1 and beams j0..j1 of a table of per-row running counts (R[i w + j]: the count of
+// bin i's beams < j, w = n_beams + 1), or the first partial sum past most (the caller asks whether it
+// equals a number <= most).
+inline int count_in(__global const int *R, int w, int b0, int b1, int j0, int j1, int most)
 {
     int s = 0;
-    __global const int *hi = T + (b1 + 1) * nj, *lo = T + b0 * nj;
-    for (int j = j0; j <= j1; ++j) {
-        s += hi[j] - lo[j];
+    for (int i = b0; i <= b1; ++i) {
+        s += R[i * w + j1 + 1] - R[i * w + j0];
         if (s > most) return s;
     }
     return s;
+}
+
+// 1 when a cell of bins b0..b1 and beams j0..j1 is lit: L[i nw + j / 32] holds beam j's bit j % 32 of bin i.
+inline int any_lit(__global const uint *L, int nw, int b0, int b1, int j0, int j1)
+{
+    int w0 = j0 >> 5, w1 = j1 >> 5;
+    uint lo = 0xFFFFFFFFu << (uint)(j0 & 31);
+    uint hi = 0xFFFFFFFFu >> (uint)(31 - (j1 & 31));
+    for (int i = b0; i <= b1; ++i) {
+        __global const uint *row = L + i * nw;
+        if (w0 == w1) {
+            if (row[w0] & lo & hi) return 1;
+        } else {
+            if ((row[w0] & lo) || (row[w1] & hi)) return 1;
+            for (int w = w0 + 1; w < w1; ++w)
+                if (row[w]) return 1;
+        }
+    }
+    return 0;
 }
 
 // Storage address of voxel (i, j, k) in the pool (minmax.cl's voxel_address); -1: no block.
@@ -163,57 +172,53 @@ inline int arc_step(float d, float n2)
 
 // 1 when the voxel at (r, h^2, t) is bright in the ping (a lit cell in its footprint: the mapping's
 // bins and beams) and a lit cell lies within tube of its centre (the echo).
-inline int echo_lit(const PingParams *P, float r, float h2, float t, __global const int *lit,
+inline int echo_lit(const PingParams *P, float r, float h2, float t, __global const uint *lit,
                     __global const float *tan_edges, __global const int *lut, float tube)
 {
     int nb = P->n_bins;
     int first = (int)floor((r - P->near - P->rmin) * P->inv_dr);
     int b0 = max(first, 0);
     int b1 = min(first + P->win - 1, nb - 1);
-    int j0 = span_lo(t, h2, P->rho, tan_edges, lut, P);
-    int j1 = span_hi(t, h2, P->rho, tan_edges, lut, P);
-    if (count_in(lit, P->n_beams, b0, b1, j0, j1, 0) == 0) return 0;
+    int2 js = beam_span(t, h2, P->rho, tan_edges, lut, P);
+    if (!any_lit(lit, (P->n_beams + 31) / 32, b0, b1, js.x, js.y)) return 0;
     b0 = bin_clip((r - tube - P->rmin) * P->inv_dr, nb);
     b1 = bin_clip((r + tube - P->rmin) * P->inv_dr, nb);
-    j0 = span_lo(t, h2, tube, tan_edges, lut, P);
-    j1 = span_hi(t, h2, tube, tan_edges, lut, P);
-    if (count_in(lit, P->n_beams, b0, b1, j0, j1, 0) == 0) return 0;
+    js = beam_span(t, h2, tube, tan_edges, lut, P);
+    if (!any_lit(lit, (P->n_beams + 31) / 32, b0, b1, js.x, js.y)) return 0;
     return 1;
 }
 
-// One work-item per group beams (GPUs 1, CPUs a cache line's worth and more): lit[i, j] = lit cells
-// (>= thr) of beam j in bins < i (row by row: the reads run along the image's rows), and those beams'
-// rival counts zeroed; work-item 0 also empties the candidate list.
-__kernel void lit_cols(const PingParams P, __global const float *image, __global int *lit, __global int *rivals,
-                       __global int *n_cand, const int group, const int offset)
+// One work-item per bin row i (from offset): the row's lit cells (>= thr) as bits, lit[i nw + j / 32] bit
+// j % 32; work-item 0 also empties the candidate list.
+__kernel void lit_bits(const PingParams P, __global const float *image, __global uint *lit, __global int *n_cand,
+                       const int offset)
 {
-    int g = get_global_id(0) + offset;
-    int nj = P.n_beams;
-    int j0 = g * group, j1 = min(j0 + group, nj);
-    if (j0 >= nj) return;
-    for (int j = j0; j < j1; ++j) { lit[j] = 0; rivals[j] = 0; }
-    for (int i = 0; i < P.n_bins; ++i) {
-        __global int *row = lit + (i + 1) * nj;
-        __global int *riv = rivals + (i + 1) * nj;
-        __global const float *im = image + (size_t)i * nj;
-        for (int j = j0; j < j1; ++j) {
-            row[j] = row[j - nj] + (im[j] >= P.thr);
-            riv[j] = 0;
-        }
+    int i = get_global_id(0) + offset;
+    if (i >= P.n_bins) return;
+    int nw = (P.n_beams + 31) / 32;
+    __global const float *im = image + (size_t)i * P.n_beams;
+    for (int w = 0; w < nw; ++w) {
+        uint word = 0;
+        for (int j = w * 32; j < min(w * 32 + 32, P.n_beams); ++j)
+            if (im[j] >= P.thr) word |= 1u << (uint)(j - w * 32);
+        lit[i * nw + w] = word;
     }
-    if (g == 0) n_cand[0] = 0;
+    if (i == 0) n_cand[0] = 0;
 }
 
-// One work-item per group beams: those beams' rival counts as running counts (bins < i).
-__kernel void prefix_cols(const PingParams P, __global int *rivals, const int group, const int offset)
+// One work-item per bin row i (from offset): running[i, j] = the rivals of bin i's beams < j (n_beams + 1 a row).
+__kernel void prefix_rows(const PingParams P, __global const int *rivals, __global int *running, const int offset)
 {
-    int g = get_global_id(0) + offset;
-    int nj = P.n_beams;
-    int j0 = g * group, j1 = min(j0 + group, nj);
-    if (j0 >= nj) return;
-    for (int i = 2; i <= P.n_bins; ++i) {
-        __global int *row = rivals + i * nj;
-        for (int j = j0; j < j1; ++j) row[j] += row[j - nj];
+    int i = get_global_id(0) + offset;
+    if (i >= P.n_bins) return;
+    int w = P.n_beams + 1;
+    __global const int *raw = rivals + i * P.n_beams;
+    __global int *run = running + i * w;
+    int s = 0;
+    run[0] = 0;
+    for (int j = 0; j < P.n_beams; ++j) {
+        s += raw[j];
+        run[j + 1] = s;
     }
 }
 
@@ -221,9 +226,9 @@ __kernel void prefix_cols(const PingParams P, __global int *rivals, const int gr
 // voxel's rival cell (cells, box order: bin n_beams + beam, -1 not a rival) and the candidates.
 __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, __global const int *lut,
                           __global const int *index, __global const float *grid, __global const float *bright,
-                          __global const ulong *count, __global const int *lit, __global ushort *arcs,
-                          __global int *rivals, __global int *cells, __global int *cand, __global int *n_cand,
-                          const float cos_hv, const float sin_hv, const float tube, const float rmax_c,
+                          __global const ulong *count, __global ushort *arcs, __global int *rivals,
+                          __global int *cells, __global int *cand, __global int *n_cand,
+                          const float cos_hv, const float sin_hv, const float rmax_c,
                           const float slab_c, const int carve_views, const double p_min, const double rhs)
 {
     int col = get_global_id(0);
@@ -308,7 +313,7 @@ __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, _
                         int cb = bin_clip((r - P.rmin) * P.inv_dr, nb);
                         int cj = beam_index_lo(t, tan_edges, lut, Q);
                         cell = cb * P.n_beams + cj;
-                        atomic_add(&rivals[(cb + 1) * P.n_beams + cj], 1);
+                        atomic_add(&rivals[cell], 1);
                     }
                     if (seen) cand[atomic_inc(n_cand)] = flat;
                 }
@@ -321,7 +326,8 @@ __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, _
 // One work-item per candidate (those past the list's length return): confirmed when the rivals whose
 // centre cell lies within tube + rho of it are itself and its neighbours in the box.
 __kernel void conf_candidates(const PingParams P, __global const float *tan_edges, __global const int *lut,
-                              __global const int *lit, __global const int *rivals, __global const int *cells, __global const int *cand,
+                              __global const uint *lit, __global const int *running, __global const int *cells,
+                              __global const int *cand,
                               __global const int *n_cand, __global uchar *confirmed, const float tube,
                               const int offset)
 {
@@ -346,9 +352,9 @@ __kernel void conf_candidates(const PingParams P, __global const float *tan_edge
     float wide = tube + P.rho;
     int b0 = bin_clip((r - wide - P.rmin) * P.inv_dr, nb);
     int b1 = bin_clip((r + wide - P.rmin) * P.inv_dr, nb);
-    int j0 = span_lo(t, h2, wide, tan_edges, lut, Q);
-    int j1 = span_hi(t, h2, wide, tan_edges, lut, Q);
-    int total = count_in(rivals, P.n_beams, b0, b1, j0, j1, 27);
+    int2 js = beam_span(t, h2, wide, tan_edges, lut, Q);
+    int j0 = js.x, j1 = js.y;
+    int total = count_in(running, P.n_beams + 1, b0, b1, j0, j1, 27);
     if (total > 27) return;  // more than the voxel and its 26 neighbours could be
     if (!echo_lit(Q, r, h2, t, lit, tan_edges, lut, tube)) return;
     int own = 0;

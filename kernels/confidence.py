@@ -90,29 +90,21 @@ def beam_index_lo(t: float, tan_edges: wp.array(dtype=float), lut: wp.array(dtyp
 
 
 @wp.func
-def span_lo(t: float, h2: float, w: float, tan_edges: wp.array(dtype=float), lut: wp.array(dtype=int),
-            P: PingParams) -> int:
-    """First beam a sphere of radius w spans (``gpumap.reference.beam_span``)."""
+def beam_span(t: float, h2: float, w: float, tan_edges: wp.array(dtype=float), lut: wp.array(dtype=int),
+              P: PingParams) -> wp.vec2i:
+    """First and last beam a sphere of radius w spans (``gpumap.reference.beam_span``)."""
+    j0 = int(0)
+    j1 = P.n_beams - 1
     q = h2 - w * w
     if q > 0.0:
         u = w / wp.sqrt(q)
         d0 = 1.0 + t * u
-        if d0 > 0.0:
-            return beam_index_lo((t - u) / d0, tan_edges, lut, P)
-    return 0
-
-
-@wp.func
-def span_hi(t: float, h2: float, w: float, tan_edges: wp.array(dtype=float), lut: wp.array(dtype=int),
-            P: PingParams) -> int:
-    """Last beam a sphere of radius w spans (``gpumap.reference.beam_span``)."""
-    q = h2 - w * w
-    if q > 0.0:
-        u = w / wp.sqrt(q)
         d1 = 1.0 - t * u
+        if d0 > 0.0:
+            j0 = beam_index_lo((t - u) / d0, tan_edges, lut, P)
         if d1 > 0.0:
-            return beam_index_lo((t + u) / d1, tan_edges, lut, P)
-    return P.n_beams - 1
+            j1 = beam_index_lo((t + u) / d1, tan_edges, lut, P)
+    return wp.vec2i(j0, j1)
 
 
 @wp.func
@@ -127,18 +119,38 @@ def bin_clip(x: float, n_bins: int) -> int:
 
 
 @wp.func
-def count_in(T: wp.array(dtype=int), nj: int, b0: int, b1: int, j0: int, j1: int, most: int) -> int:
-    """The count over bins b0..b1 and beams j0..j1 of a table of per-beam running counts
-    (``T[i nj + j]``: the count of bins < i of beam j, ``nj`` beams), or the first partial sum past
-    ``most`` (the caller only asks whether the count is 0, or equal to a number <= most)."""
+def count_in(R: wp.array(dtype=int), w: int, b0: int, b1: int, j0: int, j1: int, most: int) -> int:
+    """The count over bins b0..b1 and beams j0..j1 of a table of per-row running counts
+    (``R[i w + j]``: the count of bin i's beams < j, ``w = n_beams + 1``), or the first partial sum
+    past ``most`` (the caller asks whether it equals a number <= most)."""
     s = int(0)
-    hi = (b1 + 1) * nj
-    lo = b0 * nj
-    for j in range(j0, j1 + 1):
-        s += T[hi + j] - T[lo + j]
+    for i in range(b0, b1 + 1):
+        s += R[i * w + j1 + 1] - R[i * w + j0]
         if s > most:
             return s
     return s
+
+
+@wp.func
+def any_lit(L: wp.array(dtype=wp.uint32), nw: int, b0: int, b1: int, j0: int, j1: int) -> int:
+    """1 when a cell of bins b0..b1 and beams j0..j1 is lit: ``L[i nw + j // 32]`` holds beam j's bit
+    ``j % 32`` of bin i."""
+    w0 = j0 >> 5
+    w1 = j1 >> 5
+    lo = wp.uint32(0xFFFFFFFF) << wp.uint32(j0 & 31)
+    hi = wp.uint32(0xFFFFFFFF) >> wp.uint32(31 - (j1 & 31))
+    for i in range(b0, b1 + 1):
+        row = i * nw
+        if w0 == w1:
+            if (L[row + w0] & lo & hi) != wp.uint32(0):
+                return 1
+        else:
+            if (L[row + w0] & lo) != wp.uint32(0) or (L[row + w1] & hi) != wp.uint32(0):
+                return 1
+            for w in range(w0 + 1, w1):
+                if L[row + w] != wp.uint32(0):
+                    return 1
+    return 0
 
 
 @wp.func
@@ -220,7 +232,7 @@ def echo_lit(
     r: float,
     h2: float,
     t: float,
-    lit: wp.array(dtype=int),
+    lit: wp.array(dtype=wp.uint32),
     tan_edges: wp.array(dtype=float),
     lut: wp.array(dtype=int),
     tube: float,
@@ -231,62 +243,46 @@ def echo_lit(
     first = int(wp.floor((r - P.near - P.rmin) * P.inv_dr))
     b0 = wp.max(first, 0)
     b1 = wp.min(first + P.win - 1, nb - 1)
-    j0 = span_lo(t, h2, P.rho, tan_edges, lut, P)
-    j1 = span_hi(t, h2, P.rho, tan_edges, lut, P)
-    if count_in(lit, P.n_beams, b0, b1, j0, j1, 0) == 0:
+    js = beam_span(t, h2, P.rho, tan_edges, lut, P)
+    if any_lit(lit, (P.n_beams + 31) // 32, b0, b1, js[0], js[1]) == 0:
         return 0
     b0 = bin_clip((r - tube - P.rmin) * P.inv_dr, nb)
     b1 = bin_clip((r + tube - P.rmin) * P.inv_dr, nb)
-    j0 = span_lo(t, h2, tube, tan_edges, lut, P)
-    j1 = span_hi(t, h2, tube, tan_edges, lut, P)
-    if count_in(lit, P.n_beams, b0, b1, j0, j1, 0) == 0:
+    js = beam_span(t, h2, tube, tan_edges, lut, P)
+    if any_lit(lit, (P.n_beams + 31) // 32, b0, b1, js[0], js[1]) == 0:
         return 0
     return 1
 
 
 @wp.kernel
-def lit_cols(
-    P: PingParams,
-    image: wp.array2d(dtype=float),
-    lit: wp.array(dtype=int),
-    rivals: wp.array(dtype=int),
-    n_cand: wp.array(dtype=int),
-    group: int,
-    offset: int,
-):
-    """One thread per ``group`` beams (GPUs 1, CPUs a cache line's worth and more): lit[i, j] = lit
-    cells (>= thr) of beam j in bins < i (row by row: the reads run along the image's rows), and
-    those beams' rival counts zeroed; thread 0 also empties the candidate list. ``offset``: the
-    first thread's number (a launch split over CPU threads)."""
-    g = wp.tid() + offset
-    nj = P.n_beams
-    j0 = g * group
-    j1 = wp.min(j0 + group, nj)
-    for j in range(j0, j1):
-        lit[j] = 0
-        rivals[j] = 0
-    for i in range(P.n_bins):
-        row = (i + 1) * nj
-        for j in range(j0, j1):
-            s = lit[row - nj + j]
+def lit_bits(P: PingParams, image: wp.array2d(dtype=float), lit: wp.array(dtype=wp.uint32),
+             n_cand: wp.array(dtype=int), offset: int):
+    """One thread per bin row i (``offset``: the first row, a launch split over CPU threads): the
+    row's lit cells (>= thr) as bits, ``lit[i nw + j // 32]`` bit ``j % 32``; thread 0 also empties
+    the candidate list."""
+    i = wp.tid() + offset
+    nw = (P.n_beams + 31) // 32
+    for w in range(nw):
+        word = wp.uint32(0)
+        for j in range(w * 32, wp.min(w * 32 + 32, P.n_beams)):
             if image[i, j] >= P.thr:
-                s += 1
-            lit[row + j] = s
-            rivals[row + j] = 0
-    if g == 0:
+                word = word | (wp.uint32(1) << wp.uint32(j - w * 32))
+        lit[i * nw + w] = word
+    if i == 0:
         n_cand[0] = 0
 
 
 @wp.kernel
-def prefix_cols(P: PingParams, rivals: wp.array(dtype=int), group: int, offset: int):
-    """One thread per ``group`` beams: those beams' rival counts as running counts (bins < i)."""
-    g = wp.tid() + offset
-    nj = P.n_beams
-    j0 = g * group
-    j1 = wp.min(j0 + group, nj)
-    for i in range(2, P.n_bins + 1):
-        for j in range(j0, j1):
-            rivals[i * nj + j] = rivals[i * nj + j] + rivals[(i - 1) * nj + j]
+def prefix_rows(P: PingParams, rivals: wp.array(dtype=int), running: wp.array(dtype=int), offset: int):
+    """One thread per bin row i (from ``offset``): ``running[i, j]`` = the rivals of bin i's beams < j
+    (``n_beams + 1`` a row)."""
+    i = wp.tid() + offset
+    w = P.n_beams + 1
+    s = int(0)
+    running[i * w] = 0
+    for j in range(P.n_beams):
+        s += rivals[i * P.n_beams + j]
+        running[i * w + j + 1] = s
 
 
 @wp.kernel
@@ -298,7 +294,6 @@ def conf_voxels(
     grid: wp.array(dtype=float),
     bright: wp.array(dtype=float),
     count: wp.array(dtype=wp.uint64),
-    lit: wp.array(dtype=int),
     arcs: wp.array(dtype=wp.uint16),
     rivals: wp.array(dtype=int),
     cells: wp.array(dtype=int),
@@ -306,7 +301,6 @@ def conf_voxels(
     n_cand: wp.array(dtype=int),
     cos_hv: float,
     sin_hv: float,
-    tube: float,
     rmax_c: float,
     slab_c: float,
     carve_views: int,
@@ -401,7 +395,7 @@ def conf_voxels(
                             cb = bin_clip((r - P.rmin) * P.inv_dr, nb)
                             cj = beam_index_lo(t, tan_edges, lut, P)
                             cell = cb * P.n_beams + cj
-                            wp.atomic_add(rivals, (cb + 1) * P.n_beams + cj, 1)
+                            wp.atomic_add(rivals, cell, 1)
                         if seen:
                             cand[wp.atomic_add(n_cand, 0, 1)] = flat
         cells[base + k] = cell
@@ -412,8 +406,8 @@ def conf_candidates(
     P: PingParams,
     tan_edges: wp.array(dtype=float),
     lut: wp.array(dtype=int),
-    lit: wp.array(dtype=int),
-    rivals: wp.array(dtype=int),
+    lit: wp.array(dtype=wp.uint32),
+    running: wp.array(dtype=int),
     cells: wp.array(dtype=int),
     cand: wp.array(dtype=int),
     n_cand: wp.array(dtype=int),
@@ -445,9 +439,10 @@ def conf_candidates(
     wide = tube + P.rho
     b0 = bin_clip((r - wide - P.rmin) * P.inv_dr, nb)
     b1 = bin_clip((r + wide - P.rmin) * P.inv_dr, nb)
-    j0 = span_lo(t, h2, wide, tan_edges, lut, P)
-    j1 = span_hi(t, h2, wide, tan_edges, lut, P)
-    total = count_in(rivals, P.n_beams, b0, b1, j0, j1, 27)
+    js = beam_span(t, h2, wide, tan_edges, lut, P)
+    j0 = js[0]
+    j1 = js[1]
+    total = count_in(running, P.n_beams + 1, b0, b1, j0, j1, 27)
     if total > 27:  # more than the voxel and its 26 neighbours could be
         return
     if echo_lit(P, r, h2, t, lit, tan_edges, lut, tube) == 0:
