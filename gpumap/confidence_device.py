@@ -93,13 +93,14 @@ class DeviceConfidence:
         self.confirmed = wp.zeros(self.n_voxels, dtype=wp.uint8, device=dev)
         self.arcs = wp.zeros(self.n_voxels, dtype=wp.uint16, device=dev)
         self.lit = wp.zeros(self.n_words, dtype=wp.uint32, device=dev)
-        self.n_cand = wp.zeros(1, dtype=int, device=dev)
-        self.rivals = wp.zeros(self.table_n, dtype=int, device=dev)
+        self.n_cand = wp.zeros(2, dtype=int, device=dev)
+        # CPUs: a rival table for each of the two threads (their atomics are plain adds)
+        self.rivals = wp.zeros(self.table_n * (1 if self.gpu else 2), dtype=int, device=dev)
         self.running = wp.zeros(self.running_n, dtype=int, device=dev)
         if not self.gpu:  # CPUs: the whole-image passes in NumPy, on the arrays themselves
             n_bins, n_beams = self.n_bins, self.n_beams
             self.lit_np = self.lit.numpy().view(np.uint8).reshape(n_bins, -1)
-            self.rivals_np = self.rivals.numpy().reshape(n_bins, n_beams)
+            self.rivals_np = self.rivals.numpy().reshape(2, n_bins, n_beams)
             self.running_np = self.running.numpy().reshape(n_bins, n_beams + 1)
             self.n_cand_np = self.n_cand.numpy()
         self.cand = wp.empty(0, dtype=int, device=dev)
@@ -114,7 +115,7 @@ class DeviceConfidence:
         dev = b.dev
         if self.cap < n_box:
             self.cap = max(n_box, 2 * self.cap)
-            self.cand = wp.empty(self.cap, dtype=int, device=dev)
+            self.cand = wp.empty(2 * self.cap, dtype=int, device=dev)  # two lists (CPUs: one a thread)
             self.cells = wp.empty(self.cap, dtype=int, device=dev)
         key = (self.cap, id(b.grid), id(b.index), tuple(float(v) for v in s.values()))
         if self._cmds is None or self._cmds[0] != key:
@@ -122,38 +123,54 @@ class DeviceConfidence:
         cmds = self._cmds[1]
         # the recorded launches hold the struct's memory: one copy gives them the ping
         ctypes.memmove(self._P_addr, params.ctypes.data, PING_DTYPE.itemsize)
+        va, vb = cmds["conf_voxels"]
+        ca, cb = cmds["conf_candidates"]
         if self.gpu:
             cmds["lit_bits"].launch()
             self.rivals.zero_()
-        else:  # Warp's CPU code takes ~4 ns a cell here; NumPy's whole-image passes a tenth of that
-            lit_bits_host(b.image_np, float(params["thr"]), self.lit_np)
-            self.n_cand_np[0] = 0
-        cmds["conf_voxels"].set_dim(n_cols)
-        cmds["conf_voxels"].launch()
-        if self.gpu:
+            va.set_dim(n_cols)
+            va.launch()
             cmds["prefix_rows"].launch()
-            n = n_box
-        else:
-            np.cumsum(self.rivals_np, axis=1, out=self.running_np[:, 1:])
-            self.rivals_np[...] = 0  # all zeros again for the next ping
-            n = int(self.n_cand_np[0])
-        if not n:
+            ca.set_dim(n_box)
+            ca.launch()
             return
-        a, c = cmds["conf_candidates"]
+        # CPUs: the whole-image passes in NumPy (Warp's CPU code takes ~4 ns a cell there, NumPy a
+        # tenth of that); the columns, then the candidates, in two parts on two threads (Warp's CPU
+        # launches are serial and release the GIL; each part owns its columns and adds to its own
+        # rival table and candidate list)
+        lit_bits_host(b.image_np, float(params["thr"]), self.lit_np)
+        self.n_cand_np[:] = 0
         split = self._pool_split()
-        if split is None or n < 64:
-            a.set_dim(n)
-            a.launch()
+        two = split is not None and n_cols >= 16
+        h = n_cols // 2 if two else n_cols
+        va.set_dim(h)
+        if two:
+            vb.set_param_by_name("offset", h)
+            vb.set_dim(n_cols - h)
+        self._both(va, vb if two else None, split)
+        r0, r1 = self.rivals_np
+        if two:
+            np.add(r0, r1, out=r0)
+            r1[...] = 0
+        np.cumsum(r0, axis=1, out=self.running_np[:, 1:])
+        r0[...] = 0  # all zeros again for the next ping
+        n0, n1 = (int(x) for x in self.n_cand_np)
+        ca.set_dim(n0)
+        cb.set_dim(n1)
+        self._both(ca if n0 else None, cb if n1 else None, split)
+
+    @staticmethod
+    def _both(a, b, split) -> None:
+        """Launch recorded commands ``a`` and ``b`` (None: not that one), ``b`` on ``split``'s thread."""
+        if b is None or split is None:
+            for c in (a, b):
+                if c is not None:
+                    c.launch()
             return
-        # CPUs: the candidates in two halves on two threads (Warp's CPU launches are serial and
-        # release the GIL; each half owns its candidates)
-        h = n // 2
-        a.set_dim(h)
-        c.set_param_by_name("offset", h)
-        c.set_dim(n - h)
-        fut = split.submit(c.launch)
+        fut = split.submit(b.launch)
         try:
-            a.launch()
+            if a is not None:
+                a.launch()
         finally:
             fut.result()
 
@@ -169,16 +186,18 @@ class DeviceConfidence:
         rec = {"device": b.dev, "record_cmd": True}
         pool = [b.edges, b.lut, b.index, b.grid, b.bright, b.count]
         voxel_args = [P, *pool, self.arcs, self.rivals, self.cells, self.cand, self.n_cand, s["cos_hv"],
-                      s["sin_hv"], s["rmax_c"], s["slab_c"], int(s["carve_views"]), s["p_min"], s["rhs"]]
+                      s["sin_hv"], s["rmax_c"], s["slab_c"], int(s["carve_views"]), s["p_min"], s["rhs"], 0]
         cand_args = [P, b.edges, b.lut, self.lit, self.running, self.cells, self.cand, self.n_cand,
                      self.confirmed, s["tube"], 0]
         n = self.n_bins
+        stride = self.cap
         return {
             "lit_bits": wp.launch(k.lit_bits, dim=n, inputs=[P, b.image, self.lit, self.n_cand, 0], **rec),
-            "conf_voxels": wp.launch(k.conf_voxels, dim=1, inputs=voxel_args, **rec),
+            "conf_voxels": tuple(wp.launch(k.conf_voxels, dim=1, inputs=[*voxel_args, part, stride], **rec)
+                                 for part in (0, 1)),
             "prefix_rows": wp.launch(k.prefix_rows, dim=n, inputs=[P, self.rivals, self.running, 0], **rec),
-            "conf_candidates": tuple(wp.launch(k.conf_candidates, dim=1, inputs=cand_args, **rec)
-                                     for _ in range(2)),
+            "conf_candidates": tuple(wp.launch(k.conf_candidates, dim=1, inputs=[*cand_args, part, stride],
+                                               **rec) for part in (0, 1)),
         }
 
     def _pool_split(self):
@@ -219,7 +238,7 @@ class DeviceConfidence:
         self.lit = zeros(4 * self.n_words)
         self.rivals = zeros(4 * self.table_n)
         self.running = zeros(4 * self.running_n)
-        self.n_cand = zeros(4)
+        self.n_cand = zeros(8)
         self.cand = zeros(4)
         self.cells = zeros(4)
         self.wg = 64
@@ -247,14 +266,15 @@ class DeviceConfidence:
         cl.enqueue_fill_buffer(q, self.rivals, np.int32(0), 0, 4 * self.table_n)
         K["conf_voxels"](q, gs(n_cols), (wg,), P, *pool, self.arcs_buf, self.rivals, self.cells, self.cand,
                          self.n_cand, s["cos_hv"], s["sin_hv"], s["rmax_c"], s["slab_c"], s["carve_views"],
-                         s["p_min"], s["rhs"])
+                         s["p_min"], s["rhs"], zero, zero, np.int32(self.cap))
         K["prefix_rows"](q, gs(self.n_bins), (wg,), P, self.rivals, self.running, zero)
         # a work-item per box voxel, those past the list's length return at once: the host never
         # waits for the device (a read of the list's length would)
         n = n_box
         if n:
             K["conf_candidates"](q, gs(n), (wg,), P, b.edges, b.lut, self.lit, self.running, self.cells,
-                                 self.cand, self.n_cand, self.confirmed_buf, s["tube"], zero)
+                                 self.cand, self.n_cand, self.confirmed_buf, s["tube"], zero, zero,
+                                 np.int32(self.cap))
         q.flush()
 
     # ------------------------------------------------------------------ the layer

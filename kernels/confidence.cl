@@ -203,7 +203,7 @@ __kernel void lit_bits(const PingParams P, __global const float *image, __global
             if (im[j] >= P.thr) word |= 1u << (uint)(j - w * 32);
         lit[i * nw + w] = word;
     }
-    if (i == 0) n_cand[0] = 0;
+    if (i == 0) { n_cand[0] = 0; n_cand[1] = 0; }
 }
 
 // One work-item per bin row i (from offset): running[i, j] = the rivals of bin i's beams < j (n_beams + 1 a row).
@@ -222,16 +222,19 @@ __kernel void prefix_rows(const PingParams P, __global const int *rivals, __glob
     }
 }
 
-// One work-item per (i, j) column of the box (see confidence.py): arcs, the rivals' counts, each box
-// voxel's rival cell (cells, box order: bin n_beams + beam, -1 not a rival) and the candidates.
+// One work-item per (i, j) column of the box from column offset (see confidence.py): arcs, the rivals'
+// counts, each box voxel's rival cell (cells, box order: bin n_beams + beam, -1 not a rival) and the
+// candidates; part: the rival table (part n_bins n_beams on) and candidate list (cand[part stride:], its
+// length n_cand[part]) it adds to (OpenCL runs part 0 only).
 __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, __global const int *lut,
                           __global const int *index, __global const float *grid, __global const float *bright,
                           __global const ulong *count, __global ushort *arcs, __global int *rivals,
                           __global int *cells, __global int *cand, __global int *n_cand,
                           const float cos_hv, const float sin_hv, const float rmax_c,
-                          const float slab_c, const int carve_views, const double p_min, const double rhs)
+                          const float slab_c, const int carve_views, const double p_min, const double rhs,
+                          const int offset, const int part, const int stride)
 {
-    int col = get_global_id(0);
+    int col = get_global_id(0) + offset;
     if (col >= P.box_n[0] * P.box_n[1]) return;
     const PingParams *Q = &P;
     int n2b = P.box_n[2];
@@ -313,9 +316,9 @@ __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, _
                         int cb = bin_clip((r - P.rmin) * P.inv_dr, nb);
                         int cj = beam_index_lo(t, tan_edges, lut, Q);
                         cell = cb * P.n_beams + cj;
-                        atomic_add(&rivals[cell], 1);
+                        atomic_add(&rivals[part * P.n_bins * P.n_beams + cell], 1);
                     }
-                    if (seen) cand[atomic_inc(n_cand)] = flat;
+                    if (seen) cand[part * stride + atomic_inc(&n_cand[part])] = flat;
                 }
             }
         }
@@ -323,18 +326,18 @@ __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, _
     }
 }
 
-// One work-item per candidate (those past the list's length return): confirmed when the rivals whose
-// centre cell lies within tube + rho of it are itself and its neighbours in the box.
+// One work-item per candidate of list part (from offset; those past its length return): confirmed when the
+// rivals whose centre cell lies within tube + rho of it are itself and its neighbours in the box.
 __kernel void conf_candidates(const PingParams P, __global const float *tan_edges, __global const int *lut,
                               __global const uint *lit, __global const int *running, __global const int *cells,
                               __global const int *cand,
                               __global const int *n_cand, __global uchar *confirmed, const float tube,
-                              const int offset)
+                              const int offset, const int part, const int stride)
 {
     int c = get_global_id(0) + offset;
-    if (c >= n_cand[0]) return;
+    if (c >= n_cand[part]) return;
     const PingParams *Q = &P;
-    int flat = cand[c];
+    int flat = cand[part * stride + c];
     int ny = P.dims[1], nz = P.dims[2];
     int i = flat / (ny * nz);
     int j = flat / nz - i * ny;

@@ -270,6 +270,7 @@ def lit_bits(P: PingParams, image: wp.array2d(dtype=float), lit: wp.array(dtype=
         lit[i * nw + w] = word
     if i == 0:
         n_cand[0] = 0
+        n_cand[1] = 0
 
 
 @wp.kernel
@@ -306,11 +307,17 @@ def conf_voxels(
     carve_views: int,
     p_min: wp.float64,
     rhs: wp.float64,
+    offset: int,
+    part: int,
+    stride: int,
 ):
-    """One thread per (i, j) column of the box, over the column's voxels (see the module): arcs,
-    the rivals' counts, each box voxel's rival cell (``cells``, box order: bin n_beams + beam,
-    -1 not a rival) and the candidates (observed, not known free, lit footprint and echo)."""
-    col = wp.tid()
+    """One thread per (i, j) column of the box (from column ``offset``), over the column's voxels
+    (see the module): arcs, the rivals' counts, each box voxel's rival cell (``cells``, box order:
+    bin n_beams + beam, -1 not a rival) and the candidates (observed, not known free). ``part``: which
+    rival table (``part`` n_bins n_beams on) and candidate list (``cand[part stride:]``, its length
+    ``n_cand[part]``) the thread adds to (a launch split over CPU threads, whose atomics are plain adds:
+    each part its own; GPUs part 0)."""
+    col = wp.tid() + offset
     n2b = P.box_n[2]
     i = P.box_lo[0] + col // P.box_n[1]
     j = P.box_lo[1] + col - (col // P.box_n[1]) * P.box_n[1]
@@ -395,9 +402,9 @@ def conf_voxels(
                             cb = bin_clip((r - P.rmin) * P.inv_dr, nb)
                             cj = beam_index_lo(t, tan_edges, lut, P)
                             cell = cb * P.n_beams + cj
-                            wp.atomic_add(rivals, cell, 1)
+                            wp.atomic_add(rivals, part * P.n_bins * P.n_beams + cell, 1)
                         if seen:
-                            cand[wp.atomic_add(n_cand, 0, 1)] = flat
+                            cand[part * stride + wp.atomic_add(n_cand, part, 1)] = flat
         cells[base + k] = cell
 
 
@@ -414,13 +421,16 @@ def conf_candidates(
     confirmed: wp.array(dtype=wp.uint8),
     tube: float,
     offset: int,
+    part: int,
+    stride: int,
 ):
-    """One thread per candidate (threads past the list's length return): confirmed when the
-    rivals whose centre cell lies within tube + rho of it are itself and its neighbours in the box."""
+    """One thread per candidate of list ``part`` (``cand[part stride:]``, from ``offset``; threads
+    past its length return): confirmed when the rivals whose centre cell lies within tube + rho of
+    it are itself and its neighbours in the box."""
     c = wp.tid() + offset
-    if c >= n_cand[0]:
+    if c >= n_cand[part]:
         return
-    flat = cand[c]
+    flat = cand[part * stride + c]
     ny = P.dims[1]
     nz = P.dims[2]
     i = flat // (ny * nz)
