@@ -104,6 +104,7 @@ class DeviceConfidence:
             self.running_np = self.running.numpy().reshape(n_bins, n_beams + 1)
             self.n_cand_np = self.n_cand.numpy()
         self.cand = wp.empty(0, dtype=int, device=dev)
+        self.rects = wp.empty(0, dtype=int, device=dev)
         self.cells = wp.empty(0, dtype=int, device=dev)
         self._cmds = None
         wp.load_module(k, device=dev)
@@ -116,6 +117,7 @@ class DeviceConfidence:
         if self.cap < n_box:
             self.cap = max(n_box, 2 * self.cap)
             self.cand = wp.empty(2 * self.cap, dtype=int, device=dev)  # two lists (CPUs: one a thread)
+            self.rects = wp.empty(8 * self.cap, dtype=int, device=dev)
             self.cells = wp.empty(self.cap, dtype=int, device=dev)
         key = (self.cap, id(b.grid), id(b.index), tuple(float(v) for v in s.values()))
         if self._cmds is None or self._cmds[0] != key:
@@ -185,10 +187,11 @@ class DeviceConfidence:
         self._P, self._P_addr = P, ctypes.addressof(P._ctype)
         rec = {"device": b.dev, "record_cmd": True}
         pool = [b.edges, b.lut, b.index, b.grid, b.bright, b.count]
-        voxel_args = [P, *pool, self.arcs, self.rivals, self.cells, self.cand, self.n_cand, s["cos_hv"],
-                      s["sin_hv"], s["rmax_c"], s["slab_c"], int(s["carve_views"]), s["p_min"], s["rhs"], 0]
-        cand_args = [P, b.edges, b.lut, self.lit, self.running, self.cells, self.cand, self.n_cand,
-                     self.confirmed, s["tube"], 0]
+        voxel_args = [P, *pool, self.arcs, self.rivals, self.cells, self.cand, self.rects, self.n_cand,
+                      s["cos_hv"], s["sin_hv"], s["tube"], s["rmax_c"], s["slab_c"], int(s["carve_views"]),
+                      s["p_min"], s["rhs"], 0]
+        cand_args = [P, b.edges, b.lut, self.lit, self.running, self.cells, self.cand, self.rects,
+                     self.n_cand, self.confirmed, s["tube"], 0]
         n = self.n_bins
         stride = self.cap
         return {
@@ -240,6 +243,7 @@ class DeviceConfidence:
         self.running = zeros(4 * self.running_n)
         self.n_cand = zeros(8)
         self.cand = zeros(4)
+        self.rects = zeros(16)
         self.cells = zeros(4)
         self.wg = 64
         q.finish()
@@ -250,6 +254,7 @@ class DeviceConfidence:
         if self.cap < n_box:
             self.cap = max(n_box, 2 * self.cap)
             self.cand = self._zeros(4 * self.cap)
+            self.rects = self._zeros(16 * self.cap)
             self.cells = self._zeros(4 * self.cap)
         from gpumap.backends.base import N_SLOTS
 
@@ -265,7 +270,8 @@ class DeviceConfidence:
         K["lit_bits"](q, gs(self.n_bins), (wg,), P, image, self.lit, self.n_cand, zero)
         cl.enqueue_fill_buffer(q, self.rivals, np.int32(0), 0, 4 * self.table_n)
         K["conf_voxels"](q, gs(n_cols), (wg,), P, *pool, self.arcs_buf, self.rivals, self.cells, self.cand,
-                         self.n_cand, s["cos_hv"], s["sin_hv"], s["rmax_c"], s["slab_c"], s["carve_views"],
+                         self.rects, self.n_cand, s["cos_hv"], s["sin_hv"], s["tube"], s["rmax_c"],
+                         s["slab_c"], s["carve_views"],
                          s["p_min"], s["rhs"], zero, zero, np.int32(self.cap))
         K["prefix_rows"](q, gs(self.n_bins), (wg,), P, self.rivals, self.running, zero)
         # a work-item per box voxel, those past the list's length return at once: the host never
@@ -273,8 +279,8 @@ class DeviceConfidence:
         n = n_box
         if n:
             K["conf_candidates"](q, gs(n), (wg,), P, b.edges, b.lut, self.lit, self.running, self.cells,
-                                 self.cand, self.n_cand, self.confirmed_buf, s["tube"], zero, zero,
-                                 np.int32(self.cap))
+                                 self.cand, self.rects, self.n_cand, self.confirmed_buf, s["tube"], zero,
+                                 zero, np.int32(self.cap))
         q.flush()
 
     # ------------------------------------------------------------------ the layer

@@ -229,8 +229,8 @@ __kernel void prefix_rows(const PingParams P, __global const int *rivals, __glob
 __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, __global const int *lut,
                           __global const int *index, __global const float *grid, __global const float *bright,
                           __global const ulong *count, __global ushort *arcs, __global int *rivals,
-                          __global int *cells, __global int *cand, __global int *n_cand,
-                          const float cos_hv, const float sin_hv, const float rmax_c,
+                          __global int *cells, __global int *cand, __global int *rects, __global int *n_cand,
+                          const float cos_hv, const float sin_hv, const float tube, const float rmax_c,
                           const float slab_c, const int carve_views, const double p_min, const double rhs,
                           const int offset, const int part, const int stride)
 {
@@ -318,7 +318,16 @@ __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, _
                         cell = cb * P.n_beams + cj;
                         atomic_add(&rivals[part * P.n_bins * P.n_beams + cell], 1);
                     }
-                    if (seen) cand[part * stride + atomic_inc(&n_cand[part])] = flat;
+                    if (seen) {  // a candidate, with the cells within tube + rho of it
+                        int c = part * stride + atomic_inc(&n_cand[part]);
+                        cand[c] = flat;
+                        float wide = tube + P.rho;
+                        int2 js = beam_span(t, h2, wide, tan_edges, lut, Q);
+                        rects[4 * c] = bin_clip((r - wide - P.rmin) * P.inv_dr, nb);
+                        rects[4 * c + 1] = bin_clip((r + wide - P.rmin) * P.inv_dr, nb);
+                        rects[4 * c + 2] = js.x;
+                        rects[4 * c + 3] = js.y;
+                    }
                 }
             }
         }
@@ -330,14 +339,18 @@ __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, _
 // rivals whose centre cell lies within tube + rho of it are itself and its neighbours in the box.
 __kernel void conf_candidates(const PingParams P, __global const float *tan_edges, __global const int *lut,
                               __global const uint *lit, __global const int *running, __global const int *cells,
-                              __global const int *cand,
+                              __global const int *cand, __global const int *rects,
                               __global const int *n_cand, __global uchar *confirmed, const float tube,
                               const int offset, const int part, const int stride)
 {
     int c = get_global_id(0) + offset;
     if (c >= n_cand[part]) return;
     const PingParams *Q = &P;
-    int flat = cand[part * stride + c];
+    c = part * stride + c;
+    int b0 = rects[4 * c], b1 = rects[4 * c + 1], j0 = rects[4 * c + 2], j1 = rects[4 * c + 3];
+    int total = count_in(running, P.n_beams + 1, b0, b1, j0, j1, 27);
+    if (total > 27) return;  // more than the voxel and its 26 neighbours could be
+    int flat = cand[c];
     int ny = P.dims[1], nz = P.dims[2];
     int i = flat / (ny * nz);
     int j = flat / nz - i * ny;
@@ -351,14 +364,6 @@ __kernel void conf_candidates(const PingParams P, __global const float *tan_edge
     float h2 = x * x + y * y;
     float r = sqrt(h2 + z * z);
     float t = y / x;
-    int nb = P.n_bins;
-    float wide = tube + P.rho;
-    int b0 = bin_clip((r - wide - P.rmin) * P.inv_dr, nb);
-    int b1 = bin_clip((r + wide - P.rmin) * P.inv_dr, nb);
-    int2 js = beam_span(t, h2, wide, tan_edges, lut, Q);
-    int j0 = js.x, j1 = js.y;
-    int total = count_in(running, P.n_beams + 1, b0, b1, j0, j1, 27);
-    if (total > 27) return;  // more than the voxel and its 26 neighbours could be
     if (!echo_lit(Q, r, h2, t, lit, tan_edges, lut, tube)) return;
     int own = 0;
     int li = i - P.box_lo[0], lj = j - P.box_lo[1], lk = k - P.box_lo[2];

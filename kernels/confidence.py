@@ -299,9 +299,11 @@ def conf_voxels(
     rivals: wp.array(dtype=int),
     cells: wp.array(dtype=int),
     cand: wp.array(dtype=int),
+    rects: wp.array(dtype=int),
     n_cand: wp.array(dtype=int),
     cos_hv: float,
     sin_hv: float,
+    tube: float,
     rmax_c: float,
     slab_c: float,
     carve_views: int,
@@ -313,7 +315,8 @@ def conf_voxels(
 ):
     """One thread per (i, j) column of the box (from column ``offset``), over the column's voxels
     (see the module): arcs, the rivals' counts, each box voxel's rival cell (``cells``, box order:
-    bin n_beams + beam, -1 not a rival) and the candidates (observed, not known free). ``part``: which
+    bin n_beams + beam, -1 not a rival) and the candidates (observed, not known free), each with its
+    cells within tube + rho (``rects[4 c:]``: first and last bin, first and last beam). ``part``: which
     rival table (``part`` n_bins n_beams on) and candidate list (``cand[part stride:]``, its length
     ``n_cand[part]``) the thread adds to (a launch split over CPU threads, whose atomics are plain adds:
     each part its own; GPUs part 0)."""
@@ -403,8 +406,15 @@ def conf_voxels(
                             cj = beam_index_lo(t, tan_edges, lut, P)
                             cell = cb * P.n_beams + cj
                             wp.atomic_add(rivals, part * P.n_bins * P.n_beams + cell, 1)
-                        if seen:
-                            cand[part * stride + wp.atomic_add(n_cand, part, 1)] = flat
+                        if seen:  # a candidate, with the cells within tube + rho of it
+                            c = part * stride + wp.atomic_add(n_cand, part, 1)
+                            cand[c] = flat
+                            wide = tube + P.rho
+                            js = beam_span(t, h2, wide, tan_edges, lut, P)
+                            rects[4 * c] = bin_clip((r - wide - P.rmin) * P.inv_dr, nb)
+                            rects[4 * c + 1] = bin_clip((r + wide - P.rmin) * P.inv_dr, nb)
+                            rects[4 * c + 2] = js[0]
+                            rects[4 * c + 3] = js[1]
         cells[base + k] = cell
 
 
@@ -417,6 +427,7 @@ def conf_candidates(
     running: wp.array(dtype=int),
     cells: wp.array(dtype=int),
     cand: wp.array(dtype=int),
+    rects: wp.array(dtype=int),
     n_cand: wp.array(dtype=int),
     confirmed: wp.array(dtype=wp.uint8),
     tube: float,
@@ -430,7 +441,15 @@ def conf_candidates(
     c = wp.tid() + offset
     if c >= n_cand[part]:
         return
-    flat = cand[part * stride + c]
+    c = part * stride + c
+    b0 = rects[4 * c]
+    b1 = rects[4 * c + 1]
+    j0 = rects[4 * c + 2]
+    j1 = rects[4 * c + 3]
+    total = count_in(running, P.n_beams + 1, b0, b1, j0, j1, 27)
+    if total > 27:  # more than the voxel and its 26 neighbours could be
+        return
+    flat = cand[c]
     ny = P.dims[1]
     nz = P.dims[2]
     i = flat // (ny * nz)
@@ -445,16 +464,6 @@ def conf_candidates(
     h2 = x * x + y * y
     r = wp.sqrt(h2 + z * z)
     t = y / x
-    nb = P.n_bins
-    wide = tube + P.rho
-    b0 = bin_clip((r - wide - P.rmin) * P.inv_dr, nb)
-    b1 = bin_clip((r + wide - P.rmin) * P.inv_dr, nb)
-    js = beam_span(t, h2, wide, tan_edges, lut, P)
-    j0 = js[0]
-    j1 = js[1]
-    total = count_in(running, P.n_beams + 1, b0, b1, j0, j1, 27)
-    if total > 27:  # more than the voxel and its 26 neighbours could be
-        return
     if echo_lit(P, r, h2, t, lit, tan_edges, lut, tube) == 0:
         return
     own = int(0)
