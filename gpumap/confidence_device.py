@@ -41,6 +41,9 @@ def pass_scalars(spec, params: np.ndarray, half_rad: float, tube_m: float, value
         "tube": np.float32(tube_m), "rmax_c": np.float32(rmax_c), "slab_c": np.float32(slab_c),
         "carve_views": np.int32(value_rule.carve_views), "p_min": np.float64(p),
         "rhs": np.float64(z * z * p * (1.0 - p)),
+        # the widest beam, radians, a hair wider: the candidates' shortcut (conf_candidates) counts beams
+        # of at most this width within an angle
+        "beam_max": np.float32(float(np.max(np.diff(spec.beam_edges_rad))) * (1.0 + 1e-3)),
     }
 
 
@@ -104,7 +107,7 @@ class DeviceConfidence:
             self.running_np = self.running.numpy().reshape(n_bins, n_beams + 1)
             self.n_cand_np = self.n_cand.numpy()
         self.cand = wp.empty(0, dtype=int, device=dev)
-        self.rects = wp.empty(0, dtype=int, device=dev)
+        self.steps = wp.empty(0, dtype=int, device=dev)
         self.cells = wp.empty(0, dtype=int, device=dev)
         self._cmds = None
         wp.load_module(k, device=dev)
@@ -117,7 +120,7 @@ class DeviceConfidence:
         if self.cap < n_box:
             self.cap = max(n_box, 2 * self.cap)
             self.cand = wp.empty(2 * self.cap, dtype=int, device=dev)  # two lists (CPUs: one a thread)
-            self.rects = wp.empty(8 * self.cap, dtype=int, device=dev)
+            self.steps = wp.empty(2 * self.cap, dtype=int, device=dev)
             self.cells = wp.empty(self.cap, dtype=int, device=dev)
         key = (self.cap, id(b.grid), id(b.index), tuple(float(v) for v in s.values()))
         if self._cmds is None or self._cmds[0] != key:
@@ -187,11 +190,11 @@ class DeviceConfidence:
         self._P, self._P_addr = P, ctypes.addressof(P._ctype)
         rec = {"device": b.dev, "record_cmd": True}
         pool = [b.edges, b.lut, b.index, b.grid, b.bright, b.count]
-        voxel_args = [P, *pool, self.arcs, self.rivals, self.cells, self.cand, self.rects, self.n_cand,
+        voxel_args = [P, *pool, self.arcs, self.rivals, self.cells, self.cand, self.steps, self.n_cand,
                       s["cos_hv"], s["sin_hv"], s["tube"], s["rmax_c"], s["slab_c"], int(s["carve_views"]),
                       s["p_min"], s["rhs"], 0]
-        cand_args = [P, b.edges, b.lut, self.lit, self.running, self.cells, self.cand, self.rects,
-                     self.n_cand, self.confirmed, s["tube"], 0]
+        cand_args = [P, b.edges, b.lut, self.lit, self.running, self.cells, self.cand, self.steps,
+                     self.n_cand, self.confirmed, s["tube"], s["beam_max"], 0]
         n = self.n_bins
         stride = self.cap
         return {
@@ -243,7 +246,7 @@ class DeviceConfidence:
         self.running = zeros(4 * self.running_n)
         self.n_cand = zeros(8)
         self.cand = zeros(4)
-        self.rects = zeros(16)
+        self.steps = zeros(4)
         self.cells = zeros(4)
         self.wg = 64
         q.finish()
@@ -254,7 +257,7 @@ class DeviceConfidence:
         if self.cap < n_box:
             self.cap = max(n_box, 2 * self.cap)
             self.cand = self._zeros(4 * self.cap)
-            self.rects = self._zeros(16 * self.cap)
+            self.steps = self._zeros(4 * self.cap)
             self.cells = self._zeros(4 * self.cap)
         from gpumap.backends.base import N_SLOTS
 
@@ -270,7 +273,7 @@ class DeviceConfidence:
         K["lit_bits"](q, gs(self.n_bins), (wg,), P, image, self.lit, self.n_cand, zero)
         cl.enqueue_fill_buffer(q, self.rivals, np.int32(0), 0, 4 * self.table_n)
         K["conf_voxels"](q, gs(n_cols), (wg,), P, *pool, self.arcs_buf, self.rivals, self.cells, self.cand,
-                         self.rects, self.n_cand, s["cos_hv"], s["sin_hv"], s["tube"], s["rmax_c"],
+                         self.steps, self.n_cand, s["cos_hv"], s["sin_hv"], s["tube"], s["rmax_c"],
                          s["slab_c"], s["carve_views"],
                          s["p_min"], s["rhs"], zero, zero, np.int32(self.cap))
         K["prefix_rows"](q, gs(self.n_bins), (wg,), P, self.rivals, self.running, zero)
@@ -279,7 +282,8 @@ class DeviceConfidence:
         n = n_box
         if n:
             K["conf_candidates"](q, gs(n), (wg,), P, b.edges, b.lut, self.lit, self.running, self.cells,
-                                 self.cand, self.rects, self.n_cand, self.confirmed_buf, s["tube"], zero,
+                                 self.cand, self.steps, self.n_cand, self.confirmed_buf, s["tube"],
+                                 s["beam_max"], zero,
                                  zero, np.int32(self.cap))
         q.flush()
 

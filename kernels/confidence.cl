@@ -229,7 +229,7 @@ __kernel void prefix_rows(const PingParams P, __global const int *rivals, __glob
 __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, __global const int *lut,
                           __global const int *index, __global const float *grid, __global const float *bright,
                           __global const ulong *count, __global ushort *arcs, __global int *rivals,
-                          __global int *cells, __global int *cand, __global int *rects, __global int *n_cand,
+                          __global int *cells, __global int *cand, __global int *steps, __global int *n_cand,
                           const float cos_hv, const float sin_hv, const float tube, const float rmax_c,
                           const float slab_c, const int carve_views, const double p_min, const double rhs,
                           const int offset, const int part, const int stride)
@@ -300,6 +300,7 @@ __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, _
                 int near = r >= P.rmin - P.rho && r < P.rmax + P.rho
                            && fabs(z) * cos_hv - sqrt(h2) * sin_hv <= P.rho;
                 int flat = (i * ny + j) * nz + k;
+                int bit = 0;
                 if (seen) {  // the elevation arc's direction (-x z, -y z, h^2) to the world, its pair bit
                     float ex = -(x * z), ey = -(y * z), ez = h2;
                     float wx = P.A[0] * ex + P.A[3] * ey + P.A[6] * ez;
@@ -307,7 +308,7 @@ __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, _
                     float wz = P.A[2] * ex + P.A[5] * ey + P.A[8] * ez;
                     float n2 = wx * wx + wy * wy + wz * wz;
                     int m = (arc_step(wx, n2) + 1) * 9 + (arc_step(wy, n2) + 1) * 3 + (arc_step(wz, n2) + 1);
-                    int bit = max(m, 26 - m) - 14;
+                    bit = max(m, 26 - m) - 14;
                     arcs[flat] = (ushort)(arcs[flat] | (ushort)(1 << bit));
                 }
                 if ((seen || near) && not_free(Q, voxel_address(Q, index, i, j, k), grid, bright, count,
@@ -318,15 +319,10 @@ __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, _
                         cell = cb * P.n_beams + cj;
                         atomic_add(&rivals[part * P.n_bins * P.n_beams + cell], 1);
                     }
-                    if (seen) {  // a candidate, with the cells within tube + rho of it
+                    if (seen) {  // a candidate, with its elevation arc's neighbour pair
                         int c = part * stride + atomic_inc(&n_cand[part]);
                         cand[c] = flat;
-                        float wide = tube + P.rho;
-                        int2 js = beam_span(t, h2, wide, tan_edges, lut, Q);
-                        rects[4 * c] = bin_clip((r - wide - P.rmin) * P.inv_dr, nb);
-                        rects[4 * c + 1] = bin_clip((r + wide - P.rmin) * P.inv_dr, nb);
-                        rects[4 * c + 2] = js.x;
-                        rects[4 * c + 3] = js.y;
+                        steps[c] = bit;
                     }
                 }
             }
@@ -339,22 +335,21 @@ __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, _
 // rivals whose centre cell lies within tube + rho of it are itself and its neighbours in the box.
 __kernel void conf_candidates(const PingParams P, __global const float *tan_edges, __global const int *lut,
                               __global const uint *lit, __global const int *running, __global const int *cells,
-                              __global const int *cand, __global const int *rects,
+                              __global const int *cand, __global const int *steps,
                               __global const int *n_cand, __global uchar *confirmed, const float tube,
+                              const float beam_max,
                               const int offset, const int part, const int stride)
 {
     int c = get_global_id(0) + offset;
     if (c >= n_cand[part]) return;
     const PingParams *Q = &P;
     c = part * stride + c;
-    int b0 = rects[4 * c], b1 = rects[4 * c + 1], j0 = rects[4 * c + 2], j1 = rects[4 * c + 3];
-    int total = count_in(running, P.n_beams + 1, b0, b1, j0, j1, 27);
-    if (total > 27) return;  // more than the voxel and its 26 neighbours could be
     int flat = cand[c];
     int ny = P.dims[1], nz = P.dims[2];
     int i = flat / (ny * nz);
     int j = flat / nz - i * ny;
     int k = flat - (i * ny + j) * nz;
+    int li = i - P.box_lo[0], lj = j - P.box_lo[1], lk = k - P.box_lo[2];
     float cx = P.origin[0] + ((float)i + 0.5f) * P.voxel;
     float cy = P.origin[1] + ((float)j + 0.5f) * P.voxel;
     float cz = P.origin[2] + ((float)k + 0.5f) * P.voxel;
@@ -364,9 +359,37 @@ __kernel void conf_candidates(const PingParams P, __global const float *tan_edge
     float h2 = x * x + y * y;
     float r = sqrt(h2 + z * z);
     float t = y / x;
+    int nb = P.n_bins;
+    float wide = tube + P.rho;
+    // First a few reads that settle most candidates (see confidence.py): a rival two or three steps along the
+    // arc whose cell lies within kb bins and mb beams of the voxel's own lies within its cells within wide.
+    int own_cell = cells[(li * P.box_n[1] + lj) * P.box_n[2] + lk];
+    int kb = (int)(wide * P.inv_dr) - 2;
+    int mb = -1;
+    float hb = sqrt(h2) * beam_max;
+    if (hb > 0.0f) mb = (int)fmin(wide / hb, 1.0e6f) - 2;
+    if (own_cell >= 0 && kb >= 0 && mb >= 0) {
+        int ob = own_cell / P.n_beams, oj = own_cell - ob * P.n_beams;
+        int m = steps[c] + 14;
+        int si = m / 9 - 1, sj = (m / 3) % 3 - 1, sk = m % 3 - 1;
+        for (int e = 0; e < 4; ++e) {
+            int d = e >= 2 ? e : e - 3;
+            int qi = li + d * si, qj = lj + d * sj, qk = lk + d * sk;
+            if (qi < 0 || qi >= P.box_n[0] || qj < 0 || qj >= P.box_n[1] || qk < 0 || qk >= P.box_n[2]) continue;
+            int pc = cells[(qi * P.box_n[1] + qj) * P.box_n[2] + qk];
+            if (pc < 0) continue;
+            int pcb = pc / P.n_beams;
+            if (abs(pcb - ob) <= kb && abs(pc - pcb * P.n_beams - oj) <= mb) return;
+        }
+    }
+    int b0 = bin_clip((r - wide - P.rmin) * P.inv_dr, nb);
+    int b1 = bin_clip((r + wide - P.rmin) * P.inv_dr, nb);
+    int2 js = beam_span(t, h2, wide, tan_edges, lut, Q);
+    int j0 = js.x, j1 = js.y;
+    int total = count_in(running, P.n_beams + 1, b0, b1, j0, j1, 27);
+    if (total > 27) return;  // more than the voxel and its 26 neighbours could be
     if (!echo_lit(Q, r, h2, t, lit, tan_edges, lut, tube)) return;
     int own = 0;
-    int li = i - P.box_lo[0], lj = j - P.box_lo[1], lk = k - P.box_lo[2];
     for (int di = -1; di <= 1; ++di)
         for (int dj = -1; dj <= 1; ++dj)
             for (int dk = -1; dk <= 1; ++dk) {

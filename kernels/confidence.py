@@ -299,7 +299,7 @@ def conf_voxels(
     rivals: wp.array(dtype=int),
     cells: wp.array(dtype=int),
     cand: wp.array(dtype=int),
-    rects: wp.array(dtype=int),
+    steps: wp.array(dtype=int),
     n_cand: wp.array(dtype=int),
     cos_hv: float,
     sin_hv: float,
@@ -315,8 +315,8 @@ def conf_voxels(
 ):
     """One thread per (i, j) column of the box (from column ``offset``), over the column's voxels
     (see the module): arcs, the rivals' counts, each box voxel's rival cell (``cells``, box order:
-    bin n_beams + beam, -1 not a rival) and the candidates (observed, not known free), each with its
-    cells within tube + rho (``rects[4 c:]``: first and last bin, first and last beam). ``part``: which
+    bin n_beams + beam, -1 not a rival) and the candidates (observed, not known free), each with the
+    neighbour pair its elevation arc runs along (``steps``, the bit of ``arcs``). ``part``: which
     rival table (``part`` n_bins n_beams on) and candidate list (``cand[part stride:]``, its length
     ``n_cand[part]``) the thread adds to (a launch split over CPU threads, whose atomics are plain adds:
     each part its own; GPUs part 0)."""
@@ -386,6 +386,7 @@ def conf_voxels(
                 near = (r >= P.rmin - P.rho and r < P.rmax + P.rho
                         and wp.abs(z) * cos_hv - wp.sqrt(h2) * sin_hv <= P.rho)
                 flat = (i * ny + j) * nz + k
+                bit = int(0)
                 if seen:
                     # the elevation arc's direction (-x z, -y z, h^2) to the world, its pair bit
                     ex = -(x * z)
@@ -406,15 +407,10 @@ def conf_voxels(
                             cj = beam_index_lo(t, tan_edges, lut, P)
                             cell = cb * P.n_beams + cj
                             wp.atomic_add(rivals, part * P.n_bins * P.n_beams + cell, 1)
-                        if seen:  # a candidate, with the cells within tube + rho of it
+                        if seen:  # a candidate, with its elevation arc's neighbour pair
                             c = part * stride + wp.atomic_add(n_cand, part, 1)
                             cand[c] = flat
-                            wide = tube + P.rho
-                            js = beam_span(t, h2, wide, tan_edges, lut, P)
-                            rects[4 * c] = bin_clip((r - wide - P.rmin) * P.inv_dr, nb)
-                            rects[4 * c + 1] = bin_clip((r + wide - P.rmin) * P.inv_dr, nb)
-                            rects[4 * c + 2] = js[0]
-                            rects[4 * c + 3] = js[1]
+                            steps[c] = bit
         cells[base + k] = cell
 
 
@@ -427,10 +423,11 @@ def conf_candidates(
     running: wp.array(dtype=int),
     cells: wp.array(dtype=int),
     cand: wp.array(dtype=int),
-    rects: wp.array(dtype=int),
+    steps: wp.array(dtype=int),
     n_cand: wp.array(dtype=int),
     confirmed: wp.array(dtype=wp.uint8),
     tube: float,
+    beam_max: float,
     offset: int,
     part: int,
     stride: int,
@@ -442,19 +439,15 @@ def conf_candidates(
     if c >= n_cand[part]:
         return
     c = part * stride + c
-    b0 = rects[4 * c]
-    b1 = rects[4 * c + 1]
-    j0 = rects[4 * c + 2]
-    j1 = rects[4 * c + 3]
-    total = count_in(running, P.n_beams + 1, b0, b1, j0, j1, 27)
-    if total > 27:  # more than the voxel and its 26 neighbours could be
-        return
     flat = cand[c]
     ny = P.dims[1]
     nz = P.dims[2]
     i = flat // (ny * nz)
     j = (flat // nz) - i * ny
     k = flat - (i * ny + j) * nz
+    li = i - P.box_lo[0]
+    lj = j - P.box_lo[1]
+    lk = k - P.box_lo[2]
     cx = P.origin[0] + (float(i) + 0.5) * P.voxel
     cy = P.origin[1] + (float(j) + 0.5) * P.voxel
     cz = P.origin[2] + (float(k) + 0.5) * P.voxel
@@ -464,12 +457,50 @@ def conf_candidates(
     h2 = x * x + y * y
     r = wp.sqrt(h2 + z * z)
     t = y / x
+    nb = P.n_bins
+    wide = tube + P.rho
+    # First a few reads that settle most candidates: a rival two or three steps along the arc (not a
+    # neighbour) whose cell lies within kb bins and mb beams of the voxel's own lies within its cells
+    # within wide (kb, mb: two bins and two of the widest beams short of wide, far more than any
+    # rounding), so it rules the voxel out without the exact cells.
+    own_cell = cells[(li * P.box_n[1] + lj) * P.box_n[2] + lk]
+    kb = int(wide * P.inv_dr) - 2
+    mb = int(-1)
+    hb = wp.sqrt(h2) * beam_max
+    if hb > 0.0:
+        mb = int(wp.min(wide / hb, 1.0e6)) - 2
+    if own_cell >= 0 and kb >= 0 and mb >= 0:
+        ob = own_cell // P.n_beams
+        oj = own_cell - ob * P.n_beams
+        m = steps[c] + 14
+        si = m // 9 - 1
+        sj = (m // 3) % 3 - 1
+        sk = m % 3 - 1
+        for e in range(4):
+            d = e - 3
+            if e >= 2:
+                d = e
+            qi = li + d * si
+            qj = lj + d * sj
+            qk = lk + d * sk
+            qin = qi >= 0 and qi < P.box_n[0] and qj >= 0 and qj < P.box_n[1]
+            if qin and qk >= 0 and qk < P.box_n[2]:
+                pc = cells[(qi * P.box_n[1] + qj) * P.box_n[2] + qk]
+                if pc >= 0:
+                    pcb = pc // P.n_beams
+                    if wp.abs(pcb - ob) <= kb and wp.abs(pc - pcb * P.n_beams - oj) <= mb:
+                        return
+    b0 = bin_clip((r - wide - P.rmin) * P.inv_dr, nb)
+    b1 = bin_clip((r + wide - P.rmin) * P.inv_dr, nb)
+    js = beam_span(t, h2, wide, tan_edges, lut, P)
+    j0 = js[0]
+    j1 = js[1]
+    total = count_in(running, P.n_beams + 1, b0, b1, j0, j1, 27)
+    if total > 27:  # more than the voxel and its 26 neighbours could be
+        return
     if echo_lit(P, r, h2, t, lit, tan_edges, lut, tube) == 0:
         return
     own = int(0)
-    li = i - P.box_lo[0]
-    lj = j - P.box_lo[1]
-    lk = k - P.box_lo[2]
     for di in range(-1, 2):
         for dj in range(-1, 2):
             for dk in range(-1, 2):
