@@ -36,9 +36,11 @@ that carve a rival do not confirm a voxel after the fact: a new view must), so u
 map values the layer depends on the order of the pings; :meth:`~gpumap.MinMaxMapper.integrate_batch`
 applies its pings in order and gives the layer of the same sequence of ``integrate`` calls.
 
-:func:`confirm_ping` is the plain NumPy pass (the reference); it is also what the mapper
-runs, on the host, on every backend (the map values are read back once per ping), through the
-mapper's :class:`ConfidenceLayer`, which keeps the layer and scores view gains against it
+:func:`confirm_ping` is the plain NumPy pass (the reference, which the ``numpy`` backend runs).
+On the Warp and OpenCL backends the mapper's :class:`ConfidenceLayer` runs the same pass as
+kernels on the map's device after each update (:mod:`gpumap.confidence_device`,
+``kernels/confidence.*``), bit for bit the reference's, reading the map where it lives; the layer
+comes to the host when read. The layer keeps the flags and scores view gains against them
 (:mod:`gpumap.nbv`).
 """
 

@@ -156,7 +156,8 @@ class MinMaxMapper:
         Keep the confidence layer (:mod:`gpumap.confidence`; a bounded GridSpec only): after
         each ping a separate pass marks the occupied voxels that view confirmed (resolved in
         elevation), read with :meth:`confidence`; :meth:`view_gain` scores candidate poses
-        against it. Costs a byte per voxel on the host and one read of the map per ping.
+        against it. Costs three bytes per voxel (on the map's device, and on the host when read)
+        and a pass per ping beside the update, on the map's device (``bench/results/confidence.json``).
         Default False.
     sparse : bool or None
         True: allocate blocks on demand even for a GridSpec (its box bounds the map). None

@@ -1,5 +1,5 @@
 // The confidence layer's per-ping pass in OpenCL C 1.2 (device code only; twin: confidence.py, whose
-// docstring tells the five launches). Same kernels, same arguments in the same order as the Warp twin
+// docstring tells the launches). Same kernels, same arguments in the same order as the Warp twin
 // (OpenCL, without array lengths, adds them where the Warp kernels read them from an array: the
 // beam look-up table's length is P.lut_n; each kernel takes its work size and returns past it).
 // PingParams matches gpumap.geometry.PING_DTYPE field for field (a copy of minmax.cl's, so the two

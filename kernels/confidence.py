@@ -1,27 +1,31 @@
 """The confidence layer's per-ping pass in NVIDIA Warp (device code only; twin: ``confidence.cl``).
 
 One ping, after its update (the rules: ``gpumap.confidence``; the NumPy reference:
-``gpumap.confidence.confirm_ping``), in five launches on one stream:
+``gpumap.confidence.confirm_ping``), in four launches on one stream (the host,
+``gpumap/confidence_device.py``, zeroes the rival table before them):
 
-1. ``lit_rows``: one thread per bin row: the row's running count of lit cells (``>= thr``),
-   written into a summed-area table of ``(n_bins + 1) x (n_beams + 1)`` int32 (row and column 0
-   stay zero).
+1. ``lit_bits``: one thread per bin row: the row's lit cells (``>= thr``) as bits.
 2. ``conf_voxels``: one thread per (i, j) column of the ping's box, walking the column's voxels
    that the rivals' region can hold: each voxel the ping observes gets its elevation arc's bit in
    ``arcs``; each rival (not known free, in the widened field of view) adds one to its centre
-   cell of the rival table (an int32 atomic: exact in any order); each observed voxel that is
-   not known free goes on the candidate list (an atomic counter).
-3. ``prefix_rows`` on the rival table, then ``prefix_cols`` on both tables: summed-area tables.
-4. ``conf_candidates``: one thread per candidate: bright in this ping (a lit cell in its
-   footprint), the echo (a lit cell within ``tube``) and no rival in its wide cells but itself and
-   its neighbours: ``confirmed = 1`` (a flag: the same in any order).
+   cell of the rival table (an int32 atomic: exact in any order) and keeps that cell in ``cells``
+   (box order); each observed voxel that is not known free goes on the candidate list (an atomic
+   counter) with its arc's neighbour pair.
+3. ``prefix_rows``: one thread per bin row: the rivals' running counts along its beams.
+4. ``conf_candidates``: one thread per candidate: no rival in its cells within tube + rho but
+   itself and its neighbours (at most 27, so most are settled after a few reads), bright in this
+   ping (a lit cell in its footprint) and the echo (a lit cell within ``tube``): ``confirmed = 1``
+   (a flag: the same in any order).
 
-Arguments, in order: the ping parameters (``PingParams``, ``gpumap.geometry.PING_DTYPE`` field
-for field: a copy of ``minmax.PingParams``, kept here so the two kernel families build on their
-own), then per kernel what it reads and writes; the scalars of the pass last (cos and sin of the
-rivals' half aperture, the tube, the column walk's widened range and slab, the value rule's
-options). ``beam_index_lo``, ``voxel_address`` and the arc direction are copies of
-``minmax``/``viewgain``'s, with the same arithmetic.
+On CPUs the host runs the two whole-image passes (1, 3) in NumPy, and each of two threads walks
+half the columns into its own rival table and candidate list (``part``): Warp's CPU atomics are
+plain adds. Arguments, in order: the ping parameters (``PingParams``,
+``gpumap.geometry.PING_DTYPE`` field for field: a copy of ``minmax.PingParams``, kept here so the
+two kernel families build on their own), then per kernel what it reads and writes, then its
+scalars (cos and sin of the rivals' half aperture, the tube, the column walk's widened range and
+slab, the value rule's options, the widest beam), then where a launch split over threads starts.
+``beam_index_lo``, ``voxel_address`` and the arc direction are copies of ``minmax``/``viewgain``'s,
+with the same arithmetic.
 """
 
 import warp as wp
