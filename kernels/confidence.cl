@@ -1,7 +1,7 @@
 // The confidence layer's per-ping pass in OpenCL C 1.2 (device code only; twin: confidence.py, whose
-// docstring tells the launches). Same kernels, same arguments in the same order as the Warp twin
-// (OpenCL, without array lengths, adds them where the Warp kernels read them from an array: the
-// beam look-up table's length is P.lut_n; each kernel takes its work size and returns past it).
+// docstring tells the launches). Same kernels, same arguments in the same order as the Warp twin (the
+// beam look-up table's length, which Warp reads from the array, is P.lut_n here; work-items past a
+// kernel's work size return).
 // PingParams matches gpumap.geometry.PING_DTYPE field for field (a copy of minmax.cl's, so the two
 // programs build on their own); beam_index_lo, voxel_address and the arc direction are copies of
 // minmax.cl's and viewgain.cl's, with the same arithmetic. The evidence rule's test is float64.
