@@ -3,7 +3,7 @@
 // beam look-up table's length, which Warp reads from the array, is P.lut_n here; work-items past a
 // kernel's work size return).
 // PingParams matches gpumap.geometry.PING_DTYPE field for field (a copy of minmax.cl's, so the two
-// programs build on their own); beam_index_lo, voxel_address and the arc direction are copies of
+// programs build on their own); beam_index_lo, the block addressing and the arc direction are copies of
 // minmax.cl's and viewgain.cl's, with the same arithmetic. The evidence rule's test is float64.
 
 // No FMA contraction: every device then rounds as the NumPy reference does, bit for bit.
@@ -119,17 +119,30 @@ inline int any_lit(__global const uint *L, int nw, int b0, int b1, int j0, int j
     return 0;
 }
 
-// Storage address of voxel (i, j, k) in the pool (minmax.cl's voxel_address); -1: no block.
-inline int voxel_address(const PingParams *P, __global const int *index, int i, int j, int k)
+// Column (i, j) in the block index (minmax.cl's voxel_address's work that k leaves alone): (1 if the index spans it else
+// 0, the index entry of its first block, the offset of its voxels in a block).
+inline int3 column_of(const PingParams *P, int i, int j)
 {
-    int B = P->blk, Bz = P->blk_z;
-    int ri = i - P->blk_lo[0], rj = j - P->blk_lo[1], rk = k - P->blk_lo[2];
-    if (ri < 0 || rj < 0 || rk < 0) return -1;
-    int bi = ri / B, bj = rj / B, bk = rk / Bz;
-    if (bi >= P->blk_n[0] || bj >= P->blk_n[1] || bk >= P->blk_n[2]) return -1;
-    int slot = index[(bi * P->blk_n[1] + bj) * P->blk_n[2] + bk];
+    int B = P->blk;
+    int ri = i - P->blk_lo[0], rj = j - P->blk_lo[1];
+    if (ri < 0 || rj < 0) return (int3)(0, 0, 0);
+    int bi = ri / B, bj = rj / B;
+    if (bi >= P->blk_n[0] || bj >= P->blk_n[1]) return (int3)(0, 0, 0);
+    return (int3)(1, (bi * P->blk_n[1] + bj) * P->blk_n[2], ((ri - bi * B) * B + (rj - bj * B)) * P->blk_z);
+}
+
+// minmax.cl's voxel_address of voxel k of a column (col: column_of; -1: no block); a bounded box's column is
+// one block (no division).
+inline int column_address(const PingParams *P, __global const int *index, int3 col, int k)
+{
+    int rk = k - P->blk_lo[2];
+    if (col.x == 0 || rk < 0) return -1;
+    int Bz = P->blk_z;
+    int bk = rk >= Bz ? rk / Bz : 0;
+    if (bk >= P->blk_n[2]) return -1;
+    int slot = index[col.y + bk];
     if (slot < 0) return -1;
-    return slot * B * B * Bz + ((ri - bi * B) * B + (rj - bj * B)) * Bz + rk - bk * Bz;
+    return slot * P->blk * P->blk * Bz + col.z + rk - bk * Bz;
 }
 
 // 1 when the map value at pool address a (-1: no block, unknown) is >= thr or unknown (the rule's
@@ -285,6 +298,7 @@ __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, _
     int nb = P.n_bins;
     int ny = P.dims[1], nz = P.dims[2];
     __global int *out = cells + (size_t)col * n2b - P.box_lo[2];
+    int3 colb = column_of(Q, i, j);
     for (int k = P.box_lo[2]; k < P.box_lo[2] + n2b; ++k) {
         int cell = -1;
         if (k >= k0 && k <= k1) {
@@ -311,7 +325,7 @@ __kernel void conf_voxels(const PingParams P, __global const float *tan_edges, _
                     bit = max(m, 26 - m) - 14;
                     arcs[flat] = (ushort)(arcs[flat] | (ushort)(1 << bit));
                 }
-                if ((seen || near) && not_free(Q, voxel_address(Q, index, i, j, k), grid, bright, count,
+                if ((seen || near) && not_free(Q, column_address(Q, index, colb, k), grid, bright, count,
                                                carve_views, p_min, rhs)) {
                     if (near) {
                         int cb = bin_clip((r - P.rmin) * P.inv_dr, nb);

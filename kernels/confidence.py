@@ -24,7 +24,7 @@ plain adds. Arguments, in order: the ping parameters (``PingParams``,
 two kernel families build on their own), then per kernel what it reads and writes, then its
 scalars (cos and sin of the rivals' half aperture, the tube, the column walk's widened range and
 slab, the value rule's options, the widest beam), then where a launch split over threads starts.
-``beam_index_lo``, ``voxel_address`` and the arc direction are copies of ``minmax``/``viewgain``'s,
+``beam_index_lo``, the block addressing and the arc direction are copies of ``minmax``/``viewgain``'s,
 with the same arithmetic.
 """
 
@@ -158,24 +158,38 @@ def any_lit(L: wp.array(dtype=wp.uint32), nw: int, b0: int, b1: int, j0: int, j1
 
 
 @wp.func
-def voxel_address(P: PingParams, index: wp.array(dtype=int), i: int, j: int, k: int) -> int:
-    """Storage address of voxel (i, j, k) in the pool (``minmax.voxel_address``); -1: no block."""
+def column_of(P: PingParams, i: int, j: int) -> wp.vec3i:
+    """Column (i, j) in the block index (``minmax.voxel_address``'s work that k leaves alone): (1 if the
+    index spans it else 0, the index entry of its first block, the offset of its voxels in a block)."""
     B = P.blk
-    Bz = P.blk_z
     ri = i - P.blk_lo[0]
     rj = j - P.blk_lo[1]
-    rk = k - P.blk_lo[2]
-    if ri < 0 or rj < 0 or rk < 0:
-        return -1
+    if ri < 0 or rj < 0:
+        return wp.vec3i(0, 0, 0)
     bi = ri // B
     bj = rj // B
-    bk = rk // Bz
-    if bi >= P.blk_n[0] or bj >= P.blk_n[1] or bk >= P.blk_n[2]:
+    if bi >= P.blk_n[0] or bj >= P.blk_n[1]:
+        return wp.vec3i(0, 0, 0)
+    return wp.vec3i(1, (bi * P.blk_n[1] + bj) * P.blk_n[2], ((ri - bi * B) * B + (rj - bj * B)) * P.blk_z)
+
+
+@wp.func
+def column_address(P: PingParams, index: wp.array(dtype=int), col: wp.vec3i, k: int) -> int:
+    """``minmax.voxel_address`` of voxel k of a column (``col``: :func:`column_of`; -1: no block); a
+    bounded box's column is one block (no division)."""
+    rk = k - P.blk_lo[2]
+    if col[0] == 0 or rk < 0:
         return -1
-    slot = index[(bi * P.blk_n[1] + bj) * P.blk_n[2] + bk]
+    Bz = P.blk_z
+    bk = int(0)
+    if rk >= Bz:
+        bk = rk // Bz
+    if bk >= P.blk_n[2]:
+        return -1
+    slot = index[col[1] + bk]
     if slot < 0:
         return -1
-    return slot * B * B * Bz + ((ri - bi * B) * B + (rj - bj * B)) * Bz + rk - bk * Bz
+    return slot * P.blk * P.blk * Bz + col[2] + rk - bk * Bz
 
 
 @wp.func
@@ -375,6 +389,7 @@ def conf_voxels(
     ny = P.dims[1]
     nz = P.dims[2]
     base = col * n2b - P.box_lo[2]
+    colb = column_of(P, i, j)
     for k in range(P.box_lo[2], P.box_lo[2] + n2b):
         cell = int(-1)
         if k >= k0 and k <= k1:
@@ -404,7 +419,7 @@ def conf_voxels(
                     bit = wp.max(m, 26 - m) - 14
                     arcs[flat] = arcs[flat] | wp.uint16(1 << bit)
                 if seen or near:
-                    a = voxel_address(P, index, i, j, k)
+                    a = column_address(P, index, colb, k)
                     if not_free(P, a, grid, bright, count, carve_views, p_min, rhs) != 0:
                         if near:
                             cb = bin_clip((r - P.rmin) * P.inv_dr, nb)
