@@ -198,7 +198,8 @@ class DeviceConfidence:
         n = self.n_bins
         stride = self.cap
         return {
-            "lit_bits": wp.launch(k.lit_bits, dim=n, inputs=[P, b.image, self.lit, self.n_cand, 0], **rec),
+            "lit_bits": wp.launch(k.lit_bits, dim=self.n_words, inputs=[P, b.image, self.lit, self.n_cand, 0],
+                                  **rec),
             "conf_voxels": tuple(wp.launch(k.conf_voxels, dim=1, inputs=[*voxel_args, part, stride], **rec)
                                  for part in (0, 1)),
             "prefix_rows": wp.launch(k.prefix_rows, dim=n, inputs=[P, self.rivals, self.running, 0], **rec),
@@ -270,7 +271,7 @@ class DeviceConfidence:
 
         pool = (b.edges, b.lut, b.index, b.grid, b.bright, b.count)
         zero = np.int32(0)
-        K["lit_bits"](q, gs(self.n_bins), (wg,), P, image, self.lit, self.n_cand, zero)
+        K["lit_bits"](q, gs(self.n_words), (wg,), P, image, self.lit, self.n_cand, zero)
         cl.enqueue_fill_buffer(q, self.rivals, np.int32(0), 0, 4 * self.table_n)
         K["conf_voxels"](q, gs(n_cols), (wg,), P, *pool, self.arcs_buf, self.rivals, self.cells, self.cand,
                          self.steps, self.n_cand, s["cos_hv"], s["sin_hv"], s["tube"], s["rmax_c"],

@@ -201,22 +201,21 @@ inline int echo_lit(const PingParams *P, float r, float h2, float t, __global co
     return 1;
 }
 
-// One work-item per bin row i (from offset): the row's lit cells (>= thr) as bits, lit[i nw + j / 32] bit
-// j % 32; work-item 0 also empties the candidate list.
+// One work-item per word of a bin row (from offset): the row's lit cells (>= thr) as bits, lit[i nw + j / 32]
+// bit j % 32; work-item 0 also empties the candidate lists.
 __kernel void lit_bits(const PingParams P, __global const float *image, __global uint *lit, __global int *n_cand,
                        const int offset)
 {
-    int i = get_global_id(0) + offset;
-    if (i >= P.n_bins) return;
+    int q = get_global_id(0) + offset;
     int nw = (P.n_beams + 31) / 32;
+    if (q >= P.n_bins * nw) return;
+    int i = q / nw, w = q - i * nw;
     __global const float *im = image + (size_t)i * P.n_beams;
-    for (int w = 0; w < nw; ++w) {
-        uint word = 0;
-        for (int j = w * 32; j < min(w * 32 + 32, P.n_beams); ++j)
-            if (im[j] >= P.thr) word |= 1u << (uint)(j - w * 32);
-        lit[i * nw + w] = word;
-    }
-    if (i == 0) { n_cand[0] = 0; n_cand[1] = 0; }
+    uint word = 0;
+    for (int j = w * 32; j < min(w * 32 + 32, P.n_beams); ++j)
+        if (im[j] >= P.thr) word |= 1u << (uint)(j - w * 32);
+    lit[q] = word;
+    if (q == 0) { n_cand[0] = 0; n_cand[1] = 0; }
 }
 
 // One work-item per bin row i (from offset): running[i, j] = the rivals of bin i's beams < j (n_beams + 1 a row).

@@ -4,7 +4,7 @@ One ping, after its update (the rules: ``gpumap.confidence``; the NumPy referenc
 ``gpumap.confidence.confirm_ping``), in four launches on one stream (the host,
 ``gpumap/confidence_device.py``, zeroes the rival table before them):
 
-1. ``lit_bits``: one thread per bin row: the row's lit cells (``>= thr``) as bits.
+1. ``lit_bits``: one thread per 32 beams of a bin row: its lit cells (``>= thr``) as bits.
 2. ``conf_voxels``: one thread per (i, j) column of the ping's box, walking the column's voxels
    that the rivals' region can hold: each voxel the ping observes gets its elevation arc's bit in
    ``arcs``; each rival (not known free, in the widened field of view) adds one to its centre
@@ -275,18 +275,19 @@ def echo_lit(
 @wp.kernel
 def lit_bits(P: PingParams, image: wp.array2d(dtype=float), lit: wp.array(dtype=wp.uint32),
              n_cand: wp.array(dtype=int), offset: int):
-    """One thread per bin row i (``offset``: the first row, a launch split over CPU threads): the
-    row's lit cells (>= thr) as bits, ``lit[i nw + j // 32]`` bit ``j % 32``; thread 0 also empties
-    the candidate list."""
-    i = wp.tid() + offset
+    """One thread per word of a bin row (``offset``: the first word, a launch split over threads):
+    the row's lit cells (>= thr) as bits, ``lit[i nw + j // 32]`` bit ``j % 32``; thread 0 also
+    empties the candidate lists."""
+    q = wp.tid() + offset
     nw = (P.n_beams + 31) // 32
-    for w in range(nw):
-        word = wp.uint32(0)
-        for j in range(w * 32, wp.min(w * 32 + 32, P.n_beams)):
-            if image[i, j] >= P.thr:
-                word = word | (wp.uint32(1) << wp.uint32(j - w * 32))
-        lit[i * nw + w] = word
-    if i == 0:
+    i = q // nw
+    w = q - i * nw
+    word = wp.uint32(0)
+    for j in range(w * 32, wp.min(w * 32 + 32, P.n_beams)):
+        if image[i, j] >= P.thr:
+            word = word | (wp.uint32(1) << wp.uint32(j - w * 32))
+    lit[q] = word
+    if q == 0:
         n_cand[0] = 0
         n_cand[1] = 0
 

@@ -133,3 +133,36 @@ def test_the_device_pass_equals_the_reference_on_the_real_tank(other_backend):
     np.testing.assert_array_equal(c_dev, c_ref)
     np.testing.assert_array_equal(a_dev, a_ref)
     np.testing.assert_array_equal(dev.raw_values().view(np.uint32), ref.raw_values().view(np.uint32))
+
+
+def test_the_gpu_launches_run_on_warp_cpu_too(monkeypatch):
+    """The launch sequence GPUs take (the kernels' whole-image passes, one rival table, a thread per
+    box voxel for the candidates) run by Warp on the CPU: the same layer as the reference (the CI
+    machine has no GPU; the CPU sequence replaces two of these kernels with NumPy)."""
+    from gpumap.backends import available_backends
+    from gpumap.confidence_device import DeviceConfidence
+
+    if "warp-cpu" not in available_backends(["warp-cpu"]):
+        pytest.skip("warp-cpu is not available here")
+    init = DeviceConfidence._init_warp
+
+    def as_gpu(self):
+        init(self)
+        self.gpu = True
+
+    monkeypatch.setattr(DeviceConfidence, "_init_warp", as_gpu)
+    rng = np.random.default_rng(6)
+    ref, dev = (gpumap.MinMaxMapper(SPEC, GRID, backend=b, confidence=True, **OPTIONS)
+                for b in ("numpy", "warp-cpu"))
+    seed = int(rng.integers(1 << 30))
+    _random_state(ref, np.random.default_rng(seed))
+    _random_state(dev, np.random.default_rng(seed))
+    for _ in range(6):
+        img, T = _image(rng), _pose(rng)
+        for m in (ref, dev):
+            m.integrate(img, T)
+    assert dev.confidence_layer._device.gpu
+    c_ref, a_ref = _layer(ref)
+    assert c_ref.sum() >= 1
+    for x, y in zip(_layer(dev), (c_ref, a_ref), strict=True):
+        np.testing.assert_array_equal(x, y)
