@@ -122,10 +122,19 @@ class DeviceConfidence:
             self.cand = wp.empty(2 * self.cap, dtype=int, device=dev)  # two lists (CPUs: one a thread)
             self.steps = wp.empty(2 * self.cap, dtype=int, device=dev)
             self.cells = wp.empty(self.cap, dtype=int, device=dev)
-        key = (self.cap, id(b.grid), id(b.index), tuple(float(v) for v in s.values()))
+        # recorded again when the arrays or the rule's options change; the walk's bounds (which the
+        # footprint pad of a pose covariance moves) are set on the recorded launches
+        key = (self.cap, id(b.grid), id(b.index),
+               tuple(float(v) for n, v in s.items() if n not in ("rmax_c", "slab_c")))
         if self._cmds is None or self._cmds[0] != key:
             self._cmds = (key, self._record(s))
         cmds = self._cmds[1]
+        bounds = (float(s["rmax_c"]), float(s["slab_c"]))
+        if self._bounds != bounds:
+            for cmd in cmds["conf_voxels"]:
+                cmd.set_param_by_name("rmax_c", bounds[0])
+                cmd.set_param_by_name("slab_c", bounds[1])
+            self._bounds = bounds
         # the recorded launches hold the struct's memory: one copy gives them the ping
         ctypes.memmove(self._P_addr, params.ctypes.data, PING_DTYPE.itemsize)
         va, vb = cmds["conf_voxels"]
@@ -188,6 +197,7 @@ class DeviceConfidence:
         if ctypes_size(P) != PING_DTYPE.itemsize:
             raise RuntimeError("confidence PingParams and PING_DTYPE have drifted apart")
         self._P, self._P_addr = P, ctypes.addressof(P._ctype)
+        self._bounds = (float(s["rmax_c"]), float(s["slab_c"]))
         rec = {"device": b.dev, "record_cmd": True}
         pool = [b.edges, b.lut, b.index, b.grid, b.bright, b.count]
         voxel_args = [P, *pool, self.arcs, self.rivals, self.cells, self.cand, self.steps, self.n_cand,

@@ -72,8 +72,10 @@ def test_the_device_pass_equals_the_reference_on_random_states_and_pings(other_b
     _random_state(dev, np.random.default_rng(seed))
     pings = [(_image(rng), _pose(rng)) for _ in range(8)]
     for k, (img, T) in enumerate(pings):
+        # every other ping with a pose covariance: its own footprint pad (rho, the walk's bounds)
+        cov = np.diag(rng.uniform(1e-7, 4e-5, 6)) if k % 2 else None
         for m in (ref, dev):
-            m.integrate(img, T)
+            m.integrate(img, T, pose_cov=cov)
         if k == 3:  # a read halfway (the device's arrays come to the host, then go back)
             c, a = _layer(dev)
             np.testing.assert_array_equal(c, ref.confidence_layer.confirmed)
