@@ -121,7 +121,9 @@ def main(argv: list[str] | None = None) -> int:
     ref = None if a.no_check else reference(fr, grid)
     rows = {b: row(fr, grid, b, a.repeat, ref) for b in a.backend}
     doc = {"machine": platform.node(), "cpus": os.cpu_count(), "cpu_model": common._cpu_model(),
-           "voxel_size_m": a.voxel, "grid_shape": list(grid.shape), "created": common.now(), "rows": rows}
+           "voxel_size_m": a.voxel, "grid_shape": list(grid.shape), "created": common.now(),
+           # the code timed: the checkout's commit, or on a copy without git the one GPUMAP_COMMIT names
+           "git": common._git_state() or {"commit": os.environ.get("GPUMAP_COMMIT")}, "rows": rows}
     merge_json(a.out, ["sections", a.section], doc, schema="gpumap-bench-confidence/1")
     SECTION.write("BENCHMARKS.md", a.out.parent)
     return 0
