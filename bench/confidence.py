@@ -86,6 +86,14 @@ def row(fr, grid: gpumap.GridSpec, backend: str, repeat: int, ref: dict | None) 
     return out
 
 
+def _git() -> dict:
+    """The code timed: the checkout's commit, or on a copy without git the one GPUMAP_COMMIT names."""
+    g = common._git_state()
+    if not g.get("commit"):
+        g = {"commit": os.environ.get("GPUMAP_COMMIT"), "copy": True}
+    return g
+
+
 def markdown(data: dict, folder: Path) -> str:
     """The BENCHMARKS.md block of a results file (every figure read from it)."""
     out = [common.template("confidence-intro"), "", common.template("confidence-head")]
@@ -122,8 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = {b: row(fr, grid, b, a.repeat, ref) for b in a.backend}
     doc = {"machine": platform.node(), "cpus": os.cpu_count(), "cpu_model": common._cpu_model(),
            "voxel_size_m": a.voxel, "grid_shape": list(grid.shape), "created": common.now(),
-           # the code timed: the checkout's commit, or on a copy without git the one GPUMAP_COMMIT names
-           "git": common._git_state() or {"commit": os.environ.get("GPUMAP_COMMIT")}, "rows": rows}
+           "git": _git(), "rows": rows}
     merge_json(a.out, ["sections", a.section], doc, schema="gpumap-bench-confidence/1")
     SECTION.write("BENCHMARKS.md", a.out.parent)
     return 0
