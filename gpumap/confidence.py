@@ -235,6 +235,7 @@ class ConfidenceLayer:
         self._gain_runner = None  # made on the first view gain, on the map's backend
         self._device = None  # the pass on a Warp or OpenCL map's device (gpumap.confidence_device)
         self._on_device = False  # the device's arrays are newer than the host's
+        self._scalars = None  # (their key, the pass's scalars: gpumap.confidence_device.pass_scalars)
 
     @property
     def confirmed(self) -> np.ndarray:
@@ -262,9 +263,10 @@ class ConfidenceLayer:
         self._arcs[:] = 0
 
     def confirm(self, integrator, T: np.ndarray, pad: float, img: np.ndarray, read_values,
-                voxel_size_m: float) -> None:
+                voxel_size_m: float, update_params: np.ndarray | None = None) -> None:
         """The confidence pass of one ping (pose ``T``, footprint pad ``pad`` m, image ``img``),
-        after its update: ``integrator`` (:class:`gpumap.integrator.Integrator`) makes its record,
+        after its update: ``integrator`` (:class:`gpumap.integrator.Integrator`) makes its record
+        (``update_params``: the update's, reused where the rivals' box is the update's),
         ``read_values()`` gives the map's values then (flat or not, ``+inf`` unknown). On a Warp or
         OpenCL map the pass runs on its device (:mod:`gpumap.confidence_device`), after the update
         on the same stream, and reads the map where it lives; on ``numpy``, :func:`confirm_ping`."""
@@ -282,7 +284,10 @@ class ConfidenceLayer:
             self._static = (beam_tan_edges(sp), half, pts, same)
         edges, half, pts, same = self._static
         # the box that holds the rivals: the widened aperture's
-        params, _ = integrator.ping_params(T[None], np.array([pad]), fov_pts=pts)
+        if same and update_params is not None:
+            params = update_params
+        else:
+            params, _ = integrator.ping_params(T[None], np.array([pad]), fov_pts=pts)
         tube_m = TUBE_VOXELS * voxel_size_m
         if st.backend.name != "numpy" and st.sparse is None:
             from gpumap.confidence_device import DeviceConfidence, pass_scalars
@@ -296,8 +301,11 @@ class ConfidenceLayer:
                 from gpumap.backends.warp_backend import warp_upload_image
 
                 warp_upload_image(st.backend, img)
-            self._device.run(params[0, ...], pass_scalars(integrator.spec, params[0], half, tube_m,
-                                                          st.value_rule))
+            vr = st.value_rule
+            key = (float(params["rho"][0]), tube_m, vr.carve_views, vr.bright_share, vr.share_z)
+            if self._scalars is None or self._scalars[0] != key:
+                self._scalars = (key, pass_scalars(integrator.spec, params[0], half, tube_m, vr))
+            self._device.run(params[0, ...], self._scalars[1])
             return
         if img.dtype == np.uint8:
             from gpumap.backends import U8_SCALE

@@ -141,7 +141,6 @@ class DeviceConfidence:
         ca, cb = cmds["conf_candidates"]
         if self.gpu:
             cmds["lit_bits"].launch()
-            self.rivals.zero_()
             va.set_dim(n_cols)
             va.launch()
             cmds["prefix_rows"].launch()
@@ -208,8 +207,8 @@ class DeviceConfidence:
         n = self.n_bins
         stride = self.cap
         return {
-            "lit_bits": wp.launch(k.lit_bits, dim=self.n_words, inputs=[P, b.image, self.lit, self.n_cand, 0],
-                                  **rec),
+            "lit_bits": wp.launch(k.lit_bits, dim=self.n_words,
+                                  inputs=[P, b.image, self.lit, self.rivals, self.n_cand, 0], **rec),
             "conf_voxels": tuple(wp.launch(k.conf_voxels, dim=1, inputs=[*voxel_args, part, stride], **rec)
                                  for part in (0, 1)),
             "prefix_rows": wp.launch(k.prefix_rows, dim=n, inputs=[P, self.rivals, self.running, 0], **rec),
@@ -263,7 +262,7 @@ class DeviceConfidence:
         q.finish()
 
     def _opencl_pass(self, params: np.ndarray, s: dict, n_cols: int, n_box: int) -> None:
-        cl, b, K = self.cl, self.b, self.kernels
+        b, K = self.b, self.kernels
         q = b.queue
         if self.cap < n_box:
             self.cap = max(n_box, 2 * self.cap)
@@ -281,8 +280,7 @@ class DeviceConfidence:
 
         pool = (b.edges, b.lut, b.index, b.grid, b.bright, b.count)
         zero = np.int32(0)
-        K["lit_bits"](q, gs(self.n_words), (wg,), P, image, self.lit, self.n_cand, zero)
-        cl.enqueue_fill_buffer(q, self.rivals, np.int32(0), 0, 4 * self.table_n)
+        K["lit_bits"](q, gs(self.n_words), (wg,), P, image, self.lit, self.rivals, self.n_cand, zero)
         K["conf_voxels"](q, gs(n_cols), (wg,), P, *pool, self.arcs_buf, self.rivals, self.cells, self.cand,
                          self.steps, self.n_cand, s["cos_hv"], s["sin_hv"], s["tube"], s["rmax_c"],
                          s["slab_c"], s["carve_views"],

@@ -202,9 +202,9 @@ inline int echo_lit(const PingParams *P, float r, float h2, float t, __global co
 }
 
 // One work-item per word of a bin row (from offset): the row's lit cells (>= thr) as bits, lit[i nw + j / 32]
-// bit j % 32; work-item 0 also empties the candidate lists.
-__kernel void lit_bits(const PingParams P, __global const float *image, __global uint *lit, __global int *n_cand,
-                       const int offset)
+// bit j % 32, and the rival counts of those cells zeroed; work-item 0 also empties the candidate lists.
+__kernel void lit_bits(const PingParams P, __global const float *image, __global uint *lit, __global int *rivals,
+                       __global int *n_cand, const int offset)
 {
     int q = get_global_id(0) + offset;
     int nw = (P.n_beams + 31) / 32;
@@ -212,8 +212,11 @@ __kernel void lit_bits(const PingParams P, __global const float *image, __global
     int i = q / nw, w = q - i * nw;
     __global const float *im = image + (size_t)i * P.n_beams;
     uint word = 0;
-    for (int j = w * 32; j < min(w * 32 + 32, P.n_beams); ++j)
+    __global int *riv = rivals + (size_t)i * P.n_beams;
+    for (int j = w * 32; j < min(w * 32 + 32, P.n_beams); ++j) {
         if (im[j] >= P.thr) word |= 1u << (uint)(j - w * 32);
+        riv[j] = 0;
+    }
     lit[q] = word;
     if (q == 0) { n_cand[0] = 0; n_cand[1] = 0; }
 }

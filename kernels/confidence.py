@@ -2,9 +2,10 @@
 
 One ping, after its update (the rules: ``gpumap.confidence``; the NumPy reference:
 ``gpumap.confidence.confirm_ping``), in four launches on one stream (the host,
-``gpumap/confidence_device.py``, zeroes the rival table before them):
+``gpumap/confidence_device.py``):
 
-1. ``lit_bits``: one thread per 32 beams of a bin row: its lit cells (``>= thr``) as bits.
+1. ``lit_bits``: one thread per 32 beams of a bin row: its lit cells (``>= thr``) as bits, and
+   their rival counts zeroed.
 2. ``conf_voxels``: one thread per (i, j) column of the ping's box, walking the column's voxels
    that the rivals' region can hold: each voxel the ping observes gets its elevation arc's bit in
    ``arcs``; each rival (not known free, in the widened field of view) adds one to its centre
@@ -274,10 +275,10 @@ def echo_lit(
 
 @wp.kernel
 def lit_bits(P: PingParams, image: wp.array2d(dtype=float), lit: wp.array(dtype=wp.uint32),
-             n_cand: wp.array(dtype=int), offset: int):
+             rivals: wp.array(dtype=int), n_cand: wp.array(dtype=int), offset: int):
     """One thread per word of a bin row (``offset``: the first word, a launch split over threads):
-    the row's lit cells (>= thr) as bits, ``lit[i nw + j // 32]`` bit ``j % 32``; thread 0 also
-    empties the candidate lists."""
+    the row's lit cells (>= thr) as bits, ``lit[i nw + j // 32]`` bit ``j % 32``, and the rival
+    counts of those cells zeroed; thread 0 also empties the candidate lists."""
     q = wp.tid() + offset
     nw = (P.n_beams + 31) // 32
     i = q // nw
@@ -286,6 +287,7 @@ def lit_bits(P: PingParams, image: wp.array2d(dtype=float), lit: wp.array(dtype=
     for j in range(w * 32, wp.min(w * 32 + 32, P.n_beams)):
         if image[i, j] >= P.thr:
             word = word | (wp.uint32(1) << wp.uint32(j - w * 32))
+        rivals[i * P.n_beams + j] = 0
     lit[q] = word
     if q == 0:
         n_cand[0] = 0
