@@ -22,6 +22,11 @@ from gpumap.geometry import PING_DTYPE
 
 __all__ = ["DeviceConfidence", "pass_scalars"]
 
+#: warp-cpu: walk the columns and the candidates in two parts on two threads. Off: on the 2-core
+#: machine under other jobs' load (load average ~8) the real tank mapped with the layer in 0.575 s
+#: one thread, 0.887 s two (0.381 s without the layer; best of 4, 123 pings, 5 cm): the handoffs and
+#: the second rival table cost more than the second core gave.
+CPU_SPLIT = False
 _CL_PROGRAMS: dict[int, object] = {}
 _CL_LOCK = threading.Lock()
 _KERNELS = ("lit_bits", "conf_voxels", "prefix_rows", "conf_candidates")
@@ -217,10 +222,11 @@ class DeviceConfidence:
         }
 
     def _pool_split(self):
-        """The CPU thread for the second half of a launch, or None (GPUs, one CPU thread)."""
+        """The CPU thread for the second part of a launch, or None (GPUs, one CPU thread, or
+        :data:`CPU_SPLIT` off)."""
         import gpumap.backends.base as base
 
-        return None if self.gpu or base.CPU_THREADS < 2 else base._cpu_pool()
+        return None if self.gpu or not CPU_SPLIT or base.CPU_THREADS < 2 else base._cpu_pool()
 
     # ------------------------------------------------------------------ OpenCL
     def _init_opencl(self) -> None:
