@@ -130,7 +130,7 @@ class DeviceConfidence:
         # recorded again when the arrays or the rule's options change; the walk's bounds (which the
         # footprint pad of a pose covariance moves) are set on the recorded launches
         key = (self.cap, id(b.grid), id(b.index),
-               tuple(float(v) for n, v in s.items() if n not in ("rmax_c", "slab_c")))
+               *(v for n, v in s.items() if n not in ("rmax_c", "slab_c")))
         if self._cmds is None or self._cmds[0] != key:
             self._cmds = (key, self._record(s))
         cmds = self._cmds[1]
