@@ -98,11 +98,13 @@ def markdown(data: dict, folder: Path) -> str:
     """The BENCHMARKS.md block of a results file (every figure read from it)."""
     out = [common.template("confidence-intro"), "", common.template("confidence-head")]
     for sec, s in data.get("sections", {}).items():
+        commit = (s.get("git") or {}).get("commit")
+        run = f"{sec} ({commit[:7]})" if commit else sec
         for b, r in s["rows"].items():
             la = ", ".join(f"{x:.1f}" for x in (r["loadavg_start"] or []))
             eq = "yes" if r.get("layer_equal_to_reference") and r.get("values_equal_to_reference") else (
                 "not checked" if "layer_equal_to_reference" not in r else "NO")
-            out.append(f"| {sec} | {b} | {r['device']} | {r['map_s']:.3f} | {r['map_confidence_s']:.3f} | "
+            out.append(f"| {run} | {b} | {r['device']} | {r['map_s']:.3f} | {r['map_confidence_s']:.3f} | "
                        f"**{r['ratio']:.2f}x** | {r['cpu_ratio']:.2f}x | {eq} | {la} |")
     return "\n".join(out)
 
@@ -120,7 +122,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="the frames' cache (bench.speed's; default bench/results/tmp/oasis_polar.npz)")
     p.add_argument("--no-check", action="store_true", help="skip the comparison with the NumPy reference")
     a = p.parse_args(argv)
-    if SECTION.reported(a):
+    if a.report is not None:  # the results file is --out itself
+        SECTION.write(a.report, a.out.parent)
         return 0
     from .speed import CACHE, load_frames, oasis_grid
 
