@@ -41,6 +41,7 @@ BENCHMARKS: dict[str, str] = {
     "surface": "the surface layer against the visible and evidence maps: simulated truth, real first returns",
     "surface_rate": "the live surface layer at the sonar's rate on the full real run; replay with both",
     "nbv": "next best views: planned against rolled and random views; view_gain speed",
+    "confidence": "the confidence layer's cost on the device: mapping the real tank with and without it",
     "ekf_bench": "the EKF on the prism simulation (NEES, odometry sweep, update cost; --vs-batch)",
     "ekf_real": "the EKF on the full real tank: EKF/odometry per variant, drift, seed; dev and held-out",
     "frontend": "the EKF front end: detection, association and the EKF loop, simulated and real",

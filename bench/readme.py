@@ -152,6 +152,14 @@ def summary_rows() -> list[tuple[str, str, str]]:
             rows.append(("... `gpumap replay` of the full run writing both layers over the safe layer alone "
                          "(paired runs, loaded machine)", f"{sr['replay']['ratio_median']:.2f}x",
                          "surface_rate.json"))
+    cf = _load("confidence.json")
+    if cf:
+        secs = cf.get("sections", {})
+        cells = [f"{b} {r['ratio']:.2f}x" for sec in ("cpu", "gpu")
+                 for b, r in secs.get(sec, {}).get("rows", {}).items()]
+        rows.append(("Confidence layer on the device (issue 37): mapping the real tank (123 pings, 5 cm) "
+                     "with the layer over without, best of 3 each in one run; 2-core CPU under others' "
+                     "load, then the GPU", ", ".join(cells), "confidence.json"))
     lr = _load("long_run.json")
     if lr:
         cells = [f"{name} {rule} {_pct(sc['curves'][rule][0]['miss_rate_objects'])} / "
