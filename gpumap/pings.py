@@ -19,7 +19,7 @@ import hashlib
 
 import numpy as np
 
-__all__ = ["SAMPLE", "PingPrints", "ping_print"]
+__all__ = ["SAMPLE", "PingPrints", "ping_print", "ping_prints"]
 
 #: Values of an image that its fingerprint reads, evenly spaced (all of a smaller image).
 SAMPLE = 1024
@@ -37,6 +37,31 @@ def ping_print(image: np.ndarray, T_W_S: np.ndarray) -> int:
     h.update(np.ascontiguousarray(flat).tobytes())
     h.update(np.ascontiguousarray(T_W_S, dtype="<f8").tobytes())
     return int.from_bytes(h.digest(), "little")
+
+
+def ping_prints(images: np.ndarray, T_W_S: np.ndarray) -> np.ndarray:
+    """:func:`ping_print` of every ping of a batch, ``(B,) uint64``, in one pass: the samples of
+    all B images in one gather and the poses in one conversion, then one digest of each ping's
+    bytes (the same bytes ping_print hashes, so the same prints). ``images`` (B, ...) array,
+    ``T_W_S`` (B, 4, 4)."""
+    imgs = np.asarray(images)
+    B = imgs.shape[0]
+    if B == 0:
+        return np.zeros(0, np.uint64)
+    flat = imgs.reshape(B, -1)
+    size = flat.shape[1]
+    if size > SAMPLE:
+        flat = flat[:, :: -(-size // SAMPLE)]
+    head = np.frombuffer(f"{imgs.dtype.str}{imgs.shape[1:]}".encode(), np.uint8)
+    body = np.ascontiguousarray(flat).view(np.uint8).reshape(B, -1)
+    pose = np.ascontiguousarray(T_W_S, dtype="<f8").reshape(B, -1).view(np.uint8)
+    rows = np.empty((B, head.size + body.shape[1] + pose.shape[1]), np.uint8)
+    rows[:, : head.size] = head
+    rows[:, head.size : head.size + body.shape[1]] = body
+    rows[:, head.size + body.shape[1] :] = pose
+    blake, L, mv = hashlib.blake2b, rows.shape[1], memoryview(rows.reshape(-1))
+    return np.array([int.from_bytes(blake(mv[b * L : (b + 1) * L], digest_size=8).digest(), "little")
+                     for b in range(B)], np.uint64)
 
 
 class PingPrints:
@@ -62,7 +87,7 @@ class PingPrints:
         self.extend(np.array([ping_print(image, T_W_S)], np.uint64))
 
     def add_batch(self, images: np.ndarray, T_W_S: np.ndarray) -> None:
-        self.extend(np.array([ping_print(i, T) for i, T in zip(images, T_W_S, strict=True)], np.uint64))
+        self.extend(ping_prints(images, T_W_S))
 
     def extend(self, prints: np.ndarray) -> None:
         p = np.asarray(prints, np.uint64).ravel()
