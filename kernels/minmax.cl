@@ -331,6 +331,28 @@ inline long voxel_address(const PingParams *P, __global const int *index, int i,
 }
 
 #ifdef GPUMAP_CPU_VECTORS
+// beam_index_lo of eight tangents t where mask (else the value none): the table's guess and its usual
+// single step as vector operations; a lane that needs more steps takes beam_index_lo's loops.
+inline int8 beam_index_lo8(float8 t, int8 mask, __global const float *tan_edges, __global const int *lut,
+                           const PingParams *P, int none)
+{
+    float8 tt = select((float8)(P->tan_lo), t, mask);  // masked lanes: a tangent inside the table
+    int8 m = clamp(convert_int8(floor((tt - P->tan_lo) * P->lut_scale)), 0, P->lut_n - 1);
+    int ms[8], js[8];
+    float ts[8];
+    vstore8(m, 0, ms);
+    vstore8(tt, 0, ts);
+    for (int l = 0; l < 8; ++l) {
+        int j = lut[ms[l]];
+        j += (j < P->n_beams - 1 && tan_edges[j + 1] <= ts[l]);
+        // settled when neither loop of beam_index_lo would move it
+        if ((j < P->n_beams - 1 && tan_edges[j + 1] <= ts[l]) || (j > 0 && tan_edges[j] > ts[l]))
+            j = beam_index_lo(ts[l], tan_edges, lut, P->lut_n, P);
+        js[l] = j;
+    }
+    return select((int8)(none), vload8(0, js), mask);
+}
+
 // CPUs (built with -DGPUMAP_CPU_VECTORS): voxels kb..kstop of column (cx, cy) eight at a time, the
 // arithmetic of voxel_ping_value (sonar-frame point, range, aperture and azimuth tests, footprint
 // bins, the beam span's tangents) on float8 vectors, then the footprint max and the update lane by
@@ -369,18 +391,16 @@ inline int gather_run8(const PingParams *P, float cx, float cy, int kb, int ksto
         int8 w0 = ok & (q > 0.0f) & (d0 > 0.0f), w1 = ok & (q > 0.0f) & (d1 > 0.0f);
         float8 ta = (t - u) / select((float8)(1.0f), d0, w0);
         float8 tb = (t + u) / select((float8)(1.0f), d1, w1);
-        int oks[8], firsts[8], w0s[8], w1s[8];
-        float tas[8], tbs[8];
+        int8 j0v = beam_index_lo8(ta, w0, tan_edges, lut, P, 0);
+        int8 j1v = beam_index_lo8(tb, w1, tan_edges, lut, P, P->n_beams - 1);
+        int oks[8], firsts[8], j0s[8], j1s[8];
         vstore8(ok, 0, oks);
         vstore8(first, 0, firsts);
-        vstore8(w0, 0, w0s);
-        vstore8(w1, 0, w1s);
-        vstore8(ta, 0, tas);
-        vstore8(tb, 0, tbs);
+        vstore8(j0v, 0, j0s);
+        vstore8(j1v, 0, j1s);
         for (int l = 0; l < 8; ++l) {
             if (!oks[l]) continue;
-            int j0 = w0s[l] ? beam_index_lo(tas[l], tan_edges, lut, P->lut_n, P) : 0;
-            int j1 = w1s[l] ? beam_index_lo(tbs[l], tan_edges, lut, P->lut_n, P) : P->n_beams - 1;
+            int j0 = j0s[l], j1 = j1s[l];
             int clear;
             float v = footprint_value(P, firsts[l], j0, j1, image, table, use_table, first_bright, &clear);
             hit = 1;
