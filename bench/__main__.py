@@ -26,6 +26,8 @@ BENCHMARKS: dict[str, str] = {
     "workers": "the survey mapped by one process against N Dask workers on the same cores",
     "visibility": "the visible rule against the plain min-max rule: errors and speed (tank, circle)",
     "rules_real": "both mapping rules on the real OASIS tank (gpumap replay --compare-rules)",
+    "decision": "the evidence rule's decisions (share test, calibrated view model): simulated scenes, "
+                "real dev frames",
     "rate_real": "every rule on the full real tank run at the sonar's rate, judged by held-out first returns",
     "variation": "how often a surface voxel's views are bright: the real full-rate tank and the simulator",
     "long_run": "every mapping rule over up to 1,000 simulated pings with realistic variation: FN and far FP",

@@ -20,6 +20,9 @@ CHECKPOINTS = (40, 100, 200, 500, 1000)
 QUICK_CHECKPOINTS = (20, 40, 60)
 #: Other settings of the evidence rule's bright_share decided from the same counts (the frontier).
 SHARE_FRONTIER = (0.1, 0.2, 0.3, 0.4, 0.5)
+#: Per rule, a read-time option and its other settings, decided from the same counts as the rule's
+#: own map (curves ``rule@value``); a rule missing from :data:`gpumap.geometry.RULES` is skipped.
+FRONTIERS: dict[str, tuple[str, tuple[float, ...]]] = {"evidence": ("bright_share", SHARE_FRONTIER)}
 SCORES = ("miss_rate_objects", "miss_rate", "false_positive_rate_far", "false_negative_rate_detectable",
           "observed_surface_fraction")
 
@@ -42,12 +45,14 @@ def run_scene(name: str, checkpoints: tuple[int, ...], voxel_m: float, variation
     truth_s, grid = time.perf_counter() - t0, scene.grid
     mappers = {r: gpumap.MinMaxMapper(scene.sonar_spec, grid, backend=backend, rule=r,
                                       threshold=OCCUPIED_THRESHOLD) for r in RULES}
+    default_rule = default_rule_of(scene.sonar_spec, grid, backend)
     seen, det = np.zeros(grid.n_voxels, bool), np.zeros(grid.n_voxels, bool)
     sim_s, eval_s, map_s, dropped = 0.0, 0.0, dict.fromkeys(RULES, 0.0), 0
     curves: dict[str, list[dict]] = {r: [] for r in RULES}
-    # the evidence rule's bright_share is read-time: the same counts decided at other settings too
-    alt = [s for s in SHARE_FRONTIER if "evidence" in mappers and s != mappers["evidence"].bright_share]
-    curves.update({f"evidence@{s:g}": [] for s in alt})
+    # read-time options: the same counts decided at other settings too
+    alt = {r: (opt, [v for v in values if v != getattr(mappers[r], opt)])
+           for r, (opt, values) in FRONTIERS.items() if r in mappers}
+    curves.update({f"{r}@{v:g}": [] for r, (_, values) in alt.items() for v in values})
 
     def score(m: Any) -> dict:
         ev = evaluate(m.values(), truth, OCCUPIED_THRESHOLD, seen.reshape(grid.shape), voxel_m,
@@ -72,15 +77,19 @@ def run_scene(name: str, checkpoints: tuple[int, ...], voxel_m: float, variation
                 t = time.perf_counter()
                 for r, m in mappers.items():
                     curves[r].append(score(m))
-                    if r == "evidence":
-                        default = m.bright_share
-                        for share in alt:
-                            m.bright_share = share
-                            curves[f"evidence@{share:g}"].append(score(m))
-                        m.bright_share = default
+                    if r in alt:
+                        opt, values = alt[r]
+                        own = getattr(m, opt)
+                        for v in values:
+                            setattr(m, opt, v)
+                            curves[f"{r}@{v:g}"].append(score(m))
+                        setattr(m, opt, own)
                 eval_s += time.perf_counter() - t
     return {"pings": n, "voxel_size_m": voxel_m, "grid_shape": list(grid.shape),
             "backend": next(iter(mappers.values())).backend, "rules": list(RULES),
+            "default_rule": default_rule,
+            "frontiers": {r: {"option": opt, "own": getattr(mappers[r], opt), "values": values}
+                          for r, (opt, values) in alt.items()},
             "dropped_pings": int(dropped),
             "curves": curves, "seconds": {"truth": truth_s, "simulate": sim_s, "evaluate": eval_s,
                                           **{f"map_{r}": s for r, s in map_s.items()}},
@@ -88,18 +97,33 @@ def run_scene(name: str, checkpoints: tuple[int, ...], voxel_m: float, variation
             "map_ms_per_ping": {r: 1e3 * s / n for r, s in map_s.items()}}
 
 
+def default_rule_of(spec: Any, grid: Any, backend: str) -> str:
+    """The rule a :class:`gpumap.MinMaxMapper` takes when none is asked for (read off a small map
+    of the same sonar, so no name is written here)."""
+    import gpumap
+
+    lo = np.asarray(grid.min_corner_m, np.float64)
+    box = gpumap.GridSpec(tuple(lo), tuple(lo + 4 * grid.voxel_size_m), grid.voxel_size_m)
+    return gpumap.MinMaxMapper(spec, box, backend=backend).rule
+
+
 def markdown(res: dict, folder: Path) -> str:
     """The BENCHMARKS.md section of a ``long_run.json``: per scene and rule, the misses of the
     objects and of every detectable surface and the far phantoms at each checkpoint."""
+    fronts = {r: f["option"] for sc in res["scenes"].values() for r, f in sc.get("frontiers", {}).items()}
+    fronts = fronts or {r: opt for r, (opt, _) in FRONTIERS.items()  # files written before "frontiers"
+                        if any(c.startswith(f"{r}@") for sc in res["scenes"].values() for c in sc["curves"])}
     out = [common.template("long-run", command=res["command"].strip(), res=res, m=res["machine"],
-                           last=res["checkpoints"][-1]), "",
+                           last=res["checkpoints"][-1],
+                           fronts=", ".join(f"{r}: {o}" for r, o in fronts.items()) or "none"), "",
            "| scene | rule | " + " | ".join(f"{c} pings" for c in res["checkpoints"]) + " |",
            "|---|---|" + "---|" * len(res["checkpoints"])]
     for name, sc in res["scenes"].items():
         for rule, rows in sc["curves"].items():
             cells = [f"{100 * r['miss_rate_objects']:.1f} / {100 * r['miss_rate']:.1f} / "
                      f"{100 * r['false_positive_rate_far']:.1f} %" for r in rows]
-            out.append(f"| {name} | {rule} | " + " | ".join(cells) + " |")
+            label = f"{rule} (default)" if rule == sc.get("default_rule") else rule
+            out.append(f"| {name} | {label} | " + " | ".join(cells) + " |")
     out += ["", f"![misses and phantoms as pings accumulate]({folder.as_posix()}/long_run.png)"]
     return "\n".join(out)
 

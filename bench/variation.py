@@ -20,14 +20,20 @@ SCHEMA = "gpumap-variation/1"
 REAL_THRESHOLD = 0.4
 VOXEL_M = 0.05
 MIN_VIEWS = 10
-#: ``--fit`` candidates: changes to :meth:`SonarVariation.real_tank` (each scored on the simulated sweep).
-#: The preset came from rounds of this by hand (gain offset -14 to -20 dB, spread 4 to 7 dB, gain
-#: correlation, jitter, looks); these are its neighbours (the preset itself first).
+#: ``--fit`` candidates: changes to :meth:`SonarVariation.real_tank` (each scored on the simulated sweep
+#: at every ``--fit-seeds`` seed). The preset came from rounds of this over about 200 candidates (the
+#: surface texture's size and depth, the gain's spread and correlation, looks, gain offset, range loss,
+#: dropouts); these are its neighbours (the preset itself first), and the earlier preset (``EARLIER``).
+EARLIER: dict[str, float] = {
+    "gain_offset_db": -17.0, "looks": 1.0, "gain_sigma_db": 6.0, "gain_correlation": 0.97,
+    "dropout_prob": 0.02, "surface_texture_db": 0.0, "range_loss_db_per_m": 0.0}
 FIT_CANDIDATES: list[dict[str, float]] = [
-    {}, {"gain_correlation": 0.9}, {"gain_offset_db": -18.0, "gain_sigma_db": 5.0},
-    {"gain_offset_db": -16.0, "gain_sigma_db": 7.0},
-    {"jitter_translation_m": 0.0, "jitter_rotation_rad": 0.0},
-    {"looks": 2.0}]
+    {}, {"looks": 8.0}, {"looks": 2.0}, {"gain_sigma_db": 3.0}, {"gain_sigma_db": 4.0},
+    {"surface_texture_db": 6.0}, {"surface_texture_db": 6.0, "gain_sigma_db": 3.0},
+    {"surface_texture_m": 0.04}, {"surface_texture_db": 0.0},
+    {"gain_offset_db": -20.0}, {"gain_offset_db": -16.0}, {"range_loss_db_per_m": 8.0},
+    {"gain_correlation": 0.97}, {"dropout_prob": 0.02}, EARLIER]
+FIT_SEEDS = (0, 1, 2)
 
 
 def _surface(spec, grid, images, poses, keys, threshold: float, backend: str) -> np.ndarray:
@@ -128,6 +134,42 @@ def quantile_distance(a: dict, b: dict) -> float:
                                       "bright_share_all_observed_views") for k in a[key]["quantiles"]]))
 
 
+def _pooled_distance(a: dict, b: dict, key: str) -> float:
+    """Mean absolute difference of the pooled bright fractions of two measurements over the bins of
+    ``key`` (``by_range`` or ``by_incidence``) that both have views in."""
+    d = [abs(x["pooled_bright"] - y["pooled_bright"]) for x, y in zip(a[key], b[key], strict=True)
+         if x["pooled_bright"] is not None and y["pooled_bright"] is not None
+         and np.isfinite(x["pooled_bright"]) and np.isfinite(y["pooled_bright"])]
+    return float(np.mean(d)) if d else float("nan")
+
+
+def compare(real: dict, sim: dict) -> dict:
+    """How far a simulated measurement is from the real one: the headline figures
+    (:func:`gpumap.sim.variation.headline`) as sim / real ratios, the bright-share quantile distance
+    and the pooled bright fractions' distances by range and incidence; ``score`` (what ``--fit``
+    minimises) is ``|ln ratio|`` of both headline figures plus the three distances."""
+    from gpumap.sim.variation import headline
+
+    hr, hs = headline(real), headline(sim)
+    ratio = {k: hs[k] / hr[k] for k in hr}
+    out = {"ratio": ratio, "within_20pct": {k: bool(abs(v - 1.0) <= 0.2) for k, v in ratio.items()},
+           "quantile_distance": quantile_distance(real, sim),
+           "by_range_distance": _pooled_distance(real, sim, "by_range"),
+           "by_incidence_distance": _pooled_distance(real, sim, "by_incidence")}
+    logs = [abs(float(np.log(v))) if v > 0 else float("inf") for v in ratio.values()]
+    out["score"] = float(sum(logs) + out["quantile_distance"] + out["by_range_distance"]
+                         + out["by_incidence_distance"])
+    return out
+
+
+def _fit_one(args: tuple) -> dict:
+    """One candidate at one seed (a worker of ``--fit``)."""
+    cand, seed, n_pings, backend = args
+    from gpumap.sim.variation import REAL_TANK, SonarVariation
+
+    return measure_sim(n_pings, SonarVariation(**{**REAL_TANK, **cand}), seed, backend, False)
+
+
 def side_by_side(real: dict, sims: dict[str, dict]) -> dict:
     """Real and simulated bright-share quantiles, and pooled bright fractions by range / incidence."""
     out: dict[str, Any] = {"bright_share_quantiles": {"real": real["bright_share"]["quantiles"], **{
@@ -142,6 +184,10 @@ def side_by_side(real: dict, sims: dict[str, dict]) -> dict:
         out[f"pooled_bright_{key}"] = rows
     sim_persistence = {f"sim_{n}": s["persistence"] for n, s in sims.items()}
     out["persistence"] = {"real": real["persistence"], **sim_persistence}
+    from gpumap.sim.variation import headline
+
+    out["headline"] = {"real": headline(real), **{f"sim_{n}": headline(s) for n, s in sims.items()}}
+    out["compare"] = {f"sim_{n}": compare(real, s) for n, s in sims.items()}
     return out
 
 
@@ -172,17 +218,25 @@ def plot(path: Path, real: dict, sims: dict[str, dict]) -> None:
 
 def markdown(res: dict, folder: Path) -> str:
     """The BENCHMARKS.md section of a ``variation_real.json``: real against simulated, side by side."""
-    q, per = res["side_by_side"]["bright_share_quantiles"], res["side_by_side"]["persistence"]
+    sbs = res["side_by_side"]
+    q, per, head = sbs["bright_share_quantiles"], sbs["persistence"], sbs.get("headline", {})
     names = {"real": "real, frames 0-799", "sim_real_tank": "simulator, real_tank",
              "sim_none": "simulator, none"}
-    out = [common.template("variation", command=res["command"].strip(), res=res,
-                           distances=", ".join(f"{k} {v:.3f}" for k, v in res["distance_to_real"].items()))]
+    cmp = sbs.get("compare", {})
+    distances = "; ".join(
+        f"{k.removeprefix('sim_')}: quantiles {c['quantile_distance']:.3f}, "
+        f"by range {c['by_range_distance']:.3f}, by incidence {c['by_incidence_distance']:.3f}"
+        for k, c in cmp.items()) or ", ".join(
+        f"{k} {v:.3f}" for k, v in res["distance_to_real"].items())
+    out = [common.template("variation", command=res["command"].strip(), res=res, distances=distances)]
     for k, label in names.items():
         if k in q:
-            p = per.get(k, {})
+            p, h = per.get(k, {}), head.get(k, {})
             cells = " | ".join(f"{q[k][c]:.2f}" for c in ("q10", "q25", "q50", "q75", "q90"))
             out.append(f"| {label} | {cells} | {p.get('p_bright_after_bright', float('nan')):.2f} | "
-                       f"{p.get('p_dark_after_dark', float('nan')):.2f} |")
+                       f"{p.get('p_dark_after_dark', float('nan')):.2f} | "
+                       f"{common.fnum(h.get('per_ping_spread'), '.2f')} | "
+                       f"{common.fnum(h.get('persistence'), '.2f')} |")
     out += ["", f"![bright share, real and simulated]({folder.as_posix()}/variation_real.png)"]
     return "\n".join(out)
 
@@ -199,7 +253,14 @@ def main(argv: list[str] | None = None) -> int:
                     help="real frames [FIRST, END) (default 0 800; 800-1222 are held out, never tuned on)")
     ap.add_argument("--sim-pings", type=int, default=200,
                     help="simulated pings of the tank sweep (default 200)")
-    ap.add_argument("--fit", action="store_true", help="also score the candidate variations (FIT_CANDIDATES)")
+    ap.add_argument("--fit", action="store_true",
+                    help="score the candidate variations (FIT_CANDIDATES) instead; writes variation_fit.json")
+    ap.add_argument("--fit-seeds", type=int, nargs="+", default=list(FIT_SEEDS),
+                    help=f"--fit: simulator seeds each candidate is scored at (default {FIT_SEEDS})")
+    ap.add_argument("--jobs", type=int, default=1, help="--fit: candidates simulated at once (processes)")
+    ap.add_argument("--real-from", type=Path, default=None,
+                    help="--fit: take the real figures from this variation_real.json (the same frames) "
+                         "instead of reading the recording")
     ap.add_argument("--held-out", action="store_true",
                     help="measure the held-out real frames 800-1222 against the simulated figures of "
                          "variation_real.json (a check: nothing is tuned on them)")
@@ -209,8 +270,10 @@ def main(argv: list[str] | None = None) -> int:
     if a.frames[1] > 800 and not a.held_out:
         raise SystemExit("bench.variation: frames 800-1222 are held out; measure on frames below 800")
     data = a.data or oasis_full_dir()
-    if data is None:
+    if data is None and a.real_from is None:
         raise SystemExit("bench.variation: oasis_tank_full (with sonar/*.png) not found; pass --data")
+    if a.real_from is not None and not a.fit:
+        raise SystemExit("bench.variation: --real-from goes with --fit")
     from gpumap.sim.variation import REAL_TANK, SonarVariation
 
     import gpumap.io
@@ -220,29 +283,70 @@ def main(argv: list[str] | None = None) -> int:
     prev = json.loads((a.out / "variation_real.json").read_text()) if a.held_out else None
     frames = (800, gpumap.io.open_recording(data).count()) if a.held_out else tuple(a.frames)
     with CpuShare() as share:
-        real = measure_real(data, frames, 10, a.backend, progress)
+        if a.real_from is not None:
+            real = json.loads(a.real_from.read_text())["real"]
+            if tuple(real["frames"]) != frames:
+                raise SystemExit(f"bench.variation: {a.real_from} holds frames {real['frames']}, "
+                                 f"not {list(frames)}")
+        else:
+            real = measure_real(data, frames, 10, a.backend, progress)
         sims: dict[str, dict] = {}
         for name, var in () if a.fit or a.held_out else (("none", SonarVariation.none()),
                                                          ("real_tank", SonarVariation.real_tank())):
             sims[name] = measure_sim(a.sim_pings, var, a.seed, a.backend,
                                      progress) | {"variation": var.to_dict()}
         rows = []
-        for cand in FIT_CANDIDATES if a.fit else ():
-            var = SonarVariation(**{**REAL_TANK, **cand})
-            s = measure_sim(a.sim_pings, var, a.seed, a.backend, progress)
-            rows.append({"variation": var.to_dict(), "distance": quantile_distance(real, s),
-                         "bright_share_quantiles": s["bright_share"]["quantiles"],
-                         "persistence_lag1": s["persistence"].get("lag1_correlation")})
-            print(f"fit {cand}: distance {rows[-1]['distance']:.3f}")
+        if a.fit:
+            jobs = [(cand, seed, a.sim_pings, a.backend) for cand in FIT_CANDIDATES for seed in a.fit_seeds]
+            if a.jobs > 1:
+                import multiprocessing
+
+                with multiprocessing.get_context("spawn").Pool(a.jobs) as pool:
+                    sims_fit = pool.map(_fit_one, jobs)
+            else:
+                sims_fit = [_fit_one(j) for j in progress_bar(jobs, disable=not progress, desc="fit")]
+            from gpumap.sim.variation import headline
+
+            k = len(a.fit_seeds)
+            for i, cand in enumerate(FIT_CANDIDATES):
+                per_seed = sims_fit[i * k:(i + 1) * k]
+                cmps = [compare(real, s) for s in per_seed]
+                rows.append({
+                    "change": cand, "variation": SonarVariation(**{**REAL_TANK, **cand}).to_dict(),
+                    "score": float(np.mean([c["score"] for c in cmps])),
+                    "score_se": (float(np.std([c["score"] for c in cmps], ddof=1) / np.sqrt(k))
+                                 if k > 1 else None),
+                    "mean": {key: float(np.mean([c[key] for c in cmps])) for key in (
+                        "quantile_distance", "by_range_distance", "by_incidence_distance")}
+                    | {f"{h}_ratio": float(np.mean([c["ratio"][h] for c in cmps])) for h in cmps[0]["ratio"]},
+                    "per_seed": [{"seed": seed, **headline(s), **c,
+                                  "bright_share_quantiles": s["bright_share"]["quantiles"],
+                                  "voxels_scored": s["voxels_scored"]}
+                        for seed, s, c in zip(a.fit_seeds, per_seed, cmps, strict=True)]})
+                se = common.fnum(rows[-1]["score_se"], ".3f")
+                print(f"fit {cand}: score {rows[-1]['score']:.3f} +- {se}  " + "  ".join(
+                    f"{key} {v:.3f}" for key, v in rows[-1]["mean"].items()))
     mark_load(head["machine"], share)
     shares = {k: real[k] for k in ("bright_share", "bright_share_all_observed_views")}
     if a.fit:
-        best = min(rows, key=lambda r: r["distance"])
-        fit = {"objective": "mean |quantile difference| of the bright share (of clear views and of all "
-                            "observing views), quantiles 10/25/50/75/90",
-               "candidates": rows, "best": best["variation"],
+        best = min(rows, key=lambda r: r["score"])
+        fit = {"objective": "mean over the seeds of compare()'s score: |ln(sim / real)| of the "
+                            "per-ping spread and of the persistence, plus the mean |quantile difference| of "
+                            "the bright share (quantiles 10/25/50/75/90 of the share of clear views and of "
+                            "all observing views), plus the mean |difference| of the pooled bright fraction "
+                            "by range and by incidence",
+               "definitions": {
+                   "per_ping_spread": "ping_gain.bright_cells_log_sd: SD over pings of ln(1 + bright "
+                                      "cells in the ping's image)",
+                   "persistence": "persistence.lag1_correlation: phi coefficient of a surface voxel's "
+                                  "bright/dark state over consecutive views that both see it clearly, pooled "
+                                  "over voxels"},
+               "seeds": list(a.fit_seeds), "candidates": rows, "best": best["variation"],
                "preset_is_best": best["variation"] == SonarVariation.real_tank().to_dict()}
-        res = {**head, "real": shares, "sim_pings": a.sim_pings, "fit": fit}
+        from gpumap.sim.variation import headline
+
+        res = {**head, "real": shares | {"headline": headline(real), "frames": real.get("frames")},
+               "real_from": str(a.real_from) if a.real_from else None, "sim_pings": a.sim_pings, "fit": fit}
         name = "variation_fit.json"
     elif a.held_out:
         res = {**head,

@@ -15,6 +15,9 @@ from gpumap.spec import GridSpec, SonarSpec
 
 __all__ = [
     "BRIGHT_SHARE",
+    "DECISION",
+    "DECISIONS",
+    "MISS_COST",
     "CARVE_VIEWS",
     "FOOTPRINT_PAD_M",
     "PING_DTYPE",
@@ -129,6 +132,12 @@ CARVE_VIEWS = 2
 #: quantile), that it is bright in fewer than BRIGHT_SHARE of its clear views.
 BRIGHT_SHARE = 0.2
 SHARE_Z = 1.645
+#: Evidence rule: how the view counts decide. ``"share"``: the share test at BRIGHT_SHARE and SHARE_Z;
+#: ``"calibrated"``: a two-class view model fitted to the map's own counts (gpumap.calibration),
+#: occupied when the posterior of a surface is at least 1 / (1 + MISS_COST).
+DECISIONS = ("share", "calibrated")
+DECISION = "share"
+MISS_COST = 10.0
 
 
 def pose_pad_m(pose_cov: np.ndarray, range_max_m: float, sigmas: float) -> float:

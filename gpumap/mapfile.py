@@ -25,10 +25,10 @@ import numpy as np
 import gpumap.memory as memory
 from gpumap.atomic import atomic_write
 from gpumap.errors import FormatError, LimitError
-from gpumap.geometry import BRIGHT_SHARE, RULES, SHARE_Z
+from gpumap.geometry import BRIGHT_SHARE, MISS_COST, RULES, SHARE_Z
 from gpumap.integrator import METHODS
 from gpumap.pings import read_prints
-from gpumap.rules import rule_values
+from gpumap.rules import check_decision, check_miss_cost, rule_values
 from gpumap.spec import _MAX_VOXEL_INDEX, GridSpec, SonarSpec, SparseSpec
 from gpumap.storage import BLOCK, local_offsets
 
@@ -79,6 +79,8 @@ def save(mapper, path: str | os.PathLike) -> Path:
         "carve_views": mapper.carve_views,
         "bright_share": mapper.bright_share,
         "share_z": mapper.share_z,
+        "decision": mapper.decision,
+        "miss_cost": mapper.miss_cost,
         "n_integrated": n_integrated,
         "backend": mapper.backend,
         "confidence": layer is not None,
@@ -340,6 +342,8 @@ def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec | SparseS
         "carve_views": meta.get("carve_views", 2),
         "bright_share": meta.get("bright_share", BRIGHT_SHARE),
         "share_z": meta.get("share_z", SHARE_Z),
+        "decision": meta.get("decision", "share"),  # files before the calibrated decision used the share test
+        "miss_cost": meta.get("miss_cost", MISS_COST),
         "confidence": meta.get("confidence", False),  # versions 1 and 2 have no confidence layer
     }
     if opts["method"] not in METHODS or rule not in RULES or (sparse_file and opts["method"] != "gather"):
@@ -361,6 +365,10 @@ def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec | SparseS
             0.0 < p <= 1.0 and 0.0 <= z <= 10.0):
         raise FormatError(f"Expected bright_share in (0, 1] and share_z in [0, 10] in {path}, but got "
                           f"{p!r} and {z!r}")
+    try:
+        check_decision(opts["decision"]), check_miss_cost(opts["miss_cost"])
+    except (TypeError, ValueError) as e:
+        raise FormatError(f"{e} in {path}") from None
     return spec, space, opts, n, fmt == FILE_FORMAT and version not in (4, FILE_VERSION)
 
 
@@ -387,6 +395,7 @@ def _check_map_values(arrays: dict[str, np.ndarray], opts: dict, path: Path) -> 
         if np.any(unseen & (np.isfinite(arrays["bright"]) | (arrays["count"] > 0))):
             raise FormatError(f"Expected no evidence on never-observed voxels in {path}, but some have it")
         want = rule_values(opts["rule"], arrays["min_all"], arrays["bright"], arrays["count"],
-                           opts["carve_views"], opts["bright_share"], opts["share_z"])
+                           opts["carve_views"], opts["bright_share"], opts["share_z"], opts["decision"],
+                           opts["miss_cost"])
         if not np.array_equal(want, arrays["values"]):
             raise FormatError(f"Expected 'values' in {path} to follow from its state, but they disagree")

@@ -33,7 +33,7 @@ from gpumap.backends import BACKENDS
 from gpumap.backends import available_backends as _available
 from gpumap.confidence import ConfidenceLayer, check_candidates, voxel_states
 from gpumap.errors import check_finite_scalar, check_pose
-from gpumap.geometry import BRIGHT_SHARE, RULES, SHARE_Z, make_template_S
+from gpumap.geometry import BRIGHT_SHARE, DECISION, MISS_COST, RULES, SHARE_Z, make_template_S
 from gpumap.integrator import METHODS, Integrator, check_pose_cov
 from gpumap.mapfile import FILE_FORMAT, FILE_VERSION, SPARSE_FILE_FORMAT  # noqa: F401 (see below)
 from gpumap.mapfile import load as load_file
@@ -152,6 +152,16 @@ class MinMaxMapper:
         Evidence rule: how sure the views must be before they free a voxel, as a one-sided
         normal quantile in [0, 10] (default :data:`gpumap.geometry.SHARE_Z`, 1.645: 95 %);
         larger keeps more voxels occupied on few views. Read-time only.
+    decision : str
+        Evidence rule: how the view counts decide (default :data:`gpumap.geometry.DECISION`).
+        ``"share"``: the share test above (``bright_share``, ``share_z``). ``"calibrated"``: a
+        two-class view model (surface, water; beta-binomials over bright and clear dark views)
+        fitted to this map's own counts, so the decision knows how reliable this sonar's views
+        are; a voxel is occupied when its posterior of being surface is at least
+        ``1 / (1 + miss_cost)`` (:mod:`gpumap.calibration`, :meth:`view_model`). Read-time only.
+    miss_cost : float
+        Calibrated decision: how many phantom voxels one avoided miss is worth, in [1e-6, 1e12]
+        (default :data:`gpumap.geometry.MISS_COST`, 10). Larger is safer and fuller. Read-time only.
     confidence : bool
         Keep the confidence layer (:mod:`gpumap.confidence`; a bounded GridSpec only): after
         each ping a separate pass marks the occupied voxels that view confirmed (resolved in
@@ -195,6 +205,8 @@ class MinMaxMapper:
         carve_views: int = 2,
         bright_share: float = BRIGHT_SHARE,
         share_z: float = SHARE_Z,
+        decision: str = DECISION,
+        miss_cost: float = MISS_COST,
         confidence: bool = False,
         sparse: bool | None = None,
         max_bytes: int | None = None,
@@ -262,7 +274,7 @@ class MinMaxMapper:
         self.spec, self.sparse = spec, space
         self.method, self.rule, self.threshold, self.shadow_m = method, rule, thr, shadow
         #: The rule with its read-time options (:class:`~gpumap.rules.ValueRule`: checks them when set).
-        self.value_rule = ValueRule(rule, carve_views, bright_share, share_z)
+        self.value_rule = ValueRule(rule, carve_views, bright_share, share_z, decision, miss_cost)
         self.max_bytes = None if max_bytes is None else int(max_bytes)
         self.evict = evict
         self.n_integrated = 0
@@ -325,6 +337,32 @@ class MinMaxMapper:
     @share_z.setter
     def share_z(self, z: float) -> None:
         self.value_rule.share_z = z
+
+    @property
+    def decision(self) -> str:
+        """Evidence rule: how the view counts decide, ``"share"`` or ``"calibrated"`` (see the class)."""
+        return self.value_rule.decision
+
+    @decision.setter
+    def decision(self, d: str) -> None:
+        self.value_rule.decision = d
+
+    @property
+    def miss_cost(self) -> float:
+        """Evidence rule, calibrated decision: the phantom voxels one avoided miss is worth."""
+        return self.value_rule.miss_cost
+
+    @miss_cost.setter
+    def miss_cost(self, c: float) -> None:
+        self.value_rule.miss_cost = c
+
+    def view_model(self):
+        """The calibrated decision's view model fitted to this map's counts now
+        (:class:`gpumap.calibration.ViewModel`; any rule but ``"plain"``)."""
+        from gpumap.calibration import fit_view_model
+
+        ev = self.evidence()
+        return fit_view_model(ev["count"], ev["hits"])
 
     @property
     def grid(self) -> GridSpec:

@@ -79,6 +79,8 @@ def options_of(mapper) -> tuple[str, dict]:
         "carve_views": int(mapper.carve_views),
         "bright_share": float(mapper.bright_share),
         "share_z": float(mapper.share_z),
+        "decision": mapper.decision,
+        "miss_cost": float(mapper.miss_cost),
         "confidence": mapper.confidence_layer is not None,
     }
 
@@ -149,7 +151,7 @@ def _same(kind: str, opts: dict, other: MapState) -> None:
             "(merge dense with dense and sparse with sparse)"
         )
     for key in ("spec", "grid", "sparse", "method", "shadow_m", "rule", "threshold", "carve_views",
-                "bright_share", "share_z"):
+                "bright_share", "share_z", "decision", "miss_cost"):
         a, b = opts.get(key), other.options.get(key)
         if a != b:
             if isinstance(a, dict) and isinstance(b, dict):  # name the field inside (spec.n_bins, ...)

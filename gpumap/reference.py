@@ -40,8 +40,9 @@ import functools
 import numpy as np
 
 __all__ = [
-    "add_counts", "beam_index_lo", "evidence_occupied", "evidence_values", "integrate_gather",
-    "integrate_template", "pack_counts", "split_counts", "visible_values", "voxel_ping_values",
+    "add_counts", "beam_index_lo", "calibrated_values", "evidence_occupied", "evidence_values",
+    "integrate_gather", "integrate_template", "pack_counts", "split_counts", "visible_values",
+    "voxel_ping_values",
 ]
 
 _F = np.float32
@@ -287,6 +288,21 @@ def evidence_values(
     threshold) where :func:`evidence_occupied` holds, else ``grid`` (the min over every view:
     below the threshold wherever a clear dark view came, ``+inf`` never observed)."""
     return _bright_where(grid, bright, count, lambda c: evidence_occupied(*split_counts(c), p_min, z))
+
+
+def calibrated_values(grid: np.ndarray, bright: np.ndarray, count: np.ndarray, miss_cost: float
+                      ) -> np.ndarray:
+    """Map values of the evidence rule with the calibrated decision (:mod:`gpumap.calibration`, its view
+    model fitted to these counts): ``bright`` where a voxel is occupied, else ``grid``."""
+    from gpumap.calibration import calibrated_occupied
+
+    dark, hits = split_counts(count)
+    occ = calibrated_occupied(dark, hits, miss_cost).reshape(-1)
+    return _bright_where(grid, bright, count, lambda c: occ[_where_bright(bright)])
+
+
+def _where_bright(bright: np.ndarray) -> np.ndarray:
+    return np.flatnonzero(np.isfinite(np.asarray(bright).reshape(-1)))
 
 
 def integrate_gather(

@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gpumap.geometry import beam_tan_edges
-from gpumap.reference import _F, beam_span, evidence_occupied
+from gpumap.reference import _F, beam_span
 from gpumap.spec import GridSpec, SonarSpec
 
 __all__ = ["SURFACE_LEVEL", "LiveSurface", "SurfaceLayer", "SurfaceOptions", "surface_from_evidence",
@@ -543,7 +543,7 @@ class LiveSurface:
         t0 = time.perf_counter()
         m = self.mapper
         ev = m.evidence()
-        cand = evidence_occupied(ev["count"], ev["hits"], m.bright_share, m.share_z)
+        cand = m.value_rule.occupied(ev["count"], ev["hits"])
         flat = np.flatnonzero(cand)
         w0 = np.array([self._weights.get(int(f), 1.0) for f in flat]) if self._weights else None
         layer, w = _layer(cand, np.isfinite(ev["min_all"]), m.grid, m.spec, self._pings, self.options, w0)
@@ -558,15 +558,15 @@ def surface_from_mapper(mapper, images: np.ndarray | None = None, poses: np.ndar
                         options: SurfaceOptions | None = None,
                         frames: Iterable[tuple[np.ndarray, np.ndarray]] | None = None) -> SurfaceLayer:
     """The surface layer of a :class:`gpumap.MinMaxMapper` with ``rule="evidence"`` or ``"visible"``
-    (candidates: the evidence rule's occupied voxels at the mapper's ``bright_share`` and
-    ``share_z``; its grid, spec and threshold) from the pings it integrated: ``images`` and
-    ``poses`` as :func:`surface_from_evidence` takes them, or ``frames`` as
+    (candidates: the evidence rule's occupied voxels by the mapper's decision,
+    :meth:`gpumap.rules.ValueRule.occupied`; its grid, spec and threshold) from the pings it
+    integrated: ``images`` and ``poses`` as :func:`surface_from_evidence` takes them, or ``frames`` as
     :func:`surface_from_frames` does."""
     if (frames is None) == (images is None and poses is None):
         raise ValueError("Expected either images and poses or frames, but got "
                          + ("both" if frames is not None else "neither"))
     ev = mapper.evidence()
-    cand = evidence_occupied(ev["count"], ev["hits"], mapper.bright_share, mapper.share_z)
+    cand = mapper.value_rule.occupied(ev["count"], ev["hits"])
     obs = np.isfinite(ev["min_all"])
     if frames is None:
         return surface_from_evidence(cand, obs, mapper.grid, mapper.spec, images, poses, mapper.threshold,

@@ -46,7 +46,11 @@ How a ping is made (:meth:`SonarSimulator.ping`)
 
    The gain and the jitter are AR(1) series over the ping index (:func:`~.variation.ar1_series`),
    the texture and the dropouts have their own streams: still deterministic per
-   ``(seed, ping index)``. ``clean_image`` is the image of the mean energy at the median gain
+   ``(seed, ping index)``. Two parts are fixed rather than drawn per ping: a surface texture
+   (each ray's ``e`` times :func:`~.variation.surface_texture` of its hit point: the same patch
+   of surface is dim or bright in every ping) and an extra range loss
+   (``10 ** (-range_loss_db_per_m * (r - 1) / 10)`` on each range bin); both are in
+   ``clean_image`` too. ``clean_image`` is the image of the mean energy at the median gain
    (``gain_offset_db``), of the pose the ping was actually taken from.
    Without a variation (or with :meth:`SonarVariation.none`) pings are bit for bit as before.
 
@@ -82,7 +86,15 @@ import gpumap
 from gpumap.errors import check_pose
 
 from .scenes import Scene
-from .variation import STREAM_DROPOUT, STREAM_GAIN, STREAM_JITTER, STREAM_TEXTURE, SonarVariation, ar1_series
+from .variation import (
+    STREAM_DROPOUT,
+    STREAM_GAIN,
+    STREAM_JITTER,
+    STREAM_TEXTURE,
+    SonarVariation,
+    ar1_series,
+    surface_texture,
+)
 
 __all__ = ["SonarSimulator", "SonarVariation", "Ping", "OCCUPIED_THRESHOLD", "detected_points"]
 
@@ -410,8 +422,14 @@ class SonarSimulator:
             -2.0 * self.absorption_db_per_m * (r - r_ref) / 10.0
         )
         e = self._w[hi] * rho * cos_inc**k * loss
+        points_W = T[:3, 3] + (d_S * r[:, None]) @ R.T
+        if var.surface_texture_db > 0.0:
+            e = e * surface_texture(points_W, self.seed, var.surface_texture_db, var.surface_texture_m)
         E = np.bincount(bins * sp.n_beams + self._beam[hi], weights=e, minlength=sp.n_bins * sp.n_beams)
         E = E.reshape(sp.n_bins, sp.n_beams)
+        if var.range_loss_db_per_m != 0.0:
+            r_bin = sp.range_min_m + (np.arange(sp.n_bins) + 0.5) * sp.bin_size_m
+            E = E * 10.0 ** (-var.range_loss_db_per_m * (r_bin - 1.0) / 10.0)[:, None]
 
         E_mean = E if var.gain_offset_db == 0.0 else E * 10.0 ** (var.gain_offset_db / 10.0)
         clean = (1.0 - np.exp(-self.gain * E_mean)).astype(np.float32)
@@ -433,7 +451,7 @@ class SonarSimulator:
         img += rng.rayleigh(self.noise_floor, size=E.shape)
         img = np.clip(img, 0.0, 1.0).astype(np.float32)
 
-        points_W = (T[:3, 3] + (d_S * r[:, None]) @ R.T).astype(np.float32)
+        points_W = points_W.astype(np.float32)
         fid, fr, fb = self._visible_features(T, depths)
         return Ping(img, T_nominal, points_W, fid, fr, fb, clean_image=clean,
                     ray_bins=bins.astype(self._cell_dtype), ray_beams=self._beam[hi].astype(self._cell_dtype),

@@ -135,6 +135,25 @@ nonnegative_int = _bounded("nonnegative_int", _whole, lambda v: v >= 0, "a whole
                            "A whole number >= 0 (``--seed``).")
 
 
+miss_cost = _bounded("miss_cost", _number, lambda v: 1e-6 <= v <= 1e12, "a number in [1e-6, 1e12]",
+                     "The calibrated decision's miss cost (``--miss-cost``).")
+
+
+def add_decision_args(p: argparse.ArgumentParser) -> None:
+    """``--decision`` and ``--miss-cost``: how the evidence rule's view counts decide (read-time)."""
+    from gpumap.geometry import DECISION, DECISIONS, MISS_COST
+
+    p.add_argument("--decision", default=DECISION, choices=list(DECISIONS),
+                   help="evidence rule: how the view counts decide: 'share' (default: free once the clear "
+                        "views show the voxel bright in fewer than a fifth of them) or 'calibrated' (a "
+                        "surface/water view model fitted to this map's own counts; occupied when the "
+                        "posterior of a surface is at least 1 / (1 + --miss-cost))")
+    p.add_argument("--miss-cost", type=miss_cost, default=MISS_COST, metavar="C",
+                   help=f"calibrated decision: phantom voxels one avoided miss is worth (default "
+                        f"{MISS_COST:g}; "
+                        "larger is safer and fuller)")
+
+
 def threshold_or_auto(text: str) -> float | str:
     """``'auto'`` or a number in (0, 1] (``gpumap replay --threshold``)."""
     if text.strip().lower() == "auto":

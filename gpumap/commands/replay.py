@@ -40,6 +40,7 @@ from gpumap.commands.common import (
     BACKEND_HELP,
     METHOD_HELP,
     ArgumentParser,
+    add_decision_args,
     add_view_args,
     backend_name,
     check_view_args,
@@ -105,6 +106,7 @@ def _parser() -> ArgumentParser:
                          "views) or "
                          "'plain' (the paper's min over views: a ping carves its acoustic shadow). "
                          "--method template supports only 'plain' and defaults to it")
+    add_decision_args(ap)
     ap.add_argument("--compare-rules", action="store_true",
                     help="also replay the frames under the other rules and write rules.png (the "
                          "chosen rule and plain "
@@ -333,6 +335,8 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
                                                **replay_kw)
     else:
         mapper, stats = run_replay(rec, grid=grid, rule=a.rule, positions=positions, **replay_kw)
+    if mapper.rule == "evidence":  # read-time: how the counts decide (the kernels' state is the same)
+        mapper.decision, mapper.miss_cost = a.decision, a.miss_cost
     for s in getattr(a, "view_sessions", ()):
         s.finish(mapper)
     if a.skip_bad_frames:
