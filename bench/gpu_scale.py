@@ -803,7 +803,7 @@ def cpu_rate_lines(folder: Path) -> list[str]:
     o, n = s["old"], s["new"]
     return ["", f"The CPU path (`gpu_scale_cpu_rate.json`; `{res['command']}`; {m['cpu_model']}, "
             f"{m['cpu_count']} cores; old: {res.get('old') or 'the --old tree'}): {c['backend']} at "
-            f"{c['voxel_m'] * 1000:g} mm, default rule, every real tank frame once per run (a fresh process "
+            f"{c['voxel_m'] * 100:g} cm, default rule, every real tank frame once per run (a fresh process "
             f"each), {c['reps']} runs of each tree in turn. CPU time a ping (every thread's) old "
             f"{_sec(o['cpu_ms_per_ping'])} ms, new {_sec(n['cpu_ms_per_ping'])} ms: "
             f"{s['cpu_old_over_new']:.2f}x less; pings/s old {_sec(o['pings_per_s'])}, new "

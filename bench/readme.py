@@ -33,6 +33,11 @@ def _pct(x: float) -> str:
     return f"{100 * x:.1f} %"
 
 
+def _voxel(v: float) -> str:
+    """A voxel edge as the README writes it: whole centimetres in cm, else mm."""
+    return f"{v * 100:g} cm" if abs(v * 100 - round(v * 100)) < 1e-9 else f"{v * 1000:g} mm"
+
+
 def _bench_rate(d: dict, backend: str, voxel_m: float) -> float | None:
     return next((r["images_per_s"] for r in d["rows"] if r.get("kind") == "gpumap" and r["backend"] == backend
                  and r["method"] == "gather" and r["shadow_m"] == 0
@@ -88,7 +93,7 @@ def summary_rows() -> list[tuple[str, str, str]]:
             oracle = " (bit for bit with the oracle)" if all(new[k].get("oracle_equal") for k in order) else (
                 " (NOT equal to the oracle)")
             rows.append(("Real tank frames on one H200 after issue 38's host path, default rule, batches of "
-                         "64: pings/s " + ", ".join(f"{b} {v * 1000:g} mm" for b, v in order)
+                         "64: pings/s " + ", ".join(f"{b} {_voxel(v)}" for b, v in order)
                          + "; host microseconds a ping (device idle)" + oracle,
                          " / ".join(_n(new[k]["pings_per_s"]["median"]) for k in order) + "; "
                          + " / ".join(f"{new[k]['host_idle_us_per_ping']['median']:.1f}" for k in order),
@@ -98,7 +103,7 @@ def summary_rows() -> list[tuple[str, str, str]]:
         c = cr["cpu_rate"]
         sm = c["summary"]
         old_ms, new_ms = sm["old"]["cpu_ms_per_ping"]["median"], sm["new"]["cpu_ms_per_ping"]["median"]
-        rows.append((f"2-core CPU, {c['backend']}, {c['voxel_m'] * 1000:g} mm, default rule, real tank "
+        rows.append((f"2-core CPU, {c['backend']}, {_voxel(c['voxel_m'])}, default rule, real tank "
                      "frames: CPU time a ping before / after issue 38 (medians; the same map bytes"
                      + ("" if sm["same_map"] else ": NOT") + ")", f"{old_ms:.1f} / {new_ms:.1f} ms",
                      "gpu_scale_cpu_rate.json"))
