@@ -67,6 +67,7 @@ inline int beam_index_lo(float t, __global const float *tan_edges, __global cons
 inline float footprint_value(const PingParams *P, int first, int j0, int j1, __global const float *image,
                              __global const float *table, int use_table, __global const int *first_bright,
                              int *clear);
+inline int view_clear(int j0, int j1, int b0, __global const int *first_bright);
 
 inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
                               __global const float *image, __global const float *tan_edges,
@@ -120,13 +121,17 @@ inline float footprint_value(const PingParams *P, int first, int j0, int j1, __g
             for (int j = j0; j <= j1; ++j) v = fmax(v, row[j]);
         }
     }
-    if (P->rule != 0 && v < P->thr) {  // only a dark view's count reads clear (update_voxel)
-        *clear = 1;
-        for (int jj = j0; jj <= j1; ++jj) {
-            if (first_bright[jj] < b0) { *clear = 0; break; }
-        }
+    if (P->rule != 0 && v < P->thr) *clear = view_clear(j0, j1, b0, first_bright);  // only a dark
+    return v;  // view's count reads clear (update_voxel)
+}
+
+// 1 when no beam j0..j1 has a return (first_bright) nearer than bin b0, else 0.
+inline int view_clear(int j0, int j1, int b0, __global const int *first_bright)
+{
+    for (int jj = j0; jj <= j1; ++jj) {
+        if (first_bright[jj] < b0) return 0;
     }
-    return v;
+    return 1;
 }
 
 // One work-item per pixel: an 8-bit image to float32 intensities, dst = src * scale (1/255).
@@ -393,16 +398,33 @@ inline int gather_run8(const PingParams *P, float cx, float cy, int kb, int ksto
         float8 tb = (t + u) / select((float8)(1.0f), d1, w1);
         int8 j0v = beam_index_lo8(ta, w0, tan_edges, lut, P, 0);
         int8 j1v = beam_index_lo8(tb, w1, tan_edges, lut, P, P->n_beams - 1);
-        int oks[8], firsts[8], j0s[8], j1s[8];
+        // footprint_value's table reads where two suffice (a span under twice its level's width; the
+        // first bin in the table): entries a and b of the table, found for all lanes at once
+        int8 span = j1v - j0v + 1;
+        int8 lvl = select((int8)(0), min(31 - convert_int8(clz(span)), (int8)(P->n_levels - 1)), span > 1);
+        int8 wv = (int8)(1) << lvl;
+        int8 row = (lvl * P->n_bins + max(first, 0)) * P->n_beams;
+        int8 two = ok & (first >= 0) & (span >= 1) & (span < 2 * wv) & (int8)(use_table ? -1 : 0);
+        int oks[8], twos[8], firsts[8], j0s[8], j1s[8], as[8], bs[8];
         vstore8(ok, 0, oks);
+        vstore8(two, 0, twos);
         vstore8(first, 0, firsts);
         vstore8(j0v, 0, j0s);
         vstore8(j1v, 0, j1s);
+        vstore8(row + j1v - wv + 1, 0, as);
+        vstore8(row + j0v, 0, bs);
         for (int l = 0; l < 8; ++l) {
             if (!oks[l]) continue;
             int j0 = j0s[l], j1 = j1s[l];
             int clear;
-            float v = footprint_value(P, firsts[l], j0, j1, image, table, use_table, first_bright, &clear);
+            float v;
+            if (twos[l]) {
+                v = fmax(table[as[l]], table[bs[l]]);
+                clear = 0;
+                if (P->rule != 0 && v < P->thr) clear = view_clear(j0, j1, max(firsts[l], 0), first_bright);
+            } else {
+                v = footprint_value(P, firsts[l], j0, j1, image, table, use_table, first_bright, &clear);
+            }
             hit = 1;
             if (slot >= 0) update_voxel(P, (size_t)(base + k + l), v, clear, grid, bright, count);
         }
