@@ -33,6 +33,11 @@ def _pct(x: float) -> str:
     return f"{100 * x:.1f} %"
 
 
+def _voxel(v: float) -> str:
+    """A voxel edge as the README writes it: whole centimetres in cm, else mm."""
+    return f"{v * 100:g} cm" if abs(v * 100 - round(v * 100)) < 1e-9 else f"{v * 1000:g} mm"
+
+
 def _bench_rate(d: dict, backend: str, voxel_m: float) -> float | None:
     return next((r["images_per_s"] for r in d["rows"] if r.get("kind") == "gpumap" and r["backend"] == backend
                  and r["method"] == "gather" and r["shadow_m"] == 0
@@ -79,6 +84,29 @@ def summary_rows() -> list[tuple[str, str, str]]:
             rows.append((f"... GPU workers ({w['voxel_m'] * 1000:g} mm, {w['frames']:,} pings): 2 GPUs over "
                          "1, mapping phase / end to end (the maps' transfer and merge included)",
                          f"{m[1] / m[2]:.2f}x / {w['summary']['speedup_2_over_1']:.2f}x", "gpu_scale.json"))
+    h2 = _load("gpu_scale_h200.json")
+    if h2:
+        new = {(r["backend_asked"], r["voxel_m"]): r for r in h2["single"]
+               if r["tree"] == "new" and "error" not in r}
+        order = [(b, v) for v in (0.01, 0.005) for b in ("opencl-gpu", "warp-cuda") if (b, v) in new]
+        if order:
+            oracle = " (bit for bit with the oracle)" if all(new[k].get("oracle_equal") for k in order) else (
+                " (NOT equal to the oracle)")
+            rows.append(("Real tank frames on one H200 after issue 38's host path, default rule, batches of "
+                         "64: pings/s " + ", ".join(f"{b} {_voxel(v)}" for b, v in order)
+                         + "; host microseconds a ping (device idle)" + oracle,
+                         " / ".join(_n(new[k]["pings_per_s"]["median"]) for k in order) + "; "
+                         + " / ".join(f"{new[k]['host_idle_us_per_ping']['median']:.1f}" for k in order),
+                         "gpu_scale_h200.json"))
+    cr = _load("gpu_scale_cpu_rate.json")
+    if cr:
+        c = cr["cpu_rate"]
+        sm = c["summary"]
+        old_ms, new_ms = sm["old"]["cpu_ms_per_ping"]["median"], sm["new"]["cpu_ms_per_ping"]["median"]
+        rows.append((f"2-core CPU, {c['backend']}, {_voxel(c['voxel_m'])}, default rule, real tank "
+                     "frames: CPU time a ping before / after issue 38 (medians; the same map bytes"
+                     + ("" if sm["same_map"] else ": NOT") + ")", f"{old_ms:.1f} / {new_ms:.1f} ms",
+                     "gpu_scale_cpu_rate.json"))
     cw = _load("gpu_scale_cpu.json")
     if cw and cw["cpu_overhead"]["summary"].get("idle"):
         cs = cw["cpu_overhead"]["summary"]
