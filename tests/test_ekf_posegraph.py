@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import DATA, needs_data
 
 from gpumap.ekf import posegraph as pg
 from gpumap.ekf.loop import drifting_odometry, motion_cov, pose_errors
@@ -109,3 +110,29 @@ def test_bad_input_is_refused_with_what_was_expected():
         g.add_loop(0, 5, np.zeros(6), np.eye(6))
     with pytest.raises(ValueError, match="older ping"):
         run_pose_graph(np.stack([np.eye(4)] * 3), np.eye(6), np.eye(4), [(1, 2, np.zeros(6), np.eye(6))])
+
+
+@needs_data
+def test_segment_maps_merge_to_the_map_of_every_ping_and_remap_only_what_moved():
+    from gpumap import MinMaxMapper
+    from gpumap.ekf.submaps import SegmentMaps
+    from gpumap.ekf_replay import posed_frames
+    from gpumap.io import open_recording
+    from gpumap.spec import auto_grid
+
+    images, T, spec = posed_frames(open_recording(DATA / "oasis_tank"), max_frames=24)
+    grid = auto_grid(spec, list(T), 0.1)
+
+    def direct(poses):
+        m = MinMaxMapper(spec, grid, backend="numpy", threshold=0.4)
+        m.integrate_batch(np.stack(images), poses)
+        return m.values()
+
+    sm = SegmentMaps(spec, grid, segment=5, backend="numpy")
+    assert sm.update(images, T) == [0, 1, 2, 3, 4]
+    np.testing.assert_array_equal(sm.values(), direct(T))  # exact, NaN where unknown
+    moved = T.copy()
+    moved[12:15, :3, 3] += [0.03, -0.02, 0.0]  # inside segment 2 only
+    assert sm.update(images, moved) == [2]
+    np.testing.assert_array_equal(sm.values(), direct(moved))
+    assert sm.update(images, moved) == [] and sm.integrations == 6
