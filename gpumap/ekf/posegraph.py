@@ -307,7 +307,7 @@ class PoseGraph:
 
 
 def run_pose_graph(U: np.ndarray, Q: np.ndarray, T0: np.ndarray, closures, *, solve_every: int = 10,
-                   gate_prob: float = 0.999, iterations: int = 8) -> GraphRun:
+                   gate_prob: float = 0.999, iterations: int = 8, on_solve=None) -> GraphRun:
     """The pose graph built and solved ping by ping (module docstring).
 
     Parameters
@@ -324,6 +324,9 @@ def run_pose_graph(U: np.ndarray, Q: np.ndarray, T0: np.ndarray, closures, *, so
         items are ignored.
     solve_every : int
         Solve at least every this many closures within a burst.
+    on_solve : callable, optional
+        ``on_solve(k, poses)`` after each solve: ``k`` the latest ping, ``poses`` ((k + 1, 4, 4))
+        the solution (e.g. :meth:`gpumap.ekf.submaps.SegmentMaps.update`); not timed.
 
     Returns
     -------
@@ -353,14 +356,19 @@ def run_pose_graph(U: np.ndarray, Q: np.ndarray, T0: np.ndarray, closures, *, so
             g.add_loop(int(c[1]), k, c[2], c[3])
             pending += 1
             loops += 1
-        if pending and (k not in by_k or pending >= solve_every):
+        solved = bool(pending and (k not in by_k or pending >= solve_every))
+        if solved:
             last = g.solve()
             solves += 1
             pending = 0
         online[k] = g._T[k]
         ms[k] = 1e3 * (time.perf_counter() - t0)
+        if solved and on_solve is not None:
+            on_solve(k, g.poses)
     if pending:
         last = g.solve()
         solves += 1
+        if on_solve is not None:
+            on_solve(n - 1, g.poses)
     return GraphRun(g.poses, online, solves, loops, int(last.get("loops_rejected", 0)), ms,
                     {"last_solve": last})

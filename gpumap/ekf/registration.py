@@ -433,6 +433,17 @@ class ScanRegistrar:
         The revisit's search (pings older than ``min_gap``, :func:`place_scores` below
         ``place_threshold`` metres) and the noise of its offset besides the registration's
         own (``(metres, radians)``, per axis).
+    graph : bool
+        Keep a pose graph (:class:`gpumap.ekf.posegraph.PoseGraph`) of the odometry steps as
+        given and the verified revisits, solved when a burst of revisits ends (or every
+        ``solve_every`` of them); the ping of a solve is predicted onto the graph's pose of it
+        (:meth:`correct_step` returns the step that lands there), so the filter carries on
+        from what every revisit so far says together, not only from its own last correction.
+        On by default: on frames 0-799 of the full real tank run (5 seeds, drifts 0.005 and
+        0.02) it lowered the mean position error over odometry's from 0.59 / 0.61 to 0.51 / 0.52
+        and the worst seed's heading from 0.84 / 0.82 to 0.66 / 0.68 (``bench/ekf_pose.py``).
+    solve_every : int
+        See ``graph``.
     min_image_ncc : float or None
         The revisit's verification (:func:`image_agreement` of the best-agreeing candidate must
         reach it); None: none, the best first-return match is taken (as first built). The
@@ -455,7 +466,8 @@ class ScanRegistrar:
                  place_threshold: float = 0.04, revisit_sigma: tuple[float, float] = (0.005, 0.03),
                  step_floor: tuple[float, float] = (0.0, 0.0), step_components: tuple[int, ...] = IN_PLANE,
                  two_sided: bool = False, descriptors: np.ndarray | None = None,
-                 min_image_ncc: float | None = 0.97, **register_kw) -> None:
+                 min_image_ncc: float | None = 0.97, graph: bool = True, solve_every: int = 10,
+                 **register_kw) -> None:
         from scipy.stats import chi2
 
         if keep < 1 or window < 1 or min_gap < 1:
@@ -477,6 +489,11 @@ class ScanRegistrar:
         #: Verified revisits ``(k, j, delta (6,), R (6, 6), fused)``: ping ``k`` was taken at
         #: ``T_j Exp(delta)`` with noise ``R``; ``fused``: whether the filter took it (its NIS gate).
         self.closures: list = []
+        self.graph = bool(graph)
+        self.solve_every = int(solve_every)
+        self._graph = None  # PoseGraph, made at the first ping
+        self._pending = 0
+        self.solves = 0
         self.step, self.revisit = bool(step), bool(revisit)
         self.min_gap = int(min_gap)
         self.place_threshold = float(place_threshold)
@@ -605,7 +622,14 @@ class ScanRegistrar:
         self.last = None
         self.last_revisit = None
         if not self._db_r:
+            if self.graph:
+                from gpumap.ekf.posegraph import PoseGraph
+
+                self._graph = PoseGraph(T_prev)
             return U, Q
+        if self._graph is not None:
+            self._graph.add_odometry(U, Q)
+            n_closures = len(self.closures)
         if self.step and self._map:
             U, Q = self._step(T_prev, U, Q)
         A = se3_adjoint(se3_inverse(U))
@@ -614,6 +638,17 @@ class ScanRegistrar:
             d = self._revisit(T_prev @ U)
             if d is not None:
                 U = U @ se3_exp(d)
+        if self._graph is not None:
+            k = len(self._db_r)
+            new = self.closures[n_closures:]
+            for c in new:
+                self._graph.add_loop(c[1], k, c[2], c[3])
+            self._pending += len(new)
+            if self._pending and (not new or self._pending >= self.solve_every):
+                self._graph.solve()
+                self.solves += 1
+                self._pending = 0
+                U = se3_inverse(T_prev) @ self._graph._T[k]
         return U, Q
 
     def remember(self, T_W_S: np.ndarray) -> None:
