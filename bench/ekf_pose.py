@@ -148,6 +148,9 @@ def main(argv: list[str] | None = None) -> int:
                          "re-mapped at each solve (gpumap.ekf.submaps), first drift and seed only; "
                          "writes NAME_submaps.json")
     ap.add_argument("--segment", type=int, default=50, help="pings per segment map (default 50)")
+    ap.add_argument("--cost", type=int, default=None, metavar="REPEATS",
+                    help="instead: the cost per ping of each part on the whole run (first drift and "
+                         "seed), wall and CPU time, best of REPEATS; writes NAME_cost.json")
     ap.add_argument("--frontier", type=float, nargs="*", default=None, metavar="NCC",
                     help="instead: the EKF's ratios with each of these min_image_ncc values (and the "
                          "unverified search of #29), dev and full slices; writes NAME_frontier.json")
@@ -158,6 +161,8 @@ def main(argv: list[str] | None = None) -> int:
         return submaps_main(a, argv)
     if a.frontier is not None:
         return frontier_main(a, argv)
+    if a.cost is not None:
+        return cost_main(a, argv)
     doc = run_header("gpumap.bench.ekf_pose/1", argv)
     data = a.data or oasis_full_dir()
     if data is None:
@@ -221,6 +226,66 @@ def main(argv: list[str] | None = None) -> int:
         "summary": _table(runs), "maps": maps, "maps_summary": map_summary, "runs": runs,
     })
     path = write_json(a.out / f"{a.name}.json", compact(doc, 5))
+    print(f"wrote {path}")
+    return 0
+
+
+def _timed(fn):
+    w, c = time.perf_counter(), time.process_time()
+    out = fn()
+    return out, time.perf_counter() - w, time.process_time() - c
+
+
+def cost_main(a, argv) -> int:
+    """``--cost``: milliseconds per ping of each part, wall and CPU (this process's), best of N."""
+    doc = run_header("gpumap.bench.ekf_pose_cost/1", argv)
+    data = a.data or oasis_full_dir()
+    images, T, spec = posed_frames(open_recording(data))
+    n, drift, seed = len(T), a.drifts[0], a.seeds[0]
+    U, _ = drifting_odometry(T, drift, drift, seed)
+    Q = motion_cov(drift, drift)
+    det = PointDetector(spec)
+    best: dict = {}
+
+    def keep(name, wall, cpu):
+        w, c = 1e3 * wall / n, 1e3 * cpu / n
+        old = best.get(name)
+        best[name] = {"wall_ms": min(w, old["wall_ms"]) if old else w,
+                      "cpu_ms": min(c, old["cpu_ms"]) if old else c}
+
+    for _ in range(max(1, a.cost)):
+        la = load_average()
+        meas, w, c = _timed(lambda: [det.detect(im) for im in images])
+        keep("point_detector", w, c)
+        ranges, w, c = _timed(lambda: np.stack([measured_first_returns(im, spec, THRESHOLD)
+                                                 for im in images]))
+        keep("first_returns", w, c)
+        desc, w, c = _timed(lambda: np.stack([image_descriptor(im) for im in images]))
+        keep("image_descriptor", w, c)
+        for name, kw in (("tracker_ekf", None), ("tracker_ekf_registration_graph", {})):
+            def loop(kw=kw, meas=meas, ranges=ranges, desc=desc):
+                reg = None if kw is None else ScanRegistrar(spec, threshold=THRESHOLD, ranges=ranges,
+                                                             descriptors=desc, **kw)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    run_ekf_loop([None] * n, U, T[0], spec, odometry_cov=Q,
+                                 measure=lambda i, _im: meas[i], registrar=reg,
+                                 ekf_kwargs={"guard": TrustGuard()})
+                return reg
+            reg, w, c = _timed(loop)
+            keep(name, w, c)
+        best.setdefault("load_avg", []).append([la, load_average()])
+        print("cost so far (best, ms per ping wall / CPU): " + ", ".join(
+            f"{k} {v['wall_ms']:.2f} / {v['cpu_ms']:.2f}" for k, v in best.items() if k != "load_avg"),
+            flush=True)
+    parts = ("point_detector", "first_returns", "image_descriptor", "tracker_ekf_registration_graph")
+    doc.update({"data": str(data), "frames": n, "drift": drift, "seed": seed, "repeats": a.cost,
+                "best": best,
+                "total_default_cpu_ms": float(sum(best[p]["cpu_ms"] for p in parts)),
+                "total_default_wall_ms": float(sum(best[p]["wall_ms"] for p in parts)),
+                "note": "wall and CPU time of this process per ping over the whole run, best of the repeats; "
+                        "the machine's 2 cores were shared with other work (load averages recorded)"})
+    path = write_json(a.out / f"{a.name}_cost.json", compact(doc, 5))
     print(f"wrote {path}")
     return 0
 
@@ -379,6 +444,25 @@ def markdown(res: dict, folder: Path) -> str:
                 f"({d['seconds_remap_total']:.0f} s in all, load {d['load_avg'][0][0]:.1f}); merging them "
                 f"took {d['seconds_merge']:.1f} s and gives the map of one mapper exactly (held-out first "
                 f"returns agreed: {100 * d['heldout_first_returns']['agreement']:.1f} %)."]
+    co = folder / "ekf_pose_cost.json"
+    if co.exists():
+        import json
+
+        d = json.loads(co.read_text())
+        b = d["best"]
+        names = {"point_detector": "point detector", "first_returns": "first returns",
+                 "image_descriptor": "image descriptor", "tracker_ekf": "tracker + EKF without registration",
+                 "tracker_ekf_registration_graph": "tracker + EKF + verified revisits + pose graph"}
+        la = [x[0][0] for x in b["load_avg"]]
+        out += ["", f"Cost per ping, part by part (`python -m bench ekf_pose --cost {d['repeats']}`: the "
+                f"whole run, drift {d['drift']:g}, seed {d['seed']}, best of {d['repeats']}; "
+                f"{res['machine']['cpu_model']}, 2 cores shared with other work, load "
+                f"{min(la):.1f}-{max(la):.1f}). CPU time is this process's, the fairer figure on a loaded "
+                "machine.",
+                "", "| part | wall ms | CPU ms |", "|---|---|---|"]
+        out += [f"| {names[k]} | {b[k]['wall_ms']:.2f} | {b[k]['cpu_ms']:.2f} |" for k in names if k in b]
+        out.append("| default total (detector, first returns, descriptor, tracker + EKF + revisits + "
+                   f"graph) | {d['total_default_wall_ms']:.2f} | {d['total_default_cpu_ms']:.2f} |")
     fr = folder / "ekf_pose_frontier.json"
     if fr.exists():
         import json
