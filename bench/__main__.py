@@ -44,6 +44,7 @@ BENCHMARKS: dict[str, str] = {
     "confidence": "the confidence layer's cost on the device: mapping the real tank with and without it",
     "ekf_bench": "the EKF on the prism simulation (NEES, odometry sweep, update cost; --vs-batch)",
     "ekf_real": "the EKF on the full real tank: EKF/odometry per variant, drift, seed; dev and held-out",
+    "ekf_pose": "verified revisits in the EKF and a pose graph on the full real tank; maps per pose source",
     "frontend": "the EKF front end: detection, association and the EKF loop, simulated and real",
     "viewer_cost": "what the live view and the recorder cost gpumap replay of the real tank",
     "ros_bench": "the ROS 2 node's sustained rates and latency over Fast DDS on the real tank",

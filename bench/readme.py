@@ -211,11 +211,34 @@ def summary_rows() -> list[tuple[str, str, str]]:
     if reg:
         full = [reg["summary"][k] for k in sorted(reg["summary"])
                 if k.startswith("replay|") and k.endswith("|full")]
-        rows.append(("... with `--ekf-registration` (revisits; off by default), whole run, drifts 0.005 / "
-                     "0.02: position mean of 5 seeds, then the worst seed's position / heading",
+        rows.append(("... with revisits unverified, as #29 built them (no longer the default), whole "
+                     "run, drifts 0.005 / 0.02: position mean of 5 seeds, then the worst seed's position / "
+                     "heading",
                      ", ".join(f"{c['ratio_position_mean']:.2f}" for c in full) + "; "
                      + ", ".join(f"{c['ratio_position_max']:.2f} / {c['ratio_heading_max']:.2f}"
                                  for c in full), "ekf_registration.json"))
+    pose = _load("ekf_pose.json")
+    if pose:
+        sm = pose["summary"]
+
+        def worst_of(src: str, key: str) -> float:
+            return max(c[src][key] for c in sm.values())
+
+        full = [sm[k] for k in sorted(sm, key=lambda k: float(k.split("|")[0])) if k.endswith("|full")]
+        rows.append(("... `gpumap replay --ekf` default since #39 (revisits verified by their images): "
+                     "worst of 5 seeds, 2 drifts, dev / held-out / whole run, position / heading; whole run, "
+                     "drifts 0.005 / 0.02, mean position: EKF, pose graph",
+                     f"{worst_of('ekf', 'ratio_position_max'):.2f} / "
+                     f"{worst_of('ekf', 'ratio_heading_max'):.2f}; "
+                     + ", ".join(f"{c['ekf']['ratio_position_mean']:.2f}" for c in full) + "; "
+                     + ", ".join(f"{c['graph']['ratio_position_mean']:.2f}" for c in full), "ekf_pose.json"))
+        ms = pose.get("maps_summary") or {}
+        if ms:
+            rows.append(("... frames 0-799 mapped at each pose source, held-out first returns agreed, drifts "
+                         "0.005 / 0.02: odometry, EKF, pose graph, recorded poses",
+                         "; ".join(", ".join(_pct(ms[d][k]["agreement_mean"])
+                                             for k in ("odometry", "ekf", "graph", "recorded"))
+                                   for d in sorted(ms, key=float)), "ekf_pose.json"))
     valid = [json.loads(p.read_text()) | {"_file": p.name} for p in sorted(RESULTS.glob("peer_ratio_*.json"))]
     valid = [d for d in valid if d.get("valid")]
     if valid:
