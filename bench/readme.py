@@ -188,6 +188,24 @@ def summary_rows() -> list[tuple[str, str, str]]:
         rows.append(("Confidence layer on the device (issue 37): mapping the real tank (123 pings, 5 cm) "
                      "with the layer over without, best of 3 each in one run; 2-core CPU under others' "
                      "load, then the GPU", ", ".join(cells), "confidence.json"))
+    dc = _load("decision.json")
+    if dc:
+        def cells(labels: tuple[str, ...], var: str, key: str) -> str:
+            def one(lb: str, sc: str) -> str:
+                return _pct(next(r[key] for r in dc["sim"]
+                                 if (r["label"], r["scene"], r["variation"]) == (lb, sc, var)))
+            return ", ".join(f"{sc} " + " / ".join(one(lb, sc) for lb in labels) for sc in ("tank", "circle"))
+
+        cal = "calibrated, miss cost 10"
+        rows.append(("Simulated tank and circle without variation, 40 pings, 3 cm: far water called "
+                     "occupied, the evidence rule's default decision / calibrated (opt-in, miss cost 10) "
+                     "/ visible rule",
+                     cells(("share 0.2 (default)", cal, "visible rule"), "none", "false_positive_rate_far"),
+                     "decision.json"))
+        rows.append(("... with the real tank's variation: objects missed, default / calibrated / the floor "
+                     "no rule can beat (voxels never bright)",
+                     cells(("share 0.2 (default)", cal, "ever bright (floor)"), "real_tank", "miss_rate_objects"),
+                     "decision.json"))
     lr = _load("long_run.json")
     if lr:
         cells = [f"{name} {rule} {_pct(sc['curves'][rule][0]['miss_rate_objects'])} / "
