@@ -204,7 +204,8 @@ def summary_rows() -> list[tuple[str, str, str]]:
                      "decision.json"))
         rows.append(("... with the real tank's variation: objects missed, default / calibrated / the floor "
                      "no rule can beat (voxels never bright)",
-                     cells(("share 0.2 (default)", cal, "ever bright (floor)"), "real_tank", "miss_rate_objects"),
+                     cells(("share 0.2 (default)", cal, "ever bright (floor)"), "real_tank",
+                           "miss_rate_objects"),
                      "decision.json"))
     lr = _load("long_run.json")
     if lr:
