@@ -6,7 +6,7 @@ The recording's poses are the reference; odometry is made from them with the dri
 used to choose a setting; ``heldout``: ``split .. end``, started from the recorded pose at
 ``split``; ``full``), pose error over odometry's (mean position, mean heading) of:
 
-- ``ekf``: what ``gpumap replay --ekf`` runs by default: the guarded EKF on point returns plus
+- ``ekf``: what ``gpumap replay --ekf --ekf-registration`` runs: the guarded EKF on point returns plus
   the default :class:`gpumap.ekf.registration.ScanRegistrar` (revisits, each verified by its
   image's agreement before it is fused, and its pose graph: the ping of each solve is put
   where the graph says);
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpumap.ekf.frontend import PointDetector
+from gpumap.ekf.frontend import PointDetector, PointMeasurements
 from gpumap.ekf.guard import TrustGuard
 from gpumap.ekf.loop import drifting_odometry, motion_cov, pose_errors, run_ekf_loop
 from gpumap.ekf.posegraph import run_pose_graph
@@ -302,9 +302,14 @@ def frontier_main(a, argv) -> int:
     meas = [det.detect(im) for im in images]
     del images
     slices = {"dev": (0, min(a.split, n)), "full": (0, n)}
-    values = a.frontier or [0.9, 0.95, 0.96, 0.97, 0.98, 0.99]
+    slices = {k: v for k, v in slices.items() if k in a.slices} or slices
+    values = a.frontier or [0.95, 0.97, 0.99]
     settings = {f"ncc {v:g}": {"min_image_ncc": v} for v in values}
-    settings["unverified (#29)"] = {"place_threshold": 0.02, "min_image_ncc": None}
+    settings["ncc 0.97, no point returns"] = {"_points": False}
+    settings["ncc 0.97, no graph"] = {"graph": False}
+    settings["unverified (#29)"] = {"place_threshold": 0.02, "min_image_ncc": None, "graph": False}
+    z = np.zeros(0)
+    empty = PointMeasurements(z, z, np.zeros((0, 2, 2)), z, z, z, z)
     out = {}
     for label, kw in settings.items():
         for drift in a.drifts:
@@ -313,13 +318,16 @@ def frontier_main(a, argv) -> int:
                 for seed in a.seeds:
                     U, T_odo = drifting_odometry(T_all[s0:s1], drift, drift, seed)
                     reg = ScanRegistrar(spec, threshold=THRESHOLD, ranges=ranges[s0:s1],
-                                        descriptors=desc[s0:s1], **kw)
+                                        descriptors=desc[s0:s1],
+                                        **{k: v for k, v in kw.items() if k[0] != "_"})
+                    points = kw.get("_points", True)
                     with warnings.catch_warnings():
                         warnings.simplefilter("ignore", RuntimeWarning)
                         loop = run_ekf_loop([None] * (s1 - s0), U, T_all[s0], spec,
                                             odometry_cov=motion_cov(drift, drift),
-                                            measure=lambda k, _i, s0=s0: meas[s0 + k], registrar=reg,
-                                            ekf_kwargs={"guard": TrustGuard()})
+                                            measure=(lambda k, _i, s0=s0: meas[s0 + k]) if points
+                                            else (lambda k, _i: empty), registrar=reg,
+                                            ekf_kwargs={"guard": TrustGuard()} if points else None)
                     r = _ratios(loop.poses, T_odo, T_all[s0:s1])
                     rp.append(r["ratio_position"])
                     rh.append(r["ratio_heading"])
@@ -400,7 +408,7 @@ def markdown(res: dict, folder: Path) -> str:
     s = res["summary"]
     drifts = sorted({float(k.split("|")[0]) for k in s})
     seeds = s[next(iter(s))]["seeds"]
-    names = {"ekf": "EKF, verified revisits (default)", "graph": "pose graph",
+    names = {"ekf": "EKF, verified revisits (`--ekf-registration`)", "graph": "pose graph",
              "graph_online": "pose graph, online"}
     out = [HEADING, "",
            f"`python -m bench ekf_pose` ({res['machine']['cpu_model']}, load "

@@ -158,7 +158,8 @@ def summary_rows() -> list[tuple[str, str, str]]:
             return max(c[src][key] for c in sm.values())
 
         full = [sm[k] for k in sorted(sm, key=lambda k: float(k.split("|")[0])) if k.endswith("|full")]
-        rows.append(("... `gpumap replay --ekf` default since #39 (revisits verified by their images): "
+        rows.append(("... with `--ekf-registration` since #39 (revisits verified by their images, a pose "
+                     "graph behind the filter; off by default): "
                      "worst of 5 seeds, 2 drifts, dev / held-out / whole run, position / heading; whole run, "
                      "drifts 0.005 / 0.02, mean position: EKF, pose graph",
                      f"{worst_of('ekf', 'ratio_position_max'):.2f} / "
