@@ -144,7 +144,7 @@ def summary_rows() -> list[tuple[str, str, str]]:
     if reg:
         full = [reg["summary"][k] for k in sorted(reg["summary"])
                 if k.startswith("replay|") and k.endswith("|full")]
-        rows.append(("... with revisits unverified, as #29 built them (no longer the default), whole "
+        rows.append(("... with revisits unverified, as #29 built them (replaced by the verified ones), whole "
                      "run, drifts 0.005 / 0.02: position mean of 5 seeds, then the worst seed's position / "
                      "heading",
                      ", ".join(f"{c['ratio_position_mean']:.2f}" for c in full) + "; "
