@@ -470,7 +470,8 @@ def markdown(res: dict, folder: Path) -> str:
                 "", "| part | wall ms | CPU ms |", "|---|---|---|"]
         out += [f"| {names[k]} | {b[k]['wall_ms']:.2f} | {b[k]['cpu_ms']:.2f} |" for k in names if k in b]
         out.append("| total with `--ekf-registration` (detector, first returns, descriptor, tracker + EKF + "
-                   f"revisits + graph) | {d['total_default_wall_ms']:.2f} | {d['total_default_cpu_ms']:.2f} |")
+                   f"revisits + graph) | {d['total_default_wall_ms']:.2f} | "
+                   f"{d['total_default_cpu_ms']:.2f} |")
     fr = folder / "ekf_pose_frontier.json"
     if fr.exists():
         import json
