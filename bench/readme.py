@@ -230,7 +230,7 @@ def summary_rows() -> list[tuple[str, str, str]]:
     if reg:
         full = [reg["summary"][k] for k in sorted(reg["summary"])
                 if k.startswith("replay|") and k.endswith("|full")]
-        rows.append(("... with revisits unverified, as #29 built them (no longer the default), whole "
+        rows.append(("... with revisits unverified, as #29 built them (replaced by the verified ones), whole "
                      "run, drifts 0.005 / 0.02: position mean of 5 seeds, then the worst seed's position / "
                      "heading",
                      ", ".join(f"{c['ratio_position_mean']:.2f}" for c in full) + "; "
@@ -244,7 +244,8 @@ def summary_rows() -> list[tuple[str, str, str]]:
             return max(c[src][key] for c in sm.values())
 
         full = [sm[k] for k in sorted(sm, key=lambda k: float(k.split("|")[0])) if k.endswith("|full")]
-        rows.append(("... `gpumap replay --ekf` default since #39 (revisits verified by their images): "
+        rows.append(("... with `--ekf-registration` since #39 (revisits verified by their images, a pose "
+                     "graph behind the filter; off by default): "
                      "worst of 5 seeds, 2 drifts, dev / held-out / whole run, position / heading; whole run, "
                      "drifts 0.005 / 0.02, mean position: EKF, pose graph",
                      f"{worst_of('ekf', 'ratio_position_max'):.2f} / "

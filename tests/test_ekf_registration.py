@@ -267,7 +267,7 @@ def test_replay_ekf_says_how_much_it_trusted_the_registration(tmp_path, capsys, 
         warnings.simplefilter("ignore", RuntimeWarning)
         rc = main([str(DATA / "oasis_tank"), "--ekf", "--max-frames", "12", "--out", str(out),
                    "--backend", "numpy", "--no-pictures", "--no-progress"]
-                  + (["--no-ekf-registration"] if off else []))  # on by default
+                  + ([] if off else ["--ekf-registration"]))
     assert rc == 0
     r = json.loads((out / "summary.json").read_text())["ekf"]["registration"]
     assert r["used"] is (not off)
@@ -389,15 +389,3 @@ def test_a_revisit_without_an_image_says_what_it_needs():
     rg = ScanRegistrar(SPEC, ranges=r[None])
     with pytest.raises(ValueError, match="min_image_ncc=None"):
         rg.correct_step(0, None, np.eye(4), np.eye(4), motion_cov(0.004, 0.004))
-
-
-@needs_data
-def test_registration_on_and_off_together_is_refused(capsys) -> None:
-    from gpumap.commands.replay import main
-
-    with pytest.raises(SystemExit) as e:
-        main([str(DATA / "oasis_tank"), "--ekf", "--ekf-registration", "--no-ekf-registration"])
-    assert e.value.code == 2 and "contradict" in capsys.readouterr().err
-    with pytest.raises(SystemExit) as e:
-        main([str(DATA / "oasis_tank"), "--no-ekf-registration"])  # only with --ekf
-    assert e.value.code == 2

@@ -483,11 +483,10 @@ def add_ekf_args(ap: argparse.ArgumentParser) -> None:
                          "(on the real tank this ends worse than odometry; for comparison only)")
     ap.add_argument("--ekf-registration", action="store_true",
                     help="with --ekf: register each ping against the pings it revisits "
-                         "(gpumap.ekf.registration), each revisit verified by its image before it is "
-                         "fused; on by default since it never ended worse than odometry on the real "
-                         "tank (BENCHMARKS.md, ekf_pose.json), so this flag only says so")
-    ap.add_argument("--no-ekf-registration", action="store_true",
-                    help="with --ekf: no scan registration (the EKF on point returns alone)")
+                         "(gpumap.ekf.registration), each revisit verified by its image, with a pose "
+                         "graph behind the filter: on the real tank about half odometry's position "
+                         "error where the run revisits places, but on one run of ten it ended worse "
+                         "than odometry, so it is off by default (BENCHMARKS.md, ekf_pose.json)")
 
 
 def check_ekf_args(ap: argparse.ArgumentParser, a: argparse.Namespace) -> None:
@@ -495,11 +494,7 @@ def check_ekf_args(ap: argparse.ArgumentParser, a: argparse.Namespace) -> None:
     refuse_without(ap, "--ekf", a.ekf, {"--odometry-noise": a.odometry_noise is not None,
                                          "--seed": a.seed is not None,
                                          "--ekf-unguarded": bool(getattr(a, "ekf_unguarded", False)),
-                                         "--ekf-registration": bool(getattr(a, "ekf_registration", False)),
-                                         "--no-ekf-registration": bool(getattr(a, "no_ekf_registration",
-                                                                               False))})
-    if getattr(a, "ekf_registration", False) and getattr(a, "no_ekf_registration", False):
-        ap.error("--ekf-registration and --no-ekf-registration contradict each other")
+                                         "--ekf-registration": bool(getattr(a, "ekf_registration", False))})
     a.odometry_noise = (0.005, 0.005) if a.odometry_noise is None else a.odometry_noise
     a.seed = 0 if a.seed is None else a.seed
 
@@ -544,7 +539,7 @@ def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
                          grid=grid, backend=a.backend, threshold=thr, rule=a.rule, stride=a.stride,
                          max_frames=a.max_frames, progress=not a.no_progress,
                          guard=not getattr(a, "ekf_unguarded", False),
-                         registration=not getattr(a, "no_ekf_registration", False))
+                         registration=bool(getattr(a, "ekf_registration", False)))
     mapper = res["maps"]["ekf"]
     values = res["values"]["ekf"]
     occ = np.isfinite(values) & (values >= thr)
