@@ -29,6 +29,10 @@ BENCHMARKS: dict[str, str] = {
     "decision": "the evidence rule's decisions (share test, calibrated view model): simulated scenes, "
                 "real dev frames",
     "rate_real": "every rule on the full real tank run at the sonar's rate, judged by held-out first returns",
+    "real_frontier": "every rule, the surface layer and the public OASIS reconstruction on real held-out "
+                     "first returns: phantoms against misses",
+    "oasis_public": "the public OASIS code's reconstruction of given frames, run in its own environment "
+                    "(real_frontier runs it)",
     "variation": "how often a surface voxel's views are bright: the real full-rate tank and the simulator",
     "long_run": "every mapping rule over up to 1,000 simulated pings with realistic variation: FN and far FP",
     "refine": "plain, visible and refined maps against truth and on held-out pings",

@@ -121,6 +121,25 @@ def summary_rows() -> list[tuple[str, str, str]]:
                      "front / missed: surface layer, visible map",
                      ", ".join(" / ".join(_pct(h[m][k]) for k in JUDGED) for m in ("surface", "visible")),
                      "surface.json"))
+    rf = _load("real_frontier.json")
+    if rf:
+        default = [r for r in rf["rows"] if r.get("default")][:1]
+        oasis = {r["options"]["variant"]: r for r in rf["rows"] if r["kind"] == "oasis"}
+        surface = [r for r in rf["rows"] if r["kind"] == "surface"][:1]
+        for key, picks, what in (
+                ("judge", [*default, *[oasis[v] for v in ("every",) if v in oasis], *surface],
+                 "frames 0-799 at full rate, whole map"),
+                ("judge_box", [*default, *[oasis[v] for v in ("as-published",) if v in oasis]],
+                 "every map cut to the public code's configured box (issue 36's comparison)")):
+            if picks:
+                said = {"every": "public OASIS code fed every frame", "as-published": "public OASIS code as "
+                        "published (its 1 cm frame skip, its box)"}
+                names = ", ".join(f"default map ({r['rule']})" if r.get("default")
+                                  else said.get(r["options"].get("variant"), r["name"]) for r in picks)
+                rows.append((f"... the same judge beside the public OASIS code (its update unmodified), "
+                             f"{what}, first returns agreed / phantoms in front / missed: {names}",
+                             ", ".join(" / ".join(_pct(r[key][k]) for k in JUDGED) for r in picks),
+                             "real_frontier.json"))
     sr = _load("surface_rate.json")
     if sr and sr.get("streams"):
         r = sr["streams"][0]
