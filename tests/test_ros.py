@@ -583,7 +583,10 @@ def test_real_tank_over_dds_equals_the_offline_map(ros_session, tmp_path):
     saved = tmp_path / "saved.npz"
     node = ros_session("node", "ros", "--params-file", str(params), "--ros-args", *NODE_TEST_ARGS,
                        "-p", f"save_path:={saved}", "-p", "save_on_exit:=true",
-                       "-p", "queue_size:=200")  # the numpy backend maps ~30/s here: queue, drop nothing
+                       "-p", "queue_size:=200",  # the numpy backend maps ~30/s here: queue, drop nothing
+                       # the surface layer's thread shares the interpreter with the callbacks: on 2 loaded
+                       # cores the default 10 images of the subscription overflow (middleware_lost)
+                       "-p", "surface:=true", "-p", "image_queue_depth:=200")
     probe, frames = _play_all(ros_session, play, TANK, 25, 120)
     probe.spin_for(0.5)  # the last cloud
     assert not any(k.startswith(("dropped", "skipped", "rejected")) for k in probe.diag), probe.diag
@@ -713,7 +716,7 @@ def test_surface_layer_on_the_wire_is_the_offline_layer(ros_session, tmp_path, s
                           world_frame="map", pose_type="pose_stamped")
     saved = tmp_path / "both.npz"
     ros_session("node", "ros", "--params-file", str(params), "--ros-args", *NODE_TEST_ARGS,
-                "-p", f"save_path:={saved}")
+                "-p", f"save_path:={saved}", "-p", "surface:=true", "-p", "image_queue_depth:=100")
     probe, frames = _play_all(ros_session, play, sim_recording, 20, 60)
     probe.spin_until(lambda: probe.count("surface_pings") == len(frames) and probe.surface
                      and probe.surface[-1].header.stamp == probe.clouds[-1].header.stamp, 60,
@@ -747,9 +750,9 @@ def test_bad_input_on_the_wire_is_counted_and_leaves_the_map_alone(ros_session, 
     frames = list(play.frames())[:7]
     params = write_params(tmp_path / "sim.yaml", play, voxel_size_m=None, threshold=0.4, backend="numpy",
                           world_frame="map", pose_type="pose_stamped")
-    saved = tmp_path / "map.npz"  # surface:=false: ~/save_map writes the map file MinMaxMapper.load reads
+    saved = tmp_path / "map.npz"  # without the surface layer: the map file MinMaxMapper.load reads
     node = ros_session("node", "ros", "--params-file", str(params), "--ros-args", *NODE_TEST_ARGS,
-                       "-p", f"save_path:={saved}", "-p", "surface:=false")
+                       "-p", f"save_path:={saved}")
     probe = ros_session.probe()
     n = probe.node
     pub_img = n.create_publisher(Image, "sonar/image",

@@ -33,7 +33,7 @@ cloud's stamp is the newest ping in it. ``/diagnostics`` (``diagnostic_msgs/Diag
 every ``diagnostics_period_s``): ping rate, latency p50/p99 (arrival to published cloud),
 queue, received/integrated, rejected, skipped and dropped by reason, backend, map memory.
 
-With ``surface: true`` (the default) the surface layer (:mod:`gpumap.surface`) is kept too, on a
+With ``surface: true`` (default false) the surface layer (:mod:`gpumap.surface`) is kept too, on a
 thread of its own (:class:`gpumap.ros.live.LiveSurfaceWorker`), and updated as often as the machine
 allows, each update taking every ping mapped meanwhile: ``~/surface_cloud`` (``PointCloud2``, x, y,
 z, value 1 per surface voxel; stamped with the newest ping it covers) and ``~/surface_markers``,
@@ -42,7 +42,10 @@ of the pings it covers. ``/diagnostics`` then adds ``surface_pings`` (covered), 
 (mapped, not yet in it), ``surface_age_s`` (how long the oldest of those has waited since it arrived),
 ``surface_latency_max_s``, ``surface_update_s`` (the last update's seconds), ``surface_updates`` and
 ``surface_voxels``. The layer keeps every ping (its memory and its updates grow with the run) unless
-``surface_max_pings`` bounds it to the newest ones.
+``surface_max_pings`` bounds it to the newest ones. Its thread shares the interpreter (and its lock)
+with the message callbacks: on a 2-core CPU with the numpy backend, the real tank's 25 Hz images
+overflowed the default ``image_queue_depth`` of 10 (images lost in the middleware, counted), which a
+deeper queue absorbs; a process of its own would not need one.
 
 Services (``std_srvs/Trigger``): ``~/save_map`` writes ``save_path`` atomically: with the surface
 layer, both layers in one file (the safe map's values and the surface layer of every ping mapped so
@@ -121,11 +124,12 @@ PARAMETERS: dict[str, tuple[object, str]] = {
     "confidence": (False, "keep the confidence layer (MinMaxMapper(confidence=True)): the cloud gets a uint8 "
                    "field confirmed, 1 where some view resolved the voxel in elevation, 0 where it is only "
                    "consistent with the pings (the elevation stretch); costs a pass per ping on the host"),
-    "surface": (True, "keep the surface layer (gpumap.surface: one voxel per bright cell, from the evidence "
+    "surface": (False, "keep the surface layer (gpumap.surface: one voxel per bright cell, from the evidence "
                 "or visible rule's occupied voxels) on a thread of its own: ~/surface_cloud and "
                 "~/surface_markers, updated as often as the machine allows; ~/save_map then writes both "
                 "layers in one file (gpumap view/export --layer surface|safe); needs rule evidence or "
-                "visible"),
+                "visible. The thread shares the interpreter with the callbacks: on a small CPU raise "
+                "image_queue_depth, or images are lost in the middleware"),
     "surface_max_pings": (0, "the surface layer of the newest this many pings only, so that its memory "
                           "(17 bytes per ping, voxel and bright cell: ~25k a ping on the real tank at 5 cm) "
                           "and its updates stop growing with the run (0: every ping)"),
