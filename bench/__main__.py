@@ -29,13 +29,19 @@ BENCHMARKS: dict[str, str] = {
     "decision": "the evidence rule's decisions (share test, calibrated view model): simulated scenes, "
                 "real dev frames",
     "rate_real": "every rule on the full real tank run at the sonar's rate, judged by held-out first returns",
+    "real_frontier": "every rule, the surface layer and the public OASIS reconstruction on real held-out "
+                     "first returns: phantoms against misses",
+    "oasis_public": "the public OASIS code's reconstruction of given frames, run in its own environment "
+                    "(real_frontier runs it)",
     "variation": "how often a surface voxel's views are bright: the real full-rate tank and the simulator",
     "long_run": "every mapping rule over up to 1,000 simulated pings with realistic variation: FN and far FP",
     "refine": "plain, visible and refined maps against truth and on held-out pings",
     "ekf_registration": "the EKF with scan registration on the full real tank run: dev, held-out, full",
     "gpu_scale": "one GPU (two source trees side by side) and 1 vs 2 GPU workers, with the oracle check",
     "surface": "the surface layer against the visible and evidence maps: simulated truth, real first returns",
+    "surface_rate": "the live surface layer at the sonar's rate on the full real run; replay with both",
     "nbv": "next best views: planned against rolled and random views; view_gain speed",
+    "confidence": "the confidence layer's cost on the device: mapping the real tank with and without it",
     "ekf_bench": "the EKF on the prism simulation (NEES, odometry sweep, update cost; --vs-batch)",
     "ekf_real": "the EKF on the full real tank: EKF/odometry per variant, drift, seed; dev and held-out",
     "frontend": "the EKF front end: detection, association and the EKF loop, simulated and real",

@@ -30,18 +30,39 @@ SCENES = ("tank", "circle", "side")
 VARIATIONS = ("none", "real_tank")
 THRESHOLD = 0.1
 DEV_MAP, DEV_JUDGE = (0, 600), (600, 800)
+REAL_SHARES = (0.3, 0.5)  # the share test's and the directional decision's frontier on the real run
+RATE_FRAMES, RATE_STRIDES = 800, (10, 3, 1)
 DETECT_Z = (2.0, 3.0)  # adaptive detection's standard scores measured beside the fixed threshold
 
 
-def _decisions(m) -> dict[str, dict]:
-    """Decision name -> {"options": ..., "values": the map's values read under it}."""
-    out = {"share (default)": {"options": {"decision": "share"}, "values": m.values()}}
+def _decisions(m, directional=None, shares: tuple[float, ...] = ()) -> dict[str, dict]:
+    """Decision name -> {"options": ..., "values": the evidence map ``m``'s values read under it}:
+    the share test (default, and at ``shares``), the calibrated decision at each of COSTS, the
+    directional decision (``directional``: a :class:`gpumap.directions.DirectionalEvidence` of the
+    same pings) at the default share and ``shares``, and every voxel ever seen bright (the floor of
+    any rule's misses: a voxel never bright is free under every rule)."""
+    out = {"share 0.2 (default)": {"options": {"decision": "share"}, "values": m.values()}}
+    default = m.bright_share
+    for p in shares:
+        m.bright_share = p
+        out[f"share {p:g}"] = {"options": {"decision": "share", "bright_share": p}, "values": m.values()}
+    m.bright_share = default
     m.decision = "calibrated"
     for c in COSTS:
         m.miss_cost = c
         out[f"calibrated, miss cost {c:g}"] = {"options": {"decision": "calibrated", "miss_cost": c},
                                                "values": m.values()}
     m.decision = "share"
+    if directional is not None:
+        for p in (default, *shares):
+            m.bright_share = p
+            out[f"directional, share {p:g}"] = {"options": {"decision": "directional", "bright_share": p},
+                                                "values": directional.values(m)}
+        m.bright_share = default
+    ev = m.evidence()
+    ever = np.where(ev["hits"] > 0, ev["bright"], ev["min_all"])
+    out["ever bright (floor)"] = {"options": {"decision": "ever bright"},
+                                  "values": np.where(np.isinf(ever), np.nan, ever).astype(np.float32)}
     return out
 
 
@@ -52,6 +73,7 @@ def sim_rows(backend: str, progress: bool) -> list[dict]:
     from gpumap.sim.variation import SonarVariation
 
     import gpumap
+    from gpumap.directions import DirectionalEvidence
 
     rows = []
     for name in SCENES:
@@ -64,17 +86,19 @@ def sim_rows(backend: str, progress: bool) -> list[dict]:
             seen, det = ground_truth_masks(pings, scene.grid, THRESHOLD)
             maps = {}
             for rule in ("evidence", "visible"):
-                m = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, rule=rule,
-                                        threshold=THRESHOLD)
-                for p in pings:
+                maps[rule] = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, rule=rule,
+                                                 threshold=THRESHOLD)
+            directional = DirectionalEvidence(scene.sonar_spec, scene.grid, backend=backend,
+                                              threshold=THRESHOLD)
+            for p in pings:
+                for m in (*maps.values(), directional):
                     m.integrate(quantize(p.image), p.T_W_S)
-                maps[rule] = m
-            reads = _decisions(maps["evidence"]) | {"visible rule": {"options": {"rule": "visible"},
-                                                                      "values": maps["visible"].values()}}
+            reads = _decisions(maps["evidence"], directional) | {
+                "visible rule": {"options": {"rule": "visible"}, "values": maps["visible"].values()}}
             model = maps["evidence"].view_model().to_dict()
             for label, r in reads.items():
                 ev = evaluate(r["values"], truth, THRESHOLD, seen, 0.03, detectable=det).to_dict()
-                rows.append({"scene": name, "variation": var, "decision": label, **r["options"],
+                rows.append({"scene": name, "variation": var, **r["options"], "label": label,
                              "miss_rate_objects": ev["miss_rate_objects"], "miss_rate": ev["miss_rate"],
                              "false_positive_rate_far": ev["false_positive_rate_far"], "view_model": model})
     return rows
@@ -83,6 +107,7 @@ def sim_rows(backend: str, progress: bool) -> list[dict]:
 def real_rows(backend: str, progress: bool, stride: int) -> dict:
     import gpumap
     from gpumap.detection import adaptive_detect
+    from gpumap.directions import DirectionalEvidence
     from gpumap.first_return import first_return_score
     from gpumap.spec import auto_grid
 
@@ -94,27 +119,61 @@ def real_rows(backend: str, progress: bool, stride: int) -> dict:
     spec, images, poses = _load(data, progress)
     grid = auto_grid(spec, poses, 0.05)
     m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule="evidence", threshold=0.4)
+    directional = DirectionalEvidence(spec, grid, backend=backend, threshold=0.4)
     for a in range(DEV_MAP[0], DEV_MAP[1], 32):
-        m.integrate_batch(images[a:min(a + 32, DEV_MAP[1])], poses[a:min(a + 32, DEV_MAP[1])])
+        for mm in (m, directional):
+            mm.integrate_batch(images[a:min(a + 32, DEV_MAP[1])], poses[a:min(a + 32, DEV_MAP[1])])
     judged = range(DEV_JUDGE[0], DEV_JUDGE[1], stride)
-    reads = {f"{k} (threshold 0.4)": {**r, "detection": "threshold 0.4"} for k, r in _decisions(m).items()}
+    reads = {f"{k} (threshold 0.4)": {**r, "detection": "threshold 0.4"}
+             for k, r in _decisions(m, directional, REAL_SHARES).items()}
     for z in DETECT_Z:  # the pings' own detections instead of a fixed threshold (gpumap.detection)
         det = np.stack([adaptive_detect(im, z=z) for im in images[DEV_MAP[0]:DEV_MAP[1]]])
         md = gpumap.MinMaxMapper(spec, grid, backend=backend, rule="evidence", threshold=0.5)
+        dev_poses = poses[DEV_MAP[0]:DEV_MAP[1]]
         for a in range(0, len(det), 32):
-            md.integrate_batch(det[a:a + 32], poses[DEV_MAP[0] + a:DEV_MAP[0] + a + 32])
+            md.integrate_batch(det[a:a + 32], dev_poses[a:a + 32])
         dd = _decisions(md)
-        for k in ("share (default)", f"calibrated, miss cost {COSTS[2]:g}"):
+        for k in ("share 0.2 (default)", f"calibrated, miss cost {COSTS[2]:g}"):
             reads[f"{k} (adaptive detection, z {z:g})"] = {**dd[k], "detection": f"adaptive, z {z:g}"}
     rows = []
     for label, r in progress_bar(reads.items(), desc="judge", disable=not progress):
         sc = first_return_score(r["values"], grid, 0.4, ((images[i], poses[i]) for i in judged), spec)
-        rows.append({"decision": label, **r["options"], "detection": r["detection"],
+        rows.append({**r["options"], "label": label, "detection": r["detection"],
                      "agreement": sc.agreement, "phantom_rate": sc.phantom_rate,
                      "missing_rate": sc.missing_rate,
                      "occupied": int((np.nan_to_num(r["values"], nan=0.0) >= 0.4).sum())})
-    return {"data": str(data), "mapped_frames": list(DEV_MAP), "judged_frames": [*DEV_JUDGE, stride],
-            "voxel_size_m": 0.05, "threshold": 0.4, "view_model": m.view_model().to_dict(), "rows": rows}
+    rate = _rate_rows(spec, grid, images, poses, backend)
+    return {"data": str(data), "mapped_frames": list(DEV_MAP), "rate": rate,
+            "judged_frames": [*DEV_JUDGE, stride],
+            "voxel_size_m": 0.05, "threshold": 0.4, "view_model": m.view_model().to_dict(),
+            "directional_classes": sorted(directional.maps), "directional_bytes": directional.memory_bytes(),
+            "evidence_bytes": m.memory_stats()["block_bytes"], "rows": rows}
+
+
+def _rate_rows(spec, grid, images, poses, backend: str) -> dict:
+    """Frames 0-799 mapped every 10th, 3rd and every frame: occupied voxels on the voxels all three
+    maps observe, per decision (a decision that holds at any ping rate keeps these close)."""
+    import gpumap
+
+    maps = {}
+    for s in RATE_STRIDES:
+        m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule="evidence", threshold=0.4)
+        idx = np.arange(0, RATE_FRAMES, s)
+        for a in range(0, len(idx), 32):
+            m.integrate_batch(images[idx[a:a + 32]], poses[idx[a:a + 32]])
+        maps[s] = m
+    common_obs = np.logical_and.reduce([m.observed() for m in maps.values()])
+    out = {"frames": RATE_FRAMES, "strides": list(RATE_STRIDES), "observed_common": int(common_obs.sum()),
+           "occupied": {}}
+    for label in ("share 0.2 (default)", *(f"calibrated, miss cost {c:g}" for c in COSTS)):
+        occ = []
+        for m in maps.values():
+            m.decision = "share" if label.startswith("share") else "calibrated"
+            if m.decision == "calibrated":
+                m.miss_cost = float(label.rsplit(" ", 1)[1])
+            occ.append(int((common_obs & (np.nan_to_num(m.values(), nan=0.0) >= 0.4)).sum()))
+        out["occupied"][label] = occ
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -125,8 +184,9 @@ def main(argv: list[str] | None = None) -> int:
     if SECTION.reported(a):
         return 0
     t0 = time.perf_counter()
-    res = {**run_header(SCHEMA, argv), "costs": list(COSTS), "sim": sim_rows(a.backend, not a.no_progress),
-           "real_dev": real_rows(a.backend, not a.no_progress, a.judge_stride)}
+    res = {**run_header(SCHEMA, argv), "costs": list(COSTS),
+           "real_dev": real_rows(a.backend, not a.no_progress, a.judge_stride),
+           "sim": sim_rows(a.backend, not a.no_progress)}
     res["duration_s"] = time.perf_counter() - t0
     path = write_json(a.out / "decision.json", res, digits=4)
     print(f"wrote {path}; BENCHMARKS.md: python -m bench decision --report BENCHMARKS.md")
@@ -146,13 +206,13 @@ def markdown(res: dict, folder: Path) -> str:
            "",
            "| decision | " + " | ".join(f"{s} ({v})" for s in SCENES for v in VARIATIONS) + " |",
            "|---|" + "---|" * (len(SCENES) * len(VARIATIONS))]
-    labels = list(dict.fromkeys(r["decision"] for r in res["sim"]))
+    labels = list(dict.fromkeys(r["label"] for r in res["sim"]))
     for lab in labels:
         cells = []
         for s in SCENES:
             for v in VARIATIONS:
                 r = next(r for r in res["sim"]
-                         if r["decision"] == lab and r["scene"] == s and r["variation"] == v)
+                         if r["label"] == lab and r["scene"] == s and r["variation"] == v)
                 cells.append(f"{_pct(r['miss_rate_objects'])} / {_pct(r['miss_rate'])} / "
                              f"{_pct(r['false_positive_rate_far'])}")
         out.append(f"| {lab} | " + " | ".join(cells) + " |")
@@ -168,8 +228,19 @@ def markdown(res: dict, folder: Path) -> str:
                 "| decision | occupied voxels | first returns agreed | phantoms in front | missed |",
                 "|---|---|---|---|---|"]
         for r in rd["rows"]:
-            out.append(f"| {r['decision']} | {r['occupied']:,} | {_pct(r['agreement'])} % | "
+            out.append(f"| {r['label']} | {r['occupied']:,} | {_pct(r['agreement'])} % | "
                        f"{_pct(r['phantom_rate'])} % | {_pct(r['missing_rate'])} % |")
+        rt = rd["rate"]
+        out += ["", f"Frames 0-{rt['frames'] - 1} mapped every " + " / ".join(map(str, rt["strides"]))
+                + f" frames: occupied voxels on the {rt['observed_common']:,} voxels all three maps observe "
+                "(a decision that holds at any rate keeps them close): "
+                + "; ".join(f"{k}: {' / '.join(f'{x:,}' for x in v)} "
+                            f"(spread {max(v) / max(1, min(v)) - 1:.0%})"
+                            for k, v in rt["occupied"].items()) + "."]
+        out += ["", "The directional decision keeps one evidence map per view-direction class: the real "
+                f"run's views fell in {len(rd['directional_classes'])} of the 6 classes, whose maps hold "
+                f"{rd['directional_bytes'] / 1e6:.1f} MB against the pooled map's "
+                f"{rd['evidence_bytes'] / 1e6:.1f} MB (bounded box, every block allocated)."]
     return "\n".join(out)
 
 

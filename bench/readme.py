@@ -149,6 +149,45 @@ def summary_rows() -> list[tuple[str, str, str]]:
                      "front / missed: surface layer, visible map",
                      ", ".join(" / ".join(_pct(h[m][k]) for k in JUDGED) for m in ("surface", "visible")),
                      "surface.json"))
+    rf = _load("real_frontier.json")
+    if rf:
+        default = [r for r in rf["rows"] if r.get("default")][:1]
+        oasis = {r["options"]["variant"]: r for r in rf["rows"] if r["kind"] == "oasis"}
+        surface = [r for r in rf["rows"] if r["kind"] == "surface"][:1]
+        for key, picks, what in (
+                ("judge", [*default, *[oasis[v] for v in ("every",) if v in oasis], *surface],
+                 "frames 0-799 at full rate, whole map"),
+                ("judge_box", [*default, *[oasis[v] for v in ("as-published",) if v in oasis]],
+                 "every map cut to the public code's configured box (issue 36's comparison)")):
+            if picks:
+                said = {"every": "public OASIS code fed every frame", "as-published": "public OASIS code as "
+                        "published (its 1 cm frame skip, its box)"}
+                names = ", ".join(f"default map ({r['rule']})" if r.get("default")
+                                  else said.get(r["options"].get("variant"), r["name"]) for r in picks)
+                rows.append((f"... the same judge beside the public OASIS code (its update unmodified), "
+                             f"{what}, first returns agreed / phantoms in front / missed: {names}",
+                             ", ".join(" / ".join(_pct(r[key][k]) for k in JUDGED) for r in picks),
+                             "real_frontier.json"))
+    sr = _load("surface_rate.json")
+    if sr and sr.get("streams"):
+        r = sr["streams"][0]
+        load = (r.get("load_avg_before") or ["?"])[0]
+        rows.append((f"... the live surface layer, the full run played at {r['hz']:g} Hz on the shared "
+                     f"2-core CPU ({r['backend']}, load {load}): layer age median / max, its work a ping",
+                     f"{r['age_s']['median']:.1f} s / {r['age_s']['max']:.1f} s, "
+                     f"{r['surface_ms_per_ping']:.0f} ms", "surface_rate.json"))
+        if sr.get("replay"):
+            rows.append(("... `gpumap replay` of the full run writing both layers over the safe layer alone "
+                         "(paired runs, loaded machine)", f"{sr['replay']['ratio_median']:.2f}x",
+                         "surface_rate.json"))
+    cf = _load("confidence.json")
+    if cf:
+        secs = cf.get("sections", {})
+        cells = [f"{b} {r['ratio']:.2f}x" for sec in ("cpu", "gpu")
+                 for b, r in secs.get(sec, {}).get("rows", {}).items()]
+        rows.append(("Confidence layer on the device (issue 37): mapping the real tank (123 pings, 5 cm) "
+                     "with the layer over without, best of 3 each in one run; 2-core CPU under others' "
+                     "load, then the GPU", ", ".join(cells), "confidence.json"))
     lr = _load("long_run.json")
     if lr:
         cells = [f"{name} {rule} {_pct(sc['curves'][rule][0]['miss_rate_objects'])} / "

@@ -9,9 +9,7 @@ the NumPy oracle on simulated tank pings (bench/README.md tells more).
 from __future__ import annotations
 
 import json
-import sys
 import time
-import types
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,6 +20,8 @@ import gpumap
 
 from . import common
 from .common import GPU_BACKENDS, TMP, CpuShare, bench_parser, stream_rate, synced_ms, warm_up, write_json
+from .oasis_public import import_oasis as _import_oasis  # noqa: F401 (bench.peer_ratio takes it here)
+from .oasis_public import oasis_mapper
 
 CACHE = TMP / "oasis_polar.npz"
 #: The OASIS configuration's grid box (configs/base.yaml of the public code), metres.
@@ -167,61 +167,6 @@ def oracle_check(spec, grid, images, poses, backends: list[str], n: int = 20, ba
 
 
 # ------------------------------------------------------------------------------ the public OASIS code
-def _import_oasis(src: Path):
-    """Import the public code's ``SonarVoxelGrid`` from a checkout at ``src``. open3d imports its
-    plotly/dash helpers at import time; the mapping never uses them, so where dash is missing an empty
-    stand-in module takes its place."""
-    try:
-        import dash  # noqa: F401
-    except ImportError:
-        class _Stub(types.ModuleType):
-            def __getattr__(self, name: str):
-                if name.startswith("__"):
-                    raise AttributeError(name)
-                sub = sys.modules[f"{self.__name__}.{name}"] = _Stub(f"{self.__name__}.{name}")
-                return sub
-
-            def __call__(self, *a, **k):
-                return self
-
-        for name in ("dash", "dash.html", "dash.dcc"):
-            sys.modules.setdefault(name, _Stub(name))
-    sys.path.insert(0, str(src))
-    from sonar_reconstruction.sonar_voxel_grid import SonarVoxelGrid  # type: ignore[import-not-found]
-
-    return SonarVoxelGrid
-
-
-def oasis_mapper(cls, downsample: int):
-    """The public ``SonarVoxelGrid`` with its configs/base.yaml values, built as its constructor builds
-    it but without the two render windows (not part of the mapping; they need a display)."""
-    import math
-
-    import open3d as o3d  # type: ignore[import-not-found]
-    from sonar_reconstruction.polar_remapper import PolarRemapper  # type: ignore[import-not-found]
-
-    g = cls.__new__(cls)
-    g.sonar_params = {"min_range": 0.1, "max_range": 2.0, "h_fov": 2.26892803, "v_fov": 0.34906585,
-                      "num_beams": 512, "num_ranges": 398, "range_resolution": 2.0 / 398,
-                      "downsample_factor": downsample, "polar_img": False}
-    g.voxel_grid_params = {"grid_size": np.array([2.4, 2.4, 1.3]),
-                           "grid_origin": np.array([-0.5, -1.2, -0.5]),
-                           "default_color": np.array([1, 0, 0])}
-    g.filtering_params = {"range_window": 20, "empty_ranges": 10, "occupancy_threshold": 1,
-                          "false_negative_rate": 0.5}
-    g.occ_ratio_thresh = 1 - g.filtering_params["false_negative_rate"]
-    vg = g.voxel_grid_params
-    vg["voxel_size"] = g.sonar_params["range_resolution"] * downsample
-    vg["voxel_radius"] = vg["voxel_size"] * math.sqrt(2)
-    g.voxel_template = g.compute_voxel_template()
-    g.voxel_grid = o3d.geometry.VoxelGrid()
-    g.voxel_grid.origin, g.voxel_grid.voxel_size = vg["grid_origin"], vg["voxel_size"]
-    shape = (vg["grid_size"] / vg["voxel_size"] + 1).astype(int)
-    g.obs_count, g.occ_count, g.occ_ratio = np.zeros(shape), np.zeros(shape), -np.ones(shape)
-    g.remapper = PolarRemapper(g.sonar_params)
-    return g
-
-
 def oasis_frame_ms(cls, fr: Frames, downsample: int, n: int):
     """Times of the public ``update_voxel_grid``, ms, for frames 1..n into a fresh grid (frame 0 warms
     up another one first); returns (the times, that grid)."""

@@ -217,12 +217,14 @@ class Integrator:
         return pose_pad_m(C, self.spec.range_max_m, k)
 
     # ------------------------------------------------------------------ pings
-    def integrate(self, img: np.ndarray, T: np.ndarray, pads: np.ndarray) -> None:
-        """Fold one checked ping (image, pose (4, 4), pad (1,) m) into the storage (hold its lock)."""
+    def integrate(self, img: np.ndarray, T: np.ndarray, pads: np.ndarray) -> np.ndarray:
+        """Fold one checked ping (image, pose (4, 4), pad (1,) m) into the storage (hold its lock);
+        returns its (1,) PING_DTYPE record (the confidence pass reuses it)."""
         params, n_threads = self.ping_params(T[None], pads)
         self.prepare(params, T[None], n_threads)
         self.storage.empty = False
         self.storage.backend.integrate(params[0, ...], img, self.method, int(n_threads[0]))
+        return params
 
     def integrate_batch(self, imgs: np.ndarray, Ts: np.ndarray, pads: np.ndarray) -> None:
         """Fold B checked pings into the storage, the blocks of all of them allocated first (hold
