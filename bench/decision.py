@@ -98,7 +98,7 @@ def sim_rows(backend: str, progress: bool) -> list[dict]:
             model = maps["evidence"].view_model().to_dict()
             for label, r in reads.items():
                 ev = evaluate(r["values"], truth, THRESHOLD, seen, 0.03, detectable=det).to_dict()
-                rows.append({"scene": name, "variation": var, "decision": label, **r["options"],
+                rows.append({"scene": name, "variation": var, **r["options"], "label": label,
                              "miss_rate_objects": ev["miss_rate_objects"], "miss_rate": ev["miss_rate"],
                              "false_positive_rate_far": ev["false_positive_rate_far"], "view_model": model})
     return rows
@@ -138,7 +138,7 @@ def real_rows(backend: str, progress: bool, stride: int) -> dict:
     rows = []
     for label, r in progress_bar(reads.items(), desc="judge", disable=not progress):
         sc = first_return_score(r["values"], grid, 0.4, ((images[i], poses[i]) for i in judged), spec)
-        rows.append({"decision": label, **r["options"], "detection": r["detection"],
+        rows.append({**r["options"], "label": label, "detection": r["detection"],
                      "agreement": sc.agreement, "phantom_rate": sc.phantom_rate,
                      "missing_rate": sc.missing_rate,
                      "occupied": int((np.nan_to_num(r["values"], nan=0.0) >= 0.4).sum())})
@@ -206,13 +206,13 @@ def markdown(res: dict, folder: Path) -> str:
            "",
            "| decision | " + " | ".join(f"{s} ({v})" for s in SCENES for v in VARIATIONS) + " |",
            "|---|" + "---|" * (len(SCENES) * len(VARIATIONS))]
-    labels = list(dict.fromkeys(r["decision"] for r in res["sim"]))
+    labels = list(dict.fromkeys(r["label"] for r in res["sim"]))
     for lab in labels:
         cells = []
         for s in SCENES:
             for v in VARIATIONS:
                 r = next(r for r in res["sim"]
-                         if r["decision"] == lab and r["scene"] == s and r["variation"] == v)
+                         if r["label"] == lab and r["scene"] == s and r["variation"] == v)
                 cells.append(f"{_pct(r['miss_rate_objects'])} / {_pct(r['miss_rate'])} / "
                              f"{_pct(r['false_positive_rate_far'])}")
         out.append(f"| {lab} | " + " | ".join(cells) + " |")
@@ -228,7 +228,7 @@ def markdown(res: dict, folder: Path) -> str:
                 "| decision | occupied voxels | first returns agreed | phantoms in front | missed |",
                 "|---|---|---|---|---|"]
         for r in rd["rows"]:
-            out.append(f"| {r['decision']} | {r['occupied']:,} | {_pct(r['agreement'])} % | "
+            out.append(f"| {r['label']} | {r['occupied']:,} | {_pct(r['agreement'])} % | "
                        f"{_pct(r['phantom_rate'])} % | {_pct(r['missing_rate'])} % |")
         rt = rd["rate"]
         out += ["", f"Frames 0-{rt['frames'] - 1} mapped every " + " / ".join(map(str, rt["strides"]))

@@ -124,6 +124,20 @@ def _worker(a) -> None:
         rates.append(per_rep * B / (time.perf_counter() - t))
     row["pings_per_s"] = _spread(rates)
     row["host_ms_per_batch"] = _spread(host_ms)  # the call without waiting for the GPU
+    # the host's own work: a call made with the device idle (synchronized before it), so that it
+    # never waits for a slot; wall and the calling thread's CPU time, microseconds a ping
+    idle_us, idle_cpu_us = [], []
+    for _ in range(a.host_calls):
+        ks = order[c % len(order)]
+        c += 1
+        m.synchronize()
+        th, tc = time.perf_counter(), time.thread_time()
+        m.integrate_batch(ext[ks], ext_T[ks])
+        idle_us.append(1e6 * (time.perf_counter() - th) / B)
+        idle_cpu_us.append(1e6 * (time.thread_time() - tc) / B)
+    m.synchronize()
+    row["host_idle_us_per_ping"] = _spread(idle_us)
+    row["host_idle_cpu_us_per_ping"] = _spread(idle_cpu_us)
     row["gpu_ms_per_batch_wall"] = 1e3 * B / float(np.median(rates))
     row["timed_pings"] = per_rep * B * a.reps
     row["digest_after_timing"] = _digest(_state(m))
@@ -160,6 +174,72 @@ def _worker(a) -> None:
         if a.dump:
             np.savez(a.dump, **st)
     print("ROW " + json.dumps(row), flush=True)
+
+
+def _cpu_rate_worker(a) -> None:
+    """One run of the cpu_rate section in this process: every frame once, in order, into a fresh
+    map (``integrate_batch`` of ``--batch`` frames; CPU backends apply them one by one) after the
+    kernels are built; wall and process CPU time (every thread's: PoCL's workers too); prints JSON."""
+    import gpumap
+
+    imgs, poses, spec = _frames(a.frames)
+    grid = gpumap.GridSpec(*BOX, a.voxel)
+    warm = gpumap.MinMaxMapper(spec, grid, backend=a.backend)  # the program built, its caches warm
+    warm.integrate_batch(imgs[:2], poses[:2])
+    warm.synchronize()
+    del warm
+    m = gpumap.MinMaxMapper(spec, grid, backend=a.backend)
+    load = load_average_now()
+    t, c = time.perf_counter(), time.process_time()
+    for s0 in range(0, len(imgs), a.batch):
+        m.integrate_batch(imgs[s0 : s0 + a.batch], poses[s0 : s0 + a.batch])
+    m.synchronize()
+    wall, cpu = time.perf_counter() - t, time.process_time() - c
+    row = {"backend": m.backend, "device": m.device, "rule": m.rule, "voxel_m": a.voxel, "frames": len(imgs),
+           "pings_per_s": len(imgs) / wall, "cpu_ms_per_ping": 1e3 * cpu / len(imgs), "load_before": load,
+           "load_after": load_average_now(), "digest": _digest(_state(m)), "gpumap_file": gpumap.__file__}
+    print("ROW " + json.dumps(row), flush=True)
+
+
+def load_average_now() -> list[float]:
+    return [round(x, 2) for x in os.getloadavg()]
+
+
+def cpu_rate(a, res: dict, save) -> None:
+    """The cpu_rate section: ``--cpu-backend`` at ``--cpu-voxel`` on this machine's CPU, every frame once
+    per run, ``--reps`` runs of each tree in turn (old, new, old, ...), each in a fresh process."""
+    tmp = Path(tempfile.mkdtemp(prefix="gpu_scale_cpu_"))
+    trees = {"new": _package(Path(__file__).resolve().parents[1], tmp / "new")}
+    if a.old:
+        trees = {"old": _package(Path(a.old).resolve(), tmp / "old"), **trees}
+    args = ["--cpu-rate-worker", "--frames", str(Path(a.frames).resolve()), "--backend", a.cpu_backend,
+            "--voxel", str(a.cpu_voxel), "--batch", "8"]
+    sec = {"backend": a.cpu_backend, "voxel_m": a.cpu_voxel, "reps": a.reps, "rows": []}
+    res["cpu_rate"] = sec
+    for rep in range(a.reps):
+        for tree, path in trees.items():
+            row = _run_row(path, args, {}, a.row_timeout * 4)
+            row.update(tree=tree, rep=rep)
+            sec["rows"].append(row)
+            save()
+            print(f"cpu_rate {tree} rep {rep}: {row.get('pings_per_s')} pings/s, "
+                  f"{row.get('cpu_ms_per_ping')} ms CPU a ping, load {row.get('load_before')} "
+                  f"{row.get('error', '')[-300:]}", flush=True)
+    summ = {}
+    for tree in trees:
+        rows = [r for r in sec["rows"] if r["tree"] == tree and "error" not in r]
+        if rows:
+            summ[tree] = {"pings_per_s": _spread([r["pings_per_s"] for r in rows]),
+                          "cpu_ms_per_ping": _spread([r["cpu_ms_per_ping"] for r in rows]),
+                          "digests": sorted({r["digest"] for r in rows})}
+    if "old" in summ and "new" in summ:
+        o, n = summ["old"], summ["new"]
+        summ["cpu_old_over_new"] = o["cpu_ms_per_ping"]["median"] / n["cpu_ms_per_ping"]["median"]
+        summ["same_map"] = o["digests"] == n["digests"] and len(n["digests"]) == 1
+    loads = [r["load_before"][0] for r in sec["rows"] if "load_before" in r]
+    summ["load_before_max"] = max(loads) if loads else None
+    sec["summary"] = summ
+    save()
 
 
 def _oracle(a) -> None:
@@ -217,7 +297,7 @@ def single(a, res: dict, save) -> None:
     if a.old:
         trees["old"] = _package(Path(a.old).resolve(), tmp / "old")
     base = ["--worker", "--frames", str(Path(a.frames).resolve()), "--batch", str(a.batch), "--reps",
-            str(a.reps)]
+            str(a.reps), "--host-calls", str(a.host_calls)]
     # the oracle maps, on the CPU while the GPUs work
     oracles = {}
     for v in a.voxels:
@@ -498,9 +578,10 @@ def main(argv: list[str] | None = None) -> int:
 
     p = bench_parser("gpu_scale", __doc__) if __package__ else argparse.ArgumentParser()
     p.add_argument("--frames", type=Path, default=Path("bench/results/tmp/oasis_polar.npz"))
-    p.add_argument("--old", default=None, help="a checkout to time beside this one (single section)")
+    p.add_argument("--old", default=None, help="a checkout to time beside this one (single, cpu_rate)")
+    p.add_argument("--old-label", default=None, help="what --old is (a commit, say), kept in the results")
     p.add_argument("--sections", nargs="+", default=["single", "workers"],
-                   choices=["single", "workers", "threads", "cpu"])
+                   choices=["single", "workers", "threads", "cpu", "cpu_rate"])
     p.add_argument("--thread-runs", nargs="+", default=["warp-cuda:0.005:3", "warp-cuda:0.01:3"],
                    metavar="BACKEND:VOXEL:REPS", help="threads section: its runs, in order")
     p.add_argument("--out", type=Path, default=Path("bench/results/gpu_scale.json"))
@@ -520,9 +601,14 @@ def main(argv: list[str] | None = None) -> int:
                    help="this tree's variants to time (default: every one)")
     p.add_argument("--worker-reps", type=int, default=3, help="warm runs of the workers section")
     p.add_argument("--row-timeout", type=float, default=240.0)
+    p.add_argument("--cpu-backend", default="opencl-cpu", help="cpu_rate section: the backend")
+    p.add_argument("--cpu-voxel", type=float, default=0.01, help="cpu_rate section: the voxel, m")
+    p.add_argument("--host-calls", type=int, default=20,
+                   help="single section: batches timed with the device idle (the host's own work)")
     # one row in this process (internal)
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--oracle", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--cpu-rate-worker", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--backend", default="warp-cuda", help=argparse.SUPPRESS)
     p.add_argument("--voxel", type=float, default=0.01, help=argparse.SUPPRESS)
     p.add_argument("--knob", action="append", default=[], help=argparse.SUPPRESS)
@@ -540,9 +626,12 @@ def main(argv: list[str] | None = None) -> int:
     if a.oracle:
         _oracle(a)
         return 0
+    if a.cpu_rate_worker:
+        _cpu_rate_worker(a)
+        return 0
     res = {"schema": "gpumap-bench-gpu-scale/1", "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
            "command": "python -m bench.gpu_scale " + " ".join(argv if argv is not None else sys.argv[1:]),
-           "machine": machine_info(), "gpus": _gpu_names(), "load_start": load_average(),
+           "machine": machine_info(), "gpus": _gpu_names(), "load_start": load_average(), "old": a.old_label,
            "frames": {"source": "shared/data/oasis_tank (real Oculus M3000d, every 10th frame, arm poses)",
                       "grid_box_m": BOX}}
     t0 = time.time()
@@ -553,6 +642,8 @@ def main(argv: list[str] | None = None) -> int:
         write_json(a.out, res, digits=5)
 
     save()
+    if "cpu_rate" in a.sections:
+        cpu_rate(a, res, save)
     if "single" in a.sections:
         single(a, res, save)
     if "threads" in a.sections:
@@ -621,6 +712,7 @@ def markdown(res: dict, folder: Path) -> str:
         equal = "yes" if new["oracle_equal"] and old["oracle_equal"] else "NO"
         out.append(f"| {backend} | {voxel * 1000:g} mm | {_med(old['pings_per_s'])} | "
                    f"{_med(new['pings_per_s'])} | {ratio:.2f}x | {new['latency_ms']['p99']:.2f} | {equal} |")
+    out += h200_lines(folder) + cpu_rate_lines(folder)
     w = res.get("workers")
     if w:
         s, rows_w = w["summary"], w["rows"]
@@ -666,6 +758,59 @@ def markdown(res: dict, folder: Path) -> str:
                        f"{_sec(sm['t1_s'])} | {_sec(sm['t2_s'])} | {_sec(sm['t2_map_s'])} | "
                        f"{_sec(sm['t2_merge_s'])} | {sm['speedup_2_over_1']:.2f}x | {equal} |")
     return "\n".join(out)
+
+
+def h200_lines(folder: Path) -> list[str]:
+    """Lines of the block from ``gpu_scale_h200.json`` (issue 38: the host path on one H200), if there."""
+    f = Path(folder) / "gpu_scale_h200.json"
+    if not f.exists():
+        return []
+    res = json.loads(f.read_text())
+    out = ["", f"One H200 after the host path of issue 38 (`gpu_scale_h200.json`; `{res['command']}`; "
+           f"{', '.join(res['gpus'])}; old: {res.get('old') or 'the --old tree'}): pings/s median "
+           "(min-max) of 5 repetitions of batches of 64; host: microseconds a ping of an `integrate_batch` "
+           "call made with the device idle (wall, and the calling thread's CPU time), median of the calls; "
+           "oracle: the batched map of the first frames against the NumPy reference, bit for bit.",
+           "", "| backend | voxel | old pings/s | new pings/s | new / old | host us a ping, old -> new (CPU) "
+           "| p99 ms (new) | equals the oracle |", "|---|---|---|---|---|---|---|---|"]
+    rows = {(r["tree"], r["backend_asked"], r["voxel_m"]): r for r in res["single"] if "error" not in r}
+    for (tree, backend, voxel), new in rows.items():
+        old = rows.get(("old", backend, voxel))
+        if tree != "new" or old is None:
+            continue
+        ratio = new["pings_per_s"]["median"] / old["pings_per_s"]["median"]
+        equal = "yes" if new.get("oracle_equal") and old.get("oracle_equal") else "NO"
+        ho, hn = old["host_idle_us_per_ping"]["median"], new["host_idle_us_per_ping"]["median"]
+        hc = new["host_idle_cpu_us_per_ping"]["median"]
+        out.append(f"| {backend} | {voxel * 1000:g} mm | {_med(old['pings_per_s'])} | "
+                   f"{_med(new['pings_per_s'])} | {ratio:.2f}x | {ho:.1f} -> {hn:.1f} ({hc:.1f}) | "
+                   f"{new['latency_ms']['p99']:.2f} | {equal} |")
+    errors = [f"{r['tree']} {r.get('backend_asked')} {r.get('voxel_m')}" for r in res["single"]
+              if "error" in r]
+    if errors:
+        out += ["", f"Rows that failed: {', '.join(errors)} (their errors are in the file)."]
+    return out
+
+
+def cpu_rate_lines(folder: Path) -> list[str]:
+    """Lines of the block from ``gpu_scale_cpu_rate.json`` (the CPU path at 1 cm), if there."""
+    f = Path(folder) / "gpu_scale_cpu_rate.json"
+    if not f.exists():
+        return []
+    res = json.loads(f.read_text())
+    c = res["cpu_rate"]
+    s, m = c["summary"], res["machine"]
+    o, n = s["old"], s["new"]
+    return ["", f"The CPU path (`gpu_scale_cpu_rate.json`; `{res['command']}`; {m['cpu_model']}, "
+            f"{m['cpu_count']} cores; old: {res.get('old') or 'the --old tree'}): {c['backend']} at "
+            f"{c['voxel_m'] * 100:g} cm, default rule, every real tank frame once per run (a fresh process "
+            f"each), {c['reps']} runs of each tree in turn. CPU time a ping (every thread's) old "
+            f"{_sec(o['cpu_ms_per_ping'])} ms, new {_sec(n['cpu_ms_per_ping'])} ms: "
+            f"{s['cpu_old_over_new']:.2f}x less; pings/s old {_sec(o['pings_per_s'])}, new "
+            f"{_sec(n['pings_per_s'])}, on a machine other sessions loaded (load average up to "
+            f"{s['load_before_max']:.1f} on {m['cpu_count']} cores before a run: wall rates are a share of "
+            f"the cores, not the idle rate). The maps of both trees are "
+            + ("the same bytes." if s["same_map"] else "**not the same bytes**.")]
 
 
 def _sec(x: dict) -> str:

@@ -33,6 +33,11 @@ def _pct(x: float) -> str:
     return f"{100 * x:.1f} %"
 
 
+def _voxel(v: float) -> str:
+    """A voxel edge as the README writes it: whole centimetres in cm, else mm."""
+    return f"{v * 100:g} cm" if abs(v * 100 - round(v * 100)) < 1e-9 else f"{v * 1000:g} mm"
+
+
 def _bench_rate(d: dict, backend: str, voxel_m: float) -> float | None:
     return next((r["images_per_s"] for r in d["rows"] if r.get("kind") == "gpumap" and r["backend"] == backend
                  and r["method"] == "gather" and r["shadow_m"] == 0
@@ -79,6 +84,29 @@ def summary_rows() -> list[tuple[str, str, str]]:
             rows.append((f"... GPU workers ({w['voxel_m'] * 1000:g} mm, {w['frames']:,} pings): 2 GPUs over "
                          "1, mapping phase / end to end (the maps' transfer and merge included)",
                          f"{m[1] / m[2]:.2f}x / {w['summary']['speedup_2_over_1']:.2f}x", "gpu_scale.json"))
+    h2 = _load("gpu_scale_h200.json")
+    if h2:
+        new = {(r["backend_asked"], r["voxel_m"]): r for r in h2["single"]
+               if r["tree"] == "new" and "error" not in r}
+        order = [(b, v) for v in (0.01, 0.005) for b in ("opencl-gpu", "warp-cuda") if (b, v) in new]
+        if order:
+            oracle = " (bit for bit with the oracle)" if all(new[k].get("oracle_equal") for k in order) else (
+                " (NOT equal to the oracle)")
+            rows.append(("Real tank frames on one H200 after issue 38's host path, default rule, batches of "
+                         "64: pings/s " + ", ".join(f"{b} {_voxel(v)}" for b, v in order)
+                         + "; host microseconds a ping (device idle)" + oracle,
+                         " / ".join(_n(new[k]["pings_per_s"]["median"]) for k in order) + "; "
+                         + " / ".join(f"{new[k]['host_idle_us_per_ping']['median']:.1f}" for k in order),
+                         "gpu_scale_h200.json"))
+    cr = _load("gpu_scale_cpu_rate.json")
+    if cr:
+        c = cr["cpu_rate"]
+        sm = c["summary"]
+        old_ms, new_ms = sm["old"]["cpu_ms_per_ping"]["median"], sm["new"]["cpu_ms_per_ping"]["median"]
+        rows.append((f"2-core CPU, {c['backend']}, {_voxel(c['voxel_m'])}, default rule, real tank "
+                     "frames: CPU time a ping before / after issue 38 (medians; the same map bytes"
+                     + ("" if sm["same_map"] else ": NOT") + ")", f"{old_ms:.1f} / {new_ms:.1f} ms",
+                     "gpu_scale_cpu_rate.json"))
     cw = _load("gpu_scale_cpu.json")
     if cw and cw["cpu_overhead"]["summary"].get("idle"):
         cs = cw["cpu_overhead"]["summary"]
@@ -140,6 +168,45 @@ def summary_rows() -> list[tuple[str, str, str]]:
                              f"{what}, first returns agreed / phantoms in front / missed: {names}",
                              ", ".join(" / ".join(_pct(r[key][k]) for k in JUDGED) for r in picks),
                              "real_frontier.json"))
+    sr = _load("surface_rate.json")
+    if sr and sr.get("streams"):
+        r = sr["streams"][0]
+        load = (r.get("load_avg_before") or ["?"])[0]
+        rows.append((f"... the live surface layer, the full run played at {r['hz']:g} Hz on the shared "
+                     f"2-core CPU ({r['backend']}, load {load}): layer age median / max, its work a ping",
+                     f"{r['age_s']['median']:.1f} s / {r['age_s']['max']:.1f} s, "
+                     f"{r['surface_ms_per_ping']:.0f} ms", "surface_rate.json"))
+        if sr.get("replay"):
+            rows.append(("... `gpumap replay` of the full run writing both layers over the safe layer alone "
+                         "(paired runs, loaded machine)", f"{sr['replay']['ratio_median']:.2f}x",
+                         "surface_rate.json"))
+    cf = _load("confidence.json")
+    if cf:
+        secs = cf.get("sections", {})
+        cells = [f"{b} {r['ratio']:.2f}x" for sec in ("cpu", "gpu")
+                 for b, r in secs.get(sec, {}).get("rows", {}).items()]
+        rows.append(("Confidence layer on the device (issue 37): mapping the real tank (123 pings, 5 cm) "
+                     "with the layer over without, best of 3 each in one run; 2-core CPU under others' "
+                     "load, then the GPU", ", ".join(cells), "confidence.json"))
+    dc = _load("decision.json")
+    if dc:
+        def cells(labels: tuple[str, ...], var: str, key: str) -> str:
+            def one(lb: str, sc: str) -> str:
+                return _pct(next(r[key] for r in dc["sim"]
+                                 if (r["label"], r["scene"], r["variation"]) == (lb, sc, var)))
+            return ", ".join(f"{sc} " + " / ".join(one(lb, sc) for lb in labels) for sc in ("tank", "circle"))
+
+        cal = "calibrated, miss cost 10"
+        rows.append(("Simulated tank and circle without variation, 40 pings, 3 cm: far water called "
+                     "occupied, the evidence rule's default decision / calibrated (opt-in, miss cost 10) "
+                     "/ visible rule",
+                     cells(("share 0.2 (default)", cal, "visible rule"), "none", "false_positive_rate_far"),
+                     "decision.json"))
+        rows.append(("... with the real tank's variation: objects missed, default / calibrated / the floor "
+                     "no rule can beat (voxels never bright)",
+                     cells(("share 0.2 (default)", cal, "ever bright (floor)"), "real_tank",
+                           "miss_rate_objects"),
+                     "decision.json"))
     lr = _load("long_run.json")
     if lr:
         cells = [f"{name} {rule} {_pct(sc['curves'][rule][0]['miss_rate_objects'])} / "
@@ -163,11 +230,34 @@ def summary_rows() -> list[tuple[str, str, str]]:
     if reg:
         full = [reg["summary"][k] for k in sorted(reg["summary"])
                 if k.startswith("replay|") and k.endswith("|full")]
-        rows.append(("... with `--ekf-registration` (revisits; off by default), whole run, drifts 0.005 / "
-                     "0.02: position mean of 5 seeds, then the worst seed's position / heading",
+        rows.append(("... with revisits unverified, as #29 built them (no longer the default), whole "
+                     "run, drifts 0.005 / 0.02: position mean of 5 seeds, then the worst seed's position / "
+                     "heading",
                      ", ".join(f"{c['ratio_position_mean']:.2f}" for c in full) + "; "
                      + ", ".join(f"{c['ratio_position_max']:.2f} / {c['ratio_heading_max']:.2f}"
                                  for c in full), "ekf_registration.json"))
+    pose = _load("ekf_pose.json")
+    if pose:
+        sm = pose["summary"]
+
+        def worst_of(src: str, key: str) -> float:
+            return max(c[src][key] for c in sm.values())
+
+        full = [sm[k] for k in sorted(sm, key=lambda k: float(k.split("|")[0])) if k.endswith("|full")]
+        rows.append(("... `gpumap replay --ekf` default since #39 (revisits verified by their images): "
+                     "worst of 5 seeds, 2 drifts, dev / held-out / whole run, position / heading; whole run, "
+                     "drifts 0.005 / 0.02, mean position: EKF, pose graph",
+                     f"{worst_of('ekf', 'ratio_position_max'):.2f} / "
+                     f"{worst_of('ekf', 'ratio_heading_max'):.2f}; "
+                     + ", ".join(f"{c['ekf']['ratio_position_mean']:.2f}" for c in full) + "; "
+                     + ", ".join(f"{c['graph']['ratio_position_mean']:.2f}" for c in full), "ekf_pose.json"))
+        ms = pose.get("maps_summary") or {}
+        if ms:
+            rows.append(("... frames 0-799 mapped at each pose source, held-out first returns agreed, drifts "
+                         "0.005 / 0.02: odometry, EKF, pose graph, recorded poses",
+                         "; ".join(", ".join(_pct(ms[d][k]["agreement_mean"])
+                                             for k in ("odometry", "ekf", "graph", "recorded"))
+                                   for d in sorted(ms, key=float)), "ekf_pose.json"))
     valid = [json.loads(p.read_text()) | {"_file": p.name} for p in sorted(RESULTS.glob("peer_ratio_*.json"))]
     valid = [d for d in valid if d.get("valid")]
     if valid:

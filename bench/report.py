@@ -22,8 +22,9 @@ from .common import fnum as _f
 from .common import pct as _pct
 
 #: The benchmarks whose blocks the report renders from their results files, in this order.
-SECTION_MODULES = ("ab", "ekf_bench", "frontend", "nbv", "rate_real", "variation", "long_run", "surface",
-                   "gpu_scale", "ekf_registration", "decision", "real_frontier")
+SECTION_MODULES = ("ab", "ekf_bench", "frontend", "nbv", "confidence", "rate_real", "variation", "long_run",
+                   "surface", "surface_rate", "gpu_scale", "ekf_registration", "ekf_pose", "decision",
+                   "real_frontier")
 BASELINE_LABELS = {"paper-numpy": "paper's six steps, plain NumPy (ours)",
                    "oasis-rule": "OASIS rule (fnr 0.5) on gpumap footprints",
                    "octomap": "OctoMap (pyoctomap), beam maxima at elevation 0"}

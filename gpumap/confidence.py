@@ -36,9 +36,11 @@ that carve a rival do not confirm a voxel after the fact: a new view must), so u
 map values the layer depends on the order of the pings; :meth:`~gpumap.MinMaxMapper.integrate_batch`
 applies its pings in order and gives the layer of the same sequence of ``integrate`` calls.
 
-:func:`confirm_ping` is the plain NumPy pass (the reference); it is also what the mapper
-runs, on the host, on every backend (the map values are read back once per ping), through the
-mapper's :class:`ConfidenceLayer`, which keeps the layer and scores view gains against it
+:func:`confirm_ping` is the plain NumPy pass (the reference, which the ``numpy`` backend runs).
+On the Warp and OpenCL backends the mapper's :class:`ConfidenceLayer` runs the same pass as
+kernels on the map's device after each update (:mod:`gpumap.confidence_device`,
+``kernels/confidence.*``), bit for bit the reference's, reading the map where it lives; the layer
+comes to the host when read. The layer keeps the flags and scores view gains against them
 (:mod:`gpumap.nbv`).
 """
 
@@ -227,38 +229,91 @@ class ConfidenceLayer:
     C order, updated by :meth:`confirm` after each ping's update."""
 
     def __init__(self, n_voxels: int) -> None:
-        self.confirmed = np.zeros(n_voxels, np.uint8)
-        self.arcs = np.zeros(n_voxels, np.uint16)
+        self._confirmed = np.zeros(n_voxels, np.uint8)
+        self._arcs = np.zeros(n_voxels, np.uint16)
         self._static = None  # (beam edges, the rivals' half aperture, the widened aperture's corners)
         self._gain_runner = None  # made on the first view gain, on the map's backend
+        self._device = None  # the pass on a Warp or OpenCL map's device (gpumap.confidence_device)
+        self._on_device = False  # the device's arrays are newer than the host's
+        self._scalars = None  # (their key, the pass's scalars: gpumap.confidence_device.pass_scalars)
+
+    @property
+    def confirmed(self) -> np.ndarray:
+        """(n,) uint8 0 or 1 per voxel: some ping confirmed it (the host's copy, brought up to date
+        from the device on reading; writes into it reach the device before the next pass)."""
+        self._to_host()
+        return self._confirmed
+
+    @property
+    def arcs(self) -> np.ndarray:
+        """(n,) uint16 masks of the elevation-arc directions pings observed each voxel along (as
+        :attr:`confirmed`, the host's copy)."""
+        self._to_host()
+        return self._arcs
+
+    def _to_host(self) -> None:
+        if self._on_device:
+            self._device.download(self._confirmed, self._arcs)
+            self._on_device = False
 
     def reset(self) -> None:
         """Nothing confirmed, no arc observed."""
-        self.confirmed[:] = 0
-        self.arcs[:] = 0
+        self._on_device = False
+        self._confirmed[:] = 0
+        self._arcs[:] = 0
 
     def confirm(self, integrator, T: np.ndarray, pad: float, img: np.ndarray, read_values,
-                voxel_size_m: float) -> None:
+                voxel_size_m: float, update_params: np.ndarray | None = None) -> None:
         """The confidence pass of one ping (pose ``T``, footprint pad ``pad`` m, image ``img``),
-        after its update: ``integrator`` (:class:`gpumap.integrator.Integrator`) makes its record,
-        ``read_values()`` gives the map's values then (flat or not, ``+inf`` unknown)."""
+        after its update: ``integrator`` (:class:`gpumap.integrator.Integrator`) makes its record
+        (``update_params``: the update's, reused where the rivals' box is the update's),
+        ``read_values()`` gives the map's values then (flat or not, ``+inf`` unknown). On a Warp or
+        OpenCL map the pass runs on its device (:mod:`gpumap.confidence_device`), after the update
+        on the same stream, and reads the map where it lives; on ``numpy``, :func:`confirm_ping`."""
         from gpumap.geometry import beam_tan_edges
 
-        if img.dtype == np.uint8:
-            from gpumap.backends import U8_SCALE
-
-            img = img.astype(np.float32) * U8_SCALE
+        st = integrator.storage
         if self._static is None:
             sp = integrator.spec
             half = min(0.5 * sp.vfov_rad * (1.0 + APERTURE_MARGIN), 0.49 * np.pi)
             wide = SonarSpec(sp.range_min_m, sp.range_max_m, sp.n_bins, sp.bearings_rad, 2.0 * half)
-            self._static = (beam_tan_edges(sp), half, wide.fov_corners_S())
-        edges, half, pts = self._static
+            pts = wide.fov_corners_S()
+            # the update's box is the pass's (the backend then holds the ping's image whenever the
+            # pass has voxels to walk)
+            same = bool(np.array_equal(pts, integrator.fov_pts_S))
+            self._static = (beam_tan_edges(sp), half, pts, same)
+        edges, half, pts, same = self._static
         # the box that holds the rivals: the widened aperture's
-        params, _ = integrator.ping_params(T[None], np.array([pad]), fov_pts=pts)
+        if same and update_params is not None:
+            params = update_params
+        else:
+            params, _ = integrator.ping_params(T[None], np.array([pad]), fov_pts=pts)
+        tube_m = TUBE_VOXELS * voxel_size_m
+        if st.backend.name != "numpy" and st.sparse is None:
+            from gpumap.confidence_device import DeviceConfidence, pass_scalars
+
+            if self._device is None:
+                self._device = DeviceConfidence(st.backend, integrator.spec, self._confirmed.size)
+            if not self._on_device:  # the host's arrays (new, read or written since) go first
+                self._device.upload(self._confirmed, self._arcs)
+                self._on_device = True
+            if not same and st.backend.name == "warp-cpu":
+                from gpumap.backends.warp_backend import warp_upload_image
+
+                warp_upload_image(st.backend, img)
+            vr = st.value_rule
+            key = (float(params["rho"][0]), tube_m, vr.carve_views, vr.bright_share, vr.share_z)
+            if self._scalars is None or self._scalars[0] != key:
+                self._scalars = (key, pass_scalars(integrator.spec, params[0], half, tube_m, vr))
+            self._device.run(params[0, ...], self._scalars[1])
+            return
+        if img.dtype == np.uint8:
+            from gpumap.backends import U8_SCALE
+
+            img = img.astype(np.float32) * U8_SCALE
         values = read_values().ravel()
-        flat = confirm_ping(params[0], img, edges, values, half, TUBE_VOXELS * voxel_size_m, self.arcs)
-        self.confirmed[flat] = 1
+        flat = confirm_ping(params[0], img, edges, values, half, tube_m, self._arcs)
+        self._confirmed[flat] = 1
 
     def view_gain(self, Ts: np.ndarray, unknown_weight: float, values: np.ndarray, threshold: float,
                   grid: GridSpec, backend, params: np.ndarray) -> np.ndarray:

@@ -207,7 +207,7 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
                    threshold: float = 0.4, rule: str | None = None, stride: int = 1,
                    max_frames: int | None = None, progress: bool = True, detector=None,
                    ekf_kwargs: dict | None = None, tracker_kwargs: dict | None = None,
-                   guard=True, frames: tuple[int, int | None] | None = None, registration=False) -> dict:
+                   guard=True, frames: tuple[int, int | None] | None = None, registration=True) -> dict:
     """Run the EKF loop on a posed recording and compare it with the recorded poses.
 
     Parameters
@@ -232,13 +232,14 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
     frames : (int, int or None), optional
         Only recording frames ``start <= i < stop`` (indices in the recording, before
         ``stride``); the run starts from the recorded pose of the first one kept.
-    registration : bool or ScanRegistrar, default False
-        Scan-to-local-map registration of each ping's first returns (at ``threshold``) and
-        revisits of stored pings, fused into the odometry step
-        (:mod:`gpumap.ekf.registration`): True a default
-        :class:`~gpumap.ekf.registration.ScanRegistrar`, False none (the default: on the real tank
-        it lowers the mean position error but can worsen the heading on a run, see
-        ``bench/results/ekf_registration.json``).
+    registration : bool or ScanRegistrar, default True
+        Revisits of stored pings, found by their first returns (at ``threshold``), verified by
+        their images' agreement and fused against the drift since (:mod:`gpumap.ekf.registration`):
+        True a default :class:`~gpumap.ekf.registration.ScanRegistrar`, False none (the EKF on
+        point returns alone). On the full real tank run the default never ended worse than
+        odometry in position or heading on any drift, seed or slice measured, and lowered the mean
+        position error to about 0.6x where the run revisits places
+        (``bench/results/ekf_pose.json``).
 
     Returns
     -------

@@ -102,6 +102,7 @@ class Integrator:
         if template is not None:
             self.params["n_points"] = template.shape[0]
         self._staging = np.empty(spec.image_shape, dtype=np.float32)
+        self._P_rows = self.params[None].copy()  # the static record, repeated (ping_params)
 
     # ------------------------------------------------------------------ inputs
     def check_image(self, image: object) -> np.ndarray:
@@ -216,12 +217,14 @@ class Integrator:
         return pose_pad_m(C, self.spec.range_max_m, k)
 
     # ------------------------------------------------------------------ pings
-    def integrate(self, img: np.ndarray, T: np.ndarray, pads: np.ndarray) -> None:
-        """Fold one checked ping (image, pose (4, 4), pad (1,) m) into the storage (hold its lock)."""
+    def integrate(self, img: np.ndarray, T: np.ndarray, pads: np.ndarray) -> np.ndarray:
+        """Fold one checked ping (image, pose (4, 4), pad (1,) m) into the storage (hold its lock);
+        returns its (1,) PING_DTYPE record (the confidence pass reuses it)."""
         params, n_threads = self.ping_params(T[None], pads)
         self.prepare(params, T[None], n_threads)
         self.storage.empty = False
         self.storage.backend.integrate(params[0, ...], img, self.method, int(n_threads[0]))
+        return params
 
     def integrate_batch(self, imgs: np.ndarray, Ts: np.ndarray, pads: np.ndarray) -> None:
         """Fold B checked pings into the storage, the blocks of all of them allocated first (hold
@@ -241,8 +244,10 @@ class Integrator:
         whose box, padded by a voxel, bounds the voxels. An unbounded map's boxes are not
         clipped; a pose whose box would leave int32 voxel indices raises ``ValueError``."""
         B = Ts.shape[0]
-        P = np.empty(B, dtype=self.params.dtype)
-        P[...] = self.params
+        # rows of the static record, copied (a broadcast of a record is slow); remade if it changed
+        if self._P_rows.shape[0] < B or self._P_rows[:1].tobytes() != self.params.tobytes():
+            self._P_rows = np.repeat(self.params[None], max(B, 2 * self._P_rows.shape[0]))
+        P = self._P_rows[:B].copy()
         R = Ts[:, :3, :3]
         t = Ts[:, :3, 3]
         Rt = R.transpose(0, 2, 1)
@@ -251,19 +256,20 @@ class Integrator:
         P["A"] = Rt.reshape(B, 9)
         # -(R^T t), each entry summed in a fixed order
         P["b"] = -(R[:, 0, :] * t[:, 0:1] + R[:, 1, :] * t[:, 1:2] + R[:, 2, :] * t[:, 2:3])
-        if np.any(pads != 0.0):
+        if pads.any():
             P["rho"] = self._rho0 + pads
             P["near"] = self._near0 + pads
             win = np.floor((P["rho"].astype(np.float64) + P["near"]) * P["inv_dr"].astype(np.float64)) + 2
             P["win"] = np.minimum(win, self.spec.n_bins)
         # the box of the points, padded by a voxel, holds every visible centre
         pts = self.fov_pts_S if fov_pts is None else fov_pts
-        W = (pts[None, :, 0:1] * Rt[:, None, 0, :] + pts[None, :, 1:2] * Rt[:, None, 1, :]
-             + pts[None, :, 2:3] * Rt[:, None, 2, :])
+        # (B, 3, m): axis e of every point in the world's orientation, summed over k in order
+        W = (Rt[:, 0, :, None] * pts[None, None, :, 0] + Rt[:, 1, :, None] * pts[None, None, :, 1]
+             + Rt[:, 2, :, None] * pts[None, None, :, 2])
         st = self.storage
         s = st.voxel
-        q0 = (W.min(axis=1) + t - st.origin) / s
-        q1 = (W.max(axis=1) + t - st.origin) / s
+        q0 = (W.min(axis=2) + t - st.origin) / s
+        q1 = (W.max(axis=2) + t - st.origin) / s
         dims = st.dims
         if dims is None:
             far = np.maximum(np.abs(q0).max(axis=1), np.abs(q1).max(axis=1)) > _MAX_VOXEL_INDEX - 2 * st.B

@@ -166,7 +166,8 @@ class MinMaxMapper:
         Keep the confidence layer (:mod:`gpumap.confidence`; a bounded GridSpec only): after
         each ping a separate pass marks the occupied voxels that view confirmed (resolved in
         elevation), read with :meth:`confidence`; :meth:`view_gain` scores candidate poses
-        against it. Costs a byte per voxel on the host and one read of the map per ping.
+        against it. Costs three bytes per voxel (on the map's device, and on the host when read)
+        and a pass per ping beside the update, on the map's device (``bench/results/confidence.json``).
         Default False.
     sparse : bool or None
         True: allocate blocks on demand even for a GridSpec (its box bounds the map). None
@@ -416,9 +417,9 @@ class MinMaxMapper:
             img = self.integrator.check_image(image)
             if pose_cov is not None:
                 pads[0] = self.integrator.pose_pad(check_pose_cov(pose_cov), pose_sigmas)
-            self.integrator.integrate(img, T, pads)
+            params = self.integrator.integrate(img, T, pads)
             if self.confidence_layer is not None:
-                self._confirm(T, pads[0], img)
+                self._confirm(T, pads[0], img, params)
             self.n_integrated += 1  # under the lock
             self.pings.add(img, T)
 
@@ -459,8 +460,8 @@ class MinMaxMapper:
         with self.storage.lock:
             if self.confidence_layer is not None:  # the layer follows the pings in order: one at a time
                 for b in range(B):
-                    self.integrator.integrate(imgs[b], Ts[b], pads[b : b + 1])
-                    self._confirm(Ts[b], pads[b], imgs[b])
+                    params = self.integrator.integrate(imgs[b], Ts[b], pads[b : b + 1])
+                    self._confirm(Ts[b], pads[b], imgs[b], params)
                     self.n_integrated += 1
                     self.pings.add(imgs[b], Ts[b])
                 return
@@ -594,9 +595,10 @@ class MinMaxMapper:
             raise ValueError(f"Expected a mapper made with confidence=True for {what}(), but it has none")
         return self.confidence_layer
 
-    def _confirm(self, T: np.ndarray, pad: float, img: np.ndarray) -> None:
-        """The confidence pass of one ping, after its update (see :mod:`gpumap.confidence`)."""
-        self.confidence_layer.confirm(self.integrator, T, pad, img, self.raw_values, self.grid.voxel_size_m)
+    def _confirm(self, T: np.ndarray, pad: float, img: np.ndarray, params: np.ndarray) -> None:
+        """The confidence pass of one ping after its update (its record ``params``)."""
+        self.confidence_layer.confirm(self.integrator, T, pad, img, self.raw_values, self.grid.voxel_size_m,
+                                      params)
 
     def confidence(self) -> np.ndarray:
         """(nx, ny, nz) uint8 state of each voxel: 0 unknown, 1 free, 2 occupied and unconfirmed

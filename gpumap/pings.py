@@ -19,7 +19,7 @@ import hashlib
 
 import numpy as np
 
-__all__ = ["SAMPLE", "PingPrints", "ping_print"]
+__all__ = ["SAMPLE", "PingPrints", "ping_print", "ping_prints"]
 
 #: Values of an image that its fingerprint reads, evenly spaced (all of a smaller image).
 SAMPLE = 1024
@@ -37,6 +37,31 @@ def ping_print(image: np.ndarray, T_W_S: np.ndarray) -> int:
     h.update(np.ascontiguousarray(flat).tobytes())
     h.update(np.ascontiguousarray(T_W_S, dtype="<f8").tobytes())
     return int.from_bytes(h.digest(), "little")
+
+
+def ping_prints(images: np.ndarray, T_W_S: np.ndarray) -> np.ndarray:
+    """:func:`ping_print` of every ping of a batch, ``(B,) uint64``, in one pass: the samples of
+    all B images in one gather and the poses in one conversion, then each ping's digest from a
+    copy of the digest of the shared header (the same bytes ping_print hashes, so the same
+    prints). ``images`` (B, ...) array, ``T_W_S`` (B, 4, 4)."""
+    imgs = np.asarray(images)
+    B = imgs.shape[0]
+    if B == 0:
+        return np.zeros(0, np.uint64)
+    flat = imgs.reshape(B, -1)
+    size = flat.shape[1]
+    if size > SAMPLE:
+        flat = flat[:, :: -(-size // SAMPLE)]
+    body = np.ascontiguousarray(flat)
+    pose = np.ascontiguousarray(T_W_S, dtype="<f8").reshape(B, -1)
+    head = hashlib.blake2b(f"{imgs.dtype.str}{imgs.shape[1:]}".encode(), digest_size=8)
+    digests = []
+    for b in range(B):
+        h = head.copy()
+        h.update(body[b])
+        h.update(pose[b])
+        digests.append(h.digest())
+    return np.frombuffer(b"".join(digests), "<u8").astype(np.uint64)  # little-endian, as ping_print
 
 
 class PingPrints:
@@ -62,7 +87,7 @@ class PingPrints:
         self.extend(np.array([ping_print(image, T_W_S)], np.uint64))
 
     def add_batch(self, images: np.ndarray, T_W_S: np.ndarray) -> None:
-        self.extend(np.array([ping_print(i, T) for i, T in zip(images, T_W_S, strict=True)], np.uint64))
+        self.extend(ping_prints(images, T_W_S))
 
     def extend(self, prints: np.ndarray) -> None:
         p = np.asarray(prints, np.uint64).ravel()

@@ -76,6 +76,7 @@ def run_replay(
     threshold: float = DEFAULT_THRESHOLD,
     positions: list | None = None,
     on_ping=None,
+    on_batch=None,
     max_memory: int | None = None,
     maps_held: int = 1,
     memory_remedy: str | None = None,
@@ -104,6 +105,11 @@ def run_replay(
     on_ping : callable, optional
         ``on_ping(image, T_W_S, mapper)`` after each integrated ping (the live view and
         recording of :mod:`gpumap.viewer`); its time counts in ``seconds_total``.
+    on_batch : callable, optional
+        ``on_batch(images, poses, mapper)`` after each ``integrate_batch`` (or, with ``on_ping``,
+        each ``integrate``) with the pings ((B, n_bins, n_beams), (B, 4, 4) ``T_W_S``) it integrated:
+        what another layer built from the same pass reads (:class:`gpumap.surface.LiveSurface`);
+        its time counts in ``seconds_total`` and apart in ``seconds_on_batch``.
     max_memory : int, optional
         Bytes the run may take at its peak (None: 90 % of the memory available). Checked with
         :func:`gpumap.memory.check_run_fits` before the mapper allocates the grid: a grid that
@@ -154,7 +160,15 @@ def run_replay(
     mapper = None
     stats = {"frames": 0, "skipped_no_pose": 0, "skipped_spec": 0}
     t_int = 0.0
+    t_hook = [0.0]
     t0 = time.perf_counter()
+
+    def flush() -> None:
+        images, poses = _flush_batch(mapper, batch)
+        if on_batch is not None:
+            th = time.perf_counter()
+            on_batch(images, poses, mapper)
+            t_hook[0] += time.perf_counter() - th
     t_setup = 0.0
     # Frames go to the mapper REPLAY_BATCH at a time (integrate_batch: one upload and a few
     # launches on a GPU, the same map as one call per frame); one at a time with a per-ping hook.
@@ -176,12 +190,16 @@ def run_replay(
         t1 = time.perf_counter()
         if batch is None:
             mapper.integrate(fr.image, T)
+            if on_batch is not None:
+                th = time.perf_counter()
+                on_batch(np.array(fr.image)[None], np.asarray(T, np.float64)[None], mapper)
+                t_hook[0] += time.perf_counter() - th
         else:
             if batch and fr.image.dtype != batch[0][0].dtype:
-                _flush_batch(mapper, batch)
+                flush()
             batch.append((np.array(fr.image), T))  # a copy: a reader may reuse its buffer
             if len(batch) == REPLAY_BATCH:
-                _flush_batch(mapper, batch)
+                flush()
         t_int += time.perf_counter() - t1
         stats["frames"] += 1
         if positions is not None:
@@ -192,17 +210,18 @@ def run_replay(
         raise ValueError(f"Expected frames in {recording.path}, but it has none")
     t1 = time.perf_counter()
     if batch:
-        _flush_batch(mapper, batch)
+        flush()
     if hasattr(mapper, "synchronize"):
         mapper.synchronize()
     t_end = time.perf_counter()
-    t_int += t_end - t1
+    t_int += t_end - t1 - t_hook[0]
     n = stats["frames"]
     t_total = t_end - t0 - t_setup
     stats.update(
         seconds_setup=t_setup,
         seconds_total=t_total,
         seconds_integrate=t_int,
+        seconds_on_batch=t_hook[0],
         images_per_s=n / t_total if n else 0.0,
         integrate_per_s=n / t_int if n and t_int > 0 else 0.0,
         backend=mapper.backend,
@@ -218,10 +237,13 @@ def run_replay(
 REPLAY_BATCH = 32
 
 
-def _flush_batch(mapper, batch: list) -> None:
-    """Integrate the buffered (image, T_W_S) frames in one call and empty the buffer."""
-    mapper.integrate_batch(np.stack([b[0] for b in batch]), np.stack([b[1] for b in batch]))
+def _flush_batch(mapper, batch: list) -> tuple[np.ndarray, np.ndarray]:
+    """Integrate the buffered (image, T_W_S) frames in one call and empty the buffer; returns them
+    stacked ((B, n_bins, n_beams), (B, 4, 4))."""
+    images, poses = np.stack([b[0] for b in batch]), np.stack([np.asarray(b[1], np.float64) for b in batch])
+    mapper.integrate_batch(images, poses)
     batch.clear()
+    return images, poses
 
 
 def replay_rules(recording, *, rules: Sequence[str] = RULES, grid: GridSpec | None = None,

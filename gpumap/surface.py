@@ -39,22 +39,29 @@ training ping to be explained by **exactly one** of them.
 
 Use: :func:`surface_from_mapper` (a mapper and the pings it integrated), :func:`surface_from_evidence`
 (the evidence rule's decision and the pings), :func:`surface_from_frames` (pings streamed once, e.g.
-from a recording), :class:`LiveSurface` (a live mapper's layer, updated per batch of pings with the
-last weights as a warm start). :meth:`SurfaceLayer.save` writes the layer beside the safe map as a
-refined map file (``gpumap view`` / ``gpumap export --layer surface|safe`` read it).
+from a recording), :class:`LiveSurface` (a live mapper's layer: pings added per batch as the mapper
+integrates them, the layer updated whenever wanted; ``gpumap replay`` and the ROS node use it). The
+candidates come through the mapper's own decision (:func:`map_candidates`), so the layer follows
+whatever it decides. :meth:`SurfaceLayer.save` writes the layer beside the
+safe map as a refined map file (``gpumap view`` / ``gpumap export --layer surface|safe`` read it).
 
 What it gets and misses (``python -m bench.surface``): on the simulated scenes it keeps the
 objects (FN of the objects' detectable surfaces 0.4-1.9 %) and halves the evidence map's far
 phantoms, but stays above half the visible rule's on the tank and the side sweep, and object tops
 remain 1-10 voxels high where the views never separate the elevations; with the real tank's ping
 to ping variation the candidates' weights are too noisy and it misses half the surfaces. Everything
-here is plain NumPy (the oracle a kernel would be tested against); cost is linear in pings x
-candidates in view x cells a voxel spans.
+here is NumPy. :func:`_layer` is the plain version (every cell of every voxel listed, a loop over the
+pings per step): the oracle. :class:`_Pairs` (what :class:`LiveSurface` runs) works out each (ping,
+voxel) once and runs steps 3-4 over every ping at once, adding the same numbers in the same order, so
+its layer is the oracle's bit for bit; its memory is 17 bytes per (ping, voxel, bright cell) pair
+(about 30 million on the real tank's 1,223 pings at 5 cm) and an update's passes are linear in them
+(``python -m bench surface_rate``).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import threading
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -64,9 +71,8 @@ from gpumap.geometry import beam_tan_edges
 from gpumap.reference import _F, beam_span
 from gpumap.spec import GridSpec, SonarSpec
 
-__all__ = ["SURFACE_LEVEL", "LiveSurface", "SurfaceLayer", "SurfaceOptions", "surface_from_evidence",
-           "surface_from_frames",
-           "surface_from_mapper"]
+__all__ = ["SURFACE_LEVEL", "LiveSurface", "SurfaceLayer", "SurfaceOptions", "map_candidates",
+           "surface_from_evidence", "surface_from_frames", "surface_from_mapper"]
 
 #: The surface layer's values are 1 (surface) or 0: occupied from this level.
 SURFACE_LEVEL = 0.5
@@ -241,27 +247,57 @@ class _View:
     front: np.ndarray | None  # (k,) bool: in the nominal fan and nearer than its beam's first return
 
 
+def _in_sonar(T_W_S: np.ndarray, centres_W: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """x, y, z (k,) float64 each: ``centres_W`` ((k, 3)) in the sonar frame, ``R^T (c - t)``, written out
+    element by element so that a voxel's coordinates never depend on which other voxels came with it
+    (a matrix product's kernel may sum in another order for another number of rows)."""
+    T = np.asarray(T_W_S, np.float64)
+    d0, d1, d2 = (centres_W[:, i] - T[i, 3] for i in range(3))
+    return tuple(d0 * T[0, a] + d1 * T[1, a] + d2 * T[2, a] for a in range(3))
+
+
+def _geometry(spec: SonarSpec, edges: np.ndarray, T_W_S: np.ndarray, centres_W: np.ndarray, n_rc: int,
+              half_m: float, cell_m: float, half_elev_rad: float, first_m: np.ndarray, front_tol_m: float):
+    """The voxels within the arc's aperture in one ping (module docstring, steps 1-2): their index
+    ``k`` into ``centres_W``, range, elevation, the beams ``j0..j1`` and range cells ``c0..c1`` their
+    width spans, and whether they lie in the nominal fan nearer than their beam's first return.
+
+    A cheap test (ahead of the sonar, inside its range and its aperture's slab, with a margin)
+    drops most voxels first; the exact tests then run on the rest, each voxel's numbers the same."""
+    x, y, z = _in_sonar(T_W_S, centres_W)
+    h2 = x * x + y * y
+    near = (x > 0) & (h2 + z * z < (spec.range_max_m * (1.0 + 1e-6)) ** 2)
+    if half_elev_rad < 1.5:  # the aperture's slab, |z| <= tan(half) h, with a margin
+        lim = np.tan(half_elev_rad) * (1.0 + 1e-6)
+        near &= z * z <= lim * lim * h2 + 1e-12
+    k = np.flatnonzero(near)
+    x, y, z, h2 = x[k], y[k], z[k], h2[k]
+    r = np.sqrt(h2 + z ** 2)
+    elev = np.arctan2(z, np.sqrt(h2))
+    t = y / x
+    tan_e = np.tan(np.asarray(spec.beam_edges_rad, np.float64))
+    ok = ((r >= spec.range_min_m) & (r < spec.range_max_m) & (np.abs(elev) <= half_elev_rad)
+          & (t >= tan_e[0]) & (t <= tan_e[-1]))
+    sel = np.flatnonzero(ok)
+    k, r, elev = k[sel], r[sel], elev[sel]
+    j0, j1 = beam_span(t[sel].astype(_F), h2[sel].astype(_F), _F(half_m), edges, spec.n_beams)
+    c0 = np.clip(((r - half_m - spec.range_min_m) / cell_m).astype(np.int64), 0, n_rc - 1)
+    c1 = np.clip(((r + half_m - spec.range_min_m) / cell_m).astype(np.int64), 0, n_rc - 1)
+    first = first_m[(j0 + j1) // 2]  # inf: no return (open water), nan: says nothing (a dim ping)
+    front = (np.abs(elev) <= 0.5 * spec.vfov_rad) & (r < first - front_tol_m)
+    return k, r, elev, j0.astype(np.int64), j1.astype(np.int64), c0, c1, front
+
+
 def _view(spec: SonarSpec, edges: np.ndarray, T_W_S: np.ndarray, centres_W: np.ndarray, lit: np.ndarray,
           half_m: float, cell_m: float, half_elev_rad: float, first_m: np.ndarray, front_tol_m: float
           ) -> _View:
     """The candidates' geometry in one ping and the bright cells each spans (module docstring, step 2):
     in range ``[r - half_m, r + half_m]`` (range cells of ``cell_m``) and the beams its width ``2 half_m``
-    spans in azimuth, for the voxels within ``+-half_elev_rad`` of the fan's plane."""
-    p = (centres_W - T_W_S[:3, 3]) @ T_W_S[:3, :3]
-    h2 = p[:, 0] ** 2 + p[:, 1] ** 2
-    r = np.sqrt(h2 + p[:, 2] ** 2)
-    elev = np.arctan2(p[:, 2], np.sqrt(h2))
-    pos = p[:, 0] > 0
-    t = p[:, 1] / np.where(pos, p[:, 0], 1.0)
-    tan_e = np.tan(np.asarray(spec.beam_edges_rad, np.float64))
-    ok = (pos & (r >= spec.range_min_m) & (r < spec.range_max_m) & (np.abs(elev) <= half_elev_rad)
-          & (t >= tan_e[0]) & (t <= tan_e[-1]))
-    k = np.flatnonzero(ok)
-    r, elev = r[k], elev[k]
-    j0, j1 = beam_span(t[k].astype(_F), h2[k].astype(_F), _F(half_m), edges, spec.n_beams)
+    spans in azimuth, for the voxels within ``+-half_elev_rad`` of the fan's plane. Every cell of every
+    voxel is listed, then the dark ones dropped: the plain version :class:`_Pairs` is checked against."""
     n_rc = lit.shape[0]
-    c0 = np.clip(((r - half_m - spec.range_min_m) / cell_m).astype(np.int64), 0, n_rc - 1)
-    c1 = np.clip(((r + half_m - spec.range_min_m) / cell_m).astype(np.int64), 0, n_rc - 1)
+    k, r, elev, j0, j1, c0, c1, front = _geometry(spec, edges, T_W_S, centres_W, n_rc, half_m, cell_m,
+                                                  half_elev_rad, first_m, front_tol_m)
     nc, nj = c1 - c0 + 1, j1 - j0 + 1
     tot = nc * nj
     pair = np.repeat(np.arange(len(k)), tot)
@@ -269,11 +305,34 @@ def _view(spec: SonarSpec, edges: np.ndarray, T_W_S: np.ndarray, centres_W: np.n
     cc = c0[pair] + off // nj[pair]
     jj = j0[pair] + off % nj[pair]
     keep = lit[cc, jj]
-    first = first_m[(j0 + j1) // 2]  # inf: no return (open water), nan: says nothing (a dim ping)
-    front = (np.abs(elev) <= 0.5 * spec.vfov_rad) & (r < first - front_tol_m)
     return _View(k.astype(np.int32), r.astype(_F), elev.astype(_F), j0.astype(np.int32),
                  j1.astype(np.int32), tot.astype(np.int32), pair[keep].astype(np.int32),
                  (cc * spec.n_beams + jj)[keep].astype(np.int32), front)
+
+
+def _bright_pairs(lit: np.ndarray, n_rc: int, n_beams: int, j0: np.ndarray, j1: np.ndarray, c0: np.ndarray,
+                  c1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The bright cells each voxel spans, found without listing its dark ones: ``lit`` holds one
+    ping's bright cells (sorted flat (range cell, beam) indices), so those in a range cell's beams
+    ``j0..j1`` are one run of it, whose ends a table of running counts per range cell gives. Returns
+    (voxel (p,), index into ``lit`` (p,)), voxel by voxel and cell by cell in flat order, as
+    :func:`_view` lists them."""
+    k = len(j0)
+    rows = int((c1 - c0).max()) + 1 if k else 0
+    mask = np.zeros(n_rc * n_beams, np.int32)
+    mask[lit] = 1
+    run = np.zeros((n_rc, n_beams + 1), np.int64)
+    np.cumsum(mask.reshape(n_rc, n_beams), axis=1, out=run[:, 1:])
+    before = np.concatenate([[0], np.cumsum(run[:, -1])[:-1]])  # bright cells in the earlier range cells
+    cc = np.minimum(c0[:, None] + np.arange(rows)[None, :], n_rc - 1)  # (k, rows)
+    lo = before[cc] + run[cc, j0[:, None]]
+    cnt = np.where(c0[:, None] + np.arange(rows)[None, :] <= c1[:, None],
+                   before[cc] + run[cc, j1[:, None] + 1] - lo, 0).reshape(-1)
+    n = int(cnt.sum())
+    start = np.cumsum(cnt) - cnt
+    which = np.repeat(np.arange(cnt.size), cnt)
+    at = lo.reshape(-1)[which] + (np.arange(n) - start[which])
+    return which // max(rows, 1), at
 
 
 def _occluded(view: _View, surface: np.ndarray, n_beams: int, half_elev_rad: float, n_elev: int,
@@ -432,23 +491,26 @@ def _prepare(image: np.ndarray, T_W_S: np.ndarray, spec: SonarSpec, threshold: f
     return _PingCells(lit, first.astype(np.float32), T)
 
 
+def _scales(grid: GridSpec, spec: SonarSpec, opts: SurfaceOptions) -> dict:
+    """The layer's lengths and sizes from the grid, the sonar and the options."""
+    s = grid.voxel_size_m
+    cell_m = opts.cell_m or 0.5 * s
+    n_rc = int(np.ceil((spec.range_max_m - spec.range_min_m) / cell_m)) + 1
+    return {"half": 0.5 * s, "cell_m": cell_m, "occl_m": opts.occlusion_m or 2.0 * s,
+            "front_tol": opts.front_tolerance_m or s, "half_el": 0.5 * spec.vfov_rad * opts.aperture_scale,
+            "n_rc": n_rc, "n_cells": n_rc * spec.n_beams}
+
+
 def _layer(cand: np.ndarray, obs: np.ndarray, grid: GridSpec, spec: SonarSpec, pings: list[_PingCells],
            opts: SurfaceOptions, w0: np.ndarray | None = None) -> tuple[SurfaceLayer, np.ndarray]:
     """The layer of candidates ``cand`` from prepared pings (steps 1-5); also the weights (n,) of the
     candidates in ``np.argwhere(cand)`` order. ``w0``: starting weights in that order (warm start)."""
-    shape = tuple(grid.shape)
     idx = np.argwhere(cand)
     n = len(idx)
-    s = grid.voxel_size_m
-    centres = np.asarray(grid.min_corner_m, np.float64) + (idx + 0.5) * s
-    half = 0.5 * s
-    cell_m = opts.cell_m or half
-    occl_m = opts.occlusion_m or 2.0 * s
-    front_tol = opts.front_tolerance_m or s
-    half_el = 0.5 * spec.vfov_rad * opts.aperture_scale
+    centres = np.asarray(grid.min_corner_m, np.float64) + (idx + 0.5) * grid.voxel_size_m
+    sc = _scales(grid, spec, opts)
+    half, half_el, n_rc, n_cells = sc["half"], sc["half_el"], sc["n_rc"], sc["n_cells"]
     edges = beam_tan_edges(spec)
-    n_rc = int(np.ceil((spec.range_max_m - spec.range_min_m) / cell_m)) + 1
-    n_cells = n_rc * spec.n_beams
     keep_geometry = int(opts.passes) > 1  # the occlusion test needs each view's ranges and angles
     views = []
     seen = np.zeros(n, np.uint32)
@@ -457,8 +519,8 @@ def _layer(cand: np.ndarray, obs: np.ndarray, grid: GridSpec, spec: SonarSpec, p
     for pc in pings:
         lit = np.zeros(n_cells, bool)
         lit[pc.lit] = True
-        v = _view(spec, edges, pc.T_W_S, centres, lit.reshape(n_rc, spec.n_beams), half, cell_m, half_el,
-                  pc.first, front_tol)
+        v = _view(spec, edges, pc.T_W_S, centres, lit.reshape(n_rc, spec.n_beams), half, sc["cell_m"],
+                  half_el, pc.first, sc["front_tol"])
         seen[v.cand] += 1
         fan[v.cand[np.abs(v.elev) <= 0.5 * spec.vfov_rad]] += 1
         front[v.cand[v.front]] += 1
@@ -472,12 +534,21 @@ def _layer(cand: np.ndarray, obs: np.ndarray, grid: GridSpec, spec: SonarSpec, p
     weight = np.zeros(n)
     for _ in range(int(opts.passes)):
         weight, votes, bright = _explain(views, n, n_cells, occluders, spec, half_el,
-                                         int(opts.elevation_cells), occl_m, half, int(opts.iterations), alive,
-                                         w0)
+                                         int(opts.elevation_cells), sc["occl_m"], half, int(opts.iterations),
+                                         alive, w0)
         occluders = votes >= opts.min_votes
+    return _finish(cand, obs, grid, idx, alive, votes, seen, bright, opts, len(pings), sc), weight
+
+
+def _finish(cand: np.ndarray, obs: np.ndarray, grid: GridSpec, idx: np.ndarray, alive: np.ndarray,
+            votes: np.ndarray, seen: np.ndarray, bright: np.ndarray, opts: SurfaceOptions, n_pings: int,
+            sc: dict) -> SurfaceLayer:
+    """Step 5: the winners grown into the kept candidates; the layer with its per-voxel counts."""
+    shape = tuple(grid.shape)
+    n = len(idx)
     surf = np.zeros(shape, bool)
     if n:
-        surf[tuple(idx[occluders].T)] = True
+        surf[tuple(idx[votes >= opts.min_votes].T)] = True
     if opts.band_voxels and n:
         from scipy import ndimage
 
@@ -490,66 +561,323 @@ def _layer(cand: np.ndarray, obs: np.ndarray, grid: GridSpec, spec: SonarSpec, p
         full = np.zeros(shape, np.uint32)
         full[tuple(idx.T)] = a
         out[name] = full
-    stats = {"candidates": int(n), "surface": int(surf.sum()), "pings": len(pings), "seconds": 0.0,
-             **opts.to_dict(), "cell_m": cell_m, "occlusion_m": occl_m}
+    stats = {"candidates": int(n), "surface": int(surf.sum()), "pings": n_pings, "seconds": 0.0,
+             **opts.to_dict(), "cell_m": sc["cell_m"], "occlusion_m": sc["occl_m"]}
     return SurfaceLayer(surf, cand.copy(), obs.copy(), out["votes"], out["views"], out["bright_views"], grid,
-                        stats), weight
+                        stats)
+
+
+class _Pairs:
+    """Every kept ping's view of every voxel that has ever been a candidate, each (ping, voxel) worked
+    out once (module docstring, steps 1-2), and the passes of steps 3-4 over all of them without a
+    loop over the pings: what :class:`LiveSurface` updates with (one pass, no occlusion test).
+
+    Per voxel, sums over the pings viewed: views, views in the nominal fan, views in front of the
+    first return, cells spanned, pings in which it spans a bright cell. Per (ping, voxel, bright cell)
+    a pair: the voxel and the cell's *slot* (every ping's bright cells numbered one after the other),
+    kept sorted by (ping, voxel, cell): the order :func:`_explain` visits them in, so that every sum
+    of steps 3-4 adds the same numbers in the same order and the layer equals :func:`_layer`'s bit for
+    bit. A voxel that stops being a candidate keeps its pairs (masked out), so it comes back for free.
+    """
+
+    def __init__(self, grid: GridSpec, spec: SonarSpec, opts: SurfaceOptions) -> None:
+        self.grid, self.spec, self.opts = grid, spec, opts
+        self.sc = _scales(grid, spec, opts)
+        self.edges = beam_tan_edges(spec)
+        n_vox = grid.n_voxels
+        self.viewed = np.zeros(n_vox, bool)
+        self.seen, self.fan, self.front, self.bright = (np.zeros(n_vox, np.uint32) for _ in range(4))
+        self.sens = np.zeros(n_vox, np.int64)
+        self.key = np.zeros(0, np.int64)  # (ping * n_vox + voxel) * n_cells + cell: the sort order
+        self.vox = np.zeros(0, np.int32)
+        self.slot = np.zeros(0, np.int32)
+        self.start = np.zeros(0, bool)  # the pair opens a (ping, voxel) run
+        self.slot0: list[int] = [0]  # first slot of each ping viewed; the next ping's after the last
+        self.n_pings = 0  # pings viewed (the first n of those kept)
+
+    #: Voxels per edge of the groups a ping tests first (:meth:`_near`).
+    GROUP = 8
+
+    def _voxels(self, vox: np.ndarray) -> dict:
+        """Voxels ``vox`` (sorted flat indices) with their centres, grouped in cubes of :attr:`GROUP`
+        voxels: each group's centre and, in group order, where its voxels lie in ``vox``."""
+        idx = np.stack(np.unravel_index(vox, self.grid.shape), axis=1)
+        s, lo = self.grid.voxel_size_m, np.asarray(self.grid.min_corner_m, np.float64)
+        g = idx // self.GROUP
+        gid = np.ravel_multi_index(tuple(g.T), tuple(-(-np.asarray(self.grid.shape) // self.GROUP)))
+        order = np.argsort(gid, kind="stable")
+        ids, first = np.unique(gid[order], return_index=True)
+        gidx = np.stack(np.unravel_index(ids, tuple(-(-np.asarray(self.grid.shape) // self.GROUP))), axis=1)
+        return {"vox": vox, "centres": lo + (idx + 0.5) * s, "order": order,
+                "bounds": np.r_[first, len(vox)], "gcentres": lo + (gidx + 0.5) * self.GROUP * s}
+
+    def _near(self, T_W_S: np.ndarray, vs: dict) -> np.ndarray:
+        """Indices into ``vs["vox"]`` (ascending) of the voxels in groups that may meet the ping's arc:
+        a group's bounding sphere ahead of the sonar, within its range and within reach of the aperture's
+        slab (the exact tests follow, voxel by voxel)."""
+        rad = 0.5 * np.sqrt(3.0) * self.GROUP * self.grid.voxel_size_m + self.sc["half"]
+        x, y, z = _in_sonar(T_W_S, vs["gcentres"])
+        h = np.sqrt(x * x + y * y)
+        half = self.sc["half_el"]
+        ok = (x > -rad) & (h * h + z * z < (self.spec.range_max_m + rad) ** 2)
+        if half < 1.5:  # the distance to the slab's cone, in the group's meridian plane
+            ok &= np.abs(z) - np.tan(half) * h <= rad / np.cos(half) + 1e-9
+        g = np.flatnonzero(ok)
+        b = vs["bounds"]
+        n = b[g + 1] - b[g]
+        at = np.repeat(b[g] - np.cumsum(n) + n, n) + np.arange(int(n.sum()))
+        keep = np.zeros(len(vs["vox"]), bool)  # back to ascending order without a sort
+        keep[vs["order"][at]] = True
+        return np.flatnonzero(keep)
+
+    def _view(self, p: int, pc: _PingCells, vs: dict, sign: int = 1):
+        """Ping ``p``'s view of the voxels of ``vs`` (:meth:`_voxels`): the sums go in (``sign`` -1: out
+        again, and no pairs), the pairs come out."""
+        sc, spec = self.sc, self.spec
+        near = self._near(pc.T_W_S, vs)
+        k, _, elev, j0, j1, c0, c1, front = _geometry(spec, self.edges, pc.T_W_S, vs["centres"][near],
+                                                      sc["n_rc"], sc["half"], sc["cell_m"], sc["half_el"],
+                                                      pc.first, sc["front_tol"])
+        v = vs["vox"][near[k]]
+        one = np.uint32(1)
+        add = np.add if sign > 0 else np.subtract  # a ping sees a voxel once: no repeated index
+        self.seen[v] = add(self.seen[v], one)
+        f = v[np.abs(elev) <= 0.5 * spec.vfov_rad]
+        self.fan[f] = add(self.fan[f], one)
+        self.front[v[front]] = add(self.front[v[front]], one)
+        self.sens[v] = add(self.sens[v], (c1 - c0 + 1) * (j1 - j0 + 1))
+        which, at = _bright_pairs(pc.lit, sc["n_rc"], spec.n_beams, j0, j1, c0, c1)
+        pv = v[which]
+        if len(pv):
+            b = pv[np.r_[True, pv[1:] != pv[:-1]]]
+            self.bright[b] = add(self.bright[b], one)
+        if sign < 0:
+            return None
+        cell = pc.lit[at].astype(np.int64)
+        key = (p * self.grid.n_voxels + pv.astype(np.int64)) * sc["n_cells"] + cell
+        start = np.ones(len(pv), bool)
+        start[1:] = pv[1:] != pv[:-1]
+        return key, pv.astype(np.int32), (self.slot0[p] + at).astype(np.int32), start
+
+    def add_views(self, pings: list[_PingCells], cand_flat: np.ndarray) -> None:
+        """View the voxels that are candidates for the first time in every ping viewed before, and the
+        pings not viewed yet (from ``pings``, those kept so far) in every voxel ever a candidate."""
+        new = cand_flat[~self.viewed[cand_flat]]
+        if len(new) and self.n_pings:
+            vs = self._voxels(new)
+            parts = [self._view(p, pings[p], vs) for p in range(self.n_pings)]
+            key = np.concatenate([q[0] for q in parts])
+            order = np.argsort(key, kind="stable")
+            at = np.searchsorted(self.key, key[order])
+            self.key = np.insert(self.key, at, key[order])
+            self.vox = np.insert(self.vox, at, np.concatenate([q[1] for q in parts])[order])
+            self.slot = np.insert(self.slot, at, np.concatenate([q[2] for q in parts])[order])
+            self.start = np.insert(self.start, at, np.concatenate([q[3] for q in parts])[order])
+        self.viewed[new] = True
+        if self.n_pings < len(pings):
+            slots = self.slot0[-1] + sum(len(pc.lit) for pc in pings[self.n_pings:])
+            if slots >= 2**31 or (len(pings) * self.grid.n_voxels + 1) * self.sc["n_cells"] >= 2**62:
+                raise ValueError(f"Expected fewer pings for the live surface layer's indices, but got "
+                                 f"{len(pings)} pings of {slots} bright cells")
+            vs = self._voxels(np.flatnonzero(self.viewed))
+            parts = [self.key], [self.vox], [self.slot], [self.start]
+            for p in range(self.n_pings, len(pings)):
+                self.slot0.append(self.slot0[-1] + len(pings[p].lit))
+                for lst, a in zip(parts, self._view(p, pings[p], vs), strict=True):
+                    lst.append(a)
+            self.n_pings = len(pings)
+            self.key, self.vox, self.slot, self.start = (np.concatenate(lst) for lst in parts)
+
+    def drop(self, pings: list[_PingCells]) -> None:
+        """Forget the first ``len(pings)`` pings viewed (``pings``: those same pings): their sums come out
+        (each ping's view worked out again, exactly as it went in) and their pairs, the first ones held,
+        are cut off; the pings after them are numbered from 0."""
+        m = len(pings)
+        if m == 0:
+            return
+        if m > self.n_pings:
+            raise ValueError(f"Expected at most the {self.n_pings} pings viewed to drop, but got {m}")
+        vs = self._voxels(np.flatnonzero(self.viewed))
+        for p, pc in enumerate(pings):
+            self._view(p, pc, vs, sign=-1)
+        cut = m * self.grid.n_voxels * self.sc["n_cells"]
+        i = int(np.searchsorted(self.key, cut))
+        self.key = self.key[i:] - cut
+        self.vox, self.start = self.vox[i:], self.start[i:]
+        self.slot = self.slot[i:] - np.int32(self.slot0[m])
+        self.slot0 = [x - self.slot0[m] for x in self.slot0[m:]]
+        self.n_pings -= m
+
+    def explain(self, cand_flat: np.ndarray, w0: np.ndarray | None):
+        """Steps 3-4 over the candidates ``cand_flat`` (sorted flat indices, all viewed): (alive (n,),
+        weights (n,), votes (n,) uint32, views (n,) uint32, bright views (n,) uint32)."""
+        opts, n = self.opts, len(cand_flat)
+        fan, front = self.fan[cand_flat], self.front[cand_flat]
+        alive = front <= opts.max_front_share * np.maximum(fan, 1)
+        pos = np.full(self.grid.n_voxels, -1, np.int64)
+        pos[cand_flat[alive]] = np.flatnonzero(alive)
+        c = pos[self.vox]
+        ok = c >= 0
+        # a voxel's pairs of a ping stay or go together: the runs that stay are still runs
+        c, s, first = c[ok], self.slot[ok].astype(np.int64), self.start[ok]
+        seg = np.cumsum(first) - 1  # (ping, voxel) runs, in order
+        seg_c = c[first]
+        bright = np.where(alive, self.bright[cand_flat], 0).astype(np.uint32)
+        sens = np.where(alive, self.sens[cand_flat], 0).astype(np.float64)
+        n_slots = self.slot0[self.n_pings]
+        w = np.where(bright > 0, 1.0 if w0 is None else w0, 0.0)
+        q = np.empty(len(c))
+        for _ in range(int(opts.iterations)):
+            wc = w[c]
+            den = np.bincount(s, weights=wc, minlength=n_slots)[s]
+            # a cell no weight reaches holds only weightless pairs: 0, as 0 / 1 gives
+            q.fill(0.0)
+            np.divide(wc, den, out=q, where=den > 0)
+            per = np.bincount(seg, weights=q, minlength=len(seg_c))
+            w = np.bincount(seg_c, weights=per, minlength=n) / np.maximum(sens, 1.0)
+        rank = np.empty(n, np.int64)
+        rank[np.lexsort((np.arange(n), w))] = np.arange(1, n + 1)
+        rc = rank[c]
+        best = np.zeros(n_slots, np.int64)
+        np.maximum.at(best, s, rc)
+        won = seg[best[s] == rc]  # sorted: each run once
+        won = won[np.r_[True, won[1:] != won[:-1]]] if len(won) else won
+        votes = np.bincount(seg_c[won], minlength=n).astype(np.uint32)
+        return alive, w, votes, self.seen[cand_flat].copy(), bright
+
+
+def map_candidates(mapper) -> tuple[np.ndarray, np.ndarray]:
+    """(candidates, observed), (nx, ny, nz) bool each, of a mapper with view counts (``rule="evidence"``
+    or ``"visible"``): the voxels the evidence rule's decision calls occupied, as the mapper's
+    :attr:`~gpumap.MinMaxMapper.value_rule` decides them now (its settings and decision, read-time:
+    the layer follows whatever it decides), and those some ping observed."""
+    ev = mapper.evidence()
+    return mapper.value_rule.occupied(ev["count"], ev["hits"]), np.isfinite(ev["min_all"])
 
 
 class LiveSurface:
-    """The surface layer of a live mapper, updated per batch of pings (a warm start).
+    """The surface layer of a live mapper, updated per batch of pings.
 
     ``add(images, poses)`` after (or with) the mapper's own ``integrate_batch`` keeps what the layer
     needs of each ping (its bright cells and first returns: a few kB, not the image);
-    :meth:`update` builds the layer from the mapper's current evidence map, its weights started
-    from the last update's (new candidates at 1), so a few iterations per batch
-    (``options.iterations``) carry it on. Each update visits every kept ping: its cost grows with
-    the pings, as the mapper's memory does not.
+    :meth:`update` builds the layer from the mapper's map now (:func:`map_candidates`). Each
+    (ping, voxel) is worked out once, the first update after both are there (:class:`_Pairs`), and
+    every update runs steps 3-4 over all kept pings at once: an update equals
+    :func:`surface_from_mapper` of the same pings on the same map, voxel for voxel, and its cost
+    grows with the pings (their bright cells' pairs), as the mapper's memory does not.
 
     Parameters
     ----------
     mapper : gpumap.MinMaxMapper
-        A bounded mapper with ``rule="evidence"`` (or ``"visible"``: the evidence rule's decision is
-        read from its counts).
+        A bounded mapper with ``rule="evidence"`` (or ``"visible"``).
     options : SurfaceOptions, optional
+        With ``passes`` > 1 (the occlusion test) every update views every ping again (the plain path).
+    warm_start : bool
+        Start the weights from the last update's (new candidates at 1): a few iterations per update
+        carry the weights on across updates, but the layer is then no longer the offline one.
+    max_pings : int or None
+        Keep the newest this many pings at most (None: all): an update then drops the oldest and is
+        the offline layer of the newest ``max_pings`` pings on the map of every ping, and the layer's
+        memory (its pairs) stops growing with the run.
     """
 
-    def __init__(self, mapper, options: SurfaceOptions | None = None) -> None:
+    def __init__(self, mapper, options: SurfaceOptions | None = None, warm_start: bool = False,
+                 max_pings: int | None = None) -> None:
+        if max_pings is not None and (isinstance(max_pings, bool) or max_pings < 1
+                                      or not isinstance(max_pings, (int, np.integer))):
+            raise ValueError(f"Expected max_pings to be a positive integer or None, but got {max_pings!r}")
         if getattr(mapper, "rule", None) not in ("evidence", "visible"):
             raise ValueError(f"Expected a mapper with rule='evidence' or 'visible', but got "
                              f"{getattr(mapper, 'rule', None)!r}")
+        if getattr(mapper, "sparse", None) is not None:
+            raise ValueError("Expected a bounded mapper (a GridSpec with all blocks) for the live surface "
+                             "layer, but it allocates blocks on demand")
         self.mapper = mapper
         self.options = options or SurfaceOptions()
+        self.warm_start = bool(warm_start)
+        self.max_pings = None if max_pings is None else int(max_pings)
+        self._lock = threading.Lock()  # the list of pings, between add() and an update's drop
         self._pings: list[_PingCells] = []
-        self._weights: dict[int, float] = {}
+        self._dropped = 0  # pings dropped from the front (max_pings): the list starts at this one
+        self._weights: np.ndarray | None = None  # per voxel, NaN where never a candidate
+        self._pairs = _Pairs(mapper.grid, mapper.spec, self.options) if self.options.passes == 1 else None
         self.layer: SurfaceLayer | None = None
 
     @property
     def n_pings(self) -> int:
+        """Pings held (added and not dropped)."""
         return len(self._pings)
+
+    @property
+    def n_added(self) -> int:
+        """Pings ever added (the held ones are the last :attr:`n_pings` of them)."""
+        return self._dropped + len(self._pings)
+
+    @property
+    def n_pairs(self) -> int:
+        """(ping, voxel, bright cell) pairs held (the layer's memory: 17 bytes each)."""
+        return 0 if self._pairs is None else len(self._pairs.key)
 
     def add(self, images: np.ndarray, poses: np.ndarray) -> None:
         """Keep pings ``images`` ((n, n_bins, n_beams) uint8 or float32 in [0, 1]) at ``poses``
-        ((n, 4, 4) ``T_W_S``), those the mapper integrated."""
+        ((n, 4, 4) ``T_W_S``), those the mapper integrated (any thread; in the order they were)."""
         images, poses = _check(images, poses, self.mapper.spec)
         cell_m = self.options.cell_m or 0.5 * self.mapper.grid.voxel_size_m
-        self._pings += [_prepare(i, T, self.mapper.spec, self.mapper.threshold, cell_m,
-                                 self.options.live_ping_share) for i, T in zip(images, poses, strict=True)]
+        new = [_prepare(i, T, self.mapper.spec, self.mapper.threshold, cell_m, self.options.live_ping_share)
+               for i, T in zip(images, poses, strict=True)]
+        with self._lock:
+            self._pings += new
 
-    def update(self) -> SurfaceLayer:
-        """The layer of every ping kept so far over the mapper's evidence map now."""
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """(candidates, observed, :attr:`n_added`): the map now and how many pings it holds, for
+        :meth:`update` on another thread; take it while nothing integrates or adds (a live mapper's
+        lock), so that the map and the pings match."""
+        cand, obs = map_candidates(self.mapper)
+        return cand, obs, self.n_added
+
+    def reset(self) -> None:
+        """Forget every ping (with the mapper's own ``reset``)."""
+        with self._lock:
+            self._pings, self._dropped = [], 0
+        self._weights = None
+        if self._pairs is not None:
+            self._pairs = _Pairs(self.mapper.grid, self.mapper.spec, self.options)
+        self.layer = None
+
+    def update(self, snapshot: tuple[np.ndarray, np.ndarray, int] | None = None) -> SurfaceLayer:
+        """The layer of every ping kept so far over the mapper's map now (or of the first pings of a
+        :meth:`snapshot` over its map)."""
         import time
 
         t0 = time.perf_counter()
         m = self.mapper
-        ev = m.evidence()
-        cand = m.value_rule.occupied(ev["count"], ev["hits"])
+        cand, obs, n_added = snapshot if snapshot is not None else self.snapshot()
+        pairs = self._pairs  # one object for the whole update, even if reset meanwhile
+        with self._lock:
+            old = 0 if self.max_pings is None else max(0, n_added - self._dropped - self.max_pings)
+            if old:  # the oldest go: out of the sums and pairs where viewed, then off the list
+                if pairs is not None:
+                    pairs.drop(self._pings[:min(old, pairs.n_pings)])
+                self._pings, self._dropped = self._pings[old:], self._dropped + old
+            pings = self._pings[:n_added - self._dropped]
         flat = np.flatnonzero(cand)
-        w0 = np.array([self._weights.get(int(f), 1.0) for f in flat]) if self._weights else None
-        layer, w = _layer(cand, np.isfinite(ev["min_all"]), m.grid, m.spec, self._pings, self.options, w0)
-        self._weights = dict(zip(flat.tolist(), w.tolist(), strict=True))
+        w0 = None
+        if self.warm_start and self._weights is not None:
+            w0 = np.nan_to_num(self._weights[flat], nan=1.0)
+        if pairs is None:
+            layer, w = _layer(cand, obs, m.grid, m.spec, pings, self.options, w0)
+        else:
+            pairs.add_views(pings, flat)
+            alive, w, votes, seen, bright = pairs.explain(flat, w0)
+            layer = _finish(cand, obs, m.grid, np.argwhere(cand), alive, votes, seen, bright, self.options,
+                            len(pings), pairs.sc)
+            layer.stats["pairs"] = len(pairs.key)
+        if self.warm_start:
+            self._weights = np.full(m.grid.n_voxels, np.nan)
+            self._weights[flat] = w
         layer.stats["seconds"] = time.perf_counter() - t0
         layer.stats["warm"] = w0 is not None
+        layer.stats["first_ping"] = n_added - len(pings)  # of those ever added, from 0
         self.layer = layer
         return layer
 
@@ -565,9 +893,7 @@ def surface_from_mapper(mapper, images: np.ndarray | None = None, poses: np.ndar
     if (frames is None) == (images is None and poses is None):
         raise ValueError("Expected either images and poses or frames, but got "
                          + ("both" if frames is not None else "neither"))
-    ev = mapper.evidence()
-    cand = mapper.value_rule.occupied(ev["count"], ev["hits"])
-    obs = np.isfinite(ev["min_all"])
+    cand, obs = map_candidates(mapper)
     if frames is None:
         return surface_from_evidence(cand, obs, mapper.grid, mapper.spec, images, poses, mapper.threshold,
                                      options)

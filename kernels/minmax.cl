@@ -51,6 +51,7 @@ inline int beam_index_lo(float t, __global const float *tan_edges, __global cons
                          const PingParams *P)
 {
     int j = lut[clamp((int)floor((t - P->tan_lo) * P->lut_scale), 0, lut_n - 1)];
+    j += (j < P->n_beams - 1 && tan_edges[j + 1] <= t);  // the loop's usual single step, without a branch
     while (j < P->n_beams - 1 && tan_edges[j + 1] <= t) ++j;
     while (j > 0 && tan_edges[j] > t) --j;
     return j;
@@ -63,6 +64,11 @@ inline int beam_index_lo(float t, __global const float *tan_edges, __global cons
 // Footprint: bins [b0, b0 + win - 1] x beams [j0, j1], reaching near = rho + shadow_m towards
 // the sonar. With a max table (use_table) the
 // max is two reads; without, a loop over the cells (faster on GPUs: no table to build).
+inline float footprint_value(const PingParams *P, int first, int j0, int j1, __global const float *image,
+                             __global const float *table, int use_table, __global const int *first_bright,
+                             int *clear);
+inline int view_clear(int j0, int j1, int b0, __global const int *first_bright);
+
 inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
                               __global const float *image, __global const float *tan_edges,
                               __global const int *lut, __global const float *table, int use_table,
@@ -80,8 +86,6 @@ inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
     float t = y / x;  // tan(azimuth): monotonic over the fan, so no atan2 is needed
     if (t < P->tan_lo || t > P->tan_hi) return -1.0f;
     int first = (int)floor((r - P->near - P->rmin) * P->inv_dr);  // < 0 near the blanking range
-    int b0 = max(first, 0);
-    int b1 = min(first + P->win - 1, P->n_bins - 1);
     int j0 = 0, j1 = P->n_beams - 1;
     float q = h2 - P->rho * P->rho;
     if (q > 0.0f) {  // the sphere spans azimuths theta -+ asin(rho / h); in tangents:
@@ -90,10 +94,23 @@ inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
         if (d0 > 0.0f) j0 = beam_index_lo((t - u) / d0, tan_edges, lut, P->lut_n, P);
         if (d1 > 0.0f) j1 = beam_index_lo((t + u) / d1, tan_edges, lut, P->lut_n, P);
     }
+    return footprint_value(P, first, j0, j1, image, table, use_table, first_bright, clear);
+}
+
+// The max over the footprint of bins [max(first, 0), first + win - 1] x beams [j0, j1] (the second half
+// of voxel_ping_value), and *clear as voxel_ping_value sets it.
+inline float footprint_value(const PingParams *P, int first, int j0, int j1, __global const float *image,
+                             __global const float *table, int use_table, __global const int *first_bright,
+                             int *clear)
+{
+    *clear = 0;
+    int b0 = max(first, 0);
+    int b1 = min(first + P->win - 1, P->n_bins - 1);
     float v = 0.0f;
     if (use_table && first >= 0) {  // two reads (more near the apex)
-        int k = 0;
-        while ((2 << k) <= j1 - j0 + 1 && k + 1 < P->n_levels) ++k;
+        // the largest level k < n_levels with 2^k <= the span (0 for spans of 1 beam or none)
+        int span = j1 - j0 + 1;
+        int k = span > 1 ? min(31 - (int)clz(span), P->n_levels - 1) : 0;
         int w = 1 << k;
         __global const float *t = table + ((size_t)k * P->n_bins + b0) * P->n_beams;
         v = t[j1 - w + 1];
@@ -104,13 +121,17 @@ inline float voxel_ping_value(const PingParams *P, float cx, float cy, float cz,
             for (int j = j0; j <= j1; ++j) v = fmax(v, row[j]);
         }
     }
-    if (P->rule != 0 && v < P->thr) {  // only a dark view's count reads clear (update_voxel)
-        *clear = 1;
-        for (int jj = j0; jj <= j1; ++jj) {
-            if (first_bright[jj] < b0) { *clear = 0; break; }
-        }
+    if (P->rule != 0 && v < P->thr) *clear = view_clear(j0, j1, b0, first_bright);  // only a dark
+    return v;  // view's count reads clear (update_voxel)
+}
+
+// 1 when no beam j0..j1 has a return (first_bright) nearer than bin b0, else 0.
+inline int view_clear(int j0, int j1, int b0, __global const int *first_bright)
+{
+    for (int jj = j0; jj <= j1; ++jj) {
+        if (first_bright[jj] < b0) return 0;
     }
-    return v;
+    return 1;
 }
 
 // One work-item per pixel: an 8-bit image to float32 intensities, dst = src * scale (1/255).
@@ -314,6 +335,104 @@ inline long voxel_address(const PingParams *P, __global const int *index, int i,
     return (long)slot * B * B * Bz + ((ri - bi * B) * B + (rj - bj * B)) * Bz + rk - bk * Bz;
 }
 
+#ifdef GPUMAP_CPU_VECTORS
+// beam_index_lo of eight tangents t where mask (else the value none): the table's guess and its usual
+// single step as vector operations; a lane that needs more steps takes beam_index_lo's loops.
+inline int8 beam_index_lo8(float8 t, int8 mask, __global const float *tan_edges, __global const int *lut,
+                           const PingParams *P, int none)
+{
+    float8 tt = select((float8)(P->tan_lo), t, mask);  // masked lanes: a tangent inside the table
+    int8 m = clamp(convert_int8(floor((tt - P->tan_lo) * P->lut_scale)), 0, P->lut_n - 1);
+    int ms[8], js[8];
+    float ts[8];
+    vstore8(m, 0, ms);
+    vstore8(tt, 0, ts);
+    for (int l = 0; l < 8; ++l) {
+        int j = lut[ms[l]];
+        j += (j < P->n_beams - 1 && tan_edges[j + 1] <= ts[l]);
+        // settled when neither loop of beam_index_lo would move it
+        if ((j < P->n_beams - 1 && tan_edges[j + 1] <= ts[l]) || (j > 0 && tan_edges[j] > ts[l]))
+            j = beam_index_lo(ts[l], tan_edges, lut, P->lut_n, P);
+        js[l] = j;
+    }
+    return select((int8)(none), vload8(0, js), mask);
+}
+
+// CPUs (built with -DGPUMAP_CPU_VECTORS): voxels kb..kstop of column (cx, cy) eight at a time, the
+// arithmetic of voxel_ping_value (sonar-frame point, range, aperture and azimuth tests, footprint
+// bins, the beam span's tangents) on float8 vectors, then the footprint max and the update lane by
+// lane for the observed voxels. Every vector operation rounds as its scalar twin (IEEE, no
+// contraction), in the same order, so each voxel gets voxel_ping_value's value bit for bit.
+// Returns 1 if any voxel is observed.
+inline int gather_run8(const PingParams *P, float cx, float cy, int kb, int kstop, int slot, long base,
+                       __global const float *image, __global const float *tan_edges, __global const int *lut,
+                       __global const float *table, int use_table, __global const int *first_bright,
+                       __global float *grid, __global float *bright, __global ulong *count)
+{
+    const float px = P->A[0] * cx + P->A[1] * cy;  // the scalar sums' first two terms, as they round
+    const float py = P->A[3] * cx + P->A[4] * cy;
+    const float pz = P->A[6] * cx + P->A[7] * cy;
+    const float rho2 = P->rho * P->rho;
+    const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    int hit = 0;
+    for (int k = kb; k <= kstop; k += 8) {
+        int8 kk = (int8)(k) + lane;
+        float8 cz = (float8)(P->origin[2]) + (convert_float8(kk) + 0.5f) * P->voxel;
+        float8 x = ((float8)(px) + P->A[2] * cz) + P->b[0];
+        float8 y = ((float8)(py) + P->A[5] * cz) + P->b[1];
+        float8 z = ((float8)(pz) + P->A[8] * cz) + P->b[2];
+        float8 h2 = x * x + y * y;
+        float8 r = sqrt(h2 + z * z);
+        float8 t = y / x;
+        // voxel_ping_value's rejections, negated as written there (so NaNs fall the same way)
+        int8 ok = (kk <= (int8)(kstop)) & ~(x <= 0.0f) & ~((r < P->rmin) | (r >= P->rmax))
+                  & ~(z * z > P->tan2_half_vfov * h2) & ~((t < P->tan_lo) | (t > P->tan_hi));
+        if (!any(ok)) continue;
+        float8 fl = floor((r - P->near - P->rmin) * P->inv_dr);
+        int8 first = convert_int8(select((float8)(0.0f), fl, ok));  // masked lanes: 0, never out of range
+        float8 q = h2 - rho2;
+        float8 u = P->rho / sqrt(select((float8)(1.0f), q, q > 0.0f));
+        float8 d0 = 1.0f + t * u, d1 = 1.0f - t * u;
+        int8 w0 = ok & (q > 0.0f) & (d0 > 0.0f), w1 = ok & (q > 0.0f) & (d1 > 0.0f);
+        float8 ta = (t - u) / select((float8)(1.0f), d0, w0);
+        float8 tb = (t + u) / select((float8)(1.0f), d1, w1);
+        int8 j0v = beam_index_lo8(ta, w0, tan_edges, lut, P, 0);
+        int8 j1v = beam_index_lo8(tb, w1, tan_edges, lut, P, P->n_beams - 1);
+        // footprint_value's table reads where two suffice (a span under twice its level's width; the
+        // first bin in the table): entries a and b of the table, found for all lanes at once
+        int8 span = j1v - j0v + 1;
+        int8 lvl = select((int8)(0), min(31 - convert_int8(clz(span)), (int8)(P->n_levels - 1)), span > 1);
+        int8 wv = (int8)(1) << lvl;
+        int8 row = (lvl * P->n_bins + max(first, 0)) * P->n_beams;
+        int8 two = ok & (first >= 0) & (span >= 1) & (span < 2 * wv) & (int8)(use_table ? -1 : 0);
+        int oks[8], twos[8], firsts[8], j0s[8], j1s[8], as[8], bs[8];
+        vstore8(ok, 0, oks);
+        vstore8(two, 0, twos);
+        vstore8(first, 0, firsts);
+        vstore8(j0v, 0, j0s);
+        vstore8(j1v, 0, j1s);
+        vstore8(row + j1v - wv + 1, 0, as);
+        vstore8(row + j0v, 0, bs);
+        for (int l = 0; l < 8; ++l) {
+            if (!oks[l]) continue;
+            int j0 = j0s[l], j1 = j1s[l];
+            int clear;
+            float v;
+            if (twos[l]) {
+                v = fmax(table[as[l]], table[bs[l]]);
+                clear = 0;
+                if (P->rule != 0 && v < P->thr) clear = view_clear(j0, j1, max(firsts[l], 0), first_bright);
+            } else {
+                v = footprint_value(P, firsts[l], j0, j1, image, table, use_table, first_bright, &clear);
+            }
+            hit = 1;
+            if (slot >= 0) update_voxel(P, (size_t)(base + k + l), v, clear, grid, bright, count);
+        }
+    }
+    return hit;
+}
+#endif
+
 // Fold one ping into the voxels c0..c1 of column (i, j) that the column's range can hold (col: its
 // block_column, or ok = -1 to look it up here). Block by block
 // along the column: one index read per block, then that block's voxels (contiguous) as a plain loop; a
@@ -349,6 +468,10 @@ inline void gather_column(const PingParams *P, int i, int j, int c0, int c1, __g
             base = (long)slot * B * B * Bz + within - (long)(P->blk_lo[2] + bk * Bz);
         }
         int hit = 0;
+#ifdef GPUMAP_CPU_VECTORS
+        hit = gather_run8(P, cx, cy, kb, kstop, slot, base, image, tan_edges, lut, table, use_table,
+                          first_bright, grid, bright, count);
+#else
         for (int k = kb; k <= kstop; ++k) {
             float cz = P->origin[2] + ((float)k + 0.5f) * P->voxel;
             int clear;
@@ -359,6 +482,7 @@ inline void gather_column(const PingParams *P, int i, int j, int c0, int c1, __g
                 if (slot >= 0) update_voxel(P, (size_t)(base + k), v, clear, grid, bright, count);
             }
         }
+#endif
         if (hit) {
             if (slot < 0) err[0] = 1;
             else if (!seen[slot]) seen[slot] = 1;  // a read, and a write only the first time

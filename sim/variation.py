@@ -6,14 +6,17 @@ the ping's gain, the arm's pose error and lost pings make a voxel on a real surf
 minimum over views erode such surfaces. This module holds both halves of that story:
 
 - :class:`SonarVariation`: what :class:`~.sonar.SonarSimulator` adds on top of its noise-free
-  image (heavier speckle, a per-ping gain, pose jitter, dropped pings), seeded and
+  image (heavier speckle, a per-ping gain, pose jitter, dropped pings, a surface texture fixed to
+  the world, an extra range loss), seeded and
   deterministic, with :meth:`SonarVariation.none` (the simulator as it always was, bit for
   bit) and :meth:`SonarVariation.real_tank` (fitted to the real OASIS tank run by
   ``python -m bench variation``).
 - :class:`VariationStats`: the measurement, one view at a time, of the same figures on real
   pings or on simulated ones: per voxel the share of bright views, that share by range and
   by incidence angle, the frame-to-frame persistence of a voxel's bright/dark state, and per
-  ping the gain (median intensity of its bright cells).
+  ping the gain (median intensity of its bright cells), its bright cells and the share of the
+  surface voxels it sees that are bright. :func:`headline` reads the two figures the preset is
+  fitted to match: :data:`PER_PING_SPREAD` and :data:`PERSISTENCE`.
 
 How a view is scored (:func:`view_values`): the voxel's footprint max is computed exactly as
 the mapper computes it (:func:`gpumap.reference.voxel_ping_values`, the NumPy oracle of the

@@ -295,10 +295,25 @@ def test_interrupted_replay_leaves_the_previous_outputs(step, previous, old_out,
     assert os.listdir(tmp_path) == ["out"]
 
 
-@needs_data
-def test_ctrl_c_during_the_swap_waits_for_the_complete_new_set(old_out, monkeypatch) -> None:
+@pytest.fixture
+def sigint(request):
+    """Set SIGINT's Python handler to ``request.param`` for the test, and restore it after.
+
+    The disposition a test process inherits is not Python's default everywhere: a job that a
+    non-interactive shell starts in the background (``pytest &``, ``nohup``, many CI runners)
+    inherits SIGINT *ignored*, and Python then installs no KeyboardInterrupt handler. A test of
+    what Ctrl-C does must say which handler it means instead of assuming one.
+    """
     if threading.current_thread() is not threading.main_thread():
-        pytest.skip("signals reach the main thread only")
+        pytest.skip("signal handlers are set in the main thread only")
+    old = signal.signal(signal.SIGINT, request.param)
+    yield request.param
+    signal.signal(signal.SIGINT, old)
+
+
+@needs_data
+@pytest.mark.parametrize("sigint", [signal.default_int_handler], indirect=True)
+def test_ctrl_c_during_the_swap_waits_for_the_complete_new_set(old_out, monkeypatch, sigint) -> None:
     _replace_call(monkeypatch, old_out, 1, lambda: os.kill(os.getpid(), signal.SIGINT))
     with pytest.raises(KeyboardInterrupt):
         gpumap.commands.replay.main([str(DATA / "oasis_tank"), *SMALL, "--threshold", "0.3", "--no-pictures",
@@ -306,6 +321,19 @@ def test_ctrl_c_during_the_swap_waits_for_the_complete_new_set(old_out, monkeypa
     s = json.loads((old_out / "summary.json").read_text())
     assert s["threshold"] == 0.3  # the new set, whole (and the old pictures gone with the old set)
     assert sorted(os.listdir(old_out)) == ["map.npz", "occupied.ply", "summary.json", "surface.npz"]
+
+
+@needs_data
+@pytest.mark.parametrize("sigint", [signal.SIG_IGN], indirect=True)
+def test_an_ignored_ctrl_c_stays_ignored_through_the_swap(old_out, monkeypatch, sigint) -> None:
+    """A process that ignores SIGINT (started in the background) still ignores it after the swap
+    held it: the run completes, the new set is whole, and the disposition is still SIG_IGN."""
+    _replace_call(monkeypatch, old_out, 1, lambda: os.kill(os.getpid(), signal.SIGINT))
+    assert gpumap.commands.replay.main([str(DATA / "oasis_tank"), *SMALL, "--threshold", "0.3",
+                                        "--no-pictures", "--out", str(old_out)]) == 0
+    assert json.loads((old_out / "summary.json").read_text())["threshold"] == 0.3
+    assert sorted(os.listdir(old_out)) == ["map.npz", "occupied.ply", "summary.json", "surface.npz"]
+    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
 
 
 @needs_data

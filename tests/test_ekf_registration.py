@@ -23,6 +23,8 @@ from gpumap.ekf.registration import (
     ScanRegistrar,
     fuse_revisit,
     fuse_step,
+    image_agreement,
+    image_descriptor,
     place_scores,
     plane_points,
     register_scan,
@@ -127,7 +129,7 @@ def test_a_ping_that_shows_nothing_never_moves_the_pose():
     mp = _world(T0, plane_points(first_returns(T0), SPEC.bearings_rad))
     assert register_scan(np.zeros((0, 3)), mp, T0, vfov_rad=SPEC.vfov_rad) is None
     ranges = np.stack([first_returns(T0), np.full(SPEC.n_beams, np.inf)])
-    rg = ScanRegistrar(SPEC, ranges=ranges, step=True, revisit=True, min_gap=1)
+    rg = ScanRegistrar(SPEC, ranges=ranges, step=True, revisit=True, min_gap=1, min_image_ncc=None)
     Q = motion_cov(0.005, 0.005)
     U = se3_exp(np.array([0.01, 0.0, 0.0, 0.0, 0.0, 0.02]))
     rg.correct_step(0, None, T0, np.eye(4), Q)
@@ -265,36 +267,54 @@ def test_replay_ekf_says_how_much_it_trusted_the_registration(tmp_path, capsys, 
         warnings.simplefilter("ignore", RuntimeWarning)
         rc = main([str(DATA / "oasis_tank"), "--ekf", "--max-frames", "12", "--out", str(out),
                    "--backend", "numpy", "--no-pictures", "--no-progress"]
-                  + ([] if off else ["--ekf-registration"]))
+                  + (["--no-ekf-registration"] if off else []))  # on by default
     assert rc == 0
     r = json.loads((out / "summary.json").read_text())["ekf"]["registration"]
     assert r["used"] is (not off)
     if not off:
         assert r["pings"] == 12 and 0.0 <= r["fused_share"] <= 1.0
-        for k in ("registered", "fused", "gated", "distrusted", "revisits", "revisits_fused"):
+        for k in ("registered", "fused", "gated", "distrusted", "revisits", "revisits_fused",
+                  "revisits_unverified"):
             assert k in r
     line = capsys.readouterr().out
     assert ("scan registration off" in line) is off and ("scan registration corrected" in line) is (not off)
 
 
-def test_a_revisit_brings_the_pose_back():
-    # out along a path and back along the same poses: on the way back every ping matches one
-    # of the way out, and the drift gathered since is taken out
-    n = 40
+def _out_and_back(n: int = 40):
+    """Out along a path and back along the same poses; each pose's image descriptor a random unit
+    vector, the same for a pose and its revisit (the images of one place agree)."""
     s = np.linspace(0, 1, n)
     out = [pose(0.1 + 0.3 * t, -0.1 + 0.2 * np.sin(3 * t), 0.3 * np.sin(2 * t)) for t in s]
     T_true = np.stack(out + out[::-1])
     ranges = np.stack([first_returns(T) for T in T_true])
+    d = np.random.default_rng(7).normal(size=(n, 64))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return T_true, ranges, np.concatenate([d, d[::-1]]).astype(np.float32)
+
+
+def test_a_revisit_brings_the_pose_back():
+    _revisit_brings_the_pose_back(graph=True)
+
+
+def test_a_revisit_brings_the_pose_back_without_the_graph():
+    _revisit_brings_the_pose_back(graph=False)
+
+
+def _revisit_brings_the_pose_back(graph: bool):
+    # on the way back every ping matches one of the way out (first returns and image), and the
+    # drift gathered since is taken out (by the filter alone, or with the pose graph behind it)
+    n = 40
+    T_true, ranges, desc = _out_and_back(n)
     gains = []
     for seed in range(3):
         U, T_odo = drifting_odometry(T_true, 0.004, 0.004, seed)
-        rg = ScanRegistrar(SPEC, ranges=ranges, min_gap=10)
+        rg = ScanRegistrar(SPEC, ranges=ranges, descriptors=desc, min_gap=10, graph=graph)
         loop = _loop(ranges, U, T_true[0], rg)
         back = slice(n + n // 2, 2 * n)  # the second half of the way back
         eo = np.linalg.norm(T_odo[back, :3, 3] - T_true[back, :3, 3], axis=1).mean()
         ee = np.linalg.norm(loop.poses[back, :3, 3] - T_true[back, :3, 3], axis=1).mean()
         gains.append(ee / eo)
-        assert rg.stats.revisits_fused > 0
+        assert rg.stats.revisits_fused > 0 and (rg.solves > 0) is graph
     assert max(gains) < 0.5, gains
 
 
@@ -308,3 +328,76 @@ def test_mutant_revisit_with_the_wrong_sign_fails(monkeypatch):
     monkeypatch.setattr(reg_mod, "fuse_revisit", flipped)
     with pytest.raises(AssertionError):
         test_a_revisit_brings_the_pose_back()
+
+
+def test_a_place_whose_image_disagrees_is_no_revisit():
+    # the same first returns, but every ping's image unlike every other's (another attitude):
+    # nothing is fused, and the pose is the odometry's exactly
+    T_true, ranges, desc = _out_and_back(40)
+    other = np.random.default_rng(8).normal(size=desc.shape)
+    other = (other / np.linalg.norm(other, axis=1, keepdims=True)).astype(np.float32)
+    U, T_odo = drifting_odometry(T_true, 0.004, 0.004, 0)
+    rg = ScanRegistrar(SPEC, ranges=ranges, descriptors=other, min_gap=10)
+    loop = _loop(ranges, U, T_true[0], rg)
+    assert rg.stats.revisits_fused == 0 and rg.stats.revisits_unverified > 0 and rg.closures == []
+    np.testing.assert_allclose(loop.poses, T_odo, atol=1e-9)
+    # without the verification the same pings are fused (the check is what refused them)
+    rg = ScanRegistrar(SPEC, ranges=ranges, descriptors=other, min_gap=10, min_image_ncc=None)
+    _loop(ranges, U, T_true[0], rg)
+    assert rg.stats.revisits_fused > 0
+
+
+def test_of_the_matching_places_the_one_whose_image_agrees_is_taken():
+    # two stored pings with the same first returns; only the second one's image is the new ping's
+    T = pose(0.2, 0.0, 0.1)
+    r = first_returns(T)
+    ranges = np.stack([r, r, np.full_like(r, np.inf), r])
+    d = np.eye(4, 16, dtype=np.float32)
+    desc = np.stack([d[0], d[1], d[2], d[1]])
+    rg = ScanRegistrar(SPEC, ranges=ranges, descriptors=desc, min_gap=1)
+    Q = motion_cov(0.004, 0.004)
+    for k in range(3):
+        rg.correct_step(k, None, T, np.eye(4), Q)
+        rg.remember(T)
+    rg.correct_step(3, None, T, np.eye(4), Q)
+    assert rg.last_revisit == 1 and [c[:2] for c in rg.closures] == [(3, 1)]
+
+
+def test_image_descriptor_is_the_same_for_uint8_and_float_and_agrees_with_itself():
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, size=(398, 512)).astype(np.uint8)
+    a = image_descriptor(img)
+    b = image_descriptor(img.astype(np.float32) / 255.0)
+    assert a.shape == (49 * 64,) and a.dtype == np.float32
+    np.testing.assert_allclose(a, b, atol=1e-6)
+    assert abs(float(np.linalg.norm(a)) - 1.0) < 1e-5 and abs(float(a.mean())) < 1e-6
+    # block means by brute force: the first block and the last whole one
+    m = img[:392, :512].astype(np.float64).reshape(49, 8, 64, 8).mean(axis=(1, 3)).ravel()
+    m = (m - m.mean()) / np.linalg.norm(m - m.mean())
+    np.testing.assert_allclose(a, m, atol=1e-6)
+    other = image_descriptor(rng.integers(0, 256, size=(398, 512)).astype(np.uint8))
+    agree = image_agreement(a, np.stack([a, other, -a]))
+    np.testing.assert_allclose(agree[[0, 2]], [1.0, -1.0], atol=1e-5)
+    assert abs(agree[1]) < 0.1
+    with pytest.raises(ValueError, match="2D"):
+        image_descriptor(np.zeros(5))
+    assert not np.any(image_descriptor(np.ones((16, 16))))  # a constant image: no pattern
+
+
+def test_a_revisit_without_an_image_says_what_it_needs():
+    r = first_returns(pose(0.2, 0.0, 0.1))
+    rg = ScanRegistrar(SPEC, ranges=r[None])
+    with pytest.raises(ValueError, match="min_image_ncc=None"):
+        rg.correct_step(0, None, np.eye(4), np.eye(4), motion_cov(0.004, 0.004))
+
+
+@needs_data
+def test_registration_on_and_off_together_is_refused(capsys) -> None:
+    from gpumap.commands.replay import main
+
+    with pytest.raises(SystemExit) as e:
+        main([str(DATA / "oasis_tank"), "--ekf", "--ekf-registration", "--no-ekf-registration"])
+    assert e.value.code == 2 and "contradict" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main([str(DATA / "oasis_tank"), "--no-ekf-registration"])  # only with --ekf
+    assert e.value.code == 2

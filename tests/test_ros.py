@@ -122,6 +122,78 @@ def test_live_mapper_counts_drops_and_skips_and_maps_what_it_keeps():
     assert np.array_equal(m.raw_values(), ref.raw_values(), equal_nan=True)
 
 
+def test_live_surface_worker_publishes_the_offline_layer_of_the_pings_mapped():
+    """The surface worker follows the live mapper on its own thread: every layer it publishes is the
+    offline layer of the pings it says it covers, on the map of those pings; the last covers them all;
+    a reset forgets them; layer_now gives both layers of one moment."""
+    from gpumap.ros.live import LiveSurfaceWorker
+    from gpumap.surface import surface_from_mapper
+
+    imgs, Ts = _small_pings(12, seed=3)
+    m = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy", threshold=0.4)
+    published = []
+    live = LiveMapper(m, queue_size=64, max_batch=3)
+    surf = LiveSurfaceWorker(live, on_publish=lambda layer, t: published.append((layer, t)))
+    s = 1_000_000_000
+    for k in range(12):
+        live.add_pose(k * s, Ts[k])
+    live.start()
+    surf.start()
+    for k in range(12):
+        live.add_ping(k * s, imgs[k])
+        time.sleep(0.01)
+    live.stop(drain=True)
+    surf.stop()
+    assert surf.error is None and published
+    st = surf.stats()
+    assert st["surface_pings"] == 12 and st["surface_waiting"] == 0 and st["surface_age_s"] == 0.0
+    for layer, t in published:
+        n = layer.stats["pings"]
+        assert t == (n - 1) * s  # stamped with the newest ping it covers
+        ref = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy", threshold=0.4)
+        ref.integrate_batch(imgs[:n], Ts[:n])
+        off = surface_from_mapper(ref, imgs[:n], Ts[:n])
+        assert np.array_equal(layer.surface, off.surface) and np.array_equal(layer.votes, off.votes)
+    assert published[-1][0].stats["pings"] == 12 and published[-1][0].surface.any()
+    layer, values = surf.layer_now()
+    assert np.array_equal(layer.surface, published[-1][0].surface)
+    assert np.array_equal(values, m.values(), equal_nan=True)
+    live.reset()
+    assert surf.stats()["surface_pings"] == 0 and surf.surface.n_pings == 0
+
+
+def test_live_surface_worker_with_a_window_publishes_the_newest_pings_layer():
+    """max_pings: every published layer is the offline layer of the newest pings it holds, on the map
+    of every ping mapped up to then."""
+    from gpumap.ros.live import LiveSurfaceWorker
+    from gpumap.surface import surface_from_mapper
+
+    imgs, Ts = _small_pings(12, seed=4)
+    m = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy", threshold=0.4)
+    published = []
+    live = LiveMapper(m, queue_size=64, max_batch=2)
+    surf = LiveSurfaceWorker(live, on_publish=lambda layer, t: published.append((layer, t)), max_pings=5)
+    s = 1_000_000_000
+    for k in range(12):
+        live.add_pose(k * s, Ts[k])
+    live.start()
+    surf.start()
+    for k in range(12):
+        live.add_ping(k * s, imgs[k])
+        time.sleep(0.01)
+    live.stop(drain=True)
+    surf.stop()
+    assert surf.error is None and published[-1][1] == 11 * s
+    for layer, t in published:
+        n, lo = t // s + 1, layer.stats["first_ping"]
+        assert lo == max(0, n - 5) and layer.stats["pings"] == n - lo
+        ref = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy", threshold=0.4)
+        ref.integrate_batch(imgs[:n], Ts[:n])
+        off = surface_from_mapper(ref, imgs[lo:n], Ts[lo:n])
+        assert np.array_equal(layer.surface, off.surface) and np.array_equal(layer.votes, off.votes)
+    assert surf.stats()["surface_pings"] == 5
+
+
 # ------------------------------------------------------------------------ conversions
 @needs_ros
 @pytest.mark.parametrize("encoding", ["mono8", "mono16", "32FC1"])
@@ -327,6 +399,8 @@ class Probe:
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.node.create_subscription(PointCloud2, f"{ns}/gpumap/occupied_cloud", self.clouds.append, latched)
+        self.surface: list = []
+        self.node.create_subscription(PointCloud2, f"{ns}/gpumap/surface_cloud", self.surface.append, latched)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
 
     def _on_diag(self, msg) -> None:
@@ -462,6 +536,27 @@ def _offline(play, grid, frames, threshold=0.4, wire=True, confidence=False):
     return m
 
 
+def _offline_surface(mapper, frames, wire=True):
+    """The surface layer of ``mapper`` (which integrated ``frames`` in order) from the same pings."""
+    from gpumap.surface import surface_from_mapper
+
+    return surface_from_mapper(mapper, frames=((f.image, _wire_pose(f.T_W_S) if wire else f.T_W_S)
+                                               for f in frames))
+
+
+def _assert_cloud_is_layer(msg, layer) -> int:
+    """The surface cloud's voxels are exactly the layer's surface voxels (value 1 each)."""
+    ijk, val = _cloud_ijk(msg, layer.grid)
+    got = np.zeros(layer.surface.shape, bool)
+    got[tuple(ijk.T)] = True
+    n = int(layer.surface.sum())
+    assert len(ijk) == n and np.array_equal(got, layer.surface), (
+        f"surface cloud has {len(ijk)} voxels, the offline layer {n}; {int((got & ~layer.surface).sum())} "
+        f"only in the cloud, {int((layer.surface & ~got).sum())} only offline")
+    assert np.all(val == 1.0)
+    return n
+
+
 def _grid_of(params: Path) -> gpumap.GridSpec:
     import json
 
@@ -497,10 +592,19 @@ def test_real_tank_over_dds_equals_the_offline_map(ros_session, tmp_path):
     ref = _offline(play, _grid_of(params), frames, wire=False)
     n = _assert_cloud_is_map(probe.clouds[-1], ref, 0.4)
     assert n > 10_000  # the tank's walls and floor, not an empty map
+    # the surface layer: its last cloud covers every ping, and is the offline layer of them
+    probe.spin_until(lambda: probe.count("surface_pings") == len(frames) and probe.surface
+                     and probe.surface[-1].header.stamp == probe.clouds[-1].header.stamp, 120,
+                     "the surface layer of every ping")
+    off = _offline_surface(ref, frames, wire=False)
+    assert _assert_cloud_is_layer(probe.surface[-1], off) > 1000
     assert node.poll() is None
-    assert _stop(node) == 0  # Ctrl-C: clean exit, map saved on exit
-    back = gpumap.MinMaxMapper.load(saved, backend="numpy")
-    assert np.array_equal(back.raw_values(), ref.raw_values())
+    assert _stop(node) == 0  # Ctrl-C: clean exit, both layers saved on exit in one file
+    from gpumap.refined_map import load_refined
+
+    back = load_refined(saved)
+    assert np.array_equal(back.map_values, ref.values(), equal_nan=True)
+    assert np.array_equal(back.occupancy, off.values(), equal_nan=True)
 
 
 def _play_all(ros_session, play, recording: Path, hz: int, timeout_s: float):
@@ -597,6 +701,39 @@ def test_confidence_on_the_wire_is_the_offline_layer(ros_session, tmp_path, sim_
 
 
 @needs_ros
+def test_surface_layer_on_the_wire_is_the_offline_layer(ros_session, tmp_path, sim_recording):
+    """The second cloud: after a simulated run at 20 Hz, the last surface cloud covers every ping
+    (/diagnostics says so, with its age) and equals the offline layer of them, voxel for voxel;
+    ~/save_map writes both layers in one file; ~/reset empties the layer too."""
+    from gpumap.refined_map import load_refined
+    from gpumap.ros.play import open_playable, write_params
+
+    play = open_playable(sim_recording)
+    params = write_params(tmp_path / "sim.yaml", play, voxel_size_m=None, threshold=0.4, backend="numpy",
+                          world_frame="map", pose_type="pose_stamped")
+    saved = tmp_path / "both.npz"
+    ros_session("node", "ros", "--params-file", str(params), "--ros-args", *NODE_TEST_ARGS,
+                "-p", f"save_path:={saved}")
+    probe, frames = _play_all(ros_session, play, sim_recording, 20, 60)
+    probe.spin_until(lambda: probe.count("surface_pings") == len(frames) and probe.surface
+                     and probe.surface[-1].header.stamp == probe.clouds[-1].header.stamp, 60,
+                     "the surface layer of every ping")
+    assert probe.count("surface_waiting") == 0 and float(probe.diag["surface_age_s"]) == 0.0
+    assert float(probe.diag["surface_update_s"]) > 0 and probe.count("surface_updates") >= 1
+    ref = _offline(play, play.grid, frames)
+    off = _offline_surface(ref, frames)
+    n = _assert_cloud_is_layer(probe.surface[-1], off)
+    assert n > 100 and probe.count("surface_voxels") == n
+    ok, path = probe.call("save_map")
+    assert ok and Path(path) == saved
+    back = load_refined(saved)
+    assert np.array_equal(back.map_values, ref.values(), equal_nan=True)
+    assert np.array_equal(back.occupancy, off.values(), equal_nan=True)
+    assert probe.call("reset")[0]
+    probe.spin_until(lambda: probe.surface[-1].width == 0, 10, "the empty surface cloud after the reset")
+
+
+@needs_ros
 def test_bad_input_on_the_wire_is_counted_and_leaves_the_map_alone(ros_session, tmp_path, sim_recording):
     """Every row of the issue's bad-input table, sent by a test publisher to a live node."""
     from geometry_msgs.msg import PoseStamped
@@ -610,9 +747,9 @@ def test_bad_input_on_the_wire_is_counted_and_leaves_the_map_alone(ros_session, 
     frames = list(play.frames())[:7]
     params = write_params(tmp_path / "sim.yaml", play, voxel_size_m=None, threshold=0.4, backend="numpy",
                           world_frame="map", pose_type="pose_stamped")
-    saved = tmp_path / "map.npz"
+    saved = tmp_path / "map.npz"  # surface:=false: ~/save_map writes the map file MinMaxMapper.load reads
     node = ros_session("node", "ros", "--params-file", str(params), "--ros-args", *NODE_TEST_ARGS,
-                       "-p", f"save_path:={saved}")
+                       "-p", f"save_path:={saved}", "-p", "surface:=false")
     probe = ros_session.probe()
     n = probe.node
     pub_img = n.create_publisher(Image, "sonar/image",

@@ -331,15 +331,14 @@ def test_demo_and_replay_take_no_surface():
     assert replay._parser().parse_args(["x", "--no-surface"]).surface is False
 
 
-def test_live_surface_follows_the_mapper_batch_by_batch(scene):
-    """The live layer: its first update is the offline layer of the same pings; later batches warm
-    start from the last weights and keep the layer inside the evidence map of that moment."""
-    from gpumap.reference import evidence_occupied
+def test_live_surface_warm_start_stays_inside_the_map(scene):
+    """With warm_start the first update is the offline layer; later ones start from the last weights
+    and keep the layer inside the map's occupied voxels of that moment."""
     from gpumap.surface import LiveSurface
 
     images, poses = scene["images"], scene["poses"]
     m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="evidence", threshold=THR)
-    live = LiveSurface(m)
+    live = LiveSurface(m, warm_start=True)
     m.integrate_batch(images[:6], poses[:6])
     live.add(images[:6], poses[:6])
     first = live.update()
@@ -350,11 +349,61 @@ def test_live_surface_follows_the_mapper_batch_by_batch(scene):
     live.add(images[6:], poses[6:])
     second = live.update()
     assert second.stats["warm"] is True and live.n_pings == len(images)
-    ev = m.evidence()
-    assert not (second.surface & ~evidence_occupied(ev["count"], ev["hits"], m.bright_share, m.share_z)).any()
+    v = m.values()
+    assert not (second.surface & ~(v >= THR)).any()
     assert second.surface.sum() > 0
     with pytest.raises(ValueError, match="rule"):
         LiveSurface(gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain"))
+
+
+@pytest.mark.parametrize("opts", [SurfaceOptions(), SurfaceOptions(band_voxels=0, iterations=3,
+                                                                   max_front_share=0.5, min_votes=2)],
+                         ids=["defaults", "other"])
+def test_live_surface_equals_the_offline_layer_after_every_batch(scene, opts):
+    """Each (ping, voxel) worked out once, the passes over all pings at once: after every batch
+    (candidates come, go and come back as the map changes) the live layer is the offline one of the
+    same pings on the same map, every count and the weights bit for bit."""
+    from gpumap.geometry import SHARE_Z
+    from gpumap.surface import LiveSurface, _layer, _prepare, map_candidates
+
+    images, poses = scene["images"], scene["poses"]
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="evidence", threshold=THR)
+    live = LiveSurface(m, opts)
+    went = came = 0
+    last = None
+    # the decision's share moves between updates (a read-time option): candidates go and come back
+    batches = ((0, 1), (1, 4), (4, 5), (5, 9), (9, 12))
+    for (a, b), share in zip(batches, (0.2, 0.2, 1.0, 0.2, 0.2), strict=True):
+        m.bright_share, m.share_z = share, (0.0 if share == 1.0 else SHARE_Z)
+        m.integrate_batch(images[a:b], poses[a:b])
+        live.add(images[a:b], poses[a:b])
+        got = live.update()
+        ref = surface_from_mapper(m, images[:b], poses[:b], opts)
+        for name in ("surface", "candidates", "observed", "votes", "views", "bright_views"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=f"{name} after {b}")
+        if last is not None:
+            went += int((last & ~got.candidates).sum())
+            came += int((got.candidates & ~last).sum())
+        last = got.candidates
+        cand, obs = map_candidates(m)
+        pings = [_prepare(i, T, SPEC, THR, 0.5 * GRID.voxel_size_m, opts.live_ping_share)
+                 for i, T in zip(images[:b], poses[:b], strict=True)]
+        w_ref = _layer(cand, obs, GRID, SPEC, pings, opts)[1]
+        w_got = live._pairs.explain(np.flatnonzero(cand), None)[1]
+        assert np.array_equal(w_got, w_ref)
+    assert went > 0 and came > 0  # the candidate set changed both ways between updates
+    assert got.surface.sum() > 0 and live.n_pairs > 0
+
+
+def test_map_candidates_are_the_evidence_rules_decision(scene):
+    from gpumap.reference import evidence_occupied
+    from gpumap.surface import map_candidates
+
+    m = scene["mapper"]
+    ev = m.evidence()
+    cand, obs = map_candidates(m)
+    np.testing.assert_array_equal(cand, evidence_occupied(ev["count"], ev["hits"], m.bright_share, m.share_z))
+    np.testing.assert_array_equal(obs, np.isfinite(ev["min_all"]))
 
 
 def test_empty_beams_clear_the_water_only_in_live_pings():
@@ -394,3 +443,61 @@ def test_side_scene_is_a_single_side_pitched_sweep_without_roll():
     pitch_deg = np.degrees(np.arcsin(-x_S[:, 2]))
     assert pitch_deg.min() >= 10 - 1e-6 and pitch_deg.max() <= 40 + 1e-6 and np.ptp(pitch_deg) > 20
     assert np.all(x_S[:, 1] > 0.7)  # every ping looks across to the objects' side (+y)
+
+
+def test_replay_builds_the_surface_layer_in_its_one_pass(tmp_path, monkeypatch):
+    """gpumap replay opens the recording once (the layer is fed by the mapping pass's batch hook)
+    and its surface.npz is the offline layer of the same pings, voxel for voxel."""
+    from conftest import DATA
+
+    import gpumap.commands.replay
+    import gpumap.io
+    from gpumap.refined_map import load_refined
+    from gpumap.replay import select_strided
+
+    if DATA is None:
+        pytest.skip("shared/data not found")
+    opened = []
+    real = gpumap.io.open_recording
+
+    def open_recording(*a, **k):
+        opened.append(a)
+        return real(*a, **k)
+
+    monkeypatch.setattr(gpumap.io, "open_recording", open_recording)
+    out = tmp_path / "out"
+    args = [str(DATA / "oasis_tank"), "--stride", "10", "--max-frames", "6", "--voxel-size", "0.1",
+            "--backend", "numpy", "--no-progress", "--no-pictures", "--out", str(out)]
+    monkeypatch.setattr(gpumap.replay, "REPLAY_BATCH", 4)  # two batches: the hook sees 4 + 2 pings
+    assert gpumap.commands.replay.main(args) == 0
+    assert len(opened) == 1
+    m = gpumap.MinMaxMapper.load(out / "map.npz", backend="numpy")
+    frames = [(f.image, f.T_W_S) for f in select_strided(real(DATA / "oasis_tank"), 10, 6)]
+    ref = surface_from_mapper(m, frames=iter(frames))
+    got = load_refined(out / "surface.npz")
+    assert ref.stats["pings"] == 6 and ref.surface.sum() > 0
+    np.testing.assert_array_equal(got.occupancy, ref.values())
+
+
+def test_live_surface_with_a_window_is_the_offline_layer_of_the_newest_pings(scene):
+    """max_pings: each update drops the oldest pings (their sums out, their pairs cut off) and is the
+    offline layer of the newest max_pings pings on the map of every ping, voxel for voxel."""
+    from gpumap.surface import LiveSurface
+
+    images, poses = scene["images"], scene["poses"]
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="evidence", threshold=THR)
+    live = LiveSurface(m, max_pings=4)
+    held = []
+    for a, b in ((0, 3), (3, 5), (5, 6), (6, 11), (11, 12)):
+        m.integrate_batch(images[a:b], poses[a:b])
+        live.add(images[a:b], poses[a:b])
+        got = live.update()
+        lo = max(0, b - 4)
+        ref = surface_from_mapper(m, images[lo:b], poses[lo:b])
+        for name in ("surface", "votes", "views", "bright_views"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=f"{name} after {b}")
+        assert got.stats["pings"] == b - lo and got.stats["first_ping"] == lo and live.n_added == b
+        held.append(live.n_pairs)
+    assert live.n_pings == 4 and max(held) < 2 * min(held[2:])  # bounded, not growing with the run
+    with pytest.raises(ValueError, match="max_pings"):
+        LiveSurface(m, max_pings=0)

@@ -306,26 +306,27 @@ def _fold_in_batches(params: np.ndarray, n_threads: np.ndarray, box_max: float) 
 
 def _union_groups(params: np.ndarray, n_threads: np.ndarray, slack: float = 2.0) -> list[tuple[int, int]]:
     """Split a batch into runs of pings whose boxes' union box holds at most ``slack`` times
-    the voxels of the boxes themselves (far-apart pings would make threads walk empty space)."""
+    the voxels of the boxes themselves (far-apart pings would make threads walk empty space), and
+    at most BATCH_MAX pings. Greedy from the first ping, as a loop over the pings would cut them,
+    in whole-array passes: one per run (a batch of nearby pings is one run)."""
     lo = params["box_lo"].astype(np.int64)
     hi = lo + params["box_n"].astype(np.int64)
-    vol = np.where(n_threads > 0, np.prod(hi - lo, axis=1), 0).tolist()
-    lo, hi = lo.tolist(), hi.tolist()  # plain ints: a ping costs a microsecond, not NumPy's calls
-    out, start = [], 0
-    ulo, uhi, total = None, None, 0
-    for b in range(params.shape[0]):
-        if vol[b] == 0:
-            continue
-        if ulo is None:
-            nlo, nhi = lo[b], hi[b]
-        else:
-            nlo = [min(x, y) for x, y in zip(ulo, lo[b], strict=True)]
-            nhi = [max(x, y) for x, y in zip(uhi, hi[b], strict=True)]
-            span = (nhi[0] - nlo[0]) * (nhi[1] - nlo[1]) * (nhi[2] - nlo[2])
-            if span > slack * (total + vol[b]) or b - start >= BATCH_MAX:
-                out.append((start, b))
-                start, nlo, nhi, total = b, lo[b], hi[b], 0
-        ulo, uhi, total = nlo, nhi, total + vol[b]
-    if ulo is not None:
-        out.append((start, params.shape[0]))
-    return out
+    live = np.flatnonzero((n_threads > 0) & (np.prod(hi - lo, axis=1) > 0))
+    if not live.size:
+        return []
+    vol = np.prod(hi[live] - lo[live], axis=1).astype(np.float64)
+    out, start, i = [], 0, 0  # i: the run's first live ping (in live)
+    while True:
+        # the union box and the boxes' voxels of live pings i, i+1, ..., as each joins the run
+        ulo = np.minimum.accumulate(lo[live[i:]], axis=0)
+        uhi = np.maximum.accumulate(hi[live[i:]], axis=0)
+        span = np.prod((uhi - ulo).astype(np.float64), axis=1)
+        cut = (span > slack * np.cumsum(vol[i:])) | (live[i:] - start >= BATCH_MAX)
+        cut[0] = False  # a run's first ping always joins it
+        k = int(np.argmax(cut))
+        if not cut[k]:
+            out.append((start, params.shape[0]))
+            return out
+        b = int(live[i + k])
+        out.append((start, b))
+        start, i = b, i + k

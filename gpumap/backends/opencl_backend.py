@@ -37,6 +37,12 @@ def _opencl():
     return cl
 
 
+def _same_arg(a, b) -> bool:
+    """Whether kernel arguments ``a`` and ``b`` are the same: the same object, or equal NumPy scalars
+    of one type (records and other arrays count as new: a batch's ping record always is)."""
+    return a is b or (type(a) is type(b) and isinstance(a, np.number) and a == b)
+
+
 def opencl_devices(kind: str) -> list:
     """OpenCL devices of ``kind`` ('gpu', 'cpu' or 'any'), GPUs first."""
     cl = _opencl()
@@ -71,6 +77,8 @@ def _opencl_context(device):
             ctx = cl.Context([device])
             src = resources.files("gpumap.kernels").joinpath("minmax.cl").read_text()
             opts = ["-cl-fp32-correctly-rounded-divide-sqrt"]
+            if not device.type & cl.device_type.GPU:  # a column's voxels eight at a time (gather_run8)
+                opts.append("-DGPUMAP_CPU_VECTORS")
             regs = int(os.environ.get("GPUMAP_GPU_MAX_REGISTERS", "0") or 0)
             if regs and "cl_nv_compiler_options" in device.extensions:  # as kernels/minmax.py caps Warp's
                 opts.append(f"-cl-nv-maxrregcount={regs}")
@@ -223,9 +231,13 @@ class OpenCLBackend(Backend):
             self.bright, self.count = self._buf(4), self._buf(8)
         self.cap = cap
         q.finish()
+        if self._batch is not None:  # the batch kernels' arguments name the old pool
+            self._batch["args"] = {}
 
     def _upload_index(self, flat):
         self.index = self._buf(flat.nbytes)
+        if self._batch is not None:
+            self._batch["args"] = {}
         self.cl.enqueue_copy(self.queue, self.index, flat, is_blocking=True)
 
     def set_blocks(self, slots, lins):
@@ -388,10 +400,25 @@ class OpenCLBackend(Backend):
         }
         k = functools.partial(self.cl.Kernel, _opencl_context(self._cl_device)[1])
         for name in ("find_first_bright_batch", "build_bin_window_cells_batch",
-                     "build_beam_levels_cells_batch", "integrate_voxels_batch"):
-            bb[name] = k(name)
+                     "build_beam_levels_cells_batch", "integrate_voxels_batch", "convert_u8"):
+            bb[name] = k(name)  # the batch's own kernel objects: their arguments stay set (_enqueue)
+        bb["args"] = {}
         self._batch = bb
         return bb
+
+    def _enqueue(self, bb: dict, name: str, n: int, args: tuple, wait_for=None):
+        """Launch batch kernel ``name`` on ``n`` work-items (rounded up to work-groups), setting only
+        the arguments that changed since its last launch (a kernel object keeps its arguments: most
+        of a batch's stay the same buffers and sizes); returns the event."""
+        kern = bb[name]
+        last = bb["args"].get(name)
+        for i, a in enumerate(args):
+            if last is None or not _same_arg(last[i], a):
+                kern.set_arg(i, a)
+        bb["args"][name] = args
+        wg = self.wg
+        return self.cl.enqueue_nd_range_kernel(self.queue, kern, (-(-n // wg) * wg,), (wg,),
+                                               wait_for=wait_for)
 
     def _launch_batch(self, params, images, n_threads):
         cl = self.cl
@@ -418,34 +445,31 @@ class OpenCLBackend(Backend):
                cl.enqueue_copy(up, img_dst, host[pb : pb + nb], is_blocking=False, wait_for=after)]
         up.flush()
         bb["uploads"][s] = ups
-        wg = self.wg
         i32 = np.int32
         if u8:
             n_px = B * plane
-            self.k_u8(q, (-(-n_px // wg) * wg,), (wg,), img_dst, U8_SCALE, bb["images"], i32(n_px),
-                      wait_for=ups)
+            self._enqueue(bb, "convert_u8", n_px, (img_dst, U8_SCALE, bb["images"], i32(n_px)), wait_for=ups)
         else:
             cl.enqueue_barrier(q, wait_for=ups)
         stride = i32(bb["n_table"])
         if int(params["rule"][0]) != 0:
-            n = B * self.n_beams
-            bb["find_first_bright_batch"](q, (-(-n // wg) * wg,), (wg,), P, i32(B), i32(self.n_beams),
-                                          bb["images"], bb["first_bright"])
+            self._enqueue(bb, "find_first_bright_batch", B * self.n_beams,
+                          (P, i32(B), i32(self.n_beams), bb["images"], bb["first_bright"]))
         if self.use_table:
-            gs = (-(-(B * plane) // wg) * wg,)
-            bb["build_bin_window_cells_batch"](q, gs, (wg,), P, i32(B), i32(plane), stride, bb["images"],
-                                               bb["tables"])
-            bb["build_beam_levels_cells_batch"](q, gs, (wg,), P, i32(B), i32(plane), stride, bb["tables"])
+            self._enqueue(bb, "build_bin_window_cells_batch", B * plane,
+                          (P, i32(B), i32(plane), stride, bb["images"], bb["tables"]))
+            self._enqueue(bb, "build_beam_levels_cells_batch", B * plane,
+                          (P, i32(B), i32(plane), stride, bb["tables"]))
         live = n_threads > 0
-        lo = params["box_lo"][live].min(axis=0)
-        n = (params["box_lo"] + params["box_n"])[live].max(axis=0) - lo
+        lo = params["box_lo"][live].min(axis=0).tolist()
+        n = ((params["box_lo"] + params["box_n"])[live].max(axis=0) - lo).tolist()
         pool = (self.index, self.grid, self.bright, self.count, self.seen, self.err)
         # a work-item per voxel of the union box; ping 0's parameters as an argument
-        total = int(n[0]) * int(n[1]) * int(n[2])
-        bb["done"][s] = bb["integrate_voxels_batch"](
-            q, (-(-total // wg) * wg,), (wg,), np.asarray(params[0, ...], dtype=PING_DTYPE), P, i32(B),
-            *(i32(x) for x in lo), *(i32(x) for x in n), i32(plane), stride, bb["images"], self.edges,
-            self.lut, bb["tables"], i32(self.use_table), bb["first_bright"], *pool,
+        bb["done"][s] = self._enqueue(
+            bb, "integrate_voxels_batch", n[0] * n[1] * n[2],
+            (np.asarray(params[0, ...], dtype=PING_DTYPE), P, i32(B), *(i32(x) for x in lo),
+             *(i32(x) for x in n), i32(plane), stride, bb["images"], self.edges, self.lut, bb["tables"],
+             i32(self.use_table), bb["first_bright"], *pool),
         )
         q.flush()
 

@@ -193,11 +193,16 @@ class WarpBackend(Backend):
                 wp.copy(new, getattr(self, name), count=old_n)
             setattr(self, name, new)
         self.cap = cap
-        self._cmds = self._init_cmd = None  # recorded launches hold the old arrays
+        self._forget_launches()  # recorded launches hold the old arrays
+
+    def _forget_launches(self) -> None:
+        self._cmds = self._init_cmd = None
+        if self._batch is not None:
+            self._batch["views"] = {}
 
     def _upload_index(self, flat):
         self.index = self.wp.array(flat, dtype=int, device=self.dev)
-        self._cmds = self._init_cmd = None
+        self._forget_launches()
 
     def _stage_pairs(self, slots: np.ndarray, lins: np.ndarray):
         """(slots, lins) as one int32 device array: on CUDA through a ring of pinned buffers
@@ -415,20 +420,58 @@ class WarpBackend(Backend):
         bb["host_u8_np"] = [a.numpy() for a in bb["host_u8"]]
         bb["host_f_np"] = [a.numpy() for a in bb["host_f"]]
         bb["host_box_np"] = [a.numpy() for a in bb["host_box"]]
+        bb["views"] = {}  # _batch_views
         self._batch = bb
         return bb
 
+    def _batch_views(self, bb: dict, s: int, B: int, u8: bool) -> dict:
+        """Batch buffers' views for host slot ``s`` and ``B`` pings, and the batch's launches recorded
+        on them (``record_cmd``): made once, then a batch only refreshes the parameters that change
+        (the union box, ping 0's record). Dropped when the pool or the index is replaced."""
+        key = (s, B, u8)
+        v = bb["views"].get(key)
+        if v is not None:
+            return v
+        wp, k, dev = self.wp, self.k, self.dev
+        P, imgs = bb["P"][s][:B], bb["images"][:B]
+        v = {"P": P, "hp": bb["host_P"][s][:B], "imgs": imgs,
+             "host_img": (bb["host_u8"] if u8 else bb["host_f"])[s][:B],
+             "dev_img": bb["u8"][s][:B] if u8 else imgs}
+        rec = {"device": dev, "record_cmd": True}
+        shape = (B, self.n_bins, self.n_beams)
+        cmds = []
+        v["convert"] = wp.launch(k.convert_u8_batch, dim=shape, inputs=[v["dev_img"], float(U8_SCALE), imgs],
+                                 **rec) if u8 else None
+        fb, tables = bb["first_bright"], bb["tables"]  # (cap, ...): kernels index their B first rows only
+        v["first"] = wp.launch(k.find_first_bright_batch, dim=(B, self.n_beams), inputs=[P, imgs, fb], **rec)
+        if self.use_table:
+            cmds += [wp.launch(k.build_bin_window_cells_batch, dim=shape, inputs=[P, imgs, tables], **rec),
+                     wp.launch(k.build_beam_levels_cells_batch, dim=shape, inputs=[P, tables], **rec)]
+        v["table"] = cmds
+        if bb.get("P0") is None:  # ping 0's record as a kernel argument (constant memory): refreshed in place
+            bb["P0"] = _warp_params(k, np.zeros((), PING_DTYPE))
+            bb["P0_addr"] = ctypes.addressof(bb["P0"]._ctype)
+        pool = [self.index, self.grid, self.bright, self.count, self.seen, self.err]
+        v["gather"] = wp.launch(
+            k.integrate_voxels_batch, dim=1,
+            inputs=[bb["P0"], P, bb["boxes"][s], wp.vec3i(0, 0, 0), wp.vec3i(0, 0, 0), imgs, self.edges,
+                    self.lut, tables, fb, *pool],
+            block_dim=128,  # a heavy kernel: more blocks fit the registers left
+            **rec)
+        bb["views"][key] = v
+        return v
+
     def _launch_batch(self, params, images, n_threads):
-        wp, k = self.wp, self.k
+        wp = self.wp
         B, bb, s = self._next_batch(params)
         if bb["events"][s] is not None:  # host slot s: its last uploads are done
             wp.synchronize_event(bb["events"][s])
-        hp = bb["host_P"][s]
-        ctypes.memmove(hp.ptr, params.ctypes.data, B * PING_DTYPE.itemsize)
+        u8 = images.dtype == np.uint8
+        v = self._batch_views(bb, s, B, u8)
+        ctypes.memmove(v["hp"].ptr, params.ctypes.data, B * PING_DTYPE.itemsize)
         hb = bb["host_box_np"][s]
         hb[:B, :3] = params["box_lo"]
         hb[:B, 3:] = params["box_n"]
-        u8 = images.dtype == np.uint8
         _copy_rows((bb["host_u8_np"] if u8 else bb["host_f_np"])[s][:B], images)
         # Uploads into device slot s on the copy stream (CUDA), after the kernels that last read that
         # slot: batch k+1's upload overlaps batch k's kernels. The float images have one device
@@ -438,39 +481,29 @@ class WarpBackend(Backend):
             for ev in (bb["done"][s], None if u8 else bb["done"][1 - s]):
                 if ev is not None:
                     cs.wait_event(ev)
-        P, boxes, imgs = bb["P"][s][:B], bb["boxes"][s], bb["images"][:B]
-        wp.copy(P, hp[:B], stream=cs)
-        wp.copy(boxes, bb["host_box"][s], count=6 * B, stream=cs)
-        dev_img = bb["u8"][s][:B] if u8 else imgs
-        wp.copy(dev_img, (bb["host_u8"] if u8 else bb["host_f"])[s][:B], stream=cs)
+        wp.copy(v["P"], v["hp"], stream=cs)
+        wp.copy(bb["boxes"][s], bb["host_box"][s], count=6 * B, stream=cs)
+        wp.copy(v["dev_img"], v["host_img"], stream=cs)
         if cs is not None:
             bb["events"][s] = cs.record_event()
             wp.get_stream(self.dev).wait_event(bb["events"][s])
         if u8:
-            wp.launch(k.convert_u8_batch, dim=images.shape, inputs=[dev_img, float(U8_SCALE), imgs],
-                      device=self.dev)
-        fb = bb["first_bright"]  # (cap, ...): kernels index their B first rows only
-        tables = bb["tables"]
+            v["convert"].launch()
         if int(params["rule"][0]) != 0:
-            wp.launch(k.find_first_bright_batch, dim=(B, self.n_beams), inputs=[P, imgs, fb], device=self.dev)
-        if self.use_table:
-            cells = images.shape
-            wp.launch(k.build_bin_window_cells_batch, dim=cells, inputs=[P, imgs, tables], device=self.dev)
-            wp.launch(k.build_beam_levels_cells_batch, dim=cells, inputs=[P, tables], device=self.dev)
+            v["first"].launch()
+        for cmd in v["table"]:
+            cmd.launch()
         live = n_threads > 0
         lo = params["box_lo"][live].min(axis=0)
         hi = (params["box_lo"] + params["box_n"])[live].max(axis=0)
-        n = hi - lo
-        pool = [self.index, self.grid, self.bright, self.count, self.seen, self.err]
+        n = (hi - lo).tolist()
         # a thread per voxel of the union box; ping 0's parameters as an argument (constant memory)
-        wp.launch(
-            k.integrate_voxels_batch,
-            dim=int(n[0]) * int(n[1]) * int(n[2]),
-            inputs=[_warp_params(k, params[0, ...]), P, boxes, wp.vec3i(*lo.tolist()), wp.vec3i(*n.tolist()),
-                    imgs, self.edges, self.lut, tables, fb, *pool],
-            device=self.dev,
-            block_dim=128,  # a heavy kernel: more blocks fit the registers left
-        )
+        ctypes.memmove(bb["P0_addr"], params[:1].ctypes.data, PING_DTYPE.itemsize)
+        g = v["gather"]
+        g.set_param_by_name("box_lo", wp.vec3i(*lo.tolist()))
+        g.set_param_by_name("box_n", wp.vec3i(*n))
+        g.set_dim(n[0] * n[1] * n[2])
+        g.launch()
         if cs is not None:  # device slot s is free again once these kernels are done
             bb["done"][s] = wp.get_stream(self.dev).record_event()
 

@@ -70,7 +70,8 @@ def _parser() -> ArgumentParser:
                    help="random seed of the simulated sonar noise and odometry (default 0)")
     p.add_argument("--variation", default="none", choices=sorted(VARIATIONS),
                    help="view-to-view variation of the simulated sonar: none (default) or real_tank "
-                        "(speckle, per-ping gain, pose jitter and dropouts measured on the real tank run)")
+                        "(speckle, per-ping gain, pose jitter, surface texture and range loss fitted to the "
+                        "real tank run)")
     p.add_argument("--sparse", action="store_true",
                    help="allocate the map's blocks only where pings look (sparse, bounded by the "
                         "scene's grid; the same values as the dense grid) and report its memory")

@@ -67,7 +67,6 @@ from gpumap.replay import (
     replay_rules,
     run_replay,
     select_frames,
-    select_strided,
 )
 from gpumap.spec import GridSpec, SonarSpec
 from gpumap.viewer.render import save_pictures
@@ -313,6 +312,8 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
                      memory_remedy=REPLAY_REMEDY)
     positions: list = []
     replay_kw["on_ping"] = _view_hook(a, mapper_thr)
+    surface = _SurfaceHook() if getattr(a, "surface", True) and not a.workers and rule == "evidence" else None
+    replay_kw["on_batch"] = surface
     if a.compare_rules:
         # the chosen rule first: it sizes the grid, and its run's timings are the ones reported
         order = (rule, *[r for r in RULES if r != rule])
@@ -320,6 +321,7 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
         mapper, stats = runs[rule]
     elif a.workers:  # the same map, mapped by N mappers and merged
         replay_kw.pop("on_ping")
+        replay_kw.pop("on_batch")
         replay_kw.pop("max_memory")  # each worker holds its own map (gpumap.workers)
         replay_kw.pop("memory_remedy")
         if _in_process(a):  # N GPUs of this machine: a thread and a mapper each (gpumap.gpu_threads)
@@ -343,8 +345,8 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
         stats["skipped_bad_frames"] = len(bad)
         stats["bad_frames"] = bad[:100]  # the first hundred errors, each naming its file
     layer = None
-    if getattr(a, "surface", True) and not a.workers and stats.get("rule") == "evidence" and stats["frames"]:
-        layer, stats["surface"] = _surface(a, kwargs, mapper, stride)
+    if surface is not None and surface.live is not None and stats["frames"]:
+        layer, stats["surface"] = surface.finish()
     elif getattr(a, "surface", True):
         stats["surface"] = {"skipped": "the surface layer is built on the evidence rule's map from one "
                                        "process (not --workers, --rule evidence)"}
@@ -377,37 +379,36 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
     return stats, mapper.grid
 
 
-def _surface(a: argparse.Namespace, kwargs: dict, mapper, stride: int):
-    """The surface layer (:mod:`gpumap.surface`) of ``mapper`` from the frames it integrated, read
-    again from the recording (the same selection as :func:`gpumap.replay.run_replay`: every
-    ``stride``-th frame, at most ``--max-frames``, those with a pose and the first frame's sonar
-    geometry); returns (layer, its summary block)."""
-    import time
+class _SurfaceHook:
+    """``on_batch`` for :func:`run_replay`: the surface layer (:class:`gpumap.surface.LiveSurface`) of the
+    first mapper it sees (the chosen rule's, with ``--compare-rules``), fed the pings of the mapping
+    pass itself (one read of the recording); :meth:`finish` builds the layer of all of them."""
 
-    from gpumap.io import open_recording
-    from gpumap.surface import surface_from_mapper
+    def __init__(self) -> None:
+        self.live = None
+        self.seconds = 0.0
 
-    kw = dict(kwargs)
-    if "on_bad" in kw:
-        kw["on_bad"] = lambda e: None  # counted by the mapping pass already
-    rec = open_recording(a.path, **kw)
-    if a.frames is not None:
-        rec = select_frames(rec, a.frames)
-    eye = np.eye(4)
+    def __call__(self, images, poses, mapper) -> None:
+        from gpumap.surface import LiveSurface
 
-    def frames():
-        for fr in select_strided(rec, stride, a.max_frames):
-            T = eye if a.static else fr.T_W_S
-            if T is None or fr.spec != mapper.spec:
-                continue
-            yield fr.image, T
+        t0 = time.perf_counter()
+        if self.live is None:
+            self.live = LiveSurface(mapper)
+        if mapper is self.live.mapper:
+            self.live.add(images, poses)
+        self.seconds += time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    layer = surface_from_mapper(mapper, frames=frames())
-    skip = ("candidates", "surface", "pings", "seconds")
-    return layer, {"seconds": time.perf_counter() - t0, "pings": layer.stats["pings"],
-                   "candidates": layer.stats["candidates"], "surface_voxels": int(layer.surface.sum()),
-                   "options": {k: v for k, v in layer.stats.items() if k not in skip}}
+    def finish(self):
+        """(the layer, its summary block)."""
+        t0 = time.perf_counter()
+        layer = self.live.update()
+        t_update = time.perf_counter() - t0
+        skip = ("candidates", "surface", "pings", "seconds", "warm", "pairs")
+        return layer, {"seconds": self.seconds + t_update, "seconds_during_mapping": self.seconds,
+                       "seconds_after_mapping": t_update, "pings": layer.stats["pings"],
+                       "candidates": layer.stats["candidates"], "surface_voxels": int(layer.surface.sum()),
+                       "pairs": layer.stats.get("pairs"),
+                       "options": {k: v for k, v in layer.stats.items() if k not in skip}}
 
 
 # ------------------------------------------------------------------------------ --workers
@@ -481,10 +482,12 @@ def add_ekf_args(ap: argparse.ArgumentParser) -> None:
                          "corrects the pose even when the pings' innovations do not fit the model "
                          "(on the real tank this ends worse than odometry; for comparison only)")
     ap.add_argument("--ekf-registration", action="store_true",
-                    help="with --ekf: also register each ping's first returns against the pings it "
-                         "revisits (gpumap.ekf.registration): on the real tank about a fifth less "
-                         "position error than odometry on average, but on some runs a worse heading "
-                         "than odometry, so it is off by default (BENCHMARKS.md, ekf_registration.json)")
+                    help="with --ekf: register each ping against the pings it revisits "
+                         "(gpumap.ekf.registration), each revisit verified by its image before it is "
+                         "fused; on by default since it never ended worse than odometry on the real "
+                         "tank (BENCHMARKS.md, ekf_pose.json), so this flag only says so")
+    ap.add_argument("--no-ekf-registration", action="store_true",
+                    help="with --ekf: no scan registration (the EKF on point returns alone)")
 
 
 def check_ekf_args(ap: argparse.ArgumentParser, a: argparse.Namespace) -> None:
@@ -492,7 +495,11 @@ def check_ekf_args(ap: argparse.ArgumentParser, a: argparse.Namespace) -> None:
     refuse_without(ap, "--ekf", a.ekf, {"--odometry-noise": a.odometry_noise is not None,
                                          "--seed": a.seed is not None,
                                          "--ekf-unguarded": bool(getattr(a, "ekf_unguarded", False)),
-                                         "--ekf-registration": bool(getattr(a, "ekf_registration", False))})
+                                         "--ekf-registration": bool(getattr(a, "ekf_registration", False)),
+                                         "--no-ekf-registration": bool(getattr(a, "no_ekf_registration",
+                                                                               False))})
+    if getattr(a, "ekf_registration", False) and getattr(a, "no_ekf_registration", False):
+        ap.error("--ekf-registration and --no-ekf-registration contradict each other")
     a.odometry_noise = (0.005, 0.005) if a.odometry_noise is None else a.odometry_noise
     a.seed = 0 if a.seed is None else a.seed
 
@@ -509,7 +516,8 @@ def _registration_line(r: dict) -> str:
     if not r["used"]:
         return "scan registration off"
     return (f"scan registration corrected {100 * r['fused_share']:.0f} % of steps "
-            f"({r['gated']} gated, {r['distrusted']} distrusted), {r['revisits_fused']} revisits fused")
+            f"({r['gated']} gated, {r['distrusted']} distrusted), {r['revisits_fused']} revisits fused "
+            f"({r.get('revisits_unverified', 0)} refused: images disagreed)")
 
 
 def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
@@ -536,7 +544,7 @@ def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
                          grid=grid, backend=a.backend, threshold=thr, rule=a.rule, stride=a.stride,
                          max_frames=a.max_frames, progress=not a.no_progress,
                          guard=not getattr(a, "ekf_unguarded", False),
-                         registration=bool(getattr(a, "ekf_registration", False)))
+                         registration=not getattr(a, "no_ekf_registration", False))
     mapper = res["maps"]["ekf"]
     values = res["values"]["ekf"]
     occ = np.isfinite(values) & (values >= thr)

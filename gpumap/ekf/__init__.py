@@ -96,7 +96,9 @@ filter's yardstick, and a smoother); for real pings (issue #23)
 :mod:`~gpumap.ekf.loop` (odometry, detection, association and filter, ping by ping);
 :mod:`~gpumap.ekf.guard` (when the pings' innovations do not fit, lean on odometry);
 :mod:`~gpumap.ekf.registration` (each ping's first returns registered against the last pings
-and against revisited places, fused into the odometry step).
+and against revisited places, each revisit verified by its image, fused into the odometry step);
+:mod:`~gpumap.ekf.posegraph` (odometry and verified revisits as a pose graph, issue #39) and
+:mod:`~gpumap.ekf.submaps` (segment maps re-mapped where corrected poses moved them).
 """
 
 from __future__ import annotations

@@ -33,8 +33,22 @@ cloud's stamp is the newest ping in it. ``/diagnostics`` (``diagnostic_msgs/Diag
 every ``diagnostics_period_s``): ping rate, latency p50/p99 (arrival to published cloud),
 queue, received/integrated, rejected, skipped and dropped by reason, backend, map memory.
 
-Services (``std_srvs/Trigger``): ``~/save_map`` writes ``save_path`` atomically (the same
-``.npz`` as ``gpumap replay``; ``MinMaxMapper.load`` reads it), ``~/reset`` forgets the map.
+With ``surface: true`` (the default) the surface layer (:mod:`gpumap.surface`) is kept too, on a
+thread of its own (:class:`gpumap.ros.live.LiveSurfaceWorker`), and updated as often as the machine
+allows, each update taking every ping mapped meanwhile: ``~/surface_cloud`` (``PointCloud2``, x, y,
+z, value 1 per surface voxel; stamped with the newest ping it covers) and ``~/surface_markers``,
+reliable and transient-local; each is the offline layer (:func:`gpumap.surface.surface_from_mapper`)
+of the pings it covers. ``/diagnostics`` then adds ``surface_pings`` (covered), ``surface_waiting``
+(mapped, not yet in it), ``surface_age_s`` (how long the oldest of those has waited since it arrived),
+``surface_latency_max_s``, ``surface_update_s`` (the last update's seconds), ``surface_updates`` and
+``surface_voxels``. The layer keeps every ping (its memory and its updates grow with the run) unless
+``surface_max_pings`` bounds it to the newest ones.
+
+Services (``std_srvs/Trigger``): ``~/save_map`` writes ``save_path`` atomically: with the surface
+layer, both layers in one file (the safe map's values and the surface layer of every ping mapped so
+far: :func:`gpumap.refined_map.load_refined`, ``gpumap view/export --layer surface|safe`` read it);
+with ``surface: false`` the map file of ``gpumap replay`` (``MinMaxMapper.load`` reads it).
+``~/reset`` forgets the map (and the surface layer's pings).
 Ctrl-C (or SIGTERM) drains the queue, saves when ``save_on_exit`` is true, and exits 0.
 
 Parameters (``ros2 param``-style, from ``--params-file`` YAML or ``-p``); the sonar comes from
@@ -107,6 +121,14 @@ PARAMETERS: dict[str, tuple[object, str]] = {
     "confidence": (False, "keep the confidence layer (MinMaxMapper(confidence=True)): the cloud gets a uint8 "
                    "field confirmed, 1 where some view resolved the voxel in elevation, 0 where it is only "
                    "consistent with the pings (the elevation stretch); costs a pass per ping on the host"),
+    "surface": (True, "keep the surface layer (gpumap.surface: one voxel per bright cell, from the evidence "
+                "or visible rule's occupied voxels) on a thread of its own: ~/surface_cloud and "
+                "~/surface_markers, updated as often as the machine allows; ~/save_map then writes both "
+                "layers in one file (gpumap view/export --layer surface|safe); needs rule evidence or "
+                "visible"),
+    "surface_max_pings": (0, "the surface layer of the newest this many pings only, so that its memory "
+                          "(17 bytes per ping, voxel and bright cell: ~25k a ping on the real tank at 5 cm) "
+                          "and its updates stop growing with the run (0: every ping)"),
     "queue_size": (32, "pings held at most; a new ping finding it full drops the oldest (counted)"),
     "max_batch": (16, "pings per integrate_batch call at most"),
     "pose_wait_s": (0.5, "how long a ping newer than every pose waits for one, seconds"),
@@ -253,6 +275,11 @@ def make_node(node_name: str = NODE_NAME, context=None):
                                               threshold=self.threshold, carve_views=int(p["carve_views"]),
                                               confidence=_flag(p, "confidence"))
             self.confidence = _flag(p, "confidence")
+            self.surface = _flag(p, "surface")
+            if self.surface and self.mapper.rule == "plain":
+                raise ValueError("Expected rule evidence or visible with surface:=true (the surface layer "
+                                 "chooses from their occupied voxels), but got rule plain: set "
+                                 "surface:=false")
             # the mapper's bytes per voxel (4 plain, 16 with the view state) [+ confirmed (1) and
             # arcs (2), confidence]
             self.map_bytes = self.grid.n_voxels * (self.mapper.bytes_per_voxel
@@ -264,6 +291,19 @@ def make_node(node_name: str = NODE_NAME, context=None):
                 pose_buffer=int(p["pose_buffer"]), publish_period_s=float(p["publish_period_s"]),
                 on_publish=self._publish_map, log=log.warning)
             self.blocks = MarkerBlocks(self.grid, self.threshold)
+            self.surf = None
+            if self.surface:
+                from gpumap.ros.live import LiveSurfaceWorker
+                from gpumap.surface import SURFACE_LEVEL
+
+                n = p["surface_max_pings"]
+                if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+                    raise ValueError(f"Expected parameter surface_max_pings to be an integer >= 0, but got "
+                                     f"{n!r}")
+                self.surf = LiveSurfaceWorker(self.live, on_publish=self._publish_surface, log=log.warning,
+                                              max_pings=n or None)
+                self.surf_blocks = MarkerBlocks(self.grid, SURFACE_LEVEL)
+                self._surf_marker_subs = 0
             self._marker_subs = 0
             self._markers_at = -math.inf
             self._markers_stale: tuple[int, np.ndarray, np.ndarray | None] | None = None
@@ -276,6 +316,9 @@ def make_node(node_name: str = NODE_NAME, context=None):
             self.pub_markers = self.create_publisher(MarkerArray, "~/occupied_markers", latched)
             self.pub_grid = self.create_publisher(OccupancyGrid, "~/projected_map", latched)
             self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+            if self.surface:
+                self.pub_surface = self.create_publisher(PointCloud2, "~/surface_cloud", latched)
+                self.pub_surface_markers = self.create_publisher(MarkerArray, "~/surface_markers", latched)
             self._diag_types = (DiagnosticArray, DiagnosticStatus, KeyValue)
 
             sensor = QoSProfile(depth=int(p["image_queue_depth"]), reliability=ReliabilityPolicy.BEST_EFFORT,
@@ -304,6 +347,8 @@ def make_node(node_name: str = NODE_NAME, context=None):
             self.srv_plan = self.create_service(Trigger, "~/plan_views", self._on_plan)
             self.timer_diag = self.create_timer(float(p["diagnostics_period_s"]), self._publish_diagnostics)
             self.live.start()
+            if self.surf is not None:
+                self.surf.start()
             log.info(f"mapping {self.spec.image_shape} {self.layout} images on {self.sub_image.topic_name} "
                      f"with poses on {self.sub_pose.topic_name} into a {self.grid.shape} grid of "
                      f"{self.grid.voxel_size_m} m ({self.mapper.backend} on {self.mapper.device}); "
@@ -377,6 +422,21 @@ def make_node(node_name: str = NODE_NAME, context=None):
                 self.pub_grid.publish(occupancy_grid_msg(cells, self.grid, self.band, newest_ns,
                                                          self.world_frame))
 
+        def _publish_surface(self, layer, newest_ns: int) -> None:
+            """The surface worker's ``on_publish``: the layer's voxels as a cloud (value 1) and markers."""
+            from gpumap.surface import SURFACE_LEVEL
+
+            values = layer.values()
+            centres, vals, _ = occupied_cloud(values, self.grid, SURFACE_LEVEL)
+            self.pub_surface.publish(cloud_msg(centres, vals, newest_ns, self.world_frame))
+            subs = self.pub_surface_markers.get_subscription_count()
+            if subs:
+                changed = self.surf_blocks.update(values, full=subs > self._surf_marker_subs)
+                self._surf_marker_subs = subs
+                if changed:
+                    msg = self.surf_blocks.msg(changed, newest_ns, self.world_frame, ns="gpumap_surface")
+                    self.pub_surface_markers.publish(msg)
+
         def _publish_markers(self, subs: int, full: bool) -> None:
             # one Point per voxel in Python: the costly output, so at most every markers_period_s
             # (and once more, from the diagnostics timer, when the map has stopped changing)
@@ -388,9 +448,18 @@ def make_node(node_name: str = NODE_NAME, context=None):
                 self.pub_markers.publish(self.blocks.msg(changed, newest_ns, self.world_frame))
 
         # ------------------------------------------------------------ services, diagnostics
+        def _save(self) -> str:
+            """Write ``save_path``: the map file, or with the surface layer both layers in one file (the
+            layer of every ping mapped so far, on the same map)."""
+            if self.surf is None:
+                return str(self.live.save(str(self.p["save_path"])))
+            layer, values = self.surf.layer_now()
+            path = layer.save(str(self.p["save_path"]), values, self.spec, self.threshold, self.mapper.rule)
+            return str(path)
+
         def _on_save(self, request, response):
             try:
-                path = self.live.save(str(self.p["save_path"]))
+                path = self._save()
                 response.success, response.message = True, str(path)
             except (OSError, ValueError) as e:
                 response.success, response.message = False, f"saving failed: {e}"
@@ -418,11 +487,18 @@ def make_node(node_name: str = NODE_NAME, context=None):
 
         def _on_reset(self, request, response):
             with self._publish_lock:
-                self.live.reset()
+                self.live.reset()  # the surface layer's pings too (its worker is the live mapper's on_reset)
                 self.blocks.reset()
                 self._marker_subs = 0
                 self._markers_stale = None
             self._publish_map(self._now_ns())  # subscribers see the empty map at once
+            if self.surf is not None:
+                from gpumap.ros.convert import cloud_msg as _cloud
+
+                self.surf_blocks.reset()
+                self._surf_marker_subs = 0
+                self.pub_surface.publish(_cloud(np.zeros((0, 3)), np.zeros(0, np.float32), self._now_ns(),
+                                                self.world_frame))
             response.success, response.message = True, "map reset: every voxel unknown"
             return response
 
@@ -434,6 +510,8 @@ def make_node(node_name: str = NODE_NAME, context=None):
             s.update(backend=self.mapper.backend, device=self.mapper.device, map_bytes=self.map_bytes,
                      grid_shape=list(self.grid.shape), voxel_size_m=self.grid.voxel_size_m,
                      threshold=self.threshold)
+            if self.surf is not None:
+                s.update(self.surf.stats())
             return s
 
         def _publish_diagnostics(self) -> None:
@@ -461,6 +539,12 @@ def make_node(node_name: str = NODE_NAME, context=None):
                   ("latency_p50_ms", f"{s['latency_p50_ms']:.2f}"),
                   ("latency_p99_ms", f"{s['latency_p99_ms']:.2f}"), ("queue", s["queue"]),
                   ("poses_buffered", s["poses"]), ("backend", s["backend"]), ("map_bytes", s["map_bytes"])]
+            if self.surf is not None:
+                kv += [("surface_pings", s["surface_pings"]), ("surface_waiting", s["surface_waiting"]),
+                       ("surface_age_s", f"{s['surface_age_s']:.3f}"),
+                       ("surface_latency_max_s", f"{s['surface_latency_max_s']:.3f}"),
+                       ("surface_update_s", f"{s['surface_update_s']:.3f}"),
+                       ("surface_updates", s["surface_updates"]), ("surface_voxels", s["surface_voxels"])]
             for kind in ("rejected", "skipped", "dropped"):
                 kv += [(f"{kind}.{k}", v) for k, v in sorted(s[kind].items())]
             st.values = [KeyValue(key=k, value=str(v)) for k, v in kv]
@@ -472,8 +556,10 @@ def make_node(node_name: str = NODE_NAME, context=None):
         def shutdown(self, save: bool | None = None) -> None:
             """Drain the queue, publish the last map, save when asked."""
             self.live.stop(drain=True)
+            if self.surf is not None:
+                self.surf.stop()  # one last update: the layer of every ping mapped
             if save if save is not None else bool(self.p["save_on_exit"]):
-                path = self.live.save(str(self.p["save_path"]))
+                path = self._save()
                 print(f"gpumap ros: map saved to {path}", file=sys.stderr)  # ROS logging may be down
 
     return GpumapNode()
