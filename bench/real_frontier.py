@@ -484,6 +484,21 @@ SECTION = Section("real-frontier", "## Every rule against the public OASIS recon
                   "frames (issue #36)", "real_frontier.json", markdown)
 
 
+def _short(r: dict) -> str:
+    """A plot label: the rule, or only its option values where it has options (the legend names them)."""
+    if r["kind"] != "rule" or not r["options"]:
+        return r["name"] + (" (default)" if r.get("default") else "")
+    return " ".join(f"{v:g}" if isinstance(v, float) else str(v) for v in r["options"].values())
+
+
+def _joined(names: list[str]) -> str:
+    """One label for the rows on one point: ``calibrated 10, 100`` for ``calibrated 10`` and 100."""
+    heads = {n.rpartition(" ")[0] for n in names}
+    if len(names) > 1 and len(heads) == 1 and next(iter(heads)):
+        return f"{next(iter(heads))} " + ", ".join(n.rpartition(" ")[2] for n in names)
+    return ", ".join(names)
+
+
 def picture(res: dict, path: Path) -> None:
     """Phantoms in front (x) against misses (y, log), one point per row, for the whole map and inside the
     public code's box; OASIS marked, the evidence rule's bright_share frontier joined."""
@@ -505,28 +520,34 @@ def picture(res: dict, path: Path) -> None:
                         zorder=1, label=f"{rule} rule{held}, other {option}")
         seen: set[str] = set()
         oasis_offsets = iter([(9, -13, "left"), (-9, 5, "right"), (-9, 7, "right"), (-9, -15, "right")] * 4)
+        at: dict[tuple[float, float], list[str]] = {}  # rows on one point share one label
         for r in res["rows"]:
             mk, c, kind = style[r["kind"]]
-            dx, dy, ha = next(oasis_offsets) if r["kind"] == "oasis" else (6, 4, "left")
             x, y = 100 * r[key]["phantom_rate"], 100 * r[key]["missing_rate"]
             ax.scatter([x], [y], marker=mk, s=220 if r["kind"] == "oasis" else 60, color=c, zorder=3,
                        edgecolors="black" if r.get("default") else "none", linewidths=1.5,
                        label=None if kind in seen else kind)
             seen.add(kind)
-            ax.annotate(r["name"] + (" (default)" if r.get("default") else ""), (x, y),
-                        textcoords="offset points", fontsize=7,
-                        color="#a01010" if r["kind"] == "oasis" else "black",
-                        ha=ha, xytext=(dx, dy))
+            if r["kind"] == "oasis":
+                dx, dy, ha = next(oasis_offsets)
+                ax.annotate(r["name"], (x, y), textcoords="offset points", fontsize=7, color="#a01010", ha=ha,
+                            xytext=(dx, dy))
+            else:
+                at.setdefault((round(x, 1), round(y, 2)), []).append(_short(r))
+        for (x, y), names in at.items():
+            ax.annotate(_joined(names), (x, y), textcoords="offset points", fontsize=7, xytext=(6, 3))
         ax.set(xlabel="phantoms in front, % of held-out beams with a return",
                ylabel="missing, % of held-out beams with a return (log)", yscale="log",
-               title=f"{where}: frames 0-799 mapped, {res['judged_frames']} held-out frames judged")
-        ax.set_xlim(left=0)
+               title=where)
+        ax.set_xlim(0, 1.4 * max(100 * r[key]["phantom_rate"] for r in res["rows"]))
         y0, y1 = ax.get_ylim()
         ticks = [t for t in (1, 2, 3, 4, 6, 10, 15, 20, 30, 40, 60, 100) if y0 <= t <= y1]
         ax.set_yticks(ticks, [f"{t:g}" for t in ticks])
         ax.set_yticks([], minor=True)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, loc="upper right")
+    fig.suptitle(f"real tank: frames 0-799 mapped at every frame, {res['judged_frames']} held-out frames of "
+                 f"800-1222 judged by first returns ({100 * res['voxel_size_m']:g} cm)", fontsize=10)
     common.save_figure(fig, path)
 
 
