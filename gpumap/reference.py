@@ -293,16 +293,11 @@ def evidence_values(
 def calibrated_values(grid: np.ndarray, bright: np.ndarray, count: np.ndarray, miss_cost: float
                       ) -> np.ndarray:
     """Map values of the evidence rule with the calibrated decision (:mod:`gpumap.calibration`, its view
-    model fitted to these counts): ``bright`` where a voxel is occupied, else ``grid``."""
+    model fitted to these counts): ``bright`` where a voxel is occupied, else ``grid``. The model is fitted
+    to the ever-bright voxels only, which are the ones ``_bright_where`` hands over."""
     from gpumap.calibration import calibrated_occupied
 
-    dark, hits = split_counts(count)
-    occ = calibrated_occupied(dark, hits, miss_cost).reshape(-1)
-    return _bright_where(grid, bright, count, lambda c: occ[_where_bright(bright)])
-
-
-def _where_bright(bright: np.ndarray) -> np.ndarray:
-    return np.flatnonzero(np.isfinite(np.asarray(bright).reshape(-1)))
+    return _bright_where(grid, bright, count, lambda c: calibrated_occupied(*split_counts(c), miss_cost))
 
 
 def integrate_gather(
