@@ -122,18 +122,17 @@ def test_live_mapper_counts_drops_and_skips_and_maps_what_it_keeps():
     assert np.array_equal(m.raw_values(), ref.raw_values(), equal_nan=True)
 
 
-def test_live_surface_worker_publishes_the_offline_layer_of_the_pings_mapped():
-    """The surface worker follows the live mapper on its own thread: every layer it publishes is the
-    offline layer of the pings it says it covers, on the map of those pings; the last covers them all;
-    a reset forgets them; layer_now gives both layers of one moment."""
+def _surface_worker_run(seed: int, max_batch: int, **kw):
+    """12 small pings, one a second of stamps, through a LiveMapper and a LiveSurfaceWorker (``kw``), both
+    stopped at the end: (images, poses, mapper, live mapper, worker, published (layer, stamp) pairs,
+    nanoseconds a ping)."""
     from gpumap.ros.live import LiveSurfaceWorker
-    from gpumap.surface import surface_from_mapper
 
-    imgs, Ts = _small_pings(12, seed=3)
+    imgs, Ts = _small_pings(12, seed=seed)
     m = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy", threshold=0.4)
     published = []
-    live = LiveMapper(m, queue_size=64, max_batch=3)
-    surf = LiveSurfaceWorker(live, on_publish=lambda layer, t: published.append((layer, t)))
+    live = LiveMapper(m, queue_size=64, max_batch=max_batch)
+    surf = LiveSurfaceWorker(live, on_publish=lambda layer, t: published.append((layer, t)), **kw)
     s = 1_000_000_000
     for k in range(12):
         live.add_pose(k * s, Ts[k])
@@ -144,6 +143,16 @@ def test_live_surface_worker_publishes_the_offline_layer_of_the_pings_mapped():
         time.sleep(0.01)
     live.stop(drain=True)
     surf.stop()
+    return imgs, Ts, m, live, surf, published, s
+
+
+def test_live_surface_worker_publishes_the_offline_layer_of_the_pings_mapped():
+    """The surface worker follows the live mapper on its own thread: every layer it publishes is the
+    offline layer of the pings it says it covers, on the map of those pings; the last covers them all;
+    a reset forgets them; layer_now gives both layers of one moment."""
+    from gpumap.surface import surface_from_mapper
+
+    imgs, Ts, m, live, surf, published, s = _surface_worker_run(3, 3)
     assert surf.error is None and published
     st = surf.stats()
     assert st["surface_pings"] == 12 and st["surface_waiting"] == 0 and st["surface_age_s"] == 0.0
@@ -165,24 +174,9 @@ def test_live_surface_worker_publishes_the_offline_layer_of_the_pings_mapped():
 def test_live_surface_worker_with_a_window_publishes_the_newest_pings_layer():
     """max_pings: every published layer is the offline layer of the newest pings it holds, on the map
     of every ping mapped up to then."""
-    from gpumap.ros.live import LiveSurfaceWorker
     from gpumap.surface import surface_from_mapper
 
-    imgs, Ts = _small_pings(12, seed=4)
-    m = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy", threshold=0.4)
-    published = []
-    live = LiveMapper(m, queue_size=64, max_batch=2)
-    surf = LiveSurfaceWorker(live, on_publish=lambda layer, t: published.append((layer, t)), max_pings=5)
-    s = 1_000_000_000
-    for k in range(12):
-        live.add_pose(k * s, Ts[k])
-    live.start()
-    surf.start()
-    for k in range(12):
-        live.add_ping(k * s, imgs[k])
-        time.sleep(0.01)
-    live.stop(drain=True)
-    surf.stop()
+    imgs, Ts, m, live, surf, published, s = _surface_worker_run(4, 2, max_pings=5)
     assert surf.error is None and published[-1][1] == 11 * s
     for layer, t in published:
         n, lo = t // s + 1, layer.stats["first_ping"]
