@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import functools
 import math
-import threading
-from importlib import resources
 
 import numpy as np
 
@@ -27,8 +25,6 @@ __all__ = ["DeviceConfidence", "pass_scalars"]
 #: one thread, 0.887 s two (0.381 s without the layer; best of 4, 123 pings, 5 cm): the handoffs and
 #: the second rival table cost more than the second core gave.
 CPU_SPLIT = False
-_CL_PROGRAMS: dict[int, object] = {}
-_CL_LOCK = threading.Lock()
 _KERNELS = ("lit_bits", "conf_voxels", "prefix_rows", "conf_candidates")
 
 
@@ -234,16 +230,9 @@ class DeviceConfidence:
         cl = b.cl
         self.cl = cl
         self.gpu = bool(b.is_gpu)
-        key = id(b.ctx)
-        with _CL_LOCK:
-            if key not in _CL_PROGRAMS:
-                src = resources.files("gpumap.kernels").joinpath("confidence.cl").read_text()
-                try:
-                    prg = cl.Program(b.ctx, src).build(options=["-cl-fp32-correctly-rounded-divide-sqrt"])
-                except cl.Error:
-                    prg = cl.Program(b.ctx, src).build()
-                _CL_PROGRAMS[key] = prg
-            prg = _CL_PROGRAMS[key]
+        from gpumap.backends.opencl_backend import extra_program
+
+        prg = extra_program(b.ctx, "confidence")
         kern = functools.partial(cl.Kernel, prg)
         self.kernels = {name: kern(name) for name in _KERNELS}
         mf = cl.mem_flags

@@ -38,7 +38,6 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Callable
-from importlib import resources
 
 import numpy as np
 
@@ -255,12 +254,9 @@ class GainRunner:
         key = id(b.ctx)
         with _CL_LOCK:
             if key not in _CL_PROGRAMS:
-                src = resources.files("gpumap.kernels").joinpath("viewgain.cl").read_text()
-                try:
-                    prg = cl.Program(b.ctx, src).build(options=["-cl-fp32-correctly-rounded-divide-sqrt"])
-                except cl.Error:
-                    prg = cl.Program(b.ctx, src).build()
-                _CL_PROGRAMS[key] = cl.Kernel(prg, "view_gain")
+                from gpumap.backends.opencl_backend import extra_program
+
+                _CL_PROGRAMS[key] = cl.Kernel(extra_program(b.ctx, "viewgain"), "view_gain")
                 _CL_PROGRAMS[key].set_scalar_arg_dtypes(
                     [None] * 4 + [np.float32] * 5 + [np.int32] * 2 + [None] * 2)
             k = _CL_PROGRAMS[key]

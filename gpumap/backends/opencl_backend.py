@@ -96,6 +96,26 @@ def _opencl_context(device):
         return _CL_SHARED[key]
 
 
+_CL_EXTRA: dict[tuple[int, str], object] = {}
+
+
+def extra_program(ctx, name: str):
+    """The program of ``gpumap.kernels/<name>.cl`` (a kernel module beside minmax.cl: viewgain,
+    confidence) for the context ``ctx``, built once per context and name, correctly rounded division and
+    square root asked for, without them where the driver refuses the option."""
+    cl = _opencl()
+    key = (id(ctx), name)
+    with _CL_LOCK:
+        if key not in _CL_EXTRA:
+            src = resources.files("gpumap.kernels").joinpath(f"{name}.cl").read_text()
+            prg = cl.Program(ctx, src)
+            try:
+                _CL_EXTRA[key] = prg.build(options=["-cl-fp32-correctly-rounded-divide-sqrt"])
+            except cl.Error:
+                _CL_EXTRA[key] = cl.Program(ctx, src).build()
+        return _CL_EXTRA[key]
+
+
 def usable_opencl_device(kind: str, index: int | None = None):
     """The first OpenCL device of ``kind`` ('gpu', 'cpu' or 'any', GPUs first) that builds gpumap's
     kernels. A machine can list several platforms for one device (PoCL from ``pyopencl[pocl]`` and
