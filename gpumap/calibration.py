@@ -152,7 +152,11 @@ def fit_view_model(dark: np.ndarray, hits: np.ndarray) -> ViewModel:
     dark, hits = np.asarray(dark), np.asarray(hits)
     if dark.size != hits.size:
         raise ValueError(f"Expected dark and hits of the same size, but got {dark.size} and {hits.size}")
-    k, n, w = count_histogram(dark, hits)
+    return _fit(*count_histogram(dark, hits))
+
+
+def _fit(k: np.ndarray, n: np.ndarray, w: np.ndarray) -> ViewModel:
+    """:func:`fit_view_model` on the histogram of ``(k, n)`` pairs with their voxel counts ``w``."""
     voxels = int(w.sum())
     if float(w[n > k].sum()) < MIN_FIT_VOXELS:
         return ViewModel(1.0, (1.0, 0.0), (0.0, 1.0), voxels, 0, 0.0, fitted=False)
@@ -187,10 +191,10 @@ def calibrated_occupied(dark: np.ndarray, hits: np.ndarray, miss_cost: float,
     these counts) at least ``1 / (1 + miss_cost)``, made monotone in ``k`` at equal ``n``."""
     h = np.asarray(hits)
     out = h > 0
-    model = fit_view_model(dark, hits) if model is None else model
+    idx, k, n, w, inverse = _pairs(dark, hits)  # pairs sorted by (n, k)
+    model = _fit(k, n, w) if model is None else model
     if not model.fitted:
         return out
-    idx, k, n, _, inverse = _pairs(dark, hits)  # pairs sorted by (n, k)
     keep = surface_log_odds(model, k, n) >= -np.log(miss_cost)
     # monotone in k at equal n: a pair is kept when it, or a pair of the same n with fewer bright views, is
     start = np.r_[0, np.flatnonzero(np.diff(n)) + 1]
