@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from gpumap.errors import check_pose
+from gpumap.reference import share_keeps
 
 __all__ = ["AXES", "N_CLASSES", "DirectionalEvidence", "direction_classes", "directional_occupied"]
 
@@ -63,7 +64,7 @@ def directional_occupied(dark: np.ndarray, hits: np.ndarray, bright_share: float
     k = h.reshape(h.shape[0], -1)[:, idx].astype(np.float64)
     n = k + d.reshape(d.shape[0], -1)[:, idx]
     share = np.divide(k, n, out=np.ones_like(k), where=n > 0)
-    keeps = (share >= p) | ((p - share) ** 2 * n <= z * z * p * (1.0 - p))
+    keeps = share_keeps(share, n, p, z)
     out.reshape(-1)[idx] = keeps.all(axis=0)
     return out
 

@@ -41,7 +41,7 @@ import numpy as np
 
 __all__ = [
     "add_counts", "beam_index_lo", "calibrated_values", "evidence_occupied", "evidence_values",
-    "integrate_gather", "integrate_template", "pack_counts", "split_counts", "visible_values",
+    "integrate_gather", "integrate_template", "pack_counts", "share_keeps", "split_counts", "visible_values",
     "voxel_ping_values",
 ]
 
@@ -275,10 +275,16 @@ def evidence_occupied(dark: np.ndarray, hits: np.ndarray, p_min: float, z: float
     idx = np.flatnonzero(out)  # the test runs on the voxels ever bright only (lean on memory)
     k = h.reshape(-1)[idx].astype(np.float64)
     n = k + np.asarray(dark).reshape(-1)[idx]
-    share = k / n
-    near = (p_min - share) ** 2 * n <= z * z * p_min * (1.0 - p_min)
-    out.reshape(-1)[idx] = (share >= p_min) | near
+    out.reshape(-1)[idx] = share_keeps(k / n, n, p_min, z)
     return out
+
+
+def share_keeps(share: np.ndarray, n: np.ndarray, p_min: float, z: float) -> np.ndarray:
+    """True where the one-sided binomial score test at ``z`` does not reject ``share >= p_min`` for a
+    ``share`` of bright views among ``n`` (:func:`evidence_occupied`): ``share >= p_min`` or
+    ``(p_min - share)^2 n <= z^2 p_min (1 - p_min)``; a tie keeps."""
+    near = (p_min - share) ** 2 * n <= z * z * p_min * (1.0 - p_min)
+    return (share >= p_min) | near
 
 
 def evidence_values(

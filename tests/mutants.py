@@ -153,8 +153,7 @@ MUTANTS = [
         "decision-ignores-view-count",
         "the evidence rule decides on the bright share alone, not its confidence over the views",
         # the decision is host code that every backend shares: mutated once, in gpumap/reference.py
-        {"numpy": [("out.reshape(-1)[idx] = (share >= p_min) | near",
-                    "out.reshape(-1)[idx] = share >= p_min")]},
+        {"numpy": [("    return (share >= p_min) | near", "    return share >= p_min")]},
         tests=("tests/test_evidence_rule.py",),
     ),
     Mutant(
