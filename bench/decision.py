@@ -153,15 +153,10 @@ def real_rows(backend: str, progress: bool, stride: int) -> dict:
 def _rate_rows(spec, grid, images, poses, backend: str) -> dict:
     """Frames 0-799 mapped every 10th, 3rd and every frame: occupied voxels on the voxels all three
     maps observe, per decision (a decision that holds at any ping rate keeps these close)."""
-    import gpumap
+    from .rate_real import _map
 
-    maps = {}
-    for s in RATE_STRIDES:
-        m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule="evidence", threshold=0.4)
-        idx = np.arange(0, RATE_FRAMES, s)
-        for a in range(0, len(idx), 32):
-            m.integrate_batch(images[idx[a:a + 32]], poses[idx[a:a + 32]])
-        maps[s] = m
+    maps = {s: _map(spec, grid, images, poses, range(0, RATE_FRAMES, s), "evidence", backend, 0.4)[0]
+            for s in RATE_STRIDES}
     common_obs = np.logical_and.reduce([m.observed() for m in maps.values()])
     out = {"frames": RATE_FRAMES, "strides": list(RATE_STRIDES), "observed_common": int(common_obs.sum()),
            "occupied": {}}
