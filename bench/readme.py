@@ -172,22 +172,24 @@ def summary_rows() -> list[tuple[str, str, str]]:
     if sr and sr.get("streams"):
         r = sr["streams"][0]
         load = (r.get("load_avg_before") or ["?"])[0]
-        rows.append((f"... the live surface layer, the full run played at {r['hz']:g} Hz on the shared "
+        rows.append((f"... the live surface layer, the full run played at {r['hz']:g} Hz on the "
                      f"2-core CPU ({r['backend']}, load {load}): layer age median / max, its work a ping",
                      f"{r['age_s']['median']:.1f} s / {r['age_s']['max']:.1f} s, "
                      f"{r['surface_ms_per_ping']:.0f} ms", "surface_rate.json"))
         if sr.get("replay"):
             rows.append(("... `gpumap replay` of the full run writing both layers over the safe layer alone "
-                         "(paired runs, loaded machine)", f"{sr['replay']['ratio_median']:.2f}x",
+                         f"(paired runs, load {load} at the start)", f"{sr['replay']['ratio_median']:.2f}x",
                          "surface_rate.json"))
     cf = _load("confidence.json")
     if cf:
         secs = cf.get("sections", {})
         cells = [f"{b} {r['ratio']:.2f}x" for sec in ("cpu", "gpu")
                  for b, r in secs.get(sec, {}).get("rows", {}).items()]
-        rows.append(("Confidence layer on the device (issue 37): mapping the real tank (123 pings, 5 cm) "
-                     "with the layer over without, best of 3 each in one run; 2-core CPU under others' "
-                     "load, then the GPU", ", ".join(cells), "confidence.json"))
+        cpu_rows = secs.get("cpu", {}).get("rows", {}).values()
+        cpu_load = max((r["loadavg_start"][0] for r in cpu_rows), default="?")
+        rows.append((f"Confidence layer on the device (issue 37): mapping the real tank (123 pings, 5 cm) "
+                     "with the layer over without, best of 3 each in one run; the 2-core CPU (load "
+                     f"{cpu_load} at the start), then the GPU", ", ".join(cells), "confidence.json"))
     dc = _load("decision.json")
     if dc:
         def cells(labels: tuple[str, ...], var: str, key: str) -> str:
