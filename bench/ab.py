@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gpumap.core.params import MapperParams
+
 if __package__:  # bench.ab; run as a script (the worker), only gpumap and the harness by path are imported
     from . import common
     from .common import CpuShare, Section, bench_parser, idle_check, refuse, run_header, spread, write_json
@@ -55,8 +57,8 @@ def _worker(job: dict) -> None:
         gpumap.backends.GPU_CHUNK = job["gpu_chunk"]
     n, batch, spec = job["images"], job["batch"], c.tank_spec()
     imgs, poses = c.speckle(spec, min(n, 16)), c.trajectory(n)
-    m = gpumap.MinMaxMapper(spec, c.tank_grid(job["voxel"]), backend=job["backend"],
-                            **({"rule": job["rule"]} if job["rule"] else {}))
+    m = gpumap.MinMaxMapper(spec, c.tank_grid(job["voxel"]), job["backend"],
+                            MapperParams(**({"rule": job["rule"]} if job["rule"] else {})))
     for k in range(WARMUP):
         m.integrate(imgs[k], poses[k])
     m.synchronize()

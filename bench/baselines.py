@@ -10,6 +10,7 @@ import math
 import numpy as np
 
 import gpumap
+from gpumap.core.params import MapperParams
 
 __all__ = ["OasisRule", "OctoMapBaseline", "PaperSixSteps", "oasis_occupied", "paper_template_S"]
 
@@ -134,7 +135,7 @@ class OasisRule:
     def __init__(self, spec: gpumap.SonarSpec, grid: gpumap.GridSpec, threshold: float = 0.1,
                  fnr: float = 0.5, backend: str = "auto", method: str = "gather") -> None:
         self.threshold, self.fnr, self.grid = float(threshold), float(fnr), grid
-        self.mapper = gpumap.MinMaxMapper(spec, grid, backend=backend, method=method, rule="plain")
+        self.mapper = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(method=method, rule="plain"))
         self.hits = np.zeros(grid.shape, dtype=np.uint16)
         self.observations = np.zeros(grid.shape, dtype=np.uint16)
 

@@ -8,7 +8,7 @@ The 123 real OASIS tank frames (``bench.speed``'s cache) on the OASIS box; per b
 maps), the two in turn ``--repeat`` times in one process; the best wall time of each (and the best
 CPU time of the process, all threads, which other processes' load inflates less) and their ratio.
 Each backend's layer and map are compared with the NumPy reference's (the ``numpy`` backend runs
-``gpumap.confidence.confirm_ping``) bit for bit. The machine's load is recorded around every row.
+``gpumap.layers.confidence.confirm_ping``) bit for bit. The machine's load is recorded around every row.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 import gpumap
+from gpumap.layers.confidence import with_confidence
 
 from . import common
 from .common import CpuShare, Section, bench_parser, load_average, merge_json
@@ -41,16 +42,17 @@ def _map_all(m: gpumap.MinMaxMapper, images: np.ndarray, poses: np.ndarray) -> t
 
 def reference(fr, grid: gpumap.GridSpec) -> dict:
     """The NumPy reference's layer and values of every frame."""
-    m = gpumap.MinMaxMapper(fr.spec, grid, backend="numpy", confidence=True)
+    m = with_confidence(gpumap.MinMaxMapper(fr.spec, grid, backend="numpy"))
     for img, T in zip(fr.images, fr.poses, strict=True):
         m.integrate(img, T)
-    lay = m.confidence_layer
+    lay = m.layer("confidence")
     return {"confirmed": lay.confirmed.copy(), "arcs": lay.arcs.copy(), "values": m.raw_values()}
 
 
 def row(fr, grid: gpumap.GridSpec, backend: str, repeat: int, ref: dict | None) -> dict:
     """One backend: best wall and CPU seconds with and without the layer, their ratios, the check."""
-    ms = {c: gpumap.MinMaxMapper(fr.spec, grid, backend=backend, confidence=c) for c in (False, True)}
+    ms = {c: gpumap.MinMaxMapper(fr.spec, grid, backend) for c in (False, True)}
+    with_confidence(ms[True])
     for m in ms.values():  # compile or load the kernels, allocate the buffers
         for img, T in zip(fr.images[:WARMUP], fr.poses[:WARMUP], strict=True):
             m.integrate(img, T)
@@ -73,7 +75,7 @@ def row(fr, grid: gpumap.GridSpec, backend: str, repeat: int, ref: dict | None) 
     out["cpu_ratio"] = out["map_confidence_cpu_s"] / out["map_cpu_s"]
     m = ms[True]  # after its last pass: the layer of every frame
     if ref is not None:
-        lay = m.confidence_layer
+        lay = m.layer("confidence")
         out["confirmed_voxels"] = int(lay.confirmed.sum())
         out["layer_equal_to_reference"] = bool(np.array_equal(lay.confirmed, ref["confirmed"])
                                                and np.array_equal(lay.arcs, ref["arcs"]))

@@ -1,14 +1,14 @@
 """``python -m bench decision``: the evidence rule's decisions side by side (issue #36).
 
 The same counts decided by the share test (today's default), by the calibrated view model
-(:mod:`gpumap.calibration`) at several miss costs, and the visible rule beside them, on
+(:mod:`gpumap.bench.experiments.calibration`) at several miss costs, and the visible rule beside them, on
 
 - the simulated scenes (tank, circle, side; 40 pings at 3 cm) without and with the real tank's
   variation: objects missed, all detectable surface missed, far water called occupied;
 - the real full-rate tank, development split only: frames 0-599 mapped at every frame, frames
-  600-799 judged by first returns (``gpumap.first_return``). Frames 800-1222 stay held out for
+  600-799 judged by first returns (``gpumap.layers.first_return``). Frames 800-1222 stay held out for
   ``python -m bench real_frontier``. Beside the fixed threshold (0.4), the pings' own per-range
-  detections (:func:`gpumap.detection.adaptive_detect`, the OASIS preprocessing's scheme) at a
+  detections (:func:`gpumap.bench.experiments.detection.adaptive_detect`, the OASIS preprocessing's scheme) at a
   few standard scores, mapped at 0.5; the judge's first returns stay the fixed threshold's.
 
 Writes ``bench/results/decision.json``; ``--report BENCHMARKS.md`` writes its block.
@@ -20,6 +20,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from gpumap.core.params import MapperParams
 
 from . import common
 from .common import Section, bench_parser, oasis_full_dir, progress_bar, quantize, run_header, write_json
@@ -38,7 +40,7 @@ DETECT_Z = (2.0, 3.0)  # adaptive detection's standard scores measured beside th
 def _decisions(m, directional=None, shares: tuple[float, ...] = ()) -> dict[str, dict]:
     """Decision name -> {"options": ..., "values": the evidence map ``m``'s values read under it}:
     the share test (default, and at ``shares``), the calibrated decision at each of COSTS, the
-    directional decision (``directional``: a :class:`gpumap.directions.DirectionalEvidence` of the
+    directional decision (``directional``: a :class:`gpumap.bench.experiments.directions.DirectionalEvidence` of the
     same pings) at the default share and ``shares``, and every voxel ever seen bright (the floor of
     any rule's misses: a voxel never bright is free under every rule)."""
     out = {"share 0.2 (default)": {"options": {"decision": "share"}, "values": m.values()}}
@@ -67,13 +69,13 @@ def _decisions(m, directional=None, shares: tuple[float, ...] = ()) -> dict[str,
 
 
 def sim_rows(backend: str, progress: bool) -> list[dict]:
+    from gpumap.bench.experiments.directions import DirectionalEvidence
     from gpumap.sim.metrics import evaluate, ground_truth_masks
     from gpumap.sim.scenes import make_scene
     from gpumap.sim.truth import occupancy
     from gpumap.sim.variation import SonarVariation
 
     import gpumap
-    from gpumap.directions import DirectionalEvidence
 
     rows = []
     for name in SCENES:
@@ -86,8 +88,7 @@ def sim_rows(backend: str, progress: bool) -> list[dict]:
             seen, det = ground_truth_masks(pings, scene.grid, THRESHOLD)
             maps = {}
             for rule in ("evidence", "visible"):
-                maps[rule] = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, rule=rule,
-                                                 threshold=THRESHOLD)
+                maps[rule] = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend, MapperParams(rule=rule, threshold=THRESHOLD))
             directional = DirectionalEvidence(scene.sonar_spec, scene.grid, backend=backend,
                                               threshold=THRESHOLD)
             for p in pings:
@@ -105,10 +106,11 @@ def sim_rows(backend: str, progress: bool) -> list[dict]:
 
 
 def real_rows(backend: str, progress: bool, stride: int) -> dict:
+    from gpumap.bench.experiments.detection import adaptive_detect
+    from gpumap.bench.experiments.directions import DirectionalEvidence
+
     import gpumap
-    from gpumap.detection import adaptive_detect
-    from gpumap.directions import DirectionalEvidence
-    from gpumap.first_return import first_return_score
+    from gpumap.layers.first_return import first_return_score
     from gpumap.spec import auto_grid
 
     from .rate_real import _load
@@ -118,7 +120,7 @@ def real_rows(backend: str, progress: bool, stride: int) -> dict:
         return {"skipped": "the full real run was not found (shared/data/README.md)"}
     spec, images, poses = _load(data, progress)
     grid = auto_grid(spec, poses, 0.05)
-    m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule="evidence", threshold=0.4)
+    m = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(rule="evidence", threshold=0.4))
     directional = DirectionalEvidence(spec, grid, backend=backend, threshold=0.4)
     for a in range(DEV_MAP[0], DEV_MAP[1], 32):
         for mm in (m, directional):
@@ -126,9 +128,9 @@ def real_rows(backend: str, progress: bool, stride: int) -> dict:
     judged = range(DEV_JUDGE[0], DEV_JUDGE[1], stride)
     reads = {f"{k} (threshold 0.4)": {**r, "detection": "threshold 0.4"}
              for k, r in _decisions(m, directional, REAL_SHARES).items()}
-    for z in DETECT_Z:  # the pings' own detections instead of a fixed threshold (gpumap.detection)
+    for z in DETECT_Z:  # the pings' own detections instead of a fixed threshold (gpumap.bench.experiments.detection)
         det = np.stack([adaptive_detect(im, z=z) for im in images[DEV_MAP[0]:DEV_MAP[1]]])
-        md = gpumap.MinMaxMapper(spec, grid, backend=backend, rule="evidence", threshold=0.5)
+        md = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(rule="evidence", threshold=0.5))
         dev_poses = poses[DEV_MAP[0]:DEV_MAP[1]]
         for a in range(0, len(det), 32):
             md.integrate_batch(det[a:a + 32], dev_poses[a:a + 32])

@@ -7,7 +7,7 @@ used to choose a setting; ``heldout``: ``split .. end``, started from the record
 ``split``; ``full``), pose error over odometry's (mean position, mean heading) of:
 
 - ``ekf``: what ``gpumap replay --ekf --ekf-registration`` runs: the guarded EKF on point returns plus
-  the default :class:`gpumap.ekf.registration.ScanRegistrar` (revisits, each verified by its
+  the default :class:`gpumap.ekf.registrar.ScanRegistrar` (revisits, each verified by its
   image's agreement before it is fused, and its pose graph: the ping of each solve is put
   where the graph says);
 - ``graph``: the pose graph (:func:`gpumap.ekf.posegraph.run_pose_graph`) over the odometry and
@@ -18,7 +18,7 @@ used to choose a setting; ``heldout``: ``split .. end``, started from the record
 The maps: per drift and seed, frames ``0 .. split-1`` mapped (evidence rule, ``--voxel``) at each
 pose source's poses of the full run (odometry, EKF, graph, recorded), each judged by the
 held-out frames' first returns at their recorded poses
-(:func:`gpumap.first_return.first_return_score`): the share of beams whose first return the
+(:func:`gpumap.layers.first_return.first_return_score`): the share of beams whose first return the
 map puts within a voxel of where the sonar measured it.
 
 Costs are milliseconds per ping on this machine's CPU, per part, under the load averages
@@ -37,14 +37,16 @@ from pathlib import Path
 
 import numpy as np
 
+from gpumap.core.params import MapperParams
 from gpumap.ekf.frontend import PointDetector, PointMeasurements
 from gpumap.ekf.guard import TrustGuard
 from gpumap.ekf.loop import drifting_odometry, motion_cov, pose_errors, run_ekf_loop
 from gpumap.ekf.posegraph import run_pose_graph
-from gpumap.ekf.registration import ScanRegistrar, image_descriptor
-from gpumap.ekf_replay import posed_frames, registration_summary
-from gpumap.first_return import measured_first_returns
+from gpumap.ekf.registrar import ScanRegistrar
+from gpumap.ekf.registration import image_descriptor
 from gpumap.io import open_recording
+from gpumap.layers.first_return import measured_first_returns
+from gpumap.pipeline.ekf_replay import posed_frames, registration_summary
 
 from .common import Section, bench_parser, compact, load_average, oasis_full_dir, run_header, write_json
 
@@ -111,7 +113,7 @@ def _table(runs: list[dict]) -> dict:
 def _maps(images, spec, poses: dict, split: int, voxel: float, backend: str) -> dict:
     """Frames 0..split-1 mapped at each pose set, judged by the held-out frames at the recorded poses."""
     from gpumap import MinMaxMapper
-    from gpumap.first_return import first_return_score
+    from gpumap.layers.first_return import first_return_score
     from gpumap.spec import auto_grid
 
     T_rec = poses["recorded"]
@@ -119,7 +121,7 @@ def _maps(images, spec, poses: dict, split: int, voxel: float, backend: str) -> 
     out = {}
     for name, T in poses.items():
         t0 = time.perf_counter()
-        m = MinMaxMapper(spec, grid, backend=backend, threshold=THRESHOLD)
+        m = MinMaxMapper(spec, grid, backend, MapperParams(threshold=THRESHOLD))
         for i in range(0, split, 32):
             j = min(i + 32, split)
             m.integrate_batch(np.stack(images[i:j]), np.asarray(T[i:j]))
@@ -345,7 +347,7 @@ def frontier_main(a, argv) -> int:
 def submaps_main(a, argv) -> int:
     """``--submaps``: the graph's map kept as segment maps, re-mapped where each solve moved them."""
     from gpumap.ekf.submaps import SegmentMaps
-    from gpumap.first_return import first_return_score
+    from gpumap.layers.first_return import first_return_score
     from gpumap.spec import auto_grid
 
     doc = run_header("gpumap.bench.ekf_pose_submaps/1", argv)

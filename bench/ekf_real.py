@@ -15,8 +15,8 @@ import numpy as np
 from gpumap.ekf.frontend import PointDetector
 from gpumap.ekf.guard import TrustGuard
 from gpumap.ekf.loop import drifting_odometry, motion_cov, pose_errors, run_ekf_loop
-from gpumap.ekf_replay import posed_frames, trust_summary
 from gpumap.io import open_recording
+from gpumap.pipeline.ekf_replay import posed_frames, trust_summary
 
 from .common import bench_parser, compact, load_average, oasis_full_dir, run_header, write_json
 

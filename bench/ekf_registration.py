@@ -6,7 +6,7 @@ as in ``bench.ekf_real``. Each variant runs on three slices: ``dev`` (frames ``0
 the only ones used to choose any setting), ``heldout`` (``split .. end``, started from the
 recorded pose at ``split``) and ``full``.
 
-Variants (:class:`gpumap.ekf.registration.ScanRegistrar`; the registration-only ones feed the
+Variants (:class:`gpumap.ekf.registrar.ScanRegistrar`; the registration-only ones feed the
 filter no point returns, so they show what the registration alone does):
 
 - ``step``: each ping's first returns registered against the last ping's (ICP in the imaging
@@ -27,7 +27,7 @@ against the recorded motion, per gap between the pings, on dev); ``ceiling``, th
 step measurement of the in-plane components could do (odometry with the in-plane noise of
 every step removed: x, y and yaw known exactly); and, on the full run, the maps at the
 recorded, odometry and EKF poses compared voxel by voxel per drift and seed
-(:func:`gpumap.ekf_replay.compare_maps`). Costs are milliseconds per ping on the shared 2-core
+(:func:`gpumap.pipeline.ekf_replay.compare_maps`). Costs are milliseconds per ping on the shared 2-core
 CPU under the load averages recorded with them.
 
 Run::
@@ -43,14 +43,15 @@ from pathlib import Path
 
 import numpy as np
 
+from gpumap.core.params import MapperParams
 from gpumap.ekf.frontend import PointDetector, PointMeasurements
 from gpumap.ekf.guard import TrustGuard
 from gpumap.ekf.loop import drifting_odometry, motion_cov, pose_errors, run_ekf_loop
-from gpumap.ekf.registration import ScanRegistrar
-from gpumap.ekf_replay import compare_maps, posed_frames, registration_summary
-from gpumap.first_return import measured_first_returns
+from gpumap.ekf.registrar import ScanRegistrar
 from gpumap.io import open_recording
+from gpumap.layers.first_return import measured_first_returns
 from gpumap.lie import se3_exp, se3_inverse
+from gpumap.pipeline.ekf_replay import compare_maps, posed_frames, registration_summary
 
 from .common import Section, bench_parser, compact, load_average, oasis_full_dir, run_header, write_json
 
@@ -184,7 +185,7 @@ def _maps(images, spec, poses: dict, voxel: float, backend: str) -> dict:
     grid = auto_grid(spec, list(poses["recorded"]), voxel)
     vals = {}
     for name, T in poses.items():
-        m = MinMaxMapper(spec, grid, backend=backend, threshold=THRESHOLD)
+        m = MinMaxMapper(spec, grid, backend, MapperParams(threshold=THRESHOLD))
         for i in range(0, len(images), 32):
             m.integrate_batch(np.stack(images[i:i + 32]), np.stack(T[i:i + 32]))
         vals[name] = m.values()

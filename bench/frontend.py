@@ -161,8 +161,8 @@ def _sim_detector(sc, pings, cells: float = 2.0) -> dict:
 
 
 def _real(path: str, seeds: int, progress: bool) -> list[dict]:
-    from gpumap.ekf_replay import run_ekf_replay
     from gpumap.io import open_recording
+    from gpumap.pipeline.ekf_replay import run_ekf_replay
 
     rows = []
     keys = ("pose_error", "ratio_ekf_to_odometry", "map_vs_recorded", "measurements", "tracks",

@@ -16,12 +16,12 @@ Frames: the real tank sequence (123 uint8 polar frames with arm poses, the ``.np
   map of the first ``--check`` frames, batched, compared with the NumPy oracle bit for bit. Two
   GPUs: warp-cuda runs on GPU 0 and opencl-gpu on GPU 1 at the same time (old and new of a
   backend on the same card).
-- ``workers``: :func:`gpumap.workers.run_replay_workers` with 1 and 2 workers (one GPU each) and
-  :func:`gpumap.replay.run_replay` in one process, on the frames repeated ``--repeat`` times
+- ``workers``: :func:`gpumap.pipeline.workers.run_replay_workers` with 1 and 2 workers (one GPU each) and
+  :func:`gpumap.pipeline.replay.run_replay` in one process, on the frames repeated ``--repeat`` times
   (a recording of float32 frames that keep their bytes, so the client sends uint8), after a cold
   warm-up; and the client alone (reading and batching the frames, no mapping): if the client is
   the limit, this says so. The first run checks the merged map equals the one-process map.
-- ``threads``: :func:`gpumap.gpu_threads.run_replay_threads` on 1 and 2 GPUs of this process (a
+- ``threads``: :func:`gpumap.pipeline.gpu_threads.run_replay_threads` on 1 and 2 GPUs of this process (a
   thread and a mapper per GPU, the maps merged in place) against one plain process, per
   ``--thread-runs`` entry (backend, voxel size, warm runs), on the frames repeated ``--repeat``
   times; the cold run checks every merged map equals the one-process map bit for bit. Runs before
@@ -386,11 +386,11 @@ def _recording(imgs, poses, spec, repeat: int):
     """The frames ``repeat`` times as a recording of float32 frames that keep their bytes."""
     from gpumap.backends import U8_SCALE
     from gpumap.io import Recording, SonarFrame
-    from gpumap.workers import FRAME_BYTES
+    from gpumap.pipeline.workers import FRAME_BYTES
 
     flt = [np.multiply(b, U8_SCALE, dtype=np.float32) for b in imgs]
     # each repeat 0.1 mm further along x: the same work, but pings of their own (maps that share a
-    # ping would count it twice when merged, and gpumap.merge refuses them)
+    # ping would count it twice when merged, and gpumap.core.merge refuses them)
     Ts = [T.copy() for _ in range(repeat) for T in poses]
     for r in range(repeat):
         for T in Ts[r * len(imgs) : (r + 1) * len(imgs)]:
@@ -406,7 +406,7 @@ def _recording(imgs, poses, spec, repeat: int):
 
 def _client_only(rec) -> float:
     """Frames per second the client reads and batches (as run_replay_workers does), mapping none."""
-    from gpumap.workers import BATCH, frame_pixels
+    from gpumap.pipeline.workers import BATCH, frame_pixels
 
     t = time.perf_counter()
     n = 0
@@ -427,8 +427,8 @@ def workers_section(a, res: dict, save, name: str, backend: str, voxel: float, n
     from distributed import Client, LocalCluster
 
     import gpumap
-    from gpumap.replay import run_replay
-    from gpumap.workers import run_replay_workers
+    from gpumap.pipeline.replay import run_replay
+    from gpumap.pipeline.workers import run_replay_workers
 
     load_at_start = load_average()  # before this section loads anything or starts a worker
     # the worker processes import this checkout's gpumap (as this process does)
@@ -503,13 +503,13 @@ def workers_section(a, res: dict, save, name: str, backend: str, voxel: float, n
 
 def threads_section(a, res: dict, save, name: str, backend: str, voxel: float, n_gpus: list[int],
                     reps: int) -> None:
-    """In-process GPUs (:func:`gpumap.gpu_threads.run_replay_threads`, a thread and a mapper per GPU,
-    the maps merged in place) against one process (:func:`gpumap.replay.run_replay`), on the frames
+    """In-process GPUs (:func:`gpumap.pipeline.gpu_threads.run_replay_threads`, a thread and a mapper per GPU,
+    the maps merged in place) against one process (:func:`gpumap.pipeline.replay.run_replay`), on the frames
     repeated ``--repeat`` times: ``reps`` warm runs after a cold one (which compiles and checks that
     every merged map equals the one-process map bit for bit)."""
     import gpumap
-    from gpumap.gpu_threads import run_replay_threads
-    from gpumap.replay import run_replay
+    from gpumap.pipeline.gpu_threads import run_replay_threads
+    from gpumap.pipeline.replay import run_replay
 
     imgs, poses, spec = _frames(a.frames)
     rec = _recording(imgs, poses, spec, a.repeat)

@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from gpumap.core.params import MapperParams
+
 from . import common
 from .common import CpuShare, Section, bench_parser, mark_load, progress_bar, quantize, run_header
 
@@ -43,8 +45,7 @@ def run_scene(name: str, checkpoints: tuple[int, ...], voxel_m: float, variation
     t0 = time.perf_counter()
     truth = occupancy(scene, seed=seed)
     truth_s, grid = time.perf_counter() - t0, scene.grid
-    mappers = {r: gpumap.MinMaxMapper(scene.sonar_spec, grid, backend=backend, rule=r,
-                                      threshold=OCCUPIED_THRESHOLD) for r in RULES}
+    mappers = {r: gpumap.MinMaxMapper(scene.sonar_spec, grid, backend, MapperParams(rule=r, threshold=OCCUPIED_THRESHOLD)) for r in RULES}
     default_rule = default_rule_of(scene.sonar_spec, grid, backend)
     seen, det = np.zeros(grid.n_voxels, bool), np.zeros(grid.n_voxels, bool)
     sim_s, eval_s, map_s, dropped = 0.0, 0.0, dict.fromkeys(RULES, 0.0), 0

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 import gpumap
+from gpumap.layers.confidence import with_confidence
 
 from . import common
 from .common import TMP, Section, bench_parser, load_average, merge_json, render_pings
@@ -38,7 +39,7 @@ def _simulate(scene_name: str):
 
 def _save_speed_map(scene, pings, backend: str) -> None:
     """The tank map (with its confidence layer) and poses the speed rows score candidates on."""
-    m = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, confidence=True)
+    m = with_confidence(gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend))
     m.integrate_batch(np.stack([p.image for p in pings]), scene.T_W_S)
     TMP.mkdir(parents=True, exist_ok=True)
     m.save(MAP)
@@ -60,7 +61,7 @@ def quality(scene_name: str, n_plan: int, backend: str, out_dir: Path, quiet: bo
 
 
 def speed(repeat: int) -> dict:
-    from gpumap.nbv import _fov, candidate_poses, gain_points, poses_to_rows, view_gain_reference
+    from gpumap.layers.viewgain import _fov, candidate_poses, gain_points, poses_to_rows, view_gain_reference
 
     if not (MAP.exists() and (TMP / "nbv_tank_poses.npy").exists()):  # --speed-only on a fresh checkout
         scene, _, pings = _simulate("tank")
@@ -76,14 +77,14 @@ def speed(repeat: int) -> dict:
         except Exception as e:  # a backend listed but unable to build here: say so
             rows[b] = {"error": repr(e)[:300]}
             continue
-        m.view_gain(C[:16])
+        m.layer("confidence").gains(C[:16])
         best = np.inf
         for _ in range(repeat):
             t0 = time.perf_counter()
-            g = m.view_gain(C)
+            g = m.layer("confidence").gains(C)
             best = min(best, time.perf_counter() - t0)
         if ref is None:
-            pts = gain_points(m.raw_values(), m.confidence() == 3, m.threshold, m.grid, m._arcs)
+            pts = gain_points(m.raw_values(), m.layer("confidence").states() == 3, m.threshold, m.grid, m.layer("confidence").arcs)
             s, u = view_gain_reference(poses_to_rows(C), pts, _fov(m._params))
             ref, n_points = s + 1.0 * u, int(pts.points.shape[0])
         rows[b] = {"device": m.device, "seconds": best, "candidates_per_s": N_CANDIDATES / best,

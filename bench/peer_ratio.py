@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 import gpumap
+from gpumap.core.params import MapperParams
 
 from . import common
 from .common import CpuShare, bench_parser, idle_check, pooled_others, refuse, spread, synced_ms
@@ -30,10 +31,10 @@ def summarize(oasis_ms: list[float], gpumap_ms: list[float]) -> dict[str, Any]:
 def time_gpumap(fr: Frames, backend: str, rule: str, voxel_m: float, n: int) -> float:
     """Mean ms per frame of ``integrate`` + ``synchronize`` over frames 1..n (frame 0 warms up)."""
     grid = oasis_grid(voxel_m)
-    warm = gpumap.MinMaxMapper(fr.spec, grid, backend=backend, rule=rule)
+    warm = gpumap.MinMaxMapper(fr.spec, grid, backend, MapperParams(rule=rule))
     warm.integrate(fr.images[0], fr.poses[0])
     warm.synchronize()
-    m = gpumap.MinMaxMapper(fr.spec, grid, backend=backend, rule=rule)
+    m = gpumap.MinMaxMapper(fr.spec, grid, backend, MapperParams(rule=rule))
     return float(np.mean(synced_ms(m, fr.images, fr.poses, n, start=1)))
 
 

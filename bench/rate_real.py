@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gpumap.core.params import MapperParams
+
 from . import common
 from .common import Section, bench_parser, oasis_full_dir, progress_bar, run_header, write_json
 
@@ -40,7 +42,7 @@ def _load(path: Path, progress: bool):
 def _map(spec, grid, images, poses, frames, rule, backend, threshold, checkpoints=()):
     import gpumap
 
-    m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule=rule, threshold=threshold)
+    m = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(rule=rule, threshold=threshold))
     curve, idx, done, t0 = [], list(frames), 0, time.perf_counter()
     for cut in [*(c for c in checkpoints if c < len(idx)), len(idx)]:
         cut = min(cut, len(idx))
@@ -57,7 +59,7 @@ def _map(spec, grid, images, poses, frames, rule, backend, threshold, checkpoint
 
 
 def _judge(values, grid, threshold, images, poses, frames, spec):
-    from gpumap.first_return import first_return_score
+    from gpumap.layers.first_return import first_return_score
 
     return first_return_score(values, grid, threshold, ((images[i], poses[i]) for i in frames), spec)
 

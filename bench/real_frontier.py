@@ -3,7 +3,7 @@ on one judge: the real tank's held-out first returns, phantoms in front against 
 
 The full real run (1,223 frames): frames 0-799 mapped at the sonar's rate (every frame), 5 cm
 (:func:`gpumap.spec.auto_grid`), threshold 0.4; held-out frames 800-1222 judged by
-:func:`gpumap.first_return.first_return_score` (per beam with a return: the map's nearest occupied
+:func:`gpumap.layers.first_return.first_return_score` (per beam with a return: the map's nearest occupied
 voxel in its fan agrees within 2 voxels, lies in front (a phantom), or is farther / absent (missing)).
 Every map is judged twice: whole, and inside the public code's configured box only (configs/base.yaml:
 2.4 x 2.4 x 1.3 m from (-0.5, -1.2, -0.5); outside it every map is made unknown), the comparison
@@ -19,7 +19,7 @@ Rows, each judged alike:
   :class:`gpumap.MinMaxMapper` (``bright_share``, ``share_z``, ``carve_views``, ...) are set on the
   one map of that rule before it is read, the others are passed to its constructor (a map of its
   own);
-- the surface layer (:func:`gpumap.surface.surface_from_mapper` on the evidence map of frames 0-799,
+- the surface layer (:func:`gpumap.layers.surface_live.surface_from_mapper` on the evidence map of frames 0-799,
   as ``bench.surface`` builds it);
 - the public OASIS reconstruction (chaos-whoi/oasis_iros), its ``update_voxel_grid`` unmodified, run
   by ``bench.oasis_public`` in its own environment (``--oasis-python``: an interpreter with open3d and
@@ -57,6 +57,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from gpumap.core.params import MapperParams
 
 from . import common
 from .common import TMP, Section, bench_parser, load_average, oasis_full_dir, run_header, write_json
@@ -283,7 +285,7 @@ def centres_in_box(grid, lo: Sequence[float], hi: Sequence[float]) -> np.ndarray
 
 
 def _judge(values: np.ndarray, grid, thr: float, images, poses, frames: range, spec) -> dict[str, Any]:
-    from gpumap.first_return import first_return_score
+    from gpumap.layers.first_return import first_return_score
 
     t0 = time.perf_counter()
     s = first_return_score(values, grid, thr, ((images[i], poses[i]) for i in frames), spec)
@@ -353,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
                          f"{len(images)}")
     grid, thr = auto_grid(spec, poses, a.voxel), a.threshold
     held, mapped = range(HELD[0], HELD[1], a.judge_stride), np.arange(*MAPPED)
-    default_rule = gpumap.MinMaxMapper(spec, grid, backend="numpy", threshold=thr).rule
+    default_rule = gpumap.MinMaxMapper(spec, grid, "numpy", MapperParams(threshold=thr)).rule
     box_lo, box_hi = public_box(a.oasis_downsample)
     in_box = centres_in_box(grid, box_lo, box_hi)
 
@@ -373,7 +375,7 @@ def main(argv: list[str] | None = None) -> int:
     def mapper(rule: str | None, build: dict[str, Any]):
         key = (rule or default_rule, tuple(sorted(build.items())))
         if key not in mappers:
-            m = gpumap.MinMaxMapper(spec, grid, backend=a.backend, rule=rule, threshold=thr, **build)
+            m = gpumap.MinMaxMapper(spec, grid, a.backend, MapperParams(rule=rule, threshold=thr, **build))
             t0 = time.perf_counter()
             for i in range(0, len(mapped), BATCH):
                 b = mapped[i:i + BATCH]
@@ -403,7 +405,7 @@ def main(argv: list[str] | None = None) -> int:
         res["rows"].append(r)
         _say(r["name"], r)
     if not a.no_surface:
-        from gpumap.surface import surface_from_mapper
+        from gpumap.layers.surface_live import surface_from_mapper
 
         m, _ = mapper("evidence", {})
         t0 = time.perf_counter()

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 import gpumap
+from gpumap.core.params import MapperParams
 
 from .common import bench_parser, load_average, machine_info, merge_json, oasis_tank_dir, simulate, write_json
 
@@ -113,8 +114,8 @@ def sim_case(name: str, voxel: float, cache: Path, progress: bool) -> dict:
 
 
 def oasis_case(voxel: float, data: Path | None) -> dict:
-    from gpumap.refine import recording_frames as load_frames
-    from gpumap.replay import DEFAULT_THRESHOLD
+    from gpumap.layers.refine import recording_frames as load_frames
+    from gpumap.pipeline.replay import DEFAULT_THRESHOLD
     from gpumap.spec import auto_grid
 
     if data is None and oasis_tank_dir() is None:
@@ -126,11 +127,11 @@ def oasis_case(voxel: float, data: Path | None) -> dict:
 
 def build_maps(c: dict, sel: np.ndarray, backend: str, device: str, overrides: dict) -> dict:
     """Plain and visible maps of pings ``sel``, the refinement of the visible one, and its band."""
-    from gpumap.refine import RefineOptions, refine
+    from gpumap.layers.refine import RefineOptions, refine
 
     out = {}
     for rule in ("plain", "visible"):
-        m = gpumap.MinMaxMapper(c["spec"], c["grid"], backend=backend, rule=rule, threshold=c["threshold"])
+        m = gpumap.MinMaxMapper(c["spec"], c["grid"], backend, MapperParams(rule=rule, threshold=c["threshold"]))
         t = time.perf_counter()
         m.integrate_batch(c["images"][sel], c["poses"][sel])
         m.synchronize()
@@ -147,7 +148,7 @@ def build_maps(c: dict, sel: np.ndarray, backend: str, device: str, overrides: d
 
 
 def truth_scores(c: dict, maps: dict, voxel: float) -> dict:
-    from gpumap.refine import OCCUPIED_LEVEL
+    from gpumap.layers.refine import OCCUPIED_LEVEL
 
     return {name: _truth(c, mp["values"], OCCUPIED_LEVEL if name.startswith("refined") else c["threshold"],
                          voxel)
@@ -155,8 +156,8 @@ def truth_scores(c: dict, maps: dict, voxel: float) -> dict:
 
 
 def heldout(c: dict, k: int, backend: str, device: str, overrides: dict) -> dict:
-    from gpumap.refine import OCCUPIED_LEVEL, heldout_scores, render_map
-    from gpumap.render import PingRenderer
+    from gpumap.layers.refine import OCCUPIED_LEVEL, heldout_scores, render_map
+    from gpumap.layers.render import PingRenderer
 
     test = np.arange(len(c["images"])) % k == k - 1
     maps = build_maps(c, np.flatnonzero(~test), backend, device, overrides)

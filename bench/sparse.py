@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 import gpumap
-from gpumap.sparse import SparseMinMaxMapper, SparseSpec
+from gpumap.core.sparse import SparseMinMaxMapper, SparseSpec
 
 from . import common
 from .common import TMP, bench_parser, load_ping_arrays, merge_json, render_survey, stream_rate

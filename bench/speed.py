@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 import gpumap
+from gpumap.core.params import MapperParams
 
 from . import common
 from .common import GPU_BACKENDS, TMP, CpuShare, bench_parser, stream_rate, synced_ms, warm_up, write_json
@@ -92,7 +93,7 @@ def time_backend(fr: Frames, backend: str, voxel_size_m: float, rule: str, *, n_
     """One row: latency, sequential and batched throughput, the batch check, others' cores meanwhile."""
     with CpuShare() as share:
         grid, n, t0 = oasis_grid(voxel_size_m), len(fr.images), time.perf_counter()
-        m = gpumap.MinMaxMapper(fr.spec, grid, backend=backend, rule=rule)
+        m = gpumap.MinMaxMapper(fr.spec, grid, backend, MapperParams(rule=rule))
         warm_up(m, fr.images, fr.poses, WARMUP)
         row: dict[str, Any] = {"backend": backend, "device": m.device, "voxel_m": voxel_size_m, "rule": rule,
                                "grid_shape": list(grid.shape), "setup_s": time.perf_counter() - t0}
@@ -117,7 +118,7 @@ def time_backend(fr: Frames, backend: str, voxel_size_m: float, rule: str, *, n_
                 row["gpu_us_per_ping"] = _warp_profile(m, imgs, poses, reps)
         if check:  # batched == sequential, bit for bit, on this backend
             k = min(n, 40)
-            a, b = (gpumap.MinMaxMapper(fr.spec, grid, backend=backend, rule=rule) for _ in range(2))
+            a, b = (gpumap.MinMaxMapper(fr.spec, grid, backend, MapperParams(rule=rule)) for _ in range(2))
             for i in range(k):
                 a.integrate(fr.images[i], fr.poses[i])
             b.integrate_batch(fr.images[:k], fr.poses[:k])
@@ -149,7 +150,7 @@ def oracle_check(spec, grid, images, poses, backends: list[str], n: int = 20, ba
     """Voxels where each backend's map of the first ``n`` pings differs from the NumPy oracle's, per rule
     (``batch``: integrate_batch, else one integrate a ping; the error where a backend fails)."""
     def mapped(backend: str, rule: str) -> np.ndarray:
-        m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule=rule)
+        m = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(rule=rule))
         if batch:
             m.integrate_batch(images[:n], poses[:n])
         for im, T in zip(images[:n], poses[:n], strict=True) if not batch else ():
@@ -208,7 +209,7 @@ def synthetic(a) -> int:
                 try:
                     imgs, poses, t0 = common.speckle(spec,
                                                      min(n, 16)), common.trajectory(n), time.perf_counter()
-                    m = gpumap.MinMaxMapper(spec, common.tank_grid(v), backend=b, method=meth)
+                    m = gpumap.MinMaxMapper(spec, common.tank_grid(v), b, MapperParams(method=meth))
                     warm_up(m, imgs, poses, WARMUP)
                     setup_s, thr = time.perf_counter() - t0, stream_rate(m, imgs, poses, n)
                     observed, lat = int(m.observed().sum()), np.array(synced_ms(m, imgs, poses, min(n, 50)))
@@ -243,7 +244,7 @@ def gpu_check(a) -> int:
     for b in backends:
         for vs in a.voxel or GPU_VOXELS:
             for rule in ("plain", "visible"):
-                m = gpumap.MinMaxMapper(spec, common.tank_grid(vs), backend=b, rule=rule)
+                m = gpumap.MinMaxMapper(spec, common.tank_grid(vs), b, MapperParams(rule=rule))
                 warm_up(m, imgs, T, 5)
                 thr, lat = stream_rate(m, imgs[:40], T[:40], 400), synced_ms(m, imgs[:40], T[:40], 100)
                 res["speed"].append({"backend": b, "voxel_m": vs, "rule": rule, "img_per_s": thr,

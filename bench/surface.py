@@ -1,4 +1,4 @@
-"""``python -m bench.surface``: the surface layer (gpumap.surface) against the visible and evidence maps.
+"""``python -m bench.surface``: the surface layer (gpumap.layers.surface) against the visible and evidence maps.
 
 Simulated scenes (true poses, 3 cm, the simulator's threshold 0.1): ``tank`` (the paper's 40
 pings), ``circle`` (60 pings from five sides) and ``side`` (40 pitched pings from one side, no
@@ -9,7 +9,7 @@ the objects, FP far from surfaces, miss rates where unknown counts as missed; ob
 voxels): the visible and evidence maps at the threshold, the surface layer from 0.5.
 
 The real OASIS tank (full run, 5 cm, threshold 0.4), judged by first returns
-(:func:`gpumap.first_return.first_return_score`): ``tune`` maps frames 0-599 and judges every 5th of
+(:func:`gpumap.layers.first_return.first_return_score`): ``tune`` maps frames 0-599 and judges every 5th of
 600-799 (where the layer's settings were chosen); ``held_out`` maps frames 0-799 and judges frames
 800-1222, once, with those settings.
 
@@ -29,6 +29,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from gpumap.core.params import MapperParams
 
 from .common import Section, bench_parser, load_average, machine_info, oasis_full_dir, write_json
 
@@ -70,7 +72,8 @@ def sim_case(name: str, variation: str, backend: str) -> dict:
     from gpumap.sim.variation import SonarVariation
 
     import gpumap
-    from gpumap.surface import SURFACE_LEVEL, surface_from_mapper
+    from gpumap.layers.surface import SURFACE_LEVEL
+    from gpumap.layers.surface_live import surface_from_mapper
 
     scene = make_scene(name, voxel_size_m=SIM_VOXEL_M, seed=0)
     var = SonarVariation.real_tank() if variation == "real_tank" else None
@@ -84,8 +87,7 @@ def sim_case(name: str, variation: str, backend: str) -> dict:
            "threshold": SIM_THRESHOLD, "load_before": load_average(), "maps": {}}
     mappers = {}
     for rule in ("visible", "evidence"):
-        m = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, rule=rule,
-                                threshold=SIM_THRESHOLD)
+        m = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend, MapperParams(rule=rule, threshold=SIM_THRESHOLD))
         t0 = time.perf_counter()
         m.integrate_batch(images, poses)
         m.synchronize()
@@ -120,9 +122,9 @@ def _load_real(data: Path):
 def real_case(data: Path, backend: str) -> dict:
     """Frames mapped / judged by first returns, tune and held-out splits (module docstring)."""
     import gpumap
-    from gpumap.first_return import first_return_score
+    from gpumap.layers.first_return import first_return_score
+    from gpumap.layers.surface_live import surface_from_mapper
     from gpumap.spec import auto_grid
-    from gpumap.surface import surface_from_mapper
 
     spec, images, poses = _load_real(data)
     if len(images) < HELD[1][1]:
@@ -143,7 +145,7 @@ def real_case(data: Path, backend: str) -> dict:
 
         row = {"mapped_frames": [m0, m1], "judged_frames": [j0, j1, js], "load_before": load0, "maps": {}}
         for rule in ("visible", "evidence"):
-            m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule=rule, threshold=REAL_THRESHOLD)
+            m = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(rule=rule, threshold=REAL_THRESHOLD))
             t0 = time.perf_counter()
             for a in range(0, len(train), 64):
                 m.integrate_batch(images[train[a:a + 64]], poses[train[a:a + 64]])

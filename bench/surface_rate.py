@@ -3,7 +3,7 @@
 **Stream** (per mapper backend): the full run (1,223 frames, 5 cm, threshold 0.4), read into memory
 first (not timed), is played at ``--hz`` (default 20, the sonar's rate) in real time, in one thread:
 each cycle maps the pings that have arrived (``integrate_batch``) and hands them to
-:class:`gpumap.surface.LiveSurface`, then updates the layer of every ping so far (each update equals the
+:class:`gpumap.layers.surface_live.LiveSurface`, then updates the layer of every ping so far (each update equals the
 offline layer of those pings). A ping's *age* is the time from its arrival to the end of the first
 update that covers it. Recorded: updates, their seconds, the ages, the layer's work per ping (add +
 updates over the pings), the mapping's, and whether the layer kept pace (the last update ended within
@@ -30,6 +30,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from gpumap.core.params import MapperParams
 
 from . import common
 from .common import CpuShare, Section, bench_parser, load_average, oasis_full_dir, run_header, write_json
@@ -63,9 +65,9 @@ def _load(path: Path, n: int | None):
 def stream(spec, grid, images, poses, backend: str, hz: float, threshold: float, pace_s: float) -> dict:
     """Play ``images`` at ``hz`` in real time through a mapper and its LiveSurface (module docstring)."""
     import gpumap
-    from gpumap.surface import LiveSurface
+    from gpumap.layers.surface_live import LiveSurface
 
-    m = gpumap.MinMaxMapper(spec, grid, backend=backend, threshold=threshold)
+    m = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(threshold=threshold))
     m.integrate_batch(images[:1], poses[:1])  # kernels built and warmed before the clock starts
     m.reset()
     live = LiveSurface(m)

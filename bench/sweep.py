@@ -21,6 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 import gpumap
+from gpumap.core.params import MapperParams
 
 from . import common
 from .common import GPU_BACKENDS, CpuShare, PeakRSS, linear_fit, progress_bar, synced_ms, warm_up
@@ -243,7 +244,7 @@ def gpumap_row(pings: TankPings, vt: VoxelTruth, backend: str, method: str, thre
     with PeakRSS() as rss, CpuShare() as cpu:
         t0 = time.perf_counter()
         extra = {"shadow_m": shadow_m} if shadow_m else {}  # older gpumap has no shadow_m
-        m = gpumap.MinMaxMapper(spec, grid, backend=backend, method=method, **extra)
+        m = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(method=method, **extra))
         warm_up(m, pings.images, pings.poses, warm)
         setup_s = time.perf_counter() - t0
         lat = synced_ms(m, pings.images, pings.poses, n_timed)
@@ -371,7 +372,7 @@ def image_size_sweep(backends: list[str], voxel_size_m: float = 0.03, pings: int
                             dtype=np.float32) ** 6 * 255).astype(np.uint8) for _ in range(8)]
         n = pings if b != "numpy" else min(pings, 6)
         try:
-            m = gpumap.MinMaxMapper(spec, grid, backend=b, method=method)
+            m = gpumap.MinMaxMapper(spec, grid, b, MapperParams(method=method))
             warm_up(m, imgs, poses, 3)
             lat = synced_ms(m, imgs, poses, n)
             out.append({"backend": b, "device": m.device, "on_gpu": b in GPU_BACKENDS, "method": method,

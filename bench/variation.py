@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from gpumap.core.params import MapperParams
+
 from . import common
 from .common import CpuShare, Section, bench_parser, mark_load, oasis_full_dir, progress_bar, quantize
 
@@ -40,7 +42,7 @@ def _surface(spec, grid, images, poses, keys, threshold: float, backend: str) ->
     """Voxels occupied in the visible rule's map of pings ``keys``."""
     import gpumap
 
-    m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule="visible", threshold=threshold)
+    m = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(rule="visible", threshold=threshold))
     for k in keys:
         m.integrate(images[k], poses[k])
     m.synchronize()

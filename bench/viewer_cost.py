@@ -37,7 +37,7 @@ def _browser(chromium: str, port: int, profile: Path, session) -> subprocess.Pop
 
 def main(argv: list[str] | None = None) -> int:
     from gpumap.io import open_recording
-    from gpumap.replay import run_replay
+    from gpumap.pipeline.replay import run_replay
     from gpumap.viewer.session import Session
 
     ap = bench_parser("viewer_cost", __doc__, out="bench/results/viewer_cost.json", voxel=0.05)

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gpumap.core.params import MapperParams
+
 from . import common
 from .common import TMP, bench_parser, load_average, load_ping_arrays, merge_json, render_survey
 
@@ -59,16 +61,17 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     from distributed import Client, LocalCluster
 
-    from gpumap.replay import run_replay
-    from gpumap.sparse import SparseMinMaxMapper, SparseSpec
-    from gpumap.workers import run_replay_workers
+    from gpumap.core.sparse import SparseMinMaxMapper, SparseSpec
+    from gpumap.pipeline.replay import run_replay
+    from gpumap.pipeline.workers import run_replay_workers
 
     rec, grid = survey_recording(a.pings, a.voxel, a.passes)
     kw = dict(backend=a.backend, grid=grid, progress=False)
 
-    def sparse_cls(spec, g, **o):  # the bounded sparse map on the grid's lattice
-        o.pop("method", None)
-        return SparseMinMaxMapper(spec, SparseSpec(g.voxel_size_m, (g.min_corner_m, g.max_corner_m)), **o)
+    def sparse_cls(spec, g, backend="auto", params=None):  # the bounded sparse map on the grid's lattice
+        params = (params or MapperParams()).replace(method="gather")
+        return SparseMinMaxMapper(spec, SparseSpec(g.voxel_size_m, (g.min_corner_m, g.max_corner_m)), backend,
+                                  params)
 
     rows, t_start, tc = [], time.time(), time.perf_counter()
     cluster = LocalCluster(n_workers=a.workers, threads_per_worker=1, processes=True, dashboard_address=":0",

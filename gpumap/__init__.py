@@ -7,7 +7,7 @@ The public API::
     mapper = gpumap.MinMaxMapper(spec, grid, backend="auto")
     mapper.integrate(image, T_W_S)
     mapper.values()  # (nx, ny, nz) float32, NaN = never observed
-    res = gpumap.refine(mapper, images, poses)  # the surfaces the pings need (gpumap.refine)
+    res = gpumap.layers.refine(mapper, images, poses)  # the surfaces the pings need (gpumap.layers.refine)
     res = gpumap.refine_saved("map.npz", "recording.oculus")  # the same from a saved map
 """
 
@@ -22,23 +22,23 @@ __version__ = "0.1.0"
 
 def __getattr__(name: str):  # lazy: importing gpumap must not import warp or pyopencl
     if name in ("MinMaxMapper", "available_backends", "MapMemoryError"):
-        from gpumap import mapper
+        from gpumap.core import mapper
 
         return getattr(mapper, name)
     if name == "SparseMinMaxMapper":
-        from gpumap import sparse
+        from gpumap.core import sparse
 
         return sparse.SparseMinMaxMapper
     if name in ("merge_maps", "load_map"):
-        from gpumap import merge
+        from gpumap.core import merge
 
         return getattr(merge, name)
-    if name == "refine":  # the module, callable as its function refine() (see gpumap.refine)
+    if name == "refine":  # the module, callable as its function refine() (see gpumap.layers.refine)
         import importlib
 
-        return importlib.import_module("gpumap.refine")
+        return importlib.import_module("gpumap.layers.refine")
     if name in ("RefineOptions", "RefineResult", "refine_saved"):
         import importlib
 
-        return getattr(importlib.import_module("gpumap.refine"), name)
+        return getattr(importlib.import_module("gpumap.layers.refine"), name)
     raise AttributeError(f"module 'gpumap' has no attribute {name!r}")

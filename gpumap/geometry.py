@@ -15,9 +15,6 @@ from gpumap.spec import GridSpec, SonarSpec
 
 __all__ = [
     "BRIGHT_SHARE",
-    "DECISION",
-    "DECISIONS",
-    "MISS_COST",
     "CARVE_VIEWS",
     "FOOTPRINT_PAD_M",
     "PING_DTYPE",
@@ -68,7 +65,7 @@ PING_DTYPE = np.dtype(
         ("near", np.float32),  # rho + shadow_m: how far the footprint reaches towards the sonar
         ("thr", np.float32),  # occupied intensity: a footprint max >= thr is a bright view
         ("thr_dark", np.float32),  # a clear view below this counts twice towards carving (thr / 2)
-        ("rule", np.int32),  # 0: the paper's plain min; 1: visibility-aware (see gpumap.mapper)
+        ("rule", np.int32),  # 0: the paper's plain min; 1: visibility-aware (see gpumap.core.mapper)
         ("blk_lo", np.int32, (3,)),  # voxel index of the block index's first voxel (set by the backend)
         ("blk_n", np.int32, (3,)),  # the block index's extent, in blocks
         ("blk", np.int32),  # a block's edge along x and y, voxels (B)
@@ -132,12 +129,6 @@ CARVE_VIEWS = 2
 #: quantile), that it is bright in fewer than BRIGHT_SHARE of its clear views.
 BRIGHT_SHARE = 0.2
 SHARE_Z = 1.645
-#: Evidence rule: how the view counts decide. ``"share"``: the share test at BRIGHT_SHARE and SHARE_Z;
-#: ``"calibrated"``: a two-class view model fitted to the map's own counts (gpumap.calibration),
-#: occupied when the posterior of a surface is at least 1 / (1 + MISS_COST).
-DECISIONS = ("share", "calibrated")
-DECISION = "share"
-MISS_COST = 10.0
 
 
 def pose_pad_m(pose_cov: np.ndarray, range_max_m: float, sigmas: float) -> float:

@@ -80,7 +80,7 @@ MAX_PLY_VERTICES = 1 << 28
 """268 M: the most vertices a PLY may declare (the vertex data must also be in the file:
 binary files are checked byte for byte, ASCII files against the bytes left)."""
 
-# Limits of the map side, stated here with the others (gpumap.spec and gpumap.mapfile hold
+# Limits of the map side, stated here with the others (gpumap.spec and gpumap.core.mapfile hold
 # the values they enforce; tests/test_io.py checks that these agree with them).
 MAX_GRID_VOXELS = 2**31 - 1
 """The most voxels a :class:`~gpumap.GridSpec` may have (int32 indexing on every backend)."""

@@ -1,6 +1,6 @@
 """Fingerprints of the pings a map integrated, so that maps sharing pings are not merged.
 
-A merge is exact only for maps of *disjoint* pings (:mod:`gpumap.merge`): a ping in both maps
+A merge is exact only for maps of *disjoint* pings (:mod:`gpumap.core.merge`): a ping in both maps
 would count its clear dark views twice. Each map therefore keeps one 64-bit fingerprint per
 integrated ping, a BLAKE2b digest of the image (its dtype, its shape and :data:`SAMPLE` of its
 values, evenly spaced over it, as the mapper took it) and of the pose (``T_W_S`` as float64): 8

@@ -40,7 +40,7 @@ import functools
 import numpy as np
 
 __all__ = [
-    "add_counts", "beam_index_lo", "calibrated_values", "evidence_occupied", "evidence_values",
+    "add_counts", "beam_index_lo", "evidence_occupied", "evidence_values",
     "integrate_gather", "integrate_template", "pack_counts", "share_keeps", "split_counts", "visible_values",
     "voxel_ping_values",
 ]
@@ -294,16 +294,6 @@ def evidence_values(
     threshold) where :func:`evidence_occupied` holds, else ``grid`` (the min over every view:
     below the threshold wherever a clear dark view came, ``+inf`` never observed)."""
     return _bright_where(grid, bright, count, lambda c: evidence_occupied(*split_counts(c), p_min, z))
-
-
-def calibrated_values(grid: np.ndarray, bright: np.ndarray, count: np.ndarray, miss_cost: float
-                      ) -> np.ndarray:
-    """Map values of the evidence rule with the calibrated decision (:mod:`gpumap.calibration`, its view
-    model fitted to these counts): ``bright`` where a voxel is occupied, else ``grid``. The model is fitted
-    to the ever-bright voxels only, which are the ones ``_bright_where`` hands over."""
-    from gpumap.calibration import calibrated_occupied
-
-    return _bright_where(grid, bright, count, lambda c: calibrated_occupied(*split_counts(c), miss_cost))
 
 
 def integrate_gather(

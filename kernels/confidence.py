@@ -1,8 +1,8 @@
 """The confidence layer's per-ping pass in NVIDIA Warp (device code only; twin: ``confidence.cl``).
 
-One ping, after its update (the rules: ``gpumap.confidence``; the NumPy reference:
-``gpumap.confidence.confirm_ping``), in four launches on one stream (the host,
-``gpumap/confidence_device.py``):
+One ping, after its update (the rules: ``gpumap.layers.confidence``; the NumPy reference:
+``gpumap.layers.confidence.confirm_ping``), in four launches on one stream (the host,
+``gpumap/layers/confidence_device.py``):
 
 1. ``lit_bits``: one thread per 32 beams of a bin row: its lit cells (``>= thr``) as bits, and
    their rival counts zeroed.

@@ -1,7 +1,7 @@
 """Differentiable ping model: Warp kernels that render sonar images from a voxel field.
 
-Device code only (the host side is :mod:`gpumap.render`; the NumPy twin of the forward pass
-is :mod:`gpumap.render_reference`). The model, per ping, per elevation ray of a beam, per
+Device code only (the host side is :mod:`gpumap.layers.render`; the NumPy twin of the forward pass
+is :mod:`gpumap.layers.render_reference`). The model, per ping, per elevation ray of a beam, per
 range sample ``s`` (sample ``s`` sits at the centre of range cell ``s``)::
 
     o(x)      trilinear occupancy in [0, 1] (voxel-centred field, 0 outside the grid)

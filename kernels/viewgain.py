@@ -3,7 +3,7 @@
 ``view_gain`` runs one thread per (candidate, tile of points). Each point is a voxel centre
 (world frame) with a weight: an *unconfirmed* occupied voxel (its pair mask ``>= 0``: bit ``b``
 set when a view whose elevation arc at the voxel runs along the neighbour pair ``b`` would
-settle it, see ``pair_bit`` and ``gpumap.nbv``) counts towards the candidate's ``settle`` total
+settle it, see ``pair_bit`` and ``gpumap.layers.viewgain``) counts towards the candidate's ``settle`` total
 when the candidate observes it and its bit of the candidate's arc direction is set; a block of
 *unknown* voxels (mask ``-1``) counts its weight towards ``unknown`` when the candidate observes
 its centre. Totals are int32 atomics: exact and independent of the order in which threads

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 import gpumap
+from gpumap.core.params import MapperParams
 from gpumap.geometry import RULES
 
 from .metrics import evaluate
@@ -102,8 +103,7 @@ def build_mapper(
     demo reads from either: ``integrate``, ``synchronize``, ``values``, ``rule``, ``backend``,
     ``save`` and :func:`_memory_report`.
     """
-    return gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, method=method,
-                               shadow_m=shadow_m, rule=rule, threshold=threshold, sparse=bool(sparse))
+    return gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend, MapperParams(method=method, shadow_m=shadow_m, rule=rule, threshold=threshold, sparse=bool(sparse)))
 
 
 def _memory_report(mapper: gpumap.MinMaxMapper | gpumap.SparseMinMaxMapper, scene: Scene) -> dict:
@@ -337,7 +337,7 @@ def run_demo(args: argparse.Namespace) -> dict:
         rules[other] = {**_summary(ev_o), "height_error_m": ev_o["height_error_m"],
                         "ms_per_image": 1e3 * float(np.mean(t_o[1:] if len(t_o) > 1 else t_o))}
     if evidence_mapper is not None and evidence_mapper.decision != "calibrated":
-        # the same counts read by the calibrated decision (read-time: gpumap.calibration)
+        # the same counts read by the calibrated decision (read-time: gpumap.bench.experiments.calibration)
         evidence_mapper.decision = "calibrated"
         ev_c = _final_eval(evidence_mapper, scene, truth, seen_each, args.threshold, detectable, full=True)
         evidence_mapper.decision = "share"
@@ -448,10 +448,11 @@ def _view_session(args: argparse.Namespace, scene: Scene, truth: Truth, detectab
 def _surface_layer(out: Path, scene: Scene, truth: Truth, pings: list[Ping], poses: np.ndarray,
                    seen_each: list[np.ndarray], evidence_mapper, threshold: float,
                    detectable: np.ndarray) -> dict:
-    """The surface layer (:mod:`gpumap.surface`) of the evidence map, written beside the safe map as
+    """The surface layer (:mod:`gpumap.layers.surface`) of the evidence map, written beside the safe map as
     ``surface.npz`` (a two-layer refined map file: ``gpumap view/export --layer surface|safe``);
     returns its figures for ``metrics.json`` (scored as the rules are, occupied from 0.5)."""
-    from gpumap.surface import SURFACE_LEVEL, surface_from_mapper
+    from gpumap.layers.surface import SURFACE_LEVEL
+    from gpumap.layers.surface_live import surface_from_mapper
 
     t0 = time.perf_counter()
     images = np.stack([p.image for p in pings]).astype(np.float32)

@@ -3,8 +3,8 @@
 The three arms start from the same map (the trajectory's pings at true poses, with the confidence
 layer) and each adds ``N`` pings:
 
-- **planned**: the greedy next best view (:func:`gpumap.nbv.plan_views`): every step scores
-  ``CANDIDATES`` candidate poses (:func:`gpumap.nbv.candidate_poses` around trajectory poses
+- **planned**: the greedy next best view (:func:`gpumap.layers.viewgain.plan_views`): every step scores
+  ``CANDIDATES`` candidate poses (:func:`gpumap.layers.viewgain.candidate_poses` around trajectory poses
   spread evenly over the path, offsets within :data:`WRIST_LIMITS`), takes the best, simulates
   its ping and integrates it;
 - **rolled**: ``N`` trajectory poses spread evenly over the path, each rolled about the
@@ -27,7 +27,9 @@ from pathlib import Path
 import numpy as np
 
 import gpumap
-from gpumap.nbv import candidate_poses
+from gpumap.core.params import MapperParams
+from gpumap.layers.confidence import with_confidence
+from gpumap.layers.viewgain import candidate_poses
 
 from .metrics import evaluate
 from .scenes import Scene
@@ -95,7 +97,7 @@ def confidence_report(mapper, truth: Truth) -> dict:
     """How the confidence layer splits the occupied voxels (see the module docstring)."""
     from scipy import ndimage
 
-    c = mapper.confidence()
+    c = mapper.layer("confidence").states()
     near = ndimage.binary_dilation(truth.occupied, structure=np.ones((3, 3, 3), bool))
     far = ~near
     conf, unconf = c == 3, c == 2
@@ -128,8 +130,7 @@ def run_plan(scene: Scene, pings: list[Ping], T_traj: np.ndarray, truth: Truth, 
     arms: dict[str, dict] = {}
     with SonarSimulator(scene, seed=seed, **scene.sonar_params) as sim:
         for arm in ARMS:
-            m = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend=backend, threshold=threshold,
-                                    confidence=True)
+            m = with_confidence(gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend, MapperParams(threshold=threshold)))
             m.integrate_batch(images, T_traj)
             all_pings = list(pings)
             curve = [_score(m, truth, all_pings, scene.grid, threshold, far)]
@@ -147,7 +148,7 @@ def run_plan(scene: Scene, pings: list[Ping], T_traj: np.ndarray, truth: Truth, 
             for i in tqdm(range(n_plan), disable=quiet, desc=f"plan ({arm})", unit="view"):
                 if arm == "planned":
                     C = _candidates(T_traj, i, seed)
-                    g = m.view_gain(C, unknown_weight=unknown_weight)
+                    g = m.layer("confidence").gains(C, unknown_weight=unknown_weight)
                     k = int(np.argmax(g))
                     T = C[k]
                     gains.append(float(g[k]))
@@ -196,7 +197,7 @@ def _pictures(out: Path, scene: Scene, truth: Truth, mapper, T_traj: np.ndarray,
     plt.close(fig)
 
     # Confidence layer: top-down, per column the top occupied voxel's state; side view too.
-    c = mapper.confidence()
+    c = mapper.layer("confidence").states()
     g = scene.grid
     occ = c >= 2
     nz = c.shape[2]

@@ -46,7 +46,7 @@ class Mutant:
     edits: dict[str, list[tuple[str, str]]]
     tests: tuple[str, ...] = ("tests/test_visibility.py",)
     extra: dict[str, str] = field(default_factory=dict)
-    #: host code that every backend shares (e.g. gpumap/calibration.py): mutated there instead of the
+    #: host code that every backend shares (e.g. bench/experiments/calibration.py): mutated there instead of the
     #: backend's file of FILES, once (under the "numpy" key)
     file: str | None = None
 
@@ -161,46 +161,46 @@ MUTANTS = [
         "the calibrated decision keeps a voxel at even posterior odds whatever the miss cost",
         {"numpy": [("keep = surface_log_odds(model, k, n) >= -np.log(miss_cost)",
                     "keep = surface_log_odds(model, k, n) >= 0.0")]},
-        tests=("tests/test_calibration.py",), file="gpumap/calibration.py",
+        tests=("tests/test_calibration.py",), file="bench/experiments/calibration.py",
     ),
     Mutant(
         "calibrated-not-monotone",
         "the calibrated decision frees a voxel that a pair of the same n with fewer bright views keeps",
         {"numpy": [("out.reshape(-1)[idx] = ((csum - before) > 0)[inverse]",
                     "out.reshape(-1)[idx] = keep[inverse]")]},
-        tests=("tests/test_calibration.py",), file="gpumap/calibration.py",
+        tests=("tests/test_calibration.py",), file="bench/experiments/calibration.py",
     ),
     Mutant(
         "calibrated-untruncated",
         "the view model's classes are not truncated to the ever-bright voxels it is fitted to",
         {"numpy": [("return (_log_bb(k, n, a, b, log_binom) - np.log1p(-p0),",
                     "return (_log_bb(k, n, a, b, log_binom),")]},
-        tests=("tests/test_calibration.py",), file="gpumap/calibration.py",
+        tests=("tests/test_calibration.py",), file="bench/experiments/calibration.py",
     ),
     Mutant(
         "calibrated-fits-on-no-evidence",
         "the view model is fitted however few ever-bright voxels have a clear dark view",
         {"numpy": [("if float(w[n > k].sum()) < MIN_FIT_VOXELS:", "if False:")]},
-        tests=("tests/test_calibration.py",), file="gpumap/calibration.py",
+        tests=("tests/test_calibration.py",), file="bench/experiments/calibration.py",
     ),
     Mutant(
         "directional-dark-class-ignored",
         "a direction class that never saw a voxel bright cannot reject it, however many clear views",
         {"numpy": [("share = np.divide(k, n, out=np.ones_like(k), where=n > 0)",
                     "share = np.divide(k, n, out=np.ones_like(k), where=k > 0)")]},
-        tests=("tests/test_directions.py",), file="gpumap/directions.py",
+        tests=("tests/test_directions.py",), file="bench/experiments/directions.py",
     ),
     Mutant(
         "directional-any-class-keeps",
         "one direction class that keeps a voxel overrules the classes that reject it",
         {"numpy": [("out.reshape(-1)[idx] = keeps.all(axis=0)", "out.reshape(-1)[idx] = keeps.any(axis=0)")]},
-        tests=("tests/test_directions.py",), file="gpumap/directions.py",
+        tests=("tests/test_directions.py",), file="bench/experiments/directions.py",
     ),
     Mutant(
         "directional-signed-classes",
         "views rolled by 180 degrees fall in another direction class",
         {"numpy": [("np.argmax(np.abs(z @ AXES.T), axis=1)", "np.argmax(z @ AXES.T, axis=1)")]},
-        tests=("tests/test_directions.py",), file="gpumap/directions.py",
+        tests=("tests/test_directions.py",), file="bench/experiments/directions.py",
     ),
     Mutant(
         "footprint-one-bin-short",

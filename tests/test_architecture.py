@@ -23,7 +23,12 @@ TREES = {"gpumap": ROOT / "gpumap", "gpumap.sim": ROOT / "sim", "gpumap.kernels"
 COMMANDS = "gpumap.commands"
 #: what every command may share: the package's dispatcher and its common helpers
 SHARED = {COMMANDS, f"{COMMANDS}.common", f"{COMMANDS}.__main__"}
-MAX_LINES = 900
+MAX_LINES = 600
+#: the map core's folder, and what it may import besides itself: the backends and the basics
+CORE = "gpumap.core"
+BASICS = {"gpumap.errors", "gpumap.spec", "gpumap.geometry", "gpumap.reference", "gpumap.pings",
+          "gpumap.limits", "gpumap.atomic", "gpumap.memory", "gpumap.lie", "gpumap.kernels"}
+MAX_TOP_MODULES = 12
 
 
 def _modules() -> dict[str, Path]:
@@ -46,8 +51,8 @@ def _lazy_names(init: Path) -> dict[str, str]:
     for node in ast.walk(fn):
         if isinstance(node, ast.If):
             names = [c.value for c in ast.walk(node.test) if isinstance(c, ast.Constant)]
-            mods = [f"gpumap.{a.name}" for n in node.body if isinstance(n, ast.ImportFrom)
-                    and n.module == "gpumap" for a in n.names]
+            mods = [f"{n.module}.{a.name}" for n in node.body if isinstance(n, ast.ImportFrom)
+                    and (n.module or "").startswith("gpumap") for a in n.names]
             mods += [c.value for n in node.body for c in ast.walk(n) if isinstance(c, ast.Constant)
                      and isinstance(c.value, str) and c.value.startswith("gpumap.")]
             for name in names:
@@ -126,9 +131,9 @@ def test_the_circle_check_sees_a_circle() -> None:
 def test_the_graph_sees_lazy_and_package_imports(graph) -> None:
     # lazy imports inside functions count, and ``from gpumap import MinMaxMapper`` is the mapper
     assert "gpumap.io.octomap" in graph[f"{COMMANDS}.export"]
-    assert "gpumap.mapper" in graph["gpumap.sparse"]
+    assert "gpumap.core.mapper" in graph["gpumap.core.sparse"]
     lazy = _lazy_names(TREES["gpumap"] / "__init__.py")
-    assert lazy["gpumap.MinMaxMapper"] == "gpumap.mapper" and lazy["gpumap.refine_saved"] == "gpumap.refine"
+    assert lazy["gpumap.MinMaxMapper"] == "gpumap.core.mapper" and lazy["gpumap.refine_saved"] == "gpumap.layers.refine"
 
 
 def test_the_library_never_imports_a_command(graph) -> None:
@@ -154,7 +159,60 @@ def test_every_subcommand_has_its_own_module() -> None:
         assert (TREES["gpumap"] / "commands" / f"{mod}.py").is_file(), name
 
 
-def test_no_module_of_the_library_is_over_900_lines() -> None:
+def _core_ok(dep: str) -> bool:
+    return dep.startswith(CORE) or dep.startswith("gpumap.backends") or dep in BASICS \
+        or dep.startswith("gpumap.kernels")
+
+
+def test_the_core_imports_only_the_backends_and_the_basics(graph) -> None:
+    core = [m for m in graph if m == CORE or m.startswith(CORE + ".")]
+    assert len(core) >= 8, core
+    for m in core:
+        above = sorted(d for d in graph[m] if not _core_ok(d))
+        assert not above, f"{m} (the map core) imports {above}: only the backends and the basics"
+
+
+def test_the_core_check_sees_a_layer_import() -> None:
+    assert not _core_ok("gpumap.layers.confidence") and not _core_ok("gpumap.pipeline.replay")
+    assert not _core_ok("gpumap.viewer") and _core_ok("gpumap.backends.base") and _core_ok("gpumap.spec")
+
+
+def test_the_basics_import_nothing_above_them(graph) -> None:
+    for m in BASICS - {"gpumap.kernels"}:
+        above = sorted(d for d in graph[m] if d not in BASICS and not d.startswith("gpumap.backends"))
+        assert not above, f"{m} (a basic) imports {above}"
+
+
+def test_the_library_never_imports_the_benchmarks_or_their_experiments(graph) -> None:
+    for m, deps in graph.items():
+        if m.startswith("gpumap.bench") or m.startswith(COMMANDS):
+            continue
+        assert not [d for d in deps if d.startswith("gpumap.bench")], m
+
+
+def test_layers_and_drivers_sit_above_the_core(graph) -> None:
+    for m, deps in graph.items():
+        if m.startswith("gpumap.layers"):
+            bad = sorted(d for d in deps if d.startswith(("gpumap.pipeline", "gpumap.viewer", "gpumap.ros",
+                                                          COMMANDS)))
+            assert not bad, f"{m} (a layer) imports {bad}"
+
+
+def test_at_most_twelve_modules_directly_under_gpumap() -> None:
+    top = sorted(p.name for p in (ROOT / "gpumap").glob("*.py"))
+    assert len(top) <= MAX_TOP_MODULES, top
+
+
+def test_the_mapper_takes_at_most_eight_parameters() -> None:
+    import inspect
+
+    from gpumap.core.mapper import MinMaxMapper
+
+    params = [n for n in inspect.signature(MinMaxMapper.__init__).parameters if n != "self"]
+    assert len(params) <= 8, params
+
+
+def test_no_module_of_the_library_is_over_600_lines() -> None:
     long = {str(p.relative_to(ROOT)): n for p in (ROOT / "gpumap").rglob("*.py")
             if (n := len(p.read_text().splitlines())) > MAX_LINES}
     assert not long, f"modules over {MAX_LINES} lines: {long}"

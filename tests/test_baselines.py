@@ -25,6 +25,7 @@ from bench.baselines import (  # noqa: E402
     paper_template_S,
     rect_max,
 )
+from gpumap.core.params import MapperParams
 
 
 def _spec() -> gpumap.SonarSpec:
@@ -70,7 +71,7 @@ def test_oasis_rule_fnr_zero_equals_thresholded_min_max_map():
     images = [(rng.random(spec.image_shape, dtype=np.float32) ** 4) for _ in range(4)]
     poses = [_pose(math.radians(p), math.radians(y)) for p, y in ((15, 0), (25, 10), (10, -15), (30, 5))]
     rule = OasisRule(spec, grid, threshold=thr, fnr=0.0, backend="numpy")
-    mm = gpumap.MinMaxMapper(spec, grid, backend="numpy", rule="plain")
+    mm = gpumap.MinMaxMapper(spec, grid, "numpy", MapperParams(rule="plain"))
     for im, T in zip(images, poses, strict=True):
         rule.integrate(im, T)
         mm.integrate(im, T)
@@ -112,7 +113,7 @@ def test_paper_steps_agree_with_gpumap_template_on_a_range_ring():
     T = _pose(math.radians(20), t=(0.0, 0.0, 0.2))
     paper = PaperSixSteps(spec, grid)
     paper.integrate(img, T)
-    ours = gpumap.MinMaxMapper(spec, grid, backend="numpy", method="template")
+    ours = gpumap.MinMaxMapper(spec, grid, "numpy", MapperParams(method="template"))
     ours.integrate(img, T)
     a, b = paper.values(), ours.values()
     both = ~np.isnan(a) & ~np.isnan(b)

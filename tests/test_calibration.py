@@ -1,4 +1,4 @@
-"""The evidence rule's calibrated decision (gpumap.calibration) against independent references.
+"""The evidence rule's calibrated decision (gpumap.bench.experiments.calibration) against independent references.
 
 References: counts drawn from known beta-binomial mixtures (the fit must recover what generated
 them), the posterior written out with scipy.stats.betabinom and Bayes' rule, and hand-made noise-free
@@ -9,10 +9,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from gpumap.bench.experiments.calibration import (
+    MIN_FIT_VOXELS,
+    ViewModel,
+    calibrated_occupied,
+    fit_view_model,
+)
 from scipy.stats import betabinom
 
 import gpumap
-from gpumap.calibration import MIN_FIT_VOXELS, ViewModel, calibrated_occupied, fit_view_model
+from gpumap.core.params import MapperParams
 from gpumap.reference import pack_counts, split_counts
 
 
@@ -126,7 +132,7 @@ def test_fit_does_not_depend_on_voxel_order_or_shape():
 def test_mapper_options_are_checked_and_kept():
     from test_mapper import GRID, SPEC
 
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="evidence", decision="calibrated", miss_cost=3)
+    m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="evidence"))
     assert (m.decision, m.miss_cost) == ("calibrated", 3.0)
     with pytest.raises(ValueError, match="decision"):
         m.decision = "median"

@@ -1,6 +1,6 @@
-"""The confidence layer's pass on the device (issue 37; gpumap.confidence_device, kernels/confidence.*):
+"""The confidence layer's pass on the device (issue 37; gpumap.layers.confidence_device, kernels/confidence.*):
 every backend's layer (``confirmed``, ``arcs``) and map equal the NumPy reference's
-(gpumap.confidence.confirm_ping, which the ``numpy`` backend runs) bit for bit, on random map states of
+(gpumap.layers.confidence.confirm_ping, which the ``numpy`` backend runs) bit for bit, on random map states of
 every rule and random pings, and on the real tank; the layer's host and device copies stay one."""
 
 from __future__ import annotations
@@ -8,8 +8,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import needs_data
+from maps import make_mapper
 
 import gpumap
+from gpumap.core.params import MapperParams
+from gpumap.layers.confidence import with_confidence
 from gpumap.reference import pack_counts
 
 SPEC = gpumap.SonarSpec.uniform(hfov_deg=70, vfov_deg=20, n_beams=48, n_bins=90, range_min_m=0.1,
@@ -59,15 +62,15 @@ def _random_state(m: gpumap.MinMaxMapper, rng: np.random.Generator) -> None:
 
 
 def _layer(m: gpumap.MinMaxMapper) -> tuple[np.ndarray, np.ndarray]:
-    return m.confidence_layer.confirmed.copy(), m.confidence_layer.arcs.copy()
+    return m.layer("confidence").confirmed.copy(), m.layer("confidence").arcs.copy()
 
 
 @pytest.mark.parametrize("rule", ["evidence", "visible", "plain"])
 def test_the_device_pass_equals_the_reference_on_random_states_and_pings(other_backend, rule, monkeypatch):
     if rule == "evidence":  # warp-cpu: the pass in two parts on two threads too
-        monkeypatch.setattr("gpumap.confidence_device.CPU_SPLIT", True)
+        monkeypatch.setattr("gpumap.layers.confidence_device.CPU_SPLIT", True)
     rng = np.random.default_rng({"evidence": 1, "visible": 2, "plain": 3}[rule])
-    ref, dev = (gpumap.MinMaxMapper(SPEC, GRID, backend=b, rule=rule, confidence=True, **OPTIONS)
+    ref, dev = (make_mapper(SPEC, GRID, backend=b, rule=rule, confidence=True, **OPTIONS)
                 for b in ("numpy", other_backend))
     seed = int(rng.integers(1 << 30))
     _random_state(ref, np.random.default_rng(seed))
@@ -80,8 +83,8 @@ def test_the_device_pass_equals_the_reference_on_random_states_and_pings(other_b
             m.integrate(img, T, pose_cov=cov)
         if k == 3:  # a read halfway (the device's arrays come to the host, then go back)
             c, a = _layer(dev)
-            np.testing.assert_array_equal(c, ref.confidence_layer.confirmed)
-            np.testing.assert_array_equal(a, ref.confidence_layer.arcs)
+            np.testing.assert_array_equal(c, ref.layer("confidence").confirmed)
+            np.testing.assert_array_equal(a, ref.layer("confidence").arcs)
     np.testing.assert_array_equal(dev.raw_values().view(np.uint32), ref.raw_values().view(np.uint32))
     c_ref, a_ref = _layer(ref)
     c_dev, a_dev = _layer(dev)
@@ -89,14 +92,14 @@ def test_the_device_pass_equals_the_reference_on_random_states_and_pings(other_b
     assert (a_ref != 0).sum() > 100 and c_ref.sum() >= 1
     np.testing.assert_array_equal(c_dev, c_ref)
     np.testing.assert_array_equal(a_dev, a_ref)
-    np.testing.assert_array_equal(dev.confidence(), ref.confidence())
+    np.testing.assert_array_equal(dev.layer("confidence").states(), ref.layer("confidence").states())
 
 
 def test_host_writes_reach_the_device_and_reset_clears_it(other_backend):
     """Writes into the host's arrays (as a map file's load makes them) are what the next pass starts
     from; reset forgets the device's layer too."""
     rng = np.random.default_rng(5)
-    ref, dev = (gpumap.MinMaxMapper(SPEC, GRID, backend=b, rule="visible", confidence=True)
+    ref, dev = (with_confidence(gpumap.MinMaxMapper(SPEC, GRID, b, MapperParams(rule="visible")))
                 for b in ("numpy", other_backend))
     pings = [(_image(rng), _pose(rng)) for _ in range(4)]
     for img, T in pings[:2]:
@@ -104,15 +107,15 @@ def test_host_writes_reach_the_device_and_reset_clears_it(other_backend):
             m.integrate(img, T)
     marks = rng.integers(0, 1 << 13, GRID.n_voxels).astype(np.uint16)
     for m in (ref, dev):
-        m.confidence_layer.arcs[:] = marks
-        m.confidence_layer.confirmed[::7] = 1
+        m.layer("confidence").arcs[:] = marks
+        m.layer("confidence").confirmed[::7] = 1
     for img, T in pings[2:]:
         for m in (ref, dev):
             m.integrate(img, T)
     for x, y in zip(_layer(dev), _layer(ref), strict=True):
         np.testing.assert_array_equal(x, y)
     dev.reset()
-    fresh = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="visible", confidence=True)
+    fresh = with_confidence(gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="visible")))
     for m in (dev, fresh):
         m.integrate(*pings[3])
     for x, y in zip(_layer(dev), _layer(fresh), strict=True):
@@ -126,7 +129,7 @@ def test_the_device_pass_equals_the_reference_on_the_real_tank(other_backend):
 
     frames = [f for f in tank(8) if f.T_W_S is not None]
     grid = gpumap.GridSpec((-0.5, -1.2, -0.5), (1.9, 1.2, 0.8), 0.05)
-    ref, dev = (gpumap.MinMaxMapper(frames[0].spec, grid, backend=b, confidence=True)
+    ref, dev = (with_confidence(gpumap.MinMaxMapper(frames[0].spec, grid, backend=b))
                 for b in ("numpy", other_backend))
     for f in frames:
         for m in (ref, dev):
@@ -144,7 +147,7 @@ def test_the_gpu_launches_run_on_warp_cpu_too(monkeypatch):
     box voxel for the candidates) run by Warp on the CPU: the same layer as the reference (the CI
     machine has no GPU; the CPU sequence replaces two of these kernels with NumPy)."""
     from gpumap.backends import available_backends
-    from gpumap.confidence_device import DeviceConfidence
+    from gpumap.layers.confidence_device import DeviceConfidence
 
     if "warp-cpu" not in available_backends(["warp-cpu"]):
         pytest.skip("warp-cpu is not available here")
@@ -156,7 +159,7 @@ def test_the_gpu_launches_run_on_warp_cpu_too(monkeypatch):
 
     monkeypatch.setattr(DeviceConfidence, "_init_warp", as_gpu)
     rng = np.random.default_rng(6)
-    ref, dev = (gpumap.MinMaxMapper(SPEC, GRID, backend=b, confidence=True, **OPTIONS)
+    ref, dev = (make_mapper(SPEC, GRID, backend=b, confidence=True, **OPTIONS)
                 for b in ("numpy", "warp-cpu"))
     seed = int(rng.integers(1 << 30))
     _random_state(ref, np.random.default_rng(seed))
@@ -165,7 +168,7 @@ def test_the_gpu_launches_run_on_warp_cpu_too(monkeypatch):
         img, T = _image(rng), _pose(rng)
         for m in (ref, dev):
             m.integrate(img, T)
-    assert dev.confidence_layer._device.gpu
+    assert dev.layer("confidence")._device.gpu
     c_ref, a_ref = _layer(ref)
     assert c_ref.sum() >= 1
     for x, y in zip(_layer(dev), (c_ref, a_ref), strict=True):

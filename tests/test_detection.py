@@ -1,11 +1,10 @@
-"""Adaptive detection (gpumap.detection) against a row-by-row loop written from its definition."""
+"""Adaptive detection (gpumap.bench.experiments.detection) against a row-by-row loop written from its definition."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from gpumap.detection import adaptive_detect
+from gpumap.bench.experiments.detection import adaptive_detect
 
 
 def _loop(img, empty, window, z):

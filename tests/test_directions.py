@@ -1,4 +1,4 @@
-"""Evidence per view direction (gpumap.directions) against independent references: the nearest axis
+"""Evidence per view direction (gpumap.bench.experiments.directions) against independent references: the nearest axis
 by angle, the score test written out per class and voxel, and the pooled evidence map of the same
 pings (the classes' counts must add up to it exactly)."""
 
@@ -6,11 +6,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from gpumap.bench.experiments.directions import (
+    AXES,
+    N_CLASSES,
+    DirectionalEvidence,
+    direction_classes,
+    directional_occupied,
+)
 from test_mapper import GRID, SPEC
 from test_visibility import THR, _random_pings
 
 import gpumap
-from gpumap.directions import AXES, N_CLASSES, DirectionalEvidence, direction_classes, directional_occupied
+from gpumap.core.params import MapperParams
 
 
 def _rot(axis: int, a: float) -> np.ndarray:
@@ -87,7 +94,7 @@ def test_class_counts_add_up_to_the_pooled_map_on_every_backend(backend):
     d = DirectionalEvidence(SPEC, GRID, backend=backend, threshold=THR)
     for img, T in pings:
         d.integrate(img, T)
-    pooled = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule="evidence", threshold=THR)
+    pooled = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(rule="evidence", threshold=THR))
     for img, T in pings:
         pooled.integrate(img, T)
     dark, hits = d.counts()

@@ -1085,7 +1085,7 @@ def test_bad_plane_update_input_raises_and_leaves_state_untouched(args, exc) -> 
 def test_blas_threads_are_pinned_inside_a_step_and_restored_after():
     from threadpoolctl import ThreadpoolController
 
-    from gpumap.ekf.filter import _blas_limited
+    from gpumap.ekf.state import _blas_limited
 
     ctl = ThreadpoolController()
     before = [lib.num_threads for lib in ctl.select(user_api="blas").lib_controllers]

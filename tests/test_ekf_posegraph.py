@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from conftest import DATA, needs_data
 
+from gpumap.core.params import MapperParams
 from gpumap.ekf import posegraph as pg
 from gpumap.ekf.loop import drifting_odometry, motion_cov, pose_errors
 from gpumap.ekf.posegraph import PoseGraph, run_pose_graph
@@ -116,15 +117,15 @@ def test_bad_input_is_refused_with_what_was_expected():
 def test_segment_maps_merge_to_the_map_of_every_ping_and_remap_only_what_moved():
     from gpumap import MinMaxMapper
     from gpumap.ekf.submaps import SegmentMaps
-    from gpumap.ekf_replay import posed_frames
     from gpumap.io import open_recording
+    from gpumap.pipeline.ekf_replay import posed_frames
     from gpumap.spec import auto_grid
 
     images, T, spec = posed_frames(open_recording(DATA / "oasis_tank"), max_frames=24)
     grid = auto_grid(spec, list(T), 0.1)
 
     def direct(poses):
-        m = MinMaxMapper(spec, grid, backend="numpy", threshold=0.4)
+        m = MinMaxMapper(spec, grid, "numpy", MapperParams(threshold=0.4))
         m.integrate_batch(np.stack(images), poses)
         return m.values()
 

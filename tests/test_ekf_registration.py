@@ -19,8 +19,8 @@ from conftest import DATA, needs_data
 import gpumap.ekf.registration as reg_mod
 from gpumap.ekf.frontend import PointMeasurements
 from gpumap.ekf.loop import drifting_odometry, motion_cov, pose_errors, run_ekf_loop
+from gpumap.ekf.registrar import ScanRegistrar
 from gpumap.ekf.registration import (
-    ScanRegistrar,
     fuse_revisit,
     fuse_step,
     image_agreement,

@@ -16,7 +16,8 @@ from test_visibility import THR, _fold_views, _random_pings
 from test_visibility import _run as _run_rule
 
 import gpumap
-from gpumap.merge import MapState, map_state
+from gpumap.core.merge import MapState, map_state
+from gpumap.core.params import MapperParams
 from gpumap.reference import evidence_occupied, pack_counts, split_counts
 
 TOP = 2**32 - 1  # where each of the two counts stops
@@ -155,7 +156,7 @@ def _preloaded(backend, dark: int, hits: int,
     seed = _run("numpy", [(img, T_A)])
     st = map_state(seed)
     counts = np.where(np.isfinite(st.arrays["min_all"]), pack_counts(dark, hits), np.uint64(0))
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, threshold=THR)
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(threshold=THR))
     m.merge(MapState(st.kind, st.options, 1, {**st.arrays, "count": counts.astype(np.uint64)}))
     return m, np.isfinite(seed.raw_values())
 
@@ -197,7 +198,7 @@ def test_disjoint_pings_merge_bit_for_bit_in_any_order(folded):
     ref = _run("numpy", pings)
     parts = [_run("numpy", pings[i::3]) for i in range(3)]
     for order in ((0, 1, 2), (2, 0, 1)):
-        m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=THR)
+        m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(threshold=THR))
         for i in order:
             m.merge(map_state(parts[i]))
         for k, a in ref.evidence().items():
@@ -208,14 +209,14 @@ def test_disjoint_pings_merge_bit_for_bit_in_any_order(folded):
 def test_options_are_checked_and_kept(tmp_path):
     for bad in (0.0, 1.5, math.nan, "half"):
         with pytest.raises((ValueError, TypeError), match="bright_share"):
-            gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", bright_share=bad)
+            gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(bright_share=bad))
     for bad in (-1.0, 11.0, math.inf):
         with pytest.raises(ValueError, match="share_z"):
-            gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", share_z=bad)
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", bright_share=0.3, share_z=2.0)
+            gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(share_z=bad))
+    m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(bright_share=0.3, share_z=2.0))
     assert m.rule == "evidence"
     back = gpumap.MinMaxMapper.load(m.save(tmp_path / "m.npz"), backend="numpy")
     assert (back.bright_share, back.share_z) == (0.3, 2.0)
-    other = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", bright_share=0.4)
+    other = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(bright_share=0.4))
     with pytest.raises(ValueError, match="bright_share"):
         m.merge(other)

@@ -15,8 +15,8 @@ from gpumap.ekf import SonarEKF
 from gpumap.ekf.association import FeatureTracker
 from gpumap.ekf.frontend import PointDetector, PointMeasurements
 from gpumap.ekf.loop import drifting_odometry, motion_cov, pose_errors
-from gpumap.ekf_replay import compare_maps
 from gpumap.lie import se3_exp
+from gpumap.pipeline.ekf_replay import compare_maps
 
 
 def _uneven_spec() -> gpumap.SonarSpec:
@@ -159,7 +159,7 @@ def test_two_crossing_tracks_keep_their_ids():
 def test_track_consistency_sees_a_swapped_return():
     from types import SimpleNamespace
 
-    from gpumap.ekf_replay import track_consistency
+    from gpumap.pipeline.ekf_replay import track_consistency
 
     spec, L, T = _heave_scene()
     tr, ekf, steps, truth_of = _run_tracker(spec, L, T)

@@ -1,8 +1,8 @@
-"""In-process mappers (gpumap.gpu_threads): N threads, N mappers, one merged map equal to one process.
+"""In-process mappers (gpumap.pipeline.gpu_threads): N threads, N mappers, one merged map equal to one process.
 
 On a CPU machine the mappers share device 0 of CPU backends (numpy, warp-cpu, opencl-cpu): the
 same code path as N GPUs (a queue and a thread per mapper, the merge in place), the same map.
-Reference: :func:`gpumap.replay.run_replay` on the same frames and grid. No timing here.
+Reference: :func:`gpumap.pipeline.replay.run_replay` on the same frames and grid. No timing here.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from merged_maps import assert_same, tank
 
 import gpumap
 from gpumap.commands.replay import main
-from gpumap.gpu_threads import run_replay_threads
-from gpumap.replay import run_replay
+from gpumap.pipeline.gpu_threads import run_replay_threads
+from gpumap.pipeline.replay import run_replay
 
 
 @needs_data
@@ -90,9 +90,9 @@ def test_threads_refuse_a_missing_device_and_stop_on_a_failed_mapper(monkeypatch
 @needs_data
 def test_replay_cli_workers_on_a_machine_with_enough_gpus_stays_in_process(tmp_path: Path, capsys,
                                                                           monkeypatch):
-    import gpumap.workers
+    import gpumap.pipeline.workers
 
-    monkeypatch.setattr(gpumap.workers, "host_gpus", lambda: ["0", "1"])  # as if on 2 GPUs
+    monkeypatch.setattr(gpumap.pipeline.workers, "host_gpus", lambda: ["0", "1"])  # as if on 2 GPUs
     backend = gpumap.available_backends()[0]  # what auto picks here: a CPU one on a CPU machine
     common = [str(DATA / "oasis_tank"), "--stride", "6", "--no-progress", "--no-pictures",
               "--voxel-size", "0.08", "--backend", "auto"]
@@ -111,18 +111,18 @@ def test_replay_cli_workers_on_a_machine_with_enough_gpus_stays_in_process(tmp_p
 def test_replay_cli_picks_threads_only_for_gpu_backends_with_enough_gpus(monkeypatch):
     import argparse
 
-    import gpumap.workers
+    import gpumap.pipeline.workers
     from gpumap.commands.replay import _in_process
 
     def ns(**kw):
         return argparse.Namespace(**{"scheduler": None, "dask": False, "backend": "auto", "workers": 2, **kw})
 
-    monkeypatch.setattr(gpumap.workers, "host_gpus", lambda: ["0", "1"])
+    monkeypatch.setattr(gpumap.pipeline.workers, "host_gpus", lambda: ["0", "1"])
     assert all(_in_process(ns(backend=b)) for b in ("auto", "warp-cuda", "opencl-gpu", "opencl"))
     assert not _in_process(ns(workers=3))  # more workers than GPUs: Dask
     assert not _in_process(ns(dask=True)) and not _in_process(ns(scheduler="tcp://h:8786"))
     assert not _in_process(ns(backend="numpy")) and not _in_process(ns(backend="warp-cpu"))
-    monkeypatch.setattr(gpumap.workers, "host_gpus", lambda: [])
+    monkeypatch.setattr(gpumap.pipeline.workers, "host_gpus", lambda: [])
     assert not _in_process(ns())
 
 
@@ -156,8 +156,8 @@ def test_blocks_move_by_runs_in_the_order_asked(backend):
 
 @pytest.mark.parametrize("rule", ["evidence", "visible", "plain"])
 def test_blocks_both_maps_observed_combine_in_chunks_as_in_one_call(rule, monkeypatch):
-    import gpumap.gpu_threads as gt
-    from gpumap.rules import combine_into
+    import gpumap.pipeline.gpu_threads as gt
+    from gpumap.core.rules import combine_into
 
     rng = np.random.default_rng(5)
     n, bv = 100, 64
@@ -180,7 +180,7 @@ def test_blocks_both_maps_observed_combine_in_chunks_as_in_one_call(rule, monkey
 
 @needs_data
 def test_dense_merge_block_by_block_equals_the_merge_of_states():
-    from gpumap.gpu_threads import merge_dense
+    from gpumap.pipeline.gpu_threads import merge_dense
 
     rec = tank(3)
     from gpumap.spec import auto_grid

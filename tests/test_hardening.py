@@ -15,11 +15,12 @@ from test_mapper import GRID, SPEC
 from test_visibility import _random_pings
 
 import gpumap
-from gpumap.merge import load_map, merge_maps
+from gpumap.core.merge import load_map, merge_maps
+from gpumap.core.params import MapperParams
 
 
 def _map(pings, backend="numpy"):
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, threshold=0.1)
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(threshold=0.1))
     for img, T in pings:
         m.integrate(img, T)
     return m
@@ -50,7 +51,7 @@ def test_fingerprints_follow_the_ping_not_the_call(tmp_path) -> None:
     pose or image another; reset forgets them."""
     pings = _random_pings(3, 4)
     a = _map(pings)
-    b = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.1)
+    b = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(threshold=0.1))
     b.integrate_batch(np.stack([p[0] for p in pings]), np.stack([p[1] for p in pings]))
     np.testing.assert_array_equal(a.pings.array(), b.pings.array())
     assert len(set(a.pings.array().tolist())) == 3
@@ -192,7 +193,7 @@ def test_user_parameters_win_over_the_params_file(tmp_path) -> None:
     pytest.importorskip("rclpy")
     import rclpy
 
-    from gpumap.ros.node import ros_arguments
+    from gpumap.ros.launch import ros_arguments
 
     f = tmp_path / "node.yaml"
     f.write_text("/**:\n  ros__parameters:\n    voxel_size_m: 0.05\n    backend: opencl\n")
@@ -327,9 +328,9 @@ def test_bench_ends_with_what_it_keeps_up_with_and_names_its_folder(tmp_path, ca
 def test_auto_names_its_backend_once_a_process(monkeypatch, caplog) -> None:
     import logging
 
-    import gpumap.mapper
+    import gpumap.core.mapper
 
-    monkeypatch.setattr(gpumap.mapper, "_ANNOUNCED", set())
+    monkeypatch.setattr(gpumap.core.mapper, "_ANNOUNCED", set())
     with caplog.at_level(logging.INFO, logger="gpumap"):
         for _ in range(3):
             gpumap.MinMaxMapper(SPEC, GRID)
@@ -339,7 +340,7 @@ def test_auto_names_its_backend_once_a_process(monkeypatch, caplog) -> None:
 
 def test_images_lost_after_the_last_one_delivered_are_counted() -> None:
     pytest.importorskip("rclpy")
-    from gpumap.ros.node import lost_at_stream_end
+    from gpumap.ros.launch import lost_at_stream_end
 
     a, b = bytes(range(12)), bytes(range(1, 13))  # two participants (publishing processes)
     last = {a + b"\x00\x00\x01\x03": 117, b + b"\x00\x00\x01\x03": 40}

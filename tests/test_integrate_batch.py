@@ -13,10 +13,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import pose, rot_y, rot_z
+from maps import make_mapper
 from test_mapper import GRID, SPEC
 
 import gpumap
 import gpumap.backends
+from gpumap.core.params import MapperParams
 
 RULES = ("plain", "visible")
 
@@ -52,7 +54,7 @@ def _assert_same(a: dict, b: dict) -> None:
 
 
 def _sequential(backend, rule, imgs, poses, covs=None, **kw) -> gpumap.MinMaxMapper:
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule=rule, **kw)
+    m = make_mapper(SPEC, GRID, backend=backend, rule=rule, **kw)
     for k in range(len(imgs)):
         m.integrate(imgs[k], poses[k], None if covs is None else covs[k])
     return m
@@ -71,7 +73,7 @@ def _batch_kernels(m: gpumap.MinMaxMapper) -> gpumap.MinMaxMapper:
 def test_batch_equals_sequential_bitwise(backend, rule, kernels):
     imgs, poses = _pings(9, seed=1)
     ref = _state(_sequential(backend, rule, imgs, poses))
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule=rule)
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(rule=rule))
     if kernels:
         _batch_kernels(m)
     m.integrate_batch(imgs[:4], poses[:4])
@@ -90,7 +92,7 @@ def test_uint8_batch_equals_sequential(backend, rule, monkeypatch):
     u8 = np.round(imgs * 255).astype(np.uint8)
     ref = _state(_sequential(backend, rule, u8, poses))
     for kernels in (False, True):
-        m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule=rule)
+        m = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(rule=rule))
         if kernels and hasattr(m.storage.backend, "batch_kernels"):
             _batch_kernels(m)
         m.integrate_batch(u8, poses)
@@ -107,14 +109,14 @@ def test_batch_with_pose_cov_equals_sequential(backend, rule):
         covs.append(A @ A.T)
     covs = np.asarray(covs)
     ref = _state(_sequential(backend, rule, imgs, poses, covs))
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule=rule)
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(rule=rule))
     if hasattr(m.storage.backend, "batch_kernels"):
         _batch_kernels(m)
     m.integrate_batch(imgs, poses, pose_cov=covs)
     _assert_same(_state(m), ref)
     # one covariance for the whole batch
     ref1 = _state(_sequential(backend, rule, imgs, poses, [covs[0]] * 5))
-    m1 = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule=rule)
+    m1 = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(rule=rule))
     m1.integrate_batch(imgs, poses, pose_cov=covs[0])
     _assert_same(_state(m1), ref1)
     # wider footprints than without: the pad did something
@@ -131,7 +133,7 @@ def test_split_batches_far_apart_and_over_the_launch_cap(backend, rule, monkeypa
     imgs, poses = _pings(8, seed=4)
     poses[4:, 0, 3] += 1.2  # the last four pings 1.2 m away along x
     ref = _state(_sequential(backend, rule, imgs, poses))
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule=rule)
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(rule=rule))
     if hasattr(m.storage.backend, "batch_kernels"):
         _batch_kernels(m)
     m.integrate_batch(imgs, poses)
@@ -155,7 +157,7 @@ def test_union_groups_split_far_apart_boxes_and_long_runs(monkeypatch):
 
 
 def test_knobs_set_on_the_package_reach_the_backends(monkeypatch):
-    """gpumap.workers and bench/ab.py set gpumap.backends.CPU_THREADS and GPU_CHUNK, and tests
+    """gpumap.pipeline.workers and bench/ab.py set gpumap.backends.CPU_THREADS and GPU_CHUNK, and tests
     patch the others there: each lands in gpumap.backends.base, where the backends read it."""
     from gpumap.backends import base
 
@@ -227,7 +229,7 @@ def test_first_bright_per_cell_equals_per_beam(backend):
     scan's map, run here on whatever device the backend has."""
     imgs, poses = _pings(5, seed=7)
     ref = _state(_sequential(backend, "visible", imgs, poses))
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule="visible")
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(rule="visible"))
     if not hasattr(m.storage.backend, "first_bright_cells"):
         pytest.skip(f"{m.backend} has one first-bright path")
     m.storage.backend.first_bright_cells = not m.storage.backend.first_bright_cells  # the other path
@@ -255,10 +257,10 @@ def test_batch_kernel_equals_the_oracle(backend, rule, sparse, monkeypatch):
             out.update(m.evidence())
         return out
 
-    ref = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule=rule, sparse=sparse)
+    ref = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule=rule, sparse=sparse))
     ref.integrate_batch(u8[:3], poses[:3])
     ref.integrate_batch(imgs[3:], poses[3:])
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule=rule, sparse=sparse)
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(rule=rule, sparse=sparse))
     if hasattr(m.storage.backend, "batch_kernels"):
         _batch_kernels(m)
     m.integrate_batch(u8[:3], poses[:3])

@@ -948,13 +948,13 @@ def test_errors_are_one_family() -> None:
 
 def test_limits_agree_with_the_map_side() -> None:
     """gpumap.limits states the map-side limits too; they must match what spec/mapper enforce."""
-    import gpumap.mapfile
+    import gpumap.core.mapfile
     import gpumap.spec
     from gpumap import limits
 
     for mod, name, ours in [(gpumap.spec, "_MAX_VOXELS", limits.MAX_GRID_VOXELS),
-                            (gpumap.mapfile, "_META_MAX_BYTES", limits.MAX_MAP_META_BYTES),
-                            (gpumap.mapfile, "_DEFLATE_MAX_RATIO", limits.MAX_DEFLATE_RATIO)]:
+                            (gpumap.core.mapfile, "_META_MAX_BYTES", limits.MAX_MAP_META_BYTES),
+                            (gpumap.core.mapfile, "_DEFLATE_MAX_RATIO", limits.MAX_DEFLATE_RATIO)]:
         theirs = getattr(mod, name)  # a limit that moved must be followed here, not skipped
         if theirs is not ours:
             assert theirs == ours, (mod.__name__, name)

@@ -14,18 +14,20 @@ import json
 
 import numpy as np
 import pytest
+from maps import make_mapper
 from test_mapper import GRID, SPEC
 from test_visibility import _random_pings
 
 import gpumap
 from gpumap import SparseSpec
-from gpumap.merge import load_map, map_state
+from gpumap.core.merge import load_map, map_state
+from gpumap.core.params import MapperParams
 
 PINGS = _random_pings(4, 31)
 
 
 def _mapped(grid=GRID, **kw) -> gpumap.MinMaxMapper:
-    m = gpumap.MinMaxMapper(SPEC, grid, backend="numpy", threshold=0.1, **kw)
+    m = make_mapper(SPEC, grid, backend="numpy", threshold=0.1, **kw)
     for img, T in PINGS:
         m.integrate(img, T)
     return m
@@ -73,8 +75,8 @@ def test_dense_files_of_versions_1_to_3_load(tmp_path, version):
         arrays.update(_old_evidence(m))
     extra = {}
     if version == 3:
-        arrays["confirmed"] = m.confidence_layer.confirmed.reshape(GRID.shape).copy()
-        arrays["arcs"] = m.confidence_layer.arcs.reshape(GRID.shape).copy()
+        arrays["confirmed"] = m.layer("confidence").confirmed.reshape(GRID.shape).copy()
+        arrays["arcs"] = m.layer("confidence").arcs.reshape(GRID.shape).copy()
         extra["confidence"] = True
         assert (arrays["confirmed"] == 1).any()  # the layer holds something to get back
     _write(tmp_path / "old.npz", _meta(m, version, **extra), **arrays)
@@ -82,7 +84,7 @@ def test_dense_files_of_versions_1_to_3_load(tmp_path, version):
                 load_map(tmp_path / "old.npz", backend="numpy")):
         _same(got, m, hits=False)
         if version == 3:
-            np.testing.assert_array_equal(got.confidence(), m.confidence())
+            np.testing.assert_array_equal(got.layer("confidence").states(), m.layer("confidence").states())
 
 
 def _old_blocks(m: gpumap.MinMaxMapper) -> dict:
@@ -139,13 +141,13 @@ def test_version_5_round_trip_holds_only_observed_blocks(tmp_path, sparse):
     assert (got.sparse is None) == (not sparse)
     _same(got, m)
     if not sparse:
-        np.testing.assert_array_equal(got.confidence(), m.confidence())
+        np.testing.assert_array_equal(got.layer("confidence").states(), m.layer("confidence").states())
 
 
 def test_a_bounded_box_allocates_every_block_up_front_and_never_searches(monkeypatch):
     """A GridSpec map holds every block of the box from the start (columns of 8 x 8 voxels by the
     grid's height, slot = index entry) and integrates without the per-ping block search."""
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.1)
+    m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(threshold=0.1))
     nb = (-(-GRID.shape[0] // 8), -(-GRID.shape[1] // 8), 1)
     assert m.storage.index.shape == nb and (m.B, m.Bz) == (8, GRID.shape[2])
     np.testing.assert_array_equal(m.storage.index.ravel(), np.arange(int(np.prod(nb))))
@@ -154,8 +156,8 @@ def test_a_bounded_box_allocates_every_block_up_front_and_never_searches(monkeyp
     def searched(*a, **k):
         raise AssertionError("a bounded box searched for blocks")
 
-    from gpumap.integrator import Integrator
-    from gpumap.storage import BlockStorage
+    from gpumap.core.integrator import Integrator
+    from gpumap.core.storage import BlockStorage
 
     monkeypatch.setattr(Integrator, "candidate_lins", searched)
     monkeypatch.setattr(BlockStorage, "allocate", searched)

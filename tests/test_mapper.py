@@ -15,6 +15,7 @@ from conftest import pose, rot_y, rot_z
 
 import gpumap
 from gpumap.backends import available_backends
+from gpumap.core.params import MapperParams
 from gpumap.geometry import ping_params
 
 # A small sonar and grid keep brute force cheap but exercise every code path: uneven beams,
@@ -53,7 +54,7 @@ def centres_S(T_W_S: np.ndarray) -> np.ndarray:
 
 
 def integrate(backend, pings, method="gather", spec=SPEC, grid=GRID, rule=None):
-    m = gpumap.MinMaxMapper(spec, grid, backend=backend, method=method, rule=rule)
+    m = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(method=method, rule=rule))
     for img, T in pings:
         m.integrate(img, T)
     return m
@@ -119,7 +120,7 @@ def test_conservative_and_tight_against_supersampled_cubes(backend, seed):
 def test_single_bright_cell_lights_exactly_the_touching_voxels(backend, cell, shadow_m):
     img = np.zeros(SPEC.image_shape, np.float32)
     img[cell] = 1.0
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, shadow_m=shadow_m)
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(shadow_m=shadow_m))
     m.integrate(img, T_B)
     v = m.values().reshape(-1)
     obs = np.isfinite(v)
@@ -154,10 +155,8 @@ def test_backends_agree_with_numpy_reference(other_backend, footprint_max):
     poses = [T_A, T_B, pose(rot_z(0.3) @ rot_y(0.05), (-0.05, 0.1, 0.0))]
     for method in ("gather", "template"):
         for shadow_m in (0.0, 0.05):
-            ref = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", method=method, rule="plain",
-                                      shadow_m=shadow_m)
-            m = gpumap.MinMaxMapper(SPEC, GRID, backend=other_backend, method=method, rule="plain",
-                                    footprint_max=footprint_max, shadow_m=shadow_m)
+            ref = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(method=method, rule="plain", shadow_m=shadow_m))
+            m = gpumap.MinMaxMapper(SPEC, GRID, other_backend, MapperParams(method=method, rule="plain", footprint_max=footprint_max, shadow_m=shadow_m))
             for img, T in zip(imgs, poses, strict=True):
                 ref.integrate(img, T)
                 m.integrate(img, T)
@@ -262,7 +261,7 @@ def test_shadow_keeps_the_far_side_of_a_thin_return(backend):
     rho = math.sqrt(3) / 2 * GRID.voxel_size_m
     dr = SPEC.bin_size_m
     for shadow in (0.0, 0.2):
-        m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, shadow_m=shadow)
+        m = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(shadow_m=shadow))
         m.integrate(img, T_A)
         v = m.values().ravel()
         obs = np.isfinite(v)
@@ -293,7 +292,7 @@ def test_min_over_pings_is_order_independent(backend):
     # bright value), so comparing them with single-ping maps held only for lucky images.
     for rule in ("plain", "visible"):
         def run(pings, rule=rule):
-            m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule=rule)
+            m = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(rule=rule))
             for img, T in pings:
                 m.integrate(img, T)
             return m.raw_values() if rule == "plain" else m.evidence()["min_all"]
@@ -370,7 +369,7 @@ def test_bad_specs_are_refused_with_the_reason():
     with pytest.raises(ValueError, match="backend"):
         gpumap.MinMaxMapper(SPEC, GRID, backend="cuda")
     with pytest.raises(ValueError, match="method"):
-        gpumap.MinMaxMapper(SPEC, GRID, method="fast")
+        gpumap.MinMaxMapper(SPEC, GRID, "auto", MapperParams(method="fast"))
 
 
 def test_grid_too_big_for_memory_says_how_much_it_needs(monkeypatch):
@@ -380,7 +379,7 @@ def test_grid_too_big_for_memory_says_how_much_it_needs(monkeypatch):
     assert memory.free_memory_bytes("numpy") > 0  # this machine's own figure is readable
     monkeypatch.setattr(memory, "free_memory_bytes", lambda name, device_index=None: 2**30)  # 1 GiB free
     with pytest.raises(ValueError, match=r"need 3\.73 GiB and numpy has 1\.00 GiB free"):
-        gpumap.MinMaxMapper(SPEC, grid, backend="numpy", rule="plain")
+        gpumap.MinMaxMapper(SPEC, grid, "numpy", MapperParams(rule="plain"))
     # the evidence rule keeps 12 more bytes per voxel (bright float32, count uint64): 16 / 4 as much
     with pytest.raises(ValueError, match=r"need 14\.90 GiB and numpy has 1\.00 GiB free"):
         gpumap.MinMaxMapper(SPEC, grid, backend="numpy")
@@ -399,7 +398,7 @@ def test_opencl_refuses_a_grid_beyond_its_largest_buffer():
         pytest.skip("this device's largest buffer holds more than a map may address")
     grid = gpumap.GridSpec((0, 0, 0), (m, 8, 8), 1.0)
     with pytest.raises(ValueError, match=r"fits in one OpenCL buffer, but .* GiB"):
-        gpumap.MinMaxMapper(SPEC, grid, backend="opencl-cpu", rule="plain")
+        gpumap.MinMaxMapper(SPEC, grid, "opencl-cpu", MapperParams(rule="plain"))
 
 
 def test_named_backend_never_falls_back(monkeypatch):
@@ -468,7 +467,7 @@ def test_gpu_table_builders_match_cpu_ones():
 
     img = (RNG.random(SPEC.image_shape) ** 3).astype(np.float32)
     have = available_backends()
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain")  # the backends below hold no evidence
+    m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="plain"))  # the backends below hold no evidence
     params = m.integrator.params
     n_cols = ping_params(params, T_A, m.integrator.fov_pts_S, GRID)
     n_levels = int(params["n_levels"])

@@ -63,7 +63,7 @@ def test_masked_and_complex_input_is_refused():
 
 
 def _saved(tmp_path, rule="visible"):
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule=rule)
+    m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule=rule))
     for img, T in _pings(2):
         m.integrate(img, T)
     return m.save(tmp_path / f"{rule}.npz")
@@ -165,6 +165,8 @@ from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from hypothesis.extra import numpy as hnp  # noqa: E402
 
+from gpumap.core.params import MapperParams
+
 _FUZZ_IMAGE = (np.random.default_rng(8).random(SPEC.image_shape) ** 5).astype(np.float32)
 _FUZZ_MAPPER = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")
 _FUZZ_MAPPER.integrate(_FUZZ_IMAGE, T_A)
@@ -248,9 +250,9 @@ def test_load_errors_are_gpumap_format_errors(tmp_path):
 def test_auto_says_which_backend_it_picked_and_a_named_one_stays_quiet(caplog, monkeypatch):
     import logging
 
-    import gpumap.mapper
+    import gpumap.core.mapper
 
-    monkeypatch.setattr(gpumap.mapper, "_ANNOUNCED", set())  # it says so once a process
+    monkeypatch.setattr(gpumap.core.mapper, "_ANNOUNCED", set())  # it says so once a process
 
     spec = gpumap.SonarSpec.uniform(n_beams=4, n_bins=4)
     grid = gpumap.GridSpec((0, 0, 0), (1, 1, 1), 0.5)

@@ -1,5 +1,5 @@
-"""The mapper's parts on their own: the block storage (gpumap.storage), the integrator
-(gpumap.integrator) and the value rule (gpumap.rules), without a MinMaxMapper; and the imports
+"""The mapper's parts on their own: the block storage (gpumap.core.storage), the integrator
+(gpumap.core.integrator) and the value rule (gpumap.core.rules), without a MinMaxMapper; and the imports
 among the mapper's modules, which close no circle (a lazy import inside a function counts too).
 """
 
@@ -11,17 +11,17 @@ from test_architecture import _cycle, _graph
 from test_mapper import GRID, SPEC, T_A
 
 import gpumap
+from gpumap.core.integrator import Integrator
+from gpumap.core.rules import ValueRule, combine_into
+from gpumap.core.storage import BlockStorage, MapMemoryError
 from gpumap.geometry import ping_params
-from gpumap.integrator import Integrator
-from gpumap.rules import ValueRule, combine_into
-from gpumap.storage import BlockStorage, MapMemoryError
 
 PLAIN = ValueRule("plain", 2, 0.2, 1.645)
 
 #: The modules of the mapper and its parts, its backends, and the modules beside them.
 MAPPER_MODULES = (
-    "gpumap.mapper", "gpumap.sparse", "gpumap.storage", "gpumap.integrator", "gpumap.rules",
-    "gpumap.confidence", "gpumap.nbv", "gpumap.mapfile", "gpumap.mapstate", "gpumap.merge", "gpumap.memory",
+    "gpumap.core.mapper", "gpumap.core.sparse", "gpumap.core.storage", "gpumap.core.integrator", "gpumap.core.rules",
+    "gpumap.layers.confidence", "gpumap.layers.viewgain", "gpumap.core.mapfile", "gpumap.core.mapstate", "gpumap.core.merge", "gpumap.memory",
     "gpumap.backends", "gpumap.backends.base", "gpumap.backends.numpy_backend", "gpumap.backends.tables",
     "gpumap.backends.warp_backend", "gpumap.backends.opencl_backend",
 )
@@ -46,11 +46,11 @@ def test_the_mapper_modules_import_no_circle():
     sub = {m: g[m] & set(MAPPER_MODULES) for m in MAPPER_MODULES}
     assert _cycle(sub) is None, " -> ".join(_cycle(sub) or [])
     # merge builds on the mapper, never the other way round (they used to import each other)
-    assert _reaches(g, "gpumap.merge", "gpumap.mapper")
-    assert not _reaches(g, "gpumap.mapper", "gpumap.merge")
+    assert _reaches(g, "gpumap.core.merge", "gpumap.core.mapper")
+    assert not _reaches(g, "gpumap.core.mapper", "gpumap.core.merge")
     # the parts sit below the facade
-    for part in ("gpumap.storage", "gpumap.integrator", "gpumap.mapfile", "gpumap.mapstate"):
-        assert _reaches(g, "gpumap.mapper", part) and not _reaches(g, part, "gpumap.mapper"), part
+    for part in ("gpumap.core.storage", "gpumap.core.integrator", "gpumap.core.mapfile", "gpumap.core.mapstate"):
+        assert _reaches(g, "gpumap.core.mapper", part) and not _reaches(g, part, "gpumap.core.mapper"), part
 
 
 def _blocks(st: BlockStorage, n: int, seed: int) -> np.ndarray:

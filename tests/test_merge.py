@@ -10,12 +10,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import DATA, needs_data, pose, rot_y
+from maps import make_mapper
 from test_mapper import GRID, SPEC
 from test_visibility import _random_pings
 
 import gpumap
 from gpumap import MapMemoryError, SparseMinMaxMapper, SparseSpec
-from gpumap.merge import MapState, load_map, map_state, merge_maps
+from gpumap.core.merge import MapState, load_map, map_state, merge_maps
+from gpumap.core.params import MapperParams
+from gpumap.layers.confidence import with_confidence
 
 S = GRID.voxel_size_m
 BOUNDED = SparseSpec(S, (GRID.min_corner_m, GRID.max_corner_m))
@@ -23,14 +26,15 @@ UNBOUNDED = SparseSpec(S, origin_m=GRID.min_corner_m)
 
 
 def _dense(backend, pings, rule="evidence", spec=SPEC, grid=GRID, **kw):
-    m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule=rule, threshold=0.1, **kw)
+    m = make_mapper(spec, grid, backend=backend, rule=rule, threshold=0.1, **kw)
     for img, T in pings:
         m.integrate(img, T)
     return m
 
 
 def _sparse(backend, pings, sparse=BOUNDED, rule="evidence", spec=SPEC, **kw):
-    m = SparseMinMaxMapper(spec, sparse, backend=backend, rule=rule, threshold=0.1, initial_blocks=2, **kw)
+    m = make_mapper(spec, sparse, backend=backend, rule=rule, threshold=0.1, initial_blocks=2, **kw,
+                    cls=SparseMinMaxMapper)
     for img, T in pings:
         m.integrate(img, T)
     return m
@@ -155,10 +159,9 @@ def test_real_tank_pings_random_split(backend, kind):
 
     def make(ps):
         if kind.startswith("sparse"):
-            m = SparseMinMaxMapper(spec, SparseSpec(0.06, origin_m=grid.min_corner_m), backend=backend,
-                                   rule=rule, threshold=0.4)
+            m = SparseMinMaxMapper(spec, SparseSpec(0.06, origin_m=grid.min_corner_m), backend, MapperParams(rule=rule, threshold=0.4))
         else:
-            m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule=rule, threshold=0.4)
+            m = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(rule=rule, threshold=0.4))
         m.integrate_batch(np.stack([p[0] for p in ps]), np.stack([p[1] for p in ps]))
         return m
 
@@ -178,11 +181,10 @@ def test_mismatches_are_refused_and_leave_the_map_unchanged():
     cases = [
         (_dense("numpy", pings[2:], rule="plain"), "rule"),
         (_dense("numpy", pings[2:], grid=other_grid), "grid"),
-        (gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.2), "threshold"),
-        (gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.1, carve_views=3), "carve_views"),
-        (gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.1, shadow_m=0.02), "shadow_m"),
-        (gpumap.MinMaxMapper(gpumap.SonarSpec(0.15, 1.4, 60, SPEC.bearings_rad, SPEC.vfov_rad), GRID,
-                             backend="numpy", threshold=0.1), "spec"),
+        (gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(threshold=0.2)), "threshold"),
+        (gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(threshold=0.1, carve_views=3)), "carve_views"),
+        (gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(threshold=0.1, shadow_m=0.02)), "shadow_m"),
+        (gpumap.MinMaxMapper(gpumap.SonarSpec(0.15, 1.4, 60, SPEC.bearings_rad, SPEC.vfov_rad), GRID, "numpy", MapperParams(threshold=0.1)), "spec"),
         (_sparse("numpy", pings[2:]), "kind"),
     ]
     for other, word in cases:
@@ -212,17 +214,17 @@ def test_mismatches_are_refused_and_leave_the_map_unchanged():
 def test_a_spec_mismatch_names_the_field_in_one_short_line():
     """Two sonars that differ in one field: the error names it (spec.n_bins), not the whole spec
     with its beam table (hundreds of numbers on one line, as gpumap merge printed it)."""
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.1)
+    m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(threshold=0.1))
     fewer_bins = gpumap.SonarSpec(SPEC.range_min_m, SPEC.range_max_m, SPEC.n_bins - 1, SPEC.bearings_rad,
                                   SPEC.vfov_rad)
     with pytest.raises(ValueError, match=rf"same spec\.n_bins to merge, but got {SPEC.n_bins} and "
                                          rf"{SPEC.n_bins - 1}$"):
-        m.merge(gpumap.MinMaxMapper(fewer_bins, GRID, backend="numpy", threshold=0.1))
+        m.merge(gpumap.MinMaxMapper(fewer_bins, GRID, "numpy", MapperParams(threshold=0.1)))
     bearings = np.asarray(SPEC.bearings_rad, dtype=np.float64).copy()
     bearings[-1] += 1e-3
     other_beams = gpumap.SonarSpec(SPEC.range_min_m, SPEC.range_max_m, SPEC.n_bins, bearings, SPEC.vfov_rad)
     with pytest.raises(ValueError, match=r"spec\.bearings_rad") as e:
-        m.merge(gpumap.MinMaxMapper(other_beams, GRID, backend="numpy", threshold=0.1))
+        m.merge(gpumap.MinMaxMapper(other_beams, GRID, "numpy", MapperParams(threshold=0.1)))
     assert len(str(e.value)) < 300 and f"{len(bearings)} values" in str(e.value), str(e.value)
 
 
@@ -231,9 +233,7 @@ def test_sparse_merge_over_max_bytes_raises_unchanged():
     a = _sparse("numpy", pings[:1])
     b = _sparse("numpy", pings[1:])
     na, nb = len(_state(a)["blocks"]), len(_state(b)["blocks"])
-    capped = SparseMinMaxMapper(SPEC, BOUNDED, backend="numpy", threshold=0.1, initial_blocks=1,
-                                max_bytes=a.storage.index.nbytes + (na + 1) * a.storage.block_bytes,
-                                evict="farthest")
+    capped = SparseMinMaxMapper(SPEC, BOUNDED, "numpy", MapperParams(threshold=0.1, initial_blocks=1, max_bytes=a.storage.index.nbytes + (na + 1) * a.storage.block_bytes, evict="farthest"))
     capped.merge(a)  # fits
     before = _state(capped)
     assert nb > 1
@@ -265,7 +265,7 @@ def test_merge_command_writes_the_map_of_all_pings(tmp_path, capsys):
             merge_maps(twice, backend="numpy")
         assert main(["merge", str(tmp_path / "y.npz"), *map(str, twice)]) == 2
         assert "same map as" in capsys.readouterr().err and not (tmp_path / "y.npz").exists()
-    other = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain").save(tmp_path / "p.npz")
+    other = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="plain")).save(tmp_path / "p.npz")
     assert main(["merge", str(tmp_path / "x.npz"), str(parts[0]), str(other)]) == 2
     assert "same rule" in capsys.readouterr().err and not (tmp_path / "x.npz").exists()
 
@@ -288,13 +288,13 @@ def test_export_reads_sparse_map_files_too(tmp_path, capsys):
 
 
 def test_maps_with_the_confidence_layer_are_refused_unchanged():
-    """The confidence layer depends on ping order (gpumap.confidence): no merge can be exact."""
+    """The confidence layer depends on ping order (gpumap.layers.confidence): no merge can be exact."""
     spec = gpumap.SonarSpec.uniform(hfov_deg=60, vfov_deg=12, n_beams=16, n_bins=20, range_min_m=0.1,
                                     range_max_m=1.0)
     grid = gpumap.GridSpec((0.0, -0.5, -0.2), (1.0, 0.5, 0.2), 0.1)
     img = np.random.default_rng(3).random(spec.image_shape).astype(np.float32)
-    a = gpumap.MinMaxMapper(spec, grid, backend="numpy", confidence=True)
-    b = gpumap.MinMaxMapper(spec, grid, backend="numpy", confidence=True)
+    a = with_confidence(gpumap.MinMaxMapper(spec, grid, backend="numpy"))
+    b = with_confidence(gpumap.MinMaxMapper(spec, grid, backend="numpy"))
     plain_b = gpumap.MinMaxMapper(spec, grid, backend="numpy")
     for m in (a, b, plain_b):
         m.integrate(img, np.eye(4))
@@ -313,7 +313,7 @@ def test_states_merged_one_after_the_other_into_a_new_map_both_count():
     pings = _random_pings(4, 29)
     a, b = map_state(_dense("numpy", pings[:2])), map_state(_dense("numpy", pings[2:]))
     ref = _state(merge_maps([a, b], backend="numpy"))
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.1)
+    m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(threshold=0.1))
     for st in (a, b):
         m.merge(MapState(st.kind, st.options, 0, {k: v for k, v in st.arrays.items() if k != "pings"}))
     got = _state(m)

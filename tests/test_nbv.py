@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 import gpumap
-from gpumap.nbv import (
+from gpumap.core.params import MapperParams
+from gpumap.layers.confidence import with_confidence
+from gpumap.layers.viewgain import (
     PAIR_STEPS,
     _fov,
     candidate_poses,
@@ -57,21 +59,21 @@ def test_one_view_confirms_nothing_a_rolled_view_confirms_the_echo(backend):
     nothing is confirmed (the whole arc is the stretch). Rolled 90 deg, the arc lies sideways,
     across the voxels the first view carved: the target alone stays occupied and is confirmed.
     The visible rule: one clear dark view carves (the evidence rule needs several)."""
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, confidence=True, rule="visible")
+    m = with_confidence(gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(rule="visible")))
     T1 = _look_at_target()
     m.integrate(_echo_image(T1), T1)
-    c1 = m.confidence()
+    c1 = m.layer("confidence").states()
     assert (c1 == 2).sum() >= 5  # the arc: several voxels stacked in elevation, all occupied
     assert not (c1 == 3).any()
     T2 = _look_at_target(math.pi / 2)
     m.integrate(_echo_image(T2), T2)
-    c2 = m.confidence()
+    c2 = m.layer("confidence").states()
     i0 = np.array(_target_index())
     assert c2[tuple(i0)] == 3
     occ = np.argwhere(c2 >= 2)
     assert np.abs(occ - i0).max() <= 1  # the stretch is gone: only the target and its footprint's
     # confidence only labels: the values are those of a mapper without the layer
-    plain = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule="visible")
+    plain = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(rule="visible"))
     plain.integrate(_echo_image(T1), T1)
     plain.integrate(_echo_image(T2), T2)
     np.testing.assert_array_equal(plain.raw_values(), m.raw_values())
@@ -80,20 +82,20 @@ def test_one_view_confirms_nothing_a_rolled_view_confirms_the_echo(backend):
 def test_confirmed_flag_never_frees_and_batch_equals_sequence(backend):
     T1, T2 = _look_at_target(), _look_at_target(math.pi / 2)
     imgs = np.stack([_echo_image(T1), _echo_image(T2)])
-    a = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, confidence=True)
+    a = with_confidence(gpumap.MinMaxMapper(SPEC, GRID, backend=backend))
     a.integrate_batch(imgs, np.stack([T1, T2]))
-    b = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", confidence=True)
+    b = with_confidence(gpumap.MinMaxMapper(SPEC, GRID, backend="numpy"))
     b.integrate(imgs[0], T1)
     b.integrate(imgs[1], T2)
-    np.testing.assert_array_equal(a.confidence(), b.confidence())
-    c = a.confidence()
+    np.testing.assert_array_equal(a.layer("confidence").states(), b.layer("confidence").states())
+    c = a.layer("confidence").states()
     v = a.values()
     occupied = np.isfinite(v) & (v >= a.threshold)
     np.testing.assert_array_equal(occupied, c >= 2)  # occupied <=> (un)confirmed: none freed
 
 
 def _state_mapper(backend: str, values: np.ndarray) -> gpumap.MinMaxMapper:
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule="plain", confidence=True)
+    m = with_confidence(gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(rule="plain")))
     pool = m.storage.to_pool_order(np.ascontiguousarray(values, np.float32), np.inf)  # a hand-made map state
     m.storage.backend.write(pool.ravel(), None, None)
     return m
@@ -112,9 +114,9 @@ def test_gain_counts_a_voxel_whose_arc_neighbours_are_free():
     i, j, k = _target_index()
     v[i, j, :] = 0.5  # a vertical column of occupied voxels through the target
     m = _state_mapper("numpy", v)
-    m.confidence_layer.arcs[:] = (1 << 13) - 1
+    m.layer("confidence").arcs[:] = (1 << 13) - 1
     cand = np.stack([_look_at_target(), _look_at_target(math.pi / 2), _look_at_target(math.pi / 4)])
-    g = m.view_gain(cand, unknown_weight=0.0)
+    g = m.layer("confidence").gains(cand, unknown_weight=0.0)
     n_col = GRID.shape[2]
     assert g[0] == 0
     # rolled 90 deg every observed voxel of the column has free arc neighbours
@@ -137,35 +139,35 @@ def test_gain_counts_a_new_arc_direction_next_to_free_space():
     i, _, _ = _target_index()
     v[i, :, :] = 0.5
     m = _state_mapper("numpy", v)
-    m.confidence_layer.arcs[:] = 1 << _bit((0, 0, 1))
+    m.layer("confidence").arcs[:] = 1 << _bit((0, 0, 1))
     cand = np.stack([_look_at_target(), _look_at_target(math.pi / 2)])
-    g = m.view_gain(cand, unknown_weight=0.0)
+    g = m.layer("confidence").gains(cand, unknown_weight=0.0)
     idx = np.argwhere(v > 0.1)
     c = np.asarray(GRID.min_corner_m) + (idx + 0.5) * GRID.voxel_size_m
     T = cand[1]
     seen = SPEC.in_fov((c - T[:3, 3]) @ T[:3, :3])
     assert g[0] == 0 and g[1] == seen.sum() > 10
-    m.confidence_layer.arcs[:] |= 1 << _bit((0, 1, 0))
-    assert m.view_gain(cand[1:], unknown_weight=0.0)[0] < 0.1 * seen.sum()  # only arcs off the y step
+    m.layer("confidence").arcs[:] |= 1 << _bit((0, 1, 0))
+    assert m.layer("confidence").gains(cand[1:], unknown_weight=0.0)[0] < 0.1 * seen.sum()  # only arcs off the y step
 
 
 def test_confidence_pass_records_the_arc_directions():
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", confidence=True)
+    m = with_confidence(gpumap.MinMaxMapper(SPEC, GRID, backend="numpy"))
     f = np.ravel_multi_index(_target_index(), GRID.shape)
     T1 = _look_at_target()
     m.integrate(_echo_image(T1), T1)
-    assert m.confidence_layer.arcs[f] == 1 << _bit((0, 0, 1))  # level: the arc is vertical
+    assert m.layer("confidence").arcs[f] == 1 << _bit((0, 0, 1))  # level: the arc is vertical
     T2 = _look_at_target(math.pi / 2)
     m.integrate(_echo_image(T2), T2)
-    assert m.confidence_layer.arcs[f] == (1 << _bit((0, 0, 1))) | (1 << _bit((0, 1, 0)))  # rolled: horizontal
+    assert m.layer("confidence").arcs[f] == (1 << _bit((0, 0, 1))) | (1 << _bit((0, 1, 0)))  # rolled: horizontal
 
 
 def test_gain_counts_unknown_blocks():
     """An empty map: every voxel is unknown; the gain counts the unknown voxels of the blocks
     whose centre lies in the field of view (brute force with the spec's own field-of-view test)."""
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", confidence=True)
+    m = with_confidence(gpumap.MinMaxMapper(SPEC, GRID, backend="numpy"))
     Ts = candidate_poses(_look_at_target(), 6, seed=3)
-    g = m.view_gain(Ts)
+    g = m.layer("confidence").gains(Ts)
     s = GRID.voxel_size_m
     nb = [-(-n // 4) for n in GRID.shape]
     idx = np.argwhere(np.ones(nb, bool))
@@ -179,14 +181,14 @@ def test_gain_counts_unknown_blocks():
 def test_view_gain_matches_reference_on_every_backend(backend):
     """A map after a few noisy pings; many candidates; exact equality with the NumPy reference."""
     rng = np.random.default_rng(5)
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, confidence=True)
+    m = with_confidence(gpumap.MinMaxMapper(SPEC, GRID, backend=backend))
     for _ in range(6):
         T = _look_at_target(rng.uniform(-1.5, 1.5))
         img = np.where(rng.random(SPEC.image_shape) < 0.003, 0.8, 0.02).astype(np.float32)
         m.integrate(img, T)
     Ts = np.concatenate([candidate_poses(_look_at_target(), 150, seed=s) for s in range(2)])
-    g = m.view_gain(Ts, unknown_weight=0.5)
-    pts = gain_points(m.raw_values(), m.confidence() == 3, m.threshold, GRID, m.confidence_layer.arcs)
+    g = m.layer("confidence").gains(Ts, unknown_weight=0.5)
+    pts = gain_points(m.raw_values(), m.layer("confidence").states() == 3, m.threshold, GRID, m.layer("confidence").arcs)
     settle, unknown = view_gain_reference(poses_to_rows(Ts), pts, _fov(m.integrator.params))
     assert (settle > 0).any() and (unknown > 0).any()
     np.testing.assert_array_equal(g, settle + 0.5 * unknown)
@@ -194,7 +196,7 @@ def test_view_gain_matches_reference_on_every_backend(backend):
 
 def _noisy_map() -> gpumap.MinMaxMapper:
     rng = np.random.default_rng(5)
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", confidence=True)
+    m = with_confidence(gpumap.MinMaxMapper(SPEC, GRID, backend="numpy"))
     for _ in range(6):
         img = np.where(rng.random(SPEC.image_shape) < 0.003, 0.8, 0.02).astype(np.float32)
         m.integrate(img, _look_at_target(rng.uniform(-1.5, 1.5)))
@@ -212,7 +214,7 @@ def test_next_best_views_are_the_best_candidates_around_each_anchor():
     per = 151  # ceil(301 / 2): the last anchor's draw is cut to fill 301
     C = np.concatenate([candidate_poses(T, per, seed=3 * 1009 + a, **lim)
                         for a, T in enumerate(anchors)])[:301]
-    g = m.view_gain(C, unknown_weight=0.5)
+    g = m.layer("confidence").gains(C, unknown_weight=0.5)
     want = sorted(range(len(C)), key=lambda k: (-g[k], k))[:4]
     assert n == 301 and [v["candidate"] for v in views] == want
     assert [v["gain"] for v in views] == [float(g[k]) for k in want] and views[0]["gain"] > 0
@@ -255,49 +257,49 @@ def test_candidates_stay_within_their_bounds():
 
 
 def test_confidence_saved_and_loaded(tmp_path):
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", confidence=True)
+    m = with_confidence(gpumap.MinMaxMapper(SPEC, GRID, backend="numpy"))
     for roll in (0.0, math.pi / 2):
         T = _look_at_target(roll)
         m.integrate(_echo_image(T), T)
     p = m.save(tmp_path / "m.npz")
     back = gpumap.MinMaxMapper.load(p, backend="numpy")
-    np.testing.assert_array_equal(back.confidence(), m.confidence())
-    np.testing.assert_array_equal(back.confidence_layer.arcs, m.confidence_layer.arcs)
-    assert m.confidence_layer.arcs.any()
+    np.testing.assert_array_equal(back.layer("confidence").states(), m.layer("confidence").states())
+    np.testing.assert_array_equal(back.layer("confidence").arcs, m.layer("confidence").arcs)
+    assert m.layer("confidence").arcs.any()
     # a map without the layer still saves and loads without it
     n = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")
     n.integrate(_echo_image(T), T)
     back = gpumap.MinMaxMapper.load(n.save(tmp_path / "n.npz"), backend="numpy")
     with pytest.raises(ValueError, match="confidence=True"):
-        back.confidence()
+        back.layer("confidence").states()
 
 
 def test_bad_input_raises_and_changes_nothing():
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", confidence=True)
+    m = with_confidence(gpumap.MinMaxMapper(SPEC, GRID, backend="numpy"))
     T = _look_at_target()
     m.integrate(_echo_image(T), T)
-    before = m.confidence()
+    before = m.layer("confidence").states()
     with pytest.raises(ValueError, match=r"\(K, 4, 4\)"):
-        m.view_gain(np.eye(4))
+        m.layer("confidence").gains(np.eye(4))
     bad = np.stack([T, T])
     bad[1, :3, :3] *= 2.0
     with pytest.raises(ValueError):
-        m.view_gain(bad)
+        m.layer("confidence").gains(bad)
     with pytest.raises(ValueError, match="unknown_weight"):
-        m.view_gain(bad[:1], unknown_weight=-1.0)
+        m.layer("confidence").gains(bad[:1], unknown_weight=-1.0)
     with pytest.raises(ValueError, match="confidence=True"):
-        gpumap.MinMaxMapper(SPEC, GRID, backend="numpy").view_gain(bad[:1])
+        gpumap.MinMaxMapper(SPEC, GRID, backend="numpy").layer("confidence").gains(bad[:1])
     with pytest.raises(TypeError, match="confidence"):
         gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", confidence="yes")
-    np.testing.assert_array_equal(m.confidence(), before)
+    np.testing.assert_array_equal(m.layer("confidence").states(), before)
 
 
 def test_sparse_mapper_says_it_has_no_confidence_layer():
     m = gpumap.SparseMinMaxMapper(SPEC, gpumap.SparseSpec(0.05), backend="numpy")
     with pytest.raises(NotImplementedError, match="MinMaxMapper"):
-        m.confidence()
+        m.layer("confidence").states()
     with pytest.raises(NotImplementedError, match="MinMaxMapper"):
-        m.view_gain(np.eye(4)[None])
+        m.layer("confidence").gains(np.eye(4)[None])
 
 
 def test_demo_plan_writes_three_arms(tmp_path):

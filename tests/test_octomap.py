@@ -135,7 +135,7 @@ def test_demo_map_bt_loads_in_octomap(demo_map, tmp_path, capsys):
     import pyoctomap
 
     from gpumap.commands import main
-    from gpumap.mapper import MinMaxMapper
+    from gpumap.core.mapper import MinMaxMapper
 
     m = MinMaxMapper.load(demo_map, backend="numpy")
     v = m.values()

@@ -46,7 +46,7 @@ def test_wheel_has_only_gpumap_at_top_level(wheel):
         "gpumap/kernels/minmax.cl",
         "gpumap/sim/sonar.py",
         "gpumap/io/oculus.py",
-        "gpumap/mapper.py",
+        "gpumap/core/mapper.py",
         "gpumap/backends/__init__.py",
         "gpumap/backends/warp_backend.py",
         "gpumap/backends/opencl_backend.py",

@@ -10,6 +10,8 @@ import pytest
 from conftest import DATA, needs_data
 
 import gpumap
+from gpumap.core.params import MapperParams
+from gpumap.layers.confidence import with_confidence
 
 
 def test_plan_writes_the_best_views_within_the_wrist_limits(tmp_path: Path, capsys) -> None:
@@ -26,7 +28,7 @@ def test_plan_writes_the_best_views_within_the_wrist_limits(tmp_path: Path, caps
     T = pose_from_xyz_ypr_deg(target - [0.8, 0, 0], 0, 0, 0)
     img = np.zeros(spec.image_shape, np.float32)
     img[spec.bin_index(0.8), spec.beam_index(0.0)] = 0.9
-    m = gpumap.MinMaxMapper(spec, grid, backend="numpy", rule="visible", confidence=True)
+    m = with_confidence(gpumap.MinMaxMapper(spec, grid, "numpy", MapperParams(rule="visible")))
     m.integrate(img, T)
     mp = m.save(tmp_path / "map.npz")
     out = tmp_path / "plan.json"
@@ -39,7 +41,7 @@ def test_plan_writes_the_best_views_within_the_wrist_limits(tmp_path: Path, caps
     assert len(plan["views"]) == 3 and len(printed.splitlines()) == 4
     Ts = np.array([v["T_W_S"] for v in plan["views"]])
     gains = [v["gain"] for v in plan["views"]]
-    np.testing.assert_allclose(m.view_gain(Ts, unknown_weight=0.0), gains)
+    np.testing.assert_allclose(m.layer("confidence").gains(Ts, unknown_weight=0.0), gains)
     assert gains == sorted(gains, reverse=True) and gains[0] > 0
     for Tc in Ts:
         D = np.linalg.inv(T) @ Tc
@@ -73,12 +75,12 @@ def test_plan_rebuilds_the_layer_from_the_maps_own_frames(tmp_path: Path, capsys
     """A map saved without the layer: its recording's frames rebuild it (the same values, exactly)
     and the anchors are the recording's poses; other frames are refused."""
     from gpumap.commands import main
-    from gpumap.refine import recording_frames
+    from gpumap.layers.refine import recording_frames
     from gpumap.spec import auto_grid
 
     rec = DATA / "oasis_tank"
     spec, images, poses = recording_frames(rec, 12)
-    m = gpumap.MinMaxMapper(spec, auto_grid(spec, list(poses), 0.12), backend="numpy", threshold=0.4)
+    m = gpumap.MinMaxMapper(spec, auto_grid(spec, list(poses), 0.12), "numpy", MapperParams(threshold=0.4))
     m.integrate_batch(images, poses)
     mp = m.save(tmp_path / "map.npz")
     out = tmp_path / "plan.json"

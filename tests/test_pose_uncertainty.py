@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from test_mapper import GRID, SPEC, T_A
 
 import gpumap
+from gpumap.core.params import MapperParams
 
 RNG = np.random.default_rng(21)
 SIGMA_T, SIGMA_R = 0.01, 0.004  # m, rad
@@ -16,7 +17,7 @@ COV = np.diag([SIGMA_T**2] * 3 + [SIGMA_R**2] * 3)
 
 
 def _ping(backend, img, T, **kw):
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend=backend, rule="plain")
+    m = gpumap.MinMaxMapper(SPEC, GRID, backend, MapperParams(rule="plain"))
     m.integrate(img, T, **kw)
     return m.raw_values().ravel()
 

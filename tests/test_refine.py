@@ -1,4 +1,4 @@
-"""gpumap.refine: the hard constraints, the held-out helpers, and refinement on a scene whose pings
+"""gpumap.layers.refine: the hard constraints, the held-out helpers, and refinement on a scene whose pings
 the ping model itself rendered (so the optimum is known: the true field)."""
 
 from __future__ import annotations
@@ -13,9 +13,10 @@ from conftest import DATA, needs_data
 from scipy import ndimage
 
 import gpumap
-from gpumap.first_return import first_bright_bins
-from gpumap.refine import OCCUPIED_LEVEL, RefineOptions, heldout_scores, refine, roc_auc
-from gpumap.render import PingRenderer
+from gpumap.core.params import MapperParams
+from gpumap.layers.first_return import first_bright_bins
+from gpumap.layers.refine import OCCUPIED_LEVEL, RefineOptions, heldout_scores, refine, roc_auc
+from gpumap.layers.render import PingRenderer
 
 pytest.importorskip("warp")
 
@@ -55,7 +56,7 @@ def scene():
 
 
 def _mapper(spec, grid, images, poses):
-    m = gpumap.MinMaxMapper(spec, grid, backend="numpy", rule="visible", threshold=0.1)
+    m = gpumap.MinMaxMapper(spec, grid, "numpy", MapperParams(rule="visible", threshold=0.1))
     m.integrate_batch(images, poses)
     return m
 
@@ -71,9 +72,9 @@ def _fp_fn(occ: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 
 def test_every_name_of_the_refine_modules_is_importable_from_gpumap_refine() -> None:
     """refine.py split by concept (issue 32): each module's names stay importable from
-    gpumap.refine, the same objects."""
-    import gpumap.refine as mod
-    from gpumap import refine_constraints, refine_fit, refine_heldout, refined_map
+    gpumap.layers.refine, the same objects."""
+    import gpumap.layers.refine as mod
+    from gpumap.layers import refine_constraints, refine_fit, refine_heldout, refined_map
 
     for home in (refined_map, refine_constraints, refine_fit, refine_heldout):
         for name in home.__all__:
@@ -149,7 +150,7 @@ def test_refine_checks_its_input(scene) -> None:
         refine(m, images, poses[:-1], device="cpu")
     with pytest.raises(TypeError, match="MinMaxMapper"):
         refine(object(), images, poses, device="cpu")
-    plain = gpumap.MinMaxMapper(spec, grid, backend="numpy", rule="plain")
+    plain = gpumap.MinMaxMapper(spec, grid, "numpy", MapperParams(rule="plain"))
     with pytest.raises(ValueError, match="rule='visible'"):
         refine(plain, images, poses, device="cpu")
     with pytest.raises(ValueError, match="iterations"):

@@ -1,4 +1,4 @@
-"""The differentiable ping model (gpumap.render, kernels/render.py): NumPy twin, finite
+"""The differentiable ping model (gpumap.layers.render, kernels/render.py): NumPy twin, finite
 differences, and the simulator's pings of the same scene."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import gpumap
-from gpumap.render import PingModel, PingRenderer
-from gpumap.render_reference import energy_reference
+from gpumap.layers.render import PingModel, PingRenderer
+from gpumap.layers.render_reference import energy_reference
 
 wp = pytest.importorskip("warp")
 

@@ -16,7 +16,7 @@ from gpumap.commands.replay import main
 from gpumap.io import open_recording, read_ply
 from gpumap.io.fan import FanGeometry, open_fan_folder
 from gpumap.io.oculus import encode_simple_ping
-from gpumap.replay import otsu_threshold, run_replay, run_rule_comparison
+from gpumap.pipeline.replay import otsu_threshold, run_replay, run_rule_comparison
 from gpumap.spec import auto_grid
 
 

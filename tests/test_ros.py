@@ -20,8 +20,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import DATA, needs_data, pose, rot_z
+from maps import make_mapper
 
 import gpumap
+from gpumap.core.params import MapperParams
+from gpumap.layers.confidence import with_confidence
 from gpumap.ros.live import LiveMapper, PoseBuffer
 
 try:
@@ -126,10 +129,10 @@ def _surface_worker_run(seed: int, max_batch: int, **kw):
     """12 small pings, one a second of stamps, through a LiveMapper and a LiveSurfaceWorker (``kw``), both
     stopped at the end: (images, poses, mapper, live mapper, worker, published (layer, stamp) pairs,
     nanoseconds a ping)."""
-    from gpumap.ros.live import LiveSurfaceWorker
+    from gpumap.ros.surface_worker import LiveSurfaceWorker
 
     imgs, Ts = _small_pings(12, seed=seed)
-    m = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy", threshold=0.4)
+    m = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, "numpy", MapperParams(threshold=0.4))
     published = []
     live = LiveMapper(m, queue_size=64, max_batch=max_batch)
     surf = LiveSurfaceWorker(live, on_publish=lambda layer, t: published.append((layer, t)), **kw)
@@ -150,7 +153,7 @@ def test_live_surface_worker_publishes_the_offline_layer_of_the_pings_mapped():
     """The surface worker follows the live mapper on its own thread: every layer it publishes is the
     offline layer of the pings it says it covers, on the map of those pings; the last covers them all;
     a reset forgets them; layer_now gives both layers of one moment."""
-    from gpumap.surface import surface_from_mapper
+    from gpumap.layers.surface_live import surface_from_mapper
 
     imgs, Ts, m, live, surf, published, s = _surface_worker_run(3, 3)
     assert surf.error is None and published
@@ -159,7 +162,7 @@ def test_live_surface_worker_publishes_the_offline_layer_of_the_pings_mapped():
     for layer, t in published:
         n = layer.stats["pings"]
         assert t == (n - 1) * s  # stamped with the newest ping it covers
-        ref = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy", threshold=0.4)
+        ref = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, "numpy", MapperParams(threshold=0.4))
         ref.integrate_batch(imgs[:n], Ts[:n])
         off = surface_from_mapper(ref, imgs[:n], Ts[:n])
         assert np.array_equal(layer.surface, off.surface) and np.array_equal(layer.votes, off.votes)
@@ -174,14 +177,14 @@ def test_live_surface_worker_publishes_the_offline_layer_of_the_pings_mapped():
 def test_live_surface_worker_with_a_window_publishes_the_newest_pings_layer():
     """max_pings: every published layer is the offline layer of the newest pings it holds, on the map
     of every ping mapped up to then."""
-    from gpumap.surface import surface_from_mapper
+    from gpumap.layers.surface_live import surface_from_mapper
 
     imgs, Ts, m, live, surf, published, s = _surface_worker_run(4, 2, max_pings=5)
     assert surf.error is None and published[-1][1] == 11 * s
     for layer, t in published:
         n, lo = t // s + 1, layer.stats["first_ping"]
         assert lo == max(0, n - 5) and layer.stats["pings"] == n - lo
-        ref = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy", threshold=0.4)
+        ref = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, "numpy", MapperParams(threshold=0.4))
         ref.integrate_batch(imgs[:n], Ts[:n])
         off = surface_from_mapper(ref, imgs[lo:n], Ts[lo:n])
         assert np.array_equal(layer.surface, off.surface) and np.array_equal(layer.votes, off.votes)
@@ -280,7 +283,7 @@ def test_obstacle_projection_and_marker_blocks_against_brute_force():
 
 def _assert_cloud_confidence(centres, vals, confirmed, mapper) -> tuple[int, int]:
     """Brute force, voxel by voxel: the cloud is the occupied set, confirmed == (confidence == 3)."""
-    conf = mapper.confidence()
+    conf = mapper.layer("confidence").states()
     v = mapper.values()
     grid = mapper.grid
     got = {}
@@ -306,15 +309,13 @@ def test_cloud_confirmed_field_is_the_mappers_confidence_layer():
 
     from gpumap.ros.convert import occupied_cloud
 
-    m = gpumap.MinMaxMapper(gpumap.SonarSpec.uniform(hfov_deg=60, vfov_deg=20, n_beams=64, n_bins=100,
-                                                     range_min_m=0.1, range_max_m=1.5),
-                            gpumap.GridSpec((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), 0.05),
-                            backend="numpy", confidence=True, rule="visible")  # one clear view carves
+    m = with_confidence(gpumap.MinMaxMapper(gpumap.SonarSpec.uniform(hfov_deg=60, vfov_deg=20, n_beams=64, n_bins=100,
+                                                     range_min_m=0.1, range_max_m=1.5), gpumap.GridSpec((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), 0.05), "numpy", MapperParams(rule="visible")))  # one clear view carves
     seen = []
     for roll in (0.0, math.pi / 2, math.pi / 4):
         T = _look_at_target(roll)
         m.integrate(_echo_image(T), T)
-        centres, vals, confirmed = occupied_cloud(m.values(), m.grid, m.threshold, m.confidence())
+        centres, vals, confirmed = occupied_cloud(m.values(), m.grid, m.threshold, m.layer("confidence").states())
         assert confirmed.dtype == np.uint8
         seen.append(_assert_cloud_confidence(centres, vals, confirmed, m))
     assert seen[0][0] == 0 and seen[0][1] >= 5  # one view: the stretch, nothing confirmed
@@ -322,7 +323,7 @@ def test_cloud_confirmed_field_is_the_mappers_confidence_layer():
     # without the layer: the same points, no field; a layer that disagrees with the values is refused
     c2, v2, none = occupied_cloud(m.values(), m.grid, m.threshold)
     assert none is None and np.array_equal(c2, centres) and np.array_equal(v2, vals)
-    bad = m.confidence()
+    bad = m.layer("confidence").states()
     bad[bad >= 2] = 1
     with pytest.raises(ValueError, match="occupied voxel"):
         occupied_cloud(m.values(), m.grid, m.threshold, bad)
@@ -524,7 +525,7 @@ def _wire_pose(T):
 
 def _offline(play, grid, frames, threshold=0.4, wire=True, confidence=False):
     """``MinMaxMapper`` on ``frames``: with the poses as the wire carries them, or as recorded."""
-    m = gpumap.MinMaxMapper(play.spec, grid, backend="numpy", threshold=threshold, confidence=confidence)
+    m = make_mapper(play.spec, grid, backend="numpy", threshold=threshold, confidence=confidence)
     for f in frames:
         m.integrate(f.image, _wire_pose(f.T_W_S) if wire else f.T_W_S)
     return m
@@ -532,7 +533,7 @@ def _offline(play, grid, frames, threshold=0.4, wire=True, confidence=False):
 
 def _offline_surface(mapper, frames, wire=True):
     """The surface layer of ``mapper`` (which integrated ``frames`` in order) from the same pings."""
-    from gpumap.surface import surface_from_mapper
+    from gpumap.layers.surface_live import surface_from_mapper
 
     return surface_from_mapper(mapper, frames=((f.image, _wire_pose(f.T_W_S) if wire else f.T_W_S)
                                                for f in frames))
@@ -597,7 +598,7 @@ def test_real_tank_over_dds_equals_the_offline_map(ros_session, tmp_path):
     assert _assert_cloud_is_layer(probe.surface[-1], off) > 1000
     assert node.poll() is None
     assert _stop(node) == 0  # Ctrl-C: clean exit, both layers saved on exit in one file
-    from gpumap.refined_map import load_refined
+    from gpumap.layers.refined_map import load_refined
 
     back = load_refined(saved)
     assert np.array_equal(back.map_values, ref.values(), equal_nan=True)
@@ -702,7 +703,7 @@ def test_surface_layer_on_the_wire_is_the_offline_layer(ros_session, tmp_path, s
     """The second cloud: after a simulated run at 20 Hz, the last surface cloud covers every ping
     (/diagnostics says so, with its age) and equals the offline layer of them, voxel for voxel;
     ~/save_map writes both layers in one file; ~/reset empties the layer too."""
-    from gpumap.refined_map import load_refined
+    from gpumap.layers.refined_map import load_refined
     from gpumap.ros.play import open_playable, write_params
 
     play = open_playable(sim_recording)
@@ -939,10 +940,10 @@ def test_live_mapper_plans_around_the_newest_ping_mapped():
     """next_best_views of the live map: refused before a ping and without the confidence layer;
     then nbv.next_best_views around the pose of the newest ping by stamp (pings mapped out of
     their arrival order are never newer than it)."""
-    from gpumap.nbv import next_best_views
+    from gpumap.layers.viewgain import next_best_views
 
     imgs, Ts = _small_pings(5)
-    m = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy", confidence=True)
+    m = with_confidence(gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, backend="numpy"))
     live = LiveMapper(m, queue_size=8, max_batch=2)
     with pytest.raises(ValueError, match="no ping has been mapped"):
         live.next_best_views(views=2, candidates=20)
@@ -986,7 +987,7 @@ def test_plan_views_service_publishes_the_best_views_as_a_pose_array():
     import rclpy
     from std_srvs.srv import Trigger
 
-    from gpumap.nbv import next_best_views
+    from gpumap.layers.viewgain import next_best_views
     from gpumap.ros.convert import transform_from_pose
     from gpumap.ros.node import make_node
 

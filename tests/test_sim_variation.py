@@ -22,6 +22,7 @@ from gpumap.sim.variation import (
 )
 
 import gpumap
+from gpumap.core.params import MapperParams
 from gpumap.lie import so3_log
 
 #: A small sonar: renders in a few milliseconds per ping.
@@ -288,7 +289,7 @@ def _miss_rates(preset: str, checkpoints=(40, 400)) -> dict[str, list[float]]:
     scene = _scene((FLOOR, BLOCK), n=max(checkpoints), voxel_m=0.05)
     truth = occupancy(scene)
     rules = ("visible", "evidence")
-    maps = {r: gpumap.MinMaxMapper(SPEC, scene.grid, rule=r, threshold=OCCUPIED_THRESHOLD) for r in rules}
+    maps = {r: gpumap.MinMaxMapper(SPEC, scene.grid, "auto", MapperParams(rule=r, threshold=OCCUPIED_THRESHOLD)) for r in rules}
     det = np.zeros(scene.grid.n_voxels, bool)
     out: dict[str, list[float]] = {r: [] for r in rules}
     with SonarSimulator(scene, seed=0, variation=var, **FAST) as sim:

@@ -13,11 +13,13 @@ import zipfile
 import numpy as np
 import pytest
 from conftest import pose, rot_y, rot_z
+from maps import make_mapper
 from test_mapper import GRID, SPEC
 from test_visibility import _random_pings
 
 import gpumap
 from gpumap import MapMemoryError, SparseMinMaxMapper, SparseSpec
+from gpumap.core.params import MapperParams
 from gpumap.reference import split_counts
 
 S = GRID.voxel_size_m
@@ -27,14 +29,14 @@ UNBOUNDED = SparseSpec(S, origin_m=GRID.min_corner_m)
 
 
 def _dense(backend, pings, rule="visible", spec=SPEC, grid=GRID, **kw):
-    m = gpumap.MinMaxMapper(spec, grid, backend=backend, rule=rule, threshold=0.1)
+    m = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(rule=rule, threshold=0.1))
     for img, T, *cov in pings:
         m.integrate(img, T, *cov, **kw)
     return m
 
 
 def _sparse(backend, pings, sparse=BOUNDED, rule="visible", spec=SPEC, **kw):
-    m = SparseMinMaxMapper(spec, sparse, backend=backend, rule=rule, threshold=0.1, initial_blocks=2, **kw)
+    m = make_mapper(spec, sparse, backend=backend, rule=rule, threshold=0.1, initial_blocks=2, **kw, cls=SparseMinMaxMapper)
     for img, T, *cov in pings:
         m.integrate(img, T, *cov)
     return m
@@ -284,9 +286,7 @@ def test_spec_too_large_is_refused_up_front():
     with pytest.raises(MapMemoryError, match="blocks"):
         SparseMinMaxMapper(SPEC, SparseSpec(0.001, ((0, 0, 0), (1000, 1000, 100))), backend="numpy")
     with pytest.raises(MapMemoryError, match="max_bytes"):
-        SparseMinMaxMapper(
-            SPEC, SparseSpec(0.01, ((0, 0, 0), (10, 10, 4))), backend="numpy", max_bytes=10_000
-        )
+        SparseMinMaxMapper(SPEC, SparseSpec(0.01, ((0, 0, 0), (10, 10, 4))), "numpy", MapperParams(max_bytes=10_000))
     for bad in (
         dict(voxel_size_m=0.0),
         dict(voxel_size_m=0.1, block=1),
@@ -297,7 +297,7 @@ def test_spec_too_large_is_refused_up_front():
         with pytest.raises(ValueError):
             SparseSpec(**bad)
     with pytest.raises(ValueError, match="max_bytes"):
-        SparseMinMaxMapper(SPEC, BOUNDED, backend="numpy", max_bytes=0)
+        SparseMinMaxMapper(SPEC, BOUNDED, "numpy", MapperParams(max_bytes=0))
 
 
 def test_cap_exceeded_raises_with_the_map_unchanged(backend):

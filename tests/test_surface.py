@@ -1,4 +1,4 @@
-"""The surface layer users get (issue 30): gpumap.refine from ``import gpumap``, refinement of the
+"""The surface layer users get (issue 30): gpumap.layers.refine from ``import gpumap``, refinement of the
 evidence rule's maps and of saved maps, the threshold a result was made with, field vs occupancy,
 a loud device choice, refined map files in ``gpumap view`` / ``export`` (``gpumap plan``:
 test_plan_cli.py)."""
@@ -15,8 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import DATA, needs_data
+from maps import make_mapper
 
 import gpumap
+from gpumap.core.params import MapperParams
 
 pytest.importorskip("warp")
 
@@ -32,7 +34,7 @@ def _pose(x: float, y: float, z: float, yaw: float, pitch_deg: float) -> np.ndar
 @pytest.fixture(scope="module")
 def scene():
     """A floor and a block seen from 8 poses, pings rendered by the ping model."""
-    from gpumap.render import PingRenderer
+    from gpumap.layers.render import PingRenderer
 
     spec = gpumap.SonarSpec.uniform(hfov_deg=90, n_beams=32, n_bins=60, range_min_m=0.1, range_max_m=1.6)
     grid = gpumap.GridSpec((-0.3, -0.8, -0.3), (1.5, 0.8, 0.6), 0.08)
@@ -49,7 +51,7 @@ def scene():
 
 def _mapper(scene, rule: str, **kw) -> gpumap.MinMaxMapper:
     spec, grid, poses, images = scene
-    m = gpumap.MinMaxMapper(spec, grid, backend="numpy", rule=rule, threshold=0.1, **kw)
+    m = make_mapper(spec, grid, backend="numpy", rule=rule, threshold=0.1, **kw)
     m.integrate_batch(images, poses)
     return m
 
@@ -57,7 +59,7 @@ def _mapper(scene, rule: str, **kw) -> gpumap.MinMaxMapper:
 @pytest.fixture(scope="module")
 def refined(scene):
     """(mapper, result) of the evidence rule's map refined for a few steps on the CPU."""
-    from gpumap.refine import RefineOptions, refine
+    from gpumap.layers.refine import RefineOptions, refine
 
     m = _mapper(scene, "evidence")
     _, _, poses, images = scene
@@ -66,17 +68,17 @@ def refined(scene):
 
 # ---------------------------------------------------------------------- 1. import gpumap
 def test_refine_is_part_of_import_gpumap() -> None:
-    """``gpumap.refine(...)``, ``gpumap.RefineOptions``, ``gpumap.RefineResult``,
+    """``gpumap.layers.refine(...)``, ``gpumap.RefineOptions``, ``gpumap.RefineResult``,
     ``gpumap.refine_saved``: from ``import gpumap`` alone, without Warp imported, and the same
-    after the module ``gpumap.refine`` was imported by name."""
-    code = ("import sys, gpumap; f = gpumap.refine; o = gpumap.RefineOptions(iterations=3); "
+    after the module ``gpumap.layers.refine`` was imported by name."""
+    code = ("import sys, gpumap; f = gpumap.layers.refine; o = gpumap.RefineOptions(iterations=3); "
             "print(callable(f), o.iterations, gpumap.RefineResult.__name__, callable(gpumap.refine_saved), "
             "'warp' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["True", "3", "RefineResult", "True", "False"], out
-    import gpumap.refine as mod
+    import gpumap.layers.refine as mod
 
-    assert callable(gpumap.refine) and gpumap.RefineOptions is mod.RefineOptions
+    assert callable(gpumap.layers.refine) and gpumap.RefineOptions is mod.RefineOptions
     assert gpumap.RefineResult is mod.RefineResult and gpumap.refine_saved is mod.refine_saved
     assert {"refine", "refine_saved", "RefineOptions", "RefineResult"} <= set(gpumap.__all__)
     from gpumap import RefineOptions, refine  # noqa: F401
@@ -85,12 +87,12 @@ def test_refine_is_part_of_import_gpumap() -> None:
 
 
 def test_gpumap_refine_calls_refine(scene, refined) -> None:
-    """``gpumap.refine(mapper, images, poses, ...)`` is :func:`gpumap.refine.refine`: the same result."""
-    from gpumap.refine import RefineOptions
+    """``gpumap.layers.refine(mapper, images, poses, ...)`` is :func:`gpumap.layers.refine.refine`: the same result."""
+    from gpumap.layers.refine import RefineOptions
 
     m, res = refined
     _, _, poses, images = scene
-    again = gpumap.refine(m, images, poses, options=RefineOptions(iterations=ITERATIONS), device="cpu")
+    again = gpumap.layers.refine(m, images, poses, options=RefineOptions(iterations=ITERATIONS), device="cpu")
     np.testing.assert_array_equal(again.occupancy, res.occupancy)
 
 
@@ -108,7 +110,7 @@ def _wilson_occupied(dark: int, hits: int, p: float, z: float) -> bool:
 def test_carved_voxels_of_the_evidence_rule_brute_force() -> None:
     """carved = observed, some clear view, and the rule calls it free: checked count by count
     against the Wilson bound, and against the map itself (a carved voxel reads free)."""
-    from gpumap.refine import carved_voxels
+    from gpumap.layers.refine import carved_voxels
 
     dark, hits = np.meshgrid(np.arange(12, dtype=np.uint32), np.arange(12, dtype=np.uint32), indexing="ij")
     dark, hits = dark[..., None], hits[..., None]
@@ -131,7 +133,7 @@ def test_carved_voxels_of_the_evidence_rule_brute_force() -> None:
 
 
 def test_refine_takes_the_evidence_rule(scene, refined) -> None:
-    from gpumap.refine import carved_voxels
+    from gpumap.layers.refine import carved_voxels
 
     m, res = refined
     ev = m.evidence()
@@ -152,7 +154,7 @@ def test_refine_takes_the_evidence_rule(scene, refined) -> None:
 
 
 def test_refine_still_takes_the_visible_rule_and_refuses_plain(scene) -> None:
-    from gpumap.refine import RefineOptions, refine
+    from gpumap.layers.refine import RefineOptions, refine
 
     _, _, poses, images = scene
     m = _mapper(scene, "visible")
@@ -165,7 +167,7 @@ def test_refine_still_takes_the_visible_rule_and_refuses_plain(scene) -> None:
 
 # ---------------------------------------------------------------------- 3. saved maps
 def test_refine_a_saved_map(scene, refined, tmp_path: Path) -> None:
-    from gpumap.refine import RefineOptions, refine, refine_saved
+    from gpumap.layers.refine import RefineOptions, refine, refine_saved
 
     m, res = refined
     _, _, poses, images = scene
@@ -199,8 +201,8 @@ def test_banded_uses_the_threshold_of_the_result(refined) -> None:
 def test_field_and_occupancy_are_named_apart(scene, refined) -> None:
     """``res.field`` is what the renderer takes, ``res.occupancy = 1 - exp(-kappa field)``; render_map
     takes ``field`` (``occupancy=`` is its deprecated former name, same meaning)."""
-    from gpumap.refine import field_from_occupancy, occupancy_from_field, render_map
-    from gpumap.render import PingModel, PingRenderer
+    from gpumap.layers.refine import field_from_occupancy, occupancy_from_field, render_map
+    from gpumap.layers.render import PingModel, PingRenderer
 
     m, res = refined
     spec, grid, poses, images = scene
@@ -223,7 +225,7 @@ def test_field_and_occupancy_are_named_apart(scene, refined) -> None:
 
 
 def test_refined_file_round_trip(refined, tmp_path: Path) -> None:
-    from gpumap.refine import is_refined_file, load_refined
+    from gpumap.layers.refine import is_refined_file, load_refined
 
     m, res = refined
     path = res.save(tmp_path / "refined.npz")
@@ -243,11 +245,11 @@ def test_refined_file_round_trip(refined, tmp_path: Path) -> None:
 def test_device_auto_says_what_it_took_and_why(refined, caplog) -> None:
     from gpumap.backends import _warp
     from gpumap.errors import BackendUnavailableError
-    from gpumap.refine import pick_device
+    from gpumap.layers.refine import pick_device
 
     wp = _warp()[0]
     n = wp.get_cuda_device_count() if wp.is_cuda_available() else 0
-    with caplog.at_level(logging.INFO, logger="gpumap.refine"):
+    with caplog.at_level(logging.INFO, logger="gpumap.layers.refine"):
         dev, why = pick_device("auto")
     assert dev == ("cuda:0" if n else "cpu")
     assert ("CUDA device" in why) and ("no CUDA" in why) == (n == 0)
@@ -261,7 +263,7 @@ def test_device_auto_says_what_it_took_and_why(refined, caplog) -> None:
 
 
 def test_map_frames_shows_progress_and_makes_the_same_map(scene, capsys) -> None:
-    from gpumap.refine import MAP_CHUNK, map_frames
+    from gpumap.layers.refine import MAP_CHUNK, map_frames
 
     spec, grid, poses, images = scene
     imgs = np.concatenate([images] * 3)  # more than one chunk
@@ -313,7 +315,7 @@ def test_export_writes_the_layers_of_a_refined_map(refined, tmp_path: Path, caps
 
 
 def test_view_reads_the_layers_of_a_refined_map(refined, tmp_path: Path) -> None:
-    from gpumap.refine import OCCUPIED_LEVEL
+    from gpumap.layers.refine import OCCUPIED_LEVEL
     from gpumap.viewer.session import map_layer
 
     m, res = refined
@@ -334,12 +336,12 @@ def test_view_reads_the_layers_of_a_refined_map(refined, tmp_path: Path) -> None
 @needs_data
 def test_cli_refines_a_saved_map_and_says_what_it_wrote(tmp_path: Path, capsys) -> None:
     from gpumap.commands import main
-    from gpumap.refine import load_refined, recording_frames
+    from gpumap.layers.refine import load_refined, recording_frames
     from gpumap.spec import auto_grid
 
     rec = DATA / "oasis_tank"
     spec, images, poses = recording_frames(rec, 12)
-    m = gpumap.MinMaxMapper(spec, auto_grid(spec, list(poses), 0.12), backend="numpy", threshold=0.3)
+    m = gpumap.MinMaxMapper(spec, auto_grid(spec, list(poses), 0.12), "numpy", MapperParams(threshold=0.3))
     m.integrate_batch(images, poses)
     mp = m.save(tmp_path / "map.npz")
     out = tmp_path / "out"

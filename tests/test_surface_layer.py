@@ -1,4 +1,4 @@
-"""The surface layer (gpumap.surface, issue 30): one voxel of the evidence map per bright cell.
+"""The surface layer (gpumap.layers.surface, issue 30): one voxel of the evidence map per bright cell.
 
 An analytic scene (a floor plane and a box on it) is ray-cast here, independently of the simulator
 and of the mapper: per beam and elevation ray, the first hit's range lights its bin. The layer's
@@ -13,13 +13,9 @@ import numpy as np
 import pytest
 
 import gpumap
-from gpumap.surface import (
-    SURFACE_LEVEL,
-    SurfaceLayer,
-    SurfaceOptions,
-    surface_from_evidence,
-    surface_from_mapper,
-)
+from gpumap.core.params import MapperParams
+from gpumap.layers.surface import SURFACE_LEVEL, SurfaceLayer, SurfaceOptions, surface_from_evidence
+from gpumap.layers.surface_live import surface_from_mapper
 
 SPEC = gpumap.SonarSpec.uniform(hfov_deg=60, vfov_deg=20, n_beams=64, n_bins=160, range_min_m=0.1,
                                 range_max_m=2.0)
@@ -81,15 +77,15 @@ def _centres(mask: np.ndarray) -> np.ndarray:
 def scene():
     poses = _poses()
     images = np.stack([_render(T) for T in poses])
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="evidence", threshold=THR)
+    m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="evidence", threshold=THR))
     m.integrate_batch(images, poses)
     return {"images": images, "poses": poses, "mapper": m}
 
 
 def _view_of(T: np.ndarray, centres: np.ndarray, image: np.ndarray, opts: SurfaceOptions | None = None):
-    from gpumap.first_return import measured_first_returns
     from gpumap.geometry import beam_tan_edges
-    from gpumap.surface import _lit_cells, _view
+    from gpumap.layers.first_return import measured_first_returns
+    from gpumap.layers.surface import _lit_cells, _view
 
     s = GRID.voxel_size_m
     lit = _lit_cells(image, SPEC, THR, 0.5 * s)
@@ -138,7 +134,7 @@ def test_surface_never_outside_the_evidence_map(scene):
 def test_every_bright_cell_is_explained_by_exactly_one_voxel(scene):
     """Per ping: each bright cell that some candidate spans elects one of them (so the winners of a
     ping are at most its bright cells), and every such cell is spanned by a winner."""
-    from gpumap.surface import _explain
+    from gpumap.layers.surface import _explain
 
     m = scene["mapper"]
     layer = surface_from_mapper(m, scene["images"], scene["poses"], SurfaceOptions(band_voxels=0))
@@ -194,7 +190,7 @@ def test_cells_span_the_voxel_width_exactly():
 def test_a_winner_shadows_the_voxels_behind_it():
     """The occlusion test: a voxel more than ``occlusion_m`` behind a surface voxel on the same ray is
     occluded; one just behind it, one beside it in elevation and the surface voxel itself are not."""
-    from gpumap.surface import _occluded
+    from gpumap.layers.surface import _occluded
 
     s = GRID.voxel_size_m
     pts = np.array([[1.0, 0.0, 0.0], [1.5, 0.0, 0.0], [1.5, 0.0, 0.2], [1.05, 0.0, 0.0], [0.8, 0.0, 0.0]])
@@ -209,7 +205,7 @@ def test_occlusion_passes_keep_the_shadow_out():
     """With a second pass, no surface voxel lies in the acoustic shadow of a first-pass winner in
     every ping: a voxel whose only bright cells come from views in which a nearer surface voxel
     covers its direction does not win them."""
-    from gpumap.surface import _explain
+    from gpumap.layers.surface import _explain
 
     s = GRID.voxel_size_m
     # A in front, B right behind it on the same ray (0.3 m), both spanning the same bright cell range:
@@ -231,7 +227,7 @@ def test_a_voxel_in_front_of_first_returns_is_not_surface(scene):
     """A lone candidate that lies in front of the first return in most of the pings whose fan holds
     it (clear water there) is not surface, though it spans bright cells of some ping; without the
     first-return test (max_front_share=1) it is (nothing else explains those cells)."""
-    from gpumap.first_return import map_first_returns, measured_first_returns
+    from gpumap.layers.first_return import map_first_returns, measured_first_returns
 
     m = scene["mapper"]
     ev = m.evidence()
@@ -300,8 +296,8 @@ def test_two_layer_file_reads_back_in_view_and_export(scene, tmp_path):
     """Saved beside map.npz as surface.npz, both layers read back: load_refined, the viewer's
     map_layer and gpumap export --layer, from surface.npz or from the map.npz beside it."""
     from gpumap.commands.export import main as export_main
-    from gpumap.refine import load_refined
-    from gpumap.refined_map import SURFACE_FILE, layers_file
+    from gpumap.layers.refine import load_refined
+    from gpumap.layers.refined_map import SURFACE_FILE, layers_file
     from gpumap.viewer.session import map_layer
 
     m = scene["mapper"]
@@ -334,10 +330,10 @@ def test_demo_and_replay_take_no_surface():
 def test_live_surface_warm_start_stays_inside_the_map(scene):
     """With warm_start the first update is the offline layer; later ones start from the last weights
     and keep the layer inside the map's occupied voxels of that moment."""
-    from gpumap.surface import LiveSurface
+    from gpumap.layers.surface_live import LiveSurface
 
     images, poses = scene["images"], scene["poses"]
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="evidence", threshold=THR)
+    m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="evidence", threshold=THR))
     live = LiveSurface(m, warm_start=True)
     m.integrate_batch(images[:6], poses[:6])
     live.add(images[:6], poses[:6])
@@ -353,7 +349,7 @@ def test_live_surface_warm_start_stays_inside_the_map(scene):
     assert not (second.surface & ~(v >= THR)).any()
     assert second.surface.sum() > 0
     with pytest.raises(ValueError, match="rule"):
-        LiveSurface(gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain"))
+        LiveSurface(gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="plain")))
 
 
 @pytest.mark.parametrize("opts", [SurfaceOptions(), SurfaceOptions(band_voxels=0, iterations=3,
@@ -364,10 +360,11 @@ def test_live_surface_equals_the_offline_layer_after_every_batch(scene, opts):
     (candidates come, go and come back as the map changes) the live layer is the offline one of the
     same pings on the same map, every count and the weights bit for bit."""
     from gpumap.geometry import SHARE_Z
-    from gpumap.surface import LiveSurface, _layer, _prepare, map_candidates
+    from gpumap.layers.surface import _layer, _prepare
+    from gpumap.layers.surface_live import LiveSurface, map_candidates
 
     images, poses = scene["images"], scene["poses"]
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="evidence", threshold=THR)
+    m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="evidence", threshold=THR))
     live = LiveSurface(m, opts)
     went = came = 0
     last = None
@@ -396,8 +393,8 @@ def test_live_surface_equals_the_offline_layer_after_every_batch(scene, opts):
 
 
 def test_map_candidates_are_the_evidence_rules_decision(scene):
+    from gpumap.layers.surface_live import map_candidates
     from gpumap.reference import evidence_occupied
-    from gpumap.surface import map_candidates
 
     m = scene["mapper"]
     ev = m.evidence()
@@ -411,7 +408,7 @@ def test_empty_beams_clear_the_water_only_in_live_pings():
     dropped ping says nothing about the water) but in clear water in a ping that returns on most
     beams."""
     from gpumap.geometry import beam_tan_edges
-    from gpumap.surface import _prepare, _view
+    from gpumap.layers.surface import _prepare, _view
 
     s = GRID.voxel_size_m
     opts = SurfaceOptions()
@@ -452,8 +449,8 @@ def test_replay_builds_the_surface_layer_in_its_one_pass(tmp_path, monkeypatch):
 
     import gpumap.commands.replay
     import gpumap.io
-    from gpumap.refined_map import load_refined
-    from gpumap.replay import select_strided
+    from gpumap.layers.refined_map import load_refined
+    from gpumap.pipeline.replay import select_strided
 
     if DATA is None:
         pytest.skip("shared/data not found")
@@ -468,7 +465,7 @@ def test_replay_builds_the_surface_layer_in_its_one_pass(tmp_path, monkeypatch):
     out = tmp_path / "out"
     args = [str(DATA / "oasis_tank"), "--stride", "10", "--max-frames", "6", "--voxel-size", "0.1",
             "--backend", "numpy", "--no-progress", "--no-pictures", "--out", str(out)]
-    monkeypatch.setattr(gpumap.replay, "REPLAY_BATCH", 4)  # two batches: the hook sees 4 + 2 pings
+    monkeypatch.setattr(gpumap.pipeline.replay, "REPLAY_BATCH", 4)  # two batches: the hook sees 4 + 2 pings
     assert gpumap.commands.replay.main(args) == 0
     assert len(opened) == 1
     m = gpumap.MinMaxMapper.load(out / "map.npz", backend="numpy")
@@ -482,10 +479,10 @@ def test_replay_builds_the_surface_layer_in_its_one_pass(tmp_path, monkeypatch):
 def test_live_surface_with_a_window_is_the_offline_layer_of_the_newest_pings(scene):
     """max_pings: each update drops the oldest pings (their sums out, their pairs cut off) and is the
     offline layer of the newest max_pings pings on the map of every ping, voxel for voxel."""
-    from gpumap.surface import LiveSurface
+    from gpumap.layers.surface_live import LiveSurface
 
     images, poses = scene["images"], scene["poses"]
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="evidence", threshold=THR)
+    m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="evidence", threshold=THR))
     live = LiveSurface(m, max_pings=4)
     held = []
     for a, b in ((0, 3), (3, 5), (5, 6), (6, 11), (11, 12)):

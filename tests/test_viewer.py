@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 from conftest import DATA, needs_data
 
+from gpumap.layers.confidence import with_confidence
 from gpumap.spec import GridSpec, SonarSpec
 from gpumap.viewer.recording import MapDiff, Recorder, read_recording
 
@@ -125,7 +126,7 @@ def test_view_flag_without_viser_is_one_line(monkeypatch, capsys):
 @needs_data
 def test_replay_record_holds_every_ping(tmp_path):
     from gpumap.commands.replay import main
-    from gpumap.mapper import MinMaxMapper
+    from gpumap.core.mapper import MinMaxMapper
 
     rec_path = tmp_path / "tank.gpumap-rec"
     assert main([str(DATA / "oasis_tank"), "--voxel-size", "0.08", "--max-frames", "12", "--no-progress",
@@ -390,7 +391,7 @@ def test_live_view_draws_unconfirmed_voxels_pale_or_hides_them():
     import gpumap
     from gpumap.viewer.live import MapViewer, colormap_u8
 
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", confidence=True)
+    m = with_confidence(gpumap.MinMaxMapper(SPEC, GRID, backend="numpy"))
     v = MapViewer(SPEC, GRID, m.threshold, port=_free_port(), show_pings=False)
     turbo = colormap_u8("turbo")
     nz = GRID.shape[2]
@@ -399,7 +400,7 @@ def test_live_view_draws_unconfirmed_voxels_pale_or_hides_them():
         return turbo[min(255, max(0, int((k + 0.5) / nz * 255)))]
 
     def check(mode: str) -> tuple[int, int]:
-        conf = m.confidence()
+        conf = m.layer("confidence").states()
         got = _drawn(v, GRID)
         shown = conf == 3 if mode == "hidden" else conf >= 2
         want = {tuple(int(x) for x in ijk) for ijk in np.argwhere(shown)}
@@ -426,7 +427,7 @@ def test_live_view_draws_unconfirmed_voxels_pale_or_hides_them():
     # a layer that changes while the values do not: the blocks are sent again all the same
     v = MapViewer(SPEC, GRID, m.threshold, port=_free_port(), show_pings=False)
     try:
-        values, conf = m.values(), m.confidence()
+        values, conf = m.values(), m.layer("confidence").states()
         v.set_values(values)  # no layer yet: every occupied voxel in full colour
         assert all(np.array_equal(c, height_rgb(ijk[2])) for ijk, c in _drawn(v, GRID).items())
         v.set_values(values, conf)

@@ -14,13 +14,14 @@ from conftest import pose, rot_y, rot_z
 from test_mapper import GRID, SPEC, T_A, T_B, centres_S, sphere_footprint
 
 import gpumap
+from gpumap.core.params import MapperParams
 
 RNG = np.random.default_rng(11)
 THR = 0.1
 
 
 def _mapper(backend, rule="visible", spec=SPEC, grid=GRID):
-    return gpumap.MinMaxMapper(spec, grid, backend=backend, rule=rule, threshold=THR)
+    return gpumap.MinMaxMapper(spec, grid, backend, MapperParams(rule=rule, threshold=THR))
 
 
 def _run(backend, pings, rule="visible"):
@@ -91,7 +92,7 @@ def _fold_views(pings):
     hits = dict.fromkeys(branches, 0)
 
     def plain_value(img, T):
-        m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain", threshold=THR)
+        m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="plain", threshold=THR))
         m.integrate(img, T)
         return m.raw_values().ravel()
 
@@ -158,7 +159,7 @@ def test_count_saturates_at_255(backend):
     spec = gpumap.SonarSpec.uniform(hfov_deg=20, vfov_deg=10, n_beams=8, n_bins=20, range_min_m=0.1,
                                     range_max_m=1.0)
     grid = gpumap.GridSpec((0.3, -0.1, -0.05), (0.7, 0.1, 0.05), 0.05)
-    m = gpumap.MinMaxMapper(spec, grid, backend=backend, threshold=THR, rule="visible")
+    m = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(threshold=THR, rule="visible"))
     m.integrate(np.full(spec.image_shape, 0.5, np.float32), np.eye(4))
     dark = np.zeros(spec.image_shape, np.float32)
     for _ in range(130):
@@ -265,8 +266,8 @@ def test_back_of_a_box_seen_from_behind_survives_views_from_the_front(backend, b
     c = g.all_centers().reshape(-1, 3)
     back_face = (np.abs(c[:, 0] - 0.15) < g.voxel_size_m / 2) & np.all(np.abs(c[:, 1:]) < 0.1, axis=1)
     order = [pings[3], *pings[:3]]  # seen from behind first, then carved from the front?
-    m = gpumap.MinMaxMapper(scene.sonar_spec, g, backend=backend, threshold=THR)
-    p = gpumap.MinMaxMapper(scene.sonar_spec, g, backend=backend, rule="plain", threshold=THR)
+    m = gpumap.MinMaxMapper(scene.sonar_spec, g, backend, MapperParams(threshold=THR))
+    p = gpumap.MinMaxMapper(scene.sonar_spec, g, backend, MapperParams(rule="plain", threshold=THR))
     for img, T in order:
         m.integrate(img, T)
         p.integrate(img, T)
@@ -279,7 +280,7 @@ def test_back_of_a_box_seen_from_behind_survives_views_from_the_front(backend, b
 def test_free_water_in_front_of_a_surface_is_carved_within_two_views(backend, box_pings):
     scene, pings = box_pings
     g = scene.grid
-    m = gpumap.MinMaxMapper(scene.sonar_spec, g, backend=backend, threshold=THR)
+    m = gpumap.MinMaxMapper(scene.sonar_spec, g, backend, MapperParams(threshold=THR))
     c = g.all_centers().reshape(-1, 3)
     # water between the first two front poses and the box face at x = -0.15 m, clear of it
     water = (c[:, 0] > -0.8) & (c[:, 0] < -0.3) & np.all(np.abs(c[:, 1:]) < 0.1, axis=1)
@@ -293,18 +294,18 @@ def test_free_water_in_front_of_a_surface_is_carved_within_two_views(backend, bo
 
 def test_bad_rule_and_threshold_are_refused():
     with pytest.raises(ValueError, match="rule"):
-        gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="max")
+        gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="max"))
     with pytest.raises(ValueError, match="method='gather'"):
-        gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="visible", method="template")
+        gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="visible", method="template"))
     for bad in (0.0, 1.5, float("nan")):
         with pytest.raises(ValueError, match="threshold"):
-            gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=bad)
+            gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(threshold=bad))
     for bad in (0, 256, 1.5, True):
         with pytest.raises(ValueError, match="carve_views"):
-            gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", carve_views=bad)
-    assert gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", method="template").rule == "plain"
+            gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(carve_views=bad))
+    assert gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(method="template")).rule == "plain"
     with pytest.raises(ValueError, match="evidence"):
-        gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", rule="plain").evidence()
+        gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="plain")).evidence()
 
 
 def test_save_load_keeps_the_evidence(backend, tmp_path):

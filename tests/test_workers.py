@@ -1,6 +1,6 @@
 """Workers (Dask): a recording mapped in N workers and merged is the one-process map, bit for bit.
 
-Reference: :func:`gpumap.replay.run_replay` in this process on the same frames and grid (itself
+Reference: :func:`gpumap.pipeline.replay.run_replay` in this process on the same frames and grid (itself
 tested against the NumPy oracle); the cluster is a threads-only LocalCluster (fast to start).
 """
 
@@ -20,8 +20,8 @@ from distributed import Client, LocalCluster  # noqa: E402
 
 import gpumap  # noqa: E402
 from gpumap.commands.replay import main  # noqa: E402
-from gpumap.replay import run_replay  # noqa: E402
-from gpumap.workers import run_replay_workers  # noqa: E402
+from gpumap.pipeline.replay import run_replay  # noqa: E402
+from gpumap.pipeline.workers import run_replay_workers  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +108,7 @@ def test_simulated_byte_frames_travel_as_uint8_and_map_the_same(cluster):
 
     from gpumap.backends import U8_SCALE
     from gpumap.io import Recording, SonarFrame
-    from gpumap.workers import _compact
+    from gpumap.pipeline.workers import _compact
 
     _, client = cluster
     frames = []
@@ -132,8 +132,8 @@ def test_simulated_byte_frames_travel_as_uint8_and_map_the_same(cluster):
 
 
 def test_state_packing_is_exact_or_not_used():
-    from gpumap.merge import MapState
-    from gpumap.workers import _pack, _unpack
+    from gpumap.core.merge import MapState
+    from gpumap.pipeline.workers import _pack, _unpack
 
     rng = np.random.default_rng(0)
     b = rng.integers(0, 256, (40, 512)).astype(np.uint8)
@@ -159,7 +159,7 @@ def test_space_split_cuts_the_ranking_into_runs_of_equal_work():
     """Frames ranked along the grid's long axis and cut where the work (voxels of each frame's
     box inside the grid) is even: frames looking mostly outside the grid weigh little, so their
     worker takes more of them; every worker's frames are one run of the ranking."""
-    from gpumap.workers import _space_owners
+    from gpumap.pipeline.workers import _space_owners
 
     spec = gpumap.SonarSpec.uniform(hfov_deg=120, vfov_deg=20, n_beams=64, n_bins=50,
                                     range_min_m=0.1, range_max_m=2.0)
@@ -184,9 +184,9 @@ def test_space_split_cuts_the_ranking_into_runs_of_equal_work():
 
 @needs_data
 def test_asking_more_workers_than_the_cluster_has_says_how_many(cluster, monkeypatch):
-    import gpumap.workers
+    import gpumap.pipeline.workers
 
-    monkeypatch.setattr(gpumap.workers, "WAIT_WORKERS_S", 0.2)
+    monkeypatch.setattr(gpumap.pipeline.workers, "WAIT_WORKERS_S", 0.2)
     _, client = cluster
     with pytest.raises(ValueError, match="Expected 5 Dask workers, but the cluster has 3"):
         run_replay_workers(tank(6), workers=5, client=client, voxel_size_m=0.06, backend="numpy",
@@ -197,7 +197,7 @@ def test_one_gpu_per_worker_by_rank_on_its_host(monkeypatch):
     """--workers over the GPUs of a machine: a worker's rank among the workers of its host picks its
     GPU (modulo the host's GPUs), set in CUDA_VISIBLE_DEVICES before CUDA starts; a host without GPUs
     leaves the variable alone."""
-    from gpumap import workers
+    from gpumap.pipeline import workers
 
     addrs = ["tcp://10.0.0.2:4001", "tcp://10.0.0.1:4000", "tcp://10.0.0.2:4002", "tcp://10.0.0.1:4003",
              "inproc://10.0.0.9/1/2"]
@@ -228,7 +228,7 @@ def test_frames_carrying_their_bytes_are_sent_as_bytes(cluster):
     the client send those (a quarter of the data, no pass to find them): the same map."""
     from gpumap.backends import U8_SCALE
     from gpumap.io import Recording, SonarFrame
-    from gpumap.workers import FRAME_BYTES
+    from gpumap.pipeline.workers import FRAME_BYTES
 
     _, client = cluster
     src = list(tank(6))

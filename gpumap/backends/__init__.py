@@ -123,7 +123,7 @@ def available_backends(among=None) -> list[str]:
 class _Package(types.ModuleType):
     """This package, as a module whose knobs (:data:`~gpumap.backends.base.TUNABLES`) are
     :mod:`~gpumap.backends.base`'s, never a copy: ``gpumap.backends.CPU_THREADS = 1`` (as
-    :mod:`gpumap.workers` and ``bench/ab.py`` set it; tests patch the others) sets
+    :mod:`gpumap.pipeline.workers` and ``bench/ab.py`` set it; tests patch the others) sets
     ``gpumap.backends.base.CPU_THREADS``, where the backends read it when they need it."""
 
 

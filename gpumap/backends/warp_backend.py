@@ -179,7 +179,7 @@ class WarpBackend(Backend):
         wp = self.wp
         n_old = self.cap * self.BV
         # explicit devices, not ScopedDevice (Warp's default device is one for every thread, and
-        # mappers on other GPUs may grow at the same time: gpumap.gpu_threads)
+        # mappers on other GPUs may grow at the same time: gpumap.pipeline.gpu_threads)
         dev = self.dev
         names = [("grid", wp.full, np.inf, float), ("seen", wp.zeros, None, wp.uint8)]
         if self.visible:

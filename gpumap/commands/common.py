@@ -135,25 +135,6 @@ nonnegative_int = _bounded("nonnegative_int", _whole, lambda v: v >= 0, "a whole
                            "A whole number >= 0 (``--seed``).")
 
 
-miss_cost = _bounded("miss_cost", _number, lambda v: 1e-6 <= v <= 1e12, "a number in [1e-6, 1e12]",
-                     "The calibrated decision's miss cost (``--miss-cost``).")
-
-
-def add_decision_args(p: argparse.ArgumentParser) -> None:
-    """``--decision`` and ``--miss-cost``: how the evidence rule's view counts decide (read-time)."""
-    from gpumap.geometry import DECISION, DECISIONS, MISS_COST
-
-    p.add_argument("--decision", default=DECISION, choices=list(DECISIONS),
-                   help="evidence rule: how the view counts decide: 'share' (default: free once the clear "
-                        "views show the voxel bright in fewer than a fifth of them) or 'calibrated' (a "
-                        "surface/water view model fitted to this map's own counts; occupied when the "
-                        "posterior of a surface is at least 1 / (1 + --miss-cost))")
-    p.add_argument("--miss-cost", type=miss_cost, default=MISS_COST, metavar="C",
-                   help=f"calibrated decision: phantom voxels one avoided miss is worth (default "
-                        f"{MISS_COST:g}; "
-                        "larger is safer and fuller)")
-
-
 def threshold_or_auto(text: str) -> float | str:
     """``'auto'`` or a number in (0, 1] (``gpumap replay --threshold``)."""
     if text.strip().lower() == "auto":
@@ -287,34 +268,33 @@ def _seconds(text: str) -> float:
     return nonnegative_float(text)
 
 
+def _address(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        host, port = text, "8080"
+    return host or "127.0.0.1", _port(port)
+
+
 def add_view_args(p: argparse.ArgumentParser, record: bool = True, live: bool = True) -> None:
-    """Add ``--view``, ``--view-host``, ``--view-port``, ``--view-every``, ``--view-hold``, ``--record``
-    (``live=False``, for ``gpumap view``: only the address and ``--view-hold``; it always serves,
-    and a saved map or a recording has no pings arriving to refresh on)."""
+    """``--view [HOST:PORT]``, ``--view-hold`` and ``--record`` (``live=False``, for ``gpumap view``:
+    ``--view-host``, ``--view-port`` and ``--view-hold``; it always serves, and a saved map or a
+    recording has no pings arriving to refresh on). A live view refreshes the map's voxels at most
+    every 10 pings and twice a second (``view_every`` on the parsed flags: :func:`settle_view_args`)."""
     extra = "(optional extra: pip install 'gpumap[viewer]')"
     g = p.add_argument_group(f"live view {extra}" if live else f"view {extra}")
     if live:
         g.add_argument(
-            "--view",
-            action="store_true",
-            help="serve a live 3-D view of the map as it grows (open the printed address in a browser)",
+            "--view", nargs="?", const=("127.0.0.1", 8080), default=None, type=_address,
+            metavar="HOST:PORT",
+            help="serve a live 3-D view of the map as it grows (open the printed address in a browser); "
+                 "default 127.0.0.1:8080 (this machine only; 0.0.0.0:PORT lets another machine connect, "
+                 "port 0 any free one)",
         )
-    g.add_argument(
-        "--view-host",
-        default="127.0.0.1",
-        metavar="ADDR",
-        help="address the view binds to (default 127.0.0.1: this machine only; 0.0.0.0 lets "
-        "another machine, e.g. the ship's laptop, connect)",
-    )
-    g.add_argument("--view-port", type=_port, default=8080, metavar="PORT", help="default 8080")
-    if live:
-        g.add_argument(
-            "--view-every",
-            type=positive_int,
-            default=10,
-            metavar="N",
-            help="refresh the map's voxels at most every N pings (and at most twice a second)",
-        )
+    else:
+        g.add_argument("--view-host", default="127.0.0.1", metavar="ADDR",
+                       help="address the view binds to (default 127.0.0.1: this machine only; 0.0.0.0 "
+                            "lets another machine, e.g. the ship's laptop, connect)")
+        g.add_argument("--view-port", type=_port, default=8080, metavar="PORT", help="default 8080")
     g.add_argument(
         "--view-hold",
         type=_seconds,
@@ -334,10 +314,21 @@ def add_view_args(p: argparse.ArgumentParser, record: bool = True, live: bool = 
         )
 
 
+def settle_view_args(a: argparse.Namespace) -> None:
+    """After parsing ``--view [HOST:PORT]``: ``a.view`` a bool, ``a.view_host``, ``a.view_port`` and
+    ``a.view_every`` (10) set, as :class:`gpumap.viewer.session.Session` reads them."""
+    addr = getattr(a, "view", None)
+    a.view_host, a.view_port = addr if addr else ("127.0.0.1", 8080)
+    a.view = addr is not None
+    a.view_every = 10
+
+
 def check_view_args(p: argparse.ArgumentParser, a: argparse.Namespace) -> None:
     """Refuse ``--view`` up front (one line, exit 2) when viser is not installed."""
     from gpumap.viewer import MISSING_VIEWER
 
+    if hasattr(a, "view") and not isinstance(a.view, bool):  # --view [HOST:PORT] as parsed
+        settle_view_args(a)
     if getattr(a, "view", False) and importlib.util.find_spec("viser") is None:
         # gpumap view always serves: it has no --view flag to name
         has_flag = any("--view" in act.option_strings for act in p._actions)

@@ -20,7 +20,6 @@ from gpumap.commands.common import (
     check_view_args,
     error_line,
     nonnegative_float,
-    nonnegative_int,
     output_dir,
     positive_float,
     positive_int,
@@ -63,28 +62,18 @@ def _parser() -> ArgumentParser:
                         "in fewer than a fifth of them), 'visible' (carved by 2 clear dark views) or "
                         "'plain' (the paper's min); the other rules are always mapped too, for the "
                         "side-by-side 'rules' rows")
-    p.add_argument("--shadow-m", type=nonnegative_float, default=0.0, metavar="M",
-                   help="acoustic-shadow allowance (metres): returns also count up to M behind them; "
-                        "0 = the paper's min-max")
-    p.add_argument("--seed", type=nonnegative_int, default=0,
-                   help="random seed of the simulated sonar noise and odometry (default 0)")
     p.add_argument("--variation", default="none", choices=sorted(VARIATIONS),
                    help="view-to-view variation of the simulated sonar: none (default) or real_tank "
                         "(speckle, per-ping gain, pose jitter, surface texture and range loss fitted to the "
                         "real tank run)")
-    p.add_argument("--sparse", action="store_true",
-                   help="allocate the map's blocks only where pings look (sparse, bounded by the "
-                        "scene's grid; the same values as the dense grid) and report its memory")
-    p.add_argument("--plan", type=nonnegative_int, default=0, metavar="N",
-                   help="after the trajectory, add N planned next best views and, for comparison, N evenly "
-                        "spread rolled views and N random ones; writes their curves (plan block of "
-                        "metrics.json) and pictures of the confidence layer and the chosen poses")
     p.add_argument("--no-surface", dest="surface", action="store_false",
-                   help="do not compute the surface layer (gpumap.surface: one voxel of the evidence map per "
+                   help="do not compute the surface layer (gpumap.layers.surface: one voxel of the evidence map per "
                         "bright cell; by default written beside map.npz as surface.npz, its figures in "
                         "metrics.json's 'surface' block)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_view_args(p)
+    # what the benchmarks vary (bench/): fixed here, read by gpumap.sim.demo.run_demo
+    p.set_defaults(shadow_m=0.0, seed=0, sparse=False, plan=0)
     return p
 
 

@@ -1,12 +1,12 @@
 """``gpumap export MAP OUT.bt|OUT.ply``: a saved map as OctoMap ``.bt`` or as a ``.ply`` cloud.
 
 ``MAP`` is a map file (``map.npz``, :meth:`gpumap.MinMaxMapper.save`) or a refined map file
-(``refined.npz``, what ``gpumap refine`` writes, :meth:`gpumap.refine.RefineResult.save`; or
+(``refined.npz``, what ``gpumap refine`` writes, :meth:`gpumap.layers.refine.RefineResult.save`; or
 ``surface.npz``, the surface layer ``gpumap demo`` and ``gpumap replay`` write beside ``map.npz``,
-:mod:`gpumap.surface`; ``MAP`` = that ``map.npz`` with ``--layer`` reads it). A refined file holds
+:mod:`gpumap.layers.surface`; ``MAP`` = that ``map.npz`` with ``--layer`` reads it). A refined file holds
 two layers, exported apart:
 
-- ``surface``: the refined occupancy, occupied from :data:`gpumap.refine.OCCUPIED_LEVEL` (the thin
+- ``surface``: the refined occupancy, occupied from :data:`gpumap.layers.refine.OCCUPIED_LEVEL` (the thin
   surfaces the pings need; the value is the occupancy);
 - ``safe``: the map's occupied voxels (value ``>=`` the map's threshold): the obstacle layer to
   keep a vehicle out of (a superset of the surface).
@@ -68,9 +68,9 @@ def _write(out: Path, values: np.ndarray, grid, thr: float) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``gpumap export MAP OUT.bt|OUT.ply``; returns the exit status."""
-    from gpumap.merge import load_map
-    from gpumap.refine import OCCUPIED_LEVEL, is_refined_file, load_refined
-    from gpumap.refined_map import layers_file
+    from gpumap.core.merge import load_map
+    from gpumap.layers.refine import OCCUPIED_LEVEL, is_refined_file, load_refined
+    from gpumap.layers.refined_map import layers_file
 
     p = _parser()
     a = p.parse_args(argv)

@@ -1,7 +1,7 @@
 """``gpumap merge OUT.npz MAP.npz MAP.npz ...``: maps of the same spec built from different pings, as one.
 
 The maps (dense or sparse, all of one kind and options) may come from different runs or
-machines; the merged map equals one run over all their pings, bit for bit (:mod:`gpumap.merge`).
+machines; the merged map equals one run over all their pings, bit for bit (:mod:`gpumap.core.merge`).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ def _parser() -> ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``gpumap merge``; returns the exit status."""
-    from gpumap.merge import merge_maps
+    from gpumap.core.merge import merge_maps
 
     a = _parser().parse_args(argv)
     m = merge_maps(a.maps, backend="numpy")

@@ -4,7 +4,7 @@
     gpumap plan map.npz --recording /path/to/oasis_tank --stride 12
 
 Candidates are drawn around anchor poses (``--pose`` given, or the recording's poses spread
-evenly over it, ``--anchors`` of them) within a wrist's reach (:func:`gpumap.nbv.candidate_poses`:
+evenly over it, ``--anchors`` of them) within a wrist's reach (:func:`gpumap.layers.viewgain.candidate_poses`:
 roll about the boresight within ``--max-roll-deg``, pitch within ``--max-tilt-deg``, yaw within
 ``--max-yaw-deg``, each axis of the translation within ``--radius-m``) and scored by the map's view
 gain (:meth:`gpumap.MinMaxMapper.view_gain`: the unconfirmed occupied voxels a view could settle,
@@ -42,6 +42,7 @@ from gpumap.commands.common import (
     output_file,
     positive_int,
 )
+from gpumap.layers.confidence import ConfidenceLayer, with_confidence
 
 __all__ = ["main", "pose_from_xyz_ypr_deg", "ypr_deg"]
 
@@ -70,7 +71,7 @@ def _degrees(limit: float) -> Callable[[str], float]:
 
 def pose_from_xyz_ypr_deg(xyz_m, yaw_deg: float, pitch_deg: float, roll_deg: float) -> np.ndarray:
     """(4, 4) ``T_W_S`` at ``xyz_m`` with ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (pitch positive down,
-    as :func:`gpumap.nbv.candidate_poses` turns a candidate)."""
+    as :func:`gpumap.layers.viewgain.candidate_poses` turns a candidate)."""
     y, p, r = (math.radians(a) for a in (yaw_deg, pitch_deg, roll_deg))
     cy, sy, cp, sp, cr, sr = math.cos(y), math.sin(y), math.cos(p), math.sin(p), math.cos(r), math.sin(r)
     Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
@@ -126,24 +127,22 @@ def _parser() -> ArgumentParser:
 
 def _with_layer(mapper, a: argparse.Namespace, frames) -> tuple[object, bool]:
     """``mapper`` if it keeps the confidence layer, else one rebuilt from the recording's frames."""
-    try:
-        mapper.confidence()
+    if "confidence" in mapper.layer_state:  # a map file that kept the layer: it takes its arrays back
+        mapper.attach(ConfidenceLayer())
+    if any(x.name == "confidence" for x in mapper.layers):
         return mapper, False
-    except (ValueError, NotImplementedError):
-        pass
     if frames is None:
         raise ValueError("Expected a map with its confidence layer (a mapper made with confidence=True), "
                          f"but {a.map} has none: pass --recording (its frames rebuild the layer)")
     import gpumap
-    from gpumap.refine import map_frames
+    from gpumap.layers.refine import map_frames
 
     spec, images, poses = frames
     if spec != mapper.spec:
         raise ValueError(f"Expected a recording of the map's sonar geometry, but {a.recording} is of another")
-    m = gpumap.MinMaxMapper(mapper.spec, mapper.grid, backend=a.backend, method=mapper.method,
-                            shadow_m=mapper.shadow_m, rule=mapper.rule, threshold=mapper.threshold,
-                            carve_views=mapper.carve_views, bright_share=mapper.bright_share,
-                            share_z=mapper.share_z, confidence=True)
+    params = mapper.params.replace(carve_views=mapper.carve_views, bright_share=mapper.bright_share,
+                                   share_z=mapper.share_z)
+    m = with_confidence(gpumap.MinMaxMapper(mapper.spec, mapper.grid, a.backend, params))
     map_frames(m, images, poses, progress=not a.no_progress)
     if not np.array_equal(m.raw_values(), mapper.raw_values()):
         raise ValueError(f"Expected the frames of {a.recording} (--stride {a.stride}, --max-frames "
@@ -159,9 +158,9 @@ def main(argv: list[str] | None = None) -> int:
     if a.pose is None and a.recording is None:
         p.error("argument --pose: Expected --pose or --recording (the candidates are drawn around poses "
                 "the vehicle can reach), but got neither")
-    from gpumap.merge import load_map
-    from gpumap.nbv import next_best_views
-    from gpumap.refine import recording_frames
+    from gpumap.core.merge import load_map
+    from gpumap.layers.refine import recording_frames
+    from gpumap.layers.viewgain import next_best_views
 
     mapper = load_map(a.map, backend=a.backend)
     frames = (recording_frames(a.recording, a.stride, a.max_frames, progress=not a.no_progress)

@@ -1,5 +1,5 @@
 """``gpumap refine``: map a recording (or take its saved map), then refine the map so that its
-rendered pings match the measured ones (issue 19; the method is in :mod:`gpumap.refine`).
+rendered pings match the measured ones (issue 19; the method is in :mod:`gpumap.layers.refine`).
 
     gpumap refine /path/to/oasis_tank --voxel-size 0.03 --out refine_out
     gpumap refine /path/to/oasis_tank --map replay_out/map.npz --out refine_out
@@ -9,7 +9,7 @@ With ``--map`` the saved map's grid, rule and threshold are used (``gpumap repla
 checked against the recording's (fingerprints); without, the recording is mapped first (rule
 ``--rule``, evidence by default). The device is said before any work (``--device auto`` says
 which it took and why). Writes ``refined.npz`` (a refined map file,
-:meth:`gpumap.refine.RefineResult.save`: ``occupancy``, ``confidence``, ``field``,
+:meth:`gpumap.layers.refine.RefineResult.save`: ``occupancy``, ``confidence``, ``field``,
 ``reflectivity`` and the map's ``values``, NaN unknown, the ``carved`` and ``raised`` masks, the
 sonar, grid, rule and threshold; ``gpumap view`` and ``gpumap export`` read it), ``refined.ply``
 (the refined occupied voxels' centres, confidence as intensity) and ``refine.json`` (timings,
@@ -37,6 +37,7 @@ from gpumap.commands.common import (
     unit_interval,
     user_errors,
 )
+from gpumap.core.params import MapperParams
 
 OUTPUTS = ("refined.npz", "refined.ply", "refine.json")
 
@@ -51,8 +52,8 @@ def _device(text: str) -> str:
 
 
 def _parser() -> ArgumentParser:
-    from gpumap.refine import REFINE_RULES, RefineOptions
-    from gpumap.replay import DEFAULT_THRESHOLD
+    from gpumap.layers.refine import REFINE_RULES, RefineOptions
+    from gpumap.pipeline.replay import DEFAULT_THRESHOLD
 
     d = RefineOptions()
     ap = ArgumentParser(prog="gpumap refine",
@@ -114,8 +115,15 @@ def main(argv: list[str] | None = None) -> int:
                 p.error(f"argument {flag}: Expected no {flag} with --map (the saved map's grid, rule and "
                         f"threshold are used), but got {v}")
     import gpumap
-    from gpumap.refine import RefineOptions, map_frames, pick_device, recording_frames, refine, refine_saved
-    from gpumap.replay import DEFAULT_THRESHOLD
+    from gpumap.layers.refine import (
+        RefineOptions,
+        map_frames,
+        pick_device,
+        recording_frames,
+        refine,
+        refine_saved,
+    )
+    from gpumap.pipeline.replay import DEFAULT_THRESHOLD
     from gpumap.spec import auto_grid
 
     progress = not a.no_progress
@@ -131,8 +139,7 @@ def main(argv: list[str] | None = None) -> int:
             spec, images, poses = recording_frames(a.path, a.stride, a.max_frames, progress)
             grid = auto_grid(spec, list(poses), a.voxel_size or 0.05,
                              remedy="use a larger --voxel-size, or fewer frames (--stride, --max-frames)")
-            mapper = gpumap.MinMaxMapper(spec, grid, backend=a.backend, rule=a.rule or "evidence",
-                                         threshold=a.threshold or DEFAULT_THRESHOLD)
+            mapper = gpumap.MinMaxMapper(spec, grid, a.backend, MapperParams(rule=a.rule or "evidence", threshold=a.threshold or DEFAULT_THRESHOLD))
             map_frames(mapper, images, poses, progress)
             res = refine(mapper, images, poses, options=opts, device=device, progress=progress)
     except user_errors() as e:

@@ -4,14 +4,13 @@ Usage::
 
     gpumap replay PATH [--voxel-size 0.05] [--backend auto] [--method gather] [--out DIR]
                        [--grid auto|xmin,ymin,zmin,xmax,ymax,zmax] [--threshold 0.4|auto]
-                       [--static] [--stride N] [--max-frames N] [--vfov-deg D]
-                       [--flip-lr] [--flip-ud] [--no-pictures]
-                       [--rule evidence|visible|plain] [--compare-rules]
+                       [--static] [--frames A:B] [--stride N] [--max-frames N] [--vfov-deg D]
+                       [--rule evidence|visible|plain] [--surface] [--no-pictures]
 
 Writes into ``--out`` (default ``replay_out/``): ``map.npz`` (``MinMaxMapper.save``),
-``surface.npz`` (with the evidence rule: the surface layer of :mod:`gpumap.surface` beside the
-safe map, a two-layer file ``gpumap view/export --layer surface|safe`` read; ``--no-surface``
-skips it), ``occupied.ply`` (occupied voxel centres with their value as ``intensity``), ``views.png``
+``surface.npz`` (``--surface``, evidence rule: the surface layer of :mod:`gpumap.layers.surface` beside
+the safe map, a two-layer file ``gpumap view/export --layer surface|safe`` read),
+``occupied.ply`` (occupied voxel centres with their value as ``intensity``), ``views.png``
 (3-D render from three viewpoints), ``floor_slice.png`` (horizontal slice through the
 densest low layer: the floor) and ``summary.json``; prints images/s.
 The files are written into a temporary folder and replace an earlier run's as one set
@@ -19,9 +18,8 @@ The files are written into a temporary folder and replace an earlier run's as on
 Every flag is checked before the recording is read (bad ones exit with status 2 and one line).
 
 ``--rule`` picks how views combine (``MinMaxMapper``'s ``rule``); the mapper counts a view
-as bright from ``--threshold`` on. ``--compare-rules`` replays the same frames under every
-rule and adds ``rules.png`` (the two maps side by side, and where they differ) and a
-``rule_comparison`` section to ``summary.json`` (see :func:`compare_rules`).
+as bright from ``--threshold`` on. The rules side by side on one recording:
+:func:`gpumap.pipeline.replay.run_rule_comparison` (``python -m bench rules_real``).
 """
 
 from __future__ import annotations
@@ -40,14 +38,12 @@ from gpumap.commands.common import (
     BACKEND_HELP,
     METHOD_HELP,
     ArgumentParser,
-    add_decision_args,
     add_view_args,
     backend_name,
     check_view_args,
     error_line,
     frame_range,
     grid_box,
-    memory_size,
     nonnegative_float,
     nonnegative_int,
     output_dir,
@@ -59,12 +55,10 @@ from gpumap.commands.common import (
     vfov_deg,
 )
 from gpumap.io.ply import write_ply
-from gpumap.replay import (
+from gpumap.pipeline.replay import (
     DEFAULT_THRESHOLD,
     RULES,
-    compare_rules,
     otsu_threshold,
-    replay_rules,
     run_replay,
     select_frames,
 )
@@ -105,22 +99,12 @@ def _parser() -> ArgumentParser:
                          "views) or "
                          "'plain' (the paper's min over views: a ping carves its acoustic shadow). "
                          "--method template supports only 'plain' and defaults to it")
-    add_decision_args(ap)
-    ap.add_argument("--compare-rules", action="store_true",
-                    help="also replay the frames under the other rules and write rules.png (the "
-                         "chosen rule and plain "
-                         "maps side by side, and where they differ) and a 'rule_comparison' "
-                         "section in summary.json (needs --method gather)")
     ap.add_argument("--static", action="store_true",
                     help="map every ping at one fixed (identity) pose: for pose-less recordings")
     ap.add_argument("--frames", type=frame_range, default=None, metavar="START:STOP[:STEP]",
                     help="only the recording's frames START to STOP-1 (counted from 0, every STEP-th; "
                          "START or STOP may be left out), before --stride and --max-frames: split a "
                          "recording into maps of disjoint pings that gpumap merge can join")
-    ap.add_argument("--max-memory", type=memory_size, default=None, metavar="SIZE",
-                    help="the most memory the run may take, e.g. 8G or 512M (default: 90%% of what is "
-                         "available); a grid that needs more is refused before anything is allocated, "
-                         "with the figure (measured bytes a voxel per rule: gpumap/memory.py)")
     ap.add_argument("--skip-bad-frames", action="store_true",
                     help="fan folders: skip a picture that cannot be read (truncated, corrupt) instead "
                          "of stopping; each is counted in the printed line and in summary.json")
@@ -128,14 +112,12 @@ def _parser() -> ArgumentParser:
     ap.add_argument("--max-frames", type=positive_int, default=None,
                     help="stop after this many frames (after --stride); default all")
     ap.add_argument("--vfov-deg", type=vfov_deg, default=None, help="vertical aperture override")
-    ap.add_argument("--flip-lr", action="store_true", help="fan folders: mirror columns")
-    ap.add_argument("--flip-ud", action="store_true", help="fan folders: mirror rows")
     ap.add_argument("--no-pictures", action="store_true",
                     help="write the map and summary only, not views.png and floor_slice.png")
-    ap.add_argument("--no-surface", dest="surface", action="store_false",
-                    help="do not compute the surface layer (gpumap.surface; by default, with the evidence "
-                         "rule, written beside map.npz as surface.npz: gpumap view/export --layer "
-                         "surface|safe; its figures in summary.json's 'surface' block)")
+    ap.add_argument("--surface", action="store_true",
+                    help="also compute the surface layer (gpumap.layers.surface, evidence rule only; NumPy on "
+                         "the host: minutes at 1 cm), written beside map.npz as surface.npz (gpumap "
+                         "view/export --layer surface|safe; its figures in summary.json's 'surface' block)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     # the old spelling, still accepted (not shown): one spelling for the same idea across commands
     ap.add_argument("--quiet", dest="no_progress", action="store_true", help=argparse.SUPPRESS)
@@ -161,9 +143,6 @@ def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]
     if a.method == "template" and a.rule not in (None, "plain"):
         ap.error("argument --rule: Expected rule='plain' with --method template (the template "
                  f"method's duplicate points cannot count views once), but got --rule {a.rule}")
-    if a.compare_rules and a.method != "gather":
-        ap.error(f"argument --compare-rules: Expected --method gather (the other rules need it), "
-                 f"but got --method {a.method}")
     grid = None
     if a.grid is not None:
         try:
@@ -196,12 +175,12 @@ def main(argv: list[str] | None = None) -> int:
             s.abort()
         raise
     thr = stats["threshold"]
-    if stats.get("mode") == "threads":  # gpumap.gpu_threads: N devices of this process
+    if stats.get("mode") == "threads":  # gpumap.pipeline.gpu_threads: N devices of this process
         how = (f"{stats['frames']} images in-process on {stats['workers']} devices of {stats['backend']} "
                f"(one thread each, devices {stats['devices']}, {stats['split']} split) in "
                f"{stats['seconds_wall']:.2f} s wall, of which {stats['seconds_setup']:.2f} s making the "
                f"mappers and {stats['seconds_merge']:.2f} s merging the maps")
-    elif stats.get("workers"):  # gpumap.workers: say so, and the wall time with the cluster's start
+    elif stats.get("workers"):  # gpumap.pipeline.workers: say so, and the wall time with the cluster's start
         how = (f"{stats['frames']} images in {stats['workers']} Dask workers on {stats['backend']} "
                f"({stats['split']} split) in {stats['seconds_wall']:.2f} s wall, of which "
                f"{stats['seconds_cluster']:.2f} s starting the cluster and "
@@ -221,8 +200,6 @@ def main(argv: list[str] | None = None) -> int:
         sf = stats["surface"]
         print(f"gpumap replay: surface layer {sf['surface_voxels']} voxels of {sf['candidates']} occupied "
               f"({sf['seconds']:.1f} s; surface.npz, gpumap view/export --layer surface|safe)")
-    if a.compare_rules:
-        print(f"gpumap replay: rules: {stats['rule_comparison']['text']}")
     if stats["skipped_no_pose"] or stats["skipped_spec"]:
         print(f"gpumap replay: skipped {stats['skipped_no_pose']} frames without a pose and "
               f"{stats['skipped_spec']} whose sonar geometry differs from the first",
@@ -274,17 +251,15 @@ def _view_hook(a: argparse.Namespace, threshold: float):
 
 def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpec]:
     """Map the recording of parsed flags ``a``; write the output set; ``(summary, grid)``."""
-    if a.ekf:  # odometry + EKF on the pings, three maps (gpumap.ekf_replay)
+    if a.ekf:  # odometry + EKF on the pings, three maps (gpumap.pipeline.ekf_replay)
         return replay_with_ekf(a, grid)
     from gpumap.io import open_recording
 
     kwargs: dict = {}
     p = Path(a.path)
-    if a.flip_lr or a.flip_ud or (a.vfov_deg is not None and p.is_dir()
-                                  and not (p / "metadata.yaml").exists()):
-        from gpumap.io.fan import OASIS_SPEC, FanGeometry
+    if a.vfov_deg is not None and p.is_dir() and not (p / "metadata.yaml").exists():
+        from gpumap.io.fan import OASIS_SPEC
 
-        kwargs["geom"] = FanGeometry(flip_lr=a.flip_lr, flip_ud=a.flip_ud)
         if a.vfov_deg is not None:
             kwargs["spec"] = SonarSpec(OASIS_SPEC.range_min_m, OASIS_SPEC.range_max_m,
                                        OASIS_SPEC.n_bins, OASIS_SPEC.bearings_rad,
@@ -308,37 +283,29 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
     rule = a.rule or ("evidence" if a.method == "gather" else "plain")
     replay_kw = dict(voxel_size_m=a.voxel_size, backend=a.backend, method=a.method,
                      static=a.static, stride=stride, max_frames=a.max_frames,
-                     progress=not a.no_progress, threshold=mapper_thr, max_memory=a.max_memory,
+                     progress=not a.no_progress, threshold=mapper_thr,
                      memory_remedy=REPLAY_REMEDY)
     positions: list = []
     replay_kw["on_ping"] = _view_hook(a, mapper_thr)
-    surface = _SurfaceHook() if getattr(a, "surface", True) and not a.workers and rule == "evidence" else None
+    surface = _SurfaceHook() if a.surface and not a.workers and rule == "evidence" else None
     replay_kw["on_batch"] = surface
-    if a.compare_rules:
-        # the chosen rule first: it sizes the grid, and its run's timings are the ones reported
-        order = (rule, *[r for r in RULES if r != rule])
-        runs = replay_rules(rec, rules=order, grid=grid, positions=positions, **replay_kw)
-        mapper, stats = runs[rule]
-    elif a.workers:  # the same map, mapped by N mappers and merged
+    if a.workers:  # the same map, mapped by N mappers and merged
         replay_kw.pop("on_ping")
         replay_kw.pop("on_batch")
-        replay_kw.pop("max_memory")  # each worker holds its own map (gpumap.workers)
-        replay_kw.pop("memory_remedy")
-        if _in_process(a):  # N GPUs of this machine: a thread and a mapper each (gpumap.gpu_threads)
-            from gpumap.gpu_threads import run_replay_threads
+        replay_kw.pop("memory_remedy")  # each worker holds its own map (gpumap.pipeline.workers)
+        if _in_process(a):  # N GPUs of this machine: a thread and a mapper each (gpumap.pipeline.gpu_threads)
+            from gpumap.pipeline.gpu_threads import run_replay_threads
 
             mapper, stats = run_replay_threads(rec, workers=a.workers, grid=grid, rule=a.rule,
                                                positions=positions, **replay_kw)
         else:
-            from gpumap.workers import run_replay_workers
+            from gpumap.pipeline.workers import run_replay_workers
 
             mapper, stats = run_replay_workers(rec, workers=a.workers, scheduler=a.scheduler, grid=grid,
-                                               rule=a.rule, positions=positions, gpus=a.worker_gpus,
+                                               rule=a.rule, positions=positions,
                                                **replay_kw)
     else:
         mapper, stats = run_replay(rec, grid=grid, rule=a.rule, positions=positions, **replay_kw)
-    if mapper.rule == "evidence":  # read-time: how the counts decide (the kernels' state is the same)
-        mapper.decision, mapper.miss_cost = a.decision, a.miss_cost
     for s in getattr(a, "view_sessions", ()):
         s.finish(mapper)
     if a.skip_bad_frames:
@@ -347,7 +314,7 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
     layer = None
     if surface is not None and surface.live is not None and stats["frames"]:
         layer, stats["surface"] = surface.finish()
-    elif getattr(a, "surface", True):
+    elif a.surface:
         stats["surface"] = {"skipped": "the surface layer is built on the evidence rule's map from one "
                                        "process (not --workers, --rule evidence)"}
     values = mapper.values()
@@ -365,22 +332,12 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
             stats.update(save_pictures(values, mapper.grid, thr, out,
                                        title=f"{Path(a.path).name} ({stats['rule']} rule)",
                                        positions=np.asarray(positions).reshape(-1, 3) if positions else None))
-        if a.compare_rules:
-            other = {r: m.values() for r, (m, _) in runs.items() if r != rule}
-            cmp_ = compare_rules({rule: values, **other}, mapper.grid, thr,
-                                 np.asarray(positions).reshape(-1, 3),
-                                 None if a.no_pictures else out / "rules.png", title=Path(a.path).name,
-                                 rule=None if rule == "plain" else rule)
-            cmp_["runs"] = {r: {k: st[k] for k in ("frames", "backend", "seconds_total",
-                                                     "images_per_s", "integrate_per_s")}
-                            for r, (_, st) in runs.items()}
-            stats["rule_comparison"] = cmp_
         (out / "summary.json").write_text(json.dumps(stats, indent=2))
     return stats, mapper.grid
 
 
 class _SurfaceHook:
-    """``on_batch`` for :func:`run_replay`: the surface layer (:class:`gpumap.surface.LiveSurface`) of the
+    """``on_batch`` for :func:`run_replay`: the surface layer (:class:`gpumap.layers.surface_live.LiveSurface`) of the
     first mapper it sees (the chosen rule's, with ``--compare-rules``), fed the pings of the mapping
     pass itself (one read of the recording); :meth:`finish` builds the layer of all of them."""
 
@@ -389,7 +346,7 @@ class _SurfaceHook:
         self.seconds = 0.0
 
     def __call__(self, images, poses, mapper) -> None:
-        from gpumap.surface import LiveSurface
+        from gpumap.layers.surface_live import LiveSurface
 
         t0 = time.perf_counter()
         if self.live is None:
@@ -418,30 +375,22 @@ def add_worker_args(ap) -> None:
                     help="map with N mappers (pings split among them by place, in batches of 32) and "
                          "merge their maps: the same map as one process, bit for bit. On a machine "
                          "with N GPUs and a GPU backend: in this process, one thread per GPU; else "
-                         "(or with --scheduler, --dask) N Dask workers (needs the workers extra: "
+                         "(or with --scheduler) N Dask workers (needs the workers extra: "
                          "pip install 'gpumap[workers]')")
     ap.add_argument("--scheduler", default=None,
                     help="address of a running Dask scheduler (e.g. tcp://10.0.0.5:8786) whose "
                          "workers map; default: start N local worker processes (needs --workers)")
-    ap.add_argument("--worker-gpus", default="auto", choices=["auto", "none"],
-                    help="auto (default): each worker maps on one GPU of its host, by its rank among "
-                         "the workers there (N workers on N GPUs use them all); none: as they come")
-    ap.add_argument("--dask", action="store_true",
-                    help="with --workers N on one machine: Dask worker processes even where it has N "
-                         "GPUs (default there, with a GPU backend: one process, a thread and a "
-                         "mapper per GPU, the maps merged in place; the printed line says which)")
 
 
-#: Backends whose ``--workers N`` run on one machine of N GPUs stays in this process (gpumap.gpu_threads).
+#: Backends whose ``--workers N`` run on one machine of N GPUs stays in this process (gpumap.pipeline.gpu_threads).
 IN_PROCESS_BACKENDS = ("auto", "warp-cuda", "opencl-gpu", "opencl")
 
 
 def _in_process(a) -> bool:
-    """Whether ``--workers N`` maps in this process, a thread per GPU: no ``--scheduler`` or
-    ``--dask``, a GPU backend (or auto) and at least N GPUs here (counted without starting CUDA)."""
-    if a.scheduler is not None or a.dask or a.backend not in IN_PROCESS_BACKENDS:
+    """Whether ``--workers N`` maps in this process, a thread per GPU: no ``--scheduler``, a GPU backend (or auto) and at least N GPUs here (counted without starting CUDA)."""
+    if a.scheduler is not None or a.backend not in IN_PROCESS_BACKENDS:
         return False
-    from gpumap.workers import host_gpus
+    from gpumap.pipeline.workers import host_gpus
 
     return len(host_gpus()) >= a.workers
 
@@ -450,12 +399,9 @@ def check_worker_args(ap, a) -> None:
     """Refuse flag combinations the worker run does not support (exit 2, before any work)."""
     if a.scheduler is not None and not a.workers:
         ap.error("argument --scheduler: Expected --workers N with it, but --workers is missing")
-    if a.dask and not a.workers:
-        ap.error("argument --dask: Expected --workers N with it, but --workers is missing")
     if a.workers:
         for flag, on in (("--view", getattr(a, "view", False)),
                          ("--record", getattr(a, "record", None) is not None),
-                         ("--compare-rules", a.compare_rules),
                          ("--ekf", getattr(a, "ekf", False))):
             if on:
                 ap.error(f"argument --workers: Expected no {flag} with it (the workers' maps are only "
@@ -477,10 +423,6 @@ def add_ekf_args(ap: argparse.ArgumentParser) -> None:
                          "0.005 0.005, the demo's --pose-noise 0.005)")
     ap.add_argument("--seed", type=nonnegative_int, default=None,
                     help="with --ekf: seed of the odometry drift (default 0)")
-    ap.add_argument("--ekf-unguarded", action="store_true",
-                    help="with --ekf: no innovation-consistency guard; every accepted return "
-                         "corrects the pose even when the pings' innovations do not fit the model "
-                         "(on the real tank this ends worse than odometry; for comparison only)")
     ap.add_argument("--ekf-registration", action="store_true",
                     help="with --ekf: register each ping against the pings it revisits "
                          "(gpumap.ekf.registration), each revisit verified by its image, with a pose "
@@ -493,7 +435,6 @@ def check_ekf_args(ap: argparse.ArgumentParser, a: argparse.Namespace) -> None:
     """--odometry-noise and --seed only with --ekf (exit 2, before any work); fill their defaults."""
     refuse_without(ap, "--ekf", a.ekf, {"--odometry-noise": a.odometry_noise is not None,
                                          "--seed": a.seed is not None,
-                                         "--ekf-unguarded": bool(getattr(a, "ekf_unguarded", False)),
                                          "--ekf-registration": bool(getattr(a, "ekf_registration", False))})
     a.odometry_noise = (0.005, 0.005) if a.odometry_noise is None else a.odometry_noise
     a.seed = 0 if a.seed is None else a.seed
@@ -517,17 +458,17 @@ def _registration_line(r: dict) -> str:
 
 def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
     """``gpumap replay --ekf``: run and write into ``a.out``; ``(stats, grid)`` for replay's summary."""
-    from gpumap.ekf_replay import (
+    from gpumap.io import open_recording
+    from gpumap.pipeline.ekf_replay import (
         measurements_picture,
         paths_picture,
         run_ekf_replay,
     )
-    from gpumap.io import open_recording
 
     if a.static:
         raise ValueError("Expected a recording with poses for --ekf (they are its reference), but got "
                          "--static")
-    other = [f for f, on in (("--compare-rules", a.compare_rules), ("--view", getattr(a, "view", False)),
+    other = [f for f, on in (("--view", getattr(a, "view", False)),
                              ("--record", getattr(a, "record", None) is not None)) if on]
     if other:
         raise ValueError(f"Expected --ekf alone (it makes three maps of its own), but got it with "
@@ -538,7 +479,6 @@ def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
     res = run_ekf_replay(rec, odometry_noise=tuple(a.odometry_noise), seed=a.seed, voxel_size_m=a.voxel_size,
                          grid=grid, backend=a.backend, threshold=thr, rule=a.rule, stride=a.stride,
                          max_frames=a.max_frames, progress=not a.no_progress,
-                         guard=not getattr(a, "ekf_unguarded", False),
                          registration=bool(getattr(a, "ekf_registration", False)))
     mapper = res["maps"]["ekf"]
     values = res["values"]["ekf"]

@@ -8,7 +8,8 @@ import time
 
 from gpumap.commands.common import ArgumentParser, existing_file
 from gpumap.ros import split_ros_args, start_ros_cli
-from gpumap.ros.node import PARAMETERS, make_node, ros_arguments
+from gpumap.ros.launch import ros_arguments
+from gpumap.ros.node import PARAMETERS, make_node
 
 __all__ = ["main"]
 

@@ -24,7 +24,7 @@ import numpy as np
 from gpumap.ekf.association import FeatureTracker, TrackerStep
 from gpumap.ekf.filter import SonarEKF
 from gpumap.ekf.frontend import PointDetector, PointMeasurements
-from gpumap.ekf.registration import ScanRegistrar
+from gpumap.ekf.registrar import ScanRegistrar
 from gpumap.errors import check_finite_scalar, check_pose
 from gpumap.lie import rpy_from_rotation, se3_exp, se3_inverse
 from gpumap.spec import SonarSpec

@@ -6,7 +6,7 @@ right perturbation (translation then rotation, as :mod:`gpumap.ekf.loop`):
 
 - odometry ``(i - 1, i)``: ``Z = U_i`` with covariance ``Q`` (:func:`gpumap.ekf.loop.motion_cov`);
 - loop closure ``(j, k)``: ping ``k`` was taken at ``T_j Exp(delta)``, a revisit that
-  :class:`~gpumap.ekf.registration.ScanRegistrar` found and verified (its :attr:`closures`):
+  :class:`~gpumap.ekf.registrar.ScanRegistrar` found and verified (its :attr:`closures`):
   ``Z = Exp(delta)``, covariance ``R`` (the in-plane registration's own, plus its prior on
   the unseen height, roll and pitch).
 
@@ -319,7 +319,7 @@ def run_pose_graph(U: np.ndarray, Q: np.ndarray, T0: np.ndarray, closures, *, so
     T0 : (4, 4) float
         The first ping's pose (fixed).
     closures : iterable of (k, j, delta, R, ...)
-        Loop closures (:attr:`gpumap.ekf.registration.ScanRegistrar.closures`): ping ``k`` at
+        Loop closures (:attr:`gpumap.ekf.registrar.ScanRegistrar.closures`): ping ``k`` at
         ``T_j Exp(delta)`` ((6,)) with covariance ``R`` ((6, 6)); ``j < k < n``. Further tuple
         items are ignored.
     solve_every : int

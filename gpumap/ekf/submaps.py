@@ -5,7 +5,7 @@ re-mapping every ping at every solve would cost the whole run each time. Pings `
 split into segments of ``segment`` consecutive pings, each with a map of its own on the common
 grid. :meth:`SegmentMaps.update` re-integrates only the segments whose poses moved by more
 than ``tol_m`` / ``tol_rad`` since they were last mapped (and maps new ones); :meth:`values` is
-the merge of every segment's map (:func:`gpumap.merge.merge_maps`), which is exactly, bit for
+the merge of every segment's map (:func:`gpumap.core.merge.merge_maps`), which is exactly, bit for
 bit, the map of one mapper that integrated every ping at the segments' poses (maps of disjoint
 pings merge exactly: every per-voxel update is a min or a saturating count).
 """
@@ -13,6 +13,8 @@ pings merge exactly: every per-voxel update is a min or a saturating count).
 from __future__ import annotations
 
 import numpy as np
+
+from gpumap.core.params import MapperParams
 
 __all__ = ["SegmentMaps"]
 
@@ -40,7 +42,7 @@ class SegmentMaps:
             raise ValueError(f"Expected segment >= 1 pings, but got {segment}")
         self.spec, self.grid = spec, grid
         self.segment = int(segment)
-        self.kw = {"backend": backend, "threshold": float(threshold), "rule": rule}
+        self.kw = {"backend": backend, "params": MapperParams(threshold=float(threshold), rule=rule)}
         self.tol_m = 0.25 * grid.voxel_size_m if tol_m is None else float(tol_m)
         self.tol_rad = float(tol_rad)
         self._maps: dict[int, object] = {}
@@ -81,8 +83,8 @@ class SegmentMaps:
         return done
 
     def mapper(self):
-        """A new mapper holding every segment's map, merged (:func:`gpumap.merge.merge_maps`)."""
-        from gpumap.merge import merge_maps
+        """A new mapper holding every segment's map, merged (:func:`gpumap.core.merge.merge_maps`)."""
+        from gpumap.core.merge import merge_maps
 
         if not self._maps:
             raise ValueError("Expected at least one segment mapped (call update first), but got none")

@@ -251,7 +251,7 @@ def occupied_cloud(values: np.ndarray, grid: GridSpec, threshold: float,
     values : (nx, ny, nz) float32
         Map values (NaN or +inf unknown), as ``MinMaxMapper.values()`` gives them.
     confidence : (nx, ny, nz) uint8, optional
-        ``MinMaxMapper.confidence()`` of the same map (0 unknown, 1 free, 2 occupied
+        ``MinMaxMapper.layer("confidence").states()`` of the same map (0 unknown, 1 free, 2 occupied
         unconfirmed, 3 occupied confirmed); its occupied set must be the one of ``values``.
 
     Returns
@@ -415,7 +415,7 @@ class MarkerBlocks:
                confirmed: np.ndarray | None = None) -> list[tuple[int, np.ndarray]]:
         """``[(block_id, centres (M, 3) float64)]`` for every changed block (all with ``full``).
 
-        ``confirmed``: ``MinMaxMapper.confidence() == 3``, any shape of ``values``' size, or None
+        ``confirmed``: ``MinMaxMapper.layer("confidence").states() == 3``, any shape of ``values``' size, or None
         (no layer); with it, :attr:`confirmed` holds each returned block's flags."""
         v = values.ravel()
         occ = np.isfinite(v) & (v >= self.threshold)

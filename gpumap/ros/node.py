@@ -24,7 +24,7 @@ Subscribes (relative names: remap them with ``-r``):
 Publishes (in ``world_frame``): ``~/occupied_cloud`` (``sensor_msgs/PointCloud2``, fields
 x, y, z, value: every voxel with value >= ``threshold``; with ``confidence: true`` also
 ``confirmed``, uint8 at offset 16 of 20-byte points: 1 where some view resolved the voxel in
-elevation, 0 where it is only consistent with the pings, see :mod:`gpumap.confidence`), ``~/occupied_markers``
+elevation, 0 where it is only consistent with the pings, see :mod:`gpumap.layers.confidence`), ``~/occupied_markers``
 (``visualization_msgs/MarkerArray``, a cube list per 16^3-voxel block, only changed blocks;
 all of them again when a new subscriber appears), ``~/projected_map``
 (``nav_msgs/OccupancyGrid``: 100 where a voxel in ``band_z_m`` is occupied, 0 observed, -1
@@ -33,11 +33,11 @@ cloud's stamp is the newest ping in it. ``/diagnostics`` (``diagnostic_msgs/Diag
 every ``diagnostics_period_s``): ping rate, latency p50/p99 (arrival to published cloud),
 queue, received/integrated, rejected, skipped and dropped by reason, backend, map memory.
 
-With ``surface: true`` (default false) the surface layer (:mod:`gpumap.surface`) is kept too, on a
-thread of its own (:class:`gpumap.ros.live.LiveSurfaceWorker`), and updated as often as the machine
+With ``surface: true`` (default false) the surface layer (:mod:`gpumap.layers.surface`) is kept too, on a
+thread of its own (:class:`gpumap.ros.surface_worker.LiveSurfaceWorker`), and updated as often as the machine
 allows, each update taking every ping mapped meanwhile: ``~/surface_cloud`` (``PointCloud2``, x, y,
 z, value 1 per surface voxel; stamped with the newest ping it covers) and ``~/surface_markers``,
-reliable and transient-local; each is the offline layer (:func:`gpumap.surface.surface_from_mapper`)
+reliable and transient-local; each is the offline layer (:func:`gpumap.layers.surface_live.surface_from_mapper`)
 of the pings it covers. ``/diagnostics`` then adds ``surface_pings`` (covered), ``surface_waiting``
 (mapped, not yet in it), ``surface_age_s`` (how long the oldest of those has waited since it arrived),
 ``surface_latency_max_s``, ``surface_update_s`` (the last update's seconds), ``surface_updates`` and
@@ -49,7 +49,7 @@ deeper queue absorbs; a process of its own would not need one.
 
 Services (``std_srvs/Trigger``): ``~/save_map`` writes ``save_path`` atomically: with the surface
 layer, both layers in one file (the safe map's values and the surface layer of every ping mapped so
-far: :func:`gpumap.refined_map.load_refined`, ``gpumap view/export --layer surface|safe`` read it);
+far: :func:`gpumap.layers.refined_map.load_refined`, ``gpumap view/export --layer surface|safe`` read it);
 with ``surface: false`` the map file of ``gpumap replay`` (``MinMaxMapper.load`` reads it).
 ``~/reset`` forgets the map (and the surface layer's pings).
 Ctrl-C (or SIGTERM) drains the queue, saves when ``save_on_exit`` is true, and exits 0.
@@ -72,6 +72,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gpumap.core.params import MapperParams
+from gpumap.layers.confidence import ConfidenceLayer
 from gpumap.ros import require_ros
 from gpumap.ros.convert import (
     BadMessage,
@@ -85,10 +87,16 @@ from gpumap.ros.convert import (
     project_obstacles,
     stamp_ns,
 )
+from gpumap.ros.launch import (
+    FASTDDS_DEFAULT_SEGMENT_BYTES,
+    FASTDDS_HINT,
+    PARTICIPANT_PREFIX,
+    lost_at_stream_end,
+)
 from gpumap.ros.live import LiveMapper, health
 from gpumap.spec import GridSpec, SonarSpec
 
-__all__ = ["NODE_NAME", "PARAMETERS", "make_node", "ros_arguments", "sonar_spec_from_params"]
+__all__ = ["NODE_NAME", "PARAMETERS", "make_node", "sonar_spec_from_params"]
 
 NODE_NAME = "gpumap"
 
@@ -124,7 +132,7 @@ PARAMETERS: dict[str, tuple[object, str]] = {
     "confidence": (False, "keep the confidence layer (MinMaxMapper(confidence=True)): the cloud gets a uint8 "
                    "field confirmed, 1 where some view resolved the voxel in elevation, 0 where it is only "
                    "consistent with the pings (the elevation stretch); costs a pass per ping on the host"),
-    "surface": (False, "keep the surface layer (gpumap.surface: one voxel per bright cell, from the evidence "
+    "surface": (False, "keep the surface layer (gpumap.layers.surface: one voxel per bright cell, from the evidence "
                 "or visible rule's occupied voxels) on a thread of its own: ~/surface_cloud and "
                 "~/surface_markers, updated as often as the machine allows; ~/save_map then writes both "
                 "layers in one file (gpumap view/export --layer surface|safe); needs rule evidence or "
@@ -200,7 +208,7 @@ def _flag(p: dict, name: str) -> bool:
 
 
 def plan_options(p: dict) -> dict:
-    """Keyword arguments of :func:`gpumap.nbv.next_best_views` from the node's ``plan_*``
+    """Keyword arguments of :func:`gpumap.layers.viewgain.next_best_views` from the node's ``plan_*``
     parameters (checked: counts positive, limits in degrees within their ranges, reach >= 0)."""
     views, cands = p["plan_views"], p["plan_candidates"]
     for name, v in (("plan_views", views), ("plan_candidates", cands)):
@@ -274,11 +282,13 @@ def make_node(node_name: str = NODE_NAME, context=None):
                 self.in_shape = (self.geom.n_rows, self.geom.n_cols)
             else:
                 self.in_shape = self.spec.image_shape
-            self.mapper = gpumap.MinMaxMapper(self.spec, self.grid, backend=str(p["backend"]),
-                                              rule=_choice(p, "rule", ("evidence", "visible", "plain")),
-                                              threshold=self.threshold, carve_views=int(p["carve_views"]),
-                                              confidence=_flag(p, "confidence"))
+            self.mapper = gpumap.MinMaxMapper(
+                self.spec, self.grid, str(p["backend"]),
+                MapperParams(rule=_choice(p, "rule", ("evidence", "visible", "plain")),
+                             threshold=self.threshold, carve_views=int(p["carve_views"])))
             self.confidence = _flag(p, "confidence")
+            if self.confidence:
+                self.mapper.attach(ConfidenceLayer())
             self.surface = _flag(p, "surface")
             if self.surface and self.mapper.rule == "plain":
                 raise ValueError("Expected rule evidence or visible with surface:=true (the surface layer "
@@ -297,8 +307,8 @@ def make_node(node_name: str = NODE_NAME, context=None):
             self.blocks = MarkerBlocks(self.grid, self.threshold)
             self.surf = None
             if self.surface:
-                from gpumap.ros.live import LiveSurfaceWorker
-                from gpumap.surface import SURFACE_LEVEL
+                from gpumap.layers.surface import SURFACE_LEVEL
+                from gpumap.ros.surface_worker import LiveSurfaceWorker
 
                 n = p["surface_max_pings"]
                 if isinstance(n, bool) or not isinstance(n, int) or n < 0:
@@ -428,7 +438,7 @@ def make_node(node_name: str = NODE_NAME, context=None):
 
         def _publish_surface(self, layer, newest_ns: int) -> None:
             """The surface worker's ``on_publish``: the layer's voxels as a cloud (value 1) and markers."""
-            from gpumap.surface import SURFACE_LEVEL
+            from gpumap.layers.surface import SURFACE_LEVEL
 
             values = layer.values()
             centres, vals, _ = occupied_cloud(values, self.grid, SURFACE_LEVEL)
@@ -570,32 +580,3 @@ def make_node(node_name: str = NODE_NAME, context=None):
 
 
 #: Fast DDS's default shared-memory segment (512 KiB): a larger message through it is often lost.
-FASTDDS_DEFAULT_SEGMENT_BYTES = 512 * 1024
-FASTDDS_HINT = ("a publisher on Fast DDS's defaults (a 512 KiB shared-memory segment) loses most images "
-                "larger than that; start it with FASTDDS_DEFAULT_PROFILES_FILE pointing at a profile with a "
-                "larger segment (gpumap/ros/fastdds_shm.xml, as gpumap ros-play uses) or send mono8")
-
-
-#: Bytes of a DDS GUID naming its participant: a node's publishers (ros-play's images and its count)
-#: share them.
-PARTICIPANT_PREFIX = 12
-
-
-def lost_at_stream_end(sent: dict[bytes, int], last_seq: dict[bytes, int]) -> int:
-    """Images a publisher said it sent (``sent``: participant prefix -> count, from
-    ``sonar/images_sent``) after the last one that reached the node (``last_seq``: publisher gid ->
-    the highest sequence number delivered; a publisher's first message is number 1)."""
-    n = 0
-    for prefix, count in sent.items():
-        last = max((q for g, q in last_seq.items() if g[:PARTICIPANT_PREFIX] == prefix), default=0)
-        n += max(0, count - last)
-    return n
-
-
-def ros_arguments(params_file, ros_args: list[str]) -> list[str]:
-    """The ROS arguments: ``--params-file FILE`` (``gpumap ros --params-file``) first, then the
-    user's ``--ros-args ...``, so that a ``-p name:=value`` given there wins over the file (ROS
-    applies parameter sources in order, the last one winning)."""
-    if params_file is None:
-        return list(ros_args)
-    return ["--ros-args", "--params-file", str(params_file), *ros_args[1:]]

@@ -132,7 +132,7 @@ def write_params(path: str | Path, play: Playable, *, voxel_size_m: float | None
     """Write the node's parameter YAML for ``play`` (and ``<path>.sonar.json``, the exact sonar).
 
     The grid is the recording's own (``.gpumap-rec``) unless ``voxel_size_m`` is given, else the
-    box holding every field of view (``gpumap.replay.auto_grid``). Returns the YAML's path.
+    box holding every field of view (``gpumap.pipeline.replay.auto_grid``). Returns the YAML's path.
     """
     from gpumap.atomic import atomic_write
     from gpumap.spec import auto_grid

@@ -50,7 +50,7 @@ def confidence_colours(rgb: np.ndarray, confirmed: np.ndarray, mode: str = "pale
     rgb : (N, 3) uint8
         The voxels' colours (by value or height).
     confirmed : (N,) bool
-        True where ``MinMaxMapper.confidence()`` is 3 (confirmed), False where 2 (unconfirmed).
+        True where ``MinMaxMapper.layer("confidence").states()`` is 3 (confirmed), False where 2 (unconfirmed).
     mode : one of :data:`UNCONFIRMED_MODES`
         ``"pale"``: unconfirmed voxels mixed with :data:`PALE_MIX` white, confirmed ones as
         given; ``"hidden"``: unconfirmed voxels not drawn; ``"as confirmed"``: no difference.
@@ -75,14 +75,10 @@ def confidence_colours(rgb: np.ndarray, confirmed: np.ndarray, mode: str = "pale
 
 
 def mapper_confidence(mapper: Any) -> np.ndarray | None:
-    """``mapper.confidence()`` when the mapper keeps the layer (``confidence=True``), else None."""
-    fn = getattr(mapper, "confidence", None)
-    if fn is None:
-        return None
-    try:
-        return fn()
-    except ValueError:  # made without the layer
-        return None
+    """``mapper.layer("confidence").states()`` when a confidence layer is attached, else None."""
+    layers = getattr(mapper, "layers", ())
+    conf = next((x for x in layers if getattr(x, "name", None) == "confidence"), None)
+    return None if conf is None else conf.states()
 
 
 def colormap_u8(name: str, n: int = 256) -> np.ndarray:
@@ -384,7 +380,7 @@ class MapViewer:
     def set_values(self, values: np.ndarray, confidence: np.ndarray | None = None) -> int:
         """Show the map ``values`` ((nx, ny, nz) float, NaN unknown): only changed blocks are sent.
 
-        ``confidence``: the map's layer ((nx, ny, nz) uint8, ``MinMaxMapper.confidence()``);
+        ``confidence``: the map's layer ((nx, ny, nz) uint8, ``MinMaxMapper.layer("confidence").states()``);
         from the first one on, unconfirmed occupied voxels are drawn as the GUI's "unconfirmed
         occupied voxels" choice says (pale by default), confirmed ones in full colour.
         """

@@ -130,16 +130,16 @@ def map_layer(path: str | Path, layer: str | None = None, threshold: float | Non
     float32, NaN unknown), ``threshold``, ``confidence`` (the map's layer or None), ``n_pings``,
     ``layer`` (None for a map file).
 
-    A refined map (:func:`gpumap.refine.is_refined_file`: ``gpumap refine``'s ``refined.npz`` or the
-    ``surface.npz`` of ``gpumap demo`` / ``replay``, :mod:`gpumap.surface`) shows ``layer``
+    A refined map (:func:`gpumap.layers.refine.is_refined_file`: ``gpumap refine``'s ``refined.npz`` or the
+    ``surface.npz`` of ``gpumap demo`` / ``replay``, :mod:`gpumap.layers.surface`) shows ``layer``
     ``"surface"`` (default: the refined occupancy or the surface layer, occupied from
-    :data:`gpumap.refine.OCCUPIED_LEVEL`) or ``"safe"`` (the map's values and threshold); a map
+    :data:`gpumap.layers.refine.OCCUPIED_LEVEL`) or ``"safe"`` (the map's values and threshold); a map
     file with ``layer`` given shows that layer of the ``surface.npz`` beside it
-    (:func:`gpumap.refined_map.layers_file`); without one it has one layer (``layer`` given raises
+    (:func:`gpumap.layers.refined_map.layers_file`); without one it has one layer (``layer`` given raises
     ValueError).
     """
-    from gpumap.refine import OCCUPIED_LEVEL, is_refined_file, load_refined
-    from gpumap.refined_map import layers_file
+    from gpumap.layers.refine import OCCUPIED_LEVEL, is_refined_file, load_refined
+    from gpumap.layers.refined_map import layers_file
 
     path = Path(path)
     two = path if is_refined_file(path) else (layers_file(path) if layer is not None else None)
@@ -156,7 +156,7 @@ def map_layer(path: str | Path, layer: str | None = None, threshold: float | Non
     if layer is not None:
         raise ValueError("Expected a refined map (gpumap refine's refined.npz) or a map with a surface.npz "
                          f"beside it (gpumap demo/replay) with a layer, but {path} is a map of one layer")
-    from gpumap.mapper import MinMaxMapper
+    from gpumap.core.mapper import MinMaxMapper
     from gpumap.viewer.live import mapper_confidence
 
     m = MinMaxMapper.load(path, backend="numpy")

@@ -5,7 +5,7 @@ taken), from the map alone:
 
 ``gain = settle + unknown_weight * unknown``
 
-- ``settle``: the *unconfirmed* occupied voxels (:mod:`gpumap.confidence`) the candidate
+- ``settle``: the *unconfirmed* occupied voxels (:mod:`gpumap.layers.confidence`) the candidate
   observes (centre in its field of view, as :meth:`~gpumap.MinMaxMapper.integrate` decides it)
   along an elevation arc that could settle them: the arc's direction at the voxel is the
   derivative of the sonar-frame point with respect to elevation, ``(-x z, -y z, x^2 + y^2)`` in
@@ -143,7 +143,7 @@ def _fov(params: np.ndarray) -> tuple[float, float, float, float, float]:
 
 def poses_to_rows(Ts: np.ndarray) -> np.ndarray:
     """(K, 4, 4) float64 checked poses -> (K, 12) float32 rows of ``A = R^T`` and ``b = -R^T t``,
-    rounded as :meth:`gpumap.integrator.Integrator.ping_params` rounds a ping's."""
+    rounded as :meth:`gpumap.core.integrator.Integrator.ping_params` rounds a ping's."""
     R = Ts[:, :3, :3]
     t = Ts[:, :3, 3]
     out = np.empty((Ts.shape[0], 12), np.float32)
@@ -360,7 +360,7 @@ def plan_views(
     out = []
     for i in range(n_views):
         Ts = candidates(i)
-        g = mapper.view_gain(Ts, unknown_weight=unknown_weight)
+        g = mapper.layer("confidence").gains(Ts, unknown_weight=unknown_weight)
         k = int(np.argmax(g))
         image = take_ping(Ts[k])
         mapper.integrate(image, Ts[k])
@@ -415,7 +415,7 @@ def next_best_views(
                                         yaw_rad=yaw_rad, offset_m=offset_m)
                         for i, T in enumerate(A)])[: int(candidates)]
     anchor_of = np.repeat(np.arange(len(A)), per)[: len(C)]
-    g = mapper.view_gain(C, unknown_weight=unknown_weight)
+    g = mapper.layer("confidence").gains(C, unknown_weight=unknown_weight)
     best = np.argsort(-g, kind="stable")[: int(views)]
     return [{"T_W_S": C[k], "gain": float(g[k]), "candidate": int(k), "anchor": int(anchor_of[k])}
             for k in best], len(C)

@@ -10,8 +10,8 @@ import warnings
 
 import numpy as np
 
-from gpumap.refine_fit import _calibrate
-from gpumap.render import PingRenderer
+from gpumap.layers.refine_fit import _calibrate
+from gpumap.layers.render import PingRenderer
 
 __all__ = ["heldout_scores", "render_map", "roc_auc"]
 
@@ -45,11 +45,11 @@ def render_map(
     """Rendered images of a map at ``poses``: ``(images, gain, floor)``.
 
     ``field`` (nx, ny, nz) float in [0, 1], NaN unknown (rendered empty): the field ``o`` the
-    renderer takes, e.g. :attr:`~gpumap.refine.RefineResult.field`, or a 0/1 map. Not
-    :attr:`~gpumap.refine.RefineResult.occupancy` (``1 - exp(-kappa o)``, a probability):
-    :func:`~gpumap.refine.field_from_occupancy` converts. ``occupancy=`` is the former name of
+    renderer takes, e.g. :attr:`~gpumap.layers.refine.RefineResult.field`, or a 0/1 map. Not
+    :attr:`~gpumap.layers.refine.RefineResult.occupancy` (``1 - exp(-kappa o)``, a probability):
+    :func:`~gpumap.layers.refine.field_from_occupancy` converts. ``occupancy=`` is the former name of
     ``field`` (same meaning, deprecated). Without ``gain`` the display gain and floor are fitted
-    on ``train_images`` / ``train_poses`` (as :func:`~gpumap.refine.refine` calibrates), so every
+    on ``train_images`` / ``train_poses`` (as :func:`~gpumap.layers.refine.refine` calibrates), so every
     map is compared at its own best scale.
     """
     if occupancy is not None:

@@ -3,7 +3,7 @@
 :class:`PingModel` states the physics (opacity, incidence law, range loss, vertical beam pattern
 with its side-lobe level); :class:`PingRenderer` owns the rays of one sonar on one grid and
 launches the Warp kernels of :mod:`gpumap.kernels.render` (CPU or CUDA). The NumPy twin of the
-forward pass is :mod:`gpumap.render_reference`.
+forward pass is :mod:`gpumap.layers.render_reference`.
 
 The field: per voxel an occupancy ``o`` in [0, 1] (trilinear between voxel centres, 0 outside
 the grid) and a reflectivity ``rho``. A ray of azimuth ``theta`` and elevation ``phi`` stops in

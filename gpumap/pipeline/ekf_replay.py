@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gpumap.core.params import MapperParams
+
 __all__ = ["compare_maps", "posed_frames", "registration_summary", "run_ekf_replay", "track_consistency",
            "trust_summary"]
 
@@ -171,7 +173,7 @@ def registration_summary(registrar) -> dict:
 def _map(spec, grid, images, poses, backend, threshold, rule):
     from gpumap import MinMaxMapper
 
-    m = MinMaxMapper(spec, grid, backend=backend, rule=rule, threshold=threshold)
+    m = MinMaxMapper(spec, grid, backend, MapperParams(rule=rule, threshold=threshold))
     for i in range(0, len(images), 32):
         m.integrate_batch(np.stack(images[i:i + 32]), np.stack(poses[i:i + 32]))
     return m
@@ -219,7 +221,7 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
     seed : int
         Seed of the drift.
     voxel_size_m, grid, backend, threshold, rule
-        The maps (``grid`` None: :func:`gpumap.replay.auto_grid` of the recorded poses).
+        The maps (``grid`` None: :func:`gpumap.pipeline.replay.auto_grid` of the recorded poses).
     stride, max_frames : int
         Every ``stride``-th posed frame, at most ``max_frames``.
     detector, ekf_kwargs, tracker_kwargs
@@ -236,7 +238,7 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
         Revisits of stored pings, found by their first returns (at ``threshold``), verified by
         their images' agreement, fused against the drift since and kept in a pose graph behind
         the filter (:mod:`gpumap.ekf.registration`): True a default
-        :class:`~gpumap.ekf.registration.ScanRegistrar`, False none (the default). On the full
+        :class:`~gpumap.ekf.registrar.ScanRegistrar`, False none (the default). On the full
         real tank run it about halves the mean position error where the run revisits places and
         was never worse than odometry on frames 0-799 nor on 800-1222 alone, but on one whole run
         of ten (drift 0.02, seed 2) it ended at 1.04x odometry's position error, so it stays
@@ -267,7 +269,7 @@ def run_ekf_replay(recording, *, odometry_noise: tuple[float, float] = (0.005, 0
         ekw["guard"] = guard
     elif guard:
         ekw.setdefault("guard", TrustGuard())
-    from gpumap.ekf.registration import ScanRegistrar
+    from gpumap.ekf.registrar import ScanRegistrar
 
     registrar = registration if isinstance(registration, ScanRegistrar) else (
         ScanRegistrar(spec, threshold=threshold) if registration else None)

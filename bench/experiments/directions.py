@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from gpumap.core.params import MapperParams
 from gpumap.errors import check_pose
 from gpumap.reference import share_keeps
 
@@ -81,10 +82,10 @@ class DirectionalEvidence:
     """
 
     def __init__(self, spec, grid, backend: str = "auto", threshold: float = 0.1, **kw) -> None:
-        from gpumap.mapper import MinMaxMapper
+        from gpumap.core.mapper import MinMaxMapper
 
-        self._make = lambda: MinMaxMapper(spec, grid, backend=backend, rule="evidence", threshold=threshold,
-                                          **kw)
+        self._make = lambda: MinMaxMapper(spec, grid, backend,
+                                          MapperParams(rule="evidence", threshold=threshold, **kw))
         self.maps: dict[int, MinMaxMapper] = {}  # class -> its map, made when its first view comes
         self.spec, self.threshold = spec, threshold
         self.backend = self._map(0).backend if backend == "auto" else backend
@@ -138,8 +139,8 @@ class DirectionalEvidence:
         return out
 
     def merge(self, other: DirectionalEvidence) -> None:
-        """Fold ``other`` (the same grid, disjoint pings) in, class by class: exact (gpumap.merge)."""
-        from gpumap.merge import merge_into
+        """Fold ``other`` (the same grid, disjoint pings) in, class by class: exact (gpumap.core.merge)."""
+        from gpumap.core.merge import merge_into
 
         for c, m in other.maps.items():
             merge_into(self._map(c), m)

@@ -1,5 +1,5 @@
 """The fit of refinement: its settings (:class:`RefineOptions`), the Warp arrays and the
-projected Adam step over the loss of :mod:`gpumap.refine` (``_Fit``), and the display law's
+projected Adam step over the loss of :mod:`gpumap.layers.refine` (``_Fit``), and the display law's
 starting gain and floor (``_calibrate``).
 """
 
@@ -10,14 +10,14 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from gpumap.render import PingRenderer
+from gpumap.layers.render import PingRenderer
 
 __all__ = ["RefineOptions"]
 
 
 @dataclass(frozen=True)
 class RefineOptions:
-    """Settings of :func:`~gpumap.refine.refine` (the same defaults on every scene).
+    """Settings of :func:`~gpumap.layers.refine.refine` (the same defaults on every scene).
 
     Attributes
     ----------

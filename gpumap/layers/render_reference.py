@@ -1,7 +1,7 @@
 """NumPy twin of the ping model's forward pass (:mod:`gpumap.kernels.render`).
 
 The same float32 operations in the same order, vectorised; the test oracle of
-:class:`gpumap.render.PingRenderer`. Not bit for bit: Warp's ``exp``/``pow`` and NumPy's differ
+:class:`gpumap.layers.render.PingRenderer`. Not bit for bit: Warp's ``exp``/``pow`` and NumPy's differ
 in the last ulp, and the kernels sum a beam's elevation rays with atomics in no fixed order, so
 the two agree to float32 rounding (about 1e-6 relative), not exactly.
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpumap.render import PingRenderer
+from gpumap.layers.render import PingRenderer
 
 __all__ = ["energy_reference"]
 

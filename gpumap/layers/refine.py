@@ -11,17 +11,17 @@ trilinear; reflectivity ``rho``; one display gain and noise floor per recording)
 
 with ``t(I) = (I + 1e-3) ** power`` (square roots by default), by Adam on random batches of
 pings (projected onto the bounds below after every step), the
-gradients from Warp's tape (:class:`gpumap.render.PingRenderer`; CPU or CUDA). The gain starts
+gradients from Warp's tape (:class:`gpumap.layers.render.PingRenderer`; CPU or CUDA). The gain starts
 where the measured and rendered energies agree, the floor at the median measured intensity.
 
 Two names for two quantities, kept apart everywhere:
 
 - the **field** ``o`` in [0, 1] (:attr:`RefineResult.field`): what the renderer takes
-  (:func:`render_map`'s ``field``, :meth:`gpumap.render.PingRenderer.render`'s occupancy);
+  (:func:`render_map`'s ``field``, :meth:`gpumap.layers.render.PingRenderer.render`'s occupancy);
 - the **occupancy** ``1 - exp(-kappa o)`` (:attr:`RefineResult.occupancy`): the fraction of the
   sound a one-voxel layer of the field stops, a probability; the refined map calls a voxel
   occupied from :data:`OCCUPIED_LEVEL` (0.5) on. :func:`field_from_occupancy` and
-  :func:`occupancy_from_field` convert (``kappa`` of the :class:`~gpumap.render.PingModel`).
+  :func:`occupancy_from_field` convert (``kappa`` of the :class:`~gpumap.layers.render.PingModel`).
 
 Hard constraints, exactly:
 
@@ -50,11 +50,11 @@ whose field of view holds the voxel's centre (a voxel few pings saw is not trust
 value).
 
 Modules (every public name of them is importable from here): this one (:func:`refine`,
-:func:`refine_saved`, the pings they read, the device), :mod:`gpumap.refine_fit`
+:func:`refine_saved`, the pings they read, the device), :mod:`gpumap.layers.refine_fit`
 (:class:`RefineOptions`, the Warp arrays and projected Adam step of the loss, the display law's
-starting gain and floor), :mod:`gpumap.refine_constraints` (the two hard constraints),
-:mod:`gpumap.refined_map` (:class:`RefineResult`, its file, field and occupancy) and
-:mod:`gpumap.refine_heldout` (held-out prediction: :func:`render_map`, :func:`heldout_scores`).
+starting gain and floor), :mod:`gpumap.layers.refine_constraints` (the two hard constraints),
+:mod:`gpumap.layers.refined_map` (:class:`RefineResult`, its file, field and occupancy) and
+:mod:`gpumap.layers.refine_heldout` (held-out prediction: :func:`render_map`, :func:`heldout_scores`).
 """
 
 from __future__ import annotations
@@ -69,10 +69,10 @@ import types
 import numpy as np
 
 from gpumap.errors import BackendUnavailableError
-from gpumap.refine_constraints import REFINE_RULES, _views_and_raise, carved_voxels
-from gpumap.refine_fit import RefineOptions, _calibrate, _Fit
-from gpumap.refine_heldout import heldout_scores, render_map, roc_auc
-from gpumap.refined_map import (
+from gpumap.layers.refine_constraints import REFINE_RULES, _views_and_raise, carved_voxels
+from gpumap.layers.refine_fit import RefineOptions, _calibrate, _Fit
+from gpumap.layers.refine_heldout import heldout_scores, render_map, roc_auc
+from gpumap.layers.refined_map import (
     OCCUPIED_LEVEL,
     REFINED_FORMAT,
     SURFACE_FILE,
@@ -83,8 +83,8 @@ from gpumap.refined_map import (
     load_refined,
     occupancy_from_field,
 )
-from gpumap.refined_map import REFINED_VERSION as REFINED_VERSION  # kept importable from here
-from gpumap.render import PingModel, PingRenderer
+from gpumap.layers.refined_map import REFINED_VERSION as REFINED_VERSION  # kept importable from here
+from gpumap.layers.render import PingModel, PingRenderer
 from gpumap.spec import SonarSpec
 
 __all__ = [
@@ -172,10 +172,10 @@ def pick_device(device: str = "auto") -> tuple[str, str]:
 
 def _map_of(mapper):
     """A :class:`gpumap.MinMaxMapper` from ``mapper`` (itself, or a map file's path, loaded)."""
-    from gpumap.mapper import MinMaxMapper
+    from gpumap.core.mapper import MinMaxMapper
 
     if isinstance(mapper, (str, os.PathLike)):
-        from gpumap.merge import load_map
+        from gpumap.core.merge import load_map
 
         return load_map(mapper, backend="numpy")
     if not isinstance(mapper, MinMaxMapper):
@@ -407,8 +407,8 @@ def refine_saved(
 
 
 class _CallableModule(types.ModuleType):
-    """``gpumap.refine`` is this module and the function: ``gpumap.refine(mapper, images, poses)``
-    calls :func:`refine` whether or not ``gpumap.refine`` (the module) was imported by name."""
+    """``gpumap.layers.refine`` is this module and the function: ``gpumap.layers.refine(mapper, images, poses)``
+    calls :func:`refine` whether or not ``gpumap.layers.refine`` (the module) was imported by name."""
 
     def __call__(self, *args, **kwargs) -> RefineResult:
         return refine(*args, **kwargs)

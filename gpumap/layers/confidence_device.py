@@ -3,8 +3,8 @@
 stream or queue, reading the map's pool where it lives (no read of the map to the host).
 
 :class:`DeviceConfidence` keeps the layer's two arrays on the device (``confirmed`` uint8 and
-``arcs`` uint16, flat over the grid in C order, as :class:`gpumap.confidence.ConfidenceLayer`
-keeps them on the host) and gives them the same values as :func:`gpumap.confidence.confirm_ping`,
+``arcs`` uint16, flat over the grid in C order, as :class:`gpumap.layers.confidence.ConfidenceLayer`
+keeps them on the host) and gives them the same values as :func:`gpumap.layers.confidence.confirm_ping`,
 the NumPy reference, bit for bit (the tests compare every backend with it). The ``numpy`` backend
 keeps running the reference itself.
 """
@@ -30,7 +30,7 @@ _KERNELS = ("lit_bits", "conf_voxels", "prefix_rows", "conf_candidates")
 
 def pass_scalars(spec, params: np.ndarray, half_rad: float, tube_m: float, value_rule) -> dict:
     """The pass's scalar arguments: cos and sin of the rivals' half aperture and the tube (float32,
-    as :func:`gpumap.confidence.confirm_ping` rounds them), the column walk's widened range and slab
+    as :func:`gpumap.layers.confidence.confirm_ping` rounds them), the column walk's widened range and slab
     (float32, padded outwards: they only bound the walk), and the value rule's options (the evidence
     test's ``p_min`` and right-hand side ``z^2 p_min (1 - p_min)`` in float64, in the reference's order)."""
     rho = float(params["rho"])

@@ -7,8 +7,8 @@ batch and for every storage, so all give the same records. On demand it then fin
 over the (i, j) *block columns* of the ping's box, the z-range of blocks that the field of view
 can reach (the kernels' ``column_range`` bound, widened to a block column's footprint and padded
 against float32 rounding, so it is conservative), and has the storage give them slots
-(:meth:`gpumap.storage.BlockStorage.allocate`). The kernels flag any observed voxel that found no
-block (:meth:`gpumap.storage.BlockStorage.check`): the tests check it never happens.
+(:meth:`gpumap.core.storage.BlockStorage.allocate`). The kernels flag any observed voxel that found no
+block (:meth:`gpumap.core.storage.BlockStorage.check`): the tests check it never happens.
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ import math
 
 import numpy as np
 
+from gpumap.core.storage import BlockStorage
 from gpumap.errors import check_finite_scalar, check_pose
 from gpumap.geometry import pose_pad_m, static_params
 from gpumap.spec import _MAX_VOXEL_INDEX, GridSpec, SonarSpec
-from gpumap.storage import BlockStorage
 
 __all__ = ["METHODS", "Integrator", "check_pose_cov", "check_poses"]
 
@@ -72,7 +72,7 @@ def check_poses(Ts: np.ndarray) -> np.ndarray:
 
 
 class Integrator:
-    """Applies pings to one :class:`~gpumap.storage.BlockStorage` with one method and rule.
+    """Applies pings to one :class:`~gpumap.core.storage.BlockStorage` with one method and rule.
 
     Parameters
     ----------

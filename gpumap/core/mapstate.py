@@ -1,7 +1,7 @@
 """A map's contents as plain arrays (:class:`MapState`): read from a mapper, checked, and merged
-into another through its block storage (:meth:`gpumap.storage.BlockStorage.put_blocks`).
+into another through its block storage (:meth:`gpumap.core.storage.BlockStorage.put_blocks`).
 
-This is the part of merging that works on one mapper at a time; :mod:`gpumap.merge` (which says
+This is the part of merging that works on one mapper at a time; :mod:`gpumap.core.merge` (which says
 why merges are exact) builds on it: states of map files, new mappers, many maps.
 """
 
@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gpumap.mapfile import load_map
+from gpumap.core.mapfile import load_map
 
 __all__ = ["MapState", "as_state", "check_other", "merge_state", "not_a_map", "options_of", "prints_of",
            "read_state"]
@@ -79,9 +79,7 @@ def options_of(mapper) -> tuple[str, dict]:
         "carve_views": int(mapper.carve_views),
         "bright_share": float(mapper.bright_share),
         "share_z": float(mapper.share_z),
-        "decision": mapper.decision,
-        "miss_cost": float(mapper.miss_cost),
-        "confidence": mapper.confidence_layer is not None,
+        "confidence": any(x.name == "confidence" for x in mapper.layers),
     }
 
 
@@ -116,7 +114,7 @@ def as_state(other, mapper_cls: type, backend: str = "numpy") -> MapState:
 
 
 def merge_state(mapper, st: MapState) -> None:
-    """Merge the state ``st`` into ``mapper``, in place (see :func:`gpumap.merge.merge_into`):
+    """Merge the state ``st`` into ``mapper``, in place (see :func:`gpumap.core.merge.merge_into`):
     raises ``ValueError`` for a state of another kind or options, or that shares pings with
     ``mapper``, and :class:`~gpumap.MapMemoryError` past ``max_bytes``; in every case before
     ``mapper`` changes."""
@@ -151,7 +149,7 @@ def _same(kind: str, opts: dict, other: MapState) -> None:
             "(merge dense with dense and sparse with sparse)"
         )
     for key in ("spec", "grid", "sparse", "method", "shadow_m", "rule", "threshold", "carve_views",
-                "bright_share", "share_z", "decision", "miss_cost"):
+                "bright_share", "share_z"):
         a, b = opts.get(key), other.options.get(key)
         if a != b:
             if isinstance(a, dict) and isinstance(b, dict):  # name the field inside (spec.n_bins, ...)
@@ -182,7 +180,7 @@ def prints_of(st: MapState) -> np.ndarray:
 
 def _check_arrays(st: MapState, storage) -> None:
     """The state's arrays have the shapes and dtypes its options say, and its blocks lie inside
-    the bounds of ``storage`` (a :class:`~gpumap.storage.BlockStorage`; a MapState built by hand)."""
+    the bounds of ``storage`` (a :class:`~gpumap.core.storage.BlockStorage`; a MapState built by hand)."""
     names = ("min_all", "bright", "count") if st.options["rule"] != "plain" else ("min_all",)
     m = len(st.arrays.get("blocks", ()))
     want = {k: ((m, storage.BV), np.uint64 if k == "count" else np.float32) for k in names}

@@ -202,3 +202,17 @@ def calibrated_occupied(dark: np.ndarray, hits: np.ndarray, miss_cost: float,
     before = np.repeat(np.r_[0, csum[start[1:] - 1]], np.diff(np.r_[start, n.size]))
     out.reshape(-1)[idx] = ((csum - before) > 0)[inverse]
     return out
+
+
+#: How many phantom voxels one avoided miss is worth, by default (was gpumap.geometry.MISS_COST).
+MISS_COST = 10.0
+
+
+def calibrated_values(grid: np.ndarray, bright: np.ndarray, count: np.ndarray, miss_cost: float
+                      ) -> np.ndarray:
+    """Map values of the evidence rule with the calibrated decision (this module's view model fitted to
+    these counts): ``bright`` where a voxel is occupied, else ``grid``. The model is fitted
+    to the ever-bright voxels only, which are the ones ``_bright_where`` hands over."""
+    from gpumap.reference import _bright_where, split_counts
+
+    return _bright_where(grid, bright, count, lambda c: calibrated_occupied(*split_counts(c), miss_cost))

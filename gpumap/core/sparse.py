@@ -1,13 +1,13 @@
 """Maps that allocate blocks where pings look: the former ``SparseMinMaxMapper``'s names.
 
-One :class:`gpumap.MinMaxMapper` now serves every storage (see :mod:`gpumap.mapper`): given a
+One :class:`gpumap.MinMaxMapper` now serves every storage (see :mod:`gpumap.core.mapper`): given a
 :class:`SparseSpec` (or ``sparse=True``) it allocates its blocks on demand. The names below stay
 for code written against the earlier API.
 """
 
 from __future__ import annotations
 
-from gpumap.mapper import FILE_FORMAT, MapMemoryError, MinMaxMapper
+from gpumap.core.mapper import FILE_FORMAT, MapMemoryError, MinMaxMapper
 from gpumap.spec import SonarSpec, SparseSpec
 
 __all__ = ["FILE_FORMAT", "MapMemoryError", "SparseMinMaxMapper", "SparseSpec"]

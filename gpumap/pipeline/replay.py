@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gpumap.core.params import MapperParams
 from gpumap.geometry import RULES as GEOMETRY_RULES
 from gpumap.spec import GridSpec, SonarSpec, auto_grid
 
@@ -108,7 +109,7 @@ def run_replay(
     on_batch : callable, optional
         ``on_batch(images, poses, mapper)`` after each ``integrate_batch`` (or, with ``on_ping``,
         each ``integrate``) with the pings ((B, n_bins, n_beams), (B, 4, 4) ``T_W_S``) it integrated:
-        what another layer built from the same pass reads (:class:`gpumap.surface.LiveSurface`);
+        what another layer built from the same pass reads (:class:`gpumap.layers.surface_live.LiveSurface`);
         its time counts in ``seconds_total`` and apart in ``seconds_on_batch``.
     max_memory : int, optional
         Bytes the run may take at its peak (None: 90 % of the memory available). Checked with
@@ -176,8 +177,8 @@ def run_replay(
     for fr in tqdm(selected(), total=total, unit="img", disable=not progress, desc="replay"):
         if mapper is None:  # backend start-up (imports, compiling kernels) is timed apart
             ts = time.perf_counter()
-            mapper = mapper_cls(fr.spec, grid, backend=backend, method=method, rule=rule,
-                                threshold=threshold)
+            mapper = mapper_cls(fr.spec, grid, backend, MapperParams(method=method, rule=rule,
+                                                                     threshold=threshold))
             t_setup = time.perf_counter() - ts
             batch = [] if on_ping is None and hasattr(mapper, "integrate_batch") else None
         if fr.spec != mapper.spec:

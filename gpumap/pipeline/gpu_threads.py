@@ -2,22 +2,22 @@
 
 ``gpumap replay RECORDING --workers N`` on a machine with N GPUs (or more) and a GPU backend
 takes this path (:func:`run_replay_threads`); a cluster of machines (``--scheduler``) takes the
-Dask one (:mod:`gpumap.workers`).
+Dask one (:mod:`gpumap.pipeline.workers`).
 
 How: one thread per device, each with its own :class:`~gpumap.MinMaxMapper` on its own device
 (``device_index``: ``cuda:i`` on Warp, the i-th OpenCL GPU), fed batches of :data:`BATCH` pings
 through a bounded queue by the client (this thread), which reads the recording once. The pings
-are split as :mod:`gpumap.workers` splits them (``"space"``: each device maps one stretch of the
+are split as :mod:`gpumap.pipeline.workers` splits them (``"space"``: each device maps one stretch of the
 survey; ``"pings"``: batches to each device in turn). At the end the first device's map takes the
 others' (:func:`merge_dense`, a bounded box: blocks only the other observed are copied device to
 device where the backend can (Warp), blocks both observed are read and combined on the host in
-threads (mins and saturating counts, :func:`gpumap.rules.combine_into`); on demand: each thread
+threads (mins and saturating counts, :func:`gpumap.core.rules.combine_into`); on demand: each thread
 reads its map's state and :meth:`gpumap.MinMaxMapper.merge` takes it): the map of one process,
 bit for bit, on the first device. Nothing is pickled and no map leaves the process.
 
 What it costs and gains (``bench/results/gpu_scale_threads.json``, 2 H200s, the tank's frames 60
 times: 7,380 pings): one GPU in this path runs 2.0x (5 mm) and 4.4x (1 cm) faster than
-:func:`gpumap.replay.run_replay` (frames go as bytes, read by a thread of their own). Two GPUs
+:func:`gpumap.pipeline.replay.run_replay` (frames go as bytes, read by a thread of their own). Two GPUs
 map in parallel, but each thread's host work per batch holds the GIL: the slower device's
 integrate time was 2.1x shorter than one device's on OpenCL at 5 mm, 1.3x on Warp, and at 1 cm
 both were bound by the host (no gain). That run merged through whole-pool copies (5.8 s at 5 mm:
@@ -37,7 +37,8 @@ import time
 
 import numpy as np
 
-from gpumap.workers import BATCH, _Batch, plan_replay, routed
+from gpumap.core.params import MapperParams
+from gpumap.pipeline.workers import BATCH, _Batch, plan_replay, routed
 
 __all__ = ["GPU_BACKENDS", "OPTIONS", "QUEUED", "merge_dense", "run_replay_threads"]
 
@@ -85,7 +86,7 @@ class _Lane(threading.Thread):
             self.mapper.synchronize()
             self.seconds_integrate += time.perf_counter() - t
             if not self.keep:
-                from gpumap.mapstate import read_state
+                from gpumap.core.mapstate import read_state
 
                 t = time.perf_counter()
                 self.state = read_state(self.mapper)
@@ -112,10 +113,10 @@ def merge_dense(mapper, other) -> None:
     """Merge ``other`` into ``mapper``, in place: two maps of one bounded box (the same grid, so the
     same block in the same slot) and options, made by this module from disjoint pings. Blocks only
     ``other`` observed are copied (device to device where the backend can: Warp), blocks both
-    observed are combined on the host (:func:`gpumap.rules.combine_into`, as every merge does),
+    observed are combined on the host (:func:`gpumap.core.rules.combine_into`, as every merge does),
     the others stay: the map :meth:`gpumap.MinMaxMapper.merge` makes, bit for bit, without reading
     either whole map."""
-    from gpumap.mapstate import options_of
+    from gpumap.core.mapstate import options_of
 
     if mapper.sparse is not None or other.sparse is not None or options_of(mapper) != options_of(other):
         raise ValueError("Expected two maps of one bounded box and the same options to merge block by block")
@@ -143,11 +144,11 @@ def merge_dense(mapper, other) -> None:
 
 
 def _combine_rows(mine: dict, theirs: dict, rule: str) -> None:
-    """:func:`gpumap.rules.combine_into` of (n, BV) blocks, in chunks of rows on threads (NumPy
+    """:func:`gpumap.core.rules.combine_into` of (n, BV) blocks, in chunks of rows on threads (NumPy
     releases the GIL; every voxel is combined once, by itself: the same arrays as one call)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from gpumap.rules import combine_into
+    from gpumap.core.rules import combine_into
 
     n = len(mine["min_all"])
     k = max(1, min(COMBINE_THREADS, n // 16))
@@ -185,7 +186,7 @@ def _resolve_backend(backend: str) -> str:
 
 
 #: The options :func:`run_replay_threads` takes beside its own, and their defaults (those of
-#: :func:`gpumap.workers.run_replay_workers`).
+#: :func:`gpumap.pipeline.workers.run_replay_workers`).
 OPTIONS = {"voxel_size_m": 0.05, "backend": "auto", "method": "gather", "grid": None, "static": False,
            "stride": 1, "max_frames": None, "progress": True, "rule": None, "threshold": 0.4,
            "positions": None, "sparse": False}
@@ -193,7 +194,7 @@ OPTIONS = {"voxel_size_m": 0.05, "backend": "auto", "method": "gather", "grid": 
 
 def run_replay_threads(recording, *, workers: int, devices: list[int] | None = None, split: str = "space",
                        **options) -> tuple[object, dict]:
-    """:func:`gpumap.replay.run_replay` on ``workers`` devices of this machine, one thread and one
+    """:func:`gpumap.pipeline.replay.run_replay` on ``workers`` devices of this machine, one thread and one
     mapper each: the same map, bit for bit (module docstring).
 
     Parameters
@@ -205,11 +206,11 @@ def run_replay_threads(recording, *, workers: int, devices: list[int] | None = N
         on a GPU backend (:data:`GPU_BACKENDS`, ``"auto"`` resolved first), device 0 for every
         mapper on a CPU one. An index the backend does not have raises ``ValueError``.
     split : str
-        ``"space"`` (default) or ``"pings"``, as :func:`gpumap.workers.run_replay_workers`.
+        ``"space"`` (default) or ``"pings"``, as :func:`gpumap.pipeline.workers.run_replay_workers`.
     **options
         :data:`OPTIONS` (``voxel_size_m``, ``backend``, ``method``, ``grid``, ``static``,
         ``stride``, ``max_frames``, ``progress``, ``rule``, ``threshold``, ``positions``,
-        ``sparse``): as :func:`gpumap.workers.run_replay_workers`; any other raises ``TypeError``.
+        ``sparse``): as :func:`gpumap.pipeline.workers.run_replay_workers`; any other raises ``TypeError``.
 
     Returns
     -------
@@ -223,8 +224,8 @@ def run_replay_threads(recording, *, workers: int, devices: list[int] | None = N
     """
     from tqdm import tqdm
 
-    from gpumap.mapper import MinMaxMapper
-    from gpumap.mapstate import merge_state
+    from gpumap.core.mapper import MinMaxMapper
+    from gpumap.core.mapstate import merge_state
 
     unknown = sorted(set(options) - set(OPTIONS))
     if unknown:
@@ -262,8 +263,7 @@ def run_replay_threads(recording, *, workers: int, devices: list[int] | None = N
             nonlocal spec, lanes, t_setup
             ts = time.perf_counter()
             spec = sp
-            mappers = [MinMaxMapper(spec, grid, backend=backend, method=method, rule=rule,
-                                    threshold=threshold, sparse=bool(sparse), device_index=d)
+            mappers = [MinMaxMapper(spec, grid, backend, MapperParams(method=method, rule=rule, threshold=threshold, sparse=bool(sparse)), device_index=d)
                        for d in devs]  # a device that is not there raises here, before any thread
             # a bounded box: every map kept whole, merged block by block (merge_dense); on demand
             # (each map its own block layout) every map but the first hands over its state
@@ -300,7 +300,7 @@ def run_replay_threads(recording, *, workers: int, devices: list[int] | None = N
     seconds_map = time.perf_counter() - t_map - t_setup
     t1 = time.perf_counter()
     mapper = lanes[0].mapper
-    for lane in lanes[1:]:  # exact: mins and saturating counts (gpumap.merge)
+    for lane in lanes[1:]:  # exact: mins and saturating counts (gpumap.core.merge)
         if lane.state is None:  # a bounded box: block by block (merge_dense)
             merge_dense(mapper, lane.mapper)
             lane.mapper = None

@@ -37,9 +37,10 @@ from pathlib import Path
 
 import numpy as np
 
-from gpumap.mapfile import load_map as load_file
-from gpumap.mapper import MinMaxMapper
-from gpumap.mapstate import MapState, as_state, check_other, not_a_map, prints_of, read_state
+from gpumap.core.mapfile import load_map as load_file
+from gpumap.core.mapper import MinMaxMapper
+from gpumap.core.mapstate import MapState, as_state, check_other, not_a_map, prints_of, read_state
+from gpumap.core.params import MapperParams
 from gpumap.spec import GridSpec, SonarSpec, SparseSpec
 
 __all__ = ["MapState", "load_map", "map_state", "merge_into", "merge_maps", "new_like"]
@@ -113,8 +114,8 @@ def new_like(state: MapState, backend: str = "auto", **kw):
     common = dict(method=o["method"], shadow_m=o["shadow_m"], rule=o["rule"], threshold=o["threshold"],
                   carve_views=o["carve_views"])
     if state.kind == "dense":
-        return MinMaxMapper(spec, GridSpec.from_dict(o["grid"]), backend=backend, **common)
-    return MinMaxMapper(spec, SparseSpec.from_dict(o["sparse"]), backend=backend, **common, **kw)
+        return MinMaxMapper(spec, GridSpec.from_dict(o["grid"]), backend, MapperParams(**common))
+    return MinMaxMapper(spec, SparseSpec.from_dict(o["sparse"]), backend, MapperParams(**common, **kw))
 
 
 def merge_maps(maps, backend: str = "auto", **kw):

@@ -1,4 +1,4 @@
-"""The refined map: what :func:`gpumap.refine.refine` returns (:class:`RefineResult`), its file,
+"""The refined map: what :func:`gpumap.layers.refine.refine` returns (:class:`RefineResult`), its file,
 and the two quantities it keeps apart.
 
 - the **field** ``o`` in [0, 1] (:attr:`RefineResult.field`): what the renderer takes;
@@ -8,7 +8,7 @@ and the two quantities it keeps apart.
 
 A refined map file (:meth:`RefineResult.save`, ``gpumap refine``'s ``refined.npz``) is read back
 by :func:`load_refined` and recognised by :func:`is_refined_file` (``gpumap view``,
-``gpumap export``). The method itself is described in :mod:`gpumap.refine`.
+``gpumap export``). The method itself is described in :mod:`gpumap.layers.refine`.
 """
 
 from __future__ import annotations
@@ -60,7 +60,7 @@ def field_from_occupancy(occupancy: np.ndarray, kappa: float) -> np.ndarray:
 
 @dataclass
 class RefineResult:
-    """What :func:`~gpumap.refine.refine` returns (and :func:`load_refined` reads back).
+    """What :func:`~gpumap.layers.refine.refine` returns (and :func:`load_refined` reads back).
 
     Attributes
     ----------
@@ -69,22 +69,22 @@ class RefineResult:
         layer of the fitted field stops (a probability, not the field: see :attr:`field`); NaN
         where no ping observed the voxel; occupied from :data:`OCCUPIED_LEVEL` on.
     confidence : (nx, ny, nz) float32
-        In [0, 1], NaN unobserved (see :mod:`gpumap.refine`).
+        In [0, 1], NaN unobserved (see :mod:`gpumap.layers.refine`).
     reflectivity : (nx, ny, nz) float32
         The fitted reflectivity (meaningful where the occupancy is high).
     carved, raised : (nx, ny, nz) bool
-        Voxels held free by the first hard constraint (:func:`~gpumap.refine.carved_voxels`); voxels raised by
+        Voxels held free by the first hard constraint (:func:`~gpumap.layers.refine.carved_voxels`); voxels raised by
         the second.
     gain, floor : float
         The fitted display gain and noise floor.
     history : list of float
         Loss per step (data + smoothness, per ping).
     stats : dict
-        ``seconds``, ``device`` and ``device_reason`` (:func:`~gpumap.refine.pick_device`),
+        ``seconds``, ``device`` and ``device_reason`` (:func:`~gpumap.layers.refine.pick_device`),
         ``unexplained_cells``, ``raised_voxels``, ``carved_voxels``, ``movable_voxels``, the
         options and model.
     field : (nx, ny, nz) float32 or None
-        The field ``o`` in [0, 1] that the renderer takes (:func:`~gpumap.refine.render_map`), NaN unobserved;
+        The field ``o`` in [0, 1] that the renderer takes (:func:`~gpumap.layers.refine.render_map`), NaN unobserved;
         ``occupancy == occupancy_from_field(field, kappa)``. Render a result with
         ``render_map(renderer, res.field, poses, reflectivity=res.reflectivity, gain=res.gain,
         floor=res.floor)``, never with ``res.occupancy``.
@@ -252,7 +252,7 @@ def is_refined_file(path: str | os.PathLike) -> bool:
 
 
 #: The two-layer file ``gpumap demo`` and ``gpumap replay`` write beside ``map.npz``
-#: (:mod:`gpumap.surface`: the surface layer and the evidence map, as a refined map file).
+#: (:mod:`gpumap.layers.surface`: the surface layer and the evidence map, as a refined map file).
 SURFACE_FILE = "surface.npz"
 
 

@@ -11,7 +11,7 @@ every storage (``gpumap.kernels.minmax``).
 - **A bounded box** (a :class:`~gpumap.GridSpec`): every block of the box is allocated up front
   and the index is the identity, so a ping costs no block search (the dense grid's speed).
 - **On demand** (a :class:`~gpumap.SparseSpec`): blocks get a slot when a ping may observe them
-  (:meth:`BlockStorage.allocate`, given the candidates that :mod:`gpumap.integrator` finds), the
+  (:meth:`BlockStorage.allocate`, given the candidates that :mod:`gpumap.core.integrator` finds), the
   pool grows by :data:`GROWTH` and an unbounded map's index grows when pings leave it. Each
   block carries a "seen" byte set by the kernels; before the pool grows, and before reads and
   saves, blocks no ping observed are freed (:meth:`~BlockStorage.reclaim`). ``max_bytes``
@@ -39,8 +39,8 @@ import numpy as np
 
 import gpumap.memory as memory
 from gpumap.backends import AUTO_ORDER, Backend, GridTooLargeError, make_backend
+from gpumap.core.rules import ValueRule, combine_into
 from gpumap.errors import BackendUnavailableError
-from gpumap.rules import ValueRule, combine_into
 from gpumap.spec import GridSpec, SonarSpec, SparseSpec
 
 __all__ = ["BLOCK", "GROWTH", "BlockStorage", "MapMemoryError", "local_offsets"]
@@ -426,7 +426,7 @@ class BlockStorage:
     def put_blocks(self, coords: np.ndarray, arrays: dict, combine: bool) -> None:
         """Blocks ``coords`` ((n, 3) int64, distinct, inside the bounds) take ``arrays``
         (``min_all`` and for the visible rule ``bright``, ``count``: (n, B B Bz) each), merged with
-        what they hold when ``combine`` (:func:`gpumap.rules.combine_into`). Allocates missing
+        what they hold when ``combine`` (:func:`gpumap.core.rules.combine_into`). Allocates missing
         blocks (never evicts); raises :class:`MapMemoryError` past ``max_bytes``, unchanged."""
         if not len(coords):
             return

@@ -5,9 +5,9 @@ readers are sequential streams) and hands each ping to one of N workers, in batc
 :data:`BATCH`; each worker keeps one mapper (a Dask *actor*: its map stays in the worker
 between batches, on the worker's own backend) and integrates its batches as they come,
 while the client reads the next ones. At the end every worker sends its map's state
-(:class:`gpumap.merge.MapState`) and the client merges them (:func:`gpumap.merge.merge_maps`).
+(:class:`gpumap.core.merge.MapState`) and the client merges them (:func:`gpumap.core.merge.merge_maps`).
 Every update is a min or a saturating count, so the merged map equals the map of one
-process, bit for bit, whatever the split (:mod:`gpumap.merge`).
+process, bit for bit, whatever the split (:mod:`gpumap.core.merge`).
 
 Which worker gets a ping (``split``): ``"space"`` (default) ranks the pings by where their
 field of view's middle lies along the grid's longer horizontal axis and cuts the ranking
@@ -38,13 +38,14 @@ from collections import deque
 
 import numpy as np
 
+from gpumap.core.params import MapperParams
 from gpumap.spec import GridSpec, SonarSpec
 
 __all__ = ["BATCH", "run_replay_workers"]
 
 log = logging.getLogger("gpumap")
 
-#: Pings per batch sent to a worker (as :func:`gpumap.replay.run_replay` batches them).
+#: Pings per batch sent to a worker (as :func:`gpumap.pipeline.replay.run_replay` batches them).
 BATCH = 32
 #: Batches a worker may have queued before the client waits for it (bounds the memory in flight).
 QUEUED = 2
@@ -111,7 +112,7 @@ class MapperActor:
 
     def __init__(self, spec: dict, grid: dict, options: dict, sparse: bool, cpu_threads: int | None,
                  gpu_rank: int | None = None) -> None:
-        from gpumap.mapper import MinMaxMapper
+        from gpumap.core.mapper import MinMaxMapper
 
         t0 = time.perf_counter()
         # one GPU per worker: chosen before the mapper starts its backend (and with it CUDA)
@@ -121,7 +122,9 @@ class MapperActor:
 
             gpumap.backends.CPU_THREADS = int(cpu_threads)
         s, g = SonarSpec.from_dict(spec), GridSpec.from_dict(grid)
-        self.mapper = MinMaxMapper(s, g, sparse=bool(sparse), **options)
+        opts = dict(options)
+        backend = opts.pop("backend", "auto")
+        self.mapper = MinMaxMapper(s, g, backend, MapperParams(sparse=bool(sparse), **opts))
         self.seconds_setup = time.perf_counter() - t0
         self.seconds_integrate = 0.0
         self.frames = 0
@@ -144,7 +147,7 @@ class MapperActor:
         """The map's state for the wire (:func:`_pack`): its observed blocks, and with ``pack``
         its float arrays as bytes where that is lossless (a third of the bytes
         to send, for about ten passes over the arrays)."""
-        from gpumap.merge import map_state
+        from gpumap.core.merge import map_state
 
         t0 = time.perf_counter()
         st = map_state(self.mapper)  # waits for the device
@@ -216,7 +219,7 @@ def _compact(images: np.ndarray) -> np.ndarray:
 
 
 def _pack(st, pack: bool = True) -> tuple:
-    """A :class:`~gpumap.merge.MapState` for the wire; :func:`_unpack` restores it exactly.
+    """A :class:`~gpumap.core.merge.MapState` for the wire; :func:`_unpack` restores it exactly.
 
     ``pack``: each per-voxel array travels as its non-empty entries (``+inf`` floats and 0 counts
     are empty: most of a block's voxels) and a bit per voxel saying which; float entries that
@@ -241,7 +244,7 @@ def _pack(st, pack: bool = True) -> tuple:
 
 def _unpack(packed: tuple):
     from gpumap.backends import U8_SCALE
-    from gpumap.merge import MapState
+    from gpumap.core.merge import MapState
 
     kind, options, n, arrays = packed
     out = {}
@@ -297,8 +300,8 @@ def _space_owners(spec: SonarSpec, poses: list, grid: GridSpec, n: int) -> np.nd
 
 def plan_replay(recording, *, workers: int, split: str, static: bool, stride: int, max_frames: int | None,
                 grid: GridSpec | None, voxel_size_m: float, sparse: bool, method: str):
-    """What a run of N mappers needs first (here and :mod:`gpumap.gpu_threads`), its arguments
-    checked: (``frames``, a function giving the selected frames as :func:`gpumap.replay.run_replay`
+    """What a run of N mappers needs first (here and :mod:`gpumap.pipeline.gpu_threads`), its arguments
+    checked: (``frames``, a function giving the selected frames as :func:`gpumap.pipeline.replay.run_replay`
     selects them; the grid, sized from every selected pose where None; the space split's owner
     of each selected frame, or None for the pings split)."""
     if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
@@ -310,7 +313,7 @@ def plan_replay(recording, *, workers: int, split: str, static: bool, stride: in
         raise ValueError(f"Expected method='gather' with sparse=True, but got {method!r}")
     if split not in ("space", "pings"):
         raise ValueError(f"Expected split to be 'space' or 'pings', but got {split!r}")
-    from gpumap.replay import grid_of_frames, select_strided, selected_poses
+    from gpumap.pipeline.replay import grid_of_frames, select_strided, selected_poses
 
     stride = max(1, int(stride))
 
@@ -408,7 +411,7 @@ def run_replay_workers(
     split: str = "space",
     gpus: str = "auto",
 ) -> tuple[object, dict]:
-    """:func:`gpumap.replay.run_replay` in ``workers`` Dask workers: the same map, bit for bit.
+    """:func:`gpumap.pipeline.replay.run_replay` in ``workers`` Dask workers: the same map, bit for bit.
 
     Parameters
     ----------
@@ -445,7 +448,7 @@ def run_replay_workers(
         Workers send their maps packed (:func:`_pack`, lossless: the observed entries only, bytes
         where the values are bytes / 255; about a seventh of the bytes on the survey), at the cost
         of a few passes over the arrays in each worker. None (default): packed.
-    Other parameters: as :func:`gpumap.replay.run_replay` (``grid`` None: sized from every
+    Other parameters: as :func:`gpumap.pipeline.replay.run_replay` (``grid`` None: sized from every
     selected pose, before mapping).
 
     Returns
@@ -461,7 +464,7 @@ def run_replay_workers(
     """
     from tqdm import tqdm
 
-    from gpumap.merge import merge_maps
+    from gpumap.core.merge import merge_maps
 
     if gpus not in ("auto", "none"):
         raise ValueError(f"Expected gpus to be 'auto' or 'none', but got {gpus!r}")

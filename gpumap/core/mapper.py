@@ -3,19 +3,19 @@
 One :class:`MinMaxMapper` serves a fixed box and an open world, as a facade over parts that each
 own one concern (and are tested alone):
 
-- :mod:`gpumap.storage` (:class:`~gpumap.storage.BlockStorage`): the map's blocks of voxels on
+- :mod:`gpumap.core.storage` (:class:`~gpumap.core.storage.BlockStorage`): the map's blocks of voxels on
   the backend's device and the coarse index that finds them: all blocks of a bounded box up
   front (a :class:`~gpumap.GridSpec`: no per-ping block search, the dense grid's speed), or on
   demand (a :class:`~gpumap.SparseSpec`, bounded or not, or ``sparse=True``: memory grows with
   what the sonar has seen, under ``max_bytes``); reads, writes and dense boxes.
-- :mod:`gpumap.integrator` (:class:`~gpumap.integrator.Integrator`): a ping's checks and record,
+- :mod:`gpumap.core.integrator` (:class:`~gpumap.core.integrator.Integrator`): a ping's checks and record,
   the blocks it may observe (on demand), the kernels' launches (:mod:`gpumap.backends`).
-- :mod:`gpumap.rules`: how the per-voxel state reads as values (the rule and its read-time
+- :mod:`gpumap.core.rules`: how the per-voxel state reads as values (the rule and its read-time
   options) and how two states merge.
-- :mod:`gpumap.confidence` (:class:`~gpumap.confidence.ConfidenceLayer`): the optional
-  confidence layer and the view gain scored against it (:mod:`gpumap.nbv`).
-- :mod:`gpumap.mapfile`: map files (:meth:`MinMaxMapper.save`, :meth:`MinMaxMapper.load`),
-  every format version; :mod:`gpumap.mapstate` and :mod:`gpumap.merge`: merging maps.
+- :mod:`gpumap.core.params`: the options (:class:`~gpumap.core.params.MapperParams`) and the layer
+  protocol (:meth:`MinMaxMapper.attach`): layers follow the map, the map never imports them.
+- :mod:`gpumap.core.mapfile`: map files (:meth:`MinMaxMapper.save`, :meth:`MinMaxMapper.load`),
+  every format version; :mod:`gpumap.core.mapstate` and :mod:`gpumap.core.merge`: merging maps.
 
 Both storages give the same values, bit for bit, wherever both have voxels: the same per-voxel
 code runs on the same voxel centres.
@@ -31,18 +31,18 @@ import numpy as np
 
 from gpumap.backends import BACKENDS
 from gpumap.backends import available_backends as _available
-from gpumap.confidence import ConfidenceLayer, check_candidates, voxel_states
+from gpumap.core.integrator import Integrator, check_pose_cov
+from gpumap.core.mapfile import FILE_FORMAT, FILE_VERSION, SPARSE_FILE_FORMAT  # noqa: F401 (see below)
+from gpumap.core.mapfile import load as load_file
+from gpumap.core.mapfile import save as save_file
+from gpumap.core.mapstate import as_state, check_other, merge_state
+from gpumap.core.params import MapperParams
+from gpumap.core.rules import ValueRule, rule_values  # noqa: F401 (see below)
+from gpumap.core.storage import BLOCK, GROWTH, BlockStorage, MapMemoryError, local_offsets  # noqa: F401 (see below)
 from gpumap.errors import check_finite_scalar, check_pose
-from gpumap.geometry import BRIGHT_SHARE, DECISION, MISS_COST, RULES, SHARE_Z, make_template_S
-from gpumap.integrator import METHODS, Integrator, check_pose_cov
-from gpumap.mapfile import FILE_FORMAT, FILE_VERSION, SPARSE_FILE_FORMAT  # noqa: F401 (see below)
-from gpumap.mapfile import load as load_file
-from gpumap.mapfile import save as save_file
-from gpumap.mapstate import as_state, check_other, merge_state
+from gpumap.geometry import make_template_S
 from gpumap.pings import PingPrints
-from gpumap.rules import ValueRule, rule_values  # noqa: F401 (see below)
 from gpumap.spec import GridSpec, SonarSpec, SparseSpec, _vec3
-from gpumap.storage import BLOCK, GROWTH, BlockStorage, MapMemoryError, local_offsets  # noqa: F401 (see below)
 
 # FILE_FORMAT, FILE_VERSION, SPARSE_FILE_FORMAT, BLOCK, GROWTH and rule_values, imported above, stay
 # names of this module, as they were before the mapper's parts had modules of their own.
@@ -114,111 +114,38 @@ class MinMaxMapper:
         or one of ``"numpy"``, ``"warp-cpu"``, ``"warp-cuda"``, ``"opencl"`` (GPU if there
         is one, else CPU), ``"opencl-gpu"``, ``"opencl-cpu"``. A named backend that cannot
         run raises :class:`gpumap.BackendUnavailableError`; it never falls back.
-    method : str
-        ``"gather"`` (every voxel of the field of view's bounding box, no holes) or
-        ``"template"`` (the paper's six steps on a voxel template: may leave holes; a
-        bounded GridSpec only).
-    shadow_m : float
-        Acoustic-shadow allowance, metres (default 0: the paper's min-max). A strong return
-        also counts for the voxels up to ``shadow_m`` behind it in its beams, so a ping does
-        not carve the far side of a thin object it cannot see through (each footprint reaches
-        ``shadow_m`` further towards the sonar). Trades false positives behind returns for
-        fewer false negatives; think of it as the thinnest object the map must keep whole.
-    footprint_max : str
-        How kernels take the max over a footprint, a speed knob with identical results:
-        ``"auto"``/``"table"`` (a per-ping max table, built in the way that suits the
-        device, then two reads per voxel) or ``"loop"`` (a loop over the footprint's cells).
-    rule : str or None
-        ``"evidence"``, ``"visible"`` or ``"plain"``, see above; None (default) picks
-        ``"evidence"`` for the gather method and ``"plain"`` for the template method (the
-        paper's six steps with the paper's rule; the others need ``method="gather"``).
-    threshold : float
-        Intensity in (0, 1] from which a view counts as bright (the visible rule's returns and
-        shadows). Set it to the threshold you read the map at; lower is more conservative
-        (more views count as bright, fewer carve). Default 0.1.
-    carve_views : int
-        Visible rule: the clear dark evidence that carves a voxel once seen bright, in views
-        (one darker than ``threshold / 2`` counts twice). 2 (default) keeps a surface through
-        one speckle-dark view; 1 carves more water and more weak surfaces (fewer false
-        positives, more false negatives); larger is more conservative. Read-time only: it
-        may be changed between pings (:attr:`carve_views`), in 1..255.
-    bright_share : float
-        Evidence rule: the share of bright views, in (0, 1], below which a voxel is free once
-        the views show it (default :data:`gpumap.geometry.BRIGHT_SHARE`, 0.2: chosen so that no
-        simulated object erodes over 1,000 pings with the real sonar's view-to-view variation;
-        0.5 keeps fewer phantoms on the real tank but loses a third of the objects seen from
-        all sides, ``bench.long_run``). Read-time only.
-    share_z : float
-        Evidence rule: how sure the views must be before they free a voxel, as a one-sided
-        normal quantile in [0, 10] (default :data:`gpumap.geometry.SHARE_Z`, 1.645: 95 %);
-        larger keeps more voxels occupied on few views. Read-time only.
-    decision : str
-        Evidence rule: how the view counts decide (default :data:`gpumap.geometry.DECISION`).
-        ``"share"``: the share test above (``bright_share``, ``share_z``). ``"calibrated"``: a
-        two-class view model (surface, water; beta-binomials over bright and clear dark views)
-        fitted to this map's own counts, so the decision knows how reliable this sonar's views
-        are; a voxel is occupied when its posterior of being surface is at least
-        ``1 / (1 + miss_cost)`` (:mod:`gpumap.calibration`, :meth:`view_model`). Read-time only.
-    miss_cost : float
-        Calibrated decision: how many phantom voxels one avoided miss is worth, in [1e-6, 1e12]
-        (default :data:`gpumap.geometry.MISS_COST`, 10). Larger is safer and fuller. Read-time only.
-    confidence : bool
-        Keep the confidence layer (:mod:`gpumap.confidence`; a bounded GridSpec only): after
-        each ping a separate pass marks the occupied voxels that view confirmed (resolved in
-        elevation), read with :meth:`confidence`; :meth:`view_gain` scores candidate poses
-        against it. Costs three bytes per voxel (on the map's device, and on the host when read)
-        and a pass per ping beside the update, on the map's device (``bench/results/confidence.json``).
-        Default False.
-    sparse : bool or None
-        True: allocate blocks on demand even for a GridSpec (its box bounds the map). None
-        (default): on demand for a SparseSpec, all blocks for a GridSpec.
-    max_bytes : int or None
-        On demand only: cap on the block pool plus the coarse index, bytes (None: what the
-        device allows).
-    evict : None or "farthest"
-        On demand only: what a ping that would pass ``max_bytes`` does. None raises
-        :class:`MapMemoryError` with the map unchanged; ``"farthest"`` frees the blocks
-        farthest from the sonar (block centre to the sonar's position) that the ping does not
-        reach, which become unknown.
-    initial_blocks : int
-        On demand only: pool slots allocated up front (default 64; the pool grows by 1.5x).
+    params : MapperParams or None
+        Every other option, checked when made (:class:`gpumap.core.params.MapperParams`: method,
+        rule, threshold, shadow_m, carve_views, bright_share, share_z, footprint_max, and for blocks
+        on demand sparse, max_bytes, evict, initial_blocks); None: the defaults.
     device_index : int or None
         Which device of the backend's kind the map lives on (None: the first): ``warp-cuda``
         on ``cuda:<device_index>``, ``opencl-gpu``/``opencl-cpu`` on that OpenCL device of their
         kind (:func:`gpumap.backends.opencl_devices`); ``numpy`` and ``warp-cpu`` have 0 only. An
         index the backend does not have raises ``ValueError``; never another device. Mappers on
-        several GPUs of one process: :mod:`gpumap.gpu_threads`.
+        several GPUs of one process: :mod:`gpumap.pipeline.gpu_threads`.
+
+    Layers (confidence, view gain, surface estimate, distance field, a live view) follow the map
+    through :meth:`attach`; the map never imports them.
     """
 
-    _on_demand = False  # a subclass that only holds maps on demand (gpumap.sparse.SparseMinMaxMapper)
+    _on_demand = False  # a subclass that only holds maps on demand (gpumap.core.sparse.SparseMinMaxMapper)
 
     def __init__(
         self,
         spec: SonarSpec,
         grid: GridSpec | SparseSpec,
         backend: str = "auto",
-        method: str = "gather",
+        params: MapperParams | None = None,
         *,
-        shadow_m: float = 0.0,
-        footprint_max: str = "auto",
-        rule: str | None = None,
-        threshold: float = 0.1,
-        carve_views: int = 2,
-        bright_share: float = BRIGHT_SHARE,
-        share_z: float = SHARE_Z,
-        decision: str = DECISION,
-        miss_cost: float = MISS_COST,
-        confidence: bool = False,
-        sparse: bool | None = None,
-        max_bytes: int | None = None,
-        evict: str | None = None,
-        initial_blocks: int = 64,
         device_index: int | None = None,
     ) -> None:
         if not isinstance(spec, SonarSpec):
             raise TypeError(f"Expected a gpumap.SonarSpec for 'spec', but got {type(spec).__name__}")
-        if sparse not in (None, True, False):
-            raise TypeError(f"Expected None or a bool for 'sparse', but got {sparse!r}")
+        params = MapperParams() if params is None else params
+        if not isinstance(params, MapperParams):
+            raise TypeError(f"Expected a gpumap.MapperParams for 'params', but got {type(params).__name__}")
+        sparse, method = params.sparse, params.method
         if isinstance(grid, GridSpec):
             space = SparseSpec(grid.voxel_size_m, (grid.min_corner_m, grid.max_corner_m)) if sparse else None
         elif isinstance(grid, SparseSpec):
@@ -229,76 +156,89 @@ class MinMaxMapper:
         else:
             raise TypeError(
                 f"Expected a gpumap.GridSpec or gpumap.SparseSpec for 'grid', but got {type(grid).__name__}")
-        if method not in METHODS:
-            raise ValueError(f"Expected method to be one of {METHODS}, but got {method!r}")
         if backend != "auto" and backend not in BACKENDS:
             raise ValueError(f"Expected backend to be 'auto' or one of {BACKENDS}, but got {backend!r}")
-        if footprint_max not in ("auto", "table", "loop"):
+        if space is not None and method != "gather":
             raise ValueError(
-                f"Expected footprint_max to be 'auto', 'table' or 'loop', but got {footprint_max!r}"
+                "Expected method='gather' on a map that allocates blocks on demand (the template method "
+                f"needs a bounded GridSpec), but got method={method!r}"
             )
-        if rule is None:
-            rule = "evidence" if method == "gather" else "plain"
-        if rule not in RULES:
-            raise ValueError(f"Expected rule to be one of {RULES} (or None), but got {rule!r}")
-        if rule != "plain" and method != "gather":
-            raise ValueError(
-                f"Expected method='gather' with rule={rule!r} (the template method's duplicate "
-                f"points cannot count views once), but got method={method!r}; use rule='plain' with it"
-            )
-        thr = check_finite_scalar(threshold, "threshold")
-        if not 0.0 < thr <= 1.0:
-            raise ValueError(f"Expected threshold in (0, 1], but got {thr}")
-        shadow = check_finite_scalar(shadow_m, "shadow_m")
-        if shadow < 0:
-            raise ValueError(f"Expected shadow_m >= 0, but got {shadow}")
-        if not isinstance(confidence, (bool, np.bool_)):
-            raise TypeError(f"Expected a bool for 'confidence', but got {type(confidence).__name__}")
-        if space is not None and (method != "gather" or confidence):
-            raise ValueError(
-                "Expected method='gather' and no confidence layer on a map that allocates blocks on demand "
-                f"(the template method and the confidence layer need a bounded GridSpec), but got "
-                f"method={method!r}, confidence={bool(confidence)}"
-            )
-        if evict not in (None, "farthest"):
-            raise ValueError(f"Expected evict to be None or 'farthest', but got {evict!r}")
-        if max_bytes is not None and (
-            isinstance(max_bytes, bool) or not isinstance(max_bytes, (int, np.integer)) or max_bytes <= 0
-        ):
-            raise ValueError(f"Expected max_bytes to be a positive integer or None, but got {max_bytes!r}")
-        if isinstance(initial_blocks, bool) or not isinstance(initial_blocks, (int, np.integer)) \
-                or initial_blocks < 1:
-            raise ValueError(f"Expected initial_blocks to be a positive integer, but got {initial_blocks!r}")
-        if space is None and (max_bytes is not None or evict is not None):
+        if space is None and (params.max_bytes is not None or params.evict is not None):
             raise ValueError("Expected max_bytes and evict only with blocks on demand (a SparseSpec or "
                              "sparse=True): a GridSpec's blocks are all allocated up front")
+        #: The options the map was made with (:class:`~gpumap.core.params.MapperParams`).
+        self.params = params
         self.spec, self.sparse = spec, space
-        self.method, self.rule, self.threshold, self.shadow_m = method, rule, thr, shadow
-        #: The rule with its read-time options (:class:`~gpumap.rules.ValueRule`: checks them when set).
-        self.value_rule = ValueRule(rule, carve_views, bright_share, share_z, decision, miss_cost)
-        self.max_bytes = None if max_bytes is None else int(max_bytes)
-        self.evict = evict
+        self.method, self.rule, self.threshold, self.shadow_m = method, params.rule, params.threshold, \
+            params.shadow_m
+        #: The rule with its read-time options (:class:`~gpumap.core.rules.ValueRule`: checks them when set).
+        self.value_rule = ValueRule(params.rule, params.carve_views, params.bright_share, params.share_z)
+        self.max_bytes, self.evict = params.max_bytes, params.evict
         self.n_integrated = 0
         self.pings = PingPrints()  # a fingerprint per integrated ping (gpumap.pings)
+        #: Attached layers (:meth:`attach`), in the order they were attached.
+        self.layers: list = []
+        #: Arrays a loaded map file kept for layers not attached yet, by layer name (:meth:`attach`).
+        self.layer_state: dict[str, dict[str, np.ndarray]] = {}
         template = make_template_S(spec, grid.voxel_size_m) if method == "template" else None
-        #: The map's blocks (:class:`~gpumap.storage.BlockStorage`), its backend and its lock.
+        fm = params.footprint_max
+        #: The map's blocks (:class:`~gpumap.core.storage.BlockStorage`), its backend and its lock.
         self.storage = BlockStorage(spec, grid if space is None else space, self.value_rule, backend,
-                                    template=template,
-                                    use_table=None if footprint_max == "auto" else footprint_max == "table",
-                                    max_bytes=self.max_bytes, evict=evict, initial_blocks=initial_blocks,
-                                    device_index=device_index)
+                                    template=template, use_table=None if fm == "auto" else fm == "table",
+                                    max_bytes=self.max_bytes, evict=self.evict,
+                                    initial_blocks=params.initial_blocks, device_index=device_index)
         st = self.storage
         self.B, self.Bz, self.BV, self.bytes_per_voxel = st.B, st.Bz, st.BV, st.bytes_per_voxel
-        #: What applies pings to the storage (:class:`~gpumap.integrator.Integrator`).
-        self.integrator = Integrator(spec, st, method, template, shadow, rule, thr)
-        #: The confidence layer (:class:`~gpumap.confidence.ConfidenceLayer`), or None without one.
-        self.confidence_layer = ConfidenceLayer(grid.n_voxels) if confidence else None
+        #: What applies pings to the storage (:class:`~gpumap.core.integrator.Integrator`).
+        self.integrator = Integrator(spec, st, method, template, params.shadow_m, params.rule,
+                                     params.threshold)
         # auto says what it picked, once a process (a command makes several mappers); a backend asked
         # for by name is what the caller already knows
         said = (st.backend.name, st.backend.device)
         (log.info if backend == "auto" and said not in _ANNOUNCED else log.debug)(
             "gpumap: backend %s on %s", st.backend.name, st.backend.device)
         _ANNOUNCED.add(said)
+
+    # ------------------------------------------------------------------ layers
+    def attach(self, layer):
+        """Let ``layer`` (:class:`~gpumap.core.params.Layer`) follow this map from now on; returns it.
+
+        The layer's ``attached(mapper)`` checks that the map suits it (and takes what a loaded map
+        file kept for it); then the mapper calls ``after_ping`` after each ping (a ``per_ping``
+        layer: batches are then applied one ping at a time, the same map bit for bit) and
+        ``after_batch`` after each :meth:`integrate` / :meth:`integrate_batch`, under the map's
+        lock, and ``reset`` on :meth:`reset`. One layer of a name per map."""
+        name = getattr(layer, "name", None)
+        if not isinstance(name, str) or not isinstance(getattr(layer, "per_ping", None), bool):
+            raise TypeError(f"Expected a layer with a str 'name' and a bool 'per_ping', but got "
+                            f"{type(layer).__name__}")
+        if any(x.name == name for x in self.layers):
+            raise ValueError(f"Expected one layer named {name!r} on a map, but one is attached already")
+        with self.storage.lock:
+            hook = getattr(layer, "attached", None)
+            if hook is not None:
+                hook(self)
+            self.layers.append(layer)
+        return layer
+
+    def detach(self, layer) -> None:
+        """Stop ``layer`` following this map (it keeps what it has)."""
+        with self.storage.lock:
+            self.layers.remove(layer)
+
+    def layer(self, name: str):
+        """The attached layer named ``name``; ``KeyError`` saying which are attached if none is."""
+        for x in self.layers:
+            if x.name == name:
+                return x
+        raise KeyError(f"Expected a layer named {name!r} attached to this map, but it has "
+                       f"{[x.name for x in self.layers] or 'none'}")
+
+    def _after_batch(self, imgs: np.ndarray, Ts: np.ndarray) -> None:
+        for x in self.layers:
+            hook = getattr(x, "after_batch", None)
+            if hook is not None:
+                hook(self, imgs, Ts)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -340,32 +280,6 @@ class MinMaxMapper:
         self.value_rule.share_z = z
 
     @property
-    def decision(self) -> str:
-        """Evidence rule: how the view counts decide, ``"share"`` or ``"calibrated"`` (see the class)."""
-        return self.value_rule.decision
-
-    @decision.setter
-    def decision(self, d: str) -> None:
-        self.value_rule.decision = d
-
-    @property
-    def miss_cost(self) -> float:
-        """Evidence rule, calibrated decision: the phantom voxels one avoided miss is worth."""
-        return self.value_rule.miss_cost
-
-    @miss_cost.setter
-    def miss_cost(self, c: float) -> None:
-        self.value_rule.miss_cost = c
-
-    def view_model(self):
-        """The calibrated decision's view model fitted to this map's counts now
-        (:class:`gpumap.calibration.ViewModel`; any rule but ``"plain"``)."""
-        from gpumap.calibration import fit_view_model
-
-        ev = self.evidence()
-        return fit_view_model(ev["count"], ev["hits"])
-
-    @property
     def grid(self) -> GridSpec:
         """The :class:`GridSpec` that :meth:`values` covers: the box, or for an unbounded map the
         box of its blocks (one voxel at the origin while empty)."""
@@ -373,13 +287,8 @@ class MinMaxMapper:
 
     @property
     def _params(self) -> np.ndarray:
-        """The static ping record (:attr:`gpumap.integrator.Integrator.params`; ``bench/nbv.py`` reads it)."""
+        """The static ping record (:attr:`gpumap.core.integrator.Integrator.params`; ``bench/nbv.py`` reads it)."""
         return self.integrator.params
-
-    @property
-    def _arcs(self) -> np.ndarray | None:
-        """The confidence layer's arc masks, or None (``bench/nbv.py`` reads them)."""
-        return None if self.confidence_layer is None else self.confidence_layer.arcs
 
     # ------------------------------------------------------------------ update
     def integrate(
@@ -418,10 +327,13 @@ class MinMaxMapper:
             if pose_cov is not None:
                 pads[0] = self.integrator.pose_pad(check_pose_cov(pose_cov), pose_sigmas)
             params = self.integrator.integrate(img, T, pads)
-            if self.confidence_layer is not None:
-                self._confirm(T, pads[0], img, params)
             self.n_integrated += 1  # under the lock
             self.pings.add(img, T)
+            for x in self.layers:
+                if x.per_ping:
+                    x.after_ping(self, img, T, float(pads[0]), params)
+            if self.layers:
+                self._after_batch(img[None], T[None])
 
     def integrate_batch(
         self,
@@ -458,16 +370,20 @@ class MinMaxMapper:
         if B == 0:
             return
         with self.storage.lock:
-            if self.confidence_layer is not None:  # the layer follows the pings in order: one at a time
+            steps = [x for x in self.layers if x.per_ping]
+            if steps:  # these layers follow the pings in order: one at a time
                 for b in range(B):
                     params = self.integrator.integrate(imgs[b], Ts[b], pads[b : b + 1])
-                    self._confirm(Ts[b], pads[b], imgs[b], params)
                     self.n_integrated += 1
                     self.pings.add(imgs[b], Ts[b])
-                return
-            self.integrator.integrate_batch(imgs, Ts, pads)
-            self.n_integrated += B
-            self.pings.add_batch(imgs, Ts)
+                    for x in steps:
+                        x.after_ping(self, imgs[b], Ts[b], float(pads[b]), params)
+            else:
+                self.integrator.integrate_batch(imgs, Ts, pads)
+                self.n_integrated += B
+                self.pings.add_batch(imgs, Ts)
+            if self.layers:
+                self._after_batch(imgs, Ts)
 
     def synchronize(self) -> None:
         """Wait until every ping handed to :meth:`integrate` is in the map (GPU backends run async)."""
@@ -584,66 +500,22 @@ class MinMaxMapper:
         same box (the bounds, or the box of the blocks) at the same bytes per voxel."""
         return self.storage.memory_stats()
 
-    # ------------------------------------------------------------------ confidence and view gain
-    def _need_confidence(self, what: str) -> ConfidenceLayer:
-        if self.sparse is not None:
-            raise NotImplementedError(
-                f"Expected a gpumap.MinMaxMapper on a GridSpec with confidence=True for {what}(); a map that "
-                "allocates blocks on demand has no confidence layer yet"
-            )
-        if self.confidence_layer is None:
-            raise ValueError(f"Expected a mapper made with confidence=True for {what}(), but it has none")
-        return self.confidence_layer
-
-    def _confirm(self, T: np.ndarray, pad: float, img: np.ndarray, params: np.ndarray) -> None:
-        """The confidence pass of one ping after its update (its record ``params``)."""
-        self.confidence_layer.confirm(self.integrator, T, pad, img, self.raw_values, self.grid.voxel_size_m,
-                                      params)
-
-    def confidence(self) -> np.ndarray:
-        """(nx, ny, nz) uint8 state of each voxel: 0 unknown, 1 free, 2 occupied and unconfirmed
-        (only consistent with the pings: the elevation stretch lives here), 3 occupied and
-        confirmed (some view resolved it in elevation; see :mod:`gpumap.confidence` for the exact
-        rule). Occupied means a value ``>= threshold``; confidence never changes a value, so it
-        never turns an occupied voxel free. Needs ``confidence=True``."""
-        layer = self._need_confidence("confidence")
-        with self.storage.lock:
-            v = self.raw_values().ravel()
-            conf = layer.confirmed.copy()
-        return voxel_states(v, conf, self.threshold).reshape(self.grid.shape)
-
-    def view_gain(self, T_W_S_candidates: np.ndarray, unknown_weight: float = 1.0) -> np.ndarray:
-        """(K,) float64 gain of each candidate sonar pose ((K, 4, 4) float), from the map alone.
-
-        ``gain = settle + unknown_weight * unknown``: ``settle`` counts the unconfirmed occupied
-        voxels the candidate observes along an elevation arc that could settle them: both
-        neighbours along the arc known free (a bright echo would confirm them, a dark clear view
-        carve them), or, next to free space, an arc direction no ping has observed them along;
-        ``unknown`` the never-observed voxels in blocks of 4^3 whose centre it observes (exact
-        rules in :mod:`gpumap.nbv`).
-        Runs on the mapper's backend; every backend gives the NumPy reference's gains exactly.
-        Needs ``confidence=True``. Raises on bad poses, with the map unchanged.
-        """
-        layer = self._need_confidence("view_gain")
-        Ts, w = check_candidates(T_W_S_candidates, unknown_weight)
-        with self.storage.lock:
-            return layer.view_gain(Ts, w, self.raw_values(), self.threshold, self.grid, self.storage.backend,
-                                   self.integrator.params)
-
     # ------------------------------------------------------------------ reset, merge
     def reset(self) -> None:
         """Forget every ping: all voxels unknown again (on demand: no blocks; the pool keeps its size)."""
         with self.storage.lock:
-            if self.confidence_layer is not None:
-                self.confidence_layer.reset()
+            for x in self.layers:
+                hook = getattr(x, "reset", None)
+                if hook is not None:
+                    hook()
             self.storage.clear()
             self.n_integrated = 0
             self.pings.clear()
 
     def merge(self, other) -> None:
         """Add the pings of ``other`` (a map of the same grid and options built from other pings:
-        a mapper, a :class:`gpumap.merge.MapState` or a map file) to this map, in place; the result
-        equals one mapper that integrated all of them, bit for bit (:mod:`gpumap.merge`). Never
+        a mapper, a :class:`gpumap.core.merge.MapState` or a map file) to this map, in place; the result
+        equals one mapper that integrated all of them, bit for bit (:mod:`gpumap.core.merge`). Never
         evicts: past ``max_bytes`` it raises :class:`MapMemoryError` with the map unchanged."""
         check_other(self, other)
         merge_state(self, as_state(other, MinMaxMapper))

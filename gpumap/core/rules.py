@@ -5,7 +5,7 @@ the state afterwards is here: :func:`rule_values` (a voxel's value from ``min_al
 and ``count``), :class:`ValueRule` (the rule with its read-time options, checked when set: they
 may change between pings without touching the state) and :func:`combine_into` (the merge of
 two states of the same voxels: mins of the mins, saturating sums of the view counts, so maps
-of disjoint pings merge exactly, :mod:`gpumap.merge`).
+of disjoint pings merge exactly, :mod:`gpumap.core.merge`).
 """
 
 from __future__ import annotations
@@ -13,41 +13,21 @@ from __future__ import annotations
 import numpy as np
 
 from gpumap.errors import check_carve_views, check_finite_scalar
-from gpumap.geometry import DECISIONS, MISS_COST
 
-__all__ = ["ValueRule", "check_decision", "check_miss_cost", "combine_into", "rule_values"]
+__all__ = ["ValueRule", "combine_into", "rule_values"]
 
 
 def rule_values(rule: str, min_all: np.ndarray, bright, count, carve_views: int, bright_share: float,
-                share_z: float, decision: str = "share", miss_cost: float = MISS_COST) -> np.ndarray:
+                share_z: float) -> np.ndarray:
     """A map's values from its per-voxel state, by ``rule`` (:mod:`gpumap.reference`); the evidence
-    rule decides by ``decision`` (``"share"``: the share test at ``bright_share``, ``share_z``;
-    ``"calibrated"``: :mod:`gpumap.calibration` at ``miss_cost``, fitted to this state's counts)."""
-    from gpumap.reference import calibrated_values, evidence_values, visible_values
+    rule decides by the share test at ``bright_share``, ``share_z``."""
+    from gpumap.reference import evidence_values, visible_values
 
     if rule == "visible":
         return visible_values(min_all, bright, count, carve_views)
     if rule == "evidence":
-        if decision == "calibrated":
-            return calibrated_values(min_all, bright, count, miss_cost)
         return evidence_values(min_all, bright, count, bright_share, share_z)
     return min_all
-
-
-def check_decision(d: object) -> str:
-    """``d`` if it is one of :data:`~gpumap.geometry.DECISIONS`, else raise."""
-    if d not in DECISIONS:
-        raise ValueError(f"Expected decision to be one of {DECISIONS}, but got {d!r}")
-    return str(d)
-
-
-def check_miss_cost(c: object) -> float:
-    """``c`` as a float if it is a finite number in [1e-6, 1e12], else raise."""
-    c = check_finite_scalar(c, "miss_cost")
-    if not 1e-6 <= c <= 1e12:
-        raise ValueError(f"Expected miss_cost in [1e-6, 1e12] (phantoms one avoided miss is worth), "
-                         f"but got {c}")
-    return c
 
 
 def _check_bright_share(p: object) -> float:
@@ -81,33 +61,23 @@ class ValueRule:
                            "free.")
     share_z = _option("share_z", _check_share_z, "Evidence rule: the one-sided normal quantile, in [0, 10], "
                       "of the confidence that frees a voxel.")
-    decision = _option("decision", check_decision, "Evidence rule: how the view counts decide, one of "
-                       "DECISIONS (``share``: the share test; ``calibrated``: gpumap.calibration).")
-    miss_cost = _option("miss_cost", check_miss_cost, "Evidence rule, calibrated decision: the phantom "
-                        "voxels one avoided miss is worth.")
 
-    def __init__(self, rule: str, carve_views: int, bright_share: float, share_z: float,
-                 decision: str = "share", miss_cost: float = MISS_COST) -> None:
+    def __init__(self, rule: str, carve_views: int, bright_share: float, share_z: float) -> None:
         self.rule = rule
         self.carve_views = carve_views
         self.bright_share = bright_share
         self.share_z = share_z
-        self.decision = decision
-        self.miss_cost = miss_cost
 
     def values(self, min_all: np.ndarray, bright, count) -> np.ndarray:
         """The values of a state (the plain rule's are ``min_all`` itself)."""
         return rule_values(self.rule, min_all, bright, count, self.carve_views, self.bright_share,
-                           self.share_z, self.decision, self.miss_cost)
+                           self.share_z)
 
     def occupied(self, dark: np.ndarray, hits: np.ndarray) -> np.ndarray:
         """The evidence rule's decision on view counts (``dark``, ``hits``: clear dark and bright views
         per voxel, any shape): bool of their shape, True where the rule calls a voxel occupied."""
-        from gpumap.calibration import calibrated_occupied
         from gpumap.reference import evidence_occupied
 
-        if self.decision == "calibrated":
-            return calibrated_occupied(dark, hits, self.miss_cost)
         return evidence_occupied(dark, hits, self.bright_share, self.share_z)
 
 

@@ -1,8 +1,8 @@
-"""The two hard constraints of refinement, exactly as :mod:`gpumap.refine` states them.
+"""The two hard constraints of refinement, exactly as :mod:`gpumap.layers.refine` states them.
 
 - :func:`carved_voxels`: the voxels clear dark views carved, which refinement never occupies;
 - :func:`_views_and_raise`: after the fit, every beam's nearest bright bin keeps an occupied
-  voxel (the highest one there is raised to :data:`~gpumap.refined_map.OCCUPIED_LEVEL`), and
+  voxel (the highest one there is raised to :data:`~gpumap.layers.refined_map.OCCUPIED_LEVEL`), and
   the views per voxel that the confidence needs.
 """
 
@@ -12,8 +12,8 @@ import math
 
 import numpy as np
 
-from gpumap.first_return import first_bright_bins
-from gpumap.refined_map import OCCUPIED_LEVEL
+from gpumap.layers.first_return import first_bright_bins
+from gpumap.layers.refined_map import OCCUPIED_LEVEL
 from gpumap.spec import GridSpec, SonarSpec
 
 __all__ = ["REFINE_RULES", "carved_voxels"]

@@ -38,18 +38,18 @@ applies its pings in order and gives the layer of the same sequence of ``integra
 
 :func:`confirm_ping` is the plain NumPy pass (the reference, which the ``numpy`` backend runs).
 On the Warp and OpenCL backends the mapper's :class:`ConfidenceLayer` runs the same pass as
-kernels on the map's device after each update (:mod:`gpumap.confidence_device`,
+kernels on the map's device after each update (:mod:`gpumap.layers.confidence_device`,
 ``kernels/confidence.*``), bit for bit the reference's, reading the map where it lives; the layer
 comes to the host when read. The layer keeps the flags and scores view gains against them
-(:mod:`gpumap.nbv`).
+(:mod:`gpumap.layers.viewgain`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from gpumap.core.integrator import check_poses
 from gpumap.errors import check_finite_scalar
-from gpumap.integrator import check_poses
 from gpumap.reference import beam_index_lo, beam_span, voxel_ping_values
 from gpumap.spec import GridSpec, SonarSpec
 
@@ -117,7 +117,7 @@ def confirm_ping(
         Half-width of the cells that must hold the echo, metres.
     arcs : (n,) uint16, optional
         Updated in place: each voxel the ping observes gets the bit of its elevation arc's
-        direction in this ping (:func:`gpumap.nbv.arc_bits`, the view gain's).
+        direction in this ping (:func:`gpumap.layers.viewgain.arc_bits`, the view gain's).
 
     Returns
     -------
@@ -163,7 +163,7 @@ def confirm_ping(
     S_riv = _prefix(count.reshape(n_bins, n_beams))
     S_lit = _prefix((image >= thr).astype(np.int64))
     if arcs is not None:
-        from gpumap.nbv import arc_bits
+        from gpumap.layers.viewgain import arc_bits
 
         seen = v >= 0
         np.bitwise_or.at(arcs, flat[seen], (np.uint16(1) << arc_bits(
@@ -225,17 +225,86 @@ def check_candidates(T_W_S_candidates: object, unknown_weight: object) -> tuple[
 class ConfidenceLayer:
     """The confidence layer of a map of ``n_voxels`` (a bounded grid): per voxel, whether a ping
     confirmed it (``confirmed``, uint8 0 or 1) and the elevation-arc directions pings observed it
-    along (``arcs``, uint16 masks of :data:`gpumap.nbv.PAIR_STEPS` bits), both flat in the grid's
+    along (``arcs``, uint16 masks of :data:`gpumap.layers.viewgain.PAIR_STEPS` bits), both flat in the grid's
     C order, updated by :meth:`confirm` after each ping's update."""
 
-    def __init__(self, n_voxels: int) -> None:
-        self._confirmed = np.zeros(n_voxels, np.uint8)
-        self._arcs = np.zeros(n_voxels, np.uint16)
+    name = "confidence"
+    per_ping = True  # the pass reads the map as each ping left it
+
+    def __init__(self, mapper=None) -> None:
+        self._confirmed = np.zeros(0, np.uint8)
+        self._arcs = np.zeros(0, np.uint16)
+        self.mapper = None
         self._static = None  # (beam edges, the rivals' half aperture, the widened aperture's corners)
         self._gain_runner = None  # made on the first view gain, on the map's backend
-        self._device = None  # the pass on a Warp or OpenCL map's device (gpumap.confidence_device)
+        self._device = None  # the pass on a Warp or OpenCL map's device (gpumap.layers.confidence_device)
         self._on_device = False  # the device's arrays are newer than the host's
-        self._scalars = None  # (their key, the pass's scalars: gpumap.confidence_device.pass_scalars)
+        self._scalars = None  # (their key, the pass's scalars: gpumap.layers.confidence_device.pass_scalars)
+        if mapper is not None:
+            mapper.attach(self)
+
+    # ------------------------------------------------------------------ the layer protocol
+    def attached(self, mapper) -> None:
+        """Bind to ``mapper`` (a bounded GridSpec's; :meth:`gpumap.MinMaxMapper.attach` calls it), taking
+        the ``confirmed`` and ``arcs`` a loaded map file kept."""
+        if mapper.sparse is not None:
+            raise ValueError(
+                "Expected a gpumap.MinMaxMapper on a GridSpec for the confidence layer, but this map "
+                "allocates blocks on demand (it has no confidence layer yet)"
+            )
+        if self.mapper is not None:
+            raise ValueError("Expected a confidence layer not attached yet, but it follows a map already")
+        n = mapper.grid.n_voxels
+        self.mapper = mapper
+        self._confirmed = np.zeros(n, np.uint8)
+        self._arcs = np.zeros(n, np.uint16)
+        kept = mapper.layer_state.pop(self.name, None)
+        if kept is not None:
+            self._confirmed[:] = kept["confirmed"].ravel()
+            self._arcs[:] = kept["arcs"].ravel()
+
+    def after_ping(self, mapper, image: np.ndarray, T_W_S: np.ndarray, pad_m: float, params) -> None:
+        """The confidence pass of one ping after its update."""
+        self.confirm(mapper.integrator, T_W_S, pad_m, image, mapper.raw_values, mapper.grid.voxel_size_m,
+                     params)
+
+    def file_arrays(self) -> dict[str, np.ndarray]:
+        """``confirmed`` (uint8) and ``arcs`` (uint16), flat over the grid, for the map file."""
+        return {"confirmed": self.confirmed, "arcs": self.arcs}
+
+    def states(self) -> np.ndarray:
+        """(nx, ny, nz) uint8 state of each voxel: 0 unknown, 1 free, 2 occupied and unconfirmed
+        (only consistent with the pings: the elevation stretch lives here), 3 occupied and
+        confirmed (some view resolved it in elevation; the exact rule: this module). Occupied means a
+        value ``>= threshold``; confidence never changes a value, so it never turns an occupied voxel
+        free."""
+        m = self._bound()
+        with m.storage.lock:
+            v = m.raw_values().ravel()
+            conf = self.confirmed.copy()
+        return voxel_states(v, conf, m.threshold).reshape(m.grid.shape)
+
+    def gains(self, T_W_S_candidates: np.ndarray, unknown_weight: float = 1.0) -> np.ndarray:
+        """(K,) float64 gain of each candidate sonar pose ((K, 4, 4) float), from the map alone.
+
+        ``gain = settle + unknown_weight * unknown``: ``settle`` counts the unconfirmed occupied
+        voxels the candidate observes along an elevation arc that could settle them: both
+        neighbours along the arc known free (a bright echo would confirm them, a dark clear view
+        carve them), or, next to free space, an arc direction no ping has observed them along;
+        ``unknown`` the never-observed voxels in blocks of 4^3 whose centre it observes (exact
+        rules in :mod:`gpumap.layers.viewgain`). Runs on the map's backend; every backend gives the
+        NumPy reference's gains exactly. Raises on bad poses, with the map unchanged."""
+        m = self._bound()
+        Ts, w = check_candidates(T_W_S_candidates, unknown_weight)
+        with m.storage.lock:
+            return self.view_gain(Ts, w, m.raw_values(), m.threshold, m.grid, m.storage.backend,
+                                  m.integrator.params)
+
+    def _bound(self):
+        if self.mapper is None:
+            raise ValueError("Expected a confidence layer attached to a map (mapper.attach(layer)), but "
+                             "this one follows none")
+        return self.mapper
 
     @property
     def confirmed(self) -> np.ndarray:
@@ -265,10 +334,10 @@ class ConfidenceLayer:
     def confirm(self, integrator, T: np.ndarray, pad: float, img: np.ndarray, read_values,
                 voxel_size_m: float, update_params: np.ndarray | None = None) -> None:
         """The confidence pass of one ping (pose ``T``, footprint pad ``pad`` m, image ``img``),
-        after its update: ``integrator`` (:class:`gpumap.integrator.Integrator`) makes its record
+        after its update: ``integrator`` (:class:`gpumap.core.integrator.Integrator`) makes its record
         (``update_params``: the update's, reused where the rivals' box is the update's),
         ``read_values()`` gives the map's values then (flat or not, ``+inf`` unknown). On a Warp or
-        OpenCL map the pass runs on its device (:mod:`gpumap.confidence_device`), after the update
+        OpenCL map the pass runs on its device (:mod:`gpumap.layers.confidence_device`), after the update
         on the same stream, and reads the map where it lives; on ``numpy``, :func:`confirm_ping`."""
         from gpumap.geometry import beam_tan_edges
 
@@ -290,7 +359,7 @@ class ConfidenceLayer:
             params, _ = integrator.ping_params(T[None], np.array([pad]), fov_pts=pts)
         tube_m = TUBE_VOXELS * voxel_size_m
         if st.backend.name != "numpy" and st.sparse is None:
-            from gpumap.confidence_device import DeviceConfidence, pass_scalars
+            from gpumap.layers.confidence_device import DeviceConfidence, pass_scalars
 
             if self._device is None:
                 self._device = DeviceConfidence(st.backend, integrator.spec, self._confirmed.size)
@@ -320,11 +389,18 @@ class ConfidenceLayer:
         """(K,) float64 gains of checked candidate poses ``Ts`` (:func:`check_candidates`) against
         the map's ``values`` ((nx, ny, nz) over ``grid``, ``+inf`` unknown), on ``backend`` (the
         map's :class:`gpumap.backends.Backend`), with the map's static ping record ``params``
-        (:mod:`gpumap.nbv`)."""
-        from gpumap.nbv import GainRunner, _fov, gain_points, poses_to_rows
+        (:mod:`gpumap.layers.viewgain`)."""
+        from gpumap.layers.viewgain import GainRunner, _fov, gain_points, poses_to_rows
 
         pts = gain_points(values, self.confirmed.reshape(grid.shape) == 1, threshold, grid, self.arcs)
         if self._gain_runner is None:
             self._gain_runner = GainRunner(backend)
         settle, unknown = self._gain_runner(poses_to_rows(Ts), pts, _fov(params))
         return settle.astype(np.float64) + unknown_weight * unknown.astype(np.float64)
+
+
+def with_confidence(mapper):
+    """``mapper`` with a :class:`ConfidenceLayer` attached (``mapper.layer("confidence")``); returns
+    the mapper, so a map and its layer are made in one expression."""
+    mapper.attach(ConfidenceLayer())
+    return mapper

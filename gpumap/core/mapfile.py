@@ -24,13 +24,14 @@ import numpy as np
 
 import gpumap.memory as memory
 from gpumap.atomic import atomic_write
+from gpumap.core.integrator import METHODS
+from gpumap.core.params import MapperParams
+from gpumap.core.rules import rule_values
+from gpumap.core.storage import BLOCK, local_offsets
 from gpumap.errors import FormatError, LimitError
-from gpumap.geometry import BRIGHT_SHARE, MISS_COST, RULES, SHARE_Z
-from gpumap.integrator import METHODS
+from gpumap.geometry import BRIGHT_SHARE, RULES, SHARE_Z
 from gpumap.pings import read_prints
-from gpumap.rules import check_decision, check_miss_cost, rule_values
 from gpumap.spec import _MAX_VOXEL_INDEX, GridSpec, SonarSpec, SparseSpec
-from gpumap.storage import BLOCK, local_offsets
 
 __all__ = ["FILE_FORMAT", "FILE_VERSION", "SPARSE_FILE_FORMAT", "file_format", "load", "load_map", "save"]
 
@@ -48,7 +49,9 @@ def save(mapper, path: str | os.PathLike) -> Path:
     path = Path(path)
     if path.suffix != ".npz":
         path = path.with_suffix(path.suffix + ".npz") if path.suffix else path.with_suffix(".npz")
-    st, layer = mapper.storage, mapper.confidence_layer
+    st = mapper.storage
+    # the layers' arrays the file keeps (the confidence layer's, today: its name is the file's key)
+    layer = next((x for x in mapper.layers if x.name == "confidence"), None)
     B, Bz = st.B, st.Bz
     with st.lock:  # one consistent snapshot, even while other threads integrate
         st.synchronize()
@@ -60,8 +63,8 @@ def save(mapper, path: str | os.PathLike) -> Path:
             arrays.update({k: data[k][keep] for k in ("min_all", "bright", "count")})
         if layer is not None:
             shape = mapper.grid.shape
-            arrays["confirmed"] = st.to_pool_order(layer.confirmed.reshape(shape), 0)[keep]
-            arrays["arcs"] = st.to_pool_order(layer.arcs.reshape(shape), 0)[keep]
+            for k, a in layer.file_arrays().items():
+                arrays[k] = st.to_pool_order(a.reshape(shape), 0)[keep]
         n_integrated = mapper.n_integrated
         arrays["pings"] = mapper.pings.array()
     arrays = {k: v if k in ("blocks", "pings") else v.reshape(-1, B, B, Bz) for k, v in arrays.items()}
@@ -79,8 +82,6 @@ def save(mapper, path: str | os.PathLike) -> Path:
         "carve_views": mapper.carve_views,
         "bright_share": mapper.bright_share,
         "share_z": mapper.share_z,
-        "decision": mapper.decision,
-        "miss_cost": mapper.miss_cost,
         "n_integrated": n_integrated,
         "backend": mapper.backend,
         "confidence": layer is not None,
@@ -181,7 +182,7 @@ def load(cls, path: str | os.PathLike, backend: str = "auto", kw: dict | None = 
         ) from e
     if dense_file:
         _check_map_values(arrays, opts, path)
-        m = cls(spec, space, backend=backend, **opts, **kw)
+        m = _made(cls, spec, space, backend, opts, kw)
         with m.storage.lock:
             if opts["rule"] != "plain":
                 m.storage.write_box(arrays["min_all"], arrays["bright"], arrays["count"])
@@ -211,7 +212,7 @@ def load(cls, path: str | os.PathLike, backend: str = "auto", kw: dict | None = 
             )
     if isinstance(space, SparseSpec):
         kw = {"initial_blocks": max(1, n), **kw}
-    m = cls(spec, space, backend=backend, **opts, **kw)
+    m = _made(cls, spec, space, backend, opts, kw)
     src = {"min_all": flat["min_all" if opts["rule"] != "plain" else "values"]}
     if opts["rule"] != "plain":
         src["bright"], src["count"] = flat["bright"], flat["count"]
@@ -225,12 +226,21 @@ def load(cls, path: str | os.PathLike, backend: str = "auto", kw: dict | None = 
     return m
 
 
+def _made(cls, spec, space, backend: str, opts: dict, kw: dict):
+    """The empty map a file's options describe, on ``backend`` (``kw``: more :class:`MapperParams`
+    fields, e.g. ``max_bytes``, ``evict``; ``device_index``)."""
+    kw = dict(kw)
+    device_index = kw.pop("device_index", None)
+    fields = {k: v for k, v in opts.items() if k != "confidence"}
+    return cls(spec, space, backend, MapperParams(**fields, **kw), device_index=device_index)
+
+
 def _restore(m, layer: dict | None, n_integrated: int, prints) -> None:
-    """A loaded map's confidence layer (``layer``: ``confirmed`` and ``arcs`` over the grid, or
-    None), ping count and ping fingerprints."""
+    """A loaded map's layer arrays (``layer``: the confidence layer's ``confirmed`` and ``arcs`` over
+    the grid, or None: kept in ``m.layer_state`` until such a layer attaches), ping count and ping
+    fingerprints."""
     if layer is not None:
-        m.confidence_layer.confirmed[:] = layer["confirmed"].ravel()
-        m.confidence_layer.arcs[:] = layer["arcs"].ravel()
+        m.layer_state["confidence"] = {k: np.asarray(layer[k]).ravel().copy() for k in ("confirmed", "arcs")}
     m.n_integrated = n_integrated
     m.pings = prints
 
@@ -238,7 +248,7 @@ def _restore(m, layer: dict | None, n_integrated: int, prints) -> None:
 
 def load_map(cls, path: str | os.PathLike, backend: str = "auto"):
     """``cls.load(path, backend)`` (``cls``: :class:`gpumap.MinMaxMapper`) for a file that is there
-    and says it is a map file (:func:`gpumap.merge.load_map`)."""
+    and says it is a map file (:func:`gpumap.core.merge.load_map`)."""
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"Expected a map file at {p}, but nothing is there")
@@ -342,8 +352,6 @@ def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec | SparseS
         "carve_views": meta.get("carve_views", 2),
         "bright_share": meta.get("bright_share", BRIGHT_SHARE),
         "share_z": meta.get("share_z", SHARE_Z),
-        "decision": meta.get("decision", "share"),  # files before the calibrated decision used the share test
-        "miss_cost": meta.get("miss_cost", MISS_COST),
         "confidence": meta.get("confidence", False),  # versions 1 and 2 have no confidence layer
     }
     if opts["method"] not in METHODS or rule not in RULES or (sparse_file and opts["method"] != "gather"):
@@ -365,10 +373,9 @@ def _check_meta(meta: object, path: Path) -> tuple[SonarSpec, GridSpec | SparseS
             0.0 < p <= 1.0 and 0.0 <= z <= 10.0):
         raise FormatError(f"Expected bright_share in (0, 1] and share_z in [0, 10] in {path}, but got "
                           f"{p!r} and {z!r}")
-    try:
-        check_decision(opts["decision"]), check_miss_cost(opts["miss_cost"])
-    except (TypeError, ValueError) as e:
-        raise FormatError(f"{e} in {path}") from None
+    if meta.get("decision", "share") != "share":  # the calibrated decision, retired (bench/experiments)
+        raise FormatError(f"Expected a map of the share decision in {path}, but it was written with "
+                          f"decision={meta.get('decision')!r}, which gpumap no longer reads")
     return spec, space, opts, n, fmt == FILE_FORMAT and version not in (4, FILE_VERSION)
 
 
@@ -395,7 +402,6 @@ def _check_map_values(arrays: dict[str, np.ndarray], opts: dict, path: Path) -> 
         if np.any(unseen & (np.isfinite(arrays["bright"]) | (arrays["count"] > 0))):
             raise FormatError(f"Expected no evidence on never-observed voxels in {path}, but some have it")
         want = rule_values(opts["rule"], arrays["min_all"], arrays["bright"], arrays["count"],
-                           opts["carve_views"], opts["bright_share"], opts["share_z"], opts["decision"],
-                           opts["miss_cost"])
+                           opts["carve_views"], opts["bright_share"], opts["share_z"])
         if not np.array_equal(want, arrays["values"]):
             raise FormatError(f"Expected 'values' in {path} to follow from its state, but they disagree")
