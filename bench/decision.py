@@ -8,7 +8,8 @@ The same counts decided by the share test (today's default), by the calibrated v
 - the real full-rate tank, development split only: frames 0-599 mapped at every frame, frames
   600-799 judged by first returns (``gpumap.layers.first_return``). Frames 800-1222 stay held out for
   ``python -m bench real_frontier``. Beside the fixed threshold (0.4), the pings' own per-range
-  detections (:func:`gpumap.bench.experiments.detection.adaptive_detect`, the OASIS preprocessing's scheme) at a
+  detections (:func:`gpumap.bench.experiments.detection.adaptive_detect`, the OASIS preprocessing's scheme)
+  at a
   few standard scores, mapped at 0.5; the judge's first returns stay the fixed threshold's.
 
 Writes ``bench/results/decision.json``; ``--report BENCHMARKS.md`` writes its block.
@@ -40,7 +41,8 @@ DETECT_Z = (2.0, 3.0)  # adaptive detection's standard scores measured beside th
 def _decisions(m, directional=None, shares: tuple[float, ...] = ()) -> dict[str, dict]:
     """Decision name -> {"options": ..., "values": the evidence map ``m``'s values read under it}:
     the share test (default, and at ``shares``), the calibrated decision at each of COSTS, the
-    directional decision (``directional``: a :class:`gpumap.bench.experiments.directions.DirectionalEvidence` of the
+    directional decision (``directional``: a :class:`gpumap.bench.experiments.directions.DirectionalEvidence`
+    of the
     same pings) at the default share and ``shares``, and every voxel ever seen bright (the floor of
     any rule's misses: a voxel never bright is free under every rule)."""
     out = {"share 0.2 (default)": {"options": {"decision": "share"}, "values": m.values()}}
@@ -88,7 +90,9 @@ def sim_rows(backend: str, progress: bool) -> list[dict]:
             seen, det = ground_truth_masks(pings, scene.grid, THRESHOLD)
             maps = {}
             for rule in ("evidence", "visible"):
-                maps[rule] = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend, MapperParams(rule=rule, threshold=THRESHOLD))
+                maps[rule] = gpumap.MinMaxMapper(
+                    scene.sonar_spec, scene.grid, backend, MapperParams(rule=rule, threshold=THRESHOLD)
+                )
             directional = DirectionalEvidence(scene.sonar_spec, scene.grid, backend=backend,
                                               threshold=THRESHOLD)
             for p in pings:
@@ -126,9 +130,13 @@ def real_rows(backend: str, progress: bool, stride: int) -> dict:
         for mm in (m, directional):
             mm.integrate_batch(images[a:min(a + 32, DEV_MAP[1])], poses[a:min(a + 32, DEV_MAP[1])])
     judged = range(DEV_JUDGE[0], DEV_JUDGE[1], stride)
-    reads = {f"{k} (threshold 0.4)": {**r, "detection": "threshold 0.4"}
-             for k, r in _decisions(m, directional, REAL_SHARES).items()}
-    for z in DETECT_Z:  # the pings' own detections instead of a fixed threshold (gpumap.bench.experiments.detection)
+    reads = {
+        f"{k} (threshold 0.4)": {**r, "detection": "threshold 0.4"}
+        for k, r in _decisions(m, directional, REAL_SHARES).items()
+    }
+    for z in (
+        DETECT_Z
+    ):  # the pings' own detections instead of a fixed threshold (gpumap.bench.experiments.detection)
         det = np.stack([adaptive_detect(im, z=z) for im in images[DEV_MAP[0]:DEV_MAP[1]]])
         md = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(rule="evidence", threshold=0.5))
         dev_poses = poses[DEV_MAP[0]:DEV_MAP[1]]

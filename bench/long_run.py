@@ -45,7 +45,12 @@ def run_scene(name: str, checkpoints: tuple[int, ...], voxel_m: float, variation
     t0 = time.perf_counter()
     truth = occupancy(scene, seed=seed)
     truth_s, grid = time.perf_counter() - t0, scene.grid
-    mappers = {r: gpumap.MinMaxMapper(scene.sonar_spec, grid, backend, MapperParams(rule=r, threshold=OCCUPIED_THRESHOLD)) for r in RULES}
+    mappers = {
+        r: gpumap.MinMaxMapper(
+            scene.sonar_spec, grid, backend, MapperParams(rule=r, threshold=OCCUPIED_THRESHOLD)
+        )
+        for r in RULES
+    }
     default_rule = default_rule_of(scene.sonar_spec, grid, backend)
     seen, det = np.zeros(grid.n_voxels, bool), np.zeros(grid.n_voxels, bool)
     sim_s, eval_s, map_s, dropped = 0.0, 0.0, dict.fromkeys(RULES, 0.0), 0

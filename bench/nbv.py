@@ -84,7 +84,13 @@ def speed(repeat: int) -> dict:
             g = m.layer("confidence").gains(C)
             best = min(best, time.perf_counter() - t0)
         if ref is None:
-            pts = gain_points(m.raw_values(), m.layer("confidence").states() == 3, m.threshold, m.grid, m.layer("confidence").arcs)
+            pts = gain_points(
+                m.raw_values(),
+                m.layer("confidence").states() == 3,
+                m.threshold,
+                m.grid,
+                m.layer("confidence").arcs,
+            )
             s, u = view_gain_reference(poses_to_rows(C), pts, _fov(m._params))
             ref, n_points = s + 1.0 * u, int(pts.points.shape[0])
         rows[b] = {"device": m.device, "seconds": best, "candidates_per_s": N_CANDIDATES / best,

@@ -19,7 +19,8 @@ Rows, each judged alike:
   :class:`gpumap.MinMaxMapper` (``bright_share``, ``share_z``, ``carve_views``, ...) are set on the
   one map of that rule before it is read, the others are passed to its constructor (a map of its
   own);
-- the surface layer (:func:`gpumap.layers.surface_live.surface_from_mapper` on the evidence map of frames 0-799,
+- the surface layer (:func:`gpumap.layers.surface_live.surface_from_mapper` on the evidence map of frames
+0-799,
   as ``bench.surface`` builds it);
 - the public OASIS reconstruction (chaos-whoi/oasis_iros), its ``update_voxel_grid`` unmodified, run
   by ``bench.oasis_public`` in its own environment (``--oasis-python``: an interpreter with open3d and
@@ -120,9 +121,12 @@ def read_time_options() -> set[str]:
 
 def split_options(options: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     """``options`` -> (constructor options, read-time options); unknown names raise ``ValueError``."""
-    import gpumap
 
-    read, build = read_time_options(), set(inspect.signature(gpumap.MinMaxMapper).parameters)
+    import dataclasses
+
+    from gpumap.core.params import MapperParams
+
+    read, build = read_time_options(), {f.name for f in dataclasses.fields(MapperParams)}
     bad = sorted(set(options) - read - build)
     if bad:
         raise ValueError(f"Expected row options among MinMaxMapper's read-time properties {sorted(read)} or "

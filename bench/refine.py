@@ -131,7 +131,9 @@ def build_maps(c: dict, sel: np.ndarray, backend: str, device: str, overrides: d
 
     out = {}
     for rule in ("plain", "visible"):
-        m = gpumap.MinMaxMapper(c["spec"], c["grid"], backend, MapperParams(rule=rule, threshold=c["threshold"]))
+        m = gpumap.MinMaxMapper(
+            c["spec"], c["grid"], backend, MapperParams(rule=rule, threshold=c["threshold"])
+        )
         t = time.perf_counter()
         m.integrate_batch(c["images"][sel], c["poses"][sel])
         m.synchronize()

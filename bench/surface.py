@@ -1,4 +1,5 @@
-"""``python -m bench.surface``: the surface layer (gpumap.layers.surface) against the visible and evidence maps.
+"""``python -m bench.surface``: the surface layer (gpumap.layers.surface) against the visible and evidence
+maps.
 
 Simulated scenes (true poses, 3 cm, the simulator's threshold 0.1): ``tank`` (the paper's 40
 pings), ``circle`` (60 pings from five sides) and ``side`` (40 pitched pings from one side, no
@@ -87,7 +88,9 @@ def sim_case(name: str, variation: str, backend: str) -> dict:
            "threshold": SIM_THRESHOLD, "load_before": load_average(), "maps": {}}
     mappers = {}
     for rule in ("visible", "evidence"):
-        m = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend, MapperParams(rule=rule, threshold=SIM_THRESHOLD))
+        m = gpumap.MinMaxMapper(
+            scene.sonar_spec, scene.grid, backend, MapperParams(rule=rule, threshold=SIM_THRESHOLD)
+        )
         t0 = time.perf_counter()
         m.integrate_batch(images, poses)
         m.synchronize()

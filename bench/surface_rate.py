@@ -3,7 +3,8 @@
 **Stream** (per mapper backend): the full run (1,223 frames, 5 cm, threshold 0.4), read into memory
 first (not timed), is played at ``--hz`` (default 20, the sonar's rate) in real time, in one thread:
 each cycle maps the pings that have arrived (``integrate_batch``) and hands them to
-:class:`gpumap.layers.surface_live.LiveSurface`, then updates the layer of every ping so far (each update equals the
+:class:`gpumap.layers.surface_live.LiveSurface`, then updates the layer of every ping so far (each update
+equals the
 offline layer of those pings). A ping's *age* is the time from its arrival to the end of the first
 update that covers it. Recorded: updates, their seconds, the ages, the layer's work per ping (add +
 updates over the pings), the mapping's, and whether the layer kept pace (the last update ended within

@@ -78,7 +78,9 @@ def carve_sweep(args: argparse.Namespace) -> list[dict]:
             scene, truth, seen, det = _scene(name, v, args.seed, pings)
             maps = {}
             for rule in RULES:
-                m = maps[rule] = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, args.backend, MapperParams(rule=rule, threshold=THRESHOLD))
+                m = maps[rule] = gpumap.MinMaxMapper(
+                    scene.sonar_spec, scene.grid, args.backend, MapperParams(rule=rule, threshold=THRESHOLD)
+                )
                 for img, T in zip(images, poses, strict=True):
                     m.integrate(img, T)
             plain = score(maps["plain"].values(), truth, seen, det, v)
@@ -106,7 +108,9 @@ def run_scene(name: str, args: argparse.Namespace, bar) -> tuple[list[dict], dic
         truth_s, by_rule = time.perf_counter() - t0, {}
         for rule in RULES:
             bar.set_postfix_str(f"{name} {v * 100:g} cm {rule}")
-            m = gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, args.backend, MapperParams(rule=rule, threshold=THRESHOLD))
+            m = gpumap.MinMaxMapper(
+                scene.sonar_spec, scene.grid, args.backend, MapperParams(rule=rule, threshold=THRESHOLD)
+            )
             warm_up(m, images, poses, WARMUP)
             a = np.asarray(synced_ms(m, images, poses))
             values = m.values()

@@ -7,7 +7,7 @@ The public API::
     mapper = gpumap.MinMaxMapper(spec, grid, backend="auto")
     mapper.integrate(image, T_W_S)
     mapper.values()  # (nx, ny, nz) float32, NaN = never observed
-    res = gpumap.layers.refine(mapper, images, poses)  # the surfaces the pings need (gpumap.layers.refine)
+    res = gpumap.refine(mapper, images, poses)  # the surfaces the pings need (gpumap.layers.refine)
     res = gpumap.refine_saved("map.npz", "recording.oculus")  # the same from a saved map
 """
 

@@ -103,7 +103,12 @@ def build_mapper(
     demo reads from either: ``integrate``, ``synchronize``, ``values``, ``rule``, ``backend``,
     ``save`` and :func:`_memory_report`.
     """
-    return gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend, MapperParams(method=method, shadow_m=shadow_m, rule=rule, threshold=threshold, sparse=bool(sparse)))
+    return gpumap.MinMaxMapper(
+        scene.sonar_spec,
+        scene.grid,
+        backend,
+        MapperParams(method=method, shadow_m=shadow_m, rule=rule, threshold=threshold, sparse=bool(sparse)),
+    )
 
 
 def _memory_report(mapper: gpumap.MinMaxMapper | gpumap.SparseMinMaxMapper, scene: Scene) -> dict:
@@ -278,13 +283,13 @@ def _rule(rule: str | None, method: str) -> str:
     return "plain" if method == "template" else (rule or "evidence")
 
 
-def run_demo(args: argparse.Namespace) -> dict:
+def run_demo(args: argparse.Namespace, open_view=None) -> dict:
     """Run the demo for parsed ``args``; returns the metrics written to ``metrics.json``.
 
-    With ``args.view`` / ``args.record`` (:func:`gpumap.commands.common.add_view_args`) the mapping
-    at true poses is shown live / recorded; the :class:`~gpumap.viewer.session.Session` is
-    appended to ``args.view_sessions`` when there is one (the caller serves it on after the
-    outputs are written).
+    ``open_view(spec, grid, threshold, title)``, when given, returns the live view / recording of the
+    mapping at true poses (``ping``, ``add_points``, ``finish``: :class:`gpumap.viewer.session.Session`,
+    which the command opens) or None; it is appended to ``args.view_sessions`` (the caller serves it
+    on after the outputs are written). The simulator never imports the viewer.
     """
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -315,7 +320,7 @@ def run_demo(args: argparse.Namespace) -> dict:
                 sample = p
     sim_s = time.perf_counter() - t0
     _, detectable = ground_truth_masks(pings, scene.grid, args.threshold)
-    session = _view_session(args, scene, truth, detectable, getattr(args, "view_sessions", None))
+    session = _view_session(open_view, args, scene, truth, detectable, getattr(args, "view_sessions", None))
 
     mapper, times, history = _map_pings(scene, truth, pings, seen_each, T_true, args.backend, args.method,
                                         args.threshold, quiet, "true poses", curve=True,
@@ -336,13 +341,6 @@ def run_demo(args: argparse.Namespace) -> dict:
         ev_o = _final_eval(m_o, scene, truth, seen_each, args.threshold, detectable, full=True)
         rules[other] = {**_summary(ev_o), "height_error_m": ev_o["height_error_m"],
                         "ms_per_image": 1e3 * float(np.mean(t_o[1:] if len(t_o) > 1 else t_o))}
-    if evidence_mapper is not None and evidence_mapper.decision != "calibrated":
-        # the same counts read by the calibrated decision (read-time: gpumap.bench.experiments.calibration)
-        evidence_mapper.decision = "calibrated"
-        ev_c = _final_eval(evidence_mapper, scene, truth, seen_each, args.threshold, detectable, full=True)
-        evidence_mapper.decision = "share"
-        rules["evidence (calibrated)"] = {**_summary(ev_c), "height_error_m": ev_c["height_error_m"],
-                                          "ms_per_image": rules["evidence"]["ms_per_image"]}
     metrics = {
         "scene": scene.name,
         "backend": mapper.backend,
@@ -424,13 +422,13 @@ def run_demo(args: argparse.Namespace) -> dict:
     return metrics
 
 
-def _view_session(args: argparse.Namespace, scene: Scene, truth: Truth, detectable: np.ndarray,
+def _view_session(open_view, args: argparse.Namespace, scene: Scene, truth: Truth, detectable: np.ndarray,
                   sessions: list | None):
     """The live view / recording of the true-pose mapping, with the truth beside the map; or None."""
-    from gpumap.viewer.session import Session
-
-    session = Session.open(args, scene.sonar_spec, scene.grid, args.threshold,
-                           title=f"gpumap demo ({scene.name}, {scene.grid.voxel_size_m * 100:g} cm)")
+    if open_view is None:
+        return None
+    session = open_view(scene.sonar_spec, scene.grid, args.threshold,
+                        f"gpumap demo ({scene.name}, {scene.grid.voxel_size_m * 100:g} cm)")
     if session is None:
         return None
     if sessions is not None:
@@ -513,8 +511,8 @@ def _figures(out: Path, scene: Scene, truth: Truth, mapper, sample: Ping, histor
     plt.close(fig)
 
     # Map vs truth from one viewpoint (shaded voxels, pyrender offscreen), top-down height maps,
-    # and false negatives / positives per object (gpumap.viewer.render).
-    from gpumap.viewer.render import demo_pictures
+    # and false negatives / positives per object (gpumap.io.pictures).
+    from .pictures import demo_pictures
 
     demo_pictures(out, scene.grid, mapper.values(), truth, threshold, mapper.rule, title=f"{scene.name}: ",
                   detectable=detectable)

@@ -130,7 +130,9 @@ def run_plan(scene: Scene, pings: list[Ping], T_traj: np.ndarray, truth: Truth, 
     arms: dict[str, dict] = {}
     with SonarSimulator(scene, seed=seed, **scene.sonar_params) as sim:
         for arm in ARMS:
-            m = with_confidence(gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend, MapperParams(threshold=threshold)))
+            m = with_confidence(
+                gpumap.MinMaxMapper(scene.sonar_spec, scene.grid, backend, MapperParams(threshold=threshold))
+            )
             m.integrate_batch(images, T_traj)
             all_pings = list(pings)
             curve = [_score(m, truth, all_pings, scene.grid, threshold, far)]

@@ -18,3 +18,16 @@ def make_mapper(spec, grid, backend: str = "auto", *, cls=None, confidence: bool
     if confidence:
         m.attach(ConfidenceLayer())
     return m
+
+
+def run_demo(argv: list[str], out, **overrides) -> dict:
+    """``gpumap demo ARGV --out OUT`` with the benchmarks' knobs ``overrides`` (``plan``, ``sparse``,
+    ``seed``, ``shadow_m``: fixed on the command line) set: the metrics it writes."""
+    import argparse
+
+    from gpumap.sim.demo import run_demo as run
+
+    from gpumap.commands.demo import _parser
+
+    args = _parser().parse_args([*argv, "--out", str(out)])
+    return run(argparse.Namespace(**{**vars(args), **overrides, "view_sessions": []}))

@@ -46,7 +46,8 @@ class Mutant:
     edits: dict[str, list[tuple[str, str]]]
     tests: tuple[str, ...] = ("tests/test_visibility.py",)
     extra: dict[str, str] = field(default_factory=dict)
-    #: host code that every backend shares (e.g. bench/experiments/calibration.py): mutated there instead of the
+    #: host code that every backend shares (e.g. bench/experiments/calibration.py): mutated there instead of
+    # the
     #: backend's file of FILES, once (under the "numpy" key)
     file: str | None = None
 

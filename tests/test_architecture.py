@@ -133,7 +133,10 @@ def test_the_graph_sees_lazy_and_package_imports(graph) -> None:
     assert "gpumap.io.octomap" in graph[f"{COMMANDS}.export"]
     assert "gpumap.core.mapper" in graph["gpumap.core.sparse"]
     lazy = _lazy_names(TREES["gpumap"] / "__init__.py")
-    assert lazy["gpumap.MinMaxMapper"] == "gpumap.core.mapper" and lazy["gpumap.refine_saved"] == "gpumap.layers.refine"
+    assert (
+        lazy["gpumap.MinMaxMapper"] == "gpumap.core.mapper"
+        and lazy["gpumap.refine_saved"] == "gpumap.layers.refine"
+    )
 
 
 def test_the_library_never_imports_a_command(graph) -> None:

@@ -25,7 +25,7 @@ from bench.baselines import (  # noqa: E402
     paper_template_S,
     rect_max,
 )
-from gpumap.core.params import MapperParams
+from gpumap.core.params import MapperParams  # noqa: E402
 
 
 def _spec() -> gpumap.SonarSpec:

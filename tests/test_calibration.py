@@ -1,4 +1,5 @@
-"""The evidence rule's calibrated decision (gpumap.bench.experiments.calibration) against independent references.
+"""The evidence rule's calibrated decision (gpumap.bench.experiments.calibration) against independent
+references.
 
 References: counts drawn from known beta-binomial mixtures (the fit must recover what generated
 them), the posterior written out with scipy.stats.betabinom and Bayes' rule, and hand-made noise-free
@@ -17,8 +18,6 @@ from gpumap.bench.experiments.calibration import (
 )
 from scipy.stats import betabinom
 
-import gpumap
-from gpumap.core.params import MapperParams
 from gpumap.reference import pack_counts, split_counts
 
 
@@ -127,42 +126,6 @@ def test_fit_does_not_depend_on_voxel_order_or_shape():
     a = calibrated_occupied(dark, hits, 5.0)
     b = calibrated_occupied(dark[perm].reshape(50, 100), hits[perm].reshape(50, 100), 5.0)
     np.testing.assert_array_equal(a[perm].reshape(50, 100), b)
-
-
-def test_mapper_options_are_checked_and_kept():
-    from test_mapper import GRID, SPEC
-
-    m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="evidence"))
-    assert (m.decision, m.miss_cost) == ("calibrated", 3.0)
-    with pytest.raises(ValueError, match="decision"):
-        m.decision = "median"
-    with pytest.raises(ValueError, match="miss_cost"):
-        m.miss_cost = 0.0
-    with pytest.raises(TypeError, match="miss_cost"):
-        m.miss_cost = "ten"
-    assert (m.decision, m.miss_cost) == ("calibrated", 3.0)
-
-
-def test_map_values_follow_the_decision_on_every_backend_and_survive_a_file(backend, tmp_path):
-    """A map read with the calibrated decision: ``bright`` exactly where calibrated_occupied says, the
-    same on every backend, and a saved map keeps its decision."""
-    from test_evidence_rule import _run
-    from test_visibility import _random_pings
-
-    pings = _random_pings(8, 3)
-    m = _run(backend, pings)
-    m.decision, m.miss_cost = "calibrated", 2.0
-    ev = m.evidence()
-    occ = calibrated_occupied(ev["count"], ev["hits"], 2.0)
-    v = m.raw_values()
-    np.testing.assert_array_equal(v[occ], ev["bright"][occ])
-    np.testing.assert_array_equal(v[~occ], ev["min_all"][~occ])
-    ref = _run("numpy", pings)
-    ref.decision, ref.miss_cost = "calibrated", 2.0
-    np.testing.assert_array_equal(v, ref.raw_values())
-    back = gpumap.MinMaxMapper.load(m.save(tmp_path / "m.npz"), backend="numpy")
-    assert (back.decision, back.miss_cost) == ("calibrated", 2.0)
-    np.testing.assert_array_equal(back.raw_values(), v)
 
 
 def test_counts_round_trip_through_the_packed_state():

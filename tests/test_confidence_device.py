@@ -1,4 +1,5 @@
-"""The confidence layer's pass on the device (issue 37; gpumap.layers.confidence_device, kernels/confidence.*):
+"""The confidence layer's pass on the device (issue 37; gpumap.layers.confidence_device,
+kernels/confidence.*):
 every backend's layer (``confirmed``, ``arcs``) and map equal the NumPy reference's
 (gpumap.layers.confidence.confirm_ping, which the ``numpy`` backend runs) bit for bit, on random map states of
 every rule and random pings, and on the real tank; the layer's host and device copies stay one."""

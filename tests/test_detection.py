@@ -1,4 +1,5 @@
-"""Adaptive detection (gpumap.bench.experiments.detection) against a row-by-row loop written from its definition."""
+"""Adaptive detection (gpumap.bench.experiments.detection) against a row-by-row loop written from
+its definition."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Evidence per view direction (gpumap.bench.experiments.directions) against independent references: the nearest axis
+"""Evidence per view direction (gpumap.bench.experiments.directions) against independent references: the
+nearest axis
 by angle, the score test written out per class and voxel, and the pooled evidence map of the same
 pings (the classes' counts must add up to it exactly)."""
 

@@ -255,4 +255,5 @@ def test_replay_ekf_cli(tmp_path):
     assert s["pose_error"]["odometry"]["position_m"]["mean"] > 0
     assert set(s["map_vs_recorded"]) == {"odometry", "ekf"}
     assert (out / "ekf_paths.png").stat().st_size > 0 and (out / "ekf_measurements.png").stat().st_size > 0
-    assert main([str(DATA / "oasis_tank"), "--ekf", "--compare-rules", "--out", str(tmp_path / "x")]) == 2
+    assert main([str(DATA / "oasis_tank"), "--ekf", "--record", str(tmp_path / "r.rec"),
+                 "--out", str(tmp_path / "x")]) == 2

@@ -1,4 +1,5 @@
-"""In-process mappers (gpumap.pipeline.gpu_threads): N threads, N mappers, one merged map equal to one process.
+"""In-process mappers (gpumap.pipeline.gpu_threads): N threads, N mappers, one merged map equal to one
+process.
 
 On a CPU machine the mappers share device 0 of CPU backends (numpy, warp-cpu, opencl-cpu): the
 same code path as N GPUs (a queue and a thread per mapper, the merge in place), the same map.

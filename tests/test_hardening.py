@@ -101,7 +101,7 @@ def test_replay_frames_refuses_what_is_not_a_range(bad, capsys) -> None:
 def test_replay_pictures_colour_the_occupied_box_not_the_grid(tmp_path, monkeypatch) -> None:
     """views.png colours and meshes only the occupied voxels' box (colour_voxels takes ~60 bytes a
     voxel: over a 864 M-voxel grid that alone was 50 GB), with the same geometry in the world."""
-    import gpumap.viewer.render as render
+    import gpumap.io.pictures as render
 
     grid = gpumap.GridSpec((0.0, 0.0, 0.0), (10.0, 10.0, 5.0), 0.05)
     values = np.full(grid.shape, np.nan, np.float32)

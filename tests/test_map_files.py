@@ -22,6 +22,7 @@ import gpumap
 from gpumap import SparseSpec
 from gpumap.core.merge import load_map, map_state
 from gpumap.core.params import MapperParams
+from gpumap.layers.confidence import with_confidence
 
 PINGS = _random_pings(4, 31)
 
@@ -84,7 +85,8 @@ def test_dense_files_of_versions_1_to_3_load(tmp_path, version):
                 load_map(tmp_path / "old.npz", backend="numpy")):
         _same(got, m, hits=False)
         if version == 3:
-            np.testing.assert_array_equal(got.layer("confidence").states(), m.layer("confidence").states())
+            np.testing.assert_array_equal(with_confidence(got).layer("confidence").states(),
+                                          m.layer("confidence").states())
 
 
 def _old_blocks(m: gpumap.MinMaxMapper) -> dict:
@@ -141,7 +143,8 @@ def test_version_5_round_trip_holds_only_observed_blocks(tmp_path, sparse):
     assert (got.sparse is None) == (not sparse)
     _same(got, m)
     if not sparse:
-        np.testing.assert_array_equal(got.layer("confidence").states(), m.layer("confidence").states())
+        np.testing.assert_array_equal(with_confidence(got).layer("confidence").states(),
+                                      m.layer("confidence").states())
 
 
 def test_a_bounded_box_allocates_every_block_up_front_and_never_searches(monkeypatch):

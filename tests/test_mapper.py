@@ -155,8 +155,15 @@ def test_backends_agree_with_numpy_reference(other_backend, footprint_max):
     poses = [T_A, T_B, pose(rot_z(0.3) @ rot_y(0.05), (-0.05, 0.1, 0.0))]
     for method in ("gather", "template"):
         for shadow_m in (0.0, 0.05):
-            ref = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(method=method, rule="plain", shadow_m=shadow_m))
-            m = gpumap.MinMaxMapper(SPEC, GRID, other_backend, MapperParams(method=method, rule="plain", footprint_max=footprint_max, shadow_m=shadow_m))
+            ref = gpumap.MinMaxMapper(
+                SPEC, GRID, "numpy", MapperParams(method=method, rule="plain", shadow_m=shadow_m)
+            )
+            m = gpumap.MinMaxMapper(
+                SPEC,
+                GRID,
+                other_backend,
+                MapperParams(method=method, rule="plain", footprint_max=footprint_max, shadow_m=shadow_m),
+            )
             for img, T in zip(imgs, poses, strict=True):
                 ref.integrate(img, T)
                 m.integrate(img, T)
@@ -467,7 +474,9 @@ def test_gpu_table_builders_match_cpu_ones():
 
     img = (RNG.random(SPEC.image_shape) ** 3).astype(np.float32)
     have = available_backends()
-    m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="plain"))  # the backends below hold no evidence
+    m = gpumap.MinMaxMapper(
+        SPEC, GRID, "numpy", MapperParams(rule="plain")
+    )  # the backends below hold no evidence
     params = m.integrator.params
     n_cols = ping_params(params, T_A, m.integrator.fov_pts_S, GRID)
     n_levels = int(params["n_levels"])

@@ -16,6 +16,7 @@ from test_mapper import GRID, SPEC, T_A, T_B
 
 import gpumap
 from gpumap.backends import available_backends
+from gpumap.core.params import MapperParams
 
 RNG = np.random.default_rng(5)
 
@@ -164,8 +165,6 @@ def test_opencl_mappers_do_not_leak():
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from hypothesis.extra import numpy as hnp  # noqa: E402
-
-from gpumap.core.params import MapperParams
 
 _FUZZ_IMAGE = (np.random.default_rng(8).random(SPEC.image_shape) ** 5).astype(np.float32)
 _FUZZ_MAPPER = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")

@@ -20,10 +20,23 @@ PLAIN = ValueRule("plain", 2, 0.2, 1.645)
 
 #: The modules of the mapper and its parts, its backends, and the modules beside them.
 MAPPER_MODULES = (
-    "gpumap.core.mapper", "gpumap.core.sparse", "gpumap.core.storage", "gpumap.core.integrator", "gpumap.core.rules",
-    "gpumap.layers.confidence", "gpumap.layers.viewgain", "gpumap.core.mapfile", "gpumap.core.mapstate", "gpumap.core.merge", "gpumap.memory",
-    "gpumap.backends", "gpumap.backends.base", "gpumap.backends.numpy_backend", "gpumap.backends.tables",
-    "gpumap.backends.warp_backend", "gpumap.backends.opencl_backend",
+    "gpumap.core.mapper",
+    "gpumap.core.sparse",
+    "gpumap.core.storage",
+    "gpumap.core.integrator",
+    "gpumap.core.rules",
+    "gpumap.layers.confidence",
+    "gpumap.layers.viewgain",
+    "gpumap.core.mapfile",
+    "gpumap.core.mapstate",
+    "gpumap.core.merge",
+    "gpumap.memory",
+    "gpumap.backends",
+    "gpumap.backends.base",
+    "gpumap.backends.numpy_backend",
+    "gpumap.backends.tables",
+    "gpumap.backends.warp_backend",
+    "gpumap.backends.opencl_backend",
 )
 
 
@@ -49,7 +62,12 @@ def test_the_mapper_modules_import_no_circle():
     assert _reaches(g, "gpumap.core.merge", "gpumap.core.mapper")
     assert not _reaches(g, "gpumap.core.mapper", "gpumap.core.merge")
     # the parts sit below the facade
-    for part in ("gpumap.core.storage", "gpumap.core.integrator", "gpumap.core.mapfile", "gpumap.core.mapstate"):
+    for part in (
+        "gpumap.core.storage",
+        "gpumap.core.integrator",
+        "gpumap.core.mapfile",
+        "gpumap.core.mapstate",
+    ):
         assert _reaches(g, "gpumap.core.mapper", part) and not _reaches(g, part, "gpumap.core.mapper"), part
 
 

@@ -67,9 +67,8 @@ def test_replay_refuses_a_grid_over_the_cap_before_mapping(tmp_path, capsys) -> 
     from gpumap.commands import main
 
     out = tmp_path / "out"
-    rc = main(["replay", str(DATA / "oasis_tank"), "--grid=-30,-30,-15,30,30,15", "--max-memory", "4G",
-               "--no-progress", "--out", str(out)])
+    rc = main(["replay", str(DATA / "oasis_tank"), "--grid=-40,-40,-20,40,40,20",
+               "--no-progress", "--out", str(out)])  # 2.048e9 voxels: over 30 GiB, more than this machine
     err = capsys.readouterr().err
-    assert rc == 2 and "864,000,000 voxels" in err and "--max-memory" in err
-    assert "4.00 GiB (the cap asked for)" in err
+    assert rc == 2 and "2,048,000,000 voxels" in err and "--voxel-size" in err
     assert not out.exists()

@@ -159,7 +159,12 @@ def test_real_tank_pings_random_split(backend, kind):
 
     def make(ps):
         if kind.startswith("sparse"):
-            m = SparseMinMaxMapper(spec, SparseSpec(0.06, origin_m=grid.min_corner_m), backend, MapperParams(rule=rule, threshold=0.4))
+            m = SparseMinMaxMapper(
+                spec,
+                SparseSpec(0.06, origin_m=grid.min_corner_m),
+                backend,
+                MapperParams(rule=rule, threshold=0.4),
+            )
         else:
             m = gpumap.MinMaxMapper(spec, grid, backend, MapperParams(rule=rule, threshold=0.4))
         m.integrate_batch(np.stack([p[0] for p in ps]), np.stack([p[1] for p in ps]))
@@ -184,7 +189,15 @@ def test_mismatches_are_refused_and_leave_the_map_unchanged():
         (gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(threshold=0.2)), "threshold"),
         (gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(threshold=0.1, carve_views=3)), "carve_views"),
         (gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(threshold=0.1, shadow_m=0.02)), "shadow_m"),
-        (gpumap.MinMaxMapper(gpumap.SonarSpec(0.15, 1.4, 60, SPEC.bearings_rad, SPEC.vfov_rad), GRID, "numpy", MapperParams(threshold=0.1)), "spec"),
+        (
+            gpumap.MinMaxMapper(
+                gpumap.SonarSpec(0.15, 1.4, 60, SPEC.bearings_rad, SPEC.vfov_rad),
+                GRID,
+                "numpy",
+                MapperParams(threshold=0.1),
+            ),
+            "spec",
+        ),
         (_sparse("numpy", pings[2:]), "kind"),
     ]
     for other, word in cases:
@@ -233,7 +246,17 @@ def test_sparse_merge_over_max_bytes_raises_unchanged():
     a = _sparse("numpy", pings[:1])
     b = _sparse("numpy", pings[1:])
     na, nb = len(_state(a)["blocks"]), len(_state(b)["blocks"])
-    capped = SparseMinMaxMapper(SPEC, BOUNDED, "numpy", MapperParams(threshold=0.1, initial_blocks=1, max_bytes=a.storage.index.nbytes + (na + 1) * a.storage.block_bytes, evict="farthest"))
+    capped = SparseMinMaxMapper(
+        SPEC,
+        BOUNDED,
+        "numpy",
+        MapperParams(
+            threshold=0.1,
+            initial_blocks=1,
+            max_bytes=a.storage.index.nbytes + (na + 1) * a.storage.block_bytes,
+            evict="farthest",
+        ),
+    )
     capped.merge(a)  # fits
     before = _state(capped)
     assert nb > 1

@@ -10,7 +10,7 @@ import pytest
 
 import gpumap
 from gpumap.core.params import MapperParams
-from gpumap.layers.confidence import with_confidence
+from gpumap.layers.confidence import ConfidenceLayer, with_confidence
 from gpumap.layers.viewgain import (
     PAIR_STEPS,
     _fov,
@@ -148,7 +148,9 @@ def test_gain_counts_a_new_arc_direction_next_to_free_space():
     seen = SPEC.in_fov((c - T[:3, 3]) @ T[:3, :3])
     assert g[0] == 0 and g[1] == seen.sum() > 10
     m.layer("confidence").arcs[:] |= 1 << _bit((0, 1, 0))
-    assert m.layer("confidence").gains(cand[1:], unknown_weight=0.0)[0] < 0.1 * seen.sum()  # only arcs off the y step
+    assert (
+        m.layer("confidence").gains(cand[1:], unknown_weight=0.0)[0] < 0.1 * seen.sum()
+    )  # only arcs off the y step
 
 
 def test_confidence_pass_records_the_arc_directions():
@@ -159,7 +161,9 @@ def test_confidence_pass_records_the_arc_directions():
     assert m.layer("confidence").arcs[f] == 1 << _bit((0, 0, 1))  # level: the arc is vertical
     T2 = _look_at_target(math.pi / 2)
     m.integrate(_echo_image(T2), T2)
-    assert m.layer("confidence").arcs[f] == (1 << _bit((0, 0, 1))) | (1 << _bit((0, 1, 0)))  # rolled: horizontal
+    assert m.layer("confidence").arcs[f] == (1 << _bit((0, 0, 1))) | (
+        1 << _bit((0, 1, 0))
+    )  # rolled: horizontal
 
 
 def test_gain_counts_unknown_blocks():
@@ -188,7 +192,9 @@ def test_view_gain_matches_reference_on_every_backend(backend):
         m.integrate(img, T)
     Ts = np.concatenate([candidate_poses(_look_at_target(), 150, seed=s) for s in range(2)])
     g = m.layer("confidence").gains(Ts, unknown_weight=0.5)
-    pts = gain_points(m.raw_values(), m.layer("confidence").states() == 3, m.threshold, GRID, m.layer("confidence").arcs)
+    pts = gain_points(
+        m.raw_values(), m.layer("confidence").states() == 3, m.threshold, GRID, m.layer("confidence").arcs
+    )
     settle, unknown = view_gain_reference(poses_to_rows(Ts), pts, _fov(m.integrator.params))
     assert (settle > 0).any() and (unknown > 0).any()
     np.testing.assert_array_equal(g, settle + 0.5 * unknown)
@@ -263,6 +269,8 @@ def test_confidence_saved_and_loaded(tmp_path):
         m.integrate(_echo_image(T), T)
     p = m.save(tmp_path / "m.npz")
     back = gpumap.MinMaxMapper.load(p, backend="numpy")
+    assert "confidence" in back.layer_state  # kept for the layer until one attaches
+    with_confidence(back)
     np.testing.assert_array_equal(back.layer("confidence").states(), m.layer("confidence").states())
     np.testing.assert_array_equal(back.layer("confidence").arcs, m.layer("confidence").arcs)
     assert m.layer("confidence").arcs.any()
@@ -270,8 +278,11 @@ def test_confidence_saved_and_loaded(tmp_path):
     n = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy")
     n.integrate(_echo_image(T), T)
     back = gpumap.MinMaxMapper.load(n.save(tmp_path / "n.npz"), backend="numpy")
-    with pytest.raises(ValueError, match="confidence=True"):
-        back.layer("confidence").states()
+    assert "confidence" not in back.layer_state
+    with pytest.raises(KeyError, match="confidence"):
+        back.layer("confidence")
+    with_confidence(back)  # attaches, starts empty
+    assert not back.layer("confidence").confirmed.any()
 
 
 def test_bad_input_raises_and_changes_nothing():
@@ -287,31 +298,32 @@ def test_bad_input_raises_and_changes_nothing():
         m.layer("confidence").gains(bad)
     with pytest.raises(ValueError, match="unknown_weight"):
         m.layer("confidence").gains(bad[:1], unknown_weight=-1.0)
-    with pytest.raises(ValueError, match="confidence=True"):
-        gpumap.MinMaxMapper(SPEC, GRID, backend="numpy").layer("confidence").gains(bad[:1])
-    with pytest.raises(TypeError, match="confidence"):
-        gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", confidence="yes")
+    with pytest.raises(KeyError, match="confidence"):
+        gpumap.MinMaxMapper(SPEC, GRID, backend="numpy").layer("confidence")
+    with pytest.raises(ValueError, match="attached"):
+        ConfidenceLayer().gains(bad[:1])
+    with pytest.raises(ValueError, match="one layer named"):
+        m.attach(ConfidenceLayer())
+    with pytest.raises(TypeError, match="name"):
+        m.attach(object())
     np.testing.assert_array_equal(m.layer("confidence").states(), before)
 
 
 def test_sparse_mapper_says_it_has_no_confidence_layer():
     m = gpumap.SparseMinMaxMapper(SPEC, gpumap.SparseSpec(0.05), backend="numpy")
-    with pytest.raises(NotImplementedError, match="MinMaxMapper"):
-        m.layer("confidence").states()
-    with pytest.raises(NotImplementedError, match="MinMaxMapper"):
-        m.layer("confidence").gains(np.eye(4)[None])
+    with pytest.raises(ValueError, match="on demand"):
+        m.attach(ConfidenceLayer())
+    assert m.layers == []
 
 
 def test_demo_plan_writes_three_arms(tmp_path):
     """``gpumap demo --plan`` end to end on a coarse grid: three arms, one curve row per ping."""
     import json
 
-    from gpumap.commands.demo import main
+    from maps import run_demo
 
     out = tmp_path / "demo"
-    rc = main(["--voxel-size", "0.06", "--pings", "5", "--backend", "numpy", "--out", str(out),
-               "--no-progress", "--plan", "2"])
-    assert rc == 0
+    run_demo(["--voxel-size", "0.06", "--pings", "5", "--backend", "numpy", "--no-progress"], out, plan=2)
     for name in ("plan_curves.png", "plan_confidence.png", "plan_poses.png"):
         assert (out / name).stat().st_size > 0, name
     plan = json.loads((out / "metrics.json").read_text())["plan"]

@@ -42,11 +42,9 @@ def test_readme_quotes_no_peer_ratio_without_a_valid_idle_run():
 @needs_data
 def test_rules_on_the_real_tank_match_a_fresh_replay(tmp_path):
     """The compare-rules figures of the README (rules_real_tank.json) are what the code gives now."""
-    from gpumap.commands.replay import main
+    from bench.rules_real import rule_comparison
 
     want = json.loads((ROOT / "bench" / "results" / "rules_real_tank.json").read_text())["rule_comparison"]
-    assert main([str(DATA / "oasis_tank"), "--voxel-size", "0.05", "--compare-rules", "--no-progress",
-                 "--no-pictures", "--out", str(tmp_path)]) == 0
-    got = json.loads((tmp_path / "summary.json").read_text())["rule_comparison"]
+    got = rule_comparison(DATA / "oasis_tank", 0.05, "auto")
     for k in ("rule", "rules", "occupied_both", "rule_only", "plain_only", "observed_equal"):
         assert got[k] == want[k], k

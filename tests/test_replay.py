@@ -130,16 +130,20 @@ def test_rules_on_real_frames_observe_alike_and_plain_occupied_stays_occupied(tm
 
 
 @needs_data
-def test_replay_compare_rules_writes_picture_and_figures(tmp_path: Path, capsys) -> None:
+def test_rule_comparison_writes_picture_and_figures(tmp_path: Path) -> None:
+    from gpumap.io import open_recording
+    from gpumap.pipeline.replay import DEFAULT_THRESHOLD, run_rule_comparison
+
     out = tmp_path / "out"
     assert main([str(DATA / "oasis_tank"), "--stride", "6", "--out", str(out), "--no-progress",
-                 "--voxel-size", "0.1", "--backend", "numpy", "--compare-rules"]) == 0
-    assert "rules: occupied voxels: plain" in capsys.readouterr().out
+                 "--voxel-size", "0.1", "--backend", "numpy"]) == 0
     s = json.loads((out / "summary.json").read_text())
-    c = s["rule_comparison"]
+    runs, c = run_rule_comparison(open_recording(DATA / "oasis_tank", stride=6), threshold=DEFAULT_THRESHOLD,
+                                  picture=tmp_path / "rules.png", voxel_size_m=0.1, backend="numpy",
+                                  progress=False)
     assert s["rule"] == c["rule"] == "evidence" and c["picture"] == "rules.png"
-    assert (out / "rules.png").stat().st_size > 10_000
-    assert c["rules"]["evidence"]["occupied_voxels"] == s["occupied_voxels"]
+    assert (tmp_path / "rules.png").stat().st_size > 10_000
+    assert c["rules"]["evidence"]["occupied_voxels"] == s["occupied_voxels"]  # the command's map
     assert c["observed_equal"] and c["plain_only"] == 0 and c["rule_only"] > 0
     assert set(c["runs"]) == {"plain", "visible", "evidence"} and c["runs"]["plain"]["frames"] == s["frames"]
     assert _meta(out / "map.npz")["rule"] == "evidence"

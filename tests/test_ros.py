@@ -309,13 +309,23 @@ def test_cloud_confirmed_field_is_the_mappers_confidence_layer():
 
     from gpumap.ros.convert import occupied_cloud
 
-    m = with_confidence(gpumap.MinMaxMapper(gpumap.SonarSpec.uniform(hfov_deg=60, vfov_deg=20, n_beams=64, n_bins=100,
-                                                     range_min_m=0.1, range_max_m=1.5), gpumap.GridSpec((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), 0.05), "numpy", MapperParams(rule="visible")))  # one clear view carves
+    m = with_confidence(
+        gpumap.MinMaxMapper(
+            gpumap.SonarSpec.uniform(
+                hfov_deg=60, vfov_deg=20, n_beams=64, n_bins=100, range_min_m=0.1, range_max_m=1.5
+            ),
+            gpumap.GridSpec((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), 0.05),
+            "numpy",
+            MapperParams(rule="visible"),
+        )
+    )  # one clear view carves
     seen = []
     for roll in (0.0, math.pi / 2, math.pi / 4):
         T = _look_at_target(roll)
         m.integrate(_echo_image(T), T)
-        centres, vals, confirmed = occupied_cloud(m.values(), m.grid, m.threshold, m.layer("confidence").states())
+        centres, vals, confirmed = occupied_cloud(
+            m.values(), m.grid, m.threshold, m.layer("confidence").states()
+        )
         assert confirmed.dtype == np.uint8
         seen.append(_assert_cloud_confidence(centres, vals, confirmed, m))
     assert seen[0][0] == 0 and seen[0][1] >= 5  # one view: the stretch, nothing confirmed

@@ -289,7 +289,10 @@ def _miss_rates(preset: str, checkpoints=(40, 400)) -> dict[str, list[float]]:
     scene = _scene((FLOOR, BLOCK), n=max(checkpoints), voxel_m=0.05)
     truth = occupancy(scene)
     rules = ("visible", "evidence")
-    maps = {r: gpumap.MinMaxMapper(SPEC, scene.grid, "auto", MapperParams(rule=r, threshold=OCCUPIED_THRESHOLD)) for r in rules}
+    maps = {
+        r: gpumap.MinMaxMapper(SPEC, scene.grid, "auto", MapperParams(rule=r, threshold=OCCUPIED_THRESHOLD))
+        for r in rules
+    }
     det = np.zeros(scene.grid.n_voxels, bool)
     out: dict[str, list[float]] = {r: [] for r in rules}
     with SonarSimulator(scene, seed=0, variation=var, **FAST) as sim:

@@ -36,7 +36,16 @@ def _dense(backend, pings, rule="visible", spec=SPEC, grid=GRID, **kw):
 
 
 def _sparse(backend, pings, sparse=BOUNDED, rule="visible", spec=SPEC, **kw):
-    m = make_mapper(spec, sparse, backend=backend, rule=rule, threshold=0.1, initial_blocks=2, **kw, cls=SparseMinMaxMapper)
+    m = make_mapper(
+        spec,
+        sparse,
+        backend=backend,
+        rule=rule,
+        threshold=0.1,
+        initial_blocks=2,
+        **kw,
+        cls=SparseMinMaxMapper,
+    )
     for img, T, *cov in pings:
         m.integrate(img, T, *cov)
     return m
@@ -286,7 +295,9 @@ def test_spec_too_large_is_refused_up_front():
     with pytest.raises(MapMemoryError, match="blocks"):
         SparseMinMaxMapper(SPEC, SparseSpec(0.001, ((0, 0, 0), (1000, 1000, 100))), backend="numpy")
     with pytest.raises(MapMemoryError, match="max_bytes"):
-        SparseMinMaxMapper(SPEC, SparseSpec(0.01, ((0, 0, 0), (10, 10, 4))), "numpy", MapperParams(max_bytes=10_000))
+        SparseMinMaxMapper(
+            SPEC, SparseSpec(0.01, ((0, 0, 0), (10, 10, 4))), "numpy", MapperParams(max_bytes=10_000)
+        )
     for bad in (
         dict(voxel_size_m=0.0),
         dict(voxel_size_m=0.1, block=1),

@@ -68,17 +68,17 @@ def refined(scene):
 
 # ---------------------------------------------------------------------- 1. import gpumap
 def test_refine_is_part_of_import_gpumap() -> None:
-    """``gpumap.layers.refine(...)``, ``gpumap.RefineOptions``, ``gpumap.RefineResult``,
+    """``gpumap.refine(...)``, ``gpumap.RefineOptions``, ``gpumap.RefineResult``,
     ``gpumap.refine_saved``: from ``import gpumap`` alone, without Warp imported, and the same
     after the module ``gpumap.layers.refine`` was imported by name."""
-    code = ("import sys, gpumap; f = gpumap.layers.refine; o = gpumap.RefineOptions(iterations=3); "
+    code = ("import sys, gpumap; f = gpumap.refine; o = gpumap.RefineOptions(iterations=3); "
             "print(callable(f), o.iterations, gpumap.RefineResult.__name__, callable(gpumap.refine_saved), "
             "'warp' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["True", "3", "RefineResult", "True", "False"], out
     import gpumap.layers.refine as mod
 
-    assert callable(gpumap.layers.refine) and gpumap.RefineOptions is mod.RefineOptions
+    assert callable(gpumap.refine) and gpumap.RefineOptions is mod.RefineOptions
     assert gpumap.RefineResult is mod.RefineResult and gpumap.refine_saved is mod.refine_saved
     assert {"refine", "refine_saved", "RefineOptions", "RefineResult"} <= set(gpumap.__all__)
     from gpumap import RefineOptions, refine  # noqa: F401
@@ -87,12 +87,13 @@ def test_refine_is_part_of_import_gpumap() -> None:
 
 
 def test_gpumap_refine_calls_refine(scene, refined) -> None:
-    """``gpumap.layers.refine(mapper, images, poses, ...)`` is :func:`gpumap.layers.refine.refine`: the same result."""
+    """``gpumap.refine(mapper, images, poses, ...)`` is :func:`gpumap.layers.refine.refine`: the same
+    result."""
     from gpumap.layers.refine import RefineOptions
 
     m, res = refined
     _, _, poses, images = scene
-    again = gpumap.layers.refine(m, images, poses, options=RefineOptions(iterations=ITERATIONS), device="cpu")
+    again = gpumap.refine(m, images, poses, options=RefineOptions(iterations=ITERATIONS), device="cpu")
     np.testing.assert_array_equal(again.occupancy, res.occupancy)
 
 

@@ -324,7 +324,8 @@ def test_demo_and_replay_take_no_surface():
     assert demo._parser().parse_args([]).surface is True
     assert demo._parser().parse_args(["--no-surface"]).surface is False
     assert "surface.npz" in demo.OUTPUTS and "surface.npz" in replay.OUTPUTS
-    assert replay._parser().parse_args(["x", "--no-surface"]).surface is False
+    assert replay._parser().parse_args(["x"]).surface is False  # opt-in: --surface
+    assert replay._parser().parse_args(["x", "--surface"]).surface is True
 
 
 def test_live_surface_warm_start_stays_inside_the_map(scene):
@@ -464,7 +465,7 @@ def test_replay_builds_the_surface_layer_in_its_one_pass(tmp_path, monkeypatch):
     monkeypatch.setattr(gpumap.io, "open_recording", open_recording)
     out = tmp_path / "out"
     args = [str(DATA / "oasis_tank"), "--stride", "10", "--max-frames", "6", "--voxel-size", "0.1",
-            "--backend", "numpy", "--no-progress", "--no-pictures", "--out", str(out)]
+            "--backend", "numpy", "--no-progress", "--no-pictures", "--surface", "--out", str(out)]
     monkeypatch.setattr(gpumap.pipeline.replay, "REPLAY_BATCH", 4)  # two batches: the hook sees 4 + 2 pings
     assert gpumap.commands.replay.main(args) == 0
     assert len(opened) == 1

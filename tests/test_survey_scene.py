@@ -249,11 +249,13 @@ def test_survey_sonar_sees_the_seabed(scene):
 
 
 def test_demo_survey_reports_memory_and_sparse_maps_the_same(tmp_path):
+    from maps import run_demo
+
     from gpumap.commands.demo import main
 
     args = ["--scene", "survey", "--voxel-size", "0.2", "--pings", "4", "--backend", "numpy", "--no-progress"]
     assert main([*args, "--out", str(tmp_path / "dense")]) == 0
-    assert main([*args, "--sparse", "--out", str(tmp_path / "sparse")]) == 0
+    run_demo(args, tmp_path / "sparse", sparse=True)
     d, s = (json.loads((tmp_path / n / "metrics.json").read_text()) for n in ("dense", "sparse"))
     assert d["scene"] == "survey" and d["images"] == 4 and d["voxel_size_m"] == 0.2
     assert d["grid_shape"] == [250, 100, 15]

@@ -130,8 +130,7 @@ def test_replay_record_holds_every_ping(tmp_path):
 
     rec_path = tmp_path / "tank.gpumap-rec"
     assert main([str(DATA / "oasis_tank"), "--voxel-size", "0.08", "--max-frames", "12", "--no-progress",
-                 "--no-pictures", "--out", str(tmp_path / "out"), "--record", str(rec_path),
-                 "--view-every", "5"]) == 0
+                 "--no-pictures", "--out", str(tmp_path / "out"), "--record", str(rec_path)]) == 0
     rec = read_recording(rec_path)
     assert rec.n_pings == 12 and len(list(rec.pings())) == 12
     m = MinMaxMapper.load(tmp_path / "out" / "map.npz", backend="numpy")
@@ -270,9 +269,8 @@ def test_demo_view_renders_in_chromium_and_records(tmp_path):
     n = 6
     proc, _ = _start([sys.executable, "-m", "gpumap.commands", "demo", "--voxel-size", "0.08",
                       "--pings", str(n), "--backend", "numpy", "--no-progress",
-                      "--out", str(tmp_path / "out"), "--view",
-                      "--view-port", str(port), "--view-hold", "120", "--record", str(rec_path),
-                      "--view-every", "2"], ready="serving the view")
+                      "--out", str(tmp_path / "out"), "--view", f"127.0.0.1:{port}",
+                      "--view-hold", "120", "--record", str(rec_path)], ready="serving the view")
     try:
         png, errors = _chromium_page(f"http://127.0.0.1:{port}", wait_s=60, done=_looks_rendered)
     finally:

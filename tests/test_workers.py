@@ -92,7 +92,6 @@ def test_replay_cli_workers_writes_the_same_map(cluster, tmp_path: Path, capsys)
 def test_worker_flags_are_checked_before_any_work(tmp_path: Path, capsys):
     out = str(tmp_path / "o")
     for argv, word in ((["--scheduler", "tcp://127.0.0.1:1"], "--workers"),
-                       (["--workers", "2", "--compare-rules"], "--compare-rules"),
                        (["--workers", "2", "--ekf"], "--ekf"),
                        (["--workers", "0"], "--workers")):
         with pytest.raises(SystemExit) as e:

@@ -66,10 +66,14 @@ def _parser() -> ArgumentParser:
                    help="view-to-view variation of the simulated sonar: none (default) or real_tank "
                         "(speckle, per-ping gain, pose jitter, surface texture and range loss fitted to the "
                         "real tank run)")
-    p.add_argument("--no-surface", dest="surface", action="store_false",
-                   help="do not compute the surface layer (gpumap.layers.surface: one voxel of the evidence map per "
-                        "bright cell; by default written beside map.npz as surface.npz, its figures in "
-                        "metrics.json's 'surface' block)")
+    p.add_argument(
+        "--no-surface",
+        dest="surface",
+        action="store_false",
+        help="do not compute the surface layer (gpumap.layers.surface: one voxel of the evidence map per "
+        "bright cell; by default written beside map.npz as surface.npz, its figures in "
+        "metrics.json's 'surface' block)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_view_args(p)
     # what the benchmarks vary (bench/): fixed here, read by gpumap.sim.demo.run_demo
@@ -81,6 +85,15 @@ def _parser() -> ArgumentParser:
 OUTPUTS = ("metrics.json", "map.npz", "surface.npz", "sonar_image.png", "map_vs_truth.png",
            "error_by_views.png", "height_map.png", "errors_by_object.png", "plan_curves.png",
            "plan_confidence.png", "plan_poses.png")
+
+
+def _view_opener(args: argparse.Namespace):
+    """``open_view`` for :func:`gpumap.sim.demo.run_demo`: the session of ``--view``/``--record``."""
+    if not (getattr(args, "view", False) or getattr(args, "record", None) is not None):
+        return None
+    from gpumap.viewer.session import Session
+
+    return lambda spec, grid, threshold, title: Session.open(args, spec, grid, threshold, title=title)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -97,7 +110,8 @@ def main(argv: list[str] | None = None) -> int:
     sessions: list = []
     try:
         with output_set(out, OUTPUTS) as tmp:  # all of them appear in --out together, or none
-            m = sim_demo.run_demo(argparse.Namespace(**{**vars(args), "out": tmp, "view_sessions": sessions}))
+            m = sim_demo.run_demo(argparse.Namespace(**{**vars(args), "out": tmp, "view_sessions": sessions}),
+                                  open_view=_view_opener(args))
     except user_errors() as e:
         for s in sessions:
             s.abort()

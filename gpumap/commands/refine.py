@@ -139,7 +139,12 @@ def main(argv: list[str] | None = None) -> int:
             spec, images, poses = recording_frames(a.path, a.stride, a.max_frames, progress)
             grid = auto_grid(spec, list(poses), a.voxel_size or 0.05,
                              remedy="use a larger --voxel-size, or fewer frames (--stride, --max-frames)")
-            mapper = gpumap.MinMaxMapper(spec, grid, a.backend, MapperParams(rule=a.rule or "evidence", threshold=a.threshold or DEFAULT_THRESHOLD))
+            mapper = gpumap.MinMaxMapper(
+                spec,
+                grid,
+                a.backend,
+                MapperParams(rule=a.rule or "evidence", threshold=a.threshold or DEFAULT_THRESHOLD),
+            )
             map_frames(mapper, images, poses, progress)
             res = refine(mapper, images, poses, options=opts, device=device, progress=progress)
     except user_errors() as e:

@@ -54,7 +54,9 @@ from gpumap.commands.common import (
     user_errors,
     vfov_deg,
 )
+from gpumap.io.pictures import save_pictures
 from gpumap.io.ply import write_ply
+from gpumap.layers.surface_live import LiveSurface
 from gpumap.pipeline.replay import (
     DEFAULT_THRESHOLD,
     RULES,
@@ -63,7 +65,6 @@ from gpumap.pipeline.replay import (
     select_frames,
 )
 from gpumap.spec import GridSpec, SonarSpec
-from gpumap.viewer.render import save_pictures
 
 __all__ = ["EMPTY_MAP_STATUS", "OUTPUTS", "main"]
 
@@ -114,10 +115,13 @@ def _parser() -> ArgumentParser:
     ap.add_argument("--vfov-deg", type=vfov_deg, default=None, help="vertical aperture override")
     ap.add_argument("--no-pictures", action="store_true",
                     help="write the map and summary only, not views.png and floor_slice.png")
-    ap.add_argument("--surface", action="store_true",
-                    help="also compute the surface layer (gpumap.layers.surface, evidence rule only; NumPy on "
-                         "the host: minutes at 1 cm), written beside map.npz as surface.npz (gpumap "
-                         "view/export --layer surface|safe; its figures in summary.json's 'surface' block)")
+    ap.add_argument(
+        "--surface",
+        action="store_true",
+        help="also compute the surface layer (gpumap.layers.surface, evidence rule only; NumPy on "
+        "the host: minutes at 1 cm), written beside map.npz as surface.npz (gpumap "
+        "view/export --layer surface|safe; its figures in summary.json's 'surface' block)",
+    )
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     # the old spelling, still accepted (not shown): one spelling for the same idea across commands
     ap.add_argument("--quiet", dest="no_progress", action="store_true", help=argparse.SUPPRESS)
@@ -127,7 +131,7 @@ def _parser() -> ArgumentParser:
     return ap
 
 
-REPLAY_REMEDY = "use a larger --voxel-size or a smaller --grid, or set the cap (--max-memory)"
+REPLAY_REMEDY = "use a larger --voxel-size or a smaller --grid"
 
 
 def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]:
@@ -224,29 +228,20 @@ def main(argv: list[str] | None = None) -> int:
 EMPTY_MAP_STATUS = 3
 
 
-def _view_hook(a: argparse.Namespace, threshold: float):
-    """``on_ping`` for :func:`run_replay` feeding ``--view``/``--record`` (None without them).
-
-    The session opens at the first ping (when the grid and the sonar are known) and follows
-    only the first mapper it sees: with ``--compare-rules``, the chosen rule's run.
-    """
+def _view_layer(a: argparse.Namespace, threshold: float):
+    """The layer that feeds ``--view``/``--record`` (None without them): its session opens when it is
+    attached to the mapper (the grid and the sonar known then)."""
     if not (getattr(a, "view", False) or getattr(a, "record", None) is not None):
         return None
-    from gpumap.viewer.session import Session
+    from gpumap.viewer.session import Session, SessionLayer
 
-    state: dict = {}
+    def make(mapper):
+        s = Session(a, mapper.spec, mapper.grid, threshold,
+                    title=f"gpumap replay {Path(a.path).name} ({mapper.grid.voxel_size_m * 100:g} cm)")
+        a.view_sessions.append(s)
+        return s
 
-    def on_ping(image, T_W_S, mapper) -> None:
-        if "mapper" not in state:
-            state["mapper"] = mapper
-            s = Session(a, mapper.spec, mapper.grid, threshold,
-                        title=f"gpumap replay {Path(a.path).name} ({mapper.grid.voxel_size_m * 100:g} cm)")
-            a.view_sessions.append(s)
-            state["session"] = s
-        if mapper is state["mapper"]:
-            state["session"].ping(image, T_W_S, mapper)
-
-    return on_ping
+    return SessionLayer(make)
 
 
 def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpec]:
@@ -286,12 +281,9 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
                      progress=not a.no_progress, threshold=mapper_thr,
                      memory_remedy=REPLAY_REMEDY)
     positions: list = []
-    replay_kw["on_ping"] = _view_hook(a, mapper_thr)
-    surface = _SurfaceHook() if a.surface and not a.workers and rule == "evidence" else None
-    replay_kw["on_batch"] = surface
+    view = _view_layer(a, mapper_thr)
+    surface = LiveSurface() if a.surface and not a.workers and rule == "evidence" else None
     if a.workers:  # the same map, mapped by N mappers and merged
-        replay_kw.pop("on_ping")
-        replay_kw.pop("on_batch")
         replay_kw.pop("memory_remedy")  # each worker holds its own map (gpumap.pipeline.workers)
         if _in_process(a):  # N GPUs of this machine: a thread and a mapper each (gpumap.pipeline.gpu_threads)
             from gpumap.pipeline.gpu_threads import run_replay_threads
@@ -305,15 +297,17 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
                                                rule=a.rule, positions=positions,
                                                **replay_kw)
     else:
-        mapper, stats = run_replay(rec, grid=grid, rule=a.rule, positions=positions, **replay_kw)
+        layers = [x for x in (view, surface) if x is not None]
+        mapper, stats = run_replay(rec, grid=grid, rule=a.rule, positions=positions, layers=layers,
+                                   **replay_kw)
     for s in getattr(a, "view_sessions", ()):
         s.finish(mapper)
     if a.skip_bad_frames:
         stats["skipped_bad_frames"] = len(bad)
         stats["bad_frames"] = bad[:100]  # the first hundred errors, each naming its file
     layer = None
-    if surface is not None and surface.live is not None and stats["frames"]:
-        layer, stats["surface"] = surface.finish()
+    if surface is not None and stats["frames"]:
+        layer, stats["surface"] = _surface_summary(surface)
     elif a.surface:
         stats["surface"] = {"skipped": "the surface layer is built on the evidence rule's map from one "
                                        "process (not --workers, --rule evidence)"}
@@ -336,36 +330,18 @@ def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpe
     return stats, mapper.grid
 
 
-class _SurfaceHook:
-    """``on_batch`` for :func:`run_replay`: the surface layer (:class:`gpumap.layers.surface_live.LiveSurface`) of the
-    first mapper it sees (the chosen rule's, with ``--compare-rules``), fed the pings of the mapping
-    pass itself (one read of the recording); :meth:`finish` builds the layer of all of them."""
-
-    def __init__(self) -> None:
-        self.live = None
-        self.seconds = 0.0
-
-    def __call__(self, images, poses, mapper) -> None:
-        from gpumap.layers.surface_live import LiveSurface
-
-        t0 = time.perf_counter()
-        if self.live is None:
-            self.live = LiveSurface(mapper)
-        if mapper is self.live.mapper:
-            self.live.add(images, poses)
-        self.seconds += time.perf_counter() - t0
-
-    def finish(self):
-        """(the layer, its summary block)."""
-        t0 = time.perf_counter()
-        layer = self.live.update()
-        t_update = time.perf_counter() - t0
-        skip = ("candidates", "surface", "pings", "seconds", "warm", "pairs")
-        return layer, {"seconds": self.seconds + t_update, "seconds_during_mapping": self.seconds,
-                       "seconds_after_mapping": t_update, "pings": layer.stats["pings"],
-                       "candidates": layer.stats["candidates"], "surface_voxels": int(layer.surface.sum()),
-                       "pairs": layer.stats.get("pairs"),
-                       "options": {k: v for k, v in layer.stats.items() if k not in skip}}
+def _surface_summary(live) -> tuple:
+    """(the surface layer of every ping :class:`~gpumap.layers.surface_live.LiveSurface` kept, its
+    summary block)."""
+    t0 = time.perf_counter()
+    layer = live.update()
+    t_update = time.perf_counter() - t0
+    skip = ("candidates", "surface", "pings", "seconds", "warm", "pairs")
+    return layer, {"seconds": live.seconds_add + t_update, "seconds_during_mapping": live.seconds_add,
+                   "seconds_after_mapping": t_update, "pings": layer.stats["pings"],
+                   "candidates": layer.stats["candidates"], "surface_voxels": int(layer.surface.sum()),
+                   "pairs": layer.stats.get("pairs"),
+                   "options": {k: v for k, v in layer.stats.items() if k not in skip}}
 
 
 # ------------------------------------------------------------------------------ --workers
@@ -377,17 +353,22 @@ def add_worker_args(ap) -> None:
                          "with N GPUs and a GPU backend: in this process, one thread per GPU; else "
                          "(or with --scheduler) N Dask workers (needs the workers extra: "
                          "pip install 'gpumap[workers]')")
-    ap.add_argument("--scheduler", default=None,
-                    help="address of a running Dask scheduler (e.g. tcp://10.0.0.5:8786) whose "
-                         "workers map; default: start N local worker processes (needs --workers)")
+    ap.add_argument(
+        "--scheduler",
+        default=None,
+        help="address of a running Dask scheduler (e.g. tcp://10.0.0.5:8786) whose "
+        "workers map; default: start N local worker processes (needs --workers)",
+    )
 
 
-#: Backends whose ``--workers N`` run on one machine of N GPUs stays in this process (gpumap.pipeline.gpu_threads).
+#: Backends whose ``--workers N`` run on one machine of N GPUs stays in this process
+# (gpumap.pipeline.gpu_threads).
 IN_PROCESS_BACKENDS = ("auto", "warp-cuda", "opencl-gpu", "opencl")
 
 
 def _in_process(a) -> bool:
-    """Whether ``--workers N`` maps in this process, a thread per GPU: no ``--scheduler``, a GPU backend (or auto) and at least N GPUs here (counted without starting CUDA)."""
+    """Whether ``--workers N`` maps in this process, a thread per GPU: no ``--scheduler``, a GPU
+    backend (or auto) and at least N GPUs here (counted without starting CUDA)."""
     if a.scheduler is not None or a.backend not in IN_PROCESS_BACKENDS:
         return False
     from gpumap.pipeline.workers import host_gpus

@@ -287,7 +287,8 @@ class MinMaxMapper:
 
     @property
     def _params(self) -> np.ndarray:
-        """The static ping record (:attr:`gpumap.core.integrator.Integrator.params`; ``bench/nbv.py`` reads it)."""
+        """The static ping record (:attr:`gpumap.core.integrator.Integrator.params`; ``bench/nbv.py``
+        reads it)."""
         return self.integrator.params
 
     # ------------------------------------------------------------------ update

@@ -8,6 +8,7 @@ for code written against the earlier API.
 from __future__ import annotations
 
 from gpumap.core.mapper import FILE_FORMAT, MapMemoryError, MinMaxMapper
+from gpumap.core.params import MapperParams
 from gpumap.spec import SonarSpec, SparseSpec
 
 __all__ = ["FILE_FORMAT", "MapMemoryError", "SparseMinMaxMapper", "SparseSpec"]
@@ -19,12 +20,13 @@ class SparseMinMaxMapper(MinMaxMapper):
 
     _on_demand = True
 
-    def __init__(self, spec: SonarSpec, sparse: SparseSpec, backend: str = "auto", method: str = "gather",
-                 **kw) -> None:
+    def __init__(self, spec: SonarSpec, sparse: SparseSpec, backend: str = "auto",
+                 params: MapperParams | None = None, *, device_index: int | None = None) -> None:
         if not isinstance(sparse, SparseSpec):
             raise TypeError(f"Expected a gpumap.SparseSpec for 'sparse', but got {type(sparse).__name__}")
-        if method != "gather":
+        params = MapperParams() if params is None else params
+        if getattr(params, "method", "gather") != "gather":
             raise ValueError(
-                f"Expected method='gather' (the sparse map has no template method), but got {method!r}"
+                f"Expected method='gather' (the sparse map has no template method), but got {params.method!r}"
             )
-        super().__init__(spec, sparse, backend, method, **kw)
+        super().__init__(spec, sparse, backend, params, device_index=device_index)

@@ -6,7 +6,6 @@ See :mod:`gpumap.ekf` for the model, the conventions and the differences from Ma
 from __future__ import annotations
 
 import collections
-import functools
 import logging
 import math
 import warnings
@@ -47,8 +46,6 @@ __all__ = ["InnovationStats", "PlaneUpdateResult", "SonarEKF", "UpdateResult"]
 
 _log = logging.getLogger("gpumap.ekf")
 
-
-@functools.lru_cache(maxsize=64)
 
 class SonarEKF(EKFState):
     """Joint EKF over the sonar pose and point features seen as (range, azimuth).

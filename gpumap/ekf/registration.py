@@ -60,7 +60,18 @@ import numpy as np
 from gpumap.ekf.update import _cho_solve, _robust_cholesky
 from gpumap.lie import se3_adjoint, se3_exp, se3_inverse, se3_log
 
-__all__ = ["RegistrarStats", "ScanRegistration", "fuse_revisit", "fuse_step", "image_agreement", "image_descriptor", "marginal", "place_scores", "plane_points", "register_scan"]
+__all__ = [
+    "RegistrarStats",
+    "ScanRegistration",
+    "fuse_revisit",
+    "fuse_step",
+    "image_agreement",
+    "image_descriptor",
+    "marginal",
+    "place_scores",
+    "plane_points",
+    "register_scan",
+]
 
 #: The in-plane components of the 6-vector ``(rho, phi)`` a ping observes.
 IN_PLANE = (0, 1, 5)

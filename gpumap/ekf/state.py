@@ -16,6 +16,7 @@ from gpumap.lie import rpy_from_rotation, se3_adjoint, se3_inverse
 __all__ = ["EKFState", "InnovationStats", "UpdateResult"]
 
 
+@functools.lru_cache(maxsize=64)
 def _nis_band(dof: int) -> tuple[float, float]:
     """Two-sided 99.99 % band of ``chi2(dof) / dof``."""
     return _chi2_quantile(0.00005, dof) / dof, _chi2_quantile(0.99995, dof) / dof

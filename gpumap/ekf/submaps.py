@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from gpumap.core.feed import feed
 from gpumap.core.params import MapperParams
 
 __all__ = ["SegmentMaps"]
@@ -74,9 +75,7 @@ class SegmentMaps:
             if not self._moved(s, T[a:b]):
                 continue
             m = MinMaxMapper(self.spec, self.grid, **self.kw)
-            for i in range(a, b, 32):
-                j = min(i + 32, b)
-                m.integrate_batch(np.stack([np.asarray(images[k]) for k in range(i, j)]), T[i:j])
+            feed(m, ((images[k], T[k]) for k in range(a, b)))
             self._maps[s], self._poses[s] = m, T[a:b].copy()
             self.integrations += 1
             done.append(s)

@@ -1,1 +1,3 @@
-"""Layers that attach to a map (:meth:`gpumap.MinMaxMapper.attach`): they import the core, never the reverse."""
+"""Layers that attach to a map (:meth:`gpumap.MinMaxMapper.attach`).
+
+They import the core, never the reverse."""

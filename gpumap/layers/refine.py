@@ -332,10 +332,12 @@ def map_frames(mapper, images: np.ndarray, poses: np.ndarray, progress: bool = F
     progress bar (the same map as one call: every update is a min or a count)."""
     from tqdm import tqdm
 
-    with tqdm(total=len(images), desc="map", unit="ping", disable=not progress) as bar:
-        for i in range(0, len(images), MAP_CHUNK):
-            mapper.integrate_batch(images[i: i + MAP_CHUNK], poses[i: i + MAP_CHUNK])
-            bar.update(len(images[i: i + MAP_CHUNK]))
+    from gpumap.core.feed import feed
+
+    pings = zip(images, poses, strict=True)
+    feed(
+        mapper, tqdm(pings, total=len(images), desc="map", unit="ping", disable=not progress), batch=MAP_CHUNK
+    )
 
 
 def refine_saved(
@@ -407,7 +409,7 @@ def refine_saved(
 
 
 class _CallableModule(types.ModuleType):
-    """``gpumap.layers.refine`` is this module and the function: ``gpumap.layers.refine(mapper, images, poses)``
+    """``gpumap.layers.refine`` is this module and the function: ``gpumap.refine(mapper, images, poses)``
     calls :func:`refine` whether or not ``gpumap.layers.refine`` (the module) was imported by name."""
 
     def __call__(self, *args, **kwargs) -> RefineResult:

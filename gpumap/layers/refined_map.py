@@ -73,7 +73,8 @@ class RefineResult:
     reflectivity : (nx, ny, nz) float32
         The fitted reflectivity (meaningful where the occupancy is high).
     carved, raised : (nx, ny, nz) bool
-        Voxels held free by the first hard constraint (:func:`~gpumap.layers.refine.carved_voxels`); voxels raised by
+        Voxels held free by the first hard constraint (:func:`~gpumap.layers.refine.carved_voxels`); voxels
+        raised by
         the second.
     gain, floor : float
         The fitted display gain and noise floor.
@@ -84,7 +85,8 @@ class RefineResult:
         ``unexplained_cells``, ``raised_voxels``, ``carved_voxels``, ``movable_voxels``, the
         options and model.
     field : (nx, ny, nz) float32 or None
-        The field ``o`` in [0, 1] that the renderer takes (:func:`~gpumap.layers.refine.render_map`), NaN unobserved;
+        The field ``o`` in [0, 1] that the renderer takes (:func:`~gpumap.layers.refine.render_map`), NaN
+        unobserved;
         ``occupancy == occupancy_from_field(field, kappa)``. Render a result with
         ``render_map(renderer, res.field, poses, reflectivity=res.reflectivity, gain=res.gain,
         floor=res.floor)``, never with ``res.occupancy``.

@@ -180,7 +180,8 @@ class SurfaceLayer:
         return out
 
     def to_refined(self, map_values: np.ndarray, spec: SonarSpec, threshold: float, rule: str = "evidence"):
-        """The two layers as a :class:`gpumap.layers.refined_map.RefineResult`: ``occupancy`` the surface layer
+        """The two layers as a :class:`gpumap.layers.refined_map.RefineResult`: ``occupancy`` the surface
+        layer
         (:meth:`values`), ``map_values`` the safe map's values ((nx, ny, nz) float32, NaN unknown, occupied
         from ``threshold``), so that the refined map file's readers (``gpumap view``, ``gpumap export``,
         :func:`gpumap.layers.refined_map.load_refined`) show either (``--layer surface|safe``)."""

@@ -6,6 +6,7 @@ method are in :mod:`gpumap.layers.surface`.
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterable
 
 import numpy as np
@@ -230,10 +231,13 @@ class LiveSurface:
     :func:`surface_from_mapper` of the same pings on the same map, voxel for voxel, and its cost
     grows with the pings (their bright cells' pairs), as the mapper's memory does not.
 
+    It is also a layer (:meth:`gpumap.MinMaxMapper.attach`): attached, it is fed every batch the
+    mapper integrates (``LiveSurface()`` then takes its mapper when attached).
+
     Parameters
     ----------
-    mapper : gpumap.MinMaxMapper
-        A bounded mapper with ``rule="evidence"`` (or ``"visible"``).
+    mapper : gpumap.MinMaxMapper or None
+        A bounded mapper with ``rule="evidence"`` (or ``"visible"``); None: the one it is attached to.
     options : SurfaceOptions, optional
         With ``passes`` > 1 (the occlusion test) every update views every ping again (the plain path).
     warm_start : bool
@@ -245,11 +249,37 @@ class LiveSurface:
         memory (its pairs) stops growing with the run.
     """
 
-    def __init__(self, mapper, options: SurfaceOptions | None = None, warm_start: bool = False,
+    name = "surface"
+    per_ping = False
+
+    def __init__(self, mapper=None, options: SurfaceOptions | None = None, warm_start: bool = False,
                  max_pings: int | None = None) -> None:
         if max_pings is not None and (isinstance(max_pings, bool) or max_pings < 1
                                       or not isinstance(max_pings, (int, np.integer))):
             raise ValueError(f"Expected max_pings to be a positive integer or None, but got {max_pings!r}")
+        self.options = options or SurfaceOptions()
+        self.warm_start = bool(warm_start)
+        self.max_pings = None if max_pings is None else int(max_pings)
+        self.mapper = None
+        #: Seconds spent keeping the pings the mapper handed over (attached: during its batches).
+        self.seconds_add = 0.0
+        if mapper is not None:
+            self._bind(mapper)
+
+    def attached(self, mapper) -> None:
+        """Follow ``mapper`` (:meth:`gpumap.MinMaxMapper.attach`)."""
+        if self.mapper is None:
+            self._bind(mapper)
+        elif self.mapper is not mapper:
+            raise ValueError("Expected the mapper this surface layer was made for, but got another")
+
+    def after_batch(self, mapper, images: np.ndarray, T_W_S: np.ndarray) -> None:
+        """Keep what the layer needs of the pings the mapper just integrated."""
+        t0 = time.perf_counter()
+        self.add(images, T_W_S)
+        self.seconds_add += time.perf_counter() - t0
+
+    def _bind(self, mapper) -> None:
         if getattr(mapper, "rule", None) not in ("evidence", "visible"):
             raise ValueError(f"Expected a mapper with rule='evidence' or 'visible', but got "
                              f"{getattr(mapper, 'rule', None)!r}")
@@ -257,9 +287,6 @@ class LiveSurface:
             raise ValueError("Expected a bounded mapper (a GridSpec with all blocks) for the live surface "
                              "layer, but it allocates blocks on demand")
         self.mapper = mapper
-        self.options = options or SurfaceOptions()
-        self.warm_start = bool(warm_start)
-        self.max_pings = None if max_pings is None else int(max_pings)
         self._lock = threading.Lock()  # the list of pings, between add() and an update's drop
         self._pings: list[_PingCells] = []
         self._dropped = 0  # pings dropped from the front (max_pings): the list starts at this one

@@ -172,10 +172,10 @@ def registration_summary(registrar) -> dict:
 
 def _map(spec, grid, images, poses, backend, threshold, rule):
     from gpumap import MinMaxMapper
+    from gpumap.core.feed import feed
 
     m = MinMaxMapper(spec, grid, backend, MapperParams(rule=rule, threshold=threshold))
-    for i in range(0, len(images), 32):
-        m.integrate_batch(np.stack(images[i:i + 32]), np.stack(poses[i:i + 32]))
+    feed(m, zip(images, poses, strict=True))
     return m
 
 

@@ -263,8 +263,16 @@ def run_replay_threads(recording, *, workers: int, devices: list[int] | None = N
             nonlocal spec, lanes, t_setup
             ts = time.perf_counter()
             spec = sp
-            mappers = [MinMaxMapper(spec, grid, backend, MapperParams(method=method, rule=rule, threshold=threshold, sparse=bool(sparse)), device_index=d)
-                       for d in devs]  # a device that is not there raises here, before any thread
+            mappers = [
+                MinMaxMapper(
+                    spec,
+                    grid,
+                    backend,
+                    MapperParams(method=method, rule=rule, threshold=threshold, sparse=bool(sparse)),
+                    device_index=d,
+                )
+                for d in devs
+            ]  # a device that is not there raises here, before any thread
             # a bounded box: every map kept whole, merged block by block (merge_dense); on demand
             # (each map its own block layout) every map but the first hands over its state
             lanes = [_Lane(m, keep=k == 0 or not sparse) for k, m in enumerate(mappers)]

@@ -76,41 +76,38 @@ def run_replay(
     rule: str | None = None,
     threshold: float = DEFAULT_THRESHOLD,
     positions: list | None = None,
-    on_ping=None,
-    on_batch=None,
+    layers: Sequence = (),
     max_memory: int | None = None,
     maps_held: int = 1,
     memory_remedy: str | None = None,
 ) -> tuple[object, dict]:
     """Integrate every posed frame of ``recording``; return ``(mapper, stats)``.
 
+    The frames are read and decoded on a thread of their own (:func:`gpumap.core.feed.prefetch`)
+    while the mapper maps the ones before, and go to it in batches (:func:`gpumap.core.feed.feed`).
+
     Parameters
     ----------
     recording : gpumap.io.Recording
     voxel_size_m : float
         Used for the automatic grid when ``grid`` is None.
+    backend : str
+        The mapper's backend (``"auto"``: the fastest that works).
+    method, rule, threshold
+        The map's options (:class:`~gpumap.core.params.MapperParams`): ``rule`` None is the
+        method's default (evidence for gather, plain for template); ``threshold`` the bright
+        threshold (default :data:`DEFAULT_THRESHOLD`, at which ``gpumap replay`` reads the map).
     static : bool
         Map every frame at the identity pose (recordings without poses).
     stride, max_frames : int
         Use every ``stride``-th frame, at most ``max_frames`` of them.
     mapper_cls : type, optional
-        Defaults to :class:`gpumap.MinMaxMapper`.
-    rule : str or None
-        ``"visible"``, ``"plain"`` or None (the mapper's default for ``method``: visible
-        for gather, plain for template).
-    threshold : float
-        The mapper's bright threshold (``MinMaxMapper(threshold=)``): set it to the
-        intensity the map is read at.
+        Defaults to :class:`gpumap.MinMaxMapper`; called as ``mapper_cls(spec, grid, backend, params)``.
     positions : list, optional
         When given, the world position (3,) of every integrated ping is appended to it.
-    on_ping : callable, optional
-        ``on_ping(image, T_W_S, mapper)`` after each integrated ping (the live view and
-        recording of :mod:`gpumap.viewer`); its time counts in ``seconds_total``.
-    on_batch : callable, optional
-        ``on_batch(images, poses, mapper)`` after each ``integrate_batch`` (or, with ``on_ping``,
-        each ``integrate``) with the pings ((B, n_bins, n_beams), (B, 4, 4) ``T_W_S``) it integrated:
-        what another layer built from the same pass reads (:class:`gpumap.layers.surface_live.LiveSurface`);
-        its time counts in ``seconds_total`` and apart in ``seconds_on_batch``.
+    layers : sequence of Layer
+        Attached to the mapper once it is made (:meth:`gpumap.MinMaxMapper.attach`), before the
+        first ping: the live view, the surface layer, ...; their time counts in ``seconds_total``.
     max_memory : int, optional
         Bytes the run may take at its peak (None: 90 % of the memory available). Checked with
         :func:`gpumap.memory.check_run_fits` before the mapper allocates the grid: a grid that
@@ -127,14 +124,17 @@ def run_replay(
     stats : dict
         ``frames`` integrated, ``skipped_no_pose``, ``skipped_spec``, ``seconds_setup``
         (creating the mapper), ``seconds_total`` (read + convert + integrate, after
-        setup), ``seconds_integrate``, ``images_per_s`` (total) and
-        ``integrate_per_s``, ``backend``, ``rule``, ``mapper_threshold``, ``grid``,
-        ``grid_shape``.
+        setup), ``seconds_integrate`` (inside the mapper's calls, the layers included),
+        ``images_per_s`` (total) and ``integrate_per_s``, ``backend``, ``rule``,
+        ``mapper_threshold``, ``grid``, ``grid_shape``.
     """
     from tqdm import tqdm
 
+    from gpumap.core.feed import feed, prefetch
+
     if mapper_cls is None:
         from gpumap import MinMaxMapper as mapper_cls  # noqa: N813
+    params = MapperParams(method=method, rule=rule, threshold=threshold)
     if not recording.has_poses and not static:
         raise ValueError(
             f"Expected a recording with sonar poses, but {recording.path} ({recording.kind}) has "
@@ -142,92 +142,64 @@ def run_replay(
             "pose (identity)."
         )
     stride = max(1, int(stride))
-    eye = np.eye(4)
-
-    def selected():
-        return select_strided(recording, stride, max_frames)
-
     if grid is None:  # size the box from the poses: from the index if cheap, else one pass
         grid = grid_of_frames(recording, static=static, stride=stride, max_frames=max_frames,
                               voxel_size_m=voxel_size_m)
     from gpumap.memory import API_REMEDY, check_run_fits
 
-    check_run_fits(grid.n_voxels, rule or ("visible" if method == "gather" else "plain"), backend,
-                   max_memory, maps=maps_held, remedy=memory_remedy or API_REMEDY)
+    check_run_fits(grid.n_voxels, params.rule, backend, max_memory, maps=maps_held,
+                   remedy=memory_remedy or API_REMEDY)
 
     total = recording.count()
     if total is not None:
         total = min(math.ceil(total / stride), max_frames or total)
-    mapper = None
     stats = {"frames": 0, "skipped_no_pose": 0, "skipped_spec": 0}
-    t_int = 0.0
-    t_hook = [0.0]
+    eye = np.eye(4)
+    frames = tqdm(prefetch(select_strided(recording, stride, max_frames)), total=total, unit="img",
+                  disable=not progress, desc="replay")
     t0 = time.perf_counter()
-
-    def flush() -> None:
-        images, poses = _flush_batch(mapper, batch)
-        if on_batch is not None:
-            th = time.perf_counter()
-            on_batch(images, poses, mapper)
-            t_hook[0] += time.perf_counter() - th
-    t_setup = 0.0
-    # Frames go to the mapper REPLAY_BATCH at a time (integrate_batch: one upload and a few
-    # launches on a GPU, the same map as one call per frame); one at a time with a per-ping hook.
-    batch: list | None = None
-    for fr in tqdm(selected(), total=total, unit="img", disable=not progress, desc="replay"):
-        if mapper is None:  # backend start-up (imports, compiling kernels) is timed apart
-            ts = time.perf_counter()
-            mapper = mapper_cls(fr.spec, grid, backend, MapperParams(method=method, rule=rule,
-                                                                     threshold=threshold))
-            t_setup = time.perf_counter() - ts
-            batch = [] if on_ping is None and hasattr(mapper, "integrate_batch") else None
-        if fr.spec != mapper.spec:
-            stats["skipped_spec"] += 1
-            continue
-        T = eye if static else fr.T_W_S
-        if T is None:
-            stats["skipped_no_pose"] += 1
-            continue
-        t1 = time.perf_counter()
-        if batch is None:
-            mapper.integrate(fr.image, T)
-            if on_batch is not None:
-                th = time.perf_counter()
-                on_batch(np.array(fr.image)[None], np.asarray(T, np.float64)[None], mapper)
-                t_hook[0] += time.perf_counter() - th
-        else:
-            if batch and fr.image.dtype != batch[0][0].dtype:
-                flush()
-            batch.append((np.array(fr.image), T))  # a copy: a reader may reuse its buffer
-            if len(batch) == REPLAY_BATCH:
-                flush()
-        t_int += time.perf_counter() - t1
-        stats["frames"] += 1
-        if positions is not None:
-            positions.append(np.asarray(T, dtype=np.float64)[:3, 3].copy())
-        if on_ping is not None:
-            on_ping(fr.image, T, mapper)
-    if mapper is None:
+    it = iter(frames)
+    first = next(it, None)
+    if first is None:
+        frames.close()
         raise ValueError(f"Expected frames in {recording.path}, but it has none")
+    ts = time.perf_counter()  # backend start-up (imports, compiling kernels) is timed apart
+    mapper = mapper_cls(first.spec, grid, backend, params)
+    for layer in layers:
+        mapper.attach(layer)
+    t_setup = time.perf_counter() - ts
+
+    def posed() -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        for fr in itertools.chain([first], it):
+            if fr.spec != mapper.spec:
+                stats["skipped_spec"] += 1
+                continue
+            T = eye if static else fr.T_W_S
+            if T is None:
+                stats["skipped_no_pose"] += 1
+                continue
+            stats["frames"] += 1
+            if positions is not None:
+                positions.append(np.asarray(T, dtype=np.float64)[:3, 3].copy())
+            yield fr.image, T
+
+    fed = feed(mapper, posed(), batch=REPLAY_BATCH)
+    frames.close()
     t1 = time.perf_counter()
-    if batch:
-        flush()
-    if hasattr(mapper, "synchronize"):
-        mapper.synchronize()
+    mapper.synchronize()
     t_end = time.perf_counter()
-    t_int += t_end - t1 - t_hook[0]
     n = stats["frames"]
+    t_int = fed.seconds_integrate + (t_end - t1)
     t_total = t_end - t0 - t_setup
     stats.update(
         seconds_setup=t_setup,
         seconds_total=t_total,
         seconds_integrate=t_int,
-        seconds_on_batch=t_hook[0],
         images_per_s=n / t_total if n else 0.0,
         integrate_per_s=n / t_int if n and t_int > 0 else 0.0,
         backend=mapper.backend,
-        rule=getattr(mapper, "rule", rule),
-        mapper_threshold=float(getattr(mapper, "threshold", threshold)),
+        rule=mapper.rule,
+        mapper_threshold=float(mapper.threshold),
         grid=grid.to_dict(),
         grid_shape=list(grid.shape),
     )
@@ -236,15 +208,6 @@ def run_replay(
 
 #: Frames per ``integrate_batch`` call of :func:`run_replay`.
 REPLAY_BATCH = 32
-
-
-def _flush_batch(mapper, batch: list) -> tuple[np.ndarray, np.ndarray]:
-    """Integrate the buffered (image, T_W_S) frames in one call and empty the buffer; returns them
-    stacked ((B, n_bins, n_beams), (B, 4, 4))."""
-    images, poses = np.stack([b[0] for b in batch]), np.stack([np.asarray(b[1], np.float64) for b in batch])
-    mapper.integrate_batch(images, poses)
-    batch.clear()
-    return images, poses
 
 
 def replay_rules(recording, *, rules: Sequence[str] = RULES, grid: GridSpec | None = None,
@@ -257,8 +220,9 @@ def replay_rules(recording, *, rules: Sequence[str] = RULES, grid: GridSpec | No
     """
     out: dict[str, tuple[object, dict]] = {}
     for rule in rules:
-        mapper, stats = run_replay(recording, grid=grid, rule=rule, maps_held=len(out) + 1,
-                                   positions=positions if not out else None, **kwargs)
+        mapper, stats = run_replay(recording, grid=grid, rule=rule,
+                                   maps_held=len(out) + 1, positions=positions if not out else None,
+                                   **kwargs)
         grid = mapper.grid
         out[rule] = (mapper, stats)
     return out
@@ -515,20 +479,26 @@ def _rules_picture(values, occ, vis_only, plain_only, both, dist, z, zedges, flo
     plt.close(fig)
 
 
-def run_rule_comparison(recording, *, threshold: float = DEFAULT_THRESHOLD,
+def run_rule_comparison(recording, *, threshold: float = DEFAULT_THRESHOLD, rule: str = "evidence",
                         picture: str | Path | None = None, title: str = "",
                         **kwargs) -> tuple[dict[str, tuple[object, dict]], dict]:
-    """Replay ``recording`` under both rules (mapper threshold = ``threshold``) and compare.
+    """Replay ``recording`` under every rule (mapper threshold = ``threshold``) and compare ``rule``
+    with the others (:func:`compare_rules`: ``rule`` beside the plain rule, and where they differ).
 
-    ``kwargs`` go to :func:`run_replay`. Returns ``({rule: (mapper, stats)}, comparison)``,
-    the comparison as :func:`compare_rules` gives it.
+    ``kwargs`` go to :func:`run_replay`; ``rule`` is mapped first (it sizes the grid). Returns
+    ``({rule: (mapper, stats)}, comparison)``, the comparison as :func:`compare_rules` gives it with
+    ``runs`` (each rule's frames, backend and rates) added.
     """
     positions: list = []
-    runs = replay_rules(recording, threshold=threshold, positions=positions, **kwargs)
-    grid = runs["plain"][0].grid
+    order = (rule, *[r for r in RULES if r != rule])
+    runs = replay_rules(recording, rules=order, threshold=threshold, positions=positions, **kwargs)
+    grid = runs[rule][0].grid
     values = {r: m.values() for r, (m, _) in runs.items()}
     cmp_ = compare_rules(values, grid, threshold, np.asarray(positions).reshape(-1, 3),
-                         None if picture is None else Path(picture), title=title)
+                         None if picture is None else Path(picture), title=title,
+                         rule=None if rule == "plain" else rule)
+    cmp_["runs"] = {r: {k: st[k] for k in ("frames", "backend", "seconds_total", "images_per_s",
+                                           "integrate_per_s")} for r, (_, st) in runs.items()}
     return runs, cmp_
 
 

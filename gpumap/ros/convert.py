@@ -415,7 +415,8 @@ class MarkerBlocks:
                confirmed: np.ndarray | None = None) -> list[tuple[int, np.ndarray]]:
         """``[(block_id, centres (M, 3) float64)]`` for every changed block (all with ``full``).
 
-        ``confirmed``: ``MinMaxMapper.layer("confidence").states() == 3``, any shape of ``values``' size, or None
+        ``confirmed``: ``MinMaxMapper.layer("confidence").states() == 3``, any shape of ``values``' size, or
+        None
         (no layer); with it, :attr:`confirmed` holds each returned block's flags."""
         v = values.ravel()
         occ = np.isfinite(v) & (v >= self.threshold)

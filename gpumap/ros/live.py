@@ -493,7 +493,8 @@ class LiveMapper:
             return self.mapper.values()
 
     def values_and_confidence(self, confidence: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        """``(mapper.values(), mapper.layer("confidence").states())`` of the same map, between two integrations;
+        """``(mapper.values(), mapper.layer("confidence").states())`` of the same map, between two
+        integrations;
         ``(values, None)`` when ``confidence`` is false (the mapper needs ``confidence=True``
         otherwise)."""
         with self._map_lock:

@@ -24,7 +24,8 @@ Subscribes (relative names: remap them with ``-r``):
 Publishes (in ``world_frame``): ``~/occupied_cloud`` (``sensor_msgs/PointCloud2``, fields
 x, y, z, value: every voxel with value >= ``threshold``; with ``confidence: true`` also
 ``confirmed``, uint8 at offset 16 of 20-byte points: 1 where some view resolved the voxel in
-elevation, 0 where it is only consistent with the pings, see :mod:`gpumap.layers.confidence`), ``~/occupied_markers``
+elevation, 0 where it is only consistent with the pings, see :mod:`gpumap.layers.confidence`),
+``~/occupied_markers``
 (``visualization_msgs/MarkerArray``, a cube list per 16^3-voxel block, only changed blocks;
 all of them again when a new subscriber appears), ``~/projected_map``
 (``nav_msgs/OccupancyGrid``: 100 where a voxel in ``band_z_m`` is occupied, 0 observed, -1
@@ -37,7 +38,8 @@ With ``surface: true`` (default false) the surface layer (:mod:`gpumap.layers.su
 thread of its own (:class:`gpumap.ros.surface_worker.LiveSurfaceWorker`), and updated as often as the machine
 allows, each update taking every ping mapped meanwhile: ``~/surface_cloud`` (``PointCloud2``, x, y,
 z, value 1 per surface voxel; stamped with the newest ping it covers) and ``~/surface_markers``,
-reliable and transient-local; each is the offline layer (:func:`gpumap.layers.surface_live.surface_from_mapper`)
+reliable and transient-local; each is the offline layer
+(:func:`gpumap.layers.surface_live.surface_from_mapper`)
 of the pings it covers. ``/diagnostics`` then adds ``surface_pings`` (covered), ``surface_waiting``
 (mapped, not yet in it), ``surface_age_s`` (how long the oldest of those has waited since it arrived),
 ``surface_latency_max_s``, ``surface_update_s`` (the last update's seconds), ``surface_updates`` and
@@ -103,8 +105,10 @@ NODE_NAME = "gpumap"
 #: name -> (default, description). Lists of floats default to the empty list where "unset".
 PARAMETERS: dict[str, tuple[object, str]] = {
     "world_frame": ("map", "frame of the poses and of every map output"),
-    "pose_type": ("pose_stamped", "pose topic type: pose_stamped (geometry_msgs/PoseStamped) or odometry "
-                  "(nav_msgs/Odometry)"),
+    "pose_type": (
+        "pose_stamped",
+        "pose topic type: pose_stamped (geometry_msgs/PoseStamped) or odometry (nav_msgs/Odometry)",
+    ),
     "image_layout": ("polar", "polar (n_bins x n_beams) or fan (a Cartesian fan picture, see fan_*)"),
     "fan_rows": (398, "fan picture height, pixels"),
     "fan_cols": (722, "fan picture width, pixels"),
@@ -113,8 +117,11 @@ PARAMETERS: dict[str, tuple[object, str]] = {
     "fan_apex_col": (361.0, "column of the sonar in the fan picture"),
     "fan_flip_lr": (False, "fan columns run right to left"),
     "fan_flip_ud": (False, "fan rows are mirrored"),
-    "sonar_spec_file": ("", "JSON or YAML with range_min_m, range_max_m, n_bins, bearings_rad, vfov_rad "
-                        "(overrides the sonar parameters below)"),
+    "sonar_spec_file": (
+        "",
+        "JSON or YAML with range_min_m, range_max_m, n_bins, bearings_rad, vfov_rad "
+        "(overrides the sonar parameters below)",
+    ),
     "range_min_m": (0.1, "near edge of the first range bin, metres"),
     "range_max_m": (2.0, "far edge of the last range bin, metres"),
     "n_bins": (400, "range bins (image rows)"),
@@ -129,18 +136,27 @@ PARAMETERS: dict[str, tuple[object, str]] = {
     "rule": ("evidence", "how views combine: evidence, visible or plain"),
     "threshold": (0.4, "occupied from this value on; also the mapper's bright threshold (as gpumap replay)"),
     "carve_views": (2, "visible rule: clear dark views that carve a voxel once seen bright"),
-    "confidence": (False, "keep the confidence layer (MinMaxMapper(confidence=True)): the cloud gets a uint8 "
-                   "field confirmed, 1 where some view resolved the voxel in elevation, 0 where it is only "
-                   "consistent with the pings (the elevation stretch); costs a pass per ping on the host"),
-    "surface": (False, "keep the surface layer (gpumap.layers.surface: one voxel per bright cell, from the evidence "
-                "or visible rule's occupied voxels) on a thread of its own: ~/surface_cloud and "
-                "~/surface_markers, updated as often as the machine allows; ~/save_map then writes both "
-                "layers in one file (gpumap view/export --layer surface|safe); needs rule evidence or "
-                "visible. The thread shares the interpreter with the callbacks: on a small CPU raise "
-                "image_queue_depth, or images are lost in the middleware"),
-    "surface_max_pings": (0, "the surface layer of the newest this many pings only, so that its memory "
-                          "(17 bytes per ping, voxel and bright cell: ~25k a ping on the real tank at 5 cm) "
-                          "and its updates stop growing with the run (0: every ping)"),
+    "confidence": (
+        False,
+        "keep the confidence layer (MinMaxMapper(confidence=True)): the cloud gets a uint8 "
+        "field confirmed, 1 where some view resolved the voxel in elevation, 0 where it is only "
+        "consistent with the pings (the elevation stretch); costs a pass per ping on the host",
+    ),
+    "surface": (
+        False,
+        "keep the surface layer (gpumap.layers.surface: one voxel per bright cell, from the evidence "
+        "or visible rule's occupied voxels) on a thread of its own: ~/surface_cloud and "
+        "~/surface_markers, updated as often as the machine allows; ~/save_map then writes both "
+        "layers in one file (gpumap view/export --layer surface|safe); needs rule evidence or "
+        "visible. The thread shares the interpreter with the callbacks: on a small CPU raise "
+        "image_queue_depth, or images are lost in the middleware",
+    ),
+    "surface_max_pings": (
+        0,
+        "the surface layer of the newest this many pings only, so that its memory "
+        "(17 bytes per ping, voxel and bright cell: ~25k a ping on the real tank at 5 cm) "
+        "and its updates stop growing with the run (0: every ping)",
+    ),
     "queue_size": (32, "pings held at most; a new ping finding it full drops the oldest (counted)"),
     "max_batch": (16, "pings per integrate_batch call at most"),
     "pose_wait_s": (0.5, "how long a ping newer than every pose waits for one, seconds"),
@@ -148,14 +164,21 @@ PARAMETERS: dict[str, tuple[object, str]] = {
     "pose_buffer": (2000, "poses kept for interpolation"),
     "max_future_s": (1.0, "a stamp later than the node's clock by more than this is refused, seconds"),
     "image_queue_depth": (10, "sensor-data QoS history depth of the image subscription"),
-    "publish_period_s": (0.0, "the map outputs are published at most this often, seconds (0: after every "
-                         "batch the worker maps: a busy node publishes less often, a lone ping at once)"),
-    "markers_period_s": (1.0, "the RViz markers are published at most this often (only changed blocks), "
-                         "seconds"),
+    "publish_period_s": (
+        0.0,
+        "the map outputs are published at most this often, seconds (0: after every "
+        "batch the worker maps: a busy node publishes less often, a lone ping at once)",
+    ),
+    "markers_period_s": (
+        1.0,
+        "the RViz markers are published at most this often (only changed blocks), seconds",
+    ),
     "diagnostics_period_s": (1.0, "period of /diagnostics, seconds"),
     "band_z_m": ([], "height band [z_min, z_max] of the obstacle projection, metres (unset: the whole grid)"),
-    "plan_views": (5, "~/plan_views: poses published on ~/next_best_views, best first (needs "
-                   "confidence: true)"),
+    "plan_views": (
+        5,
+        "~/plan_views: poses published on ~/next_best_views, best first (needs confidence: true)",
+    ),
     "plan_candidates": (500, "~/plan_views: candidate poses scored around the newest pose mapped"),
     "plan_max_roll_deg": (45.0, "~/plan_views: wrist roll about the boresight, +- degrees"),
     "plan_max_tilt_deg": (15.0, "~/plan_views: wrist pitch (tilt), +- degrees"),

@@ -1,5 +1,5 @@
-"""The node's surface layer on a thread of its own (:class:`LiveSurfaceWorker`), beside :class:`gpumap.ros.live.LiveMapper`.
-"""
+"""The node's surface layer on a thread of its own (:class:`LiveSurfaceWorker`), beside
+:class:`gpumap.ros.live.LiveMapper`."""
 
 from __future__ import annotations
 
@@ -16,7 +16,8 @@ __all__ = ["LiveSurfaceWorker"]
 
 
 class LiveSurfaceWorker:
-    """Keep the surface layer (:class:`gpumap.layers.surface_live.LiveSurface`) of a :class:`LiveMapper`'s map up
+    """Keep the surface layer (:class:`gpumap.layers.surface_live.LiveSurface`) of a :class:`LiveMapper`'s
+    map up
     to date on a thread of its own, as often as the machine allows.
 
     The mapping worker hands it every batch it integrated (``live.on_batch``, under the map's lock);
@@ -38,7 +39,8 @@ class LiveSurfaceWorker:
     clock : callable
         Monotonic seconds (as the live mapper's).
     max_pings : int, optional
-        The layer of the newest this many pings only (:class:`gpumap.layers.surface_live.LiveSurface`): its memory
+        The layer of the newest this many pings only (:class:`gpumap.layers.surface_live.LiveSurface`): its
+        memory
         and its updates' cost stop growing with the run.
     """
 

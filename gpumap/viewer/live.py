@@ -50,7 +50,8 @@ def confidence_colours(rgb: np.ndarray, confirmed: np.ndarray, mode: str = "pale
     rgb : (N, 3) uint8
         The voxels' colours (by value or height).
     confirmed : (N,) bool
-        True where ``MinMaxMapper.layer("confidence").states()`` is 3 (confirmed), False where 2 (unconfirmed).
+        True where ``MinMaxMapper.layer("confidence").states()`` is 3 (confirmed), False where 2
+        (unconfirmed).
     mode : one of :data:`UNCONFIRMED_MODES`
         ``"pale"``: unconfirmed voxels mixed with :data:`PALE_MIX` white, confirmed ones as
         given; ``"hidden"``: unconfirmed voxels not drawn; ``"as confirmed"``: no difference.

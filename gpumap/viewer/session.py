@@ -125,6 +125,25 @@ class Session:
             pass
 
 
+class SessionLayer:
+    """A :class:`Session` following a map (:meth:`gpumap.MinMaxMapper.attach`): ``make(mapper)`` opens
+    it when attached (the map's sonar and grid known then); each ping, as the mapper integrates it,
+    goes to the live view and the recording (``per_ping``: the view sees the map as each ping left it)."""
+
+    name = "view"
+    per_ping = True
+
+    def __init__(self, make) -> None:
+        self._make = make
+        self.session: Session | None = None
+
+    def attached(self, mapper: Any) -> None:
+        self.session = self._make(mapper)
+
+    def after_ping(self, mapper: Any, image: np.ndarray, T_W_S: np.ndarray, pad_m: float, params) -> None:
+        self.session.ping(image, T_W_S, mapper)
+
+
 def map_layer(path: str | Path, layer: str | None = None, threshold: float | None = None) -> dict[str, Any]:
     """What ``gpumap view`` shows of a map file: ``spec``, ``grid``, ``values`` ((nx, ny, nz)
     float32, NaN unknown), ``threshold``, ``confidence`` (the map's layer or None), ``n_pings``,
