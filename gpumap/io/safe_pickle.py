@@ -73,7 +73,10 @@ class _Token:
     __slots__ = ()
 
     def __repr__(self) -> str:
-        return "<numpy.ndarray (refused as a callable)>"
+        return "numpy.ndarray"
+
+    def __call__(self, *args: object, **kwargs: object) -> None:
+        raise _refuse(f"it calls numpy.ndarray with {len(args)} arguments")
 
 
 _NDARRAY = _Token()
@@ -91,7 +94,8 @@ def _check_dtype(dt: object) -> np.dtype:
 
 
 def _dtype(obj: object, align: object = False, copy: object = True) -> np.dtype:
-    if not isinstance(obj, str) or not _DTYPE_STR.fullmatch(obj) or align is not False:
+    # Python 3 pickles pass (spec, False, True), Python 2 ones (spec, 0, 1)
+    if not isinstance(obj, str) or not _DTYPE_STR.fullmatch(obj) or type(align) not in (bool, int) or align:
         raise _refuse(f"it asks for numpy.dtype({obj!r}, align={align!r})")
     # a copy, as NumPy's own unpickling makes: BUILD then sets its byte order, and np.dtype('f4')
     # without copy is the shared instance every float32 array uses
