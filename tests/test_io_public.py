@@ -105,6 +105,22 @@ def test_oasis_stride_and_the_project_csv_taking_precedence(tmp_path):
     assert [f.meta["frame"] for f in open_recording(tank)] == list(FRAMES)
 
 
+@needs_data
+def test_fan_folder_says_how_many_poses_came_for_how_many_pictures(tmp_path):
+    tank = _oasis_clone(tmp_path)
+    (tank / "son_poses.pkl").unlink()
+    rec = open_recording(tank)
+    assert rec.kind == "fan-folder" and not rec.has_poses
+    assert rec.pose_note == "sonar_poses.csv is not there: none of the 5 pictures has a pose"
+    lines = (DATA / "oasis_tank" / "sonar_poses.csv").read_text().splitlines()
+    keep = [lines[0]] + [ln for ln in lines[1:] if int(ln.split(",")[0]) in (0, 30, 40)]
+    (tank / "sonar_poses.csv").write_text("\n".join(keep) + "\n")
+    rec = open_recording(tank)
+    assert not rec.has_poses and rec.pose_note == (
+        "sonar_poses.csv holds 3 poses for 5 pictures; 2 pictures have none (the first: image_0010.png)")
+    assert open_fan_folder(DATA / "oasis_tank").pose_note is None
+
+
 def _mutated_poses() -> dict[str, tuple[object, str]]:
     csv = _csv_poses()
     good = [csv[k].tolist() for k in FRAMES]
