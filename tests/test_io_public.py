@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import DATA, needs_data
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from gpumap import GridSpec, MinMaxMapper
 from gpumap.io import (
@@ -448,3 +450,55 @@ def test_recording_kind_and_reader_options_for_each_layout(tmp_path):
         reader_options(holo, flip_lr=True)
     with pytest.raises(ValueError, match="one file per frame"):
         reader_options(aris, on_bad=print)
+
+
+# ---------------------------------------------------------------- fuzz of the files as read
+def _mutate(data: bytes, draw) -> bytes:
+    b = bytearray(data)
+    for _ in range(draw(st.integers(1, 3))):
+        i = draw(st.integers(0, max(len(b) - 1, 0)))
+        op = draw(st.sampled_from(["truncate", "byte", "insert", "delete"]))
+        if op == "truncate":
+            del b[i:]
+        elif op == "byte" and b:
+            b[i] = draw(st.integers(0, 255))
+        elif op == "insert":
+            b[i:i] = draw(st.binary(min_size=1, max_size=6))
+        else:
+            del b[i:i + draw(st.integers(1, 6))]
+    return bytes(b)
+
+
+def _check_read(root: Path) -> None:
+    """Read to the end: frames that pass the frame checks, then the end or a one-line FormatError."""
+    try:
+        for f in open_recording(root):
+            assert f.image.dtype == np.float32 and np.isfinite(f.image).all()
+            assert f.image.min() >= 0.0 and f.image.max() <= 1.0 and np.isfinite(f.T_W_S).all()
+    except FormatError as e:
+        assert "\n" not in str(e)
+
+
+@settings(max_examples=150, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(data=st.data(), which=st.sampled_from(["frame", "config"]), protocol=st.sampled_from([0, 2, 4, 5]))
+def test_fuzz_mutated_holoocean_frames_and_configs_end_in_frames_or_format_error(tmp_path_factory, data,
+                                                                                  which, protocol):
+    root = tmp_path_factory.mktemp("holo")
+    T = _views()[0].astype(np.float32)
+    img = (np.arange(6400) % 251).astype(np.uint8).reshape(100, 64)
+    _write_holoocean(root, [{"PoseSensor": T, "ImagingSonar": img, "t": 2.0}], protocol=protocol)
+    target = root / ("Data/000.pkl" if which == "frame" else "Config.json")
+    target.write_bytes(_mutate(target.read_bytes(), data.draw))
+    _check_read(root)
+
+
+@needs_data
+@settings(max_examples=60, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(data=st.data())
+def test_fuzz_mutated_oasis_pose_pickles_end_in_frames_or_format_error(tmp_path_factory, data):
+    root = _oasis_clone(tmp_path_factory.mktemp("oasis"), frames=FRAMES[:2])
+    pkl = root / "son_poses.pkl"
+    pkl.write_bytes(_mutate(pkl.read_bytes(), data.draw))
+    _check_read(root)
