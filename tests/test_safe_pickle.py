@@ -122,6 +122,10 @@ _CRAFTED = {
     "BUILD on a dict": (b"\x80\x02}}b.", "BUILD"),
     "reconstruct a dtype": (b"\x80\x02cnumpy.core.multiarray\n_reconstruct\ncnumpy\ndtype\n"
                             b"K\x00\x85C\x01b\x87R.", "_reconstruct"),
+    # a float dtype whose state sets NPY_ITEM_HASOBJECT: its array's bytes would be read as pointers
+    "dtype flags": (pickle.dumps(np.zeros(2)).replace(b"J\xff\xff\xff\xffJ\xff\xff\xff\xffK\x00t",
+                                                      b"J\xff\xff\xff\xffJ\xff\xff\xff\xffK\x01t"),
+                    "sets a dtype's state to (3, '<', None, None, None, -1, -1, 1)"),
     "persistent id": (b"\x80\x02K\x01Q.", "BINPERSID"),
     "object dtype": (pickle.dumps(np.array([1, "a"], dtype=object)), "dtype('O"),
     "structured dtype": (pickle.dumps(np.zeros(2, dtype=[("a", "f4")])), "numpy.dtype('V4'"),

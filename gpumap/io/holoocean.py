@@ -77,7 +77,7 @@ from gpumap import limits
 from gpumap.errors import check_pose
 from gpumap.io.frame import FormatError, Recording, SonarFrame
 from gpumap.io.safe_pickle import load_pickle
-from gpumap.limits import check_size
+from gpumap.limits import check_size, declared_product
 from gpumap.spec import SonarSpec
 
 __all__ = ["CONFIG_FILE", "DATA_DIR", "HoloOceanSonar", "open_holoocean", "read_holoocean_config"]
@@ -248,9 +248,11 @@ def _spec(r0: float, r1: float, n_bins: int | None, rres: float | None, az: floa
         n_beams = int(az / ares)
     step = math.radians(az / n_beams if ares is None else ares)
     for n, what in ((n_bins, "range bins"), (n_beams, "azimuth bins")):
-        if not 2 <= n <= limits.MAX_IMAGE_PIXELS:
+        if n < 2:
             raise FormatError(f"expected at least 2 {what} from Config.json, but its resolution gives {n}",
                               path=p)
+    check_size(declared_product(n_bins, n_beams), limits.MAX_IMAGE_PIXELS,
+               "the ImagingSonar image (range bins x azimuth bins)", unit="pixels", path=p)
     bearings = -math.radians(az) / 2 + step * (np.arange(n_beams) + 0.5)
     try:
         spec = SonarSpec(r0, r1, n_bins, bearings, math.radians(el))

@@ -206,9 +206,13 @@ def _build_array(a: np.ndarray, state: object) -> None:
 
 
 def _build_dtype(dt: np.dtype, state: object) -> None:
-    # dtype state: (3, byte order, subarray, names, fields, itemsize, alignment, flags)
-    if not isinstance(state, tuple) or len(state) not in (5, 6, 8) or not isinstance(state[1], str) \
-            or state[1] not in ("<", ">", "|", "=") or any(s is not None for s in state[2:5]):
+    # dtype state: (3, byte order, subarray, names, fields, itemsize, alignment, flags); a plain
+    # numeric dtype has no subarray, names or fields, and -1, -1, 0 for the rest. Anything else is
+    # refused before NumPy sees it: the flags alone can mark a float dtype as holding objects
+    # (NPY_ITEM_HASOBJECT), and the raw bytes of an array of it would be read as pointers.
+    if not isinstance(state, tuple) or len(state) != 8 or state[0] != 3 or not isinstance(state[1], str) \
+            or state[1] not in ("<", ">", "|", "=") or state[2:] != (None, None, None, -1, -1, 0) \
+            or any(type(v) is not int for v in (state[0], *state[5:])):
         raise _refuse(f"it sets a dtype's state to {state!r}"[:200])
     dt.__setstate__(state)
     _check_dtype(dt)
