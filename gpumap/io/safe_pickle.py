@@ -58,8 +58,11 @@ MAX_PICKLE_BYTES = 16 << 20
 """16 MiB: the largest pickle read (a HoloOcean frame of a 1024 x 1024 float32 image is 4 MiB;
 the OASIS tank's 1,223 poses are 166 kB). Budgets are module constants, read at call time."""
 
-MAX_PICKLE_OPCODES = 4_000_000
-"""The most opcodes a pickle may hold (the OASIS poses: 38,000); bounds the objects it builds."""
+MAX_PICKLE_OPCODES = 1_000_000
+"""The most opcodes a pickle may hold; bounds the objects it builds and the time it takes. The
+OASIS poses take 38,000 (31 a pose as nested lists: 1 M is 32,000 poses; an array of poses takes
+a handful); the worst file within it (a million empty lists, 1 MB) costs about 2.6 s of CPU and
+175 MB (measured on the shared 2-core machine)."""
 
 _WHAT = "only containers and NumPy arrays, dtypes and scalars"
 # dtype strings NumPy's pickles use for the plain numeric types (byte order comes in the state)
