@@ -9,7 +9,8 @@ AONeuS ``load_data.py``, ``github:kzhang2/aoneus``, whose repository ships one s
     |-- Data/000.pkl    # one pickle per ping: a dict of the sensors' readings
     |-- Data/001.pkl ...
 
-Conventions, each with where it comes from:
+Conventions, each with where it comes from (HoloOcean's C++ sensors as read in the fork
+``github:wellscrosby/MRGHoloOcean``, ``engine/Source/Holodeck/``, BYU FRoStLab's code, MIT):
 
 - **Frame files**: ``Data/*.pkl``, each a dict keyed by sensor name (HoloOcean's state dict;
   a sensor's name is its ``sensor_name`` in the config, else its ``sensor_type``):
@@ -18,8 +19,8 @@ Conventions, each with where it comes from:
   loaders walk ``os.listdir`` (no order); here frames go in the order of the number in their
   names. Pickles are read with :func:`gpumap.io.safe_pickle.load_pickle` (nothing they name
   is run).
-- **Sonar config**: the first ``ImagingSonar`` among ``agents[*].sensors`` of
-  ``Config.json``, its ``configuration``: ``RangeMin``/``RangeMax`` in metres,
+- **Sonar config**: the ``ImagingSonar`` among ``agents[*].sensors`` of ``Config.json``
+  (the only one, or the one named by ``sensor=``), its ``configuration``: ``RangeMin``/``RangeMax`` in metres,
   ``Azimuth``/``Elevation`` the full apertures in **degrees** (both loaders apply
   ``math.radians``), ``RangeBins``/``AzimuthBins`` the image size. HoloOcean
   (``ImagingSonar.cpp``, ``ParseSensorParms``) also accepts ``RangeRes``/``AzimuthRes``
@@ -48,13 +49,14 @@ Conventions, each with where it comes from:
   forward, left and up axes in HoloOcean's right-handed world (x forward, y left, z up,
   ``docs: usage/units-and-coordinates``), column 3 its position in metres: a ``T_W_P``
   in gpumap's convention. It is the sonar's pose when the ``PoseSensor`` sits on the sonar's
-  ``socket`` with the same ``location`` and ``rotation`` (as in both projects' configs:
+  ``socket`` with the same ``location`` and ``rotation`` (as in AONeuS's shipped config:
   ``SonarSocket``, rotation ``[0, 45, 0]``); the reader checks that in ``Config.json`` and
   refuses a config that mounts them apart unless ``T_P_S`` (the sonar in the pose sensor's
   frame) is given. float32 poses are widened to float64 and checked rigid.
 - **Intensity**: uint8 images are scaled by 1/255 (as AONeuS does), uint16 by 1/65535;
   float images (HoloOcean's own output) are clipped to ``[0, 1]`` (its noise can leave it).
-  A ``"t"`` entry (HoloOcean's simulation time, seconds), when present, is the timestamp.
+  A numeric ``"t"`` entry, when a frame has one, is taken as its time in seconds (AONeuS's
+  frames have none; unverified against other datasets).
 
 The same layout is said to be used by SonarSplat and by differentiable space carving, whose
 repositories could not be read here: their datasets are read by these rules, unverified.
@@ -85,7 +87,7 @@ __all__ = ["CONFIG_FILE", "DATA_DIR", "HoloOceanSonar", "open_holoocean", "read_
 CONFIG_FILE = "Config.json"
 DATA_DIR = "Data"
 MAX_CONFIG_BYTES = 1 << 20
-"""1 MiB: the largest ``Config.json`` read (AONeuS's is 2.6 kB)."""
+"""1 MiB: the largest ``Config.json`` read (AONeuS's is 3.8 kB)."""
 
 _NUM = re.compile(r"([0-9]+)")
 
