@@ -28,6 +28,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gpumap import GridSpec, MinMaxMapper
+from gpumap.core.params import MapperParams
 from gpumap.io import (
     FormatError,
     open_fan_folder,
@@ -268,7 +269,7 @@ def _bright_centroid(root: Path, transform=lambda img: img) -> tuple[float, np.n
     rec = open_recording(root)
     mapper = None
     for f in rec:
-        mapper = mapper or MinMaxMapper(f.spec, grid, backend="numpy", rule="plain")
+        mapper = mapper or MinMaxMapper(f.spec, grid, "numpy", MapperParams(rule="plain"))
         mapper.integrate(transform(f.image), f.T_W_S)
     v = mapper.values()
     assert np.isfinite(v).all()  # every voxel is in every view: the min runs over all three
