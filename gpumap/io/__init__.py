@@ -4,12 +4,24 @@
 telling file extension agrees (a mismatch is a :class:`FormatError` saying both):
 
 - a directory with ``metadata.yaml`` (ROS 2 bag) -> :func:`open_rosbag`
+- a directory with ``Config.json`` and ``Data/`` (HoloOcean layout: NeuSIS, AONeuS) ->
+  :func:`open_holoocean`
 - a directory with fan PNGs (``sonar/*.png``) and ``sonar_poses.csv`` -> :func:`open_fan_folder`
+- a directory with ``sonar/*.png`` and ``son_poses.pkl`` (the public OASIS tank folder as its
+  authors ship it), or a clone's root with one ``data/<name>/son_poses.pkl`` ->
+  :func:`open_oasis_folder`
 - a file starting ``#ROSBAG V2.0`` (ROS 1, ``.bag``), ``\\x89MCAP0`` (``.mcap``) or
   ``SQLite format 3`` (``.db3``) -> :func:`open_rosbag`
 - a file starting ``DDF`` (``.aris``, ``.ddf``) -> :func:`open_aris`
 - a file starting with the ``.oculus`` log magic ``0x11223344`` (``.oculus``) -> :func:`open_oculus_log`
 - a file starting with the Oculus message id ``0x4f53`` -> :func:`open_oculus_raw`
+
+:func:`recording_kind` answers which of these a path is without opening it, and
+:func:`reader_options` turns a command's generic options (mirrored fans, vertical aperture,
+stride, skipping bad frames) into the keyword arguments of the reader it picks.
+
+Pickles (OASIS poses, HoloOcean frames) are read by :func:`gpumap.io.safe_pickle.load_pickle`,
+which accepts containers and numeric arrays only and refuses anything else without running it.
 
 One error family: every reader raises :class:`FormatError` (a ``ValueError``; its
 ``offset`` is the byte where the problem is, when one applies) for anything wrong with a
@@ -22,6 +34,7 @@ validated, so a truncated or corrupt file gives its whole frames, then the error
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -30,6 +43,8 @@ from gpumap.errors import MissingFileError
 from gpumap.io.aris import open_aris, write_aris
 from gpumap.io.fan import FanGeometry, fan_to_polar, open_fan_folder, polar_to_fan
 from gpumap.io.frame import FormatError, LimitError, Recording, SonarFrame
+from gpumap.io.holoocean import open_holoocean
+from gpumap.io.oasis import open_oasis_folder
 from gpumap.io.octomap import write_octomap_bt as write_octomap_bt  # OctoMap .bt export (issue #14)
 from gpumap.io.oculus import (
     decode_message,
@@ -39,6 +54,8 @@ from gpumap.io.oculus import (
     write_oculus_log,
 )
 from gpumap.io.ply import read_ply, write_ply
+from gpumap.io.safe_pickle import load_pickle
+from gpumap.spec import SonarSpec
 
 __all__ = [
     "FanGeometry",
@@ -50,14 +67,19 @@ __all__ = [
     "decode_message",
     "encode_simple_ping",
     "fan_to_polar",
+    "load_pickle",
     "open_aris",
     "open_fan_folder",
+    "open_holoocean",
+    "open_oasis_folder",
     "open_oculus_log",
     "open_oculus_raw",
     "open_recording",
     "open_rosbag",
     "polar_to_fan",
     "read_ply",
+    "reader_options",
+    "recording_kind",
     "sniff",
     "write_aris",
     "write_oculus_log",
@@ -122,13 +144,14 @@ def open_recording(path: str | os.PathLike, **kwargs: Any) -> Recording:
     if not p.exists():
         raise FileNotFoundError(f"Expected a recording at {p}, but nothing is there")
     if p.is_dir():
-        if (p / "metadata.yaml").is_file():
+        kind = recording_kind(p)
+        if kind == "rosbag":
             return open_rosbag(p, **kwargs)
-        img_dir = p / "sonar" if (p / "sonar").is_dir() else p
-        if any(f.suffix.lower() == ".png" for f in img_dir.iterdir()):
-            return open_fan_folder(p, **kwargs)
-        raise FormatError("expected a ROS 2 bag (metadata.yaml) or a folder of fan PNGs, but "
-                          "found neither", path=str(p))
+        if kind == "holoocean":
+            return open_holoocean(p, **kwargs)
+        if kind == "oasis":
+            return open_oasis_folder(_oasis_root(p), **kwargs)
+        return open_fan_folder(p, **kwargs)
     if not p.is_file():  # a FIFO would block the read below; a device has no end
         raise FormatError("expected a regular file or a folder, but this is neither (a pipe, "
                           "socket or device)", path=str(p))
@@ -162,3 +185,155 @@ def open_recording(path: str | os.PathLike, **kwargs: Any) -> Recording:
     if kind == "oculus-log":
         return open_oculus_log(p, **kwargs)
     return open_oculus_raw(p, **kwargs)
+
+
+FOLDER_KINDS = ("rosbag", "holoocean", "oasis", "fan-folder")
+"""What :func:`recording_kind` calls a folder; a file is one of :func:`sniff`'s kinds."""
+FAN_KINDS = ("fan-folder", "oasis")
+"""The kinds whose pings are Cartesian fan pictures (``flip_lr``/``flip_ud`` apply)."""
+SKIPPABLE_KINDS = ("fan-folder", "oasis", "holoocean")
+"""The kinds made of one file per frame: a bad frame can be skipped (``on_bad``), and the
+reader itself can stride over frames without reading them."""
+
+
+def _oasis_root(p: Path) -> Path:
+    """The folder holding ``son_poses.pkl``: ``p`` itself, or a clone root's one ``data/<name>/``."""
+    from gpumap.io.oasis import POSES_FILE
+
+    if (p / POSES_FILE).is_file():
+        return p
+    data = p / "data"
+    found = sorted(d for d in data.iterdir() if (d / POSES_FILE).is_file()) if data.is_dir() else []
+    if len(found) != 1:
+        raise FormatError(f"expected one data/<name>/{POSES_FILE} in a clone of the OASIS repository, "
+                          f"but found {len(found)}: open the dataset's folder itself", path=str(p))
+    return found[0]
+
+
+def recording_kind(path: str | os.PathLike) -> str:
+    """Which reader :func:`open_recording` would use for ``path``, from its contents (nothing decoded).
+
+    Parameters
+    ----------
+    path : path-like
+        File or folder.
+
+    Returns
+    -------
+    str
+        For a folder: ``"rosbag"`` (``metadata.yaml``), ``"holoocean"`` (``Config.json`` and
+        ``Data/``), ``"fan-folder"`` (PNGs in ``sonar/`` or the folder itself; chosen over
+        ``"oasis"`` when ``sonar_poses.csv`` is there), ``"oasis"`` (``son_poses.pkl`` beside
+        ``sonar/``, or a clone's root with one ``data/<name>/son_poses.pkl``). For a file: the
+        kind :func:`sniff` reads from its first bytes (``"ros1"``, ``"mcap"``, ``"db3"``,
+        ``"aris"``, ``"oculus-log"``, ``"oculus-raw"``, ``"png"``).
+
+    Raises
+    ------
+    FormatError
+        If it is none of these (the message lists what was looked for).
+    FileNotFoundError
+        If ``path`` does not exist.
+    """
+    from gpumap.io.holoocean import CONFIG_FILE, DATA_DIR
+    from gpumap.io.oasis import POSES_FILE
+
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"Expected a recording at {p}, but nothing is there")
+    if p.is_dir():
+        if (p / "metadata.yaml").is_file():
+            return "rosbag"
+        if (p / CONFIG_FILE).is_file() and (p / DATA_DIR).is_dir():
+            return "holoocean"
+        if (p / "sonar_poses.csv").is_file():
+            return "fan-folder"
+        if (p / POSES_FILE).is_file() or (p / "data").is_dir() and any(
+                (d / POSES_FILE).is_file() for d in (p / "data").iterdir()):
+            return "oasis"
+        img_dir = p / "sonar" if (p / "sonar").is_dir() else p
+        if any(f.suffix.lower() == ".png" for f in img_dir.iterdir()):
+            return "fan-folder"
+        raise FormatError("expected a ROS 2 bag (metadata.yaml), a HoloOcean dataset (Config.json and "
+                          "Data/), the OASIS tank folder (sonar/ and son_poses.pkl) or a folder of fan "
+                          "PNGs, but found none of these", path=str(p))
+    if not p.is_file():
+        raise FormatError("expected a regular file or a folder, but this is neither (a pipe, socket or "
+                          "device)", path=str(p))
+    kind = sniff(p)
+    if kind is None:
+        with open(p, "rb") as f:
+            head = f.read(8)
+        looked = "; ".join(n for _k, _m, n in _MAGIC)
+        raise FormatError(f"expected a recording ({looked}), but the file starts with {head!r}", offset=0,
+                          path=str(p))
+    return kind
+
+
+def reader_options(
+    path: str | os.PathLike,
+    *,
+    flip_lr: bool = False,
+    flip_ud: bool = False,
+    vfov_deg: float | None = None,
+    stride: int = 1,
+    on_bad=None,
+    reader_stride: bool = True,
+) -> tuple[dict[str, Any], int]:
+    """The reader's keyword arguments for a command's generic options, and the stride left to apply.
+
+    Parameters
+    ----------
+    path : path-like
+        The recording (its kind is :func:`recording_kind`'s).
+    flip_lr, flip_ud : bool
+        Mirror fan pictures left-right / up-down (fan kinds only).
+    vfov_deg : float, optional
+        Vertical aperture, degrees, instead of the recording's own (every kind).
+    stride : int
+        Use every ``stride``-th frame.
+    on_bad : callable, optional
+        ``on_bad(error)`` for a frame that cannot be read, which is then skipped (kinds with one
+        file per frame only: :data:`SKIPPABLE_KINDS`).
+    reader_stride : bool
+        Let the reader apply ``stride`` where it can skip frames unread (False when the caller
+        selects frames first and strides after).
+
+    Returns
+    -------
+    kwargs : dict
+        For ``open_recording(path, **kwargs)``.
+    stride : int
+        The stride the caller still applies to the frames (1 when the reader took it).
+
+    Raises
+    ------
+    ValueError
+        If an option does not apply to this kind (the message names both).
+    FormatError, FileNotFoundError
+        As :func:`recording_kind`.
+    """
+    from gpumap.io.fan import OASIS_SPEC, FanGeometry
+
+    kind = recording_kind(path)
+    kwargs: dict[str, Any] = {}
+    if (flip_lr or flip_ud) and kind not in FAN_KINDS:
+        raise ValueError(f"Expected flip_lr/flip_ud only for fan pictures ({', '.join(FAN_KINDS)}), "
+                         f"but {path} is {kind!r}")
+    if on_bad is not None and kind not in SKIPPABLE_KINDS:
+        raise ValueError(f"Expected a recording of one file per frame ({', '.join(SKIPPABLE_KINDS)}) to skip "
+                         f"bad frames one by one, but {path} is {kind!r}")
+    if kind in FAN_KINDS:
+        if flip_lr or flip_ud:
+            kwargs["geom"] = FanGeometry(flip_lr=bool(flip_lr), flip_ud=bool(flip_ud))
+        if vfov_deg is not None:
+            kwargs["spec"] = SonarSpec(OASIS_SPEC.range_min_m, OASIS_SPEC.range_max_m, OASIS_SPEC.n_bins,
+                                       OASIS_SPEC.bearings_rad, math.radians(vfov_deg))
+    elif vfov_deg is not None:
+        kwargs["vfov_deg"] = vfov_deg
+    if on_bad is not None:
+        kwargs["on_bad"] = on_bad
+    if kind in SKIPPABLE_KINDS and reader_stride:
+        kwargs["stride"] = stride
+        stride = 1
+    return kwargs, stride

@@ -533,7 +533,14 @@ def open_fan_folder(
         T = {int(k): Ts[i] for i, k in enumerate(fr)}
         if ts is not None:
             t_of = {int(k): float(ts[i]) for i, k in enumerate(fr)}
-    has_poses = bool(T) and all(k in T for k, _ in files)
+    missing = [f for k, f in files if k not in T]
+    has_poses = bool(T) and not missing
+    note = None
+    if not pose_path.is_file():
+        note = f"{pose_path.name} is not there: none of the {len(files)} pictures has a pose"
+    elif missing:
+        note = (f"{pose_path.name} holds {len(T)} poses for {len(files)} pictures; {len(missing)} "
+                f"pictures have none (the first: {missing[0].name})")
     sampler = _fan_sampler(spec, geom)
     shape = (geom.n_rows, geom.n_cols)
 
@@ -552,6 +559,7 @@ def open_fan_folder(
                              meta={"format": "fan", "frame": k, "file": str(f)})
 
     return Recording(str(root), "fan-folder", frames, has_poses=has_poses,
-                     count=lambda: len(files), poses=lambda: [T.get(k) for k, _ in files])
+                     count=lambda: len(files), poses=lambda: [T.get(k) for k, _ in files],
+                     pose_note=note)
 
 

@@ -81,6 +81,10 @@ class Recording:
     poses : callable or None
         Cheap list of every frame's ``T_W_S`` (or ``None``) without decoding images, for
         sizing a grid before the pass that maps; ``None`` if the format cannot say cheaply.
+    pose_note : str or None
+        Where ``has_poses`` is False although the recording has some poses, or lacks the file
+        that holds them: what came, for a message (``"sonar_poses.csv holds 103 poses for 123
+        pictures; 20 pictures have none (the first: image_1030.png)"``); else ``None``.
     """
 
     def __init__(
@@ -91,8 +95,10 @@ class Recording:
         has_poses: bool,
         count: Callable[[], int] | None = None,
         poses: Callable[[], list[np.ndarray | None]] | None = None,
+        pose_note: str | None = None,
     ) -> None:
         self.path = str(path)
+        self.pose_note = pose_note
         self.kind = kind
         self.has_poses = bool(has_poses)
         self._frames = frames
