@@ -264,7 +264,7 @@ class GridSpec:
             raise ValueError(
                 f"Expected a grid of at most {_MAX_VOXELS} voxels, but voxel_size_m={s} over "
                 f"{tuple(h - lo_ for lo_, h in zip(lo, hi, strict=True))} m gives {n} = {total} voxels "
-                f"({total * 9 / 2**30:.1f} GiB with the default visible rule's 9 bytes per voxel, "
+                f"({total * 16 / 2**30:.1f} GiB with the default evidence rule's 16 bytes per voxel, "
                 f"{total * 4 / 2**30:.1f} GiB with the plain rule's 4)"
             )
 

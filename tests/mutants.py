@@ -231,7 +231,10 @@ def _layout(dst: Path) -> None:
 
 
 def _installed_path(rel: str) -> str:
-    return rel.replace("kernels/", "gpumap/kernels/", 1) if rel.startswith("kernels/") else rel
+    for top in ("kernels/", "sim/", "bench/"):
+        if rel.startswith(top):
+            return "gpumap/" + rel
+    return rel
 
 
 def apply(text: str, edits: list[tuple[str, str]], where: str) -> str:

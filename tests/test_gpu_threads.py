@@ -121,7 +121,7 @@ def test_replay_cli_picks_threads_only_for_gpu_backends_with_enough_gpus(monkeyp
     monkeypatch.setattr(gpumap.pipeline.workers, "host_gpus", lambda: ["0", "1"])
     assert all(_in_process(ns(backend=b)) for b in ("auto", "warp-cuda", "opencl-gpu", "opencl"))
     assert not _in_process(ns(workers=3))  # more workers than GPUs: Dask
-    assert not _in_process(ns(dask=True)) and not _in_process(ns(scheduler="tcp://h:8786"))
+    assert not _in_process(ns(scheduler="tcp://h:8786"))
     assert not _in_process(ns(backend="numpy")) and not _in_process(ns(backend="warp-cpu"))
     monkeypatch.setattr(gpumap.pipeline.workers, "host_gpus", lambda: [])
     assert not _in_process(ns())

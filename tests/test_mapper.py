@@ -369,8 +369,8 @@ def test_bad_specs_are_refused_with_the_reason():
         gpumap.GridSpec((1, 0, 0), (0, 1, 1), 0.1)
     with pytest.raises(ValueError, match="voxel_size_m > 0"):
         gpumap.GridSpec((0, 0, 0), (1, 1, 1), 0.0)
-    # 1e12 voxels: 9 bytes each under the default (visible) rule, 4 under the plain one
-    with pytest.raises(ValueError, match=r"8381\.9 GiB with the default visible rule's 9 bytes per voxel, "
+    # 1e12 voxels: 16 bytes each under the default (evidence) rule, 4 under the plain one
+    with pytest.raises(ValueError, match=r"14901\.2 GiB with the default evidence rule's 16 bytes per voxel, "
                                          r"3725\.3 GiB with the plain rule's 4"):
         gpumap.GridSpec((0, 0, 0), (100, 100, 100), 0.01)
     with pytest.raises(ValueError, match="backend"):

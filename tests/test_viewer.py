@@ -387,9 +387,12 @@ def test_live_view_draws_unconfirmed_voxels_pale_or_hides_them():
     from test_nbv import GRID, SPEC, _echo_image, _look_at_target
 
     import gpumap
+    from gpumap.core.params import MapperParams
     from gpumap.viewer.live import MapViewer, colormap_u8
 
-    m = with_confidence(gpumap.MinMaxMapper(SPEC, GRID, backend="numpy"))
+    # the visible rule: two clear views confirm the echo there (the drawing is what is tested here; under
+    # the evidence rule the two views leave every voxel of the arc unconfirmed)
+    m = with_confidence(gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(rule="visible")))
     v = MapViewer(SPEC, GRID, m.threshold, port=_free_port(), show_pings=False)
     turbo = colormap_u8("turbo")
     nz = GRID.shape[2]

@@ -25,15 +25,11 @@ as bright from ``--threshold`` on. The rules side by side on one recording:
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
-from gpumap.atomic import output_set
 from gpumap.commands.common import (
     BACKEND_HELP,
     METHOD_HELP,
@@ -54,29 +50,21 @@ from gpumap.commands.common import (
     user_errors,
     vfov_deg,
 )
-from gpumap.io.pictures import save_pictures
-from gpumap.io.ply import write_ply
-from gpumap.layers.surface_live import LiveSurface
+from gpumap.pipeline.job import OUTPUTS, REMEDY, EKFOptions, ReplayJob, run_job
 from gpumap.pipeline.replay import (
     DEFAULT_THRESHOLD,
     RULES,
-    otsu_threshold,
-    run_replay,
-    select_frames,
 )
-from gpumap.spec import GridSpec, SonarSpec
+from gpumap.spec import GridSpec
 
 __all__ = ["EMPTY_MAP_STATUS", "OUTPUTS", "main"]
-
-#: Every file ``gpumap replay`` can write into ``--out``: one run's set replaces the last one's.
-OUTPUTS = ("map.npz", "surface.npz", "occupied.ply", "views.png", "floor_slice.png", "rules.png",
-           "summary.json")
-
 
 def _parser() -> ArgumentParser:
     ap = ArgumentParser(prog="gpumap replay",
                         description="stream a recording through the min-max mapper and write what it built")
-    ap.add_argument("path", help="recording: Oculus .raw/.oculus, ARIS .aris, fan folder, ROS bag")
+    ap.add_argument("path", help="recording: Oculus .raw/.oculus, ARIS .aris, fan folder, ROS bag, the "
+                                 "OASIS tank folder (sonar/ + son_poses.pkl), a HoloOcean dataset "
+                                 "(Config.json + Data/)")
     ap.add_argument("--voxel-size", type=positive_float, default=0.05, help="metres (default 0.05)")
     ap.add_argument("--backend", type=backend_name, default="auto",
                     help=BACKEND_HELP)
@@ -90,7 +78,7 @@ def _parser() -> ArgumentParser:
     ap.add_argument("--threshold", type=threshold_or_auto, default=DEFAULT_THRESHOLD,
                     help=f"occupied if value >= this, in (0, 1] (default {DEFAULT_THRESHOLD}; on the "
                          "OASIS tank views agree above it), also the mapper's bright threshold (its "
-                         "'threshold': the visible rule's returns and shadows); 'auto' = Otsu over "
+                         "'threshold': from it a view counts as bright); 'auto' = Otsu over "
                          "observed voxels, known only after the run, so the mapper then uses "
                          f"{DEFAULT_THRESHOLD}")
     ap.add_argument("--rule", default=None, choices=list(RULES),
@@ -107,8 +95,9 @@ def _parser() -> ArgumentParser:
                          "START or STOP may be left out), before --stride and --max-frames: split a "
                          "recording into maps of disjoint pings that gpumap merge can join")
     ap.add_argument("--skip-bad-frames", action="store_true",
-                    help="fan folders: skip a picture that cannot be read (truncated, corrupt) instead "
-                         "of stopping; each is counted in the printed line and in summary.json")
+                    help="fan folders, the OASIS folder, HoloOcean datasets: skip a frame that cannot be "
+                         "read (truncated, corrupt) instead of stopping; each is counted in the printed line "
+                         "and in summary.json")
     ap.add_argument("--stride", type=positive_int, default=1, help="use every N-th frame")
     ap.add_argument("--max-frames", type=positive_int, default=None,
                     help="stop after this many frames (after --stride); default all")
@@ -131,7 +120,7 @@ def _parser() -> ArgumentParser:
     return ap
 
 
-REPLAY_REMEDY = "use a larger --voxel-size or a smaller --grid"
+REPLAY_REMEDY = REMEDY
 
 
 def _parse(argv: list[str] | None) -> tuple[argparse.Namespace, GridSpec | None]:
@@ -172,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     except user_errors() as e:
         for s in a.view_sessions:
             s.abort()
-        print(error_line("gpumap replay", e), file=sys.stderr)
+        print(error_line("gpumap replay", e) + _skip_hint(a, e), file=sys.stderr)
         return 2
     except BaseException:
         for s in a.view_sessions:
@@ -228,6 +217,20 @@ def main(argv: list[str] | None = None) -> int:
 EMPTY_MAP_STATUS = 3
 
 
+def _skip_hint(a: argparse.Namespace, e: BaseException) -> str:
+    """What to add to the error of one unreadable frame of a folder: that --skip-bad-frames skips it."""
+    from gpumap.io import SKIPPABLE_KINDS, FormatError, recording_kind
+
+    where = getattr(e, "path", None)
+    if a.skip_bad_frames or not isinstance(e, FormatError) or where is None or Path(where) == Path(a.path):
+        return ""
+    try:
+        kind = recording_kind(a.path)
+    except (OSError, ValueError):
+        return ""
+    return " (--skip-bad-frames skips frames that cannot be read)" if kind in SKIPPABLE_KINDS else ""
+
+
 def _view_layer(a: argparse.Namespace, threshold: float):
     """The layer that feeds ``--view``/``--record`` (None without them): its session opens when it is
     attached to the mapper (the grid and the sonar known then)."""
@@ -244,104 +247,27 @@ def _view_layer(a: argparse.Namespace, threshold: float):
     return SessionLayer(make)
 
 
+def _job(a: argparse.Namespace, grid: GridSpec | None) -> ReplayJob:
+    """The typed job of parsed flags ``a`` (the flags stop here: the library gets the job)."""
+    ekf = EKFOptions(tuple(a.odometry_noise), a.seed, bool(a.ekf_registration)) if a.ekf else None
+    view = _view_layer(a, DEFAULT_THRESHOLD if a.threshold == "auto" else a.threshold)
+    return ReplayJob(Path(a.path), Path(a.out), voxel_size_m=a.voxel_size, backend=a.backend, method=a.method,
+                     rule=a.rule, threshold=a.threshold, grid=grid, static=a.static, frames=a.frames,
+                     stride=a.stride, max_frames=a.max_frames, vfov_deg=a.vfov_deg,
+                     skip_bad_frames=a.skip_bad_frames, surface=a.surface, pictures=not a.no_pictures,
+                     progress=not a.no_progress, workers=a.workers, scheduler=a.scheduler,
+                     in_process=bool(a.workers) and _in_process(a), ekf=ekf,
+                     layers=() if view is None else (view,))
+
+
 def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpec]:
     """Map the recording of parsed flags ``a``; write the output set; ``(summary, grid)``."""
-    if a.ekf:  # odometry + EKF on the pings, three maps (gpumap.pipeline.ekf_replay)
-        return replay_with_ekf(a, grid)
-    from gpumap.io import open_recording
-
-    kwargs: dict = {}
-    p = Path(a.path)
-    if a.vfov_deg is not None and p.is_dir() and not (p / "metadata.yaml").exists():
-        from gpumap.io.fan import OASIS_SPEC
-
-        if a.vfov_deg is not None:
-            kwargs["spec"] = SonarSpec(OASIS_SPEC.range_min_m, OASIS_SPEC.range_max_m,
-                                       OASIS_SPEC.n_bins, OASIS_SPEC.bearings_rad,
-                                       math.radians(a.vfov_deg))
-    elif a.vfov_deg is not None:
-        kwargs["vfov_deg"] = a.vfov_deg
-    stride = a.stride
-    if p.is_dir() and not (p / "metadata.yaml").exists() and a.frames is None:
-        kwargs["stride"] = stride  # the fan reader skips pictures without decoding them
-        stride = 1
-    bad: list[str] = []
-    if a.skip_bad_frames:
-        if not (p.is_dir() and not (p / "metadata.yaml").exists()):
-            raise ValueError(f"Expected a folder of fan pictures with --skip-bad-frames (the one format "
-                             f"whose frames can be skipped one by one), but {a.path} is not one")
-        kwargs["on_bad"] = lambda e: bad.append(str(e))
-    rec = open_recording(a.path, **kwargs)
-    if a.frames is not None:
-        rec = select_frames(rec, a.frames)
-    mapper_thr = DEFAULT_THRESHOLD if a.threshold == "auto" else a.threshold
-    rule = a.rule or ("evidence" if a.method == "gather" else "plain")
-    replay_kw = dict(voxel_size_m=a.voxel_size, backend=a.backend, method=a.method,
-                     static=a.static, stride=stride, max_frames=a.max_frames,
-                     progress=not a.no_progress, threshold=mapper_thr,
-                     memory_remedy=REPLAY_REMEDY)
-    positions: list = []
-    view = _view_layer(a, mapper_thr)
-    surface = LiveSurface() if a.surface and not a.workers and rule == "evidence" else None
-    if a.workers:  # the same map, mapped by N mappers and merged
-        replay_kw.pop("memory_remedy")  # each worker holds its own map (gpumap.pipeline.workers)
-        if _in_process(a):  # N GPUs of this machine: a thread and a mapper each (gpumap.pipeline.gpu_threads)
-            from gpumap.pipeline.gpu_threads import run_replay_threads
-
-            mapper, stats = run_replay_threads(rec, workers=a.workers, grid=grid, rule=a.rule,
-                                               positions=positions, **replay_kw)
-        else:
-            from gpumap.pipeline.workers import run_replay_workers
-
-            mapper, stats = run_replay_workers(rec, workers=a.workers, scheduler=a.scheduler, grid=grid,
-                                               rule=a.rule, positions=positions,
-                                               **replay_kw)
-    else:
-        layers = [x for x in (view, surface) if x is not None]
-        mapper, stats = run_replay(rec, grid=grid, rule=a.rule, positions=positions, layers=layers,
-                                   **replay_kw)
-    for s in getattr(a, "view_sessions", ()):
+    stats, mapper = run_job(_job(a, grid))
+    for s in a.view_sessions:
         s.finish(mapper)
-    if a.skip_bad_frames:
-        stats["skipped_bad_frames"] = len(bad)
-        stats["bad_frames"] = bad[:100]  # the first hundred errors, each naming its file
-    layer = None
-    if surface is not None and stats["frames"]:
-        layer, stats["surface"] = _surface_summary(surface)
-    elif a.surface:
-        stats["surface"] = {"skipped": "the surface layer is built on the evidence rule's map from one "
-                                       "process (not --workers, --rule evidence)"}
-    values = mapper.values()
-    thr = otsu_threshold(values) if a.threshold == "auto" else float(a.threshold)
-    occ = np.isfinite(values) & (values >= thr)
-    stats["threshold"] = thr
-    stats["occupied_voxels"] = int(occ.sum())
-    stats["observed_voxels"] = int(np.isfinite(values).sum())
-    with output_set(a.out, OUTPUTS) as out:  # all of them appear in --out together, or none
-        mapper.save(out / "map.npz")
-        if layer is not None:
-            layer.save(out / "surface.npz", values, mapper.spec, float(mapper.threshold), "evidence")
-        write_ply(out / "occupied.ply", mapper.grid.centers(np.argwhere(occ)), values[occ])
-        if not a.no_pictures:
-            stats.update(save_pictures(values, mapper.grid, thr, out,
-                                       title=f"{Path(a.path).name} ({stats['rule']} rule)",
-                                       positions=np.asarray(positions).reshape(-1, 3) if positions else None))
-        (out / "summary.json").write_text(json.dumps(stats, indent=2))
+    if a.ekf:
+        _print_ekf(stats["ekf"])
     return stats, mapper.grid
-
-
-def _surface_summary(live) -> tuple:
-    """(the surface layer of every ping :class:`~gpumap.layers.surface_live.LiveSurface` kept, its
-    summary block)."""
-    t0 = time.perf_counter()
-    layer = live.update()
-    t_update = time.perf_counter() - t0
-    skip = ("candidates", "surface", "pings", "seconds", "warm", "pairs")
-    return layer, {"seconds": live.seconds_add + t_update, "seconds_during_mapping": live.seconds_add,
-                   "seconds_after_mapping": t_update, "pings": layer.stats["pings"],
-                   "candidates": layer.stats["candidates"], "surface_voxels": int(layer.surface.sum()),
-                   "pairs": layer.stats.get("pairs"),
-                   "options": {k: v for k, v in layer.stats.items() if k not in skip}}
 
 
 # ------------------------------------------------------------------------------ --workers
@@ -421,10 +347,6 @@ def check_ekf_args(ap: argparse.ArgumentParser, a: argparse.Namespace) -> None:
     a.seed = 0 if a.seed is None else a.seed
 
 
-#: Files ``--ekf`` writes besides the replay's own.
-EKF_OUTPUTS = ("ekf_paths.png", "ekf_measurements.png")
-
-
 def _two_decimals(v: float | None) -> str:
     return "-" if v is None else f"{v:.2f}"
 
@@ -437,52 +359,8 @@ def _registration_line(r: dict) -> str:
             f"({r.get('revisits_unverified', 0)} refused: images disagreed)")
 
 
-def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
-    """``gpumap replay --ekf``: run and write into ``a.out``; ``(stats, grid)`` for replay's summary."""
-    from gpumap.io import open_recording
-    from gpumap.pipeline.ekf_replay import (
-        measurements_picture,
-        paths_picture,
-        run_ekf_replay,
-    )
-
-    if a.static:
-        raise ValueError("Expected a recording with poses for --ekf (they are its reference), but got "
-                         "--static")
-    other = [f for f, on in (("--view", getattr(a, "view", False)),
-                             ("--record", getattr(a, "record", None) is not None)) if on]
-    if other:
-        raise ValueError(f"Expected --ekf alone (it makes three maps of its own), but got it with "
-                         f"{' and '.join(other)}")
-    rec = open_recording(a.path)
-    thr = DEFAULT_THRESHOLD if a.threshold == "auto" else float(a.threshold)
-    t0 = time.perf_counter()
-    res = run_ekf_replay(rec, odometry_noise=tuple(a.odometry_noise), seed=a.seed, voxel_size_m=a.voxel_size,
-                         grid=grid, backend=a.backend, threshold=thr, rule=a.rule, stride=a.stride,
-                         max_frames=a.max_frames, progress=not a.no_progress,
-                         registration=bool(getattr(a, "ekf_registration", False)))
-    mapper = res["maps"]["ekf"]
-    values = res["values"]["ekf"]
-    occ = np.isfinite(values) & (values >= thr)
-    s = res["summary"]
-    stats = {"frames": s["frames"], "backend": mapper.backend, "rule": mapper.rule, "threshold": thr,
-             "seconds_total": time.perf_counter() - t0, "grid": res["grid"].to_dict(),
-             "grid_shape": list(res["grid"].shape), "occupied_voxels": int(occ.sum()),
-             "observed_voxels": int(np.isfinite(values).sum()), "skipped_no_pose": 0, "skipped_spec": 0,
-             "ekf": s}
-    stats["images_per_s"] = stats["frames"] / stats["seconds_total"]
-    stats["integrate_per_s"] = stats["frames"] / max(s["ms_per_ping"]["map_seconds"]["ekf"], 1e-9)
-    with output_set(a.out, (*OUTPUTS, *EKF_OUTPUTS)) as out:
-        mapper.save(out / "map.npz")
-        write_ply(out / "occupied.ply", mapper.grid.centers(np.argwhere(occ)), values[occ])
-        if not a.no_pictures:
-            stats.update(save_pictures(values, mapper.grid, thr, out,
-                                       title=f"{Path(a.path).name} (EKF poses)",
-                                       positions=res["loop"].poses[:, :3, 3]))
-            paths_picture(res, out / "ekf_paths.png", title=Path(a.path).name)
-            stats["ekf"]["measurements_picture_ping"] = measurements_picture(
-                res, out / "ekf_measurements.png")
-        (out / "summary.json").write_text(json.dumps(stats, indent=2))
+def _print_ekf(s: dict) -> None:
+    """The EKF replay's line (its summary block ``s``)."""
     e, o = s["pose_error"]["ekf"], s["pose_error"]["odometry"]
     tr = s["trust"]
     mo, me = s["map_vs_recorded"]["odometry"], s["map_vs_recorded"]["ekf"]
@@ -497,4 +375,3 @@ def replay_with_ekf(a: argparse.Namespace, grid) -> tuple[dict, object]:
           f"{_two_decimals(tr['window_nis_per_dof']['median'])} (median); "
           f"{_registration_line(s['registration'])}; "
           f"{s['ms_per_ping']['total_mean']:.1f} ms per ping (front-end + EKF)")
-    return stats, mapper.grid

@@ -66,6 +66,17 @@ CPU_TILE = 1 << 30
 PAIR_STEPS = np.array([s for s in np.ndindex(3, 3, 3) if s > (1, 1, 1)]) - 1
 
 
+def confidence_of(mapper):
+    """The confidence layer attached to ``mapper`` (:class:`gpumap.layers.confidence.ConfidenceLayer`);
+    ``ValueError`` when it has none (view gains are scored against it)."""
+    for x in getattr(mapper, "layers", ()):
+        if getattr(x, "name", None) == "confidence":
+            return x
+    raise ValueError("Expected a map with its confidence layer attached (mapper.attach(ConfidenceLayer()) "
+                     "or gpumap.layers.confidence.with_confidence(mapper)), but it has none")
+
+
+
 class ViewGainPoints:
     """What the view gain reads from the map (built once per map state by :func:`gain_points`).
 
@@ -360,7 +371,7 @@ def plan_views(
     out = []
     for i in range(n_views):
         Ts = candidates(i)
-        g = mapper.layer("confidence").gains(Ts, unknown_weight=unknown_weight)
+        g = confidence_of(mapper).gains(Ts, unknown_weight=unknown_weight)
         k = int(np.argmax(g))
         image = take_ping(Ts[k])
         mapper.integrate(image, Ts[k])
@@ -415,7 +426,7 @@ def next_best_views(
                                         yaw_rad=yaw_rad, offset_m=offset_m)
                         for i, T in enumerate(A)])[: int(candidates)]
     anchor_of = np.repeat(np.arange(len(A)), per)[: len(C)]
-    g = mapper.layer("confidence").gains(C, unknown_weight=unknown_weight)
+    g = confidence_of(mapper).gains(C, unknown_weight=unknown_weight)
     best = np.argsort(-g, kind="stable")[: int(views)]
     return [{"T_W_S": C[k], "gain": float(g[k]), "candidate": int(k), "anchor": int(anchor_of[k])}
             for k in best], len(C)

@@ -136,6 +136,9 @@ def run_replay(
         from gpumap import MinMaxMapper as mapper_cls  # noqa: N813
     params = MapperParams(method=method, rule=rule, threshold=threshold)
     if not recording.has_poses and not static:
+        note = getattr(recording, "pose_note", None)
+        if note:  # poses that came, but not one per picture: --static would map them all at one pose
+            raise ValueError(f"Expected a sonar pose for every ping of {recording.path}, but {note}")
         raise ValueError(
             f"Expected a recording with sonar poses, but {recording.path} ({recording.kind}) has "
             "none: mapping needs a pose per ping. Pass --static to map every ping at one fixed "
@@ -552,9 +555,15 @@ def select_frames(recording, frames: slice):
     from gpumap.io.frame import Recording
 
     rec = recording
+    n = rec.count()
+    if n is not None and len(range(n)[frames]) == 0:
+        stop = "" if frames.stop is None else frames.stop
+        raise ValueError(f"Expected --frames to pick some of the {n} frames of {rec.path}, but "
+                         f"{frames.start or 0}:{stop} picks none (frames are counted from 0)")
     return Recording(
         rec.path, rec.kind, lambda: itertools.islice(iter(rec), frames.start, frames.stop, frames.step),
         rec.has_poses,
-        count=None if rec.count() is None else lambda: len(range(rec.count())[frames]),
+        count=None if n is None else lambda: len(range(rec.count())[frames]),
         poses=None if rec._poses is None else lambda: list(rec.poses())[frames],
+        pose_note=getattr(rec, "pose_note", None),
     )
