@@ -42,7 +42,7 @@ import time
 
 import numpy as np
 
-from gpumap.distance_device import INF, check_box_dims, make_transform
+from gpumap.distance_device import INF, Cascade, check_box_dims, make_transform
 from gpumap.errors import check_finite_scalar
 from gpumap.spec import GridSpec
 
@@ -248,12 +248,19 @@ class DistanceField:
     def _full(self, grid: GridSpec, mask: np.ndarray) -> int:
         check_box_dims(grid.shape)
         cap2 = cap_squared(self.max_distance_m, grid.voxel_size_m)
-        d2 = self._transform(mask, cap2, self._inverts())
-        tmax = np.maximum.reduce([_tile_max(d, self.tile, cap2) for d in d2])
+        tr = self._transform
+        if tr.incremental:  # the passes stay on the device, rerun line by line later
+            cascades = [Cascade(tr, mask.shape, cap2, inv) for inv in self._inverts()]
+            for c in cascades:
+                c.full(mask)
+            d2, tmax = [c.d2() for c in cascades], None
+        else:
+            cascades, d2 = None, tr(mask, cap2, self._inverts())
+            tmax = np.maximum.reduce([_tile_max(d, self.tile, cap2) for d in d2])
         metres = self._metres(d2, grid.voxel_size_m, cap2)
         # commit (nothing above changed the field)
         self._grid, self._cap2, self._mask = grid, cap2, mask
-        self._d2, self._tmax, self._field = d2, tmax, metres
+        self._cascades, self._d2, self._tmax, self._field = cascades, None if cascades else d2, tmax, metres
         return int(mask.size)
 
     def _metres(self, d2: list[np.ndarray], voxel: float, cap2: int) -> np.ndarray:
@@ -290,22 +297,29 @@ class DistanceField:
             return math.isqrt(self._cap2)
         return 0
 
+    def _first_margin(self, lo: np.ndarray, hi: np.ndarray) -> int:
+        """The margin (voxels) a box ``[lo, hi)`` is first transformed with: the truncation radius (always
+        enough), or without one a guess, checked afterwards: the largest old distance in the box's tiles,
+        and a tile."""
+        if self.max_distance_m is not None:
+            return self._margin_guess()
+        T = self.tile
+        tm = self._tmax[tuple(slice(a // T, -(-b // T)) for a, b in zip(lo, hi, strict=True))]
+        return int(math.isqrt(int(tm.max()))) + 1 + T
+
     def _incremental(self, mask: np.ndarray) -> int:
         changed = np.flatnonzero(mask != self._mask)
         if not changed.size:
             self.last_update = {"kind": "none", "changed": 0, "boxes": 0, "transformed": 0, "retries": 0}
             self._mask = mask
             return 0
+        if self._cascades is not None:
+            return self._by_lines(mask, changed)
         boxes = self._affected_boxes(changed)
         shape = np.asarray(mask.shape)
         results, work, retries = [], 0, 0
         for lo, hi in boxes:
-            if self.max_distance_m is not None:
-                m = self._margin_guess()
-            else:  # a first guess: the largest old distance in the box's tiles, and a tile
-                T = self.tile
-                tm = self._tmax[tuple(slice(a // T, -(-b // T)) for a, b in zip(lo, hi, strict=True))]
-                m = int(math.isqrt(int(tm.max()))) + 1 + T
+            m = self._first_margin(lo, hi)
             while True:
                 ilo, ihi = np.maximum(lo - m, 0), np.minimum(hi + m, shape)
                 work += int(np.prod(ihi - ilo))
@@ -340,6 +354,19 @@ class DistanceField:
         self._mask = mask
         self.last_update = {"kind": "incremental", "changed": int(changed.size), "boxes": len(results),
                             "transformed": work, "retries": retries}
+        return work
+
+    def _by_lines(self, mask: np.ndarray, changed: np.ndarray) -> int:
+        """The device backends' update: each field's passes rerun on the lines whose input changed."""
+        work = sum(c.refresh(mask, changed) for c in self._cascades) // len(self._cascades)
+        lines = np.logical_or.reduce([c.changed_lines() for c in self._cascades])
+        jj, kk = np.nonzero(lines)
+        if jj.size:
+            d2 = [c.d2()[:, jj, kk] for c in self._cascades]
+            self._field[:, jj, kk] = self._metres(d2, self._grid.voxel_size_m, self._cap2)
+        self._mask = mask
+        self.last_update = {"kind": "incremental", "changed": int(changed.size), "boxes": 0,
+                            "transformed": work, "retries": 0, "lines_changed": int(jj.size)}
         return work
 
     # ------------------------------------------------------------------ reading

@@ -22,7 +22,7 @@ import numpy as np
 
 from gpumap.errors import BackendUnavailableError
 
-__all__ = ["INF", "Transform", "check_box_dims", "edt_reference", "make_transform"]
+__all__ = ["AXES", "INF", "Cascade", "Transform", "check_box_dims", "edt_reference", "make_transform"]
 
 #: The kernels' "no obstacle within reach" (``gpumap.kernels.distance.INF``).
 INF = 2**31 - 1
@@ -59,10 +59,12 @@ def edt_reference(mask: np.ndarray, cap2: int = INF - 1, invert: bool = False) -
 class Transform:
     """The transform on one backend: ``transform(mask, cap2, inverts)`` -> one (n0, n1, n2) int32 array
     of squared distances per entry of ``inverts`` (False: to the nearest ``mask`` voxel; True: to the
-    nearest voxel outside it)."""
+    nearest voxel outside it). Device runners also keep a transform up to date line by line
+    (:class:`Cascade`, ``incremental`` True)."""
 
     name: str
     device: str
+    incremental = False
 
     def __call__(self, mask: np.ndarray, cap2: int, inverts=(False,)) -> list[np.ndarray]:
         m = np.ascontiguousarray(mask, dtype=bool)
@@ -99,7 +101,93 @@ def _lines(shape, axis: int) -> int:
     return n
 
 
+def _pass_args(src, shape, axis, cap2, invert, todo, scratch, out, marks, next_axis) -> list:
+    """A pass's arguments in the kernels' order, up to (without) ``offset`` and ``n_lines``."""
+    opt = [] if invert is None else [int(invert)]
+    dims = [int(s) for s in shape]
+    return [src, *dims, int(axis), int(cap2), *opt, todo, scratch, out, marks, int(next_axis)]
+
+
+#: The axes of the three passes, in order (the first along the contiguous axis).
+AXES = (2, 1, 0)
+
+
+class Cascade:
+    """One field's transform kept on a device runner (:class:`WarpTransform`, :class:`OpenCLTransform`)
+    for a box of fixed ``shape``: the three passes' outputs stay there, so that :meth:`refresh` reruns
+    only the lines whose input changed (each pass flags the next pass's lines through the values it
+    changed), and the result always equals a full transform of the current mask.
+
+    ``flags[p]`` is the byte-per-line ``todo`` of pass ``p`` (along ``AXES[p]``); ``flags[3]`` marks the
+    lines of the last pass whose output changed."""
+
+    def __init__(self, runner, shape, cap2: int, invert: bool) -> None:
+        check_box_dims(shape)
+        self.r, self.shape = runner, tuple(int(n) for n in shape)
+        self.cap2, self.invert = int(cap2), bool(invert)
+        self.n = int(np.prod(self.shape))
+        self.n_lines = [_lines(self.shape, a) for a in (*AXES, AXES[-1])]
+        self.bufs = runner.alloc(self.n, self.n_lines)
+        self.host_flags = [np.zeros(n, np.uint8) for n in self.n_lines]
+        self.fresh = False  # the device holds no transform yet
+
+    def _passes(self) -> None:
+        r, b, shp = self.r, self.bufs, self.shape
+        r.launch("first", shp, AXES[0], b["mask"], self.cap2, int(self.invert), b["flags"][0], b["scratch"],
+                 b["g"][0], b["flags"][1], AXES[1], self.n_lines[0])
+        r.launch("parabola", shp, AXES[1], b["g"][0], self.cap2, None, b["flags"][1], b["scratch"], b["g"][1],
+                 b["flags"][2], AXES[2], self.n_lines[1])
+        r.launch("parabola", shp, AXES[2], b["g"][1], self.cap2, None, b["flags"][2], b["scratch"], b["g"][2],
+                 b["flags"][3], AXES[2], self.n_lines[2])
+
+    def full(self, mask: np.ndarray) -> int:
+        """Transform the whole box for ``mask`` ((n0, n1, n2) bool); returns its voxels."""
+        r, b = self.r, self.bufs
+        r.upload(b["mask"], np.ascontiguousarray(mask, bool).reshape(-1).view(np.uint8))
+        for p in range(3):
+            r.fill(b["flags"][p], 1)
+        self._passes()
+        self._changed = None  # every line
+        for p in range(4):
+            r.fill(b["flags"][p], 0)
+        self.fresh = True
+        return self.n
+
+    def refresh(self, mask: np.ndarray, changed: np.ndarray) -> int:
+        """Bring the transform up to date with ``mask``, which differs from the last one at the flat
+        indices ``changed``; returns the voxels the rerun lines hold, over three (a full transform's
+        cost: the box's voxels)."""
+        if not self.fresh:
+            return self.full(mask)
+        r, b, (_, n1, n2) = self.r, self.bufs, self.shape
+        r.upload(b["mask"], np.ascontiguousarray(mask, bool).reshape(-1).view(np.uint8))
+        f0 = self.host_flags[0]
+        f0[...] = 0
+        f0[np.asarray(changed, np.int64) // n2] = 1  # lines along axis 2: i n1 + j = flat // n2
+        r.upload(b["flags"][0], f0)
+        self._passes()
+        for p in (1, 2, 3):
+            r.download(self.host_flags[p], b["flags"][p])
+            r.fill(b["flags"][p], 0)
+        counts = [int(np.count_nonzero(f)) for f in self.host_flags]
+        self._changed = self.host_flags[3].reshape(n1, n2) != 0
+        lengths = [self.shape[a] for a in AXES]
+        return -(-sum(c * n for c, n in zip(counts[:3], lengths, strict=True)) // 3)
+
+    def changed_lines(self) -> np.ndarray | None:
+        """(n1, n2) bool: the lines along axis 0 whose distances the last :meth:`refresh` changed (None
+        after :meth:`full`: every line)."""
+        return self._changed
+
+    def d2(self) -> np.ndarray:
+        """(n0, n1, n2) int32 squared distances of the current transform (on warp-cpu a view of the
+        device array: valid until the next update)."""
+        return self.r.read_d2(self.bufs).reshape(self.shape)
+
+
 class WarpTransform(Transform):
+    incremental = True
+
     def __init__(self, device: str, device_index: int | None) -> None:
         from gpumap.backends import base, warp_backend
 
@@ -113,53 +201,65 @@ class WarpTransform(Transform):
         self.wp, self.k, self.base = wp, k, base
         self.dev = wp.get_device(f"cuda:{index}" if device == "cuda" else "cpu")
         self.name, self.device = f"warp-{device}", f"{self.dev.alias} ({self.dev.name})"
-        self.cap = 0
+        self.kernels = {"first": k.edt_first_pass, "parabola": k.edt_parabola_pass}
         wp.load_module(k, device=self.dev)
 
-    def _grow(self, n: int) -> None:
-        if n <= self.cap:
-            return
+    def alloc(self, n: int, n_lines: list[int]) -> dict:
         wp, dev = self.wp, self.dev
-        self.mask = wp.empty(n, dtype=wp.uint8, device=dev)
-        self.a, self.b, self.scratch = (wp.empty(n, dtype=int, device=dev) for _ in range(3))
-        self.cap = n
+        return {"mask": wp.zeros(n, dtype=wp.uint8, device=dev),
+                "g": [wp.zeros(n, dtype=int, device=dev) for _ in range(3)],
+                "scratch": wp.zeros(n, dtype=int, device=dev),
+                "flags": [wp.zeros(m, dtype=wp.uint8, device=dev) for m in n_lines]}
 
-    def _launch(self, kernel, shape, axis: int, inputs_head: list, inputs_tail: list) -> None:
+    def upload(self, dst, src: np.ndarray) -> None:
+        if self.dev.is_cpu:
+            dst.numpy()[...] = src
+        else:
+            dst.assign(self.wp.array(src, dtype=dst.dtype, device="cpu"))
+
+    def download(self, dst: np.ndarray, src) -> None:
+        dst[...] = src.numpy()
+
+    def fill(self, a, value: int) -> None:
+        a.fill_(value)
+
+    def read_d2(self, bufs) -> np.ndarray:
+        self.wp.synchronize_device(self.dev)
+        return bufs["g"][2].numpy()
+
+    def launch(self, name: str, shape, axis: int, src, cap2: int, invert, todo, scratch, out, marks,
+               next_axis: int, n_lines: int) -> None:
         """One pass over the lines along ``axis``; on CPUs split in two halves on two threads (Warp's
-        CPU launches are serial and release the interpreter; each line is one thread's own)."""
-        wp = self.wp
-        n_lines = _lines(shape, axis)
+        CPU launches are serial and release the interpreter; each line is one thread's own, and the flags
+        they share are only ever set to 1)."""
+        wp, kernel = self.wp, self.kernels[name]
+        args = _pass_args(src, shape, axis, cap2, invert, todo, scratch, out, marks, next_axis)
         one = self.dev.is_cuda or self.base.CPU_THREADS < 2 or n_lines < 64
-        split = None if one else self.base._cpu_pool()
-        args = [*inputs_head, *(int(s) for s in shape), axis, *inputs_tail]
-        if split is None:
+        if one:
             wp.launch(kernel, dim=n_lines, inputs=[*args, 0, n_lines], device=self.dev)
             return
-        h = n_lines // 2
-        fut = split.submit(wp.launch, kernel, dim=n_lines - h, inputs=[*args, h, n_lines], device=self.dev)
+        # the flagged lines halved between the threads (the flags are host memory here)
+        cum = np.cumsum(todo.numpy(), dtype=np.int64)
+        h = int(np.searchsorted(cum, (int(cum[-1]) + 1) // 2)) + 1 if cum[-1] else n_lines
+        if h >= n_lines:
+            wp.launch(kernel, dim=n_lines, inputs=[*args, 0, n_lines], device=self.dev)
+            return
+        fut = self.base._cpu_pool().submit(wp.launch, kernel, dim=n_lines - h, inputs=[*args, h, n_lines],
+                                           device=self.dev)
         try:
             wp.launch(kernel, dim=h, inputs=[*args, 0, n_lines], device=self.dev)
         finally:
             fut.result()
 
     def _run(self, mask, cap2, invert):
-        wp, k = self.wp, self.k
-        n = mask.size
-        self._grow(n)
-        host = wp.array(mask.reshape(-1).view(np.uint8), dtype=wp.uint8, device="cpu")
-        wp.copy(self.mask, host, count=n)
-        a, b, s = self.a, self.b, self.scratch
-        self._launch(k.edt_first_pass, mask.shape, 2, [self.mask], [cap2, int(invert), a])
-        self._launch(k.edt_parabola_pass, mask.shape, 1, [a], [cap2, s, b])
-        self._launch(k.edt_parabola_pass, mask.shape, 0, [b], [cap2, s, a])
-        out = np.empty(n, np.int32)
-        dst = wp.array(out, dtype=int, device="cpu", copy=False)
-        wp.copy(dst, a, count=n)
-        wp.synchronize_device(self.dev)
-        return out.reshape(mask.shape)
+        c = Cascade(self, mask.shape, cap2, invert)
+        c.full(mask)
+        return np.array(c.d2())
 
 
 class OpenCLTransform(Transform):
+    incremental = True
+
     def __init__(self, kind: str, device_index: int | None) -> None:
         from gpumap.backends import opencl_backend as ob
 
@@ -174,40 +274,49 @@ class OpenCLTransform(Transform):
         self.device = f"{d.platform.name.strip()}: {d.name.strip()}"
         i32 = np.int32
         # kernel objects hold their arguments: this runner's own
-        self.k_first = cl.Kernel(prg, "edt_first_pass")
-        self.k_first.set_scalar_arg_dtypes([None, i32, i32, i32, i32, i32, i32, None, i32, i32])
-        self.k_par = cl.Kernel(prg, "edt_parabola_pass")
-        self.k_par.set_scalar_arg_dtypes([None, i32, i32, i32, i32, i32, None, None, i32, i32])
-        self.cap = 0
+        first = cl.Kernel(prg, "edt_first_pass")
+        first.set_scalar_arg_dtypes([None, *[i32] * 6, None, None, None, None, i32, i32, i32])
+        par = cl.Kernel(prg, "edt_parabola_pass")
+        par.set_scalar_arg_dtypes([None, *[i32] * 5, None, None, None, None, i32, i32, i32])
+        self.kernels = {"first": first, "parabola": par}
 
-    def _grow(self, n: int) -> None:
-        if n <= self.cap:
-            return
+    def alloc(self, n: int, n_lines: list[int]) -> dict:
         cl, mf = self.cl, self.cl.mem_flags
-        self.mask = cl.Buffer(self.ctx, mf.READ_ONLY, size=max(4, n))
-        self.a, self.b, self.scratch = (cl.Buffer(self.ctx, mf.READ_WRITE, size=4 * n) for _ in range(3))
-        self.cap = n
 
-    def _enqueue(self, kernel, shape, axis: int, head: list, tail: list) -> None:
-        n_lines = _lines(shape, axis)
+        def buf(nbytes):
+            b = cl.Buffer(self.ctx, mf.READ_WRITE, size=max(4, int(nbytes)))
+            cl.enqueue_fill_buffer(self.queue, b, np.uint8(0), 0, max(4, int(nbytes)))
+            return b
+
+        return {"mask": buf(n), "g": [buf(4 * n) for _ in range(3)], "scratch": buf(4 * n),
+                "flags": [buf(m) for m in n_lines], "host": np.empty(n, np.int32), "n_lines": n_lines}
+
+    def upload(self, dst, src: np.ndarray) -> None:
+        self.cl.enqueue_copy(self.queue, dst, src, is_blocking=True)
+
+    def download(self, dst: np.ndarray, src) -> None:
+        self.cl.enqueue_copy(self.queue, dst, src, is_blocking=True)
+
+    def fill(self, a, value: int) -> None:
+        self.cl.enqueue_fill_buffer(self.queue, a, np.uint8(value), 0, a.size)
+
+    def read_d2(self, bufs) -> np.ndarray:
+        self.cl.enqueue_copy(self.queue, bufs["host"], bufs["g"][2], is_blocking=True)
+        return bufs["host"]
+
+    def launch(self, name: str, shape, axis: int, src, cap2: int, invert, todo, scratch, out, marks,
+               next_axis: int, n_lines: int) -> None:
         # whole work-groups of one fixed size (PoCL builds a kernel per work-group size it meets); the
         # items past the last line return
         wg = 64 if self.is_gpu else 8
         gs = (-(-n_lines // wg) * wg,)
-        kernel(self.queue, gs, (wg,), *head, *(int(s) for s in shape), axis, *tail, 0, n_lines)
+        args = [*_pass_args(src, shape, axis, cap2, invert, todo, scratch, out, marks, next_axis), 0, n_lines]
+        self.kernels[name](self.queue, gs, (wg,), *args)
 
     def _run(self, mask, cap2, invert):
-        cl = self.cl
-        n = mask.size
-        self._grow(n)
-        cl.enqueue_copy(self.queue, self.mask, mask.reshape(-1).view(np.uint8), is_blocking=False)
-        a, b, s = self.a, self.b, self.scratch
-        self._enqueue(self.k_first, mask.shape, 2, [self.mask], [cap2, int(invert), a])
-        self._enqueue(self.k_par, mask.shape, 1, [a], [cap2, s, b])
-        self._enqueue(self.k_par, mask.shape, 0, [b], [cap2, s, a])
-        out = np.empty(n, np.int32)
-        cl.enqueue_copy(self.queue, out, a, is_blocking=True)
-        return out.reshape(mask.shape)
+        c = Cascade(self, mask.shape, cap2, invert)
+        c.full(mask)
+        return c.d2().reshape(mask.shape).copy()
 
 
 def make_transform(name: str, device_index: int | None = None) -> Transform:
