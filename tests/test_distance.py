@@ -332,3 +332,48 @@ def test_named_backend_never_falls_back():
         DistanceField(np.zeros(3))
     with pytest.raises(ValueError, match="max_distance_m > 0"):
         DistanceField(*df_args, max_distance_m=0.0)
+
+
+# ------------------------------------------------------------------ ROS 2 messages
+def _msg_points(msg) -> np.ndarray:
+    from gpumap.ros.distance import DISTANCE_DTYPE
+
+    assert [f.name for f in msg.fields] == ["x", "y", "z", "distance"] and msg.point_step == 16
+    assert all(f.datatype == 7 and f.offset == 4 * i for i, f in enumerate(msg.fields))  # FLOAT32
+    assert msg.row_step == 16 * msg.width and len(msg.data) == msg.row_step * msg.height
+    return np.frombuffer(bytes(msg.data), DISTANCE_DTYPE).reshape(msg.height, msg.width)
+
+
+def test_ros_slice_and_cloud_carry_the_field():
+    pytest.importorskip("sensor_msgs.msg")
+    from gpumap.ros.distance import cloud_message, slice_message
+
+    df, g = _slab_field()
+    f = df.field()
+    s = g.voxel_size_m
+    z = g.min_corner_m[2] + 2.3 * s  # inside layer 2
+    msg = slice_message(f, g, z, "world", 1_500_000_123)
+    assert (msg.header.frame_id, msg.header.stamp.sec, msg.header.stamp.nanosec) == ("world", 1, 500_000_123)
+    rec = _msg_points(msg)
+    assert rec.shape == (g.shape[1], g.shape[0]) and msg.is_dense
+    np.testing.assert_array_equal(rec["distance"], f[:, :, 2].T)
+    c = g.all_centers()[:, :, 2]  # (nx, ny, 3)
+    for a, n in enumerate("xyz"):
+        np.testing.assert_allclose(rec[n], c[..., a].T.astype(np.float32), atol=1e-6)
+    with pytest.raises(ValueError, match="z_m within"):
+        slice_message(f, g, g.min_corner_m[2] - 0.01, "world", 0)
+    with pytest.raises(ValueError, match="shape"):
+        slice_message(f[:-1], g, z, "world", 0)
+    with pytest.raises(TypeError, match="stamp"):
+        slice_message(f, g, z, "world", 1.5)
+
+    cloud = cloud_message(f, g, 0.12, "world", msg.header.stamp)
+    pts = _msg_points(cloud)[0]
+    want = (f > 0) & (f <= np.float32(0.12))
+    assert cloud.height == 1 and len(pts) == int(want.sum()) > 0
+    np.testing.assert_array_equal(pts["distance"], f[want])
+    np.testing.assert_allclose(np.stack([pts[n] for n in "xyz"], 1), g.all_centers()[want], atol=1e-6)
+    both = _msg_points(cloud_message(f, g, 0.12, "world", 0, include_obstacles=True))[0]
+    assert len(both) == len(pts) + int((f == 0).sum())
+    with pytest.raises(ValueError, match="radius_m >= 0"):
+        cloud_message(f, g, -1.0, "world", 0)
