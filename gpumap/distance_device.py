@@ -74,7 +74,16 @@ class Transform:
         return [self._run(m, int(cap2), bool(inv)) for inv in inverts]
 
     def _run(self, mask: np.ndarray, cap2: int, invert: bool) -> np.ndarray:
-        raise NotImplementedError
+        """Device runners: a full transform on a cascade kept for the next call of the same box."""
+        key = (mask.shape, cap2, invert)
+        shots = self.__dict__.setdefault("_shots", {})
+        if key not in shots:
+            if len(shots) >= 2:  # a box and its inverse at most
+                shots.clear()
+            shots[key] = Cascade(self, mask.shape, cap2, invert)
+        c = shots[key]
+        c.full(mask)
+        return np.array(c.d2())
 
 
 class NumpyTransform(Transform):
@@ -251,10 +260,6 @@ class WarpTransform(Transform):
         finally:
             fut.result()
 
-    def _run(self, mask, cap2, invert):
-        c = Cascade(self, mask.shape, cap2, invert)
-        c.full(mask)
-        return np.array(c.d2())
 
 
 class OpenCLTransform(Transform):
@@ -313,10 +318,6 @@ class OpenCLTransform(Transform):
         args = [*_pass_args(src, shape, axis, cap2, invert, todo, scratch, out, marks, next_axis), 0, n_lines]
         self.kernels[name](self.queue, gs, (wg,), *args)
 
-    def _run(self, mask, cap2, invert):
-        c = Cascade(self, mask.shape, cap2, invert)
-        c.full(mask)
-        return c.d2().reshape(mask.shape).copy()
 
 
 def make_transform(name: str, device_index: int | None = None) -> Transform:
