@@ -17,13 +17,21 @@ OpenCL: :mod:`gpumap.distance_device`), then ``metres = sqrt(d2) * voxel_size_m`
   free voxel reads ``-inf`` (``-max_distance_m`` truncated).
 
 **Incremental.** :meth:`DistanceField.update` reads the map, finds the voxels whose obstacle state
-changed since the last update and recomputes only where a distance can have changed: a voxel ``q``
-keeps its distance when ``d_old(q)`` (truncated) is below its distance to every changed voxel. The
-test runs on tiles of ``tile`` voxels (each tile's largest distance against a lower bound of its
-distance to the changed tiles); the affected tiles, grouped into boxes, are transformed with a margin
-around them wide enough for exactness (the truncation radius; without one, grown until every recomputed
-distance is certified: no voxel outside the margin could be nearer). The result equals a full
-recomputation, voxel for voxel; the tests check it after every batch of a run.
+changed since the last update and recomputes only what they can have changed; the result equals a full
+recomputation, voxel for voxel (the tests check it after every batch of a run).
+
+- On the device backends (Warp, OpenCL) the transform's three passes (one per axis, one thread per line)
+  stay on the device, and an update reruns only the lines whose input changed: the lines of the first
+  pass through a changed voxel, then in each later pass the lines through a value the previous pass
+  changed (each kernel flags them as it writes). Exact by construction: a line whose input is the same
+  gives the same output.
+- On the NumPy (SciPy) path, which transforms whole boxes only, a voxel ``q`` keeps its distance when
+  ``d_old(q)`` (truncated) is below its distance to every changed voxel. The test runs on tiles of
+  ``tile`` voxels (each tile's largest distance against a lower bound of its distance to the changed
+  tiles); the affected tiles, grouped into boxes, are transformed with a margin wide enough for
+  exactness (the truncation radius; without one, grown until every recomputed distance is certified: no
+  voxel beyond the margin could be nearer). Where distances are long (unknown counted free, no cap)
+  that is most of the grid, and the update runs whole.
 
 **Queries.** :meth:`distance_at` and :meth:`gradient_at` interpolate the field trilinearly between voxel
 centres (batched world points, metres; within half a voxel of the grid's faces the value is held
@@ -175,7 +183,7 @@ class DistanceField:
     device_index : int or None
         That backend's device (None: the first).
     tile : int
-        Edge of the tiles of the incremental test, voxels (default 8).
+        Edge of the tiles of the NumPy path's incremental test, voxels (default 8).
 
     The constructor computes the field of the map as it is (a full transform). Attributes:
     :attr:`backend` (the transform's backend, resolved), :attr:`grid` (the field's grid: the mapper's
