@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gpumap.core.params import MapperParams
+
 from .common import CpuShare, bench_parser, load_average, oasis_full_dir, run_header, spread, write_json
 
 SCHEMA = "gpumap-distance/1"
@@ -95,7 +97,7 @@ def _frames(path: Path, start: int, stop: int):
 def _mapper(spec, grid, backend: str, threshold: float):
     import gpumap
 
-    return gpumap.MinMaxMapper(spec, grid, backend=backend, threshold=threshold)
+    return gpumap.MinMaxMapper(spec, grid, backend, MapperParams(threshold=threshold))
 
 
 def _map(m, imgs, poses, batch: int = 32):
@@ -126,8 +128,8 @@ def _scipy(mask: np.ndarray, voxel: float, cap: float | None) -> np.ndarray:
 def field_rows(source, backends: list[str], repeats: int, live: bool) -> dict:
     """The full field of ``source`` (a mapper or a :class:`StateMap`) per obstacle setting: SciPy, and per
     backend the transform from the mask and the whole full update."""
-    from gpumap.distance import DistanceField, cap_squared, d2_to_metres
-    from gpumap.distance_device import make_transform
+    from gpumap.layers.distance import DistanceField, cap_squared, d2_to_metres
+    from gpumap.layers.distance_device import make_transform
 
     g = source.grid
     s = g.voxel_size_m
@@ -165,7 +167,7 @@ def field_rows(source, backends: list[str], repeats: int, live: bool) -> dict:
 def incremental_rows(grid, sequence, threshold: float, backends: list[str], live_mapper=None) -> dict:
     """``update()`` against ``update(full=True)`` after every state of ``sequence`` (an iterable of
     callables that bring the source to the next batch's map), per backend and setting."""
-    from gpumap.distance import DistanceField
+    from gpumap.layers.distance import DistanceField
 
     source = live_mapper
     if source is None:

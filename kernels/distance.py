@@ -2,7 +2,7 @@
 
 The separable squared-distance transform of Felzenszwalb and Huttenlocher (the lower envelope of
 parabolas), in integer arithmetic so that every device gives the same squared distances, bit for bit
-(the host, ``gpumap/distance_device.py``, turns them into metres). A box of ``n0 x n1 x n2`` voxels, C
+(the host, ``gpumap/layers/distance_device.py``, turns them into metres). A box of ``n0 x n1 x n2`` voxels, C
 order (``n2`` fastest), runs three launches, one per axis, one thread per 1-D line of the box:
 
 1. ``edt_first_pass``: the squared distance along the line to the nearest obstacle voxel of the line

@@ -1,4 +1,5 @@
-"""The distance field of the safe map (gpumap.distance) on every backend, against independent references.
+"""The distance field of the safe map (gpumap.layers.distance) on every backend, against independent
+references.
 
 References share no code with the kernels: SciPy's ``distance_transform_edt`` (with the voxel size as
 sampling), brute force over every obstacle centre on tiny grids, analytic fields (a slab of obstacles
@@ -14,9 +15,10 @@ from conftest import pose, rot_y, rot_z
 from scipy import ndimage
 
 import gpumap
-from gpumap.distance import DistanceField, cap_squared, trilinear
-from gpumap.distance_device import INF, edt_reference, make_transform
+from gpumap.core.params import MapperParams
 from gpumap.errors import BackendUnavailableError
+from gpumap.layers.distance import DistanceField, cap_squared, trilinear
+from gpumap.layers.distance_device import INF, edt_reference, make_transform
 
 SPEC = gpumap.SonarSpec.uniform(hfov_deg=120, vfov_deg=20, n_beams=48, n_bins=60, range_min_m=0.15,
                                 range_max_m=1.5)
@@ -43,7 +45,7 @@ def _pings(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 def run():
     """A small mapped run, kept as the values after each of its batches."""
     imgs, poses = _pings(24, 1)
-    m = gpumap.MinMaxMapper(SPEC, GRID, backend="numpy", threshold=0.3)
+    m = gpumap.MinMaxMapper(SPEC, GRID, "numpy", MapperParams(threshold=0.3))
     return m, imgs, poses
 
 

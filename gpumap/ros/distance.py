@@ -1,4 +1,4 @@
-"""ROS 2 messages of the distance field (:mod:`gpumap.distance`); message packages are imported lazily.
+"""ROS 2 messages of the distance field (:mod:`gpumap.layers.distance`); message packages are imported lazily.
 
 Two views of a field, as the node publishes them after an update that changed it:
 

@@ -1,5 +1,5 @@
 """The exact squared Euclidean distance transform of a voxel box, on a backend (the distance field's
-transform; the layer itself: :mod:`gpumap.distance`).
+transform; the layer itself: :mod:`gpumap.layers.distance`).
 
 Every runner takes a box's obstacle mask and gives, per voxel, the squared distance in voxel units to
 the nearest obstacle voxel centre (int32; :data:`INF` where none lies within ``cap2``), the same

@@ -6,7 +6,7 @@ voxels (``values >= mapper.threshold``) and, by default, its unknown ones (``NaN
 a planner then keeps its distance from what the sonar has not seen as well as from what it has seen
 occupied (``unknown_is_obstacle=False`` counts them free). The transform is exact on the voxel grid:
 squared distances in voxel units are integers computed exactly on every backend (NumPy/SciPy, Warp,
-OpenCL: :mod:`gpumap.distance_device`), then ``metres = sqrt(d2) * voxel_size_m`` in float32.
+OpenCL: :mod:`gpumap.layers.distance_device`), then ``metres = sqrt(d2) * voxel_size_m`` in float32.
 
 - ``max_distance_m`` truncates: distances above it read ``max_distance_m`` (and incremental updates
   reach at most that far from what changed). Without it, a grid with no obstacle reads ``+inf``
@@ -50,8 +50,8 @@ import time
 
 import numpy as np
 
-from gpumap.distance_device import INF, Cascade, check_box_dims, make_transform
 from gpumap.errors import check_finite_scalar
+from gpumap.layers.distance_device import INF, Cascade, check_box_dims, make_transform
 from gpumap.spec import GridSpec
 
 __all__ = ["DistanceField", "cap_squared", "d2_to_metres", "trilinear"]
