@@ -1031,3 +1031,181 @@ def test_plan_views_service_publishes_the_best_views_as_a_pose_array():
             node.destroy_node()
         finally:
             rclpy.try_shutdown(context=ctx)
+
+
+# ------------------------------------------------------------------------ the distance field (issue 44)
+def _edt_m(values: np.ndarray, threshold: float, voxel: float, unknown_is_obstacle: bool = True,
+           cap: float | None = None) -> np.ndarray:
+    """SciPy's distance, metres, from each voxel centre to the nearest obstacle centre of ``values``
+    (occupied from ``threshold``; NaN unknown, an obstacle or free)."""
+    from scipy import ndimage
+
+    obst = values >= np.float32(threshold)
+    if unknown_is_obstacle:
+        obst |= np.isnan(values)
+    d = np.full(values.shape, np.inf) if not obst.any() else ndimage.distance_transform_edt(~obst,
+                                                                                            sampling=voxel)
+    return d if cap is None else np.minimum(d, cap)
+
+
+def _distance_points(msg) -> np.ndarray:
+    """A distance PointCloud2 read back by hand: (height, width) records of float32 x, y, z, distance."""
+    assert [f.name for f in msg.fields] == ["x", "y", "z", "distance"] and msg.point_step == 16
+    assert all(f.datatype == 7 and f.offset == 4 * i and f.count == 1 for i, f in enumerate(msg.fields))
+    dt = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("distance", "<f4")])
+    return np.frombuffer(bytes(msg.data), dt).reshape(msg.height, msg.width)
+
+
+@pytest.mark.parametrize("unknown_is_obstacle", [True, False])
+def test_live_distance_follows_the_live_map_and_publishes_only_changes(backend, unknown_is_obstacle):
+    """The node's worker path without ROS: after every publication of the live map the field is SciPy's
+    distance transform of that map (the values the cloud was made from); a ping that changes nothing
+    publishes nothing; a reset publishes the field of the empty map; queries in the meantime read the
+    field under its lock."""
+    from gpumap.ros.distance_pub import LiveDistance
+
+    imgs, Ts = _small_pings(9, seed=2)
+    m = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, "numpy", MapperParams(threshold=0.4))
+    ld = LiveDistance(m, unknown_is_obstacle=unknown_is_obstacle, backend=backend, cloud_radius_m=0.3)
+    published: list = []
+    live: LiveMapper | None = None
+
+    def on_publish(newest_ns: int) -> None:
+        values = live.values()
+        f = ld.refresh(values)
+        if f is not None:
+            published.append((newest_ns, f, values))
+
+    live = LiveMapper(m, queue_size=64, max_batch=2, on_publish=on_publish)
+    s = 1_000_000_000
+    for k in range(9):
+        live.add_pose(k * s, Ts[k])
+    live.start()
+    for k in range(8):
+        live.add_ping(k * s, imgs[k])
+        time.sleep(0.01)
+    live.stop(drain=True)
+    assert live.error is None and live.integrated == 8 and published
+    assert ld.changes == len(published) <= ld.updates
+    for _, f, values in published:
+        assert f.dtype == np.float32 and f.shape == SMALL_GRID.shape
+        np.testing.assert_allclose(f, _edt_m(values, 0.4, 0.1, unknown_is_obstacle), rtol=0, atol=1e-5)
+    assert published[-1][0] == 7 * s and np.array_equal(published[-1][2], m.values(), equal_nan=True)
+    # queries: the field at voxel centres is the field itself (trilinear), the gradient points away
+    idx = np.argwhere(np.isfinite(published[-1][1]))[::7]
+    np.testing.assert_allclose(ld.distance_at(SMALL_GRID.centers(idx)), published[-1][1][tuple(idx.T)],
+                               rtol=0, atol=1e-9)
+    assert ld.gradient_at(SMALL_GRID.centers(idx)).shape == (len(idx), 3)
+
+    # a ping far outside the grid changes no voxel: mapped, published as a map, no distance message
+    n, updates = len(published), ld.updates
+    far = LiveMapper(m, on_publish=on_publish)
+    far.add_pose(0, pose(np.eye(3), [50.0, 0, 0]))
+    far.add_ping(0, imgs[8])
+    far.start()
+    far.stop(drain=True)
+    assert far.integrated == 1 and ld.updates == updates + 1 and len(published) == n
+    assert ld.stats()["distance_kind"] == "none" and ld.stats()["distance_updates"] == ld.updates
+
+    live.reset()
+    on_publish(8 * s)
+    assert len(published) == n + 1
+    empty = published[-1][1]
+    assert np.all(empty == 0) if unknown_is_obstacle else np.all(np.isinf(empty))
+    with pytest.raises(ValueError, match="inside the grid"):
+        ld.distance_at([[100.0, 0.0, 0.0]])
+
+
+def test_distance_parameters_become_the_fields_options_or_say_what_is_wrong():
+    from gpumap.ros.distance_pub import LiveDistance
+    from gpumap.ros.params import PARAMETERS, distance_options
+
+    p = {k: v for k, (v, _) in PARAMETERS.items()}
+    assert distance_options(p) is None  # off by default
+    on = {**p, "distance": True}
+    assert distance_options(on) == {"slice_z_m": None, "cloud_radius_m": 0.5, "unknown_is_obstacle": True,
+                                    "max_distance_m": None}
+    kw = distance_options({**on, "distance_slice_z_m": 0, "distance_max_m": 0.8,
+                           "distance_unknown_is_obstacle": False, "distance_cloud_radius_m": 0.25})
+    assert kw == {"slice_z_m": 0.0, "cloud_radius_m": 0.25, "unknown_is_obstacle": False,
+                  "max_distance_m": 0.8}
+    for name, bad, what in (("distance", "yes", "true or false"),
+                            ("distance_unknown_is_obstacle", 1, "true or false"),
+                            ("distance_cloud_radius_m", -0.1, ">= 0"), ("distance_max_m", -1.0, ">= 0"),
+                            ("distance_slice_z_m", [0.1, 0.2], "finite number"),
+                            ("distance_cloud_radius_m", math.nan, "finite number")):
+        with pytest.raises(ValueError, match=what):
+            distance_options({**on, name: bad})
+    with pytest.raises(ValueError, match="distance_cloud_radius_m <= distance_max_m"):
+        distance_options({**on, "distance_max_m": 0.3, "distance_cloud_radius_m": 0.5})
+    m = gpumap.MinMaxMapper(SMALL_SPEC, SMALL_GRID, "numpy")
+    ld = LiveDistance(m)  # the middle layer: k = nz // 2, its centre height
+    assert ld.slice_k == 5 and ld.slice_z_m == pytest.approx(0.05)
+    assert LiveDistance(m, slice_z_m=-0.45).slice_k == 0
+    with pytest.raises(ValueError, match="z_m within"):
+        LiveDistance(m, slice_z_m=0.5)  # the grid's top face: outside its voxels
+
+
+@needs_ros
+def test_node_publishes_the_distance_field_of_the_map_it_publishes():
+    """In process (the worker's publication called here): with distance:=true the node publishes the
+    slice at distance_slice_z_m and the cloud within distance_cloud_radius_m of SciPy's field of the
+    map, only when the map's obstacles changed; /diagnostics counts the updates; node.distance answers
+    queries; without the parameter there is no field."""
+    import rclpy
+
+    from gpumap.ros.node import make_node
+
+    imgs, Ts = _small_pings(4, seed=5)
+    for on in ("true", "false"):
+        ctx = rclpy.Context()
+        rclpy.init(context=ctx, domain_id=DOMAIN, args=[
+            "x", "--ros-args", "-p", "backend:=numpy", "-p", f"distance:={on}", "-p", "threshold:=0.4",
+            "-p", "range_max_m:=1.0", "-p", "n_bins:=40", "-p", "n_beams:=32", "-p", "hfov_deg:=90.0",
+            "-p", "grid_min_m:=[-0.2, -1.0, -0.3]", "-p", "grid_max_m:=[1.2, 1.0, 0.3]",
+            "-p", "voxel_size_m:=0.05", "-p", "distance_slice_z_m:=0.07",
+            "-p", "distance_cloud_radius_m:=0.2", "-p", "distance_unknown_is_obstacle:=false",
+            "-r", f"__ns:=/dist{os.getpid()}{on}"])
+        try:
+            node = make_node(context=ctx)
+            node.live.stop(drain=False)  # mapped here, in this thread
+            if on == "false":
+                assert node.distance is None and node.distance_field is None
+                assert not any(k.startswith("distance") for k in node.diagnostics())
+                node.destroy_node()
+                continue
+            sent: list = []
+            node.pub_dist_slice.publish = lambda msg, sent=sent: sent.append(("slice", msg))
+            node.pub_dist_cloud.publish = lambda msg, sent=sent: sent.append(("cloud", msg))
+            grid = node.grid
+            for k in range(2):
+                node.mapper.integrate_batch(imgs[2 * k:2 * k + 2], Ts[2 * k:2 * k + 2])
+                node._publish_map(1_000_000_000 * (k + 1))
+                assert [kind for kind, _ in sent] == ["slice", "cloud"] * (k + 1)
+                want = _edt_m(node.mapper.values(), 0.4, 0.05, unknown_is_obstacle=False)
+                sl, cl = sent[-2][1], sent[-1][1]
+                for msg in (sl, cl):
+                    assert msg.header.frame_id == "map" and msg.header.stamp.sec == k + 1
+                rec = _distance_points(sl)  # layer 7: z in [0.05, 0.1)
+                assert rec.shape == (grid.shape[1], grid.shape[0])
+                np.testing.assert_allclose(rec["distance"], want[:, :, 7].T, rtol=0, atol=1e-5)
+                np.testing.assert_allclose(rec["z"], -0.3 + 7.5 * 0.05, atol=1e-6)
+                pts = _distance_points(cl)[0]
+                ijk = np.rint((np.stack([pts[n] for n in "xyz"], 1) - np.asarray(grid.min_corner_m))
+                              / 0.05 - 0.5).astype(int)
+                got = np.zeros(grid.shape, bool)
+                got[tuple(ijk.T)] = True
+                band = (want > 0) & (want <= 0.2 + 1e-6)
+                assert len(pts) == int(band.sum()) > 0 and np.array_equal(got, band)
+                np.testing.assert_allclose(pts["distance"], want[tuple(ijk.T)], rtol=0, atol=1e-5)
+            node._publish_map(3_000_000_000)  # the map did not change: no distance message
+            assert len(sent) == 4
+            d = node.diagnostics()
+            assert d["distance_updates"] == 3 and d["distance_changes"] == 2 and d["distance_kind"] == "none"
+            c = grid.centers(np.array([[3, 4, 7], [10, 20, 2]]))
+            with node.distance.lock:
+                at = node.distance_field.field()[[3, 10], [4, 20], [7, 2]]
+            np.testing.assert_allclose(node.distance.distance_at(c), at, rtol=0, atol=1e-9)
+            node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=ctx)

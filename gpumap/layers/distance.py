@@ -235,16 +235,29 @@ class DistanceField:
     def _inverts(self) -> tuple[bool, ...]:
         return (False, True) if self.signed else (False,)
 
-    def update(self, full: bool = False) -> int:
+    def update(self, full: bool = False, values: np.ndarray | None = None) -> int:
         """Bring the field up to date with the map; returns how many voxels the transform ran over (the
         recomputed boxes with their margins; 0 when no obstacle changed; every voxel for a full pass).
 
         Recomputes only where the obstacles that changed since the last update can have moved a
         distance (module docstring), or everything when the grid changed or ``full`` is set; either way
-        the field equals a full recomputation. On an error the field stays as it was."""
+        the field equals a full recomputation. On an error the field stays as it was.
+
+        ``values``: the map's ``mapper.values()`` ((nx, ny, nz) float32 over ``mapper.grid``, NaN unknown)
+        as the caller has just read them, to save a second read (the ROS node reads them once for its
+        clouds and the field: both then show the same map); None (default) reads them."""
         t0 = time.perf_counter()
         grid = self.mapper.grid
-        mask = self._obstacles(self.mapper.values())
+        if values is None:
+            values = self.mapper.values()
+        else:
+            values = np.asarray(values)
+            if values.dtype != np.float32:
+                raise TypeError(f"Expected float32 'values' (mapper.values()), but got dtype {values.dtype}")
+            if values.shape != tuple(grid.shape):
+                raise ValueError(f"Expected 'values' of the map's grid shape {tuple(grid.shape)}, but got "
+                                 f"{values.shape}")
+        mask = self._obstacles(values)
         if full or self._grid is None or grid != self._grid:
             n = self._full(grid, mask)
             self.last_update = {"kind": "full", "changed": None, "boxes": 1, "transformed": n, "retries": 0}

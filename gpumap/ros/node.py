@@ -49,6 +49,23 @@ with the message callbacks: on a 2-core CPU with the numpy backend, the real tan
 overflowed the default ``image_queue_depth`` of 10 (images lost in the middleware, counted), which a
 deeper queue absorbs; a process of its own would not need one.
 
+With ``distance: true`` (default false) the node keeps the distance field of the safe map
+(:mod:`gpumap.layers.distance`, on the mapper's backend; :class:`gpumap.ros.distance_pub.LiveDistance`):
+with each map publication the worker updates it from the same read of the map (only what the new pings
+changed: the result equals a full recomputation) and, only when that changed it, publishes
+``~/distance_slice`` (an organised ``PointCloud2``, ny rows of nx voxels, float32 x, y, z, distance: the
+layer of voxels holding ``distance_slice_z_m``) and ``~/distance_cloud`` (unordered ``PointCloud2``,
+the same fields: the free voxels within ``distance_cloud_radius_m`` of an obstacle, nvblox's ESDF cloud),
+both reliable and transient-local, stamped as the occupied cloud. Distances are metres to the nearest
+obstacle voxel centre (0 at obstacles), obstacles being the occupied voxels and, with
+``distance_unknown_is_obstacle`` (default true), the unknown ones; ``distance_max_m`` caps them.
+``/diagnostics`` then adds ``distance_updates``, ``distance_changes``, ``distance_kind`` and
+``distance_update_s``. In the node's process a planner queries the field directly:
+``node.distance.distance_at(points_W)``, ``node.distance.gradient_at(points_W)`` and
+``node.distance.block(center_m, half_extent_m)`` hold the field's lock (never a field half updated);
+``node.distance_field`` is the :class:`~gpumap.layers.distance.DistanceField` itself (hold
+``node.distance.lock`` around its use). Both are None with ``distance: false``.
+
 Services (``std_srvs/Trigger``): ``~/save_map`` writes ``save_path`` atomically: with the surface
 layer, both layers in one file (the safe map's values and the surface layer of every ping mapped so
 far: :func:`gpumap.layers.refined_map.load_refined`, ``gpumap view/export --layer surface|safe`` read it);
@@ -94,7 +111,14 @@ from gpumap.ros.launch import (
     lost_at_stream_end,
 )
 from gpumap.ros.live import LiveMapper, health
-from gpumap.ros.params import PARAMETERS, _choice, _flag, plan_options, sonar_spec_from_params
+from gpumap.ros.params import (
+    PARAMETERS,
+    _choice,
+    _flag,
+    distance_options,
+    plan_options,
+    sonar_spec_from_params,
+)
 from gpumap.spec import GridSpec
 
 __all__ = ["NODE_NAME", "PARAMETERS", "make_node", "sonar_spec_from_params"]
@@ -103,7 +127,20 @@ NODE_NAME = "gpumap"
 
 
 def make_node(node_name: str = NODE_NAME, context=None):
-    """Create the mapping node (rclpy must be initialised); raises ValueError on bad parameters."""
+    """Create the mapping node (rclpy must be initialised); raises ValueError on bad parameters.
+
+    With ``distance: true``, a planner in the same process queries the live distance field beside the
+    node (the worker keeps it up to date meanwhile)::
+
+        node = make_node()
+        d = node.distance.distance_at(points_W)      # (N, 3) world metres -> (N,) metres, under its lock
+        g = node.distance.gradient_at(points_W)      # (N, 3) per metre
+        with node.distance.lock:                     # anything else of the DistanceField itself
+            f = node.distance_field.field()
+
+    ``node.distance`` (:class:`gpumap.ros.distance_pub.LiveDistance`) and ``node.distance_field``
+    (:class:`gpumap.layers.distance.DistanceField`) are None with ``distance: false``.
+    """
     require_ros()
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     from geometry_msgs.msg import PoseArray, PoseStamped
@@ -133,6 +170,7 @@ def make_node(node_name: str = NODE_NAME, context=None):
             p = {name: self.get_parameter(name).value for name in PARAMETERS}
             self.p = p
             self.plan_kw = plan_options(p)  # checked before anything is allocated
+            dist_kw = distance_options(p)
             self.world_frame = str(p["world_frame"])
             pose_type = _choice(p, "pose_type", ("pose_stamped", "odometry"))
             self.layout = _choice(p, "image_layout", ("polar", "fan"))
@@ -171,6 +209,13 @@ def make_node(node_name: str = NODE_NAME, context=None):
             # arcs (2), confidence]
             self.map_bytes = self.grid.n_voxels * (self.mapper.bytes_per_voxel
                                                    + (3 if self.confidence else 0))
+            #: the distance field and its lock (None without distance: true; module docstring)
+            self.distance = None
+            if dist_kw is not None:
+                from gpumap.ros.distance_pub import LiveDistance
+
+                self.distance = LiveDistance(self.mapper, **dist_kw)
+            self.distance_field = None if self.distance is None else self.distance.field
             log = self.get_logger()
             self.live = LiveMapper(
                 self.mapper, queue_size=int(p["queue_size"]), max_batch=int(p["max_batch"]),
@@ -206,6 +251,9 @@ def make_node(node_name: str = NODE_NAME, context=None):
             if self.surface:
                 self.pub_surface = self.create_publisher(PointCloud2, "~/surface_cloud", latched)
                 self.pub_surface_markers = self.create_publisher(MarkerArray, "~/surface_markers", latched)
+            if self.distance is not None:
+                self.pub_dist_slice = self.create_publisher(PointCloud2, "~/distance_slice", latched)
+                self.pub_dist_cloud = self.create_publisher(PointCloud2, "~/distance_cloud", latched)
             self._diag_types = (DiagnosticArray, DiagnosticStatus, KeyValue)
 
             sensor = QoSProfile(depth=int(p["image_queue_depth"]), reliability=ReliabilityPolicy.BEST_EFFORT,
@@ -308,6 +356,12 @@ def make_node(node_name: str = NODE_NAME, context=None):
                 cells = project_obstacles(values, self.grid, self.threshold, self.band)
                 self.pub_grid.publish(occupancy_grid_msg(cells, self.grid, self.band, newest_ns,
                                                          self.world_frame))
+                if self.distance is not None:  # the same read of the map: the field of that cloud's map
+                    field = self.distance.refresh(values)
+                    if field is not None:  # only when the update changed it
+                        sl, cl = self.distance.messages(field, newest_ns, self.world_frame)
+                        self.pub_dist_slice.publish(sl)
+                        self.pub_dist_cloud.publish(cl)
 
         def _publish_surface(self, layer, newest_ns: int) -> None:
             """The surface worker's ``on_publish``: the layer's voxels as a cloud (value 1) and markers."""
@@ -399,6 +453,8 @@ def make_node(node_name: str = NODE_NAME, context=None):
                      threshold=self.threshold)
             if self.surf is not None:
                 s.update(self.surf.stats())
+            if self.distance is not None:
+                s.update(self.distance.stats())
             return s
 
         def _publish_diagnostics(self) -> None:
@@ -432,6 +488,9 @@ def make_node(node_name: str = NODE_NAME, context=None):
                        ("surface_latency_max_s", f"{s['surface_latency_max_s']:.3f}"),
                        ("surface_update_s", f"{s['surface_update_s']:.3f}"),
                        ("surface_updates", s["surface_updates"]), ("surface_voxels", s["surface_voxels"])]
+            if self.distance is not None:
+                kv += [(k, s[k]) for k in ("distance_updates", "distance_changes", "distance_kind")]
+                kv.append(("distance_update_s", f"{s['distance_update_s']:.4f}"))
             for kind in ("rejected", "skipped", "dropped"):
                 kv += [(f"{kind}.{k}", v) for k, v in sorted(s[kind].items())]
             st.values = [KeyValue(key=k, value=str(v)) for k, v in kv]

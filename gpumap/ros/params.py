@@ -1,5 +1,6 @@
 """The node's parameters (:data:`PARAMETERS`: name -> default and description) and what is read
-from them: the sonar's geometry, the rule and flags, the planner's limits."""
+from them: the sonar's geometry, the rule and flags, the planner's limits, the distance field's
+options."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import numpy as np
 
 from gpumap.spec import SonarSpec
 
-__all__ = ["PARAMETERS", "plan_options", "sonar_spec_from_params"]
+__all__ = ["PARAMETERS", "distance_options", "plan_options", "sonar_spec_from_params"]
 
 
 #: name -> (default, description). Lists of floats default to the empty list where "unset".
@@ -68,6 +69,31 @@ PARAMETERS: dict[str, tuple[object, str]] = {
         "the surface layer of the newest this many pings only, so that its memory "
         "(17 bytes per ping, voxel and bright cell: ~25k a ping on the real tank at 5 cm) "
         "and its updates stop growing with the run (0: every ping)",
+    ),
+    "distance": (
+        False,
+        "keep the distance field of the safe map (gpumap.layers.distance): with each map publication the "
+        "worker updates it (only what the new pings changed) and, when that changed it, publishes "
+        "~/distance_slice and ~/distance_cloud (PointCloud2, x, y, z, distance float32 metres)",
+    ),
+    "distance_slice_z_m": (
+        [],
+        "~/distance_slice: the horizontal layer of voxels holding this height, metres in world_frame "
+        "(unset: the grid's middle layer)",
+    ),
+    "distance_cloud_radius_m": (
+        0.5,
+        "~/distance_cloud: the free voxels within this distance of an obstacle, metres (nvblox's ESDF "
+        "cloud; at most distance_max_m when that is set)",
+    ),
+    "distance_unknown_is_obstacle": (
+        True,
+        "the distance field counts never-observed voxels as obstacles (the safe default) or, false, as free",
+    ),
+    "distance_max_m": (
+        0.0,
+        "truncation radius of the distance field, metres: farther distances read it, and updates reach "
+        "at most that far from what changed (0: no cap, exact everywhere)",
     ),
     "queue_size": (32, "pings held at most; a new ping finding it full drops the oldest (counted)"),
     "max_batch": (16, "pings per integrate_batch call at most"),
@@ -162,3 +188,34 @@ def plan_options(p: dict) -> dict:
         raise ValueError("Expected plan_radius_m and plan_unknown_weight >= 0, but got "
                          f"{p['plan_radius_m']!r} and {p['plan_unknown_weight']!r}")
     return {"views": views, "candidates": cands, "offset_m": (-r, r), "unknown_weight": w, **lim}
+
+
+def _metres(p: dict, name: str) -> float:
+    v = p[name]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ValueError(f"Expected parameter {name} to be a finite number of metres, but got {v!r}")
+    return float(v)
+
+
+def distance_options(p: dict) -> dict | None:
+    """Keyword arguments of :class:`gpumap.ros.distance_pub.LiveDistance` from the node's ``distance_*``
+    parameters, or None with ``distance: false``: ``slice_z_m`` (float, or None for the grid's middle
+    layer), ``cloud_radius_m`` (>= 0), ``unknown_is_obstacle`` and ``max_distance_m`` (> 0, or None for
+    ``distance_max_m: 0``). Checked: a radius beyond the cap is refused (every voxel beyond the cap
+    reads the cap, so the cloud would hold them all)."""
+    if not _flag(p, "distance"):
+        return None
+    z = p["distance_slice_z_m"]
+    if isinstance(z, (list, tuple)) and not z:
+        slice_z = None
+    else:
+        slice_z = _metres(p, "distance_slice_z_m")
+    radius, cap = _metres(p, "distance_cloud_radius_m"), _metres(p, "distance_max_m")
+    if radius < 0 or cap < 0:
+        raise ValueError(f"Expected distance_cloud_radius_m >= 0 and distance_max_m >= 0 (0: no cap), but "
+                         f"got {p['distance_cloud_radius_m']!r} and {p['distance_max_m']!r}")
+    if cap and radius > cap:
+        raise ValueError(f"Expected distance_cloud_radius_m <= distance_max_m ({cap} m: farther voxels all "
+                         f"read the cap), but got {radius} m")
+    return {"slice_z_m": slice_z, "cloud_radius_m": radius,
+            "unknown_is_obstacle": _flag(p, "distance_unknown_is_obstacle"), "max_distance_m": cap or None}
