@@ -229,6 +229,28 @@ def test_an_update_without_change_recomputes_nothing_and_a_new_grid_everything(b
     np.testing.assert_allclose(df.field(), _scipy_field(fm.v >= 0.5, 0.05, None, False), atol=1e-6)
 
 
+def test_update_from_values_read_by_the_caller(backend):
+    """update(values=...) is the field of those values, not of a read of the map (the node hands it the
+    read its clouds came from); values of another shape or dtype are refused and the field stays."""
+    g = gpumap.GridSpec((0.0, 0.0, 0.0), (0.4, 0.3, 0.2), 0.05)
+    v = np.zeros(g.shape, np.float32)
+    v[1, 1, 1] = 1.0
+    fm = FakeMapper(v, g, backend=backend)
+    df = DistanceField(fm, unknown_is_obstacle=False)
+    given = v.copy()
+    given[6, 4, 2] = 1.0  # an obstacle only in the values handed over
+    given[0, 5, 0] = np.nan
+    assert df.update(values=given) > 0 and df.last_update["kind"] != "none"
+    want = _scipy_field(given >= 0.5, 0.05, None, False)
+    np.testing.assert_allclose(df.field(), want, rtol=0, atol=1e-6)
+    for bad, err in ((given[:-1], ValueError), (given.astype(np.float64), TypeError)):
+        with pytest.raises(err, match="values"):
+            df.update(values=bad)
+        np.testing.assert_allclose(df.field(), want, rtol=0, atol=1e-6)
+    assert df.update() > 0  # the map's own values again
+    np.testing.assert_allclose(df.field(), _scipy_field(v >= 0.5, 0.05, None, False), rtol=0, atol=1e-6)
+
+
 # ------------------------------------------------------------------ queries
 def _slab_field(backend="numpy"):
     """Obstacles on the plane i = 0: the distance is x - x0 everywhere, linear."""

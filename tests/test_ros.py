@@ -1209,3 +1209,55 @@ def test_node_publishes_the_distance_field_of_the_map_it_publishes():
             node.destroy_node()
         finally:
             rclpy.try_shutdown(context=ctx)
+
+
+@needs_ros
+def test_distance_field_on_the_wire_is_scipys_of_the_offline_map(ros_session, tmp_path, sim_recording):
+    """Node and ros-play as two processes, distance:=true: nothing is published before a ping is mapped;
+    then the last slice and cloud a subscriber gets are SciPy's distance field of the offline map of the
+    same pings (unknown voxels as obstacles), stamped as one publication."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+
+    from gpumap.ros.play import open_playable, write_params
+
+    play = open_playable(sim_recording)
+    params = write_params(tmp_path / "sim.yaml", play, voxel_size_m=None, threshold=0.4, backend="numpy",
+                          world_frame="map", pose_type="pose_stamped")
+    grid = play.grid
+    z = grid.min_corner_m[2] + (grid.shape[2] // 3 + 0.5) * grid.voxel_size_m
+    ros_session("node", "ros", "--params-file", str(params), "--ros-args", *NODE_TEST_ARGS,
+                "-p", "distance:=true", "-p", f"distance_slice_z_m:={z}", "-p", "distance_cloud_radius_m:=0.3")
+    probe = ros_session.probe()
+    slices: list = []
+    clouds: list = []
+    latched = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    ns = ros_session.ns
+    probe.node.create_subscription(PointCloud2, f"{ns}/gpumap/distance_slice", slices.append, latched)
+    probe.node.create_subscription(PointCloud2, f"{ns}/gpumap/distance_cloud", clouds.append, latched)
+    probe.spin_until(lambda: probe.diag is not None, 60, "the node's first diagnostics")
+    assert probe.count("distance_changes") == 0 and not clouds  # nothing mapped: nothing published
+    player = ros_session("play", "ros-play", str(sim_recording), "--hz", "20", "--no-progress")
+    player.wait(60)
+    assert player.returncode == 0
+    frames = list(play.frames())
+    probe.spin_until(lambda: probe.count("pings_integrated") == len(frames) and probe.count("queue") == 0,
+                     60, "every ping mapped")
+    probe.spin_for(0.5)  # the last publication, and the diagnostics after it
+    n = probe.count("distance_changes")
+    assert 1 <= n <= probe.count("distance_updates")
+    assert 1 <= len(clouds) <= n and len(slices) == len(clouds)  # a latched depth of 1: the newest survive
+    assert slices[-1].header.stamp == clouds[-1].header.stamp
+    ref = _offline(play, grid, frames)
+    want = _edt_m(ref.values(), 0.4, grid.voxel_size_m, unknown_is_obstacle=True)
+    k = grid.shape[2] // 3
+    np.testing.assert_allclose(_distance_points(slices[-1])["distance"], want[:, :, k].T, rtol=0, atol=1e-5)
+    pts = _distance_points(clouds[-1])[0]
+    ijk = np.rint((np.stack([pts[c] for c in "xyz"], 1) - np.asarray(grid.min_corner_m)) / grid.voxel_size_m
+                  - 0.5).astype(int)
+    band = (want > 0) & (want <= 0.3 + 1e-6)
+    got = np.zeros(grid.shape, bool)
+    got[tuple(ijk.T)] = True
+    assert len(pts) == int(band.sum()) > 0 and np.array_equal(got, band)
+    np.testing.assert_allclose(pts["distance"], want[tuple(ijk.T)], rtol=0, atol=1e-5)
