@@ -401,3 +401,62 @@ def test_ros_slice_and_cloud_carry_the_field():
     assert len(both) == len(pts) + int((f == 0).sum())
     with pytest.raises(ValueError, match="radius_m >= 0"):
         cloud_message(f, g, -1.0, "world", 0)
+
+
+# ------------------------------------------------------------------ gpumap export --layer distance
+def test_export_writes_the_distance_field_of_a_saved_map(run, tmp_path, capsys):
+    """.npz: the whole field and its grid, SciPy's of the saved map (unknown as obstacles, as free, capped);
+    .ply: the free voxels within --radius-m, centres and distances; a refined file: its safe layer; the
+    wrong suffix and the distance flags without --layer distance are refused."""
+    import json
+
+    from gpumap.commands import main
+    from gpumap.io import read_ply
+    from gpumap.layers.refined_map import RefineResult
+
+    m, imgs, poses = run
+    m.reset()
+    m.integrate_batch(imgs[:12], poses[:12])
+    path = m.save(tmp_path / "map.npz")
+    v = m.values()
+    for flags, unknown, cap in (([], True, None), (["--unknown-free"], False, None),
+                                (["--unknown-free", "--max-distance-m", "0.2"], False, 0.2)):
+        out = tmp_path / "d.npz"
+        assert main(["export", str(path), str(out), "--layer", "distance", *flags]) == 0
+        info = json.loads(capsys.readouterr().out)
+        obst = (v >= np.float32(0.3)) | (np.isnan(v) if unknown else False)
+        assert info["unknown_is_obstacle"] == unknown and info["obstacle_voxels"] == int(obst.sum())
+        with np.load(out) as z:
+            want = _scipy_field(obst, 0.05, cap, False)
+            np.testing.assert_allclose(z["distance_m"], want, rtol=0, atol=1e-5)
+            assert z["distance_m"].dtype == np.float32
+            np.testing.assert_array_equal(z["min_corner_m"], GRID.min_corner_m)
+            assert float(z["voxel_size_m"]) == GRID.voxel_size_m and bool(z["unknown_is_obstacle"]) == unknown
+            assert np.isnan(z["max_distance_m"]) if cap is None else float(z["max_distance_m"]) == cap
+    ply = tmp_path / "d.ply"
+    assert main(["export", str(path), str(ply), "--layer", "distance", "--radius-m", "0.15"]) == 0
+    assert json.loads(capsys.readouterr().out)["voxels"] > 0
+    want = _scipy_field((v >= np.float32(0.3)) | np.isnan(v), 0.05, None, False)
+    band = (want > 0) & (want <= 0.15 + 1e-9)
+    p = read_ply(ply)
+    assert set(p) == {"x", "y", "z", "distance"} and len(p["x"]) == int(band.sum())
+    np.testing.assert_allclose(np.stack([p[c] for c in "xyz"], 1), GRID.centers(np.argwhere(band)), atol=1e-6)
+    np.testing.assert_allclose(p["distance"], want[band], rtol=0, atol=1e-5)
+    # a refined file: the distance field of its safe layer, at its own threshold
+    z0 = np.zeros(GRID.shape, np.float32)
+    res = RefineResult(z0, z0, z0, z0 > 0, z0 > 0, 1.0, 0.0, threshold=0.5, rule="evidence", map_values=v,
+                       spec=SPEC, grid=GRID)
+    refined = res.save(tmp_path / "refined.npz")
+    assert main(["export", str(refined), str(out), "--layer", "distance"]) == 0
+    capsys.readouterr()
+    with np.load(out) as z:
+        obst = (v >= np.float32(0.5)) | np.isnan(v)
+        np.testing.assert_allclose(z["distance_m"], _scipy_field(obst, 0.05, None, False), rtol=0, atol=1e-5)
+    for argv, what in (([str(tmp_path / "d.bt"), "--layer", "distance"], ".ply or .npz"),
+                       ([str(ply), "--radius-m", "0.2"], "--layer distance only"),
+                       ([str(ply), "--layer", "distance", "--max-distance-m", "0.1"],
+                        "at most --max-distance-m"),
+                       ([str(out), "--layer", "distance", "--max-distance-m", "-1"], "a number > 0")):
+        with pytest.raises(SystemExit) as e:
+            main(["export", str(path), *argv])
+        assert e.value.code == 2 and what in capsys.readouterr().err, argv
