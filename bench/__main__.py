@@ -47,7 +47,10 @@ BENCHMARKS: dict[str, str] = {
     "ekf_pose": "verified revisits in the EKF and a pose graph on the full real tank; maps per pose source",
     "frontend": "the EKF front end: detection, association and the EKF loop, simulated and real",
     "viewer_cost": "what the live view and the recorder cost gpumap replay of the real tank",
-    "ros_bench": "the ROS 2 node's sustained rates and latency over Fast DDS on the real tank",
+    "distance": "the distance field of the safe map on the real tank beside SciPy: full, local block, "
+                "incremental",
+    "ros_bench": "the ROS 2 node's sustained rates and latency over Fast DDS on the real tank (--distance: "
+                 "with the distance field off and on)",
     "report": "the results files -> BENCHMARKS.md and its plots (--check compares only)",
     "readme": "the README's figures, written from the results files (--check compares only)",
 }

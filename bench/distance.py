@@ -17,6 +17,11 @@ split), mapped with the default evidence rule at ``--threshold``:
 ``--save-states FILE`` keeps the maps' voxel states (occupied, free, unknown: 2 bits a voxel) and
 ``--states FILE`` replays them without the recording or a mapper (a machine with a GPU and no data:
 the read is then a decode, not the mapper's). Writes ``bench/results/distance.json``.
+
+``python -m bench.report`` renders every ``bench/results/distance*.json`` into BENCHMARKS.md
+(:data:`SECTION`): these runs and the node's latency with the field off and on
+(``python -m bench.ros_bench --distance`` ->
+``distance_node.json``).
 """
 
 from __future__ import annotations
@@ -31,7 +36,19 @@ import numpy as np
 
 from gpumap.core.params import MapperParams
 
-from .common import CpuShare, bench_parser, load_average, oasis_full_dir, run_header, spread, write_json
+from . import common
+from .common import (
+    GPU_BACKENDS,
+    CpuShare,
+    Section,
+    bench_parser,
+    load_average,
+    oasis_full_dir,
+    run_header,
+    spread,
+    write_json,
+)
+from .common import fnum as _f
 
 SCHEMA = "gpumap-distance/1"
 CONFIGS = ({"unknown_is_obstacle": True}, {"unknown_is_obstacle": False},
@@ -206,6 +223,162 @@ def incremental_rows(grid, sequence, threshold: float, backends: list[str], live
                      "final_max_abs_err_vs_scipy_m": err,
                      "per_batch": {k: [round(x, 4) for x in v] for k, v in r.items() if k != "equal"}})
     return {"grid": _grid_dict(grid), "rows": rows}
+
+
+# ------------------------------------------------------------------------------ BENCHMARKS.md
+#: The issue's target: an incremental update costs at most this share of a full one, on average.
+TARGET_RATIO = 0.25
+_CONFIG_LABELS = ("unknown = obstacle", "unknown = free", "unknown = free, cap 0.5 m")
+
+
+def _config(row: dict) -> int:
+    return next(i for i, c in enumerate(CONFIGS)
+                if row["unknown_is_obstacle"] == c["unknown_is_obstacle"]
+                and row.get("max_distance_m") == c.get("max_distance_m"))
+
+
+def _load(x) -> str:
+    return "/".join(f"{v:.1f}" for v in x) if x else "?"
+
+
+def _run_line(name: str, d: dict) -> str:
+    m, share = d.get("machine", {}), d.get("cpu_share") or {}
+    gpus = ", ".join(m.get("gpus") or []) or "no GPU"
+    others = ("" if share.get("others_cores") is None
+              else f", other processes {share['others_cores']:.2f} cores")
+    return (f"- `{name}` ({d.get('created', '?')}): {m.get('cpu_model', '?')}, {m.get('cpu_count', '?')} "
+            f"cores, {gpus}; load {_load(d.get('load_avg_before'))} at the start, "
+            f"{_load(d.get('load_avg_after'))} at the end{others}; commit `{(d.get('commit') or '?')[:7]}`; "
+            f"`python -m bench.distance {' '.join(d.get('argv') or [])}`; "
+            f"{_f(share.get('wall_s'), '.0f')} s")
+
+
+def _field_table(docs: list[tuple[str, dict]]) -> list[str]:
+    out = ["| grid | voxels | unknown | obstacles | SciPy s | backend | transform s | x SciPy "
+           "| full update s | max abs err vs SciPy (m) | file |",
+           "|---|---:|---|---:|---:|---|---:|---:|---:|---:|---|"]
+    for name, d in docs:
+        for key, what in (("full", "tank"), ("block", "2 m block")):
+            sec = d.get(key)
+            if sec is None:
+                continue
+            g = sec["grid"]
+            grid = f"{what} at {g['voxel_size_m'] * 100:g} cm, {' x '.join(map(str, g['shape']))}"
+            for st in sec["settings"]:
+                unk = "obstacle" if st["unknown_is_obstacle"] else "free"
+                for b, r in st["backends"].items():
+                    out.append(f"| {grid} | {g['voxels']:,} | {unk} | {100 * st['obstacle_share']:.1f} % "
+                               f"| {st['scipy']['best_s']:.2f} | {b} | {r['transform']['best_s']:.3f} "
+                               f"| {r['speedup_vs_scipy']:.1f} | {r['update_full']['best_s']:.3f} "
+                               f"| {_f(r['max_abs_err_vs_scipy_m'], '.1e')} | `{name}` |")
+    return out
+
+
+def _incremental(docs: list[tuple[str, dict]]) -> tuple[list[str], list[str]]:
+    """The incremental table and one verdict line per file against :data:`TARGET_RATIO`."""
+    out = ["| file | batch (pings) | batches | backend | " + " | ".join(_CONFIG_LABELS)
+           + " | equal to a full update every batch |",
+           "|---|---:|---:|---|" + "---|" * len(_CONFIG_LABELS) + "---|"]
+    verdicts = []
+    for name, d in docs:
+        inc = d.get("incremental")
+        if inc is None:
+            continue
+        rows = inc["rows"]
+        for b in dict.fromkeys(r["backend"] for r in rows):
+            cells = ["–"] * len(CONFIGS)
+            mine = [r for r in rows if r["backend"] == b]
+            for r in mine:
+                cells[_config(r)] = (f"{r['mean_ratio']:.2f} / {r['mean_transform_ratio']:.2f} / "
+                                     f"{r['mean_work_share']:.2f}")
+            eq = "yes" if all(r["equal_every_batch"] for r in mine) else "**NO**"
+            out.append(f"| `{name}` | {inc['batch']} | {mine[0]['batches']} | {b} | " + " | ".join(cells)
+                       + f" | {eq} |")
+        dev = [r for r in rows
+               if r["backend"] != "numpy" and (r["unknown_is_obstacle"] or r.get("max_distance_m"))]
+        if not dev:
+            continue
+        lo, hi = min(r["mean_ratio"] for r in dev), max(r["mean_ratio"] for r in dev)
+        tlo, thi = min(r["mean_transform_ratio"] for r in dev), max(r["mean_transform_ratio"] for r in dev)
+        met = "**met**" if hi <= TARGET_RATIO else "**not met**" if lo > TARGET_RATIO else "met by some rows"
+        tmet = "met" if thi <= TARGET_RATIO else "not met" if tlo > TARGET_RATIO else "met by some rows"
+        free = [r["mean_ratio"] for r in rows if r["backend"] != "numpy" and not r["unknown_is_obstacle"]
+                and not r.get("max_distance_m")]
+        numpy = [r["mean_ratio"] for r in rows if r["backend"] == "numpy"]
+        names = ", ".join(dict.fromkeys(r["backend"] for r in dev))
+        verdicts.append(
+            f"- Batches of {inc['batch']} pings (`{name}`, {names}, unknown as obstacle or capped): an "
+            f"update costs **{lo:.2f}-{hi:.2f}** of a full one on average, "
+            f"the map read included: the target of {TARGET_RATIO:g} is {met}; without the read (both pay it) "
+            f"{tlo:.2f}-{thi:.2f}, {tmet}"
+            + (f". Unknown as free without a cap: {min(free):.2f}-{max(free):.2f}" if free else "")
+            + (f"; the NumPy path (boxes): {min(numpy):.2f}-{max(numpy):.2f}" if numpy else "") + ".")
+    return out, verdicts
+
+
+def _node_lines(docs: list[tuple[str, dict]]) -> list[str]:
+    out = []
+    for name, d in docs:
+        m = d.get("machine", {})
+        out += ["", common.template("distance-node", file=name, created=d.get("created", "?"),
+                                    cpu=f"{m.get('cpu_model', '?')} x{m.get('cpu_count', '?')}",
+                                    commit=((m.get("git") or {}).get("commit") or "?")[:7],
+                                    argv=" ".join(d.get("argv") or [])), "",
+                "| voxel | rate (Hz) | field | play | mapped | lost | cloud latency p50 / p99 ms "
+                "| node's own p50 / p99 ms | distance cloud p50 / p99 ms | field updates / published "
+                "| last update s | load before / after |",
+                "|---:|---:|---|---:|---:|---|---:|---:|---:|---:|---:|---|"]
+        for r in d["runs"]:
+            lost = ", ".join(f"{k} {v}" for k, v in r["lost"].items()) or "none"
+            la = r.get("load_avg") or []
+            dist = "–"
+            if r["distance"]:
+                dist = " / ".join(_f(r[f"distance_latency_ms_p{q}"], ".1f") for q in (50, 99))
+            upd = f"{r.get('distance_updates')} / {r.get('distance_changes')}" if r["distance"] else "–"
+            out.append(f"| {r['voxel_size_m'] * 100:g} cm | {r['requested_hz']:g} "
+                       f"| {'on' if r['distance'] else 'off'} | {r['repeat'] + 1} | {r['integrated']} "
+                       f"| {lost} "
+                       f"| {_f(r['latency_ms_p50'], '.1f')} / {_f(r['latency_ms_p99'], '.1f')} "
+                       f"| {_f(r['node_latency_ms_p50'], '.1f')} / {_f(r['node_latency_ms_p99'], '.1f')} "
+                       f"| {dist} | {upd} | {r.get('distance_update_s') or '–'} "
+                       f"| {_load(la[:3])} / {_load(la[3:])} |")
+        for vs in sorted({r["voxel_size_m"] for r in d["runs"]}):
+            for hz in sorted({r["requested_hz"] for r in d["runs"]}):
+                med = {on: [r["node_latency_ms_p50"] for r in d["runs"] if r["distance"] == on
+                            and r["voxel_size_m"] == vs and r["requested_hz"] == hz] for on in (False, True)}
+                if med[False] and med[True]:
+                    a, b = float(np.median(med[False])), float(np.median(med[True]))
+                    out += ["", f"At {vs * 100:g} cm and {hz:g} Hz the node's own latency (arrival to "
+                            f"published map, median of the plays' p50) is {a:.1f} ms with the field off and "
+                            f"{b:.1f} ms with it on: **{b - a:+.1f} ms**."]
+    return out
+
+
+def markdown(docs: list[tuple[str, dict]], folder: Path) -> str:
+    """The BENCHMARKS.md block of every ``distance*.json`` (every figure read from them)."""
+    field = [(n, d) for n, d in docs if d.get("schema") == SCHEMA]
+    node = [(n, d) for n, d in docs if d.get("schema") == "gpumap-distance-node/1"]
+    out = [common.template("distance-intro"), "", *(_run_line(n, d) for n, d in field), ""]
+    out += _field_table(field)
+    inc, verdicts = _incremental(field)
+    out += ["", common.template("distance-incremental"), "", *inc, "", *verdicts]
+    gpu = set()
+    for _, d in field:
+        for key in ("full", "block"):
+            gpu |= {b for st in (d.get(key) or {}).get("settings", []) for b in st["backends"]}
+        gpu |= {r["backend"] for r in (d.get("incremental") or {}).get("rows", [])}
+    gpu &= set(GPU_BACKENDS)
+    out += ["", f"GPU rows: {', '.join(sorted(gpu))}, in the tables above." if gpu
+            else common.template("distance-no-gpu")]
+    if node:
+        out += _node_lines(node)
+    else:
+        out += ["", "Not measured yet: the node's latency with the field on and off "
+                "(`python -m bench.ros_bench --distance --rates 20 --voxel-size 0.05`)."]
+    return "\n".join(out).rstrip("\n")
+
+
+SECTION = Section("distance", "## The distance field of the safe map (issue 44)", "distance*.json", markdown)
 
 
 def main(argv: list[str] | None = None) -> int:
