@@ -326,7 +326,7 @@ def _node_lines(docs: list[tuple[str, dict]]) -> list[str]:
                                     argv=" ".join(d.get("argv") or [])), "",
                 "| voxel | rate (Hz) | field | play | mapped | lost | cloud latency p50 / p99 ms "
                 "| node's own p50 / p99 ms | distance cloud p50 / p99 ms | field updates / published "
-                "| last update s | load before / after |",
+                "| field update ms (mean) | load before / after |",
                 "|---:|---:|---|---:|---:|---|---:|---:|---:|---:|---:|---|"]
         for r in d["runs"]:
             lost = ", ".join(f"{k} {v}" for k, v in r["lost"].items()) or "none"
@@ -334,13 +334,17 @@ def _node_lines(docs: list[tuple[str, dict]]) -> list[str]:
             dist = "–"
             if r["distance"]:
                 dist = " / ".join(_f(r[f"distance_latency_ms_p{q}"], ".1f") for q in (50, 99))
-            upd = f"{r.get('distance_updates')} / {r.get('distance_changes')}" if r["distance"] else "–"
+            upd, mean = "–", "–"
+            if r["distance"]:
+                upd = f"{r.get('distance_updates')} / {r.get('distance_changes')}"
+                n, sec = int(r.get("distance_updates") or 0), float(r.get("distance_seconds") or "nan")
+                mean = _f(1e3 * sec / n if n else None, ".1f")
             out.append(f"| {r['voxel_size_m'] * 100:g} cm | {r['requested_hz']:g} "
                        f"| {'on' if r['distance'] else 'off'} | {r['repeat'] + 1} | {r['integrated']} "
                        f"| {lost} "
                        f"| {_f(r['latency_ms_p50'], '.1f')} / {_f(r['latency_ms_p99'], '.1f')} "
                        f"| {_f(r['node_latency_ms_p50'], '.1f')} / {_f(r['node_latency_ms_p99'], '.1f')} "
-                       f"| {dist} | {upd} | {r.get('distance_update_s') or '–'} "
+                       f"| {dist} | {upd} | {mean} "
                        f"| {_load(la[:3])} / {_load(la[3:])} |")
         for vs in sorted({r["voxel_size_m"] for r in d["runs"]}):
             for hz in sorted({r["requested_hz"] for r in d["runs"]}):

@@ -135,7 +135,8 @@ def run_once(tank: Path, params: Path, hz: float, domain: int, n_pings: int, tmp
             dp = {q: round(float(np.percentile(dl, q)), 1) if dl.size else None for q in (50, 99)}
             extra = {"distance_clouds": len(lis.distance_clouds), "distance_latency_pings": int(dl.size),
                      "distance_latency_ms_p50": dp[50], "distance_latency_ms_p99": dp[99],
-                     **{k: d.get(k) for k in ("distance_updates", "distance_changes", "distance_update_s")}}
+                     **{k: d.get(k) for k in ("distance_updates", "distance_changes", "distance_update_s",
+                                              "distance_seconds")}}
         return {"requested_hz": hz, "node_args": list(node_args), "published": int(m.group(1)) if m else None,
                 "play_seconds": float(m.group(2)) if m else None,
                 "achieved_hz": round(int(m.group(1)) / float(m.group(2)), 1) if m else None,

@@ -1105,7 +1105,9 @@ def test_live_distance_follows_the_live_map_and_publishes_only_changes(backend, 
     far.start()
     far.stop(drain=True)
     assert far.integrated == 1 and ld.updates == updates + 1 and len(published) == n
-    assert ld.stats()["distance_kind"] == "none" and ld.stats()["distance_updates"] == ld.updates
+    st = ld.stats()
+    assert st["distance_kind"] == "none" and st["distance_updates"] == ld.updates
+    assert 0 < st["distance_update_s"] <= st["distance_seconds"]
 
     live.reset()
     on_publish(8 * s)

@@ -69,6 +69,7 @@ class LiveDistance:
                                    max_distance_m=max_distance_m, backend=backend)
         self.updates = 0  # refresh calls
         self.changes = 0  # of them, those that changed the field (each published)
+        self.seconds = 0.0  # their updates' seconds, summed
         self.last: dict = dict(self.field.last_update)
 
     # ------------------------------------------------------------------ the worker's side
@@ -80,6 +81,7 @@ class LiveDistance:
             self.field.update(values=values)
             self.updates += 1
             self.last = dict(self.field.last_update)
+            self.seconds += float(self.last.get("seconds", 0.0))
             if self.last["kind"] == "none":
                 return None
             self.changes += 1
@@ -96,12 +98,13 @@ class LiveDistance:
     def stats(self) -> dict:
         """``distance_updates`` (refreshes), ``distance_changes`` (of them, published), the last one's
         ``distance_kind`` (``"full"``, ``"incremental"``, ``"none"``), ``distance_changed_voxels``
-        (obstacle voxels that changed) and ``distance_update_s`` (seconds)."""
+        (obstacle voxels that changed), ``distance_update_s`` (its seconds) and ``distance_seconds`` (every
+        refresh's update, summed)."""
         with self.lock:
             last = self.last
             return {"distance_updates": self.updates, "distance_changes": self.changes,
                     "distance_kind": last.get("kind"), "distance_changed_voxels": last.get("changed") or 0,
-                    "distance_update_s": float(last.get("seconds", 0.0))}
+                    "distance_update_s": float(last.get("seconds", 0.0)), "distance_seconds": self.seconds}
 
     # ------------------------------------------------------------------ queries, any thread
     def distance_at(self, points_W) -> np.ndarray:

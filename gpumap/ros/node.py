@@ -59,9 +59,9 @@ the same fields: the free voxels within ``distance_cloud_radius_m`` of an obstac
 both reliable and transient-local, stamped as the occupied cloud. Distances are metres to the nearest
 obstacle voxel centre (0 at obstacles), obstacles being the occupied voxels and, with
 ``distance_unknown_is_obstacle`` (default true), the unknown ones; ``distance_max_m`` caps them.
-``/diagnostics`` then adds ``distance_updates``, ``distance_changes``, ``distance_kind`` and
-``distance_update_s``. In the node's process a planner queries the field directly:
-``node.distance.distance_at(points_W)``, ``node.distance.gradient_at(points_W)`` and
+``/diagnostics`` then adds ``distance_updates``, ``distance_changes``, ``distance_kind``,
+``distance_update_s`` (the last update's seconds) and ``distance_seconds`` (all updates'). In the
+node's process a planner queries the field directly: ``node.distance.distance_at(points_W)``, ``node.distance.gradient_at(points_W)`` and
 ``node.distance.block(center_m, half_extent_m)`` hold the field's lock (never a field half updated);
 ``node.distance_field`` is the :class:`~gpumap.layers.distance.DistanceField` itself (hold
 ``node.distance.lock`` around its use). Both are None with ``distance: false``.
@@ -490,7 +490,8 @@ def make_node(node_name: str = NODE_NAME, context=None):
                        ("surface_updates", s["surface_updates"]), ("surface_voxels", s["surface_voxels"])]
             if self.distance is not None:
                 kv += [(k, s[k]) for k in ("distance_updates", "distance_changes", "distance_kind")]
-                kv.append(("distance_update_s", f"{s['distance_update_s']:.4f}"))
+                kv += [("distance_update_s", f"{s['distance_update_s']:.4f}"),
+                       ("distance_seconds", f"{s['distance_seconds']:.3f}")]
             for kind in ("rejected", "skipped", "dropped"):
                 kv += [(f"{kind}.{k}", v) for k, v in sorted(s[kind].items())]
             st.values = [KeyValue(key=k, value=str(v)) for k, v in kv]
