@@ -1229,7 +1229,8 @@ def test_distance_field_on_the_wire_is_scipys_of_the_offline_map(ros_session, tm
     grid = play.grid
     z = grid.min_corner_m[2] + (grid.shape[2] // 3 + 0.5) * grid.voxel_size_m
     ros_session("node", "ros", "--params-file", str(params), "--ros-args", *NODE_TEST_ARGS,
-                "-p", "distance:=true", "-p", f"distance_slice_z_m:={z}", "-p", "distance_cloud_radius_m:=0.3")
+                "-p", "distance:=true", "-p", f"distance_slice_z_m:={z}",
+                "-p", "distance_cloud_radius_m:=0.3")
     probe = ros_session.probe()
     slices: list = []
     clouds: list = []

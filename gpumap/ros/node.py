@@ -61,10 +61,11 @@ obstacle voxel centre (0 at obstacles), obstacles being the occupied voxels and,
 ``distance_unknown_is_obstacle`` (default true), the unknown ones; ``distance_max_m`` caps them.
 ``/diagnostics`` then adds ``distance_updates``, ``distance_changes``, ``distance_kind``,
 ``distance_update_s`` (the last update's seconds) and ``distance_seconds`` (all updates'). In the
-node's process a planner queries the field directly: ``node.distance.distance_at(points_W)``, ``node.distance.gradient_at(points_W)`` and
-``node.distance.block(center_m, half_extent_m)`` hold the field's lock (never a field half updated);
-``node.distance_field`` is the :class:`~gpumap.layers.distance.DistanceField` itself (hold
-``node.distance.lock`` around its use). Both are None with ``distance: false``.
+node's process a planner queries the field directly: ``node.distance.distance_at(points_W)``,
+``node.distance.gradient_at(points_W)`` and ``node.distance.block(center_m, half_extent_m)`` hold the
+field's lock (never a field half updated); ``node.distance_field`` is the
+:class:`~gpumap.layers.distance.DistanceField` itself (hold ``node.distance.lock`` around its use).
+Both are None with ``distance: false``.
 
 Services (``std_srvs/Trigger``): ``~/save_map`` writes ``save_path`` atomically: with the surface
 layer, both layers in one file (the safe map's values and the surface layer of every ping mapped so
