@@ -1,6 +1,6 @@
 """``python -m bench.readme``: the README's figures, written from the results files.
 
-    python -m bench.readme            # rewrite the marked blocks of README.md
+    python -m bench.readme            # rewrite the marked blocks of README.md and docs/guide.md
     python -m bench.readme --check    # exit 1 if a block differs from what the files give
 """
 
@@ -200,8 +200,8 @@ def summary_rows() -> list[tuple[str, str, str]]:
 
         cal = "calibrated, miss cost 10"
         rows.append(("Simulated tank and circle without variation, 40 pings, 3 cm: far water called "
-                     "occupied, the evidence rule's default decision / calibrated (opt-in, miss cost 10) "
-                     "/ visible rule",
+                     "occupied, the evidence rule's default decision / calibrated (retired: "
+                     "bench/experiments, miss cost 10) / visible rule",
                      cells(("share 0.2 (default)", cal, "visible rule"), "none", "false_positive_rate_far"),
                      "decision.json"))
         rows.append(("... with the real tank's variation: objects missed, default / calibrated / the floor "
@@ -275,9 +275,75 @@ def summary_rows() -> list[tuple[str, str, str]]:
     return rows
 
 
+def machine_of(name: str) -> str:
+    """The machine a results file says it ran on, in a few words (its GPU, else its CPU and cores)."""
+    d = _load(name.split(",")[0].strip()) if "*" not in name else None
+    m = (d or {}).get("machine")
+    if isinstance(m, dict):
+        if m.get("gpus"):
+            return str(m["gpus"][0]).split(" (")[0]
+        if m.get("cpu_model"):
+            return f"{m['cpu_model']}, {m.get('cpu_count', '?')} cores"
+    if d and d.get("cpu"):
+        return f"{d['cpu']}" + (f", {d['n_cpus']} cores" if d.get("n_cpus") else "")
+    if d and isinstance(d.get("sections"), dict):  # one machine per section (e.g. the CPU, then a GPU's host)
+        parts = [f"{x['cpu_model']}, {x.get('cpus', '?')} cores" for x in d["sections"].values()
+                 if isinstance(x, dict) and x.get("cpu_model")]
+        if parts:
+            return "; ".join(dict.fromkeys(parts))
+    return "see the file"
+
+
 def summary_block() -> str:
-    return "\n".join(["| what | figure | results file (bench/results/) |", "|---|---|---|",
-                      *(f"| {w} | {f} | `{s}` |" for w, f, s in summary_rows())])
+    return "\n".join(["| what | figure | machine | results file (bench/results/) |", "|---|---|---|---|",
+                      *(f"| {w} | {f} | {machine_of(s)} | `{s}` |" for w, f, s in summary_rows())])
+
+
+#: The README's headline rows: the first summary row of each of these results files.
+HEADLINE = ("cpu_amd-epyc_2c.json", "gpu_scale_h200.json", "rules_real_tank.json", "real_frontier.json",
+            "decision.json", "long_run.json", "distance.json", "peer_ratio_cpu_2c.json")
+
+
+#: What a headline row that continues another in the full table is about.
+CONTEXT = {"real_frontier.json": "Real tank run at the sonar's rate, 5 cm, held-out frames 800-1222 judged: "}
+
+
+def headline_rows() -> list[tuple[str, str, str]]:
+    """The README's few rows (:data:`HEADLINE`), each as the full table (docs/guide.md) words it."""
+    seen: set[str] = set()
+    rows = []
+    for w, f, s in summary_rows():
+        if s in HEADLINE and s not in seen:
+            seen.add(s)
+            if w.startswith("... "):  # a row that continues the one above it in the full table
+                w = CONTEXT.get(s, "") + w.removeprefix("... ")
+            rows.append((w, f, s))
+    d = _load("distance.json")
+    if d and "distance.json" not in seen:
+        rows.append(distance_row(d))
+    return rows
+
+
+def distance_row(d: dict) -> tuple[str, str, str]:
+    """The distance field's headline: a full field of the real tank at 2 cm beside SciPy's, unknown as
+    obstacle (best of the repeats), and the incremental update's cost over a full one (batches of 32)."""
+    st = next(x for x in d["full"]["settings"] if x["unknown_is_obstacle"])
+    be = [b for b in ("opencl-cpu", "warp-cpu") if b in st["backends"]]
+    inc = next((r for r in d["incremental"]["rows"] if r["backend"] == be[0] and r["unknown_is_obstacle"]
+                and "max_distance_m" not in r), None)
+    what = (f"Exact distance field of the real tank's safe map, {_voxel(d['full']['grid']['voxel_size_m'])}: "
+            "seconds, SciPy / " + " / ".join(be))
+    fig = " / ".join(f"{x:.2f}" for x in (st["scipy"]["best_s"], *(st["backends"][b]["transform"]["best_s"]
+                                                                  for b in be)))
+    if inc is not None:
+        what += f"; an incremental update over a full one ({d['incremental']['batch']}-ping batches, {be[0]})"
+        fig += f"; {inc['mean_ratio']:.2f}"
+    return what, fig, "distance.json"
+
+
+def headline_block() -> str:
+    return "\n".join(["| what | figure | machine | results file |", "|---|---|---|---|",
+                      *(f"| {w} | {f} | {machine_of(s)} | `{s}` |" for w, f, s in headline_rows())])
 
 
 def rules_real_block() -> str:
@@ -295,12 +361,17 @@ def rules_real_block() -> str:
                            **{k: 100 * vo[k] for k in ("at", "below", "above")})
 
 
-BLOCKS = {"readme-summary": summary_block, "readme-rules-real": rules_real_block}
+#: The generated blocks of each file: the README's headline, the guide's full table and rules paragraph.
+FILES = {"README.md": ("readme-headline",), "docs/guide.md": ("readme-summary", "readme-rules-real")}
+BLOCKS = {"readme-headline": headline_block, "readme-summary": summary_block,
+          "readme-rules-real": rules_real_block}
 
 
-def render(text: str) -> str:
-    """``text`` with every known marked block rendered anew from the results files."""
-    for name, make in BLOCKS.items():
+def render(text: str, names=None) -> str:
+    """``text`` with its marked blocks (``names``, default every known one) rendered anew from the
+    results files."""
+    for name in BLOCKS if names is None else names:
+        make = BLOCKS[name]
         pat = re.compile(rf"(<!-- begin:{name} -->\n)(?:.*?\n)?(<!-- end:{name} -->)", re.S)
         if not pat.search(text):
             raise ValueError(f"Expected a <!-- begin:{name} --> ... <!-- end:{name} --> block in the README")
@@ -310,18 +381,20 @@ def render(text: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = bench_parser("readme", __doc__)
-    ap.add_argument("--readme", type=Path, default=ROOT / "README.md", help="the file to update")
     ap.add_argument("--check", action="store_true", help="only compare; exit 1 when a block is stale")
     a = ap.parse_args(argv)
-    old = a.readme.read_text()
-    new = render(old)
-    if a.check and new != old:
-        print(f"{a.readme}: figures differ from bench/results (run python -m bench.readme)", file=sys.stderr)
-        return 1
-    if new != old and not a.check:
-        a.readme.write_text(new)
-        print(f"updated {a.readme}")
-    return 0
+    stale = 0
+    for rel, names in FILES.items():
+        path = ROOT / rel
+        old = path.read_text()
+        new = render(old, names)
+        if a.check and new != old:
+            print(f"{path}: figures differ from bench/results (run python -m bench.readme)", file=sys.stderr)
+            stale = 1
+        elif new != old:
+            path.write_text(new)
+            print(f"updated {path}")
+    return stale
 
 
 if __name__ == "__main__":

@@ -10,44 +10,8 @@
 #pragma OPENCL FP_CONTRACT OFF
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 
-typedef struct {
-    float A[9];
-    float b[3];
-    float R[9];
-    float t[3];
-    float origin[3];
-    float voxel;
-    float rmin;
-    float rmax;
-    float inv_dr;
-    float tan2_half_vfov;
-    float tan_lo;
-    float tan_hi;
-    float rho;
-    int dims[3];
-    int box_lo[3];
-    int box_n[3];
-    int n_bins;
-    int n_beams;
-    int n_points;
-    int win;
-    int n_levels;
-    float lut_scale;
-    int lut_n;
-    float wedge[4];
-    float slab;
-    int chunk;
-    float near;
-    float thr;
-    float thr_dark;
-    int rule;
-    int blk_lo[3];
-    int blk_n[3];
-    int blk;
-    int blk_z;
-} PingParams;
+// PingParams, COUNT_LOW and arc_step: common.cl, which the host prepends.
 
-#define COUNT_LOW 0xFFFFFFFFUL
 
 // Largest beam j in [0, n_beams - 1] with tan_edges[j] <= t (0 when none): the look-up table's
 // guess (clamped as a float, so any t is safe), settled by exact comparisons.
@@ -177,11 +141,6 @@ inline int not_free(const PingParams *P, int a, __global const float *grid, __gl
     return v >= P->thr ? 1 : 0;
 }
 
-inline int arc_step(float d, float n2)
-{
-    if (4.0f * d * d > n2) return d > 0.0f ? 1 : -1;
-    return 0;
-}
 
 // 1 when the voxel at (r, h^2, t) is bright in the ping (a lit cell in its footprint: the mapping's
 // bins and beams) and a lit cell lies within tube of its centre (the echo).

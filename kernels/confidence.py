@@ -31,67 +31,10 @@ with the same arithmetic.
 
 import warp as wp
 
+from .common import COUNT_LOW, PingParams, arc_step, beam_index_lo  # noqa: F401
+
 # No FMA contraction: every device rounds as the NumPy reference does, bit for bit.
 wp.set_module_options({"fuse_fp": False})
-
-
-@wp.struct
-class PingParams:
-    A: wp.mat33
-    b: wp.vec3
-    R: wp.mat33
-    t: wp.vec3
-    origin: wp.vec3
-    voxel: float
-    rmin: float
-    rmax: float
-    inv_dr: float
-    tan2_half_vfov: float
-    tan_lo: float
-    tan_hi: float
-    rho: float
-    dims: wp.vec3i
-    box_lo: wp.vec3i
-    box_n: wp.vec3i
-    n_bins: int
-    n_beams: int
-    n_points: int
-    win: int
-    n_levels: int
-    lut_scale: float
-    lut_n: int
-    wedge: wp.vec4
-    slab: float
-    chunk: int
-    near: float
-    thr: float
-    thr_dark: float
-    rule: int
-    blk_lo: wp.vec3i
-    blk_n: wp.vec3i
-    blk: int
-    blk_z: int
-
-
-COUNT_LOW = wp.constant(wp.uint64(0xFFFFFFFF))
-
-
-@wp.func
-def beam_index_lo(t: float, tan_edges: wp.array(dtype=float), lut: wp.array(dtype=int), P: PingParams) -> int:
-    """Largest beam j in [0, n_beams - 1] with tan_edges[j] <= t (0 when none): a look-up table's
-    guess (clamped as a float, so any t is safe), settled by exact comparisons."""
-    f = wp.floor((t - P.tan_lo) * P.lut_scale)
-    m = int(0)
-    if f >= float(lut.shape[0] - 1):
-        m = lut.shape[0] - 1
-    elif f > 0.0:
-        m = int(f)
-    j = lut[m]
-    while j < P.n_beams - 1 and tan_edges[j + 1] <= t:
-        j += 1
-    while j > 0 and tan_edges[j] > t:
-        j -= 1
-    return j
 
 
 @wp.func
@@ -232,17 +175,6 @@ def not_free(
     if v >= P.thr:
         return 1
     return 0
-
-
-@wp.func
-def arc_step(d: float, n2: float) -> int:
-    """-1, 0 or 1: the sign of d where 4 d^2 > n2 (``viewgain.arc_step``)."""
-    if float(4.0) * d * d > n2:
-        if d > float(0.0):
-            return 1
-        return -1
-    return 0
-
 
 
 @wp.func

@@ -9,12 +9,7 @@
 // No FMA contraction: every device rounds as the NumPy reference does, bit for bit.
 #pragma OPENCL FP_CONTRACT OFF
 
-int arc_step(float d, float n2) {
-    if (4.0f * d * d > n2) {
-        return d > 0.0f ? 1 : -1;
-    }
-    return 0;
-}
+// arc_step: common.cl, which the host prepends.
 
 int pair_bit(int si, int sj, int sk) {
     const int m = (si + 1) * 9 + (sj + 1) * 3 + (sk + 1);

@@ -15,18 +15,10 @@ unknown).
 
 import warp as wp
 
+from .common import arc_step
+
 # No FMA contraction: every device rounds as the NumPy reference does, bit for bit.
 wp.set_module_options({"fuse_fp": False})
-
-
-@wp.func
-def arc_step(d: float, n2: float) -> int:
-    """-1, 0 or 1: the sign of ``d`` where ``4 d^2 > n2`` (|d| above half the vector's norm)."""
-    if float(4.0) * d * d > n2:
-        if d > float(0.0):
-            return 1
-        return -1
-    return 0
 
 
 @wp.func

@@ -226,7 +226,8 @@ def _layout(dst: Path) -> None:
     for src, name in (("kernels", "kernels"), ("sim", "sim"), ("bench", "bench")):
         shutil.copytree(ROOT / src, dst / "gpumap" / name, ignore=ign)
     shutil.copytree(ROOT / "tests", dst / "tests", ignore=ign)
-    for name in ("pyproject.toml", "README.md"):  # tests read the README's claims too
+    for name in ("pyproject.toml", "README.md", "docs/guide.md"):  # tests read the README's claims too
+        (dst / name).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(ROOT / name, dst / name)
 
 

@@ -21,6 +21,7 @@ from conftest import DATA, needs_data
 
 import gpumap.commands.demo
 import gpumap.commands.replay
+import gpumap.pipeline.job
 from gpumap import commands as cli
 from gpumap.atomic import output_set
 from gpumap.commands import common
@@ -273,9 +274,9 @@ def _pictures_interrupted(*a, **k):
 def test_interrupted_replay_leaves_the_previous_outputs(step, previous, old_out, monkeypatch,
                                                         tmp_path) -> None:
     if step == "after map.npz":
-        monkeypatch.setattr(gpumap.commands.replay, "write_ply", _ply_interrupted)
+        monkeypatch.setattr(gpumap.pipeline.job, "write_ply", _ply_interrupted)
     elif step == "in the pictures":
-        monkeypatch.setattr(gpumap.commands.replay, "save_pictures", _pictures_interrupted)
+        monkeypatch.setattr(gpumap.pipeline.job, "save_pictures", _pictures_interrupted)
     elif step == "before summary.json":  # the last file: everything else is written
         real = json.dumps
 

@@ -95,7 +95,7 @@ def test_the_same_share_over_more_views_decides_more():
 
 
 def test_the_readme_says_how_many_clear_dark_views_free_a_voxel_seen_bright_once():
-    """The README's figure, from the decision at the default settings: the first count of clear
+    """The guide's figure (docs/guide.md), from the decision at the default settings: the first count of clear
     dark views at which one bright view no longer keeps a voxel."""
     from pathlib import Path
 
@@ -103,7 +103,7 @@ def test_the_readme_says_how_many_clear_dark_views_free_a_voxel_seen_bright_once
 
     n = next(d for d in range(1, 1000)
              if not evidence_occupied(np.array([d]), np.array([1]), BRIGHT_SHARE, SHARE_Z)[0])
-    readme = " ".join((Path(__file__).resolve().parents[1] / "README.md").read_text().split())
+    readme = " ".join((Path(__file__).resolve().parents[1] / "docs" / "guide.md").read_text().split())
     assert f"a voxel seen bright once needs {n} clear dark views" in readme, n
 
 

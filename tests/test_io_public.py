@@ -125,8 +125,13 @@ def test_fan_folder_says_how_many_poses_came_for_how_many_pictures(tmp_path):
 
 
 def _mutated_poses() -> dict[str, tuple[object, str]]:
-    csv = _csv_poses()
-    good = [csv[k].tolist() for k in FRAMES]
+    """The mutated pose lists, each with what its refusal says (the cases exist without the data too:
+    collection must not need it)."""
+    if DATA is None:
+        good = [np.eye(4).tolist() for _ in FRAMES]
+    else:
+        csv = _csv_poses()
+        good = [csv[k].tolist() for k in FRAMES]
     nan = list(good)
     nan[2] = [[math.nan] * 4] + good[2][1:]
     skew = list(good)

@@ -68,6 +68,13 @@ _CL_SHARED: dict[int, tuple] = {}
 _CL_LOCK = threading.Lock()
 
 
+def program_source(name: str) -> str:
+    """The OpenCL source of ``gpumap.kernels/<name>.cl`` as it is built: the shared definitions of
+    ``common.cl`` (the ping record, the count mask, the arc step: one copy for every program) first."""
+    k = resources.files("gpumap.kernels")
+    return k.joinpath("common.cl").read_text() + "\n" + k.joinpath(f"{name}.cl").read_text()
+
+
 def _opencl_context(device):
     """(context, program) for ``device``, built once per process."""
     cl = _opencl()
@@ -75,7 +82,7 @@ def _opencl_context(device):
     with _CL_LOCK:
         if key not in _CL_SHARED:
             ctx = cl.Context([device])
-            src = resources.files("gpumap.kernels").joinpath("minmax.cl").read_text()
+            src = program_source("minmax")
             opts = ["-cl-fp32-correctly-rounded-divide-sqrt"]
             if not device.type & cl.device_type.GPU:  # a column's voxels eight at a time (gather_run8)
                 opts.append("-DGPUMAP_CPU_VECTORS")
@@ -107,7 +114,7 @@ def extra_program(ctx, name: str):
     key = (id(ctx), name)
     with _CL_LOCK:
         if key not in _CL_EXTRA:
-            src = resources.files("gpumap.kernels").joinpath(f"{name}.cl").read_text()
+            src = program_source(name)
             prg = cl.Program(ctx, src)
             try:
                 _CL_EXTRA[key] = prg.build(options=["-cl-fp32-correctly-rounded-divide-sqrt"])

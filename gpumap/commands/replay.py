@@ -50,7 +50,7 @@ from gpumap.commands.common import (
     user_errors,
     vfov_deg,
 )
-from gpumap.pipeline.job import OUTPUTS, REMEDY, EKFOptions, ReplayJob, run_job
+from gpumap.pipeline.job import OUTPUTS, REMEDY, EKFOptions, ReplayJob, run_ekf_job, run_job
 from gpumap.pipeline.replay import (
     DEFAULT_THRESHOLD,
     RULES,
@@ -262,7 +262,8 @@ def _job(a: argparse.Namespace, grid: GridSpec | None) -> ReplayJob:
 
 def _replay(a: argparse.Namespace, grid: GridSpec | None) -> tuple[dict, GridSpec]:
     """Map the recording of parsed flags ``a``; write the output set; ``(summary, grid)``."""
-    stats, mapper = run_job(_job(a, grid))
+    job = _job(a, grid)
+    stats, mapper = run_ekf_job(job) if job.ekf is not None else run_job(job)
     for s in a.view_sessions:
         s.finish(mapper)
     if a.ekf:

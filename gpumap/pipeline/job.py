@@ -20,9 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
+from gpumap.io.pictures import save_pictures
+from gpumap.io.ply import write_ply
 from gpumap.spec import GridSpec
 
-__all__ = ["EKF_OUTPUTS", "OUTPUTS", "EKFOptions", "ReplayJob", "run_job", "write_outputs"]
+__all__ = ["EKF_OUTPUTS", "OUTPUTS", "EKFOptions", "ReplayJob", "run_ekf_job", "run_job", "write_outputs"]
 
 #: Every file a replay can write into its output folder: one run's set replaces the last one's.
 OUTPUTS = ("map.npz", "surface.npz", "occupied.ply", "views.png", "floor_slice.png", "rules.png",
@@ -103,12 +105,14 @@ def _open(job: ReplayJob, bad: list[str]):
 def run_job(job: ReplayJob) -> tuple[dict, object]:
     """Map ``job``'s recording and write its output set into ``job.out``; ``(summary, mapper)``.
 
-    ``job.layers`` (e.g. a live view) are attached to the mapper before the first ping (one process
+    ``job.ekf`` must be None (:func:`run_ekf_job` maps with the EKF's poses). ``job.layers`` (e.g. a
+    live view) are attached to the mapper before the first ping (one process
     only). Raises ``ValueError`` (a :class:`gpumap.io.FormatError` among them) on bad input, before
     anything is written.
     """
     if job.ekf is not None:
-        return _run_ekf(job)
+        raise ValueError("Expected a job without EKF options for run_job, but it has them: run_ekf_job maps "
+                         "with the EKF's poses")
     from gpumap.layers.surface_live import LiveSurface
     from gpumap.pipeline.replay import run_replay
 
@@ -155,8 +159,6 @@ def write_outputs(job: ReplayJob, mapper, stats: dict, *, positions: np.ndarray 
     ``positions``: the sonar's path drawn on them) and ``stats`` as ``summary.json``, to which the
     threshold and the voxel counts are added. ``extra(out)`` writes more files (of ``names``) first."""
     from gpumap.atomic import output_set
-    from gpumap.io.pictures import save_pictures
-    from gpumap.io.ply import write_ply
     from gpumap.pipeline.replay import otsu_threshold
 
     values = mapper.values() if values is None else values
@@ -201,8 +203,10 @@ def _surface_summary(live) -> tuple:
                    "options": {k: v for k, v in layer.stats.items() if k not in skip}}
 
 
-def _run_ekf(job: ReplayJob) -> tuple[dict, object]:
-    """The EKF replay of ``job`` (odometry + EKF on the pings, three maps): its output set."""
+def run_ekf_job(job: ReplayJob) -> tuple[dict, object]:
+    """The EKF replay of ``job`` (``job.ekf``: odometry made from the recorded poses with drift, the EKF
+    on the pings, three maps: recorded, odometry and EKF poses) and its output set, the EKF's map as
+    ``map.npz``; ``(summary, the EKF's mapper)``."""
     from gpumap.pipeline.ekf_replay import measurements_picture, paths_picture, run_ekf_replay
 
     if job.static:
@@ -211,9 +215,11 @@ def _run_ekf(job: ReplayJob) -> tuple[dict, object]:
     if job.layers:
         raise ValueError("Expected --ekf alone (it makes three maps of its own), but got it with --view "
                          "or --record")
+    e = job.ekf
+    if e is None:
+        raise ValueError("Expected a job with EKF options (ReplayJob(ekf=EKFOptions(...))), but it has none")
     rec, stride = _open(job, [])
     thr = job.mapper_threshold
-    e = job.ekf
     t0 = time.perf_counter()
     res = run_ekf_replay(
         rec,
