@@ -51,6 +51,8 @@ BENCHMARKS: dict[str, str] = {
                 "incremental",
     "ros_bench": "the ROS 2 node's sustained rates and latency over Fast DDS on the real tank (--distance: "
                  "with the distance field off and on)",
+    "parity": "every map of the real tank frames on every backend here against NumPy's, bit for bit (GPUs)",
+    "pipeline_rate": "the replay pipeline's stages alone and together: decode, map from memory, replay",
     "report": "the results files -> BENCHMARKS.md and its plots (--check compares only)",
     "readme": "the README's figures, written from the results files (--check compares only)",
 }
