@@ -52,7 +52,7 @@ import numpy as np
 
 from gpumap import limits
 from gpumap.errors import check_pose
-from gpumap.io.frame import FormatError, LimitError, Recording, SonarFrame
+from gpumap.io.frame import FormatError, LimitError, Recording, SonarFrame, decoded_in_order
 from gpumap.limits import check_size, declared_product
 from gpumap.spec import SonarSpec
 
@@ -544,19 +544,25 @@ def open_fan_folder(
     sampler = _fan_sampler(spec, geom)
     shape = (geom.n_rows, geom.n_cols)
 
+    def decode(kf):
+        k, f = kf
+        try:
+            img = sampler(read_grey_png(f, expected_shape=shape))
+        except FormatError as e:
+            return e
+        np.clip(img, 0.0, 1.0, out=img)  # a convex mix of [0, 1] values, less float32 rounding
+        return SonarFrame(image=img, spec=spec, timestamp_s=t_of.get(k), T_W_S=T.get(k),
+                          meta={"format": "fan", "frame": k, "file": str(f)})
+
     def frames() -> Iterator[SonarFrame]:
-        for k, f in files:
-            try:
-                fan = read_grey_png(f, expected_shape=shape)
-            except FormatError as e:
+        # pictures decoded ahead by a few threads, handed over in order (decoded_in_order)
+        for fr in decoded_in_order(decode, files):
+            if isinstance(fr, FormatError):
                 if on_bad is None:
-                    raise
-                on_bad(e)
+                    raise fr
+                on_bad(fr)
                 continue
-            img = sampler(fan)
-            np.clip(img, 0.0, 1.0, out=img)  # a convex mix of [0, 1] values, less float32 rounding
-            yield SonarFrame(image=img, spec=spec, timestamp_s=t_of.get(k), T_W_S=T.get(k),
-                             meta={"format": "fan", "frame": k, "file": str(f)})
+            yield fr
 
     return Recording(str(root), "fan-folder", frames, has_poses=has_poses,
                      count=lambda: len(files), poses=lambda: [T.get(k) for k, _ in files],

@@ -118,3 +118,47 @@ class Recording:
 
     def __repr__(self) -> str:
         return f"Recording(kind={self.kind!r}, path={self.path!r}, has_poses={self.has_poses})"
+
+
+def decoder_threads() -> int:
+    """Threads that decode a folder's pictures ahead of the mapper (``GPUMAP_DECODERS``, default a quarter
+    of this machine's cores, 1 to 8: PNG inflation and the fan's resampling release the interpreter)."""
+    import os
+
+    env = os.environ.get("GPUMAP_DECODERS", "")
+    if env.strip():
+        n = int(env)
+        if n < 1:
+            raise ValueError(f"Expected GPUMAP_DECODERS to be a positive integer, but got {env!r}")
+        return n
+    return max(1, min(8, (os.cpu_count() or 1) // 4))
+
+
+def decoded_in_order(decode, items, threads: int | None = None, window: int | None = None):
+    """``decode(item)`` of every item, in the items' order, computed by ``threads`` threads at most
+    ``window`` items ahead (default twice the threads): the same results as a plain loop, sooner. An
+    exception of ``decode`` is raised where its item comes, as the loop would; stopping early cancels
+    what is queued."""
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    threads = decoder_threads() if threads is None else int(threads)
+    if threads <= 1:
+        for x in items:
+            yield decode(x)
+        return
+    window = 2 * threads if window is None else max(1, int(window))
+    it = iter(items)
+    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="gpumap-decode") as pool:
+        queued: deque = deque()
+        try:
+            for x in it:
+                queued.append(pool.submit(decode, x))
+                if len(queued) >= window:
+                    yield queued.popleft().result()
+            while queued:
+                yield queued.popleft().result()
+        finally:
+            for f in queued:
+                f.cancel()
+

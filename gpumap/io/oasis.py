@@ -37,7 +37,7 @@ import numpy as np
 
 from gpumap.errors import check_pose
 from gpumap.io.fan import OASIS_SPEC, FanGeometry, _fan_sampler, read_grey_png
-from gpumap.io.frame import FormatError, Recording, SonarFrame
+from gpumap.io.frame import FormatError, Recording, SonarFrame, decoded_in_order
 from gpumap.io.safe_pickle import load_pickle
 from gpumap.spec import SonarSpec
 
@@ -172,19 +172,24 @@ def open_oasis_folder(
     sampler = _fan_sampler(spec, geom)
     shape = (geom.n_rows, geom.n_cols)
 
+    def decode(i: int):
+        try:
+            img = sampler(read_grey_png(pics[i], expected_shape=shape))
+        except FormatError as e:
+            return e
+        np.clip(img, 0.0, 1.0, out=img)
+        return SonarFrame(image=img, spec=spec, T_W_S=T[i].copy(),
+                          meta={"format": "oasis", "frame": i, "file": str(pics[i])})
+
     def frames() -> Iterator[SonarFrame]:
-        for i in chosen:
-            try:
-                fan = read_grey_png(pics[i], expected_shape=shape)
-            except FormatError as e:
+        # pictures decoded ahead by a few threads, handed over in order (decoded_in_order)
+        for fr in decoded_in_order(decode, chosen):
+            if isinstance(fr, FormatError):
                 if on_bad is None:
-                    raise
-                on_bad(e)
+                    raise fr
+                on_bad(fr)
                 continue
-            img = sampler(fan)
-            np.clip(img, 0.0, 1.0, out=img)
-            yield SonarFrame(image=img, spec=spec, T_W_S=T[i].copy(),
-                             meta={"format": "oasis", "frame": i, "file": str(pics[i])})
+            yield fr
 
     return Recording(str(root), "oasis", frames, has_poses=True, count=lambda: len(chosen),
                      poses=lambda: [T[i].copy() for i in chosen])
