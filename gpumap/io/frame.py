@@ -121,8 +121,11 @@ class Recording:
 
 
 def decoder_threads() -> int:
-    """Threads that decode a folder's pictures ahead of the mapper (``GPUMAP_DECODERS``, default a quarter
-    of this machine's cores, 1 to 8: PNG inflation and the fan's resampling release the interpreter)."""
+    """Threads that decode a folder's pictures ahead of the mapper (``GPUMAP_DECODERS``, default half of
+    this machine's cores, 1 to 8: PNG inflation and the fan's resampling release the interpreter). On one
+    H200 host of 16 cores the real tank's replay at 1 cm went from 84-103 to 300-339 frames/s with 4 and
+    376-393 with 8 (``bench/results/pipeline_rate_h200_decoders*.json``); on two cores one thread is
+    fastest."""
     import os
 
     env = os.environ.get("GPUMAP_DECODERS", "")
@@ -131,7 +134,7 @@ def decoder_threads() -> int:
         if n < 1:
             raise ValueError(f"Expected GPUMAP_DECODERS to be a positive integer, but got {env!r}")
         return n
-    return max(1, min(8, (os.cpu_count() or 1) // 4))
+    return max(1, min(8, (os.cpu_count() or 1) // 2))
 
 
 def decoded_in_order(decode, items, threads: int | None = None, window: int | None = None):
