@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import bench_parser, oasis_tank_dir, run_header, write_json
+from .common import Section, bench_parser, oasis_tank_dir, run_header, write_json
 
 BOX = ((-0.5, -1.2, -0.5), (1.9, 1.2, 0.8))
 
@@ -88,3 +88,52 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def _machine(d: dict) -> str:
+    m = d.get("machine", {})
+    gpus = ", ".join(m.get("gpus") or []) or "no GPU"
+    load = m.get("load_avg_start")
+    return (f"{m.get('cpu_model', '?')}, {m.get('cpu_count', '?')} cores, {gpus}; load "
+            f"{'/'.join(f'{x:.1f}' for x in load) if load else '?'} at the start")
+
+
+def markdown(docs: list[tuple[str, dict]], folder: Path) -> str:
+    """The BENCHMARKS.md block of every ``pipeline_rate*.json`` and ``parity*.json``."""
+    out = [
+        "`python -m bench.pipeline_rate` times the replay's stages alone and together on the real tank's 123",
+        "frames (the public OASIS box); `python -m bench.parity` compares every map of the restructured",
+        "tree on each backend with NumPy's. Decoders: `GPUMAP_DECODERS` (the threads that decode pictures",
+        "ahead; default half the cores).",
+        "",
+        "| results file | machine | voxel | backend | decode alone, frames/s | mapping from memory, frames/s "
+        "| replay, frames/s | replay / slowest stage | same map |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, d in docs:
+        if d.get("schema") != "gpumap-pipeline-rate/1":
+            continue
+        for r in d["rows"]:
+            out.append(
+                f"| `{name}` | {_machine(d)} | {r['voxel_m'] * 1000:g} mm | {r['backend']} | "
+                f"{d['decode_frames_per_s']:,.0f} | {r['in_memory_frames_per_s']:,.0f} | "
+                f"{r['replay_frames_per_s']:,.0f} | {r['replay_over_slowest_stage']:.2f} | {r['same_map']} |"
+            )
+    par = [(n, d) for n, d in docs if d.get("schema") == "gpumap-parity/1"]
+    for name, d in par:
+        n = len(d["rows"])
+        out += [
+            "",
+            f"`{name}` ({_machine(d)}): {n} maps (every rule and method, 5 cm and 2 cm, "
+            f"{d['frames']} frames, the confidence layer at 5 cm) on {', '.join(d['backends'])}: "
+            + ("every one equal to NumPy's bit for bit." if d["all_equal"] else "NOT all equal to NumPy's."),
+        ]
+    return "\n".join(out)
+
+
+SECTION = Section(
+    "pipeline-rate",
+    "## The replay pipeline's stages and the restructured tree's parity (issues 42, 46)",
+    "*_h200*.json",
+    markdown,
+)

@@ -24,7 +24,7 @@ from .common import pct as _pct
 #: The benchmarks whose blocks the report renders from their results files, in this order.
 SECTION_MODULES = ("ab", "ekf_bench", "frontend", "nbv", "confidence", "rate_real", "variation", "long_run",
                    "surface", "surface_rate", "gpu_scale", "ekf_registration", "ekf_pose", "decision",
-                   "real_frontier", "distance")
+                   "real_frontier", "distance", "pipeline_rate")
 BASELINE_LABELS = {"paper-numpy": "paper's six steps, plain NumPy (ours)",
                    "oasis-rule": "OASIS rule (fnr 0.5) on gpumap footprints",
                    "octomap": "OctoMap (pyoctomap), beam maxima at elevation 0"}
