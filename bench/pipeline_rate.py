@@ -104,7 +104,7 @@ def markdown(docs: list[tuple[str, dict]], folder: Path) -> str:
         "`python -m bench.pipeline_rate` times the replay's stages alone and together on the real tank's 123",
         "frames (the public OASIS box); `python -m bench.parity` compares every map of the restructured",
         "tree on each backend with NumPy's. Decoders: `GPUMAP_DECODERS` (the threads that decode pictures",
-        "ahead; default half the cores; `pipeline_rate_h200.json` ran before they existed: one reading thread).",
+        "ahead; default half the cores; `pipeline_rate_h200.json` ran before they existed: one thread).",
         "",
         "| results file | machine | voxel | backend | decode alone, frames/s | mapping from memory, frames/s "
         "| replay, frames/s | replay / slowest stage | same map |",
