@@ -318,9 +318,24 @@ def headline_rows() -> list[tuple[str, str, str]]:
             if w.startswith("... "):  # a row that continues the one above it in the full table
                 w = CONTEXT.get(s, "") + w.removeprefix("... ")
             rows.append((w, f, s))
-    d = _load("distance.json")
-    if d and "distance.json" not in seen:
-        rows.append(distance_row(d))
+    for name in ("distance.json", "distance_gpu.json"):
+        d = _load(name)
+        if d and name not in seen:
+            rows.append((*distance_row(d)[:2], name))
+    pr = _load("pipeline_rate_h200_decoders8.json")
+    if pr:
+        by = {r["backend"]: r for r in pr["rows"] if r["voxel_m"] == 0.01}
+        order = [b for b in ("opencl-gpu", "warp-cuda") if b in by]
+        rows.append(
+            (
+                "`gpumap replay`'s pipeline on the real tank's frames, 1 cm, 8 decoder threads: frames/s "
+                "replayed, then mapped alone from memory, " + " / ".join(order),
+                " / ".join(f"{by[b]['replay_frames_per_s']:,.0f}" for b in order)
+                + "; "
+                + " / ".join(f"{by[b]['in_memory_frames_per_s']:,.0f}" for b in order),
+                "pipeline_rate_h200_decoders8.json",
+            )
+        )
     return rows
 
 
@@ -328,12 +343,12 @@ def distance_row(d: dict) -> tuple[str, str, str]:
     """The distance field's headline: a full field of the real tank at 2 cm beside SciPy's, unknown as
     obstacle (best of the repeats), and the incremental update's cost over a full one (batches of 32)."""
     st = next(x for x in d["full"]["settings"] if x["unknown_is_obstacle"])
-    be = [b for b in ("opencl-cpu", "warp-cpu") if b in st["backends"]]
+    be = [b for b in ("opencl-cpu", "warp-cpu", "opencl-gpu", "warp-cuda") if b in st["backends"]]
     inc = next((r for r in d["incremental"]["rows"] if r["backend"] == be[0] and r["unknown_is_obstacle"]
                 and "max_distance_m" not in r), None)
     what = (f"Exact distance field of the real tank's safe map, {_voxel(d['full']['grid']['voxel_size_m'])}: "
             "seconds, SciPy / " + " / ".join(be))
-    fig = " / ".join(f"{x:.2f}" for x in (st["scipy"]["best_s"], *(st["backends"][b]["transform"]["best_s"]
+    fig = " / ".join(f"{x:.3g}" for x in (st["scipy"]["best_s"], *(st["backends"][b]["transform"]["best_s"]
                                                                   for b in be)))
     if inc is not None:
         what += f"; an incremental update over a full one ({d['incremental']['batch']}-ping batches, {be[0]})"
