@@ -1,49 +1,49 @@
 """A generative surface fit (issue 43): the pings' intensities explained by the safe map's occupied voxels.
 
-An imaging sonar's cell (range, beam) sums the echoes of its whole elevation arc. This layer fits that
+An imaging sonar's cell (range, beam) sums the echoes of its whole elevation arc; this layer fits that
 sum. Each candidate voxel ``i`` (the safe map's occupied voxels, ``mapper.values() >= threshold``: the
 fit never claims a voxel the pings proved empty or never saw) carries a weight ``x_i >= 0`` (its
-reflectivity times area, in the display's units), and a ping's cell is modelled as
+reflectivity times area, in the display's units), and the coarse cell ``c`` of ping ``p`` is modelled as
 
-    y_pc = g_p * sum_i a_pci T_pi x_i + b_p
+    y_pc = g_p * sum_i a_pi f_pic x_i + b_p
 
 - ``y_pc``: the cell's energy, the display law undone (``-ln(1 - I)`` of every sonar cell, averaged
-  over the coarse cell: ``bin_stride`` bins by ``beam_stride`` beams, about half a voxel each);
-  cells with a saturated sonar cell give only a lower bound (censored).
-- ``a_pci = f_pci B(phi) L(r) / r^2 c_inc``: the share ``f`` of the voxel's own width (``+-h/2`` in
-  range and azimuth) falling in the cell, the two-way vertical beam pattern ``B(phi) = 0.5 **
-  ((2 phi / vfov)^2) + side_lobe_level`` out to ``aperture_scale * vfov / 2`` (the stated pattern
-  of :class:`gpumap.render.PingModel`; a voxel outside the nominal fan still returns), the range loss
-  left after time-varied gain ``L(r) = r^-n 10^(-2 a (r - 1) / 10)``, the solid angle of a voxel
-  ``1 / r^2``, and the incidence term ``c_inc = (cos^2 + 1e-4)^((k + 1) / 2)`` (projected area
-  times the ``cos^k`` law) with the normal of the current surface estimate around the voxel.
-- ``T_pi``: the transmittance of the ray from the sonar to the voxel in ping ``p``: the product of
-  ``1 - alpha_u`` over the candidates ``u`` more than ``occlusion_m`` nearer in the same (beam,
-  elevation) ray cell (each covers the cells its width spans), ``alpha_u`` their surface probability:
-  a surface shadows what lies behind it, and a shadowed voxel is neither credited nor blamed by
-  that ping.
-- ``g_p``: a per-ping gain (real sonars vary ping to ping; geometric mean 1), ``b_p`` the ping's noise
-  floor (the median energy of its dark cells).
+  over ``bin_stride`` bins by ``beam_stride`` beams, about half a voxel each). A cell holding a
+  saturated sonar cell gives only a lower bound (censored: a model above it is not blamed).
+- ``a_pi = B(phi) L(r) / r^2 [c_inc T_pi]``: the two-way vertical beam pattern ``B(phi) = 0.5 **
+  ((2 phi / vfov)^2) + side_lobe_level`` out to ``aperture_scale * vfov / 2`` (the stated pattern of
+  :class:`gpumap.render.PingModel`: a voxel outside the nominal fan still returns, as the
+  simulator's beam does), the range loss left after time-varied gain ``L(r) = r^-n 10^(-2 a (r - 1) /
+  10)``, a voxel's solid angle ``1 / r^2``; optionally (off by default, see below) the incidence term
+  ``c_inc = (cos^2 + 1e-4)^((k + 1) / 2)`` with normals of the current estimate, and the
+  transmittance ``T_pi``, the product of ``1 - alpha_u`` over the candidates more than
+  ``occlusion_m`` nearer in the same (beam, elevation) ray cell, ``alpha_u`` their surface level.
+- ``f_pic``: where in its own width (``+-h/2`` in range and azimuth, split over the cells it covers)
+  the voxel's echo falls in that ping. It starts as the share of the width in each cell and is
+  fitted with the weights: a surface crosses a voxel somewhere, so its echo is a thin line at a
+  sub-voxel range that a fixed box cannot place (measured: with the fixed box the walls, seen near
+  normal incidence, lose their weight to their neighbours).
+- ``g_p`` a per-ping gain (geometric mean 1; real sonars vary ping to ping), ``b_p`` the ping's
+  noise floor (the median energy of its cells below the threshold).
 
-The weights are fitted by the multiplicative EM update of emission tomography (MLEM,
-Richardson-Lucy), ``x_i <- x_i sum_pc a T g y / yhat / sum_pc a T g``, which keeps ``x >= 0``,
-credits a voxel with the share of each cell that its weight explains and blames it for the cells it
-would brighten that stay dark. Every ``occlusion_every`` iterations the transmittances, the normals
-and the surface probabilities are recomputed from the weights.
+The fit is the expectation-maximisation of this Poisson-like model (MLEM / Richardson-Lucy of emission
+tomography with real intensities): each cell's energy is shared among its entries in proportion to
+their prediction, ``q_pic``; a voxel's weight becomes what it collected over every ping divided by its
+sensitivity (dark cells included: a voxel is blamed for the cells it would brighten that stay dark),
+and its profile in a ping follows its collected shares. Weights stay ``>= 0``.
 
-How sure (per voxel): in each cell that a voxel spans, its weight against the heaviest competitor's
-(occlusion included), ``d = x_i T_pi / max_u x_u T_pu``; its **share** is the mean of ``d`` over
-its cells weighted by their energy above the floor and the voxel's part in them. A voxel that
-dominates the bright cells it spans has a share near 1, one whose cells other voxels explain near
-0. **Thin surfaces**: a voxel whose share is at most ``thin_ratio`` of a neighbour's along its
-estimated normal (26-neighbourhood) gives way to it (a surface voxelises one to three voxels thick;
-the fit spreads a little of the surface's weight over its thickness). The **surface** is the
-candidates with share ``>= surface_share``; **undecided** those in ``[undecided_share,
-surface_share)`` and those with too little energy seen (``min_energy``); the rest the fit explained
-away (the safe map still keeps them).
+The decision. A voxel that the pings need keeps its weight; one whose cells others explain decays
+towards 0, the bulk of the candidates to about a hundredth of a surface's weight. The scale of a
+surface is the data's own: ``x_ref``, the weight that alone makes the median bright cell from the
+median entry of a bright cell. **How sure** ``p_i = x_i / (x_i + surface_level * x_ref)`` (0.5 at the
+decision); the **surface** is ``p >= 0.5``; **undecided** the candidates with ``undecided_level <= x /
+x_ref < surface_level`` and those in fewer than ``min_pings`` pings (the fit has too little to go
+on); the rest it explained away (the safe map still keeps them).
 
-Use: :func:`fit_surface` (a mapper and the pings it integrated) or :func:`fit_candidates` (a
-candidate mask, its grid, the sonar and the pings). Everything here is NumPy.
+Measured (``python -m bench.experiments.surface_fit``, tank at 3 cm): the incidence term with normals
+from the estimate and the occlusion with opacities from it do not help (a phantom in front that the
+estimate still holds shadows the surface behind it and keeps it), so both are off by default; with the
+truth's normals the incidence term helps (the experiment's notes). Everything here is NumPy.
 """
 
 from __future__ import annotations
@@ -62,66 +62,64 @@ __all__ = ["FitOptions", "SurfaceFit", "fit_candidates", "fit_surface"]
 
 @dataclass(frozen=True)
 class FitOptions:
-    """Settings of the surface fit (module docstring). The model's constants are
-    :class:`gpumap.render.PingModel`'s stated ones.
+    """Settings of the surface fit (module docstring). The ping model's constants are
+    :class:`gpumap.render.PingModel`'s; the decision levels were chosen on the simulated tank alone.
 
     iterations : int
         EM iterations.
-    occlusion_every : int
-        Iterations between updates of the transmittances, normals and shares (0: never: no
-        occlusion, no incidence term).
+    adaptive_profile : bool
+        Fit where in its width each voxel's echo falls, per ping (False: the fixed box).
     aperture_scale : float
         The candidates' elevation extent over the nominal vertical aperture (>= 1).
-    side_lobe_level, spreading_exponent, absorption_db_per_m, cos_exponent : float
-        The ping model's beam pattern floor, range loss and incidence law.
-    incidence : bool
-        Apply the incidence term (normals from the current estimate).
-    occlusion_m : float or None
-        A voxel occludes those more than this behind it (None: two voxels).
+    side_lobe_level, spreading_exponent, absorption_db_per_m : float
+        The beam pattern's floor and the range loss.
     per_ping_gain : bool
         Fit a gain per ping.
-    surface_share, undecided_share : float
-        Share from which a candidate is surface / undecided.
-    thin_ratio : float
-        A voxel whose share is at most this ratio of its neighbour's along the normal gives way (0: off).
-    min_energy : float
-        Least energy above the floor (summed over the voxel's part of its cells, in units of the
-        median bright cell) for a decision; below it the candidate is undecided.
+    incidence, occlusion : bool
+        The incidence term (normals from the estimate) and the occlusion (opacities from it), updated
+        every ``update_every`` iterations (measured: neither helps; off).
+    cos_exponent : float
+        ``k`` of the incidence law.
+    occlusion_m : float or None
+        A voxel occludes those more than this behind it, metres (None: two voxels).
+    update_every : int
+        Iterations between updates of the normals and opacities.
+    surface_level, undecided_level : float
+        Weight over ``x_ref`` from which a candidate is surface / undecided.
+    min_pings : int
+        Pings a candidate must be in (within the aperture) for a decision.
     """
 
-    iterations: int = 40
-    occlusion_every: int = 10
+    iterations: int = 100
+    adaptive_profile: bool = True
     aperture_scale: float = 1.5
     side_lobe_level: float = 0.01
     spreading_exponent: float = 0.5
     absorption_db_per_m: float = 0.04
-    cos_exponent: float = 1.0
-    incidence: bool = True
-    occlusion_m: float | None = None
     per_ping_gain: bool = True
-    surface_share: float = 0.5
-    undecided_share: float = 0.2
-    thin_ratio: float = 0.0
-    min_energy: float = 0.5
+    incidence: bool = False
+    occlusion: bool = False
+    cos_exponent: float = 1.0
+    occlusion_m: float | None = None
+    update_every: int = 25
+    surface_level: float = 0.02
+    undecided_level: float = 0.005
+    min_pings: int = 2
 
     def __post_init__(self) -> None:
-        for name in ("iterations", "occlusion_every"):
+        for name, low in (("iterations", 0), ("update_every", 1), ("min_pings", 1)):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-                raise ValueError(f"Expected an integer >= 0 for {name!r}, but got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+                raise ValueError(f"Expected an integer >= {low} for {name!r}, but got {v!r}")
         if not (np.isfinite(self.aperture_scale) and self.aperture_scale >= 1.0):
             raise ValueError(f"Expected aperture_scale >= 1, but got {self.aperture_scale}")
-        for name in ("side_lobe_level", "spreading_exponent", "absorption_db_per_m", "cos_exponent",
-                     "min_energy"):
+        for name in ("side_lobe_level", "spreading_exponent", "absorption_db_per_m", "cos_exponent"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"Expected {name} >= 0, but got {v}")
-        for name in ("surface_share", "undecided_share", "thin_ratio"):
-            if not (0.0 <= getattr(self, name) <= 1.0):
-                raise ValueError(f"Expected {name} in [0, 1], but got {getattr(self, name)}")
-        if self.undecided_share > self.surface_share:
-            raise ValueError(f"Expected undecided_share <= surface_share, but got {self.undecided_share} > "
-                             f"{self.surface_share}")
+        if not (0.0 < self.undecided_level <= self.surface_level and np.isfinite(self.surface_level)):
+            raise ValueError(f"Expected 0 < undecided_level <= surface_level, but got {self.undecided_level} "
+                             f"and {self.surface_level}")
         if self.occlusion_m is not None and not (np.isfinite(self.occlusion_m) and self.occlusion_m > 0):
             raise ValueError(f"Expected occlusion_m > 0 (metres) or None, but got {self.occlusion_m}")
 
@@ -134,20 +132,22 @@ class SurfaceFit:
     """The fit over ``grid`` (arrays (nx, ny, nz)).
 
     surface : bool
-        What is there: candidates with share ``>= surface_share`` and enough energy seen.
+        What is there: candidates with ``sure >= 0.5`` in at least ``min_pings`` pings.
     undecided : bool
-        Candidates the fit cannot decide (the safe map keeps them; an arm must still avoid them).
+        Candidates the fit cannot decide (the safe map keeps them: an arm must still avoid them).
     candidates : bool
         The safe map's occupied voxels the fit chose from.
     observed : bool
         Voxels the safe map observed.
-    share : float32
-        How sure, in [0, 1] (module docstring); NaN off the candidates.
+    sure : float32
+        How sure the fit is that the voxel is surface, in [0, 1); NaN off the candidates.
     weight : float32
-        Fitted weight ``x`` (>= 0; 0 off the candidates).
-    energy : float32
-        Energy above the floor the voxel's cells held, in units of the median bright cell.
+        Fitted weight ``x`` (>= 0; 0 off the candidates), display-energy units.
+    pings : uint16
+        Pings whose aperture holds the voxel.
     grid : GridSpec
+    x_ref : float
+        The data's weight of a surface (module docstring).
     gains : (n_pings,) float64
         Per-ping gains.
     stats : dict
@@ -158,16 +158,17 @@ class SurfaceFit:
     undecided: np.ndarray
     candidates: np.ndarray
     observed: np.ndarray
-    share: np.ndarray
+    sure: np.ndarray
     weight: np.ndarray
-    energy: np.ndarray
+    pings: np.ndarray
     grid: GridSpec
+    x_ref: float
     gains: np.ndarray
     stats: dict = field(default_factory=dict)
 
     def values(self) -> np.ndarray:
         """(nx, ny, nz) float32: 1 surface, 0.5 undecided, 0 observed otherwise, NaN never observed
-        (the surface is occupied from 0.75, surface and undecided from 0.5)."""
+        (occupied from 0.75: the surface; from 0.5: the surface and the undecided)."""
         out = np.where(self.observed, np.float32(0.0), np.float32(np.nan)).astype(np.float32)
         out[self.undecided] = 0.5
         out[self.surface] = 1.0
@@ -189,21 +190,22 @@ def _coarse_edges(edges: np.ndarray, stride: int) -> np.ndarray:
 
 
 def _energy(image: np.ndarray, threshold: float, bin_stride: int, beam_stride: int
-            ) -> tuple[np.ndarray, np.ndarray, float]:
+            ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """One ping's coarse energy ((n_rc, n_bc) float64, ``-ln(1 - I)`` averaged over each coarse cell),
-    its censored cells ((n_rc, n_bc) bool: a saturated sonar cell) and its floor (the median energy of
-    the cells below ``threshold``; 0 if none)."""
+    its censored cells (bool: a saturated sonar cell), its floor (the median energy of the cells below
+    ``threshold``; 0 if none) and its bright cells (bool: a sonar cell ``>= threshold``)."""
     img = image.astype(np.float64) * (1.0 / 255.0) if image.dtype == np.uint8 else np.asarray(image, np.float64)
     cap = 1.0 - 0.5 / 255.0
     e = -np.log1p(-np.minimum(np.clip(img, 0.0, 1.0), cap))
     dark = img < threshold
     floor = float(np.median(e[dark])) if dark.any() else 0.0
     rb, cb = np.arange(0, img.shape[0], bin_stride), np.arange(0, img.shape[1], beam_stride)
-    s = np.add.reduceat(np.add.reduceat(e, rb, axis=0), cb, axis=1)
-    nr = np.diff(np.r_[rb, img.shape[0]])
-    nc = np.diff(np.r_[cb, img.shape[1]])
-    sat = np.add.reduceat(np.add.reduceat((img >= cap).astype(np.int32), rb, axis=0), cb, axis=1) > 0
-    return s / (nr[:, None] * nc[None, :]), sat, floor
+
+    def pool(a: np.ndarray) -> np.ndarray:
+        return np.add.reduceat(np.add.reduceat(a, rb, axis=0), cb, axis=1)
+
+    n = np.diff(np.r_[rb, img.shape[0]])[:, None] * np.diff(np.r_[cb, img.shape[1]])[None, :]
+    return pool(e) / n, pool((img >= cap).astype(np.int32)) > 0, floor, pool((~dark).astype(np.int32)) > 0
 
 
 def _check(images: np.ndarray, poses: np.ndarray, spec: SonarSpec) -> tuple[np.ndarray, np.ndarray]:
@@ -237,9 +239,21 @@ def _overlaps(lo: np.ndarray, hi: np.ndarray, edges: np.ndarray) -> tuple[np.nda
     return row[keep], cell[keep], part[keep] / (hi[row[keep]] - lo[row[keep]])
 
 
+def _product(na: np.ndarray, nb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every pair of a row's ``na`` entries of one list and ``nb`` of another (rows in order):
+    (row, index into the first list, index into the second)."""
+    a0, b0 = np.cumsum(na) - na, np.cumsum(nb) - nb
+    tot = na * nb
+    row = np.repeat(np.arange(len(na)), tot)
+    off = np.arange(int(tot.sum())) - np.repeat(np.cumsum(tot) - tot, tot)
+    nbr = np.maximum(nb[row], 1)
+    return row, a0[row] + off // nbr, b0[row] + off % nbr
+
+
 @dataclass
 class _Pings:
-    """Every (ping, candidate) pair in view and its coarse cells, all pings at once."""
+    """Every (ping, candidate) pair within the aperture and its entries (coarse cells), all pings at once;
+    entries sorted by cell."""
 
     pair_vox: np.ndarray  # (P,) candidate index
     pair_ping: np.ndarray  # (P,) ping
@@ -247,15 +261,16 @@ class _Pings:
     pair_az: np.ndarray  # (P,) azimuth, rad
     pair_el: np.ndarray  # (P,) elevation, rad
     pair_dir_W: np.ndarray  # (P, 3) unit ray from the sonar, world frame
+    pair_up_W: np.ndarray  # (P, 3) the sonar's z axis, world frame
     pair_w0: np.ndarray  # (P,) beam pattern x range loss / r^2
     ent_pair: np.ndarray  # (E,) pair of each entry
     ent_cell: np.ndarray  # (E,) compact cell index
     ent_frac: np.ndarray  # (E,) share of the voxel's width in the cell
     y: np.ndarray  # (C,) cell energy
     censored: np.ndarray  # (C,) bool
+    bright: np.ndarray  # (C,) bool: holds a sonar cell >= threshold
     cell_ping: np.ndarray  # (C,) ping
     floor: np.ndarray  # (n_pings,)
-    bright_unit: float  # median energy above the floor of the bright cells
 
 
 def _build(centres_W: np.ndarray, grid: GridSpec, spec: SonarSpec, images: np.ndarray, poses: np.ndarray,
@@ -264,125 +279,60 @@ def _build(centres_W: np.ndarray, grid: GridSpec, spec: SonarSpec, images: np.nd
     bs, gs = _strides(spec, h)
     r_edges = spec.range_min_m + spec.bin_size_m * np.r_[np.arange(0, spec.n_bins, bs), spec.n_bins]
     b_edges = _coarse_edges(spec.beam_edges_rad, gs)
-    n_rc, n_bc = len(r_edges) - 1, len(b_edges) - 1
+    n_cell = (len(r_edges) - 1) * (len(b_edges) - 1)
     half_el = opts.aperture_scale * 0.5 * spec.vfov_rad
-    parts: dict[str, list] = {k: [] for k in ("vox", "ping", "r", "az", "el", "dir", "w0", "epair", "ecell",
-                                               "efrac")}
-    ys, sats, floors, bright = [], [], [], []
+    keys = ("vox", "r", "az", "el", "dir", "up", "w0", "ecell", "efrac", "epair")
+    parts: dict[str, list] = {k: [] for k in keys}
+    ys, sats, lits, floors, counts = [], [], [], [], []
     n_pairs = 0
     for p, (image, T) in enumerate(zip(images, poses, strict=True)):
-        y, sat, floor = _energy(image, threshold, bs, gs)
+        y, sat, floor, lit = _energy(image, threshold, bs, gs)
         ys.append(y.reshape(-1))
         sats.append(sat.reshape(-1))
+        lits.append(lit.reshape(-1))
         floors.append(floor)
-        img = image.astype(np.float64) / 255.0 if image.dtype == np.uint8 else image
-        lit = np.add.reduceat(np.add.reduceat((img >= threshold).astype(np.int32),
-                                              np.arange(0, spec.n_bins, bs), 0), np.arange(0, spec.n_beams, gs), 1)
-        bright.append(y[lit > 0] - floor)
         R, t = T[:3, :3], T[:3, 3]
         d = centres_W - t
-        q = d @ R  # sonar frame
+        q = d @ R  # the sonar frame
         rh = np.hypot(q[:, 0], q[:, 1])
         r = np.sqrt(rh * rh + q[:, 2] ** 2)
         el = np.arctan2(q[:, 2], rh)
         az = np.arctan2(q[:, 1], q[:, 0])
-        ok = ((q[:, 0] > 0) & (r >= spec.range_min_m) & (r < spec.range_max_m) & (np.abs(el) <= half_el)
-              & (az >= spec.beam_edges_rad[0]) & (az <= spec.beam_edges_rad[-1]))
-        k = np.flatnonzero(ok)
+        k = np.flatnonzero((q[:, 0] > 0) & (r >= spec.range_min_m) & (r < spec.range_max_m)
+                           & (np.abs(el) <= half_el) & (az >= b_edges[0]) & (az <= b_edges[-1]))
         r, el, az, rh = r[k], el[k], az[k], rh[k]
         w_az = np.arctan2(0.5 * h, rh)
         rr, rc, rf = _overlaps(r - 0.5 * h, r + 0.5 * h, r_edges)
         br, bc, bf = _overlaps(az - w_az, az + w_az, b_edges)
-        nr = np.bincount(rr, minlength=len(k))
-        nb = np.bincount(br, minlength=len(k))
-        r0, b0 = np.cumsum(nr) - nr, np.cumsum(nb) - nb
-        tot = nr * nb
-        pair = np.repeat(np.arange(len(k)), tot)
-        off = np.arange(int(tot.sum())) - np.repeat(np.cumsum(tot) - tot, tot)
-        ir = r0[pair] + off // np.maximum(nb[pair], 1)
-        ib = b0[pair] + off % np.maximum(nb[pair], 1)
+        pair, ir, ib = _product(np.bincount(rr, minlength=len(k)), np.bincount(br, minlength=len(k)))
         pattern = 0.5 ** ((2.0 * el / spec.vfov_rad) ** 2) + opts.side_lobe_level
         loss = r ** -opts.spreading_exponent * 10.0 ** (-2.0 * opts.absorption_db_per_m * (r - 1.0) / 10.0)
-        parts["vox"].append(k)
-        parts["ping"].append(np.full(len(k), p))
-        parts["r"].append(r)
-        parts["az"].append(az)
-        parts["el"].append(el)
-        parts["dir"].append(d[k] / r[:, None])
-        parts["w0"].append(pattern * loss / (r * r))
-        parts["epair"].append(pair + n_pairs)
-        parts["ecell"].append(p * n_rc * n_bc + rc[ir] * n_bc + bc[ib])
-        parts["efrac"].append(rf[ir] * bf[ib])
+        for key, v in (("vox", k), ("r", r), ("az", az), ("el", el), ("dir", d[k] / r[:, None]),
+                       ("up", np.broadcast_to(R[:, 2], (len(k), 3))), ("w0", pattern * loss / (r * r)),
+                       ("ecell", p * n_cell + rc[ir] * (len(b_edges) - 1) + bc[ib]), ("efrac", rf[ir] * bf[ib]),
+                       ("epair", pair + n_pairs)):
+            parts[key].append(v)
+        counts.append(len(k))
         n_pairs += len(k)
-    cat = {k: np.concatenate(v) if v else np.zeros(0) for k, v in parts.items()}
-    cells, inv = np.unique(cat["ecell"].astype(np.int64), return_inverse=True)
-    y_all, sat_all = np.concatenate(ys), np.concatenate(sats)
-    ping_of = cells // (n_rc * n_bc)
-    local = cells % (n_rc * n_bc)
-    y = y_all.reshape(len(images), -1)[ping_of, local]
-    sat = sat_all.reshape(len(images), -1)[ping_of, local]
-    b = np.concatenate(bright) if bright else np.zeros(0)
-    unit = float(np.median(b[b > 0])) if np.any(b > 0) else 1.0
-    return _Pings(cat["vox"].astype(np.int64), cat["ping"].astype(np.int64), cat["r"], cat["az"], cat["el"],
-                  cat["dir"].reshape(-1, 3), cat["w0"], cat["epair"].astype(np.int64), inv.astype(np.int64),
-                  cat["efrac"], y, sat, ping_of.astype(np.int64), np.asarray(floors, np.float64), unit)
+    cat = {k: np.concatenate(v) for k, v in parts.items()}
+    order = np.argsort(cat["ecell"], kind="stable")
+    cells, inv = np.unique(cat["ecell"][order], return_inverse=True)
+    ping_of, local = cells // n_cell, cells % n_cell
+
+    def take(lst: list) -> np.ndarray:
+        return np.stack(lst)[ping_of, local]
+
+    return _Pings(cat["vox"].astype(np.int64), np.repeat(np.arange(len(images)), counts), cat["r"], cat["az"],
+                  cat["el"], cat["dir"].reshape(-1, 3), cat["up"].reshape(-1, 3), cat["w0"],
+                  cat["epair"][order].astype(np.int64), inv.astype(np.int64), cat["efrac"][order], take(ys),
+                  take(sats), take(lits), ping_of.astype(np.int64), np.asarray(floors, np.float64))
 
 
-def _sort_entries(pk: _Pings) -> None:
-    """Entries sorted by cell (in place): each cell's entries one run, for maxima over cells."""
-    order = np.argsort(pk.ent_cell, kind="stable")
-    pk.ent_cell, pk.ent_pair, pk.ent_frac = pk.ent_cell[order], pk.ent_pair[order], pk.ent_frac[order]
-
-
-# ------------------------------------------------------------------------------ occlusion, normals, share
-def _transmittance(pk: _Pings, alpha: np.ndarray, spec: SonarSpec, h: float, opts: FitOptions) -> np.ndarray:
-    """(P,) transmittance of every pair: ``prod (1 - alpha_u)`` over the candidates ``u`` of the same ping
-    more than ``occlusion_m`` nearer whose width covers the pair's (beam, elevation) ray cell."""
-    tol = 2.0 * h if opts.occlusion_m is None else opts.occlusion_m
-    _, gs = _strides(spec, h)
-    b_edges = _coarse_edges(spec.beam_edges_rad, gs)
-    n_b = len(b_edges) - 1
-    half_el = opts.aperture_scale * 0.5 * spec.vfov_rad
-    step = float(np.mean(np.diff(b_edges)))
-    n_e = max(1, int(math.ceil(2.0 * half_el / step)))
-    e_edges = np.linspace(-half_el, half_el, n_e + 1)
-    n_ray = n_b * n_e
-    a_u = alpha[pk.pair_vox]
-    occ = np.flatnonzero(a_u > 0.02)
-    T = np.ones(len(pk.pair_vox))
-    if len(occ) == 0:
-        return T
-    r = pk.pair_r[occ]
-    w_az = np.arctan2(0.5 * h, r * np.cos(pk.pair_el[occ]))
-    w_el = np.arctan2(0.5 * h, r)
-    ar, ac, _ = _overlaps(pk.pair_az[occ] - w_az, pk.pair_az[occ] + w_az, b_edges)
-    er, ec, _ = _overlaps(pk.pair_el[occ] - w_el, pk.pair_el[occ] + w_el, e_edges)
-    na, ne = np.bincount(ar, minlength=len(occ)), np.bincount(er, minlength=len(occ))
-    a0, e0 = np.cumsum(na) - na, np.cumsum(ne) - ne
-    tot = na * ne
-    row = np.repeat(np.arange(len(occ)), tot)
-    off = np.arange(int(tot.sum())) - np.repeat(np.cumsum(tot) - tot, tot)
-    ia = a0[row] + off // np.maximum(ne[row], 1)
-    ie = e0[row] + off % np.maximum(ne[row], 1)
-    span = 2.0 * spec.range_max_m + tol + 1.0
-    ray = pk.pair_ping[occ][row] * n_ray + ac[ia] * n_e + ec[ie]
-    key = ray * span + r[row]
-    order = np.argsort(key, kind="stable")
-    key = key[order]
-    logt = np.log1p(-np.minimum(a_u[occ][row][order], 0.999))
-    cum = np.r_[0.0, np.cumsum(logt)]
-    jc = np.clip(np.searchsorted(b_edges, pk.pair_az, side="right") - 1, 0, n_b - 1)
-    ecc = np.clip(np.searchsorted(e_edges, pk.pair_el, side="right") - 1, 0, n_e - 1)
-    ray_c = pk.pair_ping * n_ray + jc * n_e + ecc
-    lo = np.searchsorted(key, ray_c * span, side="left")
-    hi = np.searchsorted(key, ray_c * span + (pk.pair_r - tol), side="left")
-    return np.exp(cum[np.maximum(hi, lo)] - cum[lo])
-
-
+# ------------------------------------------------------------------------------ normals, incidence, occlusion
 def _normals(cand_idx: np.ndarray, weights: np.ndarray, shape: tuple[int, int, int]
              ) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals ((n, 3), grid axes) of the weighted candidates' local plane (the least-variance
-    direction of the weights within two voxels) and its planarity ((n,) in [0, 1])."""
+    """Unit normals ((n, 3), grid axes = world axes) of the weighted candidates' local plane (the
+    least-variance direction of the weights within two voxels) and its planarity ((n,) in [0, 1])."""
     from scipy import ndimage
 
     w = np.zeros(shape)
@@ -392,108 +342,147 @@ def _normals(cand_idx: np.ndarray, weights: np.ndarray, shape: tuple[int, int, i
            o[None, None, :] * np.ones((5, 5, 1))]
     sl = tuple(cand_idx.T)
     m0 = ndimage.correlate(w, np.ones((5, 5, 5)), mode="constant")[sl]
-    m1 = np.stack([ndimage.correlate(w, k, mode="constant")[sl] for k in ker], -1)
+    m1 = np.stack([ndimage.correlate(w, kk, mode="constant")[sl] for kk in ker], -1)
     m2 = np.empty((len(cand_idx), 3, 3))
     for a in range(3):
         for b in range(a, 3):
             m2[:, a, b] = m2[:, b, a] = ndimage.correlate(w, ker[a] * ker[b], mode="constant")[sl]
     safe = np.maximum(m0, 1e-12)
     mu = m1 / safe[:, None]
-    cov = m2 / safe[:, None, None] - mu[:, :, None] * mu[:, None, :]
-    val, vec = np.linalg.eigh(cov)
+    val, vec = np.linalg.eigh(m2 / safe[:, None, None] - mu[:, :, None] * mu[:, None, :])
     planar = np.where(m0 > 1e-12, np.clip(1.0 - val[:, 0] / np.maximum(val[:, 1], 1e-12), 0.0, 1.0), 0.0)
     return vec[:, :, 0], planar
 
 
 def _incidence(pk: _Pings, normals: np.ndarray, planar: np.ndarray, k: float) -> np.ndarray:
-    """(P,) incidence term ``(cos^2 + 1e-4)^((k + 1) / 2)`` of every pair, blended with its mean over a
-    hemisphere, ``1 / (k + 2)``, where the neighbourhood is no plane."""
+    """(P,) incidence term ``(cos^2 + 1e-4)^((k + 1) / 2)`` of every pair, blended by planarity with its
+    mean over a hemisphere, ``1 / (k + 2)``."""
     cos = np.abs(np.einsum("ij,ij->i", normals[pk.pair_vox], pk.pair_dir_W))
-    c = (cos * cos + 1e-4) ** (0.5 * (k + 1.0))
     lam = planar[pk.pair_vox]
-    return lam * c + (1.0 - lam) / (k + 2.0)
+    return lam * (cos * cos + 1e-4) ** (0.5 * (k + 1.0)) + (1.0 - lam) / (k + 2.0)
 
 
-def _cell_runs(pk: _Pings) -> np.ndarray:
-    return np.flatnonzero(np.r_[True, pk.ent_cell[1:] != pk.ent_cell[:-1]])
-
-
-def _share(pk: _Pings, x: np.ndarray, T: np.ndarray, pair_a: np.ndarray, n: int, runs: np.ndarray
-           ) -> tuple[np.ndarray, np.ndarray]:
-    """(share (n,), energy (n,)) of the candidates (module docstring)."""
-    vox = pk.pair_vox[pk.ent_pair]
-    xt = x[vox] * T[pk.ent_pair]
-    mx = np.maximum.reduceat(xt, runs) if len(xt) else np.zeros(0)
-    cell_of_run = pk.ent_cell[runs]
-    best = np.zeros(len(pk.y))
-    best[cell_of_run] = mx
-    b = best[pk.ent_cell]
-    d = np.divide(xt, b, out=np.zeros_like(xt), where=b > 0)
-    excess = np.maximum(pk.y - pk.floor[pk.cell_ping], 0.0)[pk.ent_cell]
-    w = pk.ent_frac * pair_a[pk.ent_pair] * excess
-    sw = np.bincount(vox, weights=w, minlength=n)
-    share = np.divide(np.bincount(vox, weights=w * d, minlength=n), sw, out=np.zeros(n), where=sw > 0)
-    energy = np.bincount(vox, weights=pk.ent_frac * T[pk.ent_pair] * excess, minlength=n) / pk.bright_unit
-    return share, energy
+def _transmittance(pk: _Pings, alpha: np.ndarray, spec: SonarSpec, h: float, occlusion_m: float,
+                   aperture_scale: float, normals: np.ndarray | None = None,
+                   planar: np.ndarray | None = None) -> np.ndarray:
+    """(P,) transmittance of every pair: ``prod (1 - alpha_u)`` over the candidates ``u`` of the same ping
+    more than ``occlusion_m`` nearer whose width covers the pair's (beam, elevation) ray cell. A voxel's
+    width is its cube's or, with ``normals`` ((n, 3)), the disk of diameter ``h`` across them seen from
+    the sonar (a floor seen at grazing incidence does not shadow itself), blended by ``planar``."""
+    _, gs = _strides(spec, h)
+    b_edges = _coarse_edges(spec.beam_edges_rad, gs)
+    n_b = len(b_edges) - 1
+    half_el = aperture_scale * 0.5 * spec.vfov_rad
+    n_e = max(1, int(math.ceil(2.0 * half_el / float(np.mean(np.diff(b_edges))))))
+    e_edges = np.linspace(-half_el, half_el, n_e + 1)
+    a_u = alpha[pk.pair_vox]
+    occ = np.flatnonzero(a_u > 0.02)
+    if len(occ) == 0:
+        return np.ones(len(pk.pair_vox))
+    r, el, az = pk.pair_r[occ], pk.pair_el[occ], pk.pair_az[occ]
+    s_az, s_el = np.full(len(occ), 0.5 * h), np.full(len(occ), 0.5 * h)
+    if normals is not None:
+        u, up = pk.pair_dir_W[occ], pk.pair_up_W[occ]
+        e_el = up - np.einsum("ij,ij->i", up, u)[:, None] * u
+        e_el /= np.maximum(np.linalg.norm(e_el, axis=1, keepdims=True), 1e-12)
+        nv, lam = normals[pk.pair_vox[occ]], planar[pk.pair_vox[occ]]
+        for arr, e in ((s_az, np.cross(e_el, u)), (s_el, e_el)):
+            c = np.einsum("ij,ij->i", nv, e)
+            arr[:] = lam * 0.5 * h * np.sqrt(np.maximum(1.0 - c * c, 0.0)) + (1.0 - lam) * arr
+    w_az, w_el = np.arctan2(s_az, r * np.cos(el)), np.arctan2(s_el, r)
+    ar, ac, _ = _overlaps(az - w_az, az + w_az, b_edges)
+    er, ec, _ = _overlaps(el - w_el, el + w_el, e_edges)
+    row, ia, ie = _product(np.bincount(ar, minlength=len(occ)), np.bincount(er, minlength=len(occ)))
+    span = 2.0 * spec.range_max_m + occlusion_m + 1.0
+    ray = (pk.pair_ping[occ][row] * n_b + ac[ia]) * n_e + ec[ie]
+    key = ray * span + r[row]
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    cum = np.r_[0.0, np.cumsum(np.log1p(-np.minimum(a_u[occ][row][order], 0.999)))]
+    jc = np.clip(np.searchsorted(b_edges, pk.pair_az, side="right") - 1, 0, n_b - 1)
+    ec_ = np.clip(np.searchsorted(e_edges, pk.pair_el, side="right") - 1, 0, n_e - 1)
+    ray_c = (pk.pair_ping * n_b + jc) * n_e + ec_
+    lo = np.searchsorted(key, ray_c * span, side="left")
+    hi = np.searchsorted(key, ray_c * span + (pk.pair_r - occlusion_m), side="left")
+    return np.exp(cum[np.maximum(hi, lo)] - cum[lo])
 
 
 # ------------------------------------------------------------------------------ the fit
 def _fit(cand: np.ndarray, grid: GridSpec, spec: SonarSpec, images: np.ndarray, poses: np.ndarray,
-         threshold: float, opts: FitOptions) -> tuple[dict, np.ndarray]:
+         threshold: float, opts: FitOptions) -> dict:
+    """The EM fit (module docstring) of the candidates ``cand`` ((nx, ny, nz) bool)."""
+    from scipy import sparse
+
     t0 = time.perf_counter()
     idx = np.argwhere(cand)
     n = len(idx)
-    centres = grid.centers(idx)
-    pk = _build(centres, grid, spec, images, poses, threshold, opts)
-    _sort_entries(pk)
-    runs = _cell_runs(pk)
-    t_build = time.perf_counter() - t0
-    n_p = len(images)
-    h = grid.voxel_size_m
+    pk = _build(grid.centers(idx), grid, spec, images, poses, threshold, opts)
+    n_p, n_pair, n_c = len(images), len(pk.pair_vox), len(pk.y)
+    runs = np.flatnonzero(np.r_[True, pk.ent_cell[1:] != pk.ent_cell[:-1]]) if len(pk.ent_cell) else np.zeros(0, int)
     vox_e = pk.pair_vox[pk.ent_pair]
+    A = sparse.csr_matrix((pk.ent_frac.copy(), vox_e, np.r_[runs, len(vox_e)]), shape=(n_c, n))
+    t_build = time.perf_counter() - t0
+    floor_c = pk.floor[pk.cell_ping]
+    f = pk.ent_frac.copy()
+    f_sum = np.bincount(pk.ent_pair, weights=f, minlength=n_pair)
     g = np.ones(n_p)
-    T = np.ones(len(pk.pair_vox))
-    inc = np.ones(len(pk.pair_vox))
-    excess = np.maximum(pk.y - pk.floor[pk.cell_ping], 0.0)
-    a0 = pk.ent_frac * pk.pair_w0[pk.ent_pair]
-    s0 = np.bincount(pk.ent_cell, weights=a0, minlength=len(pk.y))
-    x = np.full(n, excess.sum() / max(s0.sum(), 1e-300))
-    share = np.zeros(n)
+    inc, trans = np.ones(n_pair), np.ones(n_pair)
+    pair_a = pk.pair_w0.copy()
+    excess = np.maximum(pk.y - floor_c, 0.0)
+    x = np.full(n, excess.sum() / max(float(np.sum(pair_a * f_sum)), 1e-300))
+    occ_m = 2.0 * grid.voxel_size_m if opts.occlusion_m is None else opts.occlusion_m
     for it in range(int(opts.iterations)):
-        if opts.occlusion_every and it > 0 and it % opts.occlusion_every == 0:
-            pair_a = pk.pair_w0 * inc * T
-            share, _ = _share(pk, x, T, pair_a, n, runs)
-            T = _transmittance(pk, share, spec, h, opts)
+        if (opts.incidence or opts.occlusion) and it > 0 and it % opts.update_every == 0:
+            level = np.clip(x / max(_x_ref(pk, A, x, g, excess), 1e-300) / opts.surface_level, 0.0, 1.0)
+            nrm, planar = _normals(idx, level, grid.shape)
             if opts.incidence:
-                nrm, planar = _normals(idx, share, grid.shape)
                 inc = _incidence(pk, nrm, planar, opts.cos_exponent)
-        pair_a = pk.pair_w0 * inc * T
-        a = pk.ent_frac * pair_a[pk.ent_pair]
+            if opts.occlusion:
+                trans = _transmittance(pk, level, spec, grid.voxel_size_m, occ_m, opts.aperture_scale, nrm, planar)
+            new_a = pk.pair_w0 * inc * trans
+            old_s = np.bincount(pk.pair_vox, weights=pair_a * f_sum * g[pk.pair_ping], minlength=n)
+            new_s = np.bincount(pk.pair_vox, weights=new_a * f_sum * g[pk.pair_ping], minlength=n)
+            x = np.where(new_s > 0, x * old_s / np.maximum(new_s, 1e-300), 0.0)  # the prediction stays
+            pair_a = new_a
+        A.data[:] = pair_a[pk.ent_pair] * f
         gc = g[pk.cell_ping]
-        sig = np.bincount(pk.ent_cell, weights=a * x[vox_e], minlength=len(pk.y))
-        yhat = gc * sig + pk.floor[pk.cell_ping]
+        sig = A @ x
+        yhat = gc * sig + floor_c
         ratio = np.divide(pk.y, yhat, out=np.ones_like(yhat), where=yhat > 0)
         ratio = np.where(pk.censored, np.maximum(ratio, 1.0), ratio)
-        gr = (gc * ratio)[pk.ent_cell]
-        num = np.bincount(vox_e, weights=a * gr, minlength=n)
-        den = np.bincount(vox_e, weights=a * gc[pk.ent_cell], minlength=n)
-        x = np.divide(x * num, den, out=np.zeros(n), where=den > 0)
+        q = A.data * x[vox_e] * (gc * ratio)[pk.ent_cell]
+        sens = np.bincount(pk.pair_vox, weights=pair_a * f_sum * g[pk.pair_ping], minlength=n)
+        x = np.divide(np.bincount(vox_e, weights=q, minlength=n), sens, out=np.zeros(n), where=sens > 0)
+        if opts.adaptive_profile:
+            qp = np.bincount(pk.ent_pair, weights=q, minlength=n_pair)[pk.ent_pair]
+            f = np.where(qp > 0, q / np.where(qp > 0, qp, 1.0) * f_sum[pk.ent_pair], f)
         if opts.per_ping_gain:
-            s_num = np.bincount(pk.cell_ping, weights=sig * ratio, minlength=n_p)
             s_den = np.bincount(pk.cell_ping, weights=sig, minlength=n_p)
-            g = np.where(s_den > 0, g * np.divide(s_num, s_den, out=np.ones(n_p), where=s_den > 0), g)
+            s_num = np.bincount(pk.cell_ping, weights=sig * ratio, minlength=n_p)
+            g = g * np.divide(s_num, s_den, out=np.ones(n_p), where=s_den > 0)
             pos = g > 0
             if pos.any():
                 scale = math.exp(float(np.mean(np.log(g[pos]))))
                 g, x = g / scale, x * scale
-    pair_a = pk.pair_w0 * inc * T
-    share, energy = _share(pk, x, T, pair_a, n, runs)
-    yhat = g[pk.cell_ping] * np.bincount(pk.ent_cell, weights=pk.ent_frac * pair_a[pk.ent_pair] * x[vox_e],
-                                         minlength=len(pk.y)) + pk.floor[pk.cell_ping]
-    stats = {"candidates": n, "pairs": len(pk.pair_vox), "entries": len(pk.ent_cell), "cells": len(pk.y),
-             "build_seconds": t_build, "rms_cells": float(np.sqrt(np.mean((yhat - pk.y) ** 2))),
-             "bright_unit": pk.bright_unit}
-    return {"x": x, "share": share, "energy": energy, "gains": g, "idx": idx, "stats": stats}, yhat
+    A.data[:] = pair_a[pk.ent_pair] * f
+    x_ref = _x_ref(pk, A, x, g, excess)
+    yhat = g[pk.cell_ping] * (A @ x) + floor_c
+    stats = {"candidates": n, "pairs": n_pair, "entries": len(vox_e), "cells": n_c, "build_seconds": t_build,
+             "rms_cells": float(np.sqrt(np.mean((yhat - pk.y) ** 2))) if n_c else 0.0, "x_ref": x_ref}
+    return {"x": x, "x_ref": x_ref, "pings": np.bincount(pk.pair_vox, minlength=n), "gains": g, "idx": idx,
+            "stats": stats, "pk": pk, "A": A, "yhat": yhat}
+
+
+def _x_ref(pk: _Pings, A, x: np.ndarray, g: np.ndarray, excess: np.ndarray) -> float:
+    """The weight that alone makes the median bright cell's energy above the floor from the median entry
+    of a bright cell (the data's scale of a surface)."""
+    b = pk.bright & (excess > 0)
+    if not b.any():
+        return 1.0
+    ent = b[pk.ent_cell]
+    a = A.data * g[pk.cell_ping][pk.ent_cell]
+    med = float(np.median(a[ent])) if ent.any() else 0.0
+    return float(np.median(excess[b])) / med if med > 0 else 1.0
 
 
 def fit_candidates(candidates: np.ndarray, observed: np.ndarray, grid: GridSpec, spec: SonarSpec,
@@ -506,15 +495,15 @@ def fit_candidates(candidates: np.ndarray, observed: np.ndarray, grid: GridSpec,
     candidates : (nx, ny, nz) bool
         The voxels that may be surface (the safe map's occupied ones).
     observed : (nx, ny, nz) bool
-        Voxels the safe map observed (a superset of ``candidates``).
+        Voxels the safe map observed (holding ``candidates``).
     grid : GridSpec
     spec : SonarSpec
-    images : (n, n_bins, n_beams) uint8 or float
+    images : (n, n_bins, n_beams) uint8, float32 or float64
         The pings, intensities in [0, 1] (uint8 scaled by 1/255).
     poses : (n, 4, 4) float
         ``T_W_S`` of each ping.
     threshold : float
-        The safe map's occupied intensity (cells below it give the noise floor).
+        The safe map's occupied intensity, in (0, 1] (cells below it give the noise floor).
     options : FitOptions, optional
 
     Returns
@@ -523,41 +512,47 @@ def fit_candidates(candidates: np.ndarray, observed: np.ndarray, grid: GridSpec,
     """
     t0 = time.perf_counter()
     opts = options or FitOptions()
+    if not isinstance(options, FitOptions | None):
+        raise TypeError(f"Expected a FitOptions or None for 'options', but got {type(options).__name__}")
     if not isinstance(grid, GridSpec):
         raise TypeError(f"Expected a gpumap.GridSpec for 'grid', but got {type(grid).__name__}")
     if not isinstance(spec, SonarSpec):
         raise TypeError(f"Expected a gpumap.SonarSpec for 'spec', but got {type(spec).__name__}")
-    cand = np.asarray(candidates)
-    obs = np.asarray(observed)
+    cand, obs = np.asarray(candidates), np.asarray(observed)
     for name, a in (("candidates", cand), ("observed", obs)):
         if a.shape != grid.shape or a.dtype != bool:
             raise ValueError(f"Expected {name} of shape {grid.shape} bool, but got {a.dtype} {a.shape}")
     if np.any(cand & ~obs):
-        raise ValueError("Expected candidates within the observed voxels, but some were never observed")
+        raise ValueError(f"Expected candidates within the observed voxels, but {int(np.sum(cand & ~obs))} "
+                         "were never observed")
     if not (np.isfinite(threshold) and 0.0 < threshold <= 1.0):
         raise ValueError(f"Expected threshold in (0, 1], but got {threshold}")
     images, poses = _check(images, poses, spec)
-    res, _ = _fit(cand, grid, spec, images, poses, float(threshold), opts)
+    res = _fit(cand, grid, spec, images, poses, float(threshold), opts)
     sl = tuple(res["idx"].T)
-    share = np.full(grid.shape, np.nan, np.float32)
-    share[sl] = res["share"]
+    level = res["x"] / res["x_ref"]
+    sure = np.full(grid.shape, np.nan, np.float32)
+    sure[sl] = level / (level + opts.surface_level)
     weight = np.zeros(grid.shape, np.float32)
     weight[sl] = res["x"]
-    energy = np.zeros(grid.shape, np.float32)
-    energy[sl] = res["energy"]
-    enough = cand & (energy >= opts.min_energy)
-    s = np.nan_to_num(share, nan=0.0)
-    surface = enough & (s >= opts.surface_share)
-    undecided = cand & ~surface & ((s >= opts.undecided_share) | ~enough)
+    pings = np.zeros(grid.shape, np.uint16)
+    pings[sl] = np.minimum(res["pings"], np.iinfo(np.uint16).max)
+    enough = np.zeros(grid.shape, bool)
+    enough[sl] = res["pings"] >= opts.min_pings
+    lv = np.zeros(grid.shape)
+    lv[sl] = level
+    surface = enough & (lv >= opts.surface_level)
+    undecided = cand & ~surface & (~enough | (lv >= opts.undecided_level))
     stats = {**res["stats"], "surface": int(surface.sum()), "undecided": int(undecided.sum()),
              "pings": len(images), "seconds": time.perf_counter() - t0, "options": opts.to_dict()}
-    return SurfaceFit(surface, undecided, cand.copy(), obs.copy(), share, weight, energy, grid, res["gains"],
-                      stats)
+    return SurfaceFit(surface, undecided, cand.copy(), obs.copy(), sure, weight, pings, grid, res["x_ref"],
+                      res["gains"], stats)
 
 
 def fit_surface(mapper, images: np.ndarray, poses: np.ndarray, options: FitOptions | None = None) -> SurfaceFit:
     """The surface fit of a :class:`gpumap.MinMaxMapper` from the pings it integrated: candidates
-    ``mapper.values() >= mapper.threshold`` (its grid, sonar and threshold; :func:`fit_candidates`)."""
+    ``mapper.values() >= mapper.threshold`` over its grid, with its sonar and threshold
+    (:func:`fit_candidates`)."""
     v = mapper.values()
     cand = np.nan_to_num(v, nan=-np.inf) >= mapper.threshold
     return fit_candidates(cand, np.isfinite(v), mapper.grid, mapper.spec, images, poses, mapper.threshold,

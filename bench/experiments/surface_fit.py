@@ -103,6 +103,15 @@ def surface_scores(pred: np.ndarray, case: dict) -> dict:
         out[f"f_{k}"] = 2 * p * r / (p + r) if p + r > 0 else 0.0
     out["chamfer_m"] = float(0.5 * (d_target[pred].mean() + d_pred[target].mean()) * h) if pred.any() \
         else float("nan")
+    # the surface some ping's ray hit (seen), and of it what a ping could detect: recall of those, precision
+    # against every true surface voxel (a claim on a true surface no ping saw is no phantom)
+    d_surf = ndimage.distance_transform_edt(~truth.surface)
+    p_all = float((d_surf[pred] <= 1).mean()) if pred.any() else 0.0
+    out["precision_any_1"] = p_all
+    for name, t in (("seen", truth.surface & case["seen"]), ("detectable", truth.surface & case["detectable"])):
+        r = float((d_pred[t] <= 1).mean())
+        out[f"recall_{name}_1"] = r
+        out[f"f_{name}_1"] = 2 * p_all * r / (p_all + r) if p_all + r > 0 else 0.0
     by, hit, n = {}, 0, 0
     for name in truth.small_objects:
         if name in truth.names:
