@@ -84,6 +84,12 @@ class FitOptions:
         A voxel occludes those more than this behind it, metres (None: two voxels).
     update_every : int
         Iterations between updates of the normals and opacities.
+    thin_radius, thin_power, thin_every, thin_smooth, thin_ramp : int, float, int, int, float
+        The thin-surface prior: every ``thin_every`` iterations each weight is multiplied by
+        ``(s / m)^(p * planarity)``, ``s`` the weight smoothed over ``thin_smooth`` voxels (a cube), ``m``
+        the largest ``s`` within ``thin_radius`` voxels along the local normal (from the weights within
+        ``thin_radius + 1`` voxels), ``p`` rising from ``thin_power`` to ``thin_power * (1 +
+        thin_ramp)`` over the iterations (0 radius: off).
     surface_level, undecided_level : float
         Weight over ``x_ref`` from which a candidate is surface / undecided.
     min_pings : int
@@ -92,6 +98,7 @@ class FitOptions:
 
     iterations: int = 100
     adaptive_profile: bool = True
+    profile_mix: float = 0.3
     aperture_scale: float = 1.5
     side_lobe_level: float = 0.01
     spreading_exponent: float = 0.5
@@ -102,18 +109,25 @@ class FitOptions:
     cos_exponent: float = 1.0
     occlusion_m: float | None = None
     update_every: int = 25
+    thin_radius: int = 4
+    thin_power: float = 1.0
+    thin_every: int = 10
+    thin_smooth: int = 3
+    thin_ramp: float = 7.0
     surface_level: float = 0.02
     undecided_level: float = 0.005
     min_pings: int = 2
 
     def __post_init__(self) -> None:
-        for name, low in (("iterations", 0), ("update_every", 1), ("min_pings", 1)):
+        for name, low in (("iterations", 0), ("update_every", 1), ("min_pings", 1), ("thin_radius", 0),
+                          ("thin_every", 1)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
                 raise ValueError(f"Expected an integer >= {low} for {name!r}, but got {v!r}")
         if not (np.isfinite(self.aperture_scale) and self.aperture_scale >= 1.0):
             raise ValueError(f"Expected aperture_scale >= 1, but got {self.aperture_scale}")
-        for name in ("side_lobe_level", "spreading_exponent", "absorption_db_per_m", "cos_exponent"):
+        for name in ("side_lobe_level", "spreading_exponent", "absorption_db_per_m", "cos_exponent",
+                     "thin_power"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"Expected {name} >= 0, but got {v}")
@@ -329,24 +343,35 @@ def _build(centres_W: np.ndarray, grid: GridSpec, spec: SonarSpec, images: np.nd
 
 
 # ------------------------------------------------------------------------------ normals, incidence, occlusion
-def _normals(cand_idx: np.ndarray, weights: np.ndarray, shape: tuple[int, int, int]
+def _normals(cand_idx: np.ndarray, weights: np.ndarray, shape: tuple[int, int, int], radius: int = 2
              ) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals ((n, 3), grid axes = world axes) of the weighted candidates' local plane (the
-    least-variance direction of the weights within two voxels) and its planarity ((n,) in [0, 1])."""
+    least-variance direction of the weights within ``radius`` voxels, a cube) and its planarity ((n,)
+    in [0, 1]: 1 - smallest / middle variance)."""
     from scipy import ndimage
 
     w = np.zeros(shape)
     w[tuple(cand_idx.T)] = weights
-    o = np.arange(-2, 3, dtype=np.float64)
-    ker = [o[:, None, None] * np.ones((1, 5, 5)), o[None, :, None] * np.ones((5, 1, 5)),
-           o[None, None, :] * np.ones((5, 5, 1))]
-    sl = tuple(cand_idx.T)
-    m0 = ndimage.correlate(w, np.ones((5, 5, 5)), mode="constant")[sl]
-    m1 = np.stack([ndimage.correlate(w, kk, mode="constant")[sl] for kk in ker], -1)
+    o = np.arange(-radius, radius + 1, dtype=np.float64)
+    one = np.ones_like(o)
+
+    def moment(ks) -> np.ndarray:  # a separable box moment: one 1-D kernel per axis
+        a = w
+        for axis, k in enumerate(ks):
+            a = ndimage.correlate1d(a, k, axis=axis, mode="constant")
+        return a[tuple(cand_idx.T)]
+
+    m0 = moment((one, one, one))
+    unit = [tuple(o if b == a else one for b in range(3)) for a in range(3)]
+    m1 = np.stack([moment(u) for u in unit], -1)
     m2 = np.empty((len(cand_idx), 3, 3))
     for a in range(3):
         for b in range(a, 3):
-            m2[:, a, b] = m2[:, b, a] = ndimage.correlate(w, ker[a] * ker[b], mode="constant")[sl]
+            ks = [one, one, one]
+            ks[a] = o if a != b else o * o
+            if a != b:
+                ks[b] = o
+            m2[:, a, b] = m2[:, b, a] = moment(ks)
     safe = np.maximum(m0, 1e-12)
     mu = m1 / safe[:, None]
     val, vec = np.linalg.eigh(m2 / safe[:, None, None] - mu[:, :, None] * mu[:, None, :])
@@ -360,6 +385,32 @@ def _incidence(pk: _Pings, normals: np.ndarray, planar: np.ndarray, k: float) ->
     cos = np.abs(np.einsum("ij,ij->i", normals[pk.pair_vox], pk.pair_dir_W))
     lam = planar[pk.pair_vox]
     return lam * (cos * cos + 1e-4) ** (0.5 * (k + 1.0)) + (1.0 - lam) / (k + 2.0)
+
+
+def _thin(idx: np.ndarray, x: np.ndarray, shape: tuple[int, int, int], radius: int, power: float,
+          smooth: int = 1) -> np.ndarray:
+    """The thin-surface prior's step: ``x (x / m)^(power * planarity)``, ``m`` the largest weight within
+    ``radius`` voxels along each voxel's normal (the least-variance direction of the weights around it):
+    of a stack of weighted voxels across a surface only the heaviest keeps its weight, and the EM
+    steps after it move the rest of the stack's energy to where the pings need it."""
+    top = np.quantile(x[x > 0], 0.9) if np.any(x > 0) else 1.0
+    nrm, planar = _normals(idx, np.clip(x / top, 0.0, 1.0), shape, radius + 1)
+    from scipy import ndimage
+
+    dense = np.zeros(shape)
+    dense[tuple(idx.T)] = x
+    if smooth > 1:
+        dense = ndimage.uniform_filter(dense, smooth, mode="constant")
+    own = dense[tuple(idx.T)]
+    hi = np.array(shape) - 1
+    m = own.copy()
+    for k in range(1, radius + 1):
+        for sgn in (-1.0, 1.0):
+            q = idx + np.rint(sgn * k * nrm).astype(np.int64)
+            ok = np.all((q >= 0) & (q <= hi), axis=1)
+            m[ok] = np.maximum(m[ok], dense[tuple(q[ok].T)])
+    ratio = np.clip(np.divide(own, m, out=np.zeros_like(x), where=m > 0), 0.0, 1.0)
+    return x * ratio ** (power * planar)
 
 
 def _transmittance(pk: _Pings, alpha: np.ndarray, spec: SonarSpec, h: float, occlusion_m: float,
@@ -456,6 +507,8 @@ def _fit(cand: np.ndarray, grid: GridSpec, spec: SonarSpec, images: np.ndarray, 
         if opts.adaptive_profile:
             qp = np.bincount(pk.ent_pair, weights=q, minlength=n_pair)[pk.ent_pair]
             f = np.where(qp > 0, q / np.where(qp > 0, qp, 1.0) * f_sum[pk.ent_pair], f)
+            if opts.profile_mix > 0:
+                f = (1.0 - opts.profile_mix) * f + opts.profile_mix * pk.ent_frac
         if opts.per_ping_gain:
             s_den = np.bincount(pk.cell_ping, weights=sig, minlength=n_p)
             s_num = np.bincount(pk.cell_ping, weights=sig * ratio, minlength=n_p)
@@ -464,6 +517,9 @@ def _fit(cand: np.ndarray, grid: GridSpec, spec: SonarSpec, images: np.ndarray, 
             if pos.any():
                 scale = math.exp(float(np.mean(np.log(g[pos]))))
                 g, x = g / scale, x * scale
+        if opts.thin_radius and (it + 1) % opts.thin_every == 0 and it + 1 < opts.iterations:
+            ramp = 1.0 + opts.thin_ramp * (it + 1) / opts.iterations
+            x = _thin(idx, x, grid.shape, opts.thin_radius, opts.thin_power * ramp, opts.thin_smooth)
     A.data[:] = pair_a[pk.ent_pair] * f
     x_ref = _x_ref(pk, A, x, g, excess)
     yhat = g[pk.cell_ping] * (A @ x) + floor_c

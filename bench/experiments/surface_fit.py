@@ -127,3 +127,140 @@ def surface_scores(pred: np.ndarray, case: dict) -> dict:
     out["miss_rate_objects"] = ev["miss_rate_objects"]
     out["phantom_far_rate"] = ev["false_positive_rate_far"]
     return out
+
+
+# ------------------------------------------------------------------------------ the maps of one case
+def _maps(case: dict, pick: np.ndarray, backend: str, options) -> tuple[dict, dict]:
+    """The evidence map of the pings ``pick``, today's surface layer and the fit on the same map: binary
+    surfaces by name, and their seconds and counts."""
+    from gpumap.surface import surface_from_mapper
+    from gpumap.surface_fit import fit_surface
+
+    t0 = time.perf_counter()
+    m = _mapper(case, pick, backend)
+    v = m.values()
+    maps = {"evidence": np.nan_to_num(v, nan=-np.inf) >= m.threshold}
+    info = {"evidence": {"seconds": time.perf_counter() - t0, "backend": m.backend}}
+    images, poses = case["images"][pick], case["poses"][pick]
+    t0 = time.perf_counter()
+    layer = surface_from_mapper(m, images, poses)
+    maps["surface_layer"] = layer.surface
+    info["surface_layer"] = {"seconds": time.perf_counter() - t0}
+    t0 = time.perf_counter()
+    fit = fit_surface(m, images, poses, options)
+    maps["fit"] = fit.surface
+    maps["fit_and_undecided"] = fit.surface | fit.undecided
+    info["fit"] = {"seconds": time.perf_counter() - t0,
+                   **{k: v for k, v in fit.stats.items() if k not in ("options", "seconds")}}
+    return maps, {**info, "observed": np.isfinite(v), "fit_object": fit}
+
+
+def _heldout(case: dict, backend: str, options) -> dict:
+    """Maps of the even pings rendered at the odd ones (module docstring): rms over the coarse cells."""
+    from gpumap.refine_heldout import render_map
+    from gpumap.render import PingRenderer
+
+    even, odd = np.arange(0, len(case["images"]), 2), np.arange(1, len(case["images"]), 2)
+    maps, info = _maps(case, even, backend, options)
+    maps = {**maps, "truth_surface": case["truth"].surface, "empty": np.zeros_like(case["truth"].surface)}
+    sc = case["scene"]
+    r = PingRenderer(sc.sonar_spec, sc.grid, device="cpu")
+    measured = r.coarsen(case["images"][odd])
+    out = {"pings_fitted": even.tolist(), "pings_judged": odd.tolist(),
+           "fit_model": _model_heldout(case, info["fit_object"], odd)}
+    for name, mask in maps.items():
+        t0 = time.perf_counter()
+        pred, gain, floor = render_map(r, mask.astype(np.float32), case["poses"][odd],
+                                       train_images=case["images"][even], train_poses=case["poses"][even])
+        out[name] = {"rms": float(np.sqrt(np.mean((pred - measured) ** 2))), "gain": gain, "floor": floor,
+                     "voxels": int(mask.sum()), "render_seconds": time.perf_counter() - t0}
+    return out
+
+
+def _model_heldout(case: dict, fit, odd: np.ndarray) -> dict:
+    """The fit as a model: its weights (fitted on the even pings) predict the odd pings' coarse cells
+    through its own forward model (only a gain per judged ping is fitted, on that ping); rms of the
+    intensity ``1 - exp(-y)`` over the cells its candidates reach, against the noise floor alone."""
+    from gpumap.surface_fit import FitOptions, _fit
+
+    sc = case["scene"]
+    opts = FitOptions(iterations=0)
+    res = _fit(fit.candidates, sc.grid, sc.sonar_spec, case["images"][odd], case["poses"][odd],
+               case["threshold"], opts)
+    pk, A = res["pk"], res["A"]
+    x = fit.weight[tuple(res["idx"].T)].astype(np.float64)
+    sig = A @ x
+    floor = pk.floor[pk.cell_ping]
+    num = np.bincount(pk.cell_ping, weights=sig * np.maximum(pk.y - floor, 0.0), minlength=len(odd))
+    den = np.bincount(pk.cell_ping, weights=sig * sig, minlength=len(odd))
+    g = np.divide(num, den, out=np.zeros(len(odd)), where=den > 0)  # least squares gain per ping
+    ok = ~pk.censored
+    meas = 1.0 - np.exp(-pk.y[ok])
+    pred = 1.0 - np.exp(-(g[pk.cell_ping] * sig + floor)[ok])
+    empty = 1.0 - np.exp(-floor[ok])
+    return {"rms": float(np.sqrt(np.mean((pred - meas) ** 2))),
+            "rms_floor_only": float(np.sqrt(np.mean((empty - meas) ** 2))), "cells": int(ok.sum())}
+
+
+def run_case(scene: str, variation: str, backend: str, cache: Path, heldout: bool, options=None) -> dict:
+    """Every map of one case scored against the truth, and (``heldout``) on held-out pings."""
+    from gpumap.surface_fit import FitOptions
+
+    options = options or FitOptions()
+    load0 = load_average()
+    t0 = time.perf_counter()
+    case = _case(scene, variation, cache)
+    row: dict = {"scene": scene, "variation": variation, "pings": len(case["images"]), "voxel_size_m": VOXEL_M,
+                 "threshold": case["threshold"], "load_before": load0, "case_seconds": time.perf_counter() - t0}
+    maps, info = _maps(case, np.arange(len(case["images"])), backend, options)
+    case["observed"] = info.pop("observed")
+    fit = info.pop("fit_object")
+    row["maps"] = {name: {**surface_scores(mask, case), **info.get(name, {})} for name, mask in maps.items()}
+    row["maps"]["truth_seen_surface"] = surface_scores(case["truth"].surface & case["seen"], case)
+    row["fit_sure_quantiles"] = [float(q) for q in np.nanquantile(fit.sure, [0.1, 0.25, 0.5, 0.75, 0.9])]
+    if heldout:
+        row["heldout"] = _heldout(case, backend, options)
+    row["options"] = options.to_dict()
+    row["load_after"] = load_average()
+    return row
+
+
+def _line(row: dict) -> str:
+    parts = [f"{row['scene']} ({row['variation']}):"]
+    for name, x in row["maps"].items():
+        parts.append(f"  {name:20s} n {x['voxels']:6d}  P {x['precision_1']:.3f} R {x['recall_1']:.3f} "
+                     f"F {x['f_1']:.3f} (2 vox {x['f_2']:.3f}, seen {x['f_seen_1']:.3f})  Chamfer "
+                     f"{100 * x['chamfer_m']:.1f} cm  objects {x['object_recall_1']:.3f}  tops "
+                     + ", ".join(f"{k} {v:+.1f}" for k, v in x["top_error_voxels"].items()))
+    if "heldout" in row:
+        parts.append("  held out (even -> odd pings, rms of the coarse cells): " + ", ".join(
+            f"{k} {v['rms']:.4f}" for k, v in row["heldout"].items() if isinstance(v, dict))
+            + f" (fit's own model: floor alone {row['heldout']['fit_model']['rms_floor_only']:.4f})")
+    return "\n".join(parts)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.experiments.surface_fit", description=__doc__.split("\n")[0])
+    p.add_argument("--scenes", nargs="+", default=["tank", "circle"], choices=["tank", "circle", "side"])
+    p.add_argument("--variations", nargs="+", default=["none", "real_tank"], choices=["none", "real_tank"])
+    p.add_argument("--backend", default="auto", help="the evidence map's backend")
+    p.add_argument("--cache", type=Path, default=CACHE, help="simulated pings (npz per case)")
+    p.add_argument("--out", type=Path, default=Path("bench/results/surface_fit.json"))
+    p.add_argument("--no-heldout", action="store_true", help="skip the held-out renders")
+    a = p.parse_args(argv)
+    t0 = time.perf_counter()
+    res = {"schema": "gpumap-surface-fit/1", "machine": machine_info(), "cases": []}
+    for scene in a.scenes:
+        for var in a.variations:
+            row = run_case(scene, var, a.backend, a.cache, not a.no_heldout)
+            res["cases"].append(row)
+            print(_line(row), flush=True)
+    res["seconds_total"] = time.perf_counter() - t0
+    res["load_end"] = load_average()
+    path = write_json(a.out, res, digits=4)
+    print(f"wrote {path} ({res['seconds_total']:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
