@@ -1,49 +1,40 @@
 """A generative surface fit (issue 43): the pings' intensities explained by the safe map's occupied voxels.
 
-An imaging sonar's cell (range, beam) sums the echoes of its whole elevation arc; this layer fits that
-sum. Each candidate voxel ``i`` (the safe map's occupied voxels, ``mapper.values() >= threshold``: the
-fit never claims a voxel the pings proved empty or never saw) carries a weight ``x_i >= 0`` (its
-reflectivity times area, in the display's units), and the coarse cell ``c`` of ping ``p`` is modelled as
+An imaging sonar's cell (range, beam) sums the echoes of its elevation arc; this layer fits that sum.
+Each candidate voxel ``i`` (the safe map's occupied voxels, ``mapper.values() >= threshold``: the fit
+never claims a voxel the pings proved empty or never saw) carries a weight ``x_i >= 0`` (reflectivity
+times area, display units), and the coarse cell ``c`` of ping ``p`` is modelled as
 
     y_pc = g_p * sum_i a_pi f_pic x_i + b_p
 
 - ``y_pc``: the cell's energy, the display law undone (``-ln(1 - I)`` of every sonar cell, averaged
-  over ``bin_stride`` bins by ``beam_stride`` beams, about half a voxel each). A cell holding a
-  saturated sonar cell gives only a lower bound (censored: a model above it is not blamed).
-- ``a_pi = B(phi) L(r) / r^2 [c_inc T_pi]``: the two-way vertical beam pattern ``B(phi) = 0.5 **
-  ((2 phi / vfov)^2) + side_lobe_level`` out to ``aperture_scale * vfov / 2`` (the stated pattern of
-  :class:`gpumap.render.PingModel`: a voxel outside the nominal fan still returns, as the
-  simulator's beam does), the range loss left after time-varied gain ``L(r) = r^-n 10^(-2 a (r - 1) /
-  10)``, a voxel's solid angle ``1 / r^2``; optionally (off by default, see below) the incidence term
-  ``c_inc = (cos^2 + 1e-4)^((k + 1) / 2)`` with normals of the current estimate, and the
-  transmittance ``T_pi``, the product of ``1 - alpha_u`` over the candidates more than
-  ``occlusion_m`` nearer in the same (beam, elevation) ray cell, ``alpha_u`` their surface level.
-- ``f_pic``: where in its own width (``+-h/2`` in range and azimuth, split over the cells it covers)
-  the voxel's echo falls in that ping. It starts as the share of the width in each cell and is
-  fitted with the weights: a surface crosses a voxel somewhere, so its echo is a thin line at a
-  sub-voxel range that a fixed box cannot place (measured: with the fixed box the walls, seen near
-  normal incidence, lose their weight to their neighbours).
-- ``g_p`` a per-ping gain (geometric mean 1; real sonars vary ping to ping), ``b_p`` the ping's
-  noise floor (the median energy of its cells below the threshold).
+  over cells of about half a voxel); a cell with a saturated sonar cell is a lower bound (censored).
+- ``a_pi = B(phi) L(r) / r^2 [c_inc T_pi]``: the two-way vertical beam pattern ``0.5 ** ((2 phi /
+  vfov)^2) + side_lobe_level`` out to ``aperture_scale * vfov / 2`` (:class:`gpumap.render.PingModel`'s
+  stated pattern: a voxel outside the nominal fan still returns), the range loss left after
+  time-varied gain ``r^-n 10^(-2 a (r - 1) / 10)``, a voxel's solid angle ``1 / r^2``; optionally the
+  incidence term ``(cos^2 + 1e-4)^((k + 1) / 2)`` with normals of the current estimate, and the
+  transmittance ``T_pi``, the product of ``1 - alpha_u`` over the candidates more than ``occlusion_m``
+  nearer in the same (beam, elevation) ray cell, ``alpha_u`` their surface level.
+- ``f_pic``: where in its width (``+-h/2`` in range and azimuth) the voxel's echo falls in that ping (a
+  surface crosses a voxel somewhere: its echo is a line at a sub-voxel range; with a fixed box, walls
+  seen near normal incidence lose their weight), fitted with the weights, mixed with the box.
+- ``g_p`` a per-ping gain (geometric mean 1), ``b_p`` the ping's floor (median energy of its dark cells).
 
-The fit is the expectation-maximisation of this Poisson-like model (MLEM / Richardson-Lucy of emission
-tomography with real intensities): each cell's energy is shared among its entries in proportion to
-their prediction, ``q_pic``; a voxel's weight becomes what it collected over every ping divided by its
-sensitivity (dark cells included: a voxel is blamed for the cells it would brighten that stay dark),
-and its profile in a ping follows its collected shares. Weights stay ``>= 0``.
+The fit is the expectation-maximisation of this Poisson-like model (MLEM / Richardson-Lucy with real
+intensities): each cell's energy is shared among its entries in proportion to their prediction; a
+weight becomes what it collected over its sensitivity (dark cells blame it). Weights stay ``>= 0``.
+The pings alone leave a stack of voxels across a surface nearly interchangeable (the EM spreads the
+weight over it); the **thin-surface prior** keeps, every ``thin_every`` iterations, the heaviest
+(smoothed) voxel along the local normal and lowers the others by a rising power of their ratio to it.
 
-The decision. A voxel that the pings need keeps its weight; one whose cells others explain decays
-towards 0, the bulk of the candidates to about a hundredth of a surface's weight. The scale of a
-surface is the data's own: ``x_ref``, the weight that alone makes the median bright cell from the
-median entry of a bright cell. **How sure** ``p_i = x_i / (x_i + surface_level * x_ref)`` (0.5 at the
-decision); the **surface** is ``p >= 0.5``; **undecided** the candidates with ``undecided_level <= x /
-x_ref < surface_level`` and those in fewer than ``min_pings`` pings (the fit has too little to go
-on); the rest it explained away (the safe map still keeps them).
-
-Measured (``python -m bench.experiments.surface_fit``, tank at 3 cm): the incidence term with normals
-from the estimate and the occlusion with opacities from it do not help (a phantom in front that the
-estimate still holds shadows the surface behind it and keeps it), so both are off by default; with the
-truth's normals the incidence term helps (the experiment's notes). Everything here is NumPy.
+The decision is on the data's own scale of a surface, ``x_ref`` (the weight that alone makes the
+median bright cell from the median entry of a bright cell): **how sure** ``x / (x + surface_level
+x_ref)``; the **surface** is ``x >= surface_level x_ref``; **undecided** ``undecided_level x_ref <= x``
+below that, and the candidates in fewer than ``min_pings`` pings; the rest is explained away (the safe
+map still keeps it). Measured (``python -m bench.experiments.surface_fit``): the incidence term with
+normals from the estimate and the occlusion with opacities from it do not help (a phantom in front
+that the estimate still holds shadows the surface behind it), so both are off. NumPy only.
 """
 
 from __future__ import annotations
@@ -67,23 +58,21 @@ class FitOptions:
 
     iterations : int
         EM iterations.
-    adaptive_profile : bool
-        Fit where in its width each voxel's echo falls, per ping (False: the fixed box).
+    adaptive_profile, profile_mix : bool, float
+        Fit where in its width each voxel's echo falls, per ping (False: the fixed box), mixed with the
+        box by ``profile_mix`` in [0, 1] after every iteration.
     aperture_scale : float
         The candidates' elevation extent over the nominal vertical aperture (>= 1).
     side_lobe_level, spreading_exponent, absorption_db_per_m : float
         The beam pattern's floor and the range loss.
     per_ping_gain : bool
         Fit a gain per ping.
-    incidence, occlusion : bool
+    incidence, occlusion, update_every : bool, bool, int
         The incidence term (normals from the estimate) and the occlusion (opacities from it), updated
         every ``update_every`` iterations (measured: neither helps; off).
-    cos_exponent : float
-        ``k`` of the incidence law.
-    occlusion_m : float or None
-        A voxel occludes those more than this behind it, metres (None: two voxels).
-    update_every : int
-        Iterations between updates of the normals and opacities.
+    cos_exponent, occlusion_m : float, float or None
+        ``k`` of the incidence law; a voxel occludes those more than ``occlusion_m`` metres behind it
+        (None: two voxels).
     thin_radius, thin_power, thin_every, thin_smooth, thin_ramp : int, float, int, int, float
         The thin-surface prior: every ``thin_every`` iterations each weight is multiplied by
         ``(s / m)^(p * planarity)``, ``s`` the weight smoothed over ``thin_smooth`` voxels (a cube), ``m``
@@ -120,17 +109,19 @@ class FitOptions:
 
     def __post_init__(self) -> None:
         for name, low in (("iterations", 0), ("update_every", 1), ("min_pings", 1), ("thin_radius", 0),
-                          ("thin_every", 1)):
+                          ("thin_every", 1), ("thin_smooth", 1)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
                 raise ValueError(f"Expected an integer >= {low} for {name!r}, but got {v!r}")
         if not (np.isfinite(self.aperture_scale) and self.aperture_scale >= 1.0):
             raise ValueError(f"Expected aperture_scale >= 1, but got {self.aperture_scale}")
         for name in ("side_lobe_level", "spreading_exponent", "absorption_db_per_m", "cos_exponent",
-                     "thin_power"):
+                     "thin_power", "thin_ramp"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"Expected {name} >= 0, but got {v}")
+        if not 0.0 <= self.profile_mix <= 1.0:
+            raise ValueError(f"Expected profile_mix in [0, 1], but got {self.profile_mix}")
         if not (0.0 < self.undecided_level <= self.surface_level and np.isfinite(self.surface_level)):
             raise ValueError(f"Expected 0 < undecided_level <= surface_level, but got {self.undecided_level} "
                              f"and {self.surface_level}")
@@ -149,10 +140,8 @@ class SurfaceFit:
         What is there: candidates with ``sure >= 0.5`` in at least ``min_pings`` pings.
     undecided : bool
         Candidates the fit cannot decide (the safe map keeps them: an arm must still avoid them).
-    candidates : bool
-        The safe map's occupied voxels the fit chose from.
-    observed : bool
-        Voxels the safe map observed.
+    candidates, observed : bool
+        The safe map's occupied voxels the fit chose from, and the voxels it observed.
     sure : float32
         How sure the fit is that the voxel is surface, in [0, 1); NaN off the candidates.
     weight : float32
@@ -163,7 +152,6 @@ class SurfaceFit:
     x_ref : float
         The data's weight of a surface (module docstring).
     gains : (n_pings,) float64
-        Per-ping gains.
     stats : dict
         Counts, seconds and settings (JSON-ready).
     """
@@ -199,8 +187,7 @@ def _strides(spec: SonarSpec, voxel_m: float) -> tuple[int, int]:
 
 
 def _coarse_edges(edges: np.ndarray, stride: int) -> np.ndarray:
-    n = len(edges) - 1
-    return np.asarray(edges, np.float64)[np.r_[np.arange(0, n, stride), n]]
+    return np.asarray(edges, np.float64)[np.r_[np.arange(0, len(edges) - 1, stride), len(edges) - 1]]
 
 
 def _energy(image: np.ndarray, threshold: float, bin_stride: int, beam_stride: int
@@ -208,7 +195,7 @@ def _energy(image: np.ndarray, threshold: float, bin_stride: int, beam_stride: i
     """One ping's coarse energy ((n_rc, n_bc) float64, ``-ln(1 - I)`` averaged over each coarse cell),
     its censored cells (bool: a saturated sonar cell), its floor (the median energy of the cells below
     ``threshold``; 0 if none) and its bright cells (bool: a sonar cell ``>= threshold``)."""
-    img = image.astype(np.float64) * (1.0 / 255.0) if image.dtype == np.uint8 else np.asarray(image, np.float64)
+    img = np.asarray(image, np.float64) * (1.0 / 255.0 if image.dtype == np.uint8 else 1.0)
     cap = 1.0 - 0.5 / 255.0
     e = -np.log1p(-np.minimum(np.clip(img, 0.0, 1.0), cap))
     dark = img < threshold
@@ -223,8 +210,7 @@ def _energy(image: np.ndarray, threshold: float, bin_stride: int, beam_stride: i
 
 
 def _check(images: np.ndarray, poses: np.ndarray, spec: SonarSpec) -> tuple[np.ndarray, np.ndarray]:
-    images = np.asarray(images)
-    poses = np.asarray(poses, np.float64)
+    images, poses = np.asarray(images), np.asarray(poses, np.float64)
     if images.ndim != 3 or images.shape[1:] != spec.image_shape:
         raise ValueError(f"Expected images of shape (n, {spec.image_shape[0]}, {spec.image_shape[1]}), "
                          f"but got {images.shape}")
@@ -254,8 +240,7 @@ def _overlaps(lo: np.ndarray, hi: np.ndarray, edges: np.ndarray) -> tuple[np.nda
 
 
 def _product(na: np.ndarray, nb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every pair of a row's ``na`` entries of one list and ``nb`` of another (rows in order):
-    (row, index into the first list, index into the second)."""
+    """Each row's ``na`` x ``nb`` combinations of two lists: (row, index into each list)."""
     a0, b0 = np.cumsum(na) - na, np.cumsum(nb) - nb
     tot = na * nb
     row = np.repeat(np.arange(len(na)), tot)
@@ -266,8 +251,7 @@ def _product(na: np.ndarray, nb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
 
 @dataclass
 class _Pings:
-    """Every (ping, candidate) pair within the aperture and its entries (coarse cells), all pings at once;
-    entries sorted by cell."""
+    """Every (ping, candidate) pair within the aperture and its entries (coarse cells, sorted by cell)."""
 
     pair_vox: np.ndarray  # (P,) candidate index
     pair_ping: np.ndarray  # (P,) ping
@@ -323,8 +307,8 @@ def _build(centres_W: np.ndarray, grid: GridSpec, spec: SonarSpec, images: np.nd
         loss = r ** -opts.spreading_exponent * 10.0 ** (-2.0 * opts.absorption_db_per_m * (r - 1.0) / 10.0)
         for key, v in (("vox", k), ("r", r), ("az", az), ("el", el), ("dir", d[k] / r[:, None]),
                        ("up", np.broadcast_to(R[:, 2], (len(k), 3))), ("w0", pattern * loss / (r * r)),
-                       ("ecell", p * n_cell + rc[ir] * (len(b_edges) - 1) + bc[ib]), ("efrac", rf[ir] * bf[ib]),
-                       ("epair", pair + n_pairs)):
+                       ("ecell", p * n_cell + rc[ir] * (len(b_edges) - 1) + bc[ib]),
+                       ("efrac", rf[ir] * bf[ib]), ("epair", pair + n_pairs)):
             parts[key].append(v)
         counts.append(len(k))
         n_pairs += len(k)
@@ -469,7 +453,7 @@ def _fit(cand: np.ndarray, grid: GridSpec, spec: SonarSpec, images: np.ndarray, 
     n = len(idx)
     pk = _build(grid.centers(idx), grid, spec, images, poses, threshold, opts)
     n_p, n_pair, n_c = len(images), len(pk.pair_vox), len(pk.y)
-    runs = np.flatnonzero(np.r_[True, pk.ent_cell[1:] != pk.ent_cell[:-1]]) if len(pk.ent_cell) else np.zeros(0, int)
+    runs = np.flatnonzero(np.r_[True, pk.ent_cell[1:] != pk.ent_cell[:-1]])[:len(pk.y)]
     vox_e = pk.pair_vox[pk.ent_pair]
     A = sparse.csr_matrix((pk.ent_frac.copy(), vox_e, np.r_[runs, len(vox_e)]), shape=(n_c, n))
     t_build = time.perf_counter() - t0
@@ -484,12 +468,13 @@ def _fit(cand: np.ndarray, grid: GridSpec, spec: SonarSpec, images: np.ndarray, 
     occ_m = 2.0 * grid.voxel_size_m if opts.occlusion_m is None else opts.occlusion_m
     for it in range(int(opts.iterations)):
         if (opts.incidence or opts.occlusion) and it > 0 and it % opts.update_every == 0:
-            level = np.clip(x / max(_x_ref(pk, A, x, g, excess), 1e-300) / opts.surface_level, 0.0, 1.0)
+            level = np.clip(x / max(_x_ref(pk, A, g, excess), 1e-300) / opts.surface_level, 0.0, 1.0)
             nrm, planar = _normals(idx, level, grid.shape)
             if opts.incidence:
                 inc = _incidence(pk, nrm, planar, opts.cos_exponent)
             if opts.occlusion:
-                trans = _transmittance(pk, level, spec, grid.voxel_size_m, occ_m, opts.aperture_scale, nrm, planar)
+                trans = _transmittance(pk, level, spec, grid.voxel_size_m, occ_m, opts.aperture_scale, nrm,
+                                       planar)
             new_a = pk.pair_w0 * inc * trans
             old_s = np.bincount(pk.pair_vox, weights=pair_a * f_sum * g[pk.pair_ping], minlength=n)
             new_s = np.bincount(pk.pair_vox, weights=new_a * f_sum * g[pk.pair_ping], minlength=n)
@@ -521,7 +506,7 @@ def _fit(cand: np.ndarray, grid: GridSpec, spec: SonarSpec, images: np.ndarray, 
             ramp = 1.0 + opts.thin_ramp * (it + 1) / opts.iterations
             x = _thin(idx, x, grid.shape, opts.thin_radius, opts.thin_power * ramp, opts.thin_smooth)
     A.data[:] = pair_a[pk.ent_pair] * f
-    x_ref = _x_ref(pk, A, x, g, excess)
+    x_ref = _x_ref(pk, A, g, excess)
     yhat = g[pk.cell_ping] * (A @ x) + floor_c
     stats = {"candidates": n, "pairs": n_pair, "entries": len(vox_e), "cells": n_c, "build_seconds": t_build,
              "rms_cells": float(np.sqrt(np.mean((yhat - pk.y) ** 2))) if n_c else 0.0, "x_ref": x_ref}
@@ -529,12 +514,10 @@ def _fit(cand: np.ndarray, grid: GridSpec, spec: SonarSpec, images: np.ndarray, 
             "stats": stats, "pk": pk, "A": A, "yhat": yhat}
 
 
-def _x_ref(pk: _Pings, A, x: np.ndarray, g: np.ndarray, excess: np.ndarray) -> float:
+def _x_ref(pk: _Pings, A, g: np.ndarray, excess: np.ndarray) -> float:
     """The weight that alone makes the median bright cell's energy above the floor from the median entry
-    of a bright cell (the data's scale of a surface)."""
+    of a bright cell (the data's scale of a surface; 1 without a bright cell)."""
     b = pk.bright & (excess > 0)
-    if not b.any():
-        return 1.0
     ent = b[pk.ent_cell]
     a = A.data * g[pk.cell_ping][pk.ent_cell]
     med = float(np.median(a[ent])) if ent.any() else 0.0
@@ -586,17 +569,16 @@ def fit_candidates(candidates: np.ndarray, observed: np.ndarray, grid: GridSpec,
     images, poses = _check(images, poses, spec)
     res = _fit(cand, grid, spec, images, poses, float(threshold), opts)
     sl = tuple(res["idx"].T)
+
+    def put(values: np.ndarray, fill, dtype) -> np.ndarray:
+        out = np.full(grid.shape, fill, dtype)
+        out[sl] = values
+        return out
+
     level = res["x"] / res["x_ref"]
-    sure = np.full(grid.shape, np.nan, np.float32)
-    sure[sl] = level / (level + opts.surface_level)
-    weight = np.zeros(grid.shape, np.float32)
-    weight[sl] = res["x"]
-    pings = np.zeros(grid.shape, np.uint16)
-    pings[sl] = np.minimum(res["pings"], np.iinfo(np.uint16).max)
-    enough = np.zeros(grid.shape, bool)
-    enough[sl] = res["pings"] >= opts.min_pings
-    lv = np.zeros(grid.shape)
-    lv[sl] = level
+    sure, weight = put(level / (level + opts.surface_level), np.nan, np.float32), put(res["x"], 0, np.float32)
+    pings = put(np.minimum(res["pings"], np.iinfo(np.uint16).max), 0, np.uint16)
+    enough, lv = put(res["pings"] >= opts.min_pings, False, bool), put(level, 0.0, np.float64)
     surface = enough & (lv >= opts.surface_level)
     undecided = cand & ~surface & (~enough | (lv >= opts.undecided_level))
     stats = {**res["stats"], "surface": int(surface.sum()), "undecided": int(undecided.sum()),
@@ -605,7 +587,8 @@ def fit_candidates(candidates: np.ndarray, observed: np.ndarray, grid: GridSpec,
                       res["gains"], stats)
 
 
-def fit_surface(mapper, images: np.ndarray, poses: np.ndarray, options: FitOptions | None = None) -> SurfaceFit:
+def fit_surface(mapper, images: np.ndarray, poses: np.ndarray,
+                options: FitOptions | None = None) -> SurfaceFit:
     """The surface fit of a :class:`gpumap.MinMaxMapper` from the pings it integrated: candidates
     ``mapper.values() >= mapper.threshold`` over its grid, with its sonar and threshold
     (:func:`fit_candidates`)."""

@@ -127,7 +127,8 @@ def test_the_decision_does_not_depend_on_the_display_gain() -> None:
     a = fit_candidates(cand, cand, GRID, SPEC, one, poses, 0.05)
     b = fit_candidates(cand, cand, GRID, SPEC, two, poses, 0.05)
     assert a.surface.sum() > 100
-    np.testing.assert_allclose(b.weight[a.candidates], 2 * a.weight[a.candidates], rtol=1e-4, atol=1e-6 * a.x_ref)
+    np.testing.assert_allclose(b.weight[a.candidates], 2 * a.weight[a.candidates], rtol=1e-4,
+                               atol=1e-6 * a.x_ref)
     assert b.x_ref == pytest.approx(2 * a.x_ref, rel=0.25)
     assert (a.surface & b.surface).sum() >= 0.9 * (a.surface | b.surface).sum()
 
@@ -140,7 +141,8 @@ def test_a_ping_with_another_gain_gets_its_gain() -> None:
     true = _voxels_of(pts)
     k0 = int(np.argwhere(true)[:, 2][0])
     cand = _stack(true, 3, 3)
-    poses = np.stack([_pose((0.0, 0.0, 0.1), 25.0), _pose((0.0, 0.0, 0.1), 25.0), _pose((0.0, 0.0, -0.2), 12.0)])
+    poses = np.stack([_pose((0.0, 0.0, 0.1), 25.0), _pose((0.0, 0.0, 0.1), 25.0),
+                      _pose((0.0, 0.0, -0.2), 12.0)])
     images = np.concatenate([_render(pts, nrm, area, poses[:1], floor=0.0),
                              _render(pts, nrm, 3.0 * area, poses[1:2], floor=0.0),
                              _render(pts, nrm, area, poses[2:], floor=0.0)])

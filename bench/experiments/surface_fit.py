@@ -108,7 +108,8 @@ def surface_scores(pred: np.ndarray, case: dict) -> dict:
     d_surf = ndimage.distance_transform_edt(~truth.surface)
     p_all = float((d_surf[pred] <= 1).mean()) if pred.any() else 0.0
     out["precision_any_1"] = p_all
-    for name, t in (("seen", truth.surface & case["seen"]), ("detectable", truth.surface & case["detectable"])):
+    for name, t in (("seen", truth.surface & case["seen"]),
+                    ("detectable", truth.surface & case["detectable"])):
         r = float((d_pred[t] <= 1).mean())
         out[f"recall_{name}_1"] = r
         out[f"f_{name}_1"] = 2 * p_all * r / (p_all + r) if p_all + r > 0 else 0.0
@@ -210,8 +211,9 @@ def run_case(scene: str, variation: str, backend: str, cache: Path, heldout: boo
     load0 = load_average()
     t0 = time.perf_counter()
     case = _case(scene, variation, cache)
-    row: dict = {"scene": scene, "variation": variation, "pings": len(case["images"]), "voxel_size_m": VOXEL_M,
-                 "threshold": case["threshold"], "load_before": load0, "case_seconds": time.perf_counter() - t0}
+    row: dict = {"scene": scene, "variation": variation, "pings": len(case["images"]),
+                 "voxel_size_m": VOXEL_M, "threshold": case["threshold"], "load_before": load0,
+                 "case_seconds": time.perf_counter() - t0}
     maps, info = _maps(case, np.arange(len(case["images"])), backend, options)
     case["observed"] = info.pop("observed")
     fit = info.pop("fit_object")
@@ -240,7 +242,8 @@ def _line(row: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.experiments.surface_fit", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m bench.experiments.surface_fit",
+                                description=__doc__.split("\n")[0])
     p.add_argument("--scenes", nargs="+", default=["tank", "circle"], choices=["tank", "circle", "side"])
     p.add_argument("--variations", nargs="+", default=["none", "real_tank"], choices=["none", "real_tank"])
     p.add_argument("--backend", default="auto", help="the evidence map's backend")
