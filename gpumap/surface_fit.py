@@ -65,13 +65,12 @@ class FitOptions:
         box by ``profile_mix`` in [0, 1] after every iteration.
     aperture_scale : float
         The candidates' elevation extent over the nominal vertical aperture (>= 1).
-    side_lobe_level, spreading_exponent, absorption_db_per_m : float
-        The beam pattern's floor and the range loss.
-    per_ping_gain : bool
-        Fit a gain per ping.
-    incidence, occlusion, update_every : bool, bool, int
+    side_lobe_level, spreading_exponent, absorption_db_per_m, per_ping_gain : float, float, float, bool
+        The beam pattern's floor, the range loss; whether to fit a gain per ping.
+    incidence, occlusion, first_update, update_every : bool, bool, int, int
         The incidence term (normals from the estimate) and the occlusion (opacities from it), updated
-        every ``update_every`` iterations (measured: the first helps, the second does not: off).
+        from iteration ``first_update`` every ``update_every`` (measured: the first helps; the second
+        does not: off).
     cos_exponent, occlusion_m : float, float or None
         ``k`` of the incidence law; a voxel occludes those more than ``occlusion_m`` metres behind it
         (None: two voxels).
@@ -81,10 +80,9 @@ class FitOptions:
         the largest ``s`` within ``thin_radius`` voxels along the local normal (from the weights within
         ``thin_radius + 1`` voxels), ``p`` rising from ``thin_power`` to ``thin_power * (1 +
         thin_ramp)`` over the iterations (0 radius: off).
-    surface_level, undecided_level : float
-        Weight over ``x_ref`` from which a candidate is surface / undecided.
-    min_pings : int
-        Pings a candidate must be in (within the aperture) for a decision.
+    surface_level, undecided_level, min_pings : float, float, int
+        Weight over ``x_ref`` from which a candidate is surface / undecided; pings a candidate must be
+        in (within the aperture) for a decision.
     """
 
     iterations: int = 100
@@ -104,7 +102,6 @@ class FitOptions:
     thin_radius: int = 4
     thin_power: float = 1.0
     thin_every: int = 10
-    thin_start: int = 0
     thin_smooth: int = 3
     thin_ramp: float = 7.0
     surface_level: float = 0.02
@@ -112,8 +109,8 @@ class FitOptions:
     min_pings: int = 2
 
     def __post_init__(self) -> None:
-        for name, low in (("iterations", 0), ("update_every", 1), ("min_pings", 1), ("thin_radius", 0),
-                          ("thin_every", 1), ("thin_smooth", 1)):
+        for name, low in (("iterations", 0), ("update_every", 1), ("first_update", 0), ("min_pings", 1),
+                          ("thin_radius", 0), ("thin_every", 1), ("thin_smooth", 1)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
                 raise ValueError(f"Expected an integer >= {low} for {name!r}, but got {v!r}")
@@ -507,8 +504,7 @@ def _fit(cand: np.ndarray, grid: GridSpec, spec: SonarSpec, images: np.ndarray, 
             if pos.any():
                 scale = math.exp(float(np.mean(np.log(g[pos]))))
                 g, x = g / scale, x * scale
-        if opts.thin_radius and it + 1 > opts.thin_start and (it + 1) % opts.thin_every == 0 \
-                and it + 1 < opts.iterations:
+        if opts.thin_radius and (it + 1) % opts.thin_every == 0 and it + 1 < opts.iterations:
             ramp = 1.0 + opts.thin_ramp * (it + 1) / opts.iterations
             x = _thin(idx, x, grid.shape, opts.thin_radius, opts.thin_power * ramp, opts.thin_smooth)
     A.data[:] = pair_a[pk.ent_pair] * f
@@ -537,16 +533,12 @@ def fit_candidates(candidates: np.ndarray, observed: np.ndarray, grid: GridSpec,
 
     Parameters
     ----------
-    candidates : (nx, ny, nz) bool
-        The voxels that may be surface (the safe map's occupied ones).
-    observed : (nx, ny, nz) bool
-        Voxels the safe map observed (holding ``candidates``).
+    candidates, observed : (nx, ny, nz) bool
+        The voxels that may be surface (the safe map's occupied ones), and those the safe map observed.
     grid : GridSpec
     spec : SonarSpec
-    images : (n, n_bins, n_beams) uint8, float32 or float64
-        The pings, intensities in [0, 1] (uint8 scaled by 1/255).
-    poses : (n, 4, 4) float
-        ``T_W_S`` of each ping.
+    images, poses : (n, n_bins, n_beams) uint8, float32 or float64; (n, 4, 4) float
+        The pings, intensities in [0, 1] (uint8 scaled by 1/255), and their ``T_W_S``.
     threshold : float
         The safe map's occupied intensity, in (0, 1] (cells below it give the noise floor).
     options : FitOptions, optional
