@@ -38,7 +38,7 @@ def _browser(chromium: str, port: int, profile: Path, session) -> subprocess.Pop
 def main(argv: list[str] | None = None) -> int:
     from gpumap.io import open_recording
     from gpumap.pipeline.replay import run_replay
-    from gpumap.viewer.session import Session
+    from gpumap.viewer.session import Session, SessionLayer
 
     ap = bench_parser("viewer_cost", __doc__, out="bench/results/viewer_cost.json", voxel=0.05)
     ap.add_argument("--data", type=Path, default=None,
@@ -69,8 +69,8 @@ def main(argv: list[str] | None = None) -> int:
                 elif mode == "record":
                     session = Session(_session_args(False, tmp / "run.gpumap-rec", 0), spec, grid, thr)
                 c0 = time.process_time()
-                mapper, st = run_replay(rec, voxel_size_m=a.voxel, grid=grid, progress=False,
-                                        on_ping=None if session is None else session.ping)
+                layers = [] if session is None else [SessionLayer(lambda _m, s=session: s)]
+                mapper, st = run_replay(rec, voxel_size_m=a.voxel, grid=grid, progress=False, layers=layers)
                 if session is not None:
                     t0 = time.perf_counter()
                     session.finish(mapper)

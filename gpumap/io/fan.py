@@ -52,7 +52,7 @@ import numpy as np
 
 from gpumap import limits
 from gpumap.errors import check_pose
-from gpumap.io.frame import FormatError, LimitError, Recording, SonarFrame, decoded_in_order
+from gpumap.io.frame import FormatError, LimitError, Recording, SonarFrame, frames_skipping_bad
 from gpumap.limits import check_size, declared_product
 from gpumap.spec import SonarSpec
 
@@ -555,14 +555,7 @@ def open_fan_folder(
                           meta={"format": "fan", "frame": k, "file": str(f)})
 
     def frames() -> Iterator[SonarFrame]:
-        # pictures decoded ahead by a few threads, handed over in order (decoded_in_order)
-        for fr in decoded_in_order(decode, files):
-            if isinstance(fr, FormatError):
-                if on_bad is None:
-                    raise fr
-                on_bad(fr)
-                continue
-            yield fr
+        return frames_skipping_bad(decode, files, on_bad)  # decoded ahead on a few threads, in order
 
     return Recording(str(root), "fan-folder", frames, has_poses=has_poses,
                      count=lambda: len(files), poses=lambda: [T.get(k) for k, _ in files],

@@ -165,3 +165,16 @@ def decoded_in_order(decode, items, threads: int | None = None, window: int | No
             for f in queued:
                 f.cancel()
 
+
+def frames_skipping_bad(decode, items, on_bad):
+    """The frames ``decode(item)`` gives, decoded ahead in order (:func:`decoded_in_order`); ``decode``
+    returns a :class:`FormatError` for an item it cannot read, which goes to ``on_bad(error)`` (then the
+    frame is skipped) or, with ``on_bad`` None, is raised where it comes."""
+    for fr in decoded_in_order(decode, items):
+        if isinstance(fr, FormatError):
+            if on_bad is None:
+                raise fr
+            on_bad(fr)
+            continue
+        yield fr
+

@@ -37,7 +37,7 @@ import numpy as np
 
 from gpumap.errors import check_pose
 from gpumap.io.fan import OASIS_SPEC, FanGeometry, _fan_sampler, read_grey_png
-from gpumap.io.frame import FormatError, Recording, SonarFrame, decoded_in_order
+from gpumap.io.frame import FormatError, Recording, SonarFrame, frames_skipping_bad
 from gpumap.io.safe_pickle import load_pickle
 from gpumap.spec import SonarSpec
 
@@ -182,14 +182,7 @@ def open_oasis_folder(
                           meta={"format": "oasis", "frame": i, "file": str(pics[i])})
 
     def frames() -> Iterator[SonarFrame]:
-        # pictures decoded ahead by a few threads, handed over in order (decoded_in_order)
-        for fr in decoded_in_order(decode, chosen):
-            if isinstance(fr, FormatError):
-                if on_bad is None:
-                    raise fr
-                on_bad(fr)
-                continue
-            yield fr
+        return frames_skipping_bad(decode, chosen, on_bad)  # decoded ahead on a few threads, in order
 
     return Recording(str(root), "oasis", frames, has_poses=True, count=lambda: len(chosen),
                      poses=lambda: [T[i].copy() for i in chosen])

@@ -69,11 +69,12 @@ PAIR_STEPS = np.array([s for s in np.ndindex(3, 3, 3) if s > (1, 1, 1)]) - 1
 def confidence_of(mapper):
     """The confidence layer attached to ``mapper`` (:class:`gpumap.layers.confidence.ConfidenceLayer`);
     ``ValueError`` when it has none (view gains are scored against it)."""
-    for x in getattr(mapper, "layers", ()):
-        if getattr(x, "name", None) == "confidence":
-            return x
-    raise ValueError("Expected a map with its confidence layer attached (mapper.attach(ConfidenceLayer()) "
-                     "or gpumap.layers.confidence.with_confidence(mapper)), but it has none")
+    try:
+        return mapper.layer("confidence")
+    except KeyError:
+        raise ValueError("Expected a map with its confidence layer attached (mapper.attach("
+                         "ConfidenceLayer()) or gpumap.layers.confidence.with_confidence(mapper)), but it "
+                         "has none") from None
 
 
 
